@@ -1,0 +1,115 @@
+"""Typed configuration: one dataclass per component, YAML in and out.
+
+Defaults are the paper's values or documented choices; every artefact dumps the config that
+made it (see `dump_yaml`).
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TypeVar
+
+import yaml
+
+T = TypeVar("T")
+
+
+@dataclass
+class LidarConfig:
+    """Sensor model and noise. Ranges in metres; a miss produces no point."""
+
+    model: str = "vlp16"  # vlp16 | os0-128 | a name registered with lidar.register_pattern
+    backend: str = "embree"  # embree | pybullet
+    range_noise_std: float = 0.03  # Gaussian range noise (VLP-16 datasheet: +-3 cm)
+    dropout: float = 0.0  # probability that a return is lost
+    min_range: float | None = None  # None: the pattern's own
+    max_range: float | None = None  # None: the pattern's own
+
+
+@dataclass
+class RobotConfig:
+    """A quadruped-sized stand-in (about ANYmal-C) commanded by a planar twist."""
+
+    base_size: tuple[float, float, float] = (0.9, 0.5, 0.4)  # length, width, height of the base box
+    standing_height: float = 0.55  # ground to base centre
+    lidar_offset: tuple[float, float, float] = (0.0, 0.0, 0.3)  # sensor in the base frame
+    feet_xy: tuple[float, float] = (0.35, 0.2)  # half-spacing of the feet that sense the ground
+    max_step_up: float = 0.5  # highest ledge the robot climbs in one step
+    max_twist: tuple[float, float, float] = (1.0, 0.5, 1.0)  # |vx| m/s, |vy| m/s, |yaw rate| rad/s
+    dt: float = 0.1  # one step = one LiDAR revolution at 10 Hz
+
+
+@dataclass
+class OdometryConfig:
+    """Leg odometry drift. Noise standard deviations grow with the motion of each step; biases
+    are per metre travelled and wander slowly (random walk per sqrt(metre)). Yaw and z drift the
+    most, as they do on legged robots."""
+
+    trans_noise_per_m: float = 0.02  # sigma of x, y error per metre moved
+    z_noise_per_m: float = 0.02
+    rp_noise_per_m: float = 0.002  # rad per metre (roll and pitch)
+    yaw_noise_per_m: float = 0.005  # rad per metre
+    yaw_noise_per_rad: float = 0.02  # rad per radian turned
+    yaw_bias_std: float = 0.01  # rad per metre, initial bias spread
+    yaw_bias_walk: float = 0.002  # rad/m per sqrt(m)
+    z_bias_std: float = 0.01  # m per metre, initial bias spread
+    z_bias_walk: float = 0.002
+    scale_error_std: float = 0.02  # constant stride-length scale error per episode
+
+
+@dataclass
+class EnvConfig:
+    """Gymnasium environment options."""
+
+    scene: str = "mine"
+    scene_params: dict[str, Any] = field(default_factory=dict)
+    lidar: LidarConfig = field(default_factory=LidarConfig)
+    robot: RobotConfig = field(default_factory=RobotConfig)
+    odometry: OdometryConfig = field(default_factory=OdometryConfig)
+    route: str = "main"
+    range_image_width: int | None = None  # None: the pattern's default
+    goal_radius: float = 1.0
+    max_episode_steps: int | None = None  # None: 3x the route length at full speed
+    progress_reward: float = 1.0  # per metre of progress to the goal
+    step_penalty: float = 0.01
+    collision_penalty: float = 0.1
+    goal_reward: float = 10.0
+
+
+def to_dict(cfg: Any) -> dict[str, Any]:
+    return dataclasses.asdict(cfg)
+
+
+def from_dict(cls: type[T], data: dict[str, Any] | None) -> T:
+    """Build a (nested) config dataclass, rejecting unknown keys by name."""
+    data = dict(data or {})
+    names = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = sorted(set(data) - set(names))
+    if unknown:
+        raise ValueError(f"{cls.__name__}: unknown option(s) {unknown}; known: {sorted(names)}")
+    kwargs = {}
+    for key, value in data.items():
+        default = names[key].default_factory() if names[key].default_factory is not dataclasses.MISSING else None
+        if dataclasses.is_dataclass(default) and isinstance(value, dict):
+            value = from_dict(type(default), value)
+        elif isinstance(value, list):
+            value = tuple(value)
+        kwargs[key] = value
+    return cls(**kwargs)
+
+
+def dump_yaml(cfg: Any, path: str | Path) -> None:
+    Path(path).write_text(yaml.safe_dump(_plain(to_dict(cfg)), sort_keys=False))
+
+
+def load_yaml(cls: type[T], path: str | Path) -> T:
+    return from_dict(cls, yaml.safe_load(Path(path).read_text()))
+
+
+def _plain(x: Any) -> Any:
+    if isinstance(x, dict):
+        return {k: _plain(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_plain(v) for v in x]
+    return x

@@ -1,0 +1,3 @@
+from .navigation import NavigationEnv
+
+__all__ = ["NavigationEnv"]

@@ -1,0 +1,105 @@
+"""Ray casting backends behind one interface: Embree (default) and PyBullet's rayTestBatch."""
+from __future__ import annotations
+
+from typing import Protocol
+
+import numpy as np
+import pybullet as pb
+import trimesh
+from embreex import rtcore_scene
+from embreex.mesh_construction import TriangleMesh
+
+# PyBullet returns 16383 results or none for 16384 rays and raises beyond: stay below.
+PYBULLET_MAX_RAYS = 16000
+
+
+class RayCaster(Protocol):
+    def cast(self, origin: np.ndarray, directions: np.ndarray, max_range: float) -> np.ndarray:
+        """Distances (float32, N) along unit `directions` from `origin` (world frame); inf = miss."""
+        ...
+
+
+class EmbreeCaster:
+    """Intel Embree through embreex: ~10x PyBullet's throughput on one thread.
+
+    Vertices are stored relative to the mesh centre so float32 keeps sub-millimetre precision
+    in scenes a few hundred metres wide.
+    """
+
+    def __init__(self, mesh: trimesh.Trimesh):
+        self.offset = np.asarray(mesh.bounds, dtype=np.float64).mean(axis=0)
+        self.scene = rtcore_scene.EmbreeScene()
+        verts = (np.asarray(mesh.vertices, dtype=np.float64) - self.offset).astype(np.float32)
+        TriangleMesh(self.scene, verts, np.asarray(mesh.faces, dtype=np.int32))
+
+    def cast(self, origin: np.ndarray, directions: np.ndarray, max_range: float) -> np.ndarray:
+        o = (np.asarray(origin, dtype=np.float64) - self.offset).astype(np.float32)
+        origins = np.broadcast_to(o, directions.shape)
+        tfar = np.full(len(directions), max_range, dtype=np.float32)
+        dist = self.scene.run(origins, np.ascontiguousarray(directions, dtype=np.float32), dists=tfar, query="DISTANCE")
+        dist[dist >= max_range] = np.inf  # Embree returns tfar unchanged on a miss
+        return dist
+
+
+class PyBulletCaster:
+    """PyBullet rayTestBatch on a client's bodies, chunked below its per-call limit.
+
+    `collision_mask` selects the bodies rays may hit (the robot's own body is left out by the
+    world's collision filter groups).
+    """
+
+    def __init__(self, client: int, collision_mask: int = 1, threads: int = 1):
+        self.client, self.mask, self.threads = client, collision_mask, threads
+
+    @classmethod
+    def for_mesh(cls, mesh: trimesh.Trimesh) -> "PyBulletCaster":
+        """A caster with its own DIRECT client holding only `mesh` (for tests and benchmarks)."""
+        client = pb.connect(pb.DIRECT)
+        add_static_mesh(client, mesh)
+        return cls(client)
+
+    def cast(self, origin: np.ndarray, directions: np.ndarray, max_range: float) -> np.ndarray:
+        origin = np.asarray(origin, dtype=np.float64)
+        dirs = np.asarray(directions, dtype=np.float64)
+        out = np.full(len(dirs), np.inf, dtype=np.float32)
+        for lo in range(0, len(dirs), PYBULLET_MAX_RAYS):
+            chunk = dirs[lo : lo + PYBULLET_MAX_RAYS]
+            starts = np.broadcast_to(origin, chunk.shape).copy()
+            hits = pb.rayTestBatch(
+                starts, starts + chunk * max_range, numThreads=self.threads,
+                collisionFilterMask=self.mask, physicsClientId=self.client,
+            )
+            frac = np.array([h[2] if h[0] >= 0 else np.inf for h in hits], dtype=np.float64)
+            out[lo : lo + len(chunk)] = frac * max_range
+        return out
+
+
+    def cast_many(self, origins: np.ndarray, direction: np.ndarray, max_range: float) -> np.ndarray:
+        """Distances along one direction from many origins (a few rays: ground sensing)."""
+        starts = np.asarray(origins, dtype=np.float64)
+        hits = pb.rayTestBatch(
+            starts, starts + np.asarray(direction) * max_range, collisionFilterMask=self.mask, physicsClientId=self.client
+        )
+        return np.array([h[2] * max_range if h[0] >= 0 else np.inf for h in hits])
+
+
+def add_static_mesh(client: int, mesh: trimesh.Trimesh) -> int:
+    """Add `mesh` to a PyBullet client as one static concave triangle mesh; returns the body id."""
+    shape = pb.createCollisionShape(
+        pb.GEOM_MESH,
+        vertices=np.asarray(mesh.vertices, dtype=np.float64),
+        indices=np.asarray(mesh.faces, dtype=np.int32).ravel(),
+        flags=pb.GEOM_FORCE_CONCAVE_TRIMESH,
+        physicsClientId=client,
+    )
+    if shape < 0:
+        raise RuntimeError("PyBullet could not build a collision shape from the scene mesh")
+    return pb.createMultiBody(baseMass=0, baseCollisionShapeIndex=shape, physicsClientId=client)
+
+
+def make_caster(backend: str, mesh: trimesh.Trimesh, client: int | None = None) -> RayCaster:
+    if backend == "embree":
+        return EmbreeCaster(mesh)
+    if backend == "pybullet":
+        return PyBulletCaster(client) if client is not None else PyBulletCaster.for_mesh(mesh)
+    raise ValueError(f"unknown ray backend '{backend}' (embree, pybullet)")

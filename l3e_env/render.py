@@ -1,0 +1,79 @@
+"""Top-down pictures of a scene, the robot and its scan, as RGB arrays (no GUI needed)."""
+from __future__ import annotations
+
+import numpy as np
+import trimesh
+
+from scenes import Scene
+
+BACKGROUND = np.array([250, 250, 247], dtype=np.uint8)
+
+
+def wall_points(mesh: trimesh.Trimesh, count: int = 300_000, seed: int = 0) -> np.ndarray:
+    """Points on the steep faces of the mesh (walls, not floors or flat roofs): the floor plan."""
+    normals = mesh.face_normals
+    steep = np.abs(normals[:, 2]) < 0.6
+    if not steep.any():
+        return np.zeros((0, 3))
+    sub = trimesh.Trimesh(mesh.vertices, mesh.faces[steep], process=False)
+    pts, _ = trimesh.sample.sample_surface(sub, count, seed=seed)
+    return np.asarray(pts)
+
+
+class TopDownRenderer:
+    """Rasterises the floor plan once; each frame then costs a few array writes."""
+
+    def __init__(self, scene: Scene, max_pixels: int = 640, margin: float = 2.0):
+        lo, hi = scene.bounds[0, :2] - margin, scene.bounds[1, :2] + margin
+        self.origin = lo
+        self.scale = max_pixels / float(np.max(hi - lo))  # pixels per metre
+        self.shape = tuple(np.ceil((hi - lo)[::-1] * self.scale).astype(int) + 1)  # rows (y), cols (x)
+        base = np.tile(BACKGROUND, (*self.shape, 1))
+        pts = wall_points(scene.mesh)
+        if len(pts):
+            counts = np.zeros(self.shape, dtype=np.float64)
+            r, c = self.to_pixels(pts[:, :2])
+            np.add.at(counts, (r, c), 1.0)
+            shade = np.clip(counts / max(np.percentile(counts[counts > 0], 60), 1e-9), 0, 1)
+            base = (base * (1 - 0.8 * shade[..., None])).astype(np.uint8)
+        for route in scene.routes.values():
+            self._polyline(base, route[:, :2], (190, 190, 220))
+        self.base = base
+
+    def to_pixels(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        px = (np.asarray(xy) - self.origin) * self.scale
+        col = np.clip(px[:, 0].astype(int), 0, self.shape[1] - 1)
+        row = np.clip(self.shape[0] - 1 - px[:, 1].astype(int), 0, self.shape[0] - 1)
+        return row, col
+
+    def _polyline(self, img: np.ndarray, xy: np.ndarray, color) -> None:
+        if len(xy) < 2:
+            return
+        seg = np.linalg.norm(np.diff(xy, axis=0), axis=1).sum()
+        t = np.linspace(0, 1, max(2, int(seg * self.scale * 2)))
+        s = np.concatenate([[0], np.cumsum(np.linalg.norm(np.diff(xy, axis=0), axis=1))])
+        s = s / max(s[-1], 1e-9)
+        dense = np.column_stack([np.interp(t, s, xy[:, 0]), np.interp(t, s, xy[:, 1])])
+        r, c = self.to_pixels(dense)
+        img[r, c] = color
+
+    def frame(self, T_w_b: np.ndarray, scan_world: np.ndarray | None = None, trail: np.ndarray | None = None,
+              footprint: tuple[float, float] = (0.9, 0.5)) -> np.ndarray:
+        """RGB uint8 image: floor plan, trail, scan points (by height) and the robot footprint."""
+        img = self.base.copy()
+        if trail is not None and len(trail) > 1:
+            self._polyline(img, np.asarray(trail)[:, :2], (40, 120, 40))
+        if scan_world is not None and len(scan_world):
+            r, c = self.to_pixels(scan_world[:, :2])
+            z = scan_world[:, 2] - T_w_b[2, 3]
+            t = np.clip((z + 1.0) / 4.0, 0, 1)[:, None]
+            img[r, c] = (np.array([30, 90, 230]) * (1 - t) + np.array([230, 60, 30]) * t).astype(np.uint8)
+        lx, ly = footprint
+        g = np.stack(np.meshgrid(np.linspace(-lx / 2, lx / 2, 12), np.linspace(-ly / 2, ly / 2, 7)), -1).reshape(-1, 2)
+        xy = g @ T_w_b[:2, :2].T + T_w_b[:2, 3]
+        r, c = self.to_pixels(xy)
+        img[r, c] = (20, 20, 20)
+        nose = T_w_b[:2, 3] + T_w_b[:2, 0] * np.linspace(0, lx, 10)[:, None]
+        r, c = self.to_pixels(nose)
+        img[r, c] = (230, 30, 30)
+        return img

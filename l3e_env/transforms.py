@@ -1,0 +1,41 @@
+"""SE(3) helpers in the project's axis order (x, y, z, roll, pitch, yaw)."""
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+
+def pose_to_matrix(xyzrpy: np.ndarray) -> np.ndarray:
+    """(x, y, z, roll, pitch, yaw) -> 4x4, rotation R = Rz(yaw) Ry(pitch) Rx(roll)."""
+    v = np.asarray(xyzrpy, dtype=np.float64)
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("xyz", v[3:6]).as_matrix()
+    T[:3, 3] = v[:3]
+    return T
+
+
+def matrix_to_pose(T: np.ndarray) -> np.ndarray:
+    """4x4 -> (x, y, z, roll, pitch, yaw)."""
+    out = np.empty(6)
+    out[:3] = T[:3, 3]
+    out[3:] = Rotation.from_matrix(T[:3, :3]).as_euler("xyz")
+    return out
+
+
+def planar_pose(x: float, y: float, z: float, yaw: float) -> np.ndarray:
+    return pose_to_matrix(np.array([x, y, z, 0.0, 0.0, yaw]))
+
+
+def inverse(T: np.ndarray) -> np.ndarray:
+    Ti = np.eye(4)
+    Ti[:3, :3] = T[:3, :3].T
+    Ti[:3, 3] = -T[:3, :3].T @ T[:3, 3]
+    return Ti
+
+
+def yaw_of(T: np.ndarray) -> float:
+    return float(np.arctan2(T[1, 0], T[0, 0]))
+
+
+def wrap_angle(a: np.ndarray | float) -> np.ndarray | float:
+    return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
