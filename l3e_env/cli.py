@@ -1,0 +1,70 @@
+"""The `l3e` command line: a thin layer over library functions that return results."""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+
+def _cmd_demo(args: argparse.Namespace) -> int:
+    from .demo import run_demo
+
+    out = Path(args.out or f"l3e_out/demo-{time.strftime('%Y%m%d-%H%M%S')}")
+    print(f"writing the demo into {out.resolve()}")
+    result = run_demo(out, scene=args.scene, sensor=args.sensor, seed=args.seed, progress=not args.quiet)
+    print(f"{result['steps']} steps, goal {'reached' if result['reached_goal'] else 'NOT reached'}")
+    for f in result["files"]:
+        print(f"  {f}")
+    return 0 if result["reached_goal"] else 1
+
+
+def _cmd_scenes(args: argparse.Namespace) -> int:
+    from scenes import TEST_SCENES, TRAIN_SCENES, VALIDATION_SCENES, list_scenes, make_scene
+
+    names = args.names or list_scenes()
+    for name in names:
+        print(make_scene(name).summary())
+    if not args.names:
+        print(f"\ntraining environments ({len(TRAIN_SCENES)}): {', '.join(TRAIN_SCENES)}")
+        print(f"validation: {', '.join(VALIDATION_SCENES)}\ntest (families unseen in training): {', '.join(TEST_SCENES)}")
+    return 0
+
+
+def _cmd_envs(args: argparse.Namespace) -> int:
+    from . import ENV_IDS
+
+    for env_id, scene in ENV_IDS.items():
+        print(f"{env_id:18s} scene '{scene}'")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="l3e", description="Learned LiDAR localizability in simulation (L3E).")
+    sub = parser.add_subparsers(dest="command", required=True)
+    p = sub.add_parser("demo", help="drive the mine route and save a top view and scan pictures")
+    p.add_argument("--out", help="output folder (default: l3e_out/demo-<time>)")
+    p.add_argument("--scene", default="mine", help="scene name (default: mine)")
+    p.add_argument("--sensor", default="vlp16", help="vlp16 or os0-128")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=_cmd_demo)
+    p = sub.add_parser("scenes", help="list scenes and the train/validation/test split")
+    p.add_argument("names", nargs="*", help="scene names to describe (default: all families)")
+    p.set_defaults(func=_cmd_scenes)
+    p = sub.add_parser("envs", help="list the registered Gymnasium environment ids")
+    p.set_defaults(func=_cmd_envs)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.func(args))
+    except (ValueError, RuntimeError, FileNotFoundError) as exc:
+        print(f"l3e {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
