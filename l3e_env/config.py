@@ -51,10 +51,10 @@ class OdometryConfig:
     rp_noise_per_m: float = 0.002  # rad per metre (roll and pitch)
     yaw_noise_per_m: float = 0.005  # rad per metre
     yaw_noise_per_rad: float = 0.02  # rad per radian turned
-    yaw_bias_std: float = 0.01  # rad per metre, initial bias spread
-    yaw_bias_walk: float = 0.002  # rad/m per sqrt(m)
-    z_bias_std: float = 0.01  # m per metre, initial bias spread
-    z_bias_walk: float = 0.002
+    yaw_bias_std: float = 0.001  # rad per metre, initial bias spread
+    yaw_bias_walk: float = 0.0003  # rad/m per sqrt(m)
+    z_bias_std: float = 0.005  # m per metre, initial bias spread
+    z_bias_walk: float = 0.0005
     scale_error_std: float = 0.02  # constant stride-length scale error per episode
 
 

@@ -94,7 +94,10 @@ def add_static_mesh(client: int, mesh: trimesh.Trimesh) -> int:
     )
     if shape < 0:
         raise RuntimeError("PyBullet could not build a collision shape from the scene mesh")
-    return pb.createMultiBody(baseMass=0, baseCollisionShapeIndex=shape, physicsClientId=client)
+    body = pb.createMultiBody(baseMass=0, baseCollisionShapeIndex=shape, physicsClientId=client)
+    # static bodies default to Bullet's StaticFilter group (2); rays look for group 1
+    pb.setCollisionFilterGroupMask(body, -1, 1, 0xFFFF, physicsClientId=client)
+    return body
 
 
 def make_caster(backend: str, mesh: trimesh.Trimesh, client: int | None = None) -> RayCaster:

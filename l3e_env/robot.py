@@ -36,9 +36,13 @@ class Robot:
             raise SpawnError(f"no ground under the robot at ({x:.2f}, {y:.2f})")
         if self.world.in_collision(T):
             raise SpawnError(f"the robot at ({x:.2f}, {y:.2f}, yaw {yaw:.2f}) would be inside scene geometry")
-        self.T_w_b, self._z_ground = T, z_ground
-        self._z_ground = float(T[2, 3] - self.config.standing_height * T[2, 2])
+        self.T_w_b = T
+        self._z_ground = self._ground_height(T)
         return T
+
+    def _ground_height(self, T: np.ndarray) -> float:
+        """Terrain height under the base centre."""
+        return float(T[2, 3] - self.config.standing_height / T[2, 2])
 
     def step(self, twist: np.ndarray) -> tuple[np.ndarray, bool]:
         """Apply (vx, vy, yaw_rate) in the body frame for one dt. Returns (T_w_b, blocked)."""
@@ -59,6 +63,6 @@ class Robot:
             T = self.world.ground_pose(x + cx, y + cy, cyaw, self._z_ground)
             if T is not None and not self.world.in_collision(T):
                 self.T_w_b = T
-                self._z_ground = float(T[2, 3] - self.config.standing_height * T[2, 2])
+                self._z_ground = self._ground_height(T)
                 return T, i > 0
         return self.T_w_b, True

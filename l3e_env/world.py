@@ -24,9 +24,7 @@ class World:
         half = np.asarray(self.robot_config.base_size) / 2
         shape = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=half.tolist(), physicsClientId=self.client)
         self.robot_body = pb.createMultiBody(baseMass=0, baseCollisionShapeIndex=shape, physicsClientId=self.client)
-        # rays (mask SCENE_GROUP) never hit the robot's own body; static bodies default to
-        # Bullet's StaticFilter group, so both groups are set explicitly
-        pb.setCollisionFilterGroupMask(self.scene_body, -1, SCENE_GROUP, 0xFFFF, physicsClientId=self.client)
+        # rays (mask SCENE_GROUP) never hit the robot's own body
         pb.setCollisionFilterGroupMask(self.robot_body, -1, ROBOT_GROUP, SCENE_GROUP, physicsClientId=self.client)
         self.rays = PyBulletCaster(self.client, collision_mask=SCENE_GROUP)
 
@@ -77,5 +75,6 @@ class World:
         x_axis /= np.linalg.norm(x_axis)
         T = np.eye(4)
         T[:3, :3] = np.column_stack([x_axis, np.cross(z_axis, x_axis), z_axis])
-        T[:3, 3] = np.array([x, y, a]) + z_axis * cfg.standing_height
+        # the base centre stays above (x, y), standing_height from the terrain along its normal
+        T[:3, 3] = (x, y, a + cfg.standing_height / z_axis[2])
         return T

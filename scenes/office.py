@@ -62,7 +62,7 @@ def make_office(seed: int = 0, rooms_per_side: int | None = None) -> Scene:
         name=f"office-{seed}",
         mesh=merge(parts),
         sampling_paths=paths,
-        start=(0.8, 0.0, 0.0),
+        start=(route[0, 0], route[0, 1], 0.0),
         goal=route[-1, :2],
         routes={"main": route},
         family="office",

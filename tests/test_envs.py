@@ -1,0 +1,99 @@
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env
+
+import l3e_env
+from l3e_env.follower import RouteFollower
+
+
+def run(env, seed, steps=15):
+    obs, info = env.reset(seed=seed)
+    out = [obs]
+    for _ in range(steps):
+        obs, *_ = env.step(np.array([0.8, 0.1, 0.2], dtype=np.float32))
+        out.append(obs)
+    return out
+
+
+@pytest.mark.parametrize("env_id", sorted(l3e_env.ENV_IDS))
+def test_registered_environments_pass_gymnasiums_checker(env_id):
+    env = gym.make(env_id, render_mode="rgb_array")
+    check_env(env.unwrapped)
+    obs, info = env.reset(seed=0)
+    assert env.observation_space.contains(obs)
+    frame = env.render()
+    assert frame.dtype == np.uint8 and frame.ndim == 3 and frame.shape[2] == 3
+    assert (frame != frame[0, 0]).any(axis=-1).mean() > 0.001  # something is drawn
+    assert info["T_w_b"].shape == (4, 4)
+    env.close()
+
+
+def test_stable_baselines3_checker_accepts_the_environment():
+    from stable_baselines3.common.env_checker import check_env as sb3_check
+
+    env = gym.make("l3e/Fork-v0")
+    sb3_check(env.unwrapped, warn=False)
+
+
+def test_same_seed_same_episode_different_seed_different_noise():
+    a, b = gym.make("l3e/Tunnel-v0"), gym.make("l3e/Tunnel-v0")
+    ra, rb, rc = run(a, 3), run(b, 3), run(a, 4)
+    for oa, ob in zip(ra, rb):
+        for key in oa:
+            np.testing.assert_array_equal(oa[key], ob[key])
+    assert not np.array_equal(ra[-1]["ranges"], rc[-1]["ranges"])
+    # observations describe the tunnel: the side walls are about 2.25 m from the axis
+    first = ra[0]
+    assert first["ranges"].shape == (16, 360) and first["valid"].sum() > 0.9 * 16 * 360
+    side = first["ranges"][7, 90]  # -1 deg beam, 90 deg to the left
+    assert 2.0 < side < 2.5
+
+
+def test_bad_actions_raise_clear_errors():
+    env = gym.make("l3e/Office-v0").unwrapped
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match="finite"):
+        env.step(np.array([np.nan, 0, 0], dtype=np.float32))
+    with pytest.raises(ValueError, match="outside the action space"):
+        env.step(np.array([2.0, 0, 0], dtype=np.float32))
+    with pytest.raises(ValueError, match="3 finite numbers"):
+        env.step(np.array([0.5, 0.0]))
+    with pytest.raises(ValueError, match="unknown option"):
+        gym.make("l3e/Office-v0", speed_of_light=1)
+    with pytest.raises(ValueError, match="no route"):
+        gym.make("l3e/Office-v0", route="scenic")
+
+
+def test_route_follower_reaches_the_goal_and_is_rewarded():
+    env = gym.make("l3e/Fork-v0", route="short")
+    obs, info = env.reset(seed=1)
+    follow = RouteFollower(env.unwrapped.route)
+    total, steps = 0.0, 0
+    while True:
+        obs, reward, terminated, truncated, info = env.step(follow(info["T_w_b"]))
+        total, steps = total + reward, steps + 1
+        if terminated or truncated:
+            break
+    assert terminated and not truncated
+    assert info["distance_to_goal"] <= 1.0
+    assert total > 50.0  # ~54 m of progress + goal bonus - step penalties
+    # dead reckoning has drifted, but not absurdly
+    drift = np.linalg.norm(info["odom_T_w_b"][:3, 3] - info["T_w_b"][:3, 3])
+    assert 0.0 < drift < 5.0
+
+
+def test_truncation_at_the_time_limit():
+    env = gym.make("l3e/Field-v0", max_episode_steps=5)
+    env.reset(seed=0)
+    flags = [env.step(np.zeros(3, dtype=np.float32))[2:4] for _ in range(5)]
+    assert flags[-1] == (False, True) and all(f == (False, False) for f in flags[:-1])
+
+
+def test_os0_128_option_and_async_vector_env():
+    envs = gym.make_vec("l3e/Tunnel-v0", num_envs=2, vectorization_mode="async", lidar={"model": "os0-128"})
+    obs, info = envs.reset(seed=[0, 1])
+    assert obs["ranges"].shape == (2, 128, 256)
+    obs, reward, terminated, truncated, info = envs.step(np.tile([[1.0, 0.0, 0.0]], (2, 1)).astype(np.float32))
+    assert reward.shape == (2,) and np.all(reward > 0)
+    envs.close()

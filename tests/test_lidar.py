@@ -1,0 +1,102 @@
+import numpy as np
+import pytest
+import trimesh
+
+from l3e_env.config import LidarConfig
+from l3e_env.lidar import BeamPattern, Lidar, get_pattern, register_pattern
+from l3e_env.raycast import PYBULLET_MAX_RAYS, EmbreeCaster, PyBulletCaster
+from l3e_env.transforms import pose_to_matrix
+from scenes import make_scene
+
+
+def exact(model="vlp16"):
+    return LidarConfig(model=model, range_noise_std=0.0)
+
+
+@pytest.mark.parametrize("scene_name,pose", [
+    ("mine", (-30.0, 0.5, 0.85, 0.0, 0.0, 0.3)),
+    ("mine", (40.0, 0.3, 0.85, 0.05, -0.03, 0.1)),
+    ("office", (5.0, 0.0, 0.85, 0.0, 0.1, 1.0)),
+])
+def test_embree_and_pybullet_agree_to_a_tenth_of_a_millimetre(scene_name, pose):
+    scene = make_scene(scene_name)
+    T = pose_to_matrix(np.array(pose))
+    for model in ("vlp16", "os0-128"):
+        a = Lidar(EmbreeCaster(scene.mesh), exact(model)).scan(T)
+        b = Lidar(PyBulletCaster.for_mesh(scene.mesh), exact(model)).scan(T)
+        assert len(a.points) > 1000
+        # the same rays hit; ranges agree
+        key_a, key_b = a.beam.astype(np.int64) * 10000 + a.column, b.beam.astype(np.int64) * 10000 + b.column
+        common, ia, ib = np.intersect1d(key_a, key_b, return_indices=True)
+        assert len(common) >= 0.999 * max(len(a), len(b))
+        diff = np.abs(a.points[ia] - b.points[ib]).max(axis=1)
+        # rays that graze a shared triangle edge may slip through one engine's edge rule
+        assert (diff < 1e-4).mean() >= 0.999, f"{(diff >= 1e-4).sum()} of {len(diff)} points differ"
+
+
+def test_pybullet_backend_chunks_more_rays_than_one_call_allows(office):
+    caster = PyBulletCaster.for_mesh(office.mesh)
+    n = 2 * PYBULLET_MAX_RAYS + 17
+    dirs = np.tile(np.array([[1.0, 0.0, 0.0]], dtype=np.float32), (n, 1))
+    d = caster.cast(np.array([5.0, 0.0, 1.0]), dirs, 50.0)
+    assert d.shape == (n,) and np.isfinite(d).all()
+    assert np.ptp(d) < 1e-5
+
+
+def test_ranges_match_geometry_in_a_box_room():
+    room = trimesh.creation.box(extents=(10.0, 6.0, 4.0))
+    lidar = Lidar(EmbreeCaster(room), exact())
+    scan = lidar.scan(np.eye(4))
+    assert scan.points.dtype == np.float32 and scan.points.shape[1] == 3
+    horizontal = scan.points[np.abs(scan.points[:, 2]) < 1e-6]
+    assert len(horizontal) == 0  # VLP-16 has no 0-degree beam
+    ring = scan.beam == 7  # -1 degree
+    forward = scan.points[ring & (scan.column == 0)][0]
+    np.testing.assert_allclose(forward[0], 5.0, atol=1e-4)
+    left = scan.points[ring & (scan.column == 450)][0]
+    np.testing.assert_allclose(left[1], 3.0, atol=1e-4)
+    # every point lies on the box surface
+    p = np.abs(scan.points.astype(np.float64))
+    on_face = np.isclose(p[:, 0], 5, atol=1e-3) | np.isclose(p[:, 1], 3, atol=1e-3) | np.isclose(p[:, 2], 2, atol=1e-3)
+    assert on_face.all()
+
+
+def test_a_miss_is_no_point(rng):
+    plane = make_scene("primitives-0")  # a plane: upward beams never return
+    scan = Lidar(EmbreeCaster(plane.mesh), LidarConfig()).scan(pose_to_matrix([0, 0, 0.85, 0, 0, 0]), rng)
+    assert 0 < len(scan) <= 8 * 1800
+    assert (scan.points[:, 2] < 0).all()
+    assert np.linalg.norm(scan.points, axis=1).max() < 100.0
+
+
+def test_noise_dropout_and_determinism(office):
+    T = pose_to_matrix([5.0, 0.0, 0.85, 0, 0, 0])
+    exact_scan = Lidar(EmbreeCaster(office.mesh), exact()).scan(T)
+    lidar = Lidar(EmbreeCaster(office.mesh), LidarConfig(range_noise_std=0.03, dropout=0.2))
+    s1, s2 = lidar.scan(T, np.random.default_rng(5)), lidar.scan(T, np.random.default_rng(5))
+    np.testing.assert_array_equal(s1.points, s2.points)
+    assert 0.75 < len(s1) / len(exact_scan) < 0.85
+    key = lambda s: s.beam.astype(np.int64) * 10000 + s.column  # noqa: E731
+    _, ia, ib = np.intersect1d(key(exact_scan), key(s1), return_indices=True)
+    err = np.linalg.norm(s1.points[ib], axis=1) - np.linalg.norm(exact_scan.points[ia], axis=1)
+    assert abs(err.std() - 0.03) < 0.003 and abs(err.mean()) < 0.002
+
+
+def test_range_image_pools_nearest_return(office):
+    scan = Lidar(EmbreeCaster(office.mesh), exact()).scan(pose_to_matrix([5.0, 0.0, 0.85, 0, 0, 0]))
+    img = scan.range_image(360)
+    assert img.shape == (16, 360)
+    full = scan.range_image(1800)
+    np.testing.assert_allclose(img, np.where(full > 0, full, np.inf).reshape(16, 360, 5).min(-1).clip(max=1e9) * (img > 0))
+    with pytest.raises(ValueError, match="must divide"):
+        scan.range_image(7)
+
+
+def test_user_defined_pattern_and_bad_inputs(office):
+    register_pattern(BeamPattern("fan8", tuple(np.linspace(-5, 5, 8)), 360, 30.0, 0.2, 90))
+    scan = Lidar(EmbreeCaster(office.mesh), LidarConfig(model="fan8")).scan(pose_to_matrix([5, 0, 0.85, 0, 0, 0]))
+    assert scan.beam.max() < 8 and np.linalg.norm(scan.points, axis=1).max() < 30.0
+    with pytest.raises(ValueError, match="unknown LiDAR model"):
+        get_pattern("hdl-64")
+    with pytest.raises(ValueError, match="finite 4x4"):
+        Lidar(EmbreeCaster(office.mesh)).scan(np.full((4, 4), np.nan))

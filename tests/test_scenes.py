@@ -1,0 +1,89 @@
+import numpy as np
+import pytest
+import trimesh
+
+from scenes import TEST_SCENES, TRAIN_SCENES, VALIDATION_SCENES, Scene, SceneError, list_scenes, load_mesh, make_scene, scene_from_mesh
+
+
+@pytest.mark.parametrize("name", list_scenes())
+def test_every_family_builds_a_valid_scene(name):
+    scene = make_scene(name)
+    assert scene.family == name
+    assert len(scene.mesh.faces) > 10
+    assert scene.sampling_paths and all(p.shape[1] == 3 for p in scene.sampling_paths)
+    assert np.isfinite(scene.mesh.vertices).all()
+    # start and goal lie on the default route
+    assert np.linalg.norm(scene.route[0, :2] - scene.start[:2]) < 1e-6
+    assert np.linalg.norm(scene.route[-1, :2] - scene.goal) < 1e-6
+
+
+def test_seeds_are_reproducible_and_vary():
+    a, b, c = make_scene("cave", seed=3), make_scene("cave-3"), make_scene("cave", seed=4)
+    assert a.name == b.name == "cave-3"
+    np.testing.assert_array_equal(a.mesh.vertices, b.mesh.vertices)
+    assert a.mesh.vertices.shape != c.mesh.vertices.shape or not np.allclose(a.mesh.vertices, c.mesh.vertices)
+
+
+def test_split_has_fifteen_distinct_training_environments_and_unseen_test_families():
+    assert len(set(TRAIN_SCENES)) >= 15
+    train_families = {n.split("-")[0] for n in TRAIN_SCENES}
+    assert not {n.split("-")[0] for n in TEST_SCENES} & train_families
+    assert not set(VALIDATION_SCENES) & set(TRAIN_SCENES)
+    meshes = {make_scene(n).mesh.vertices.tobytes().__hash__() for n in TRAIN_SCENES}
+    assert len(meshes) == len(TRAIN_SCENES)
+
+
+def test_fork_has_a_short_and_a_longer_route():
+    fork = make_scene("fork")
+    length = lambda r: np.linalg.norm(np.diff(r, axis=0), axis=1).sum()  # noqa: E731
+    assert {"short", "rich"} <= set(fork.routes)
+    assert 1.1 < length(fork.routes["rich"]) / length(fork.routes["short"]) < 1.5
+
+
+def test_unknown_scene_names_are_reported_with_the_known_ones():
+    with pytest.raises(SceneError, match="known scenes: .*mine"):
+        make_scene("volcano")
+    with pytest.raises(SceneError, match="family-<seed>"):
+        make_scene("cave-x")
+
+
+def test_empty_and_nan_meshes_are_rejected():
+    with pytest.raises(SceneError, match="empty"):
+        Scene("e", trimesh.Trimesh(np.zeros((0, 3)), np.zeros((0, 3), int)), [], (0, 0, 0), (1, 1))
+    bad = trimesh.creation.box()
+    verts = bad.vertices.copy()
+    verts[0, 0] = np.nan
+    with pytest.raises(SceneError, match="NaN"):
+        Scene("n", trimesh.Trimesh(verts, bad.faces, process=False), [], (0, 0, 0), (1, 1))
+    with pytest.raises(SceneError, match="sampling path"):
+        Scene("p", trimesh.creation.box(), [np.array([[0, 0, np.nan], [1, 0, 0]])], (0, 0, 0), (1, 1))
+
+
+@pytest.mark.parametrize("suffix", [".obj", ".stl", ".ply", ".glb"])
+def test_mesh_import_round_trip_with_up_axis_and_scale(tmp_path, suffix):
+    mesh = trimesh.creation.box(extents=(4000.0, 1000.0, 2000.0))  # millimetres, y up
+    path = tmp_path / f"room{suffix}"
+    mesh.export(path)
+    loaded = load_mesh(path, up_axis="y", scale=0.001)
+    np.testing.assert_allclose(loaded.extents, (4.0, 2.0, 1.0), atol=1e-6)
+    scene = scene_from_mesh(path, up_axis="y", scale=0.001, sampling_paths=[[[0, 0, -1], [1, 0, -1]]])
+    assert len(scene.sampling_paths[0]) >= 2 and "main" in scene.routes
+
+
+def test_broken_and_missing_mesh_files_raise_clear_errors(tmp_path):
+    broken = tmp_path / "broken.ply"
+    broken.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 99\nend_header\n\x00\x01")
+    with pytest.raises(SceneError, match="broken.ply"):
+        load_mesh(broken)
+    empty = tmp_path / "empty.obj"
+    empty.write_text("# nothing\n")
+    with pytest.raises(SceneError, match="empty|no triangle"):
+        load_mesh(empty)
+    with pytest.raises(SceneError, match="not found"):
+        load_mesh(tmp_path / "missing.stl")
+    with pytest.raises(SceneError, match="unsupported"):
+        load_mesh(empty.with_suffix(".txt").write_text("x") and empty.with_suffix(".txt"))
+    nan_obj = tmp_path / "nan.obj"
+    nan_obj.write_text("v 0 0 0\nv 1 0 nan\nv 0 1 0\nf 1 2 3\n")
+    with pytest.raises(SceneError, match="NaN"):
+        load_mesh(nan_obj)
