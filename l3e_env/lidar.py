@@ -98,11 +98,16 @@ class Lidar:
             raise ValueError("sensor pose must be a finite 4x4 matrix")
         dirs_w = self._dirs @ T_w_s[:3, :3].T.astype(np.float32)
         r = self.caster.cast(T_w_s[:3, 3], dirs_w, self.max_range)
-        if rng is not None and self.config.range_noise_std > 0:
-            r = r + rng.normal(0.0, self.config.range_noise_std, size=r.shape).astype(np.float32)
-        keep = (r >= self.min_range) & (r < self.max_range)
+        keep = np.isfinite(r)
         if rng is not None and self.config.dropout > 0:
-            keep &= rng.random(r.shape) >= self.config.dropout
+            keep &= rng.random(r.shape, dtype=np.float32) >= self.config.dropout
         idx = np.flatnonzero(keep)
-        points = self._dirs[idx] * r[idx, None]
-        return Scan(points.astype(np.float32, copy=False), self._beam[idx], self._column[idx], self.pattern)
+        r = r[idx]
+        if rng is not None and self.config.range_noise_std > 0:
+            r += self.config.range_noise_std * rng.standard_normal(len(r), dtype=np.float32)
+        inside = (r >= self.min_range) & (r < self.max_range)
+        if not inside.all():
+            idx, r = idx[inside], r[inside]
+        points = np.take(self._dirs, idx, axis=0)  # np.take: about 2x faster than fancy indexing here
+        points *= r[:, None]
+        return Scan(points, np.take(self._beam, idx), np.take(self._column, idx), self.pattern)
