@@ -39,6 +39,36 @@ def _cmd_envs(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_dataset_generate(args: argparse.Namespace) -> int:
+    from .dataset import config_for, format_statistics, generate
+
+    overrides = {
+        "scenes": args.scenes.split(",") if args.scenes else None,
+        "parents_per_scene": args.parents,
+        "seed": args.seed,
+        "lidar": {"model": args.sensor} if args.sensor else None,
+        "labels": {"children": args.children} if args.children else None,
+    }
+    config = config_for(args.preset, **overrides)
+    print(f"dataset -> {Path(args.out).resolve()}: {len(config.scenes)} scenes x {config.parents_per_scene} parents, "
+          f"M = {config.labels.children}, {config.lidar.model}, seed {config.seed}, {args.workers} workers ({args.backend})")
+    manifest = generate(args.out, config, workers=args.workers, backend=args.backend, ray_address=args.address,
+                        progress=not args.quiet)
+    print(f"{manifest['count']} labelled parents, {len(manifest['failures'])} failed "
+          f"({manifest['generation_seconds_last_run']} s this run)")
+    print(format_statistics(manifest["statistics"]))
+    return 0
+
+
+def _cmd_dataset_stats(args: argparse.Namespace) -> int:
+    from .dataset import LabelDataset, format_statistics
+
+    data = LabelDataset(args.folder)
+    print(f"{args.folder}: {len(data)} parents, sensor {data.manifest['sensor']}, scenes {', '.join(data.manifest['scenes'])}")
+    print(format_statistics(data.manifest["statistics"]))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="l3e", description="Learned LiDAR localizability in simulation (L3E).")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -52,6 +82,24 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("scenes", help="list scenes and the train/validation/test split")
     p.add_argument("names", nargs="*", help="scene names to describe (default: all families)")
     p.set_defaults(func=_cmd_scenes)
+    p = sub.add_parser("dataset", help="Monte-Carlo localizability labels")
+    dsub = p.add_subparsers(dest="dataset_command", required=True)
+    g = dsub.add_parser("generate", help="generate or resume a labelled dataset")
+    g.add_argument("--out", required=True, help="dataset folder (an unfinished one is resumed)")
+    g.add_argument("--preset", choices=["small", "paper"], default="small")
+    g.add_argument("--scenes", help="comma-separated scene names (overrides the preset)")
+    g.add_argument("--parents", type=int, help="parents per scene")
+    g.add_argument("--children", type=int, help="M, children per parent (paper: 200)")
+    g.add_argument("--sensor", help="vlp16 or os0-128")
+    g.add_argument("--seed", type=int)
+    g.add_argument("--workers", type=int, default=2)
+    g.add_argument("--backend", choices=["local", "ray"], default="local")
+    g.add_argument("--address", help="Ray cluster address (default: start a local Ray instance)")
+    g.add_argument("--quiet", action="store_true")
+    g.set_defaults(func=_cmd_dataset_generate)
+    g = dsub.add_parser("stats", help="label statistics of a dataset")
+    g.add_argument("folder")
+    g.set_defaults(func=_cmd_dataset_stats)
     p = sub.add_parser("envs", help="list the registered Gymnasium environment ids")
     p.set_defaults(func=_cmd_envs)
     return parser
@@ -61,7 +109,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return int(args.func(args))
-    except (ValueError, RuntimeError, FileNotFoundError) as exc:
+    except (ValueError, RuntimeError, OSError) as exc:
         print(f"l3e {args.command}: error: {exc}", file=sys.stderr)
         return 2
 

@@ -22,6 +22,8 @@ class RayCaster(Protocol):
 
 
 _POOLS: dict[int, ThreadPoolExecutor] = {}
+# a forked child (async vector envs, worker pools) inherits the dict but not the threads
+os.register_at_fork(after_in_child=_POOLS.clear)
 
 
 def _pool(threads: int) -> ThreadPoolExecutor:

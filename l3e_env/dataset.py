@@ -1,0 +1,314 @@
+"""Dataset generation: sharded, deterministic, resumable; consolidated into memory-mapped arrays.
+
+Layout of a dataset folder:
+  manifest.json          settings, package versions, seeds, counts, label statistics
+  shards/<scene>-<k>.npz one finished shard (written to a temporary name, then renamed)
+  points.npy offsets.npy poses.npy errors.npy labels.npy scene.npy children_failed.npy
+                         consolidated arrays, opened with numpy's mmap_mode="r" for training;
+                         scan i is points[offsets[i]:offsets[i+1]]
+Parent i of a scene always uses the generator seeded by (seed, scene index, i), so the labels do
+not depend on the number of workers or on which shards a killed run had finished.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass, field
+from importlib import metadata
+from pathlib import Path
+from typing import Any, Iterator
+
+import numpy as np
+from tqdm import tqdm
+
+from scenes import TEST_SCENES, TRAIN_SCENES, VALIDATION_SCENES, make_scene
+
+from .config import LidarConfig, from_dict
+from .labels import AXES, LabelConfig, SamplingError, label_parent, sample_parent_pose
+from .lidar import Lidar
+from .raycast import EmbreeCaster
+from .registration import RegistrationConfig, RegistrationError
+
+FORMAT_VERSION = 1
+ARRAYS = ("points", "offsets", "poses", "errors", "labels", "scene", "children_failed")
+
+
+@dataclass
+class DatasetConfig:
+    scenes: list[str] = field(default_factory=lambda: ["tunnel-0", "office-0", "field-0"])
+    parents_per_scene: int = 8
+    seed: int = 0
+    shard_size: int = 4  # parents per shard: the unit of work and of resumption
+    lidar: LidarConfig = field(default_factory=LidarConfig)
+    labels: LabelConfig = field(default_factory=LabelConfig)
+    registration: RegistrationConfig = field(default_factory=RegistrationConfig)
+
+
+PRESETS: dict[str, dict[str, Any]] = {
+    # minutes on 2 cores: for tests, CI and a first look
+    "small": {"scenes": ["tunnel-0", "office-0", "field-0", "primitives-3"], "parents_per_scene": 6,
+              "labels": {"children": 50}},
+    # the paper's protocol on every environment of the split (M = 200)
+    "paper": {"scenes": TRAIN_SCENES + VALIDATION_SCENES + TEST_SCENES, "parents_per_scene": 150},
+}
+
+
+class DatasetError(RuntimeError):
+    """A dataset folder that cannot be written, resumed or read; the message says why."""
+
+
+def config_for(preset: str | None = None, **overrides: Any) -> DatasetConfig:
+    base: dict[str, Any] = {}
+    if preset is not None:
+        if preset not in PRESETS:
+            raise DatasetError(f"unknown preset '{preset}' (choose from {sorted(PRESETS)})")
+        base = json.loads(json.dumps(PRESETS[preset]))
+    for key, value in overrides.items():
+        if value is None:
+            continue
+        if isinstance(value, dict) and isinstance(base.get(key), dict):
+            base[key] = {**base[key], **value}
+        else:
+            base[key] = value
+    return from_dict(DatasetConfig, base)
+
+
+def _shards(config: DatasetConfig) -> list[tuple[str, int, int, int]]:
+    """(shard id, scene index, first parent, last parent + 1) for every shard."""
+    out = []
+    for si, scene in enumerate(config.scenes):
+        for start in range(0, config.parents_per_scene, config.shard_size):
+            stop = min(start + config.shard_size, config.parents_per_scene)
+            out.append((f"{scene}-{start // config.shard_size:05d}", si, start, stop))
+    return out
+
+
+_WORKER_CACHE: dict[str, tuple] = {}
+
+
+def _scene_tools(name: str, lidar_config: LidarConfig):
+    if name not in _WORKER_CACHE:
+        scene = make_scene(name)
+        caster = EmbreeCaster(scene.mesh, threads=1)  # processes give the parallelism
+        _WORKER_CACHE.clear()  # one scene at a time keeps worker memory flat
+        _WORKER_CACHE[name] = (scene, caster, Lidar(caster, lidar_config))
+    return _WORKER_CACHE[name]
+
+
+def run_shard(config: DatasetConfig, shard: tuple[str, int, int, int]) -> dict[str, Any]:
+    """Label the parents of one shard; returns arrays and per-parent failure records."""
+    shard_id, si, start, stop = shard
+    scene, caster, lidar = _scene_tools(config.scenes[si], config.lidar)
+    rows: dict[str, list] = {k: [] for k in ("points", "poses", "errors", "labels", "index", "children_failed")}
+    failures = []
+    for i in range(start, stop):
+        rng = np.random.default_rng([config.seed, si, i])
+        try:
+            T = sample_parent_pose(scene, caster, rng, config.labels)
+            result = label_parent(lidar, T, rng, config.labels, config.registration)
+        except (RegistrationError, SamplingError) as exc:
+            failures.append({"scene": scene.name, "parent": i, "reason": str(exc)})
+            continue
+        rows["points"].append(result.points)
+        rows["poses"].append(result.T_w_s)
+        rows["errors"].append(result.errors)
+        rows["labels"].append(result.labels)
+        rows["index"].append(i)
+        rows["children_failed"].append(result.children_failed)
+    lengths = np.array([len(p) for p in rows["points"]], dtype=np.int64)
+    return {
+        "shard": shard_id,
+        "scene": np.full(len(lengths), si, dtype=np.int16),
+        "index": np.array(rows["index"], dtype=np.int64),
+        "lengths": lengths,
+        "points": np.concatenate(rows["points"]) if rows["points"] else np.zeros((0, 3), np.float32),
+        "poses": np.array(rows["poses"], dtype=np.float64).reshape(-1, 4, 4),
+        "errors": np.array(rows["errors"], dtype=np.float32).reshape(-1, 6),
+        "labels": np.array(rows["labels"], dtype=np.uint8).reshape(-1, 6),
+        "children_failed": np.array(rows["children_failed"], dtype=np.int32),
+        "failures": json.dumps(failures),
+    }
+
+
+def _write_atomic_npz(path: Path, arrays: dict[str, Any]) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    try:
+        with open(tmp, "wb") as fh:
+            np.savez(fh, **arrays)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        raise DatasetError(f"cannot write {path} ({exc.strerror or exc}); finished shards are kept, run again to resume") from exc
+
+
+def _settings(config: DatasetConfig) -> dict[str, Any]:
+    return json.loads(json.dumps(dataclasses.asdict(config)))
+
+
+def _versions() -> dict[str, str]:
+    out = {}
+    for pkg in ("l3e", "numpy", "small_gicp", "embreex", "trimesh", "pybullet"):
+        try:
+            out[pkg] = metadata.version(pkg)
+        except metadata.PackageNotFoundError:
+            pass
+    return out
+
+
+def _open_folder(out: Path, config: DatasetConfig) -> dict[str, Any]:
+    """Create the folder or check that it holds a run of the same settings (to resume)."""
+    manifest_path = out / "manifest.json"
+    settings = _settings(config)
+    if manifest_path.exists():
+        manifest = json.loads(manifest_path.read_text())
+        if manifest.get("settings") != settings:
+            raise DatasetError(f"{out} holds a dataset made with other settings; choose another folder")
+        return manifest
+    (out / "shards").mkdir(parents=True, exist_ok=True)
+    manifest = {"format_version": FORMAT_VERSION, "settings": settings, "versions": _versions(), "complete": False,
+                "created": time.strftime("%Y-%m-%dT%H:%M:%S")}
+    _write_json(manifest_path, manifest)
+    return manifest
+
+
+def _write_json(path: Path, data: dict) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(data, indent=1))
+    os.replace(tmp, path)
+
+
+def generate(
+    out_dir: str | Path, config: DatasetConfig, workers: int = 2, backend: str = "local",
+    ray_address: str | None = None, progress: bool = True,
+) -> dict[str, Any]:
+    """Generate (or resume) a dataset; returns the manifest. Finished shards are never redone."""
+    out = Path(out_dir)
+    manifest = _open_folder(out, config)
+    todo = [s for s in _shards(config) if not (out / "shards" / f"{s[0]}.npz").exists()]
+    total = config.parents_per_scene * len(config.scenes)
+    done_before = total - sum(s[3] - s[2] for s in todo)
+    bar = tqdm(total=total, initial=done_before, desc="labelling parents", unit="parent", disable=not progress,
+               smoothing=0.05)
+    t0 = time.perf_counter()
+    for result in _execute(config, todo, workers, backend, ray_address):
+        _write_atomic_npz(out / "shards" / f"{result['shard']}.npz", result)
+        shard = next(s for s in todo if s[0] == result["shard"])
+        bar.update(shard[3] - shard[2])
+    bar.close()
+    manifest = consolidate(out, config, manifest)
+    manifest["generation_seconds_last_run"] = round(time.perf_counter() - t0, 1)
+    _write_json(out / "manifest.json", manifest)
+    return manifest
+
+
+def _execute(config: DatasetConfig, todo: list, workers: int, backend: str, ray_address: str | None) -> Iterator[dict]:
+    if backend == "ray":
+        from .dataset_ray import run_with_ray
+
+        yield from run_with_ray(config, todo, workers, ray_address)
+    elif backend != "local":
+        raise DatasetError(f"unknown backend '{backend}' (local, ray)")
+    elif workers <= 1:
+        for shard in todo:
+            yield run_shard(config, shard)
+    else:
+        with ProcessPoolExecutor(workers) as pool:
+            futures = [pool.submit(run_shard, config, s) for s in todo]
+            for fut in as_completed(futures):
+                yield fut.result()
+
+
+def consolidate(out: Path, config: DatasetConfig, manifest: dict[str, Any]) -> dict[str, Any]:
+    """Join all shards, in shard order, into the memory-mappable arrays and label statistics."""
+    parts = []
+    for shard_id, *_ in _shards(config):
+        path = out / "shards" / f"{shard_id}.npz"
+        try:
+            with np.load(path) as z:
+                parts.append({k: z[k] for k in z.files})
+        except (OSError, ValueError, KeyError) as exc:
+            raise DatasetError(f"shard {path} is unreadable ({exc}); delete it and run again to redo it") from exc
+    lengths = np.concatenate([p["lengths"] for p in parts])
+    arrays = {
+        "points": np.concatenate([p["points"] for p in parts]).astype(np.float32),
+        "offsets": np.concatenate([[0], np.cumsum(lengths)]).astype(np.int64),
+        "poses": np.concatenate([p["poses"] for p in parts]),
+        "errors": np.concatenate([p["errors"] for p in parts]),
+        "labels": np.concatenate([p["labels"] for p in parts]),
+        "scene": np.concatenate([p["scene"] for p in parts]),
+        "children_failed": np.concatenate([p["children_failed"] for p in parts]),
+    }
+    for name, arr in arrays.items():
+        tmp = out / f"{name}.npy.tmp"
+        with open(tmp, "wb") as fh:
+            np.save(fh, arr)
+        os.replace(tmp, out / f"{name}.npy")
+    failures = [f for p in parts for f in json.loads(str(p["failures"]))]
+    manifest.update({
+        "complete": True,
+        "count": int(len(lengths)),
+        "failures": failures,
+        "statistics": label_statistics(arrays["labels"]),
+        "scenes": config.scenes,
+        "sensor": config.lidar.model,
+    })
+    _write_json(out / "manifest.json", manifest)
+    return manifest
+
+
+def label_statistics(labels: np.ndarray) -> dict[str, Any]:
+    """Positive rate per axis and the histogram of the 64 label combinations (bit i = axis i)."""
+    labels = np.asarray(labels, dtype=np.uint8).reshape(-1, 6)
+    codes = (labels.astype(np.int64) << np.arange(6)).sum(axis=1)
+    hist = np.bincount(codes, minlength=64)
+    return {
+        "positive_rate": {a: float(labels[:, i].mean()) if len(labels) else 0.0 for i, a in enumerate(AXES)},
+        "powerset_histogram": {combo_name(c): int(n) for c, n in enumerate(hist) if n},
+    }
+
+
+def combo_name(code: int) -> str:
+    flagged = [a for i, a in enumerate(AXES) if code >> i & 1]
+    return "+".join(flagged) if flagged else "none"
+
+
+def format_statistics(stats: dict[str, Any]) -> str:
+    rate = "  ".join(f"{a} {v:.2f}" for a, v in stats["positive_rate"].items())
+    combos = sorted(stats["powerset_histogram"].items(), key=lambda kv: -kv[1])
+    lines = [f"non-localizable rate per axis: {rate}", "label combinations (most common first):"]
+    lines += [f"  {n:6d}  {name}" for name, n in combos]
+    return "\n".join(lines)
+
+
+class LabelDataset:
+    """Random access to a finished dataset through memory maps."""
+
+    def __init__(self, folder: str | Path):
+        self.folder = Path(folder)
+        path = self.folder / "manifest.json"
+        if not path.exists():
+            raise DatasetError(f"{self.folder} is not a dataset (no manifest.json)")
+        self.manifest = json.loads(path.read_text())
+        if not self.manifest.get("complete"):
+            raise DatasetError(f"{self.folder}: generation has not finished; run the same command again to resume")
+        self.arrays = {k: np.load(self.folder / f"{k}.npy", mmap_mode="r") for k in ARRAYS}
+
+    def __len__(self) -> int:
+        return len(self.arrays["labels"])
+
+    def scan(self, i: int) -> np.ndarray:
+        o = self.arrays["offsets"]
+        return np.asarray(self.arrays["points"][o[i] : o[i + 1]])
+
+    @property
+    def labels(self) -> np.ndarray:
+        return np.asarray(self.arrays["labels"])
+
+    @property
+    def errors(self) -> np.ndarray:
+        return np.asarray(self.arrays["errors"])
