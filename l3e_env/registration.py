@@ -118,8 +118,25 @@ def register(
     inliers = int(result.num_inliers)
     if inliers < config.min_inlier_ratio * src.size():
         converged = False
-    H = np.asarray(result.H)[np.ix_(TO_PROJECT_ORDER, TO_PROJECT_ORDER)]
+    H = point_to_plane_hessian(np.asarray(src.points())[:, :3], tgt, T, config.max_correspondence_distance[-1])
     return RegistrationResult(T, H, converged, iterations, inliers, int(src.size()), float(result.error))
+
+
+def point_to_plane_hessian(source: np.ndarray, target: PreparedTarget, T: np.ndarray, max_distance: float) -> np.ndarray:
+    """A^T A of the point-to-plane residuals at T, from the final correspondences.
+
+    small_gicp's `H` is that of its last linearisation, one update before the solution (5 %
+    off on a converged office pair); the degeneracy test wants the Hessian at the solution.
+    Rows are d r / d delta for T * exp(delta), delta in project order: [R^T n, p x R^T n].
+    """
+    moved = source @ T[:3, :3].T + T[:3, 3]
+    idx, sq = target.tree.batch_nearest_neighbor_search(moved)
+    idx, sq = np.asarray(idx).reshape(-1), np.asarray(sq).reshape(-1)
+    keep = (idx >= 0) & (sq < max_distance**2)
+    normals = np.asarray(target.cloud.normals())[idx[keep], :3]
+    n_local = normals @ T[:3, :3]  # rows R^T n
+    J = np.hstack([n_local, np.cross(source[keep], n_local)])
+    return J.T @ J
 
 
 def eigen_mask(hessian: np.ndarray, tau: float) -> tuple[np.ndarray, np.ndarray]:

@@ -1,0 +1,102 @@
+import json
+
+import numpy as np
+import pytest
+
+from l3e_env.dataset import DatasetError, LabelDataset, config_for, generate, label_statistics
+from l3e_env.labels import LabelConfig, SamplingError, label_parent, sample_parent_pose
+from l3e_env.lidar import Lidar
+from l3e_env.raycast import EmbreeCaster
+from l3e_env.registration import RegistrationConfig
+from l3e_env.transforms import pose_to_matrix
+from scenes import Scene, make_scene
+
+FAST = LabelConfig(children=30)
+
+
+def labels_at(scene_name, pose, children=30, seed=0):
+    scene = make_scene(scene_name)
+    lidar = Lidar(EmbreeCaster(scene.mesh, threads=1))
+    cfg = LabelConfig(children=children)
+    return label_parent(lidar, pose_to_matrix(np.array(pose)), np.random.default_rng(seed), cfg, RegistrationConfig())
+
+
+def test_straight_tunnel_flags_its_axis_only():
+    res = labels_at("tunnel", [50, 0, 0.85, 0, 0, 0])
+    assert res.labels.tolist() == [1, 0, 0, 0, 0, 0], res.errors
+
+
+def test_tunnel_axis_follows_the_sensor_frame():
+    res = labels_at("tunnel", [50, 0, 0.85, 0, 0, np.pi / 2])  # sensor yawed: the tunnel runs along its y
+    assert res.labels.tolist() == [0, 1, 0, 0, 0, 0], res.errors
+
+
+def test_feature_rich_room_is_localizable_everywhere():
+    res = labels_at("office", [5, 0, 0.85, 0, 0, 0.3])
+    assert res.labels.tolist() == [0, 0, 0, 0, 0, 0], res.errors
+
+
+def test_open_plane_flags_x_y_and_yaw():
+    res = labels_at("primitives-0", [0, 0, 0.85, 0, 0, 0])
+    assert res.labels[[0, 1, 5]].tolist() == [1, 1, 1], res.errors
+    assert res.labels[2] == 0
+
+
+def test_parent_sampling_is_collision_free_and_seeded():
+    scene = make_scene("office")
+    caster = EmbreeCaster(scene.mesh, threads=1)
+    poses = [sample_parent_pose(scene, caster, np.random.default_rng(3), FAST) for _ in range(2)]
+    np.testing.assert_array_equal(poses[0], poses[1])
+    rng = np.random.default_rng(4)
+    for _ in range(20):
+        T = sample_parent_pose(scene, caster, rng, FAST)
+        assert 0.0 < T[2, 3] < 2.8  # between floor and ceiling
+    bare = Scene("bare", scene.mesh, [], (0, 0, 0), (1, 1))
+    with pytest.raises(SamplingError, match="no sampling paths"):
+        sample_parent_pose(bare, caster, rng, FAST)
+
+
+def test_statistics_count_the_64_combinations():
+    labels = np.array([[1, 0, 0, 0, 0, 0], [1, 0, 0, 0, 0, 0], [0] * 6, [1, 1, 0, 0, 0, 1]], dtype=np.uint8)
+    stats = label_statistics(labels)
+    assert stats["powerset_histogram"] == {"x": 2, "none": 1, "x+y+yaw": 1}
+    assert stats["positive_rate"]["x"] == 0.75 and stats["positive_rate"]["z"] == 0.0
+
+
+def small_config(**kw):
+    return config_for(None, scenes=["tunnel-0", "office-0"], parents_per_scene=3, shard_size=2,
+                      labels={"children": 12}, **kw)
+
+
+def test_same_seed_same_dataset_whatever_the_workers_and_after_a_resume(tmp_path):
+    cfg = small_config()
+    one = generate(tmp_path / "one", cfg, workers=1, progress=False)
+    two = generate(tmp_path / "two", cfg, workers=2, progress=False)
+    a, b = LabelDataset(tmp_path / "one"), LabelDataset(tmp_path / "two")
+    assert one["count"] == two["count"] == len(a) == 6
+    for key in ("points", "offsets", "poses", "errors", "labels", "scene"):
+        np.testing.assert_array_equal(a.arrays[key], b.arrays[key])
+    # a killed run: one shard missing, a half-written temporary left behind
+    shards = sorted((tmp_path / "two" / "shards").glob("*.npz"))
+    kept = shards[0].read_bytes()
+    shards[1].unlink()
+    (tmp_path / "two" / "shards" / (shards[1].name + ".tmp")).write_bytes(b"half")
+    generate(tmp_path / "two", cfg, workers=1, progress=False)
+    assert shards[0].read_bytes() == kept  # finished work is not redone
+    c = LabelDataset(tmp_path / "two")
+    np.testing.assert_array_equal(a.arrays["errors"], c.arrays["errors"])
+    assert c.scan(1).shape[1] == 3 and c.scan(1).dtype == np.float32
+    manifest = json.loads((tmp_path / "two" / "manifest.json").read_text())
+    assert manifest["settings"]["registration"]["max_correspondence_distance"] == [2.0, 0.5]
+    assert manifest["statistics"]["positive_rate"]["x"] > 0  # the tunnel parents
+
+
+def test_resuming_with_other_settings_or_reading_unfinished_data_is_refused(tmp_path):
+    generate(tmp_path / "d", small_config(), workers=1, progress=False)
+    with pytest.raises(DatasetError, match="other settings"):
+        generate(tmp_path / "d", small_config(seed=5), workers=1, progress=False)
+    (tmp_path / "e").mkdir()
+    with pytest.raises(DatasetError, match="not a dataset"):
+        LabelDataset(tmp_path / "e")
+    with pytest.raises(DatasetError, match="unknown preset"):
+        config_for("huge")

@@ -1,0 +1,91 @@
+import numpy as np
+import pytest
+import small_gicp
+
+from l3e_env.config import LidarConfig
+from l3e_env.lidar import Lidar
+from l3e_env.raycast import EmbreeCaster
+from l3e_env.registration import (
+    TO_PROJECT_ORDER, PreparedTarget, RegistrationConfig, RegistrationError, eigen_mask, prepare_source, register,
+)
+from l3e_env.transforms import inverse, matrix_to_pose, pose_to_matrix
+from scenes import make_scene
+
+
+def scan_pair(scene_name, pose, delta, seed=0):
+    scene = make_scene(scene_name)
+    lidar = Lidar(EmbreeCaster(scene.mesh, threads=1), LidarConfig())
+    rng = np.random.default_rng(seed)
+    T_p = pose_to_matrix(np.array(pose))
+    T_p_c = pose_to_matrix(np.array(delta))
+    return lidar.scan(T_p, rng).points, lidar.scan(T_p @ T_p_c, rng).points, T_p_c
+
+
+def test_icp_recovers_a_small_offset_in_a_feature_rich_room():
+    target, source, T_true = scan_pair("office", [5, 0, 0.85, 0, 0, 0.3], [0.15, -0.1, 0.05, 0.02, -0.03, 0.1])
+    res = register(source, target)
+    err = matrix_to_pose(res.T_target_source @ inverse(T_true))
+    assert res.converged and res.num_inliers > 500
+    assert np.abs(err[:3]).max() < 0.03 and np.abs(err[3:]).max() < np.radians(0.5)
+
+
+def test_hessian_matches_finite_differences_of_the_point_to_plane_cost():
+    cfg = RegistrationConfig()
+    target, source, _ = scan_pair("office", [5, 0, 0.85, 0, 0, 0.3], [0.05, 0.02, 0.0, 0.0, 0.0, 0.03])
+    tgt = PreparedTarget(target, cfg)
+    src = prepare_source(source, cfg)
+    res = register(src, tgt, cfg)
+    # rebuild the final correspondences and differentiate the residuals numerically
+    T = res.T_target_source
+    p = np.asarray(src.points())[:, :3]
+    q, n = np.asarray(tgt.cloud.points())[:, :3], np.asarray(tgt.cloud.normals())[:, :3]
+    from scipy.spatial import cKDTree
+
+    d, idx = cKDTree(q).query(p @ T[:3, :3].T + T[:3, 3])
+    keep = d < cfg.max_correspondence_distance[-1]
+    p, q, n = p[keep], q[idx[keep]], n[idx[keep]]
+
+    def residuals(delta):  # right perturbation in project order (x, y, z, roll, pitch, yaw)
+        Tp = T @ pose_to_matrix(delta)
+        return np.einsum("ij,ij->i", n, p @ Tp[:3, :3].T + Tp[:3, 3] - q)
+
+    eps = 1e-6
+    J = np.column_stack([(residuals(eps * e) - residuals(-eps * e)) / (2 * eps) for e in np.eye(6)])
+    H_fd = J.T @ J
+    rel = np.linalg.norm(res.hessian - H_fd) / np.linalg.norm(H_fd)
+    assert rel < 1e-4, rel
+    assert list(TO_PROJECT_ORDER) == [3, 4, 5, 0, 1, 2]
+
+
+def test_eigenvalue_detector_flags_the_tunnel_axis_only():
+    target, source, _ = scan_pair("tunnel", [50, 0, 0.85, 0, 0, 0], [0.0, 0.05, 0.0, 0.0, 0.0, 0.01])
+    res = register(source, target)
+    w = np.linalg.eigvalsh(res.hessian)
+    tau = np.sqrt(w[0] * w[1])  # between the tunnel direction and the rest
+    scores, mask = eigen_mask(res.hessian, tau)
+    assert mask.tolist() == [True, False, False, False, False, False]
+    assert scores[0] > 0.9
+    assert not eigen_mask(res.hessian, 0.0)[1].any()
+    assert eigen_mask(res.hessian, 1e12)[1].all()
+
+
+def test_bad_scans_raise_clear_errors():
+    target, source, _ = scan_pair("office", [5, 0, 0.85, 0, 0, 0], [0, 0, 0, 0, 0, 0])
+    with pytest.raises(RegistrationError, match="NaN"):
+        register(np.vstack([source, [[np.nan, 0, 0]]]), target)
+    with pytest.raises(RegistrationError, match="minimum"):
+        register(source[:20], target)
+    with pytest.raises(RegistrationError, match="minimum"):
+        register(source, np.zeros((0, 3)))
+    with pytest.raises(RegistrationError, match=r"\(N, 3\)"):
+        register(source[:, :2], target)
+    with pytest.raises(ValueError, match="6x6"):
+        eigen_mask(np.eye(5), 1.0)
+
+
+def test_icp_without_overlap_is_reported_not_converged():
+    target, _, _ = scan_pair("office", [5, 0, 0.85, 0, 0, 0], [0, 0, 0, 0, 0, 0])
+    far = target + np.array([200.0, 0, 0], dtype=np.float32)
+    res = register(far, target)
+    assert not res.converged
+    assert isinstance(small_gicp.PointCloud(np.zeros((3, 3))), small_gicp.PointCloud)
