@@ -113,7 +113,7 @@ def label_parent(
         T_p_c = pose_to_matrix(rng.normal(0, 1, 6) * sigma)
         child = lidar.scan(T_w_p @ T_p_c, rng)
         try:
-            result = register(prepare_source(child.points, registration), target, registration)
+            result = register(prepare_source(child.points, registration), target, registration, with_hessian=False)
         except RegistrationError:
             failed += 1
             continue

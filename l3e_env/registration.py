@@ -32,7 +32,7 @@ class RegistrationConfig:
     num_neighbors: int = 10  # for target normals
     max_correspondence_distance: tuple[float, ...] = (2.0, 0.5)
     max_iterations: int = 15  # per stage
-    max_source_points: int = 2000  # evenly strided subset of the downsampled source (0: all)
+    max_source_points: int = 1000  # evenly strided subset of the downsampled source (0: all)
     rotation_epsilon: float = 1e-3  # rad, convergence
     translation_epsilon: float = 1e-3  # m, convergence
     min_points: int = 100  # fewer points after downsampling: refuse
@@ -42,7 +42,7 @@ class RegistrationConfig:
 @dataclass
 class RegistrationResult:
     T_target_source: np.ndarray  # 4x4, maps source points into the target frame
-    hessian: np.ndarray  # 6x6 Gauss-Newton A^T A at the solution, (x, y, z, roll, pitch, yaw)
+    hessian: np.ndarray  # 6x6 Gauss-Newton A^T A at the solution, (x, y, z, roll, pitch, yaw); NaN if not asked
     converged: bool
     iterations: int
     num_inliers: int
@@ -95,6 +95,7 @@ def register(
     target: np.ndarray | PreparedTarget,
     config: RegistrationConfig | None = None,
     init_T_target_source: np.ndarray | None = None,
+    with_hessian: bool = True,
 ) -> RegistrationResult:
     """Point-to-plane ICP of `source` onto `target` from `init` (identity by default).
 
@@ -118,7 +119,10 @@ def register(
     inliers = int(result.num_inliers)
     if inliers < config.min_inlier_ratio * src.size():
         converged = False
-    H = point_to_plane_hessian(np.asarray(src.points())[:, :3], tgt, T, config.max_correspondence_distance[-1])
+    H = (
+        point_to_plane_hessian(np.asarray(src.points())[:, :3], tgt, T, config.max_correspondence_distance[-1])
+        if with_hessian else np.full((6, 6), np.nan)
+    )
     return RegistrationResult(T, H, converged, iterations, inliers, int(src.size()), float(result.error))
 
 

@@ -100,3 +100,13 @@ def test_resuming_with_other_settings_or_reading_unfinished_data_is_refused(tmp_
         LabelDataset(tmp_path / "e")
     with pytest.raises(DatasetError, match="unknown preset"):
         config_for("huge")
+
+
+def test_ray_backend_gives_the_same_dataset(tmp_path):
+    pytest.importorskip("ray")
+    cfg = config_for(None, scenes=["office-0"], parents_per_scene=2, shard_size=1, labels={"children": 8})
+    generate(tmp_path / "local", cfg, workers=1, progress=False)
+    generate(tmp_path / "ray", cfg, workers=2, backend="ray", progress=False)
+    a, b = LabelDataset(tmp_path / "local"), LabelDataset(tmp_path / "ray")
+    for key in ("points", "errors", "labels", "poses"):
+        np.testing.assert_array_equal(a.arrays[key], b.arrays[key])
