@@ -33,14 +33,4 @@ def make_cave(seed: int = 0, length: float | None = None, chambers: int | None =
     rho *= 1 + 0.25 * np.cos(angles)[None, :] ** 2 * rng.uniform(-1, 1)  # flattened or tall sections
     mesh = sweep(path, angles, rho, 0.4 * radius, noise=smooth_noise(rng, 0.35 * base), close_end=True)
     route = resample_polyline(path[4:-4], 1.0)
-    heading0 = float(np.arctan2(*(route[1, 1::-1] - route[0, 1::-1])))
-    return Scene(
-        name=f"cave-{seed}",
-        mesh=mesh,
-        sampling_paths=[route],
-        start=(route[0, 0], route[0, 1], heading0),
-        goal=route[-1, :2],
-        routes={"main": route},
-        family="cave",
-        seed=seed,
-    )
+    return Scene.along_route(f"cave-{seed}", mesh, route, "cave", seed)

@@ -46,13 +46,4 @@ def make_primitive(seed: int = 0, kind: str | None = None) -> Scene:
     else:
         raise ValueError(f"unknown primitive kind '{kind}' (choose from {KINDS})")
     route = resample_polyline(path, 1.0)
-    return Scene(
-        name=name,
-        mesh=trimesh.Trimesh(mesh.vertices, mesh.faces, process=False),
-        sampling_paths=[route],
-        start=(route[0, 0], route[0, 1], float(np.arctan2(*(route[-1, 1::-1] - route[0, 1::-1])))),
-        goal=route[-1, :2],
-        routes={"main": route},
-        family="primitives",
-        seed=seed,
-    )
+    return Scene.along_route(name, trimesh.Trimesh(mesh.vertices, mesh.faces, process=False), route, "primitives", seed)

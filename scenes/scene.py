@@ -50,6 +50,13 @@ class Scene:
         if not (np.isfinite(self.start).all() and np.isfinite(self.goal).all()):
             raise SceneError(f"scene '{self.name}': start or goal is not finite")
 
+    @classmethod
+    def along_route(cls, name: str, mesh: trimesh.Trimesh, route: np.ndarray, family: str, seed: int) -> "Scene":
+        """A scene whose one route is also its sampling path; the robot starts facing along it."""
+        heading = float(np.arctan2(route[1, 1] - route[0, 1], route[1, 0] - route[0, 0]))
+        return cls(name=name, mesh=mesh, sampling_paths=[route], start=(route[0, 0], route[0, 1], heading),
+                   goal=route[-1, :2], routes={"main": route}, family=family, seed=seed)
+
     @property
     def route(self) -> np.ndarray:
         """The default route: 'main' if present, else the first one."""

@@ -38,14 +38,4 @@ def make_tunnel(
     mesh = sweep(path, angles, np.tile(rho, (len(s), 1)), np.full(len(s), cz))
     inner = path[(s > 5) & (s < length - 5)]
     route = resample_polyline(inner, 1.0)
-    heading0 = float(np.arctan2(route[1, 1] - route[0, 1], route[1, 0] - route[0, 0]))
-    return Scene(
-        name=f"tunnel-{seed}",
-        mesh=mesh,
-        sampling_paths=[route],
-        start=(route[0, 0], route[0, 1], heading0),
-        goal=route[-1, :2],
-        routes={"main": route},
-        family="tunnel",
-        seed=seed,
-    )
+    return Scene.along_route(f"tunnel-{seed}", mesh, route, "tunnel", seed)

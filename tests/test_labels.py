@@ -110,3 +110,26 @@ def test_ray_backend_gives_the_same_dataset(tmp_path):
     a, b = LabelDataset(tmp_path / "local"), LabelDataset(tmp_path / "ray")
     for key in ("points", "errors", "labels", "poses"):
         np.testing.assert_array_equal(a.arrays[key], b.arrays[key])
+
+
+def test_a_full_disk_is_a_clear_error_and_keeps_finished_shards(tmp_path, monkeypatch):
+    import errno
+
+    import l3e_env.dataset as ds
+
+    cfg = config_for(None, scenes=["office-0"], parents_per_scene=2, shard_size=1, labels={"children": 6})
+    real_savez, calls = np.savez, []
+
+    def savez_then_full(fh, **arrays):
+        calls.append(1)
+        if len(calls) > 1:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        real_savez(fh, **arrays)
+
+    monkeypatch.setattr(ds.np, "savez", savez_then_full)
+    with pytest.raises(DatasetError, match="No space left.*resume"):
+        generate(tmp_path, cfg, workers=1, progress=False)
+    shards = sorted(p.name for p in (tmp_path / "shards").iterdir())
+    assert shards == ["office-0-00000.npz"]  # the finished shard stays, no temporary is left
+    monkeypatch.setattr(ds.np, "savez", real_savez)
+    assert generate(tmp_path, cfg, workers=1, progress=False)["count"] == 2
