@@ -1,4 +1,12 @@
-"""Estimation only (gtsam, filterpy, numpy): factor graph, EKF, localizability masks, ATE/RPE.
+"""Estimation only (gtsam, filterpy, numpy): factor graph, localizability masks, ATE/RPE.
 
-Imports nothing from the rest of the project.
+Imports nothing from the rest of the project. Axis order in every public array is the
+project's (x, y, z, roll, pitch, yaw); `fusion.tangent` is the one place that converts to
+GTSAM's rotation-first tangent order.
 """
+from .graph import FusionConfig, FusionGraph, StepReport
+from .metrics import MetricError, ate, ate_aligned, rpe, umeyama
+from .tangent import to_gtsam_order, to_project_order
+
+__all__ = ["FusionConfig", "FusionGraph", "StepReport", "MetricError", "ate", "ate_aligned", "rpe", "umeyama",
+           "to_gtsam_order", "to_project_order"]

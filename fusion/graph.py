@@ -1,0 +1,115 @@
+"""iSAM2 fusion of leg odometry with scan-to-scan ICP factors whose non-localizable axes are masked.
+
+A masked axis gets precision 0 in the ICP factor's diagonal noise model, so the factor says
+nothing along it and the odometry alone decides there. This is the L3E use of the mask.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+
+from .tangent import to_gtsam_order
+
+MASK_MODES = ("mask", "full", "drop")
+
+
+@dataclass
+class FusionConfig:
+    """mask: drop only the flagged axes; full: keep the whole ICP factor (no detector);
+    drop: drop the whole ICP factor when any axis is flagged. Sigmas in project order
+    (m, m, m, rad, rad, rad)."""
+
+    mode: str = "mask"
+    icp_sigmas: tuple[float, ...] = (0.02, 0.02, 0.02, 0.005, 0.005, 0.005)
+    prior_sigmas: tuple[float, ...] = (1e-3, 1e-3, 1e-3, 1e-4, 1e-4, 1e-4)
+    robust_kernel: str | None = None  # None | "huber" | "cauchy"
+    robust_threshold: float = 1.345
+    relinearize_threshold: float = 0.01
+
+
+@dataclass
+class StepReport:
+    icp_used: bool
+    masked_axes: int
+    fallback: str | None  # why the step ran on a reduced set of factors
+
+
+def _pose3(T: np.ndarray) -> gtsam.Pose3:
+    return gtsam.Pose3(np.asarray(T, dtype=np.float64))
+
+
+class FusionGraph:
+    """One Pose3 per scan; `add_step` adds odometry and (masked) ICP between-factors."""
+
+    def __init__(self, T_w_0: np.ndarray, config: FusionConfig | None = None):
+        self.config = config or FusionConfig()
+        if self.config.mode not in MASK_MODES:
+            raise ValueError(f"fusion mode must be one of {MASK_MODES}, got '{self.config.mode}'")
+        params = gtsam.ISAM2Params()
+        params.setRelinearizeThreshold(self.config.relinearize_threshold)
+        self.isam = gtsam.ISAM2(params)
+        self.k = 0
+        self.estimate = _pose3(T_w_0)
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        prior = gtsam.noiseModel.Diagonal.Sigmas(to_gtsam_order(np.asarray(self.config.prior_sigmas)))
+        graph.add(gtsam.PriorFactorPose3(0, self.estimate, prior))
+        values.insert(0, self.estimate)
+        self.isam.update(graph, values)
+
+    def _noise(self, precisions_project: np.ndarray) -> gtsam.noiseModel.Base:
+        base = gtsam.noiseModel.Diagonal.Precisions(to_gtsam_order(precisions_project))
+        kernel = self.config.robust_kernel
+        if kernel is None:
+            return base
+        est = {"huber": gtsam.noiseModel.mEstimator.Huber, "cauchy": gtsam.noiseModel.mEstimator.Cauchy}[kernel]
+        return gtsam.noiseModel.Robust.Create(est.Create(self.config.robust_threshold), base)
+
+    def add_step(
+        self,
+        odom_T_prev_cur: np.ndarray | None,
+        odom_sigmas: np.ndarray | None,
+        icp_T_prev_cur: np.ndarray | None = None,
+        non_localizable: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, StepReport]:
+        """Add pose k+1 with its factors; returns (estimate of pose k+1, report).
+
+        Missing odometry with every ICP axis masked leaves the new pose unconstrained: then the
+        ICP factor is kept whole (documented fallback), and with no ICP either the pose is tied to
+        the previous one by a weak constant-position factor. A step never fails for that.
+        """
+        mask = np.zeros(6, dtype=bool) if non_localizable is None else np.asarray(non_localizable, dtype=bool)
+        mode, fallback = self.config.mode, None
+        if mode == "full":
+            mask = np.zeros(6, dtype=bool)
+        elif mode == "drop" and mask.any():
+            icp_T_prev_cur, mask = None, np.ones(6, dtype=bool)
+        has_odom = odom_T_prev_cur is not None and np.isfinite(odom_T_prev_cur).all()
+        has_icp = icp_T_prev_cur is not None and np.isfinite(icp_T_prev_cur).all() and not mask.all()
+        if not has_odom and icp_T_prev_cur is not None and np.isfinite(icp_T_prev_cur).all() and mask.all():
+            mask, has_icp, fallback = np.zeros(6, dtype=bool), True, "all axes masked and no odometry: full ICP factor"
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        i, j = self.k, self.k + 1
+        if has_odom:
+            precision = 1.0 / np.maximum(np.asarray(odom_sigmas, dtype=np.float64), 1e-9) ** 2
+            graph.add(gtsam.BetweenFactorPose3(i, j, _pose3(odom_T_prev_cur), self._noise(precision)))
+        if has_icp:
+            precision = np.where(mask, 0.0, 1.0 / np.asarray(self.config.icp_sigmas) ** 2)
+            graph.add(gtsam.BetweenFactorPose3(i, j, _pose3(icp_T_prev_cur), self._noise(precision)))
+        if not has_odom and not has_icp:
+            fallback = "no odometry and no ICP: constant-position factor"
+            weak = gtsam.noiseModel.Isotropic.Sigma(6, 10.0)
+            graph.add(gtsam.BetweenFactorPose3(i, j, gtsam.Pose3(), weak))
+        guess = self.estimate.compose(_pose3(odom_T_prev_cur)) if has_odom else (
+            self.estimate.compose(_pose3(icp_T_prev_cur)) if has_icp else self.estimate)
+        values.insert(j, guess)
+        self.isam.update(graph, values)
+        self.k = j
+        self.estimate = self.isam.calculateEstimatePose3(j)
+        return self.estimate.matrix(), StepReport(has_icp, int(mask.sum()) if has_icp else 6, fallback)
+
+    def trajectory(self) -> np.ndarray:
+        """All smoothed poses (k+1, 4, 4)."""
+        values = self.isam.calculateEstimate()
+        return np.array([values.atPose3(k).matrix() for k in range(self.k + 1)])

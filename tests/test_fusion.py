@@ -1,0 +1,108 @@
+import ast
+from pathlib import Path
+
+import gtsam
+import numpy as np
+import pytest
+
+from fusion import FusionConfig, FusionGraph, MetricError, ate, ate_aligned, rpe, to_gtsam_order, to_project_order, umeyama
+
+
+def pose(x=0.0, y=0.0, z=0.0, yaw=0.0):
+    T = np.eye(4)
+    c, s = np.cos(yaw), np.sin(yaw)
+    T[:2, :2] = [[c, -s], [s, c]]
+    T[:3, 3] = (x, y, z)
+    return T
+
+
+def test_tangent_order_conversion_matches_gtsam_semantics():
+    np.testing.assert_array_equal(to_gtsam_order(np.arange(6.0)), [3, 4, 5, 0, 1, 2])
+    np.testing.assert_array_equal(to_project_order(to_gtsam_order(np.arange(6.0))), np.arange(6.0))
+    x_step = gtsam.Pose3.Expmap(to_gtsam_order(np.array([0.5, 0, 0, 0, 0, 0])))
+    np.testing.assert_allclose(x_step.translation(), [0.5, 0, 0], atol=1e-12)
+    roll = gtsam.Pose3.Expmap(to_gtsam_order(np.array([0, 0, 0, 0.1, 0, 0])))
+    np.testing.assert_allclose(roll.rotation().roll(), 0.1, atol=1e-12)
+    H = np.diag(np.arange(1.0, 7.0))
+    assert to_gtsam_order(H)[0, 0] == 4.0 and to_project_order(to_gtsam_order(H))[5, 5] == 6.0
+    with pytest.raises(ValueError):
+        to_gtsam_order(np.zeros(5))
+
+
+def drive(mode, mask_x, steps=200):
+    """A tunnel-like run: ICP sees no motion along x (it sticks), odometry over-reports x by 5 %."""
+    graph = FusionGraph(np.eye(4), FusionConfig(mode=mode))
+    truth, est = [np.eye(4)], [np.eye(4)]
+    odom_sigmas = np.array([0.05, 0.05, 0.05, 0.01, 0.01, 0.01])  # legs: less certain than ICP
+    mask = np.array([mask_x, False, False, False, False, False])
+    for k in range(steps):
+        step = pose(0.1, 0.0, 0.0, 0.002)
+        truth.append(truth[-1] @ step)
+        odom = pose(0.105, 0.0, 0.0, 0.002 + 0.001)
+        icp = pose(0.0, 0.0, 0.0, 0.002)  # degenerate along x, right elsewhere
+        T, report = graph.add_step(odom, odom_sigmas, icp, mask)
+        est.append(T)
+    return np.array(truth), np.array(est), graph, report
+
+
+def test_masking_the_degenerate_axis_beats_full_icp_and_dropping_uses_odometry_only():
+    truth, full, *_ = drive("full", mask_x=True)
+    _, masked, graph, report = drive("mask", mask_x=True)
+    _, dropped, *_ = drive("drop", mask_x=True)
+    assert report.icp_used and report.masked_axes == 1
+    e_full, e_mask, e_drop = ate(full, truth), ate(masked, truth), ate(dropped, truth)
+    assert e_mask < 0.2 * e_full  # full ICP stalls: the robot "stays" at the tunnel entrance
+    assert e_mask < e_drop  # the unmasked yaw of ICP fixes the odometry's yaw bias
+    # along x the masked estimate follows the odometry (5 % over)
+    assert abs(masked[-1][0, 3] - 1.05 * truth[-1][0, 3]) < 0.3
+    assert graph.trajectory().shape == (201, 4, 4)
+
+
+def test_under_constrained_steps_fall_back_and_never_crash():
+    graph = FusionGraph(np.eye(4))
+    T, report = graph.add_step(None, None, pose(0.1), np.ones(6, dtype=bool))
+    assert report.fallback and "all axes masked" in report.fallback
+    np.testing.assert_allclose(T[:3, 3], [0.1, 0, 0], atol=1e-6)
+    T, report = graph.add_step(None, None, None, None)
+    assert "constant-position" in report.fallback and np.isfinite(T).all()
+    T, report = graph.add_step(np.full((4, 4), np.nan), np.ones(6), pose(0.1), np.zeros(6, dtype=bool))
+    assert report.icp_used and np.isfinite(T).all()
+    with pytest.raises(ValueError, match="fusion mode"):
+        FusionGraph(np.eye(4), FusionConfig(mode="sometimes"))
+
+
+def test_robust_kernels_build():
+    for kernel in ("huber", "cauchy"):
+        graph = FusionGraph(np.eye(4), FusionConfig(robust_kernel=kernel))
+        T, _ = graph.add_step(pose(0.1), np.full(6, 0.01), pose(0.1), np.zeros(6, dtype=bool))
+        np.testing.assert_allclose(T[:3, 3], [0.1, 0, 0], atol=1e-6)
+
+
+def test_ate_rpe_and_alignment():
+    rng = np.random.default_rng(0)
+    gt = np.array([pose(0.1 * k, np.sin(0.05 * k), 0.01 * k, 0.01 * k) for k in range(100)])
+    shifted = gt.copy()
+    shifted[:, 0, 3] += 0.3
+    assert ate(shifted, gt) == pytest.approx(0.3)
+    assert ate_aligned(shifted, gt) == pytest.approx(0.0, abs=1e-9)
+    assert rpe(gt, gt, 5) == pytest.approx((0.0, 0.0), abs=1e-12)
+    R = gtsam.Rot3.RzRyRx(*rng.normal(0, 0.3, 3)).matrix()
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, rng.normal(0, 5, 3)
+    moved = gt[:, :3, 3] @ R.T + T[:3, 3]
+    np.testing.assert_allclose(umeyama(gt[:, :3, 3], moved), T, atol=1e-9)
+    line = np.column_stack([np.arange(20.0), np.zeros(20), np.zeros(20)])
+    with pytest.raises(MetricError, match="colinear"):
+        umeyama(line, line)
+    with pytest.raises(MetricError, match="NaN"):
+        ate(np.full((3, 3), np.nan), np.zeros((3, 3)))
+    with pytest.raises(MetricError, match="length"):
+        ate(np.zeros((3, 3)), np.zeros((4, 3)))
+
+
+def test_fusion_imports_nothing_of_the_project():
+    for path in Path(__file__).parents[1].joinpath("fusion").glob("*.py"):
+        tree = ast.parse(path.read_text())
+        names = {a.name.split(".")[0] for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
+        names |= {n.module.split(".")[0] for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n.module and n.level == 0}
+        assert not names & {"l3e_env", "scenes", "policies"}, path
