@@ -69,6 +69,17 @@ def _cmd_dataset_stats(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_ate(args: argparse.Namespace) -> int:
+    from .experiment import format_table, run_experiment
+
+    out = Path(args.out or f"l3e_out/ate-{args.scene}-{time.strftime('%Y%m%d-%H%M%S')}")
+    print(f"writing the experiment into {out.resolve()}")
+    rows = run_experiment(out, args.scene, args.detector or ["none", "eigen:30", "eigen:110", "oracle"],
+                          sensor=args.sensor, seed=args.seed, recording=args.recording, progress=not args.quiet)
+    print(format_table(rows))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="l3e", description="Learned LiDAR localizability in simulation (L3E).")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -100,6 +111,15 @@ def build_parser() -> argparse.ArgumentParser:
     g = dsub.add_parser("stats", help="label statistics of a dataset")
     g.add_argument("folder")
     g.set_defaults(func=_cmd_dataset_stats)
+    p = sub.add_parser("ate", help="drive a route once, fuse with each detector, compare ATE")
+    p.add_argument("--scene", default="mine")
+    p.add_argument("--detector", action="append", help="none | eigen:<tau> | oracle[:M]; repeat for several")
+    p.add_argument("--sensor", default="vlp16")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--recording", help="evaluate a saved recording.npz instead of driving again")
+    p.add_argument("--out", help="output folder (default: l3e_out/ate-<scene>-<time>)")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=_cmd_ate)
     p = sub.add_parser("envs", help="list the registered Gymnasium environment ids")
     p.set_defaults(func=_cmd_envs)
     return parser

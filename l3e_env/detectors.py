@@ -1,0 +1,105 @@
+"""Localizability detectors behind one interface: none, eigenvalue (Zhang et al.), oracle.
+
+Every detector maps one scan (and, where it needs it, the registration of that scan against
+the previous one, or the true pose) to six probabilities of non-localizability and a mask,
+in (x, y, z, roll, pitch, yaw) order, 1/True = not localizable.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+from .labels import LabelConfig, label_parent
+from .lidar import Lidar
+from .registration import RegistrationConfig, RegistrationError, RegistrationResult, eigen_mask
+
+
+@dataclass
+class Prediction:
+    probabilities: np.ndarray  # (6,) float
+    mask: np.ndarray  # (6,) bool, True = not localizable
+    known: bool = True  # False: the detector could not judge this scan (mask is all False then)
+
+
+class Detector(Protocol):
+    name: str
+
+    def predict(self, points: np.ndarray, registration: RegistrationResult | None = None,
+                T_w_s: np.ndarray | None = None) -> Prediction: ...
+
+
+UNKNOWN = Prediction(np.full(6, np.nan), np.zeros(6, dtype=bool), known=False)
+
+
+class NoDetector:
+    """Trust ICP on every axis (the 'full ICP' baseline)."""
+
+    name = "none"
+
+    def predict(self, points, registration=None, T_w_s=None) -> Prediction:
+        return Prediction(np.zeros(6), np.zeros(6, dtype=bool))
+
+
+class EigenvalueDetector:
+    """Zhang et al. (2016) on the registration's Hessian; `probabilities` are the per-axis shares
+    of the degenerate subspace (not calibrated probabilities)."""
+
+    def __init__(self, tau: float):
+        if not tau > 0:
+            raise ValueError(f"eigenvalue threshold must be positive, got {tau}")
+        self.tau = float(tau)
+        self.name = f"eigen:{tau:g}"
+
+    def predict(self, points, registration=None, T_w_s=None) -> Prediction:
+        if registration is None or not np.isfinite(registration.hessian).all():
+            return UNKNOWN
+        scores, mask = eigen_mask(registration.hessian, self.tau)
+        return Prediction(scores, mask)
+
+
+class OracleDetector:
+    """Monte-Carlo labels computed at the true sensor pose with M children (fewer than the
+    paper's 200 to keep a route affordable), re-evaluated every `stride` calls and held between."""
+
+    def __init__(self, lidar: Lidar, children: int = 20, stride: int = 5, seed: int = 0,
+                 registration: RegistrationConfig | None = None):
+        self.lidar, self.stride, self.seed = lidar, stride, seed
+        self.labels = LabelConfig(children=children)
+        self.registration = registration or RegistrationConfig()
+        self.name = f"oracle:{children}"
+        self._calls, self._last = 0, UNKNOWN
+
+    def predict(self, points, registration=None, T_w_s=None) -> Prediction:
+        if T_w_s is None:
+            raise ValueError("the oracle detector needs the true sensor pose")
+        if self._calls % self.stride == 0:
+            rng = np.random.default_rng([self.seed, self._calls])
+            try:
+                res = label_parent(self.lidar, T_w_s, rng, self.labels, self.registration)
+                self._last = Prediction(res.labels.astype(np.float64), res.labels.astype(bool))
+            except RegistrationError:
+                self._last = UNKNOWN
+        self._calls += 1
+        return self._last
+
+
+def make_detector(spec: str, lidar: Lidar | None = None, seed: int = 0) -> Detector:
+    """'none', 'eigen:<tau>', 'oracle' or 'oracle:<M>'."""
+    kind, _, arg = spec.partition(":")
+    if kind == "none":
+        return NoDetector()
+    if kind == "eigen":
+        try:
+            tau = float(arg)
+        except ValueError as exc:
+            raise ValueError(f"detector '{spec}': give the threshold as eigen:<tau>, e.g. eigen:30") from exc
+        return EigenvalueDetector(tau)
+    if kind == "oracle":
+        if lidar is None:
+            raise ValueError("the oracle detector needs the scene's LiDAR")
+        return OracleDetector(lidar, children=int(arg) if arg else 20, seed=seed)
+    if kind == "learned":
+        raise ValueError("the learned detector needs the trained classifier, which is not in this version yet")
+    raise ValueError(f"unknown detector '{spec}' (none, eigen:<tau>, oracle[:M])")

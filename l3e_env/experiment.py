@@ -1,0 +1,226 @@
+"""Record a drive once, then fuse it with every detector: ATE/RPE tables, plots and maps.
+
+`record_run` drives a scene's route with the route follower and keeps, per step, the scan, the
+leg-odometry increment and the ground truth. `evaluate` registers consecutive scans once (the
+one registration), asks each detector for a mask, fuses odometry and masked ICP in the iSAM2
+graph, and measures against ground truth. A saved recording can be evaluated again with new
+detectors without driving.
+"""
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import small_gicp
+from tqdm import tqdm
+
+from fusion import FusionConfig, FusionGraph, MetricError, ate, ate_aligned, rpe
+
+from .config import EnvConfig, LidarConfig, OdometryConfig
+from .detectors import Detector, make_detector
+from .envs.navigation import NavigationEnv
+from .follower import RouteFollower
+from .labels import AXES
+from .lidar import Lidar
+from .raycast import EmbreeCaster
+from .registration import PreparedTarget, RegistrationConfig, RegistrationError, register
+from .transforms import inverse, matrix_to_pose
+
+STORE_VOXEL = 0.2  # stored scans are thinned to the classifier's own quantisation
+
+
+@dataclass
+class Recording:
+    scene: str
+    sensor: str
+    seed: int
+    T_b_s: np.ndarray
+    ground_truth: np.ndarray  # (N+1, 4, 4) body poses
+    odometry: np.ndarray  # (N, 4, 4) increments T_b(k-1)_b(k)
+    scans: list[np.ndarray] = field(default_factory=list)  # N+1 scans, sensor frame
+
+    def save(self, path: str | Path) -> None:
+        lengths = np.array([len(s) for s in self.scans])
+        np.savez_compressed(
+            path, scene=self.scene, sensor=self.sensor, seed=self.seed, T_b_s=self.T_b_s,
+            ground_truth=self.ground_truth, odometry=self.odometry, points=np.concatenate(self.scans),
+            offsets=np.concatenate([[0], np.cumsum(lengths)]),
+        )
+
+    @classmethod
+    def load(cls, path: str | Path) -> "Recording":
+        with np.load(path) as z:
+            o, pts = z["offsets"], z["points"]
+            return cls(str(z["scene"]), str(z["sensor"]), int(z["seed"]), z["T_b_s"], z["ground_truth"], z["odometry"],
+                       [pts[o[i]:o[i + 1]] for i in range(len(o) - 1)])
+
+
+def record_run(scene: str = "mine", sensor: str = "vlp16", seed: int = 0, progress: bool = True) -> Recording:
+    env = NavigationEnv(EnvConfig(scene=scene, lidar=LidarConfig(model=sensor)))
+    obs, info = env.reset(seed=seed)
+    follow = RouteFollower(env.route)
+
+    def thin(points: np.ndarray) -> np.ndarray:
+        cloud = small_gicp.voxelgrid_sampling(points.astype(np.float64), STORE_VOXEL)
+        return np.asarray(cloud.points())[:, :3].astype(np.float32)
+
+    gt, odom, scans = [info["T_w_b"]], [], [thin(env.scan.points)]
+    bar = tqdm(total=env.max_steps, desc=f"recording {env.scene.name}", unit="step", disable=not progress)
+    done = False
+    while not done:
+        prev_odom = info["odom_T_w_b"]
+        obs, _, terminated, truncated, info = env.step(follow(info["T_w_b"]))
+        done = terminated or truncated
+        gt.append(info["T_w_b"])
+        odom.append(inverse(prev_odom) @ info["odom_T_w_b"])
+        scans.append(thin(env.scan.points))
+        bar.update()
+    bar.close()
+    rec = Recording(env.scene.name, sensor, seed, env.robot.T_b_s, np.array(gt), np.array(odom), scans)
+    env.close()
+    return rec
+
+
+@dataclass
+class DetectorResult:
+    name: str
+    trajectory: np.ndarray
+    masks: np.ndarray  # (N, 6) bool
+    probabilities: np.ndarray  # (N, 6)
+    ate: float
+    ate_aligned: float | None
+    rpe_translation: float
+    rpe_rotation: float
+    seconds: float
+    unknown_steps: int
+    fallback_steps: int
+
+    def row(self) -> dict:
+        flagged = self.masks.mean(axis=0)
+        return {"detector": self.name, "ate_m": round(self.ate, 3),
+                "ate_aligned_m": None if self.ate_aligned is None else round(self.ate_aligned, 3),
+                "rpe_m": round(self.rpe_translation, 4), "rpe_deg": round(float(np.degrees(self.rpe_rotation)), 3),
+                **{f"flagged_{a}": round(float(f), 3) for a, f in zip(AXES, flagged)},
+                "seconds": round(self.seconds, 2), "unknown_steps": self.unknown_steps,
+                "fallback_steps": self.fallback_steps}
+
+
+def odometry_sigmas(increment: np.ndarray, cfg: OdometryConfig) -> np.ndarray:
+    """Per-step standard deviations of the leg odometry from its own noise model (plus a floor)."""
+    v = matrix_to_pose(increment)
+    d, a = float(np.linalg.norm(v[:3])), abs(float(v[5]))
+    bias = d * np.array([0, 0, cfg.z_bias_std, 0, 0, cfg.yaw_bias_std])
+    s = np.array([cfg.trans_noise_per_m * d, cfg.trans_noise_per_m * d, cfg.z_noise_per_m * d, cfg.rp_noise_per_m * d,
+                  cfg.rp_noise_per_m * d, cfg.yaw_noise_per_m * d + cfg.yaw_noise_per_rad * a])
+    scale = cfg.scale_error_std * np.abs(v) * np.array([1, 1, 1, 0, 0, 0])
+    return np.sqrt(s**2 + bias**2 + scale**2) + np.array([1e-3, 1e-3, 1e-3, 1e-4, 1e-4, 1e-4])
+
+
+def register_sequence(rec: Recording, config: RegistrationConfig, progress: bool = True) -> list:
+    """Scan k registered to scan k-1 from identity; None where registration is impossible."""
+    results, target = [], None
+    for k, scan in enumerate(tqdm(rec.scans, desc="registering scans", unit="scan", disable=not progress)):
+        try:
+            new_target = PreparedTarget(scan, config)
+        except RegistrationError:
+            new_target = None
+        if k > 0:
+            try:
+                results.append(register(scan, target, config) if target is not None else None)
+            except RegistrationError:
+                results.append(None)
+        target = new_target
+    return results
+
+
+def evaluate(rec: Recording, detectors: list[Detector], registrations: list, fusion: FusionConfig | None = None,
+             odometry: OdometryConfig | None = None, progress: bool = True) -> list[DetectorResult]:
+    fusion, odometry = fusion or FusionConfig(), odometry or OdometryConfig()
+    T_b_s, T_s_b = rec.T_b_s, inverse(rec.T_b_s)
+    gt = rec.ground_truth
+    out = []
+    for det in detectors:
+        t0 = time.perf_counter()
+        graph = FusionGraph(gt[0], FusionConfig(**{**fusion.__dict__, "mode": "full" if det.name == "none" else fusion.mode}))
+        traj, masks, probs, unknown, fallbacks = [gt[0]], [], [], 0, 0
+        for k, reg in enumerate(tqdm(registrations, desc=f"fusing with {det.name}", unit="step", disable=not progress)):
+            T_w_s = gt[k + 1] @ T_b_s
+            pred = det.predict(rec.scans[k + 1], reg, T_w_s)
+            unknown += not pred.known
+            icp = None
+            if reg is not None and reg.converged:
+                icp = T_b_s @ reg.T_target_source @ T_s_b
+            inc = rec.odometry[k]
+            T, report = graph.add_step(inc, odometry_sigmas(inc, odometry), icp, pred.mask)
+            fallbacks += report.fallback is not None
+            traj.append(T)
+            masks.append(pred.mask)
+            probs.append(pred.probabilities)
+        traj = graph.trajectory()
+        try:
+            aligned = ate_aligned(traj, gt)
+        except MetricError:
+            aligned = None
+        rt, rr = rpe(traj, gt, delta=min(10, len(gt) - 1))
+        out.append(DetectorResult(det.name, traj, np.array(masks), np.array(probs), ate(traj, gt), aligned, rt, rr,
+                                  time.perf_counter() - t0, unknown, fallbacks))
+    return out
+
+
+def odometry_only(rec: Recording) -> DetectorResult:
+    traj = [rec.ground_truth[0]]
+    for inc in rec.odometry:
+        traj.append(traj[-1] @ inc)
+    traj = np.array(traj)
+    try:
+        aligned = ate_aligned(traj, rec.ground_truth)
+    except MetricError:
+        aligned = None
+    rt, rr = rpe(traj, rec.ground_truth, delta=min(10, len(traj) - 1))
+    n = len(rec.odometry)
+    return DetectorResult("odometry only", traj, np.ones((n, 6), bool), np.ones((n, 6)), ate(traj, rec.ground_truth),
+                          aligned, rt, rr, 0.0, 0, 0)
+
+
+def run_experiment(out_dir: str | Path, scene: str, detectors: list[str], sensor: str = "vlp16", seed: int = 0,
+                   recording: str | Path | None = None, progress: bool = True) -> list[dict]:
+    """The `l3e ate` command as a function: returns the table rows and writes everything to out_dir."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    rec = Recording.load(recording) if recording else record_run(scene, sensor, seed, progress)
+    if not recording:
+        rec.save(out / "recording.npz")
+    from scenes import make_scene
+
+    scene_obj = make_scene(rec.scene)
+    lidar = Lidar(EmbreeCaster(scene_obj.mesh), LidarConfig(model=rec.sensor))
+    dets = [make_detector(spec, lidar, seed) for spec in detectors]
+    t0 = time.perf_counter()
+    regs = register_sequence(rec, RegistrationConfig(), progress)
+    icp_seconds = time.perf_counter() - t0
+    results = [odometry_only(rec)] + evaluate(rec, dets, regs, progress=progress)
+    rows = [r.row() for r in results]
+    failed = sum(r is None or not r.converged for r in regs)
+    summary = {"scene": rec.scene, "sensor": rec.sensor, "steps": len(rec.odometry), "icp_seconds": round(icp_seconds, 1),
+               "icp_failed_or_not_converged": failed, "rows": rows}
+    (out / "results.json").write_text(json.dumps(summary, indent=1))
+    from .experiment_plots import plot_map, plot_timeline, plot_trajectories
+
+    plot_trajectories(out / "trajectories.png", scene_obj, rec, results)
+    plot_timeline(out / "timeline.png", results[1:])
+    for r in results[1:]:
+        plot_map(out / f"map_{r.name.replace(':', '_')}", rec, r.trajectory)
+    return rows
+
+
+def format_table(rows: list[dict]) -> str:
+    head = f"{'detector':14s} {'ATE m':>7s} {'aligned':>8s} {'RPE m':>7s} {'RPE deg':>8s}  flagged x/y/z/roll/pitch/yaw      {'s':>6s}"
+    lines = [head, "-" * len(head)]
+    for r in rows:
+        flags = " ".join(f"{r[f'flagged_{a}']:.2f}" for a in AXES)
+        al = "-" if r["ate_aligned_m"] is None else f"{r['ate_aligned_m']:.3f}"
+        lines.append(f"{r['detector']:14s} {r['ate_m']:7.3f} {al:>8s} {r['rpe_m']:7.4f} {r['rpe_deg']:8.3f}  {flags}  {r['seconds']:6.1f}")
+    return "\n".join(lines)
