@@ -22,7 +22,7 @@ class FusionConfig:
     (m, m, m, rad, rad, rad)."""
 
     mode: str = "mask"
-    icp_sigmas: tuple[float, ...] = (0.02, 0.02, 0.02, 0.005, 0.005, 0.005)
+    icp_sigmas: tuple[float, ...] = (0.005, 0.005, 0.005, 0.001, 0.001, 0.001)  # scan-to-scan at 10 Hz
     prior_sigmas: tuple[float, ...] = (1e-3, 1e-3, 1e-3, 1e-4, 1e-4, 1e-4)
     robust_kernel: str | None = None  # None | "huber" | "cauchy"
     robust_threshold: float = 1.345
@@ -99,7 +99,7 @@ class FusionGraph:
             graph.add(gtsam.BetweenFactorPose3(i, j, _pose3(icp_T_prev_cur), self._noise(precision)))
         if not has_odom and not has_icp:
             fallback = "no odometry and no ICP: constant-position factor"
-            weak = gtsam.noiseModel.Isotropic.Sigma(6, 10.0)
+            weak = gtsam.noiseModel.Isotropic.Sigma(6, 1.0)
             graph.add(gtsam.BetweenFactorPose3(i, j, gtsam.Pose3(), weak))
         guess = self.estimate.compose(_pose3(odom_T_prev_cur)) if has_odom else (
             self.estimate.compose(_pose3(icp_T_prev_cur)) if has_icp else self.estimate)
