@@ -86,8 +86,9 @@ class FusionGraph:
         elif mode == "drop" and mask.any():
             icp_T_prev_cur, mask = None, np.ones(6, dtype=bool)
         has_odom = odom_T_prev_cur is not None and np.isfinite(odom_T_prev_cur).all()
-        has_icp = icp_T_prev_cur is not None and np.isfinite(icp_T_prev_cur).all() and not mask.all()
-        if not has_odom and icp_T_prev_cur is not None and np.isfinite(icp_T_prev_cur).all() and mask.all():
+        icp_ok = icp_T_prev_cur is not None and np.isfinite(icp_T_prev_cur).all()
+        has_icp = icp_ok and not mask.all()
+        if not has_odom and icp_ok and mask.all():
             mask, has_icp, fallback = np.zeros(6, dtype=bool), True, "all axes masked and no odometry: full ICP factor"
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         i, j = self.k, self.k + 1

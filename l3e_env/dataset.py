@@ -19,7 +19,7 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from importlib import metadata
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, BinaryIO, Callable, Iterator
 
 import numpy as np
 from tqdm import tqdm
@@ -133,11 +133,13 @@ def run_shard(config: DatasetConfig, shard: tuple[str, int, int, int]) -> dict[s
     }
 
 
-def _write_atomic_npz(path: Path, arrays: dict[str, Any]) -> None:
+def _write_atomic(path: Path, write: Callable[[BinaryIO], None]) -> None:
+    """Write through a temporary file, fsync, rename: a reader never sees half a file, and a
+    full disk leaves what was finished in place."""
     tmp = path.with_name(path.name + ".tmp")
     try:
         with open(tmp, "wb") as fh:
-            np.savez(fh, **arrays)
+            write(fh)
             fh.flush()
             os.fsync(fh.fileno())
         os.replace(tmp, path)
@@ -177,9 +179,7 @@ def _open_folder(out: Path, config: DatasetConfig) -> dict[str, Any]:
 
 
 def _write_json(path: Path, data: dict) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(data, indent=1))
-    os.replace(tmp, path)
+    _write_atomic(path, lambda fh: fh.write(json.dumps(data, indent=1).encode()))
 
 
 def generate(
@@ -196,7 +196,7 @@ def generate(
                smoothing=0.05)
     t0 = time.perf_counter()
     for result in _execute(config, todo, workers, backend, ray_address):
-        _write_atomic_npz(out / "shards" / f"{result['shard']}.npz", result)
+        _write_atomic(out / "shards" / f"{result['shard']}.npz", lambda fh, r=result: np.savez(fh, **r))
         shard = next(s for s in todo if s[0] == result["shard"])
         bar.update(shard[3] - shard[2])
     bar.close()
@@ -224,7 +224,8 @@ def _execute(config: DatasetConfig, todo: list, workers: int, backend: str, ray_
 
 
 def consolidate(out: Path, config: DatasetConfig, manifest: dict[str, Any]) -> dict[str, Any]:
-    """Join all shards, in shard order, into the memory-mappable arrays and label statistics."""
+    """Join all shards, in shard order, into the memory-mappable arrays; returns the updated
+    manifest (the caller writes it)."""
     parts = []
     for shard_id, *_ in _shards(config):
         path = out / "shards" / f"{shard_id}.npz"
@@ -244,10 +245,7 @@ def consolidate(out: Path, config: DatasetConfig, manifest: dict[str, Any]) -> d
         "children_failed": np.concatenate([p["children_failed"] for p in parts]),
     }
     for name, arr in arrays.items():
-        tmp = out / f"{name}.npy.tmp"
-        with open(tmp, "wb") as fh:
-            np.save(fh, arr)
-        os.replace(tmp, out / f"{name}.npy")
+        _write_atomic(out / f"{name}.npy", lambda fh, a=arr: np.save(fh, a))
     failures = [f for p in parts for f in json.loads(str(p["failures"]))]
     manifest.update({
         "complete": True,
@@ -257,7 +255,6 @@ def consolidate(out: Path, config: DatasetConfig, manifest: dict[str, Any]) -> d
         "scenes": config.scenes,
         "sensor": config.lidar.model,
     })
-    _write_json(out / "manifest.json", manifest)
     return manifest
 
 

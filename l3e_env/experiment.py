@@ -144,29 +144,19 @@ def evaluate(rec: Recording, detectors: list[Detector], registrations: list, fus
     out = []
     for det in detectors:
         t0 = time.perf_counter()
-        graph = FusionGraph(gt[0], FusionConfig(**{**fusion.__dict__, "mode": "full" if det.name == "none" else fusion.mode}))
-        traj, masks, probs, unknown, fallbacks = [gt[0]], [], [], 0, 0
+        graph = FusionGraph(gt[0], fusion)
+        masks, probs, unknown, fallbacks = [], [], 0, 0
         for k, reg in enumerate(tqdm(registrations, desc=f"fusing with {det.name}", unit="step", disable=not progress)):
-            T_w_s = gt[k + 1] @ T_b_s
-            pred = det.predict(rec.scans[k + 1], reg, T_w_s)
+            pred = det.predict(rec.scans[k + 1], reg, gt[k + 1] @ T_b_s)
             unknown += not pred.known
-            icp = None
-            if reg is not None and reg.converged:
-                icp = T_b_s @ reg.T_target_source @ T_s_b
+            icp = T_b_s @ reg.T_target_source @ T_s_b if reg is not None and reg.converged else None
             inc = rec.odometry[k]
-            T, report = graph.add_step(inc, odometry_sigmas(inc, odometry), icp, pred.mask)
+            _, report = graph.add_step(inc, odometry_sigmas(inc, odometry), icp, pred.mask)
             fallbacks += report.fallback is not None
-            traj.append(T)
             masks.append(pred.mask)
             probs.append(pred.probabilities)
-        traj = graph.trajectory()
-        try:
-            aligned = ate_aligned(traj, gt)
-        except MetricError:
-            aligned = None
-        rt, rr = rpe(traj, gt, delta=min(10, len(gt) - 1))
-        out.append(DetectorResult(det.name, traj, np.array(masks), np.array(probs), ate(traj, gt), aligned, rt, rr,
-                                  time.perf_counter() - t0, unknown, fallbacks))
+        out.append(_scored(det.name, graph.trajectory(), gt, np.array(masks), np.array(probs),
+                           time.perf_counter() - t0, unknown, fallbacks))
     return out
 
 
@@ -174,15 +164,19 @@ def odometry_only(rec: Recording) -> DetectorResult:
     traj = [rec.ground_truth[0]]
     for inc in rec.odometry:
         traj.append(traj[-1] @ inc)
-    traj = np.array(traj)
+    n = len(rec.odometry)
+    return _scored("odometry only", np.array(traj), rec.ground_truth, np.ones((n, 6), bool), np.ones((n, 6)), 0.0, 0, 0)
+
+
+def _scored(name: str, traj: np.ndarray, gt: np.ndarray, masks: np.ndarray, probs: np.ndarray, seconds: float,
+            unknown: int, fallbacks: int) -> DetectorResult:
+    """A trajectory with its metrics against ground truth (aligned ATE is None for colinear runs)."""
     try:
-        aligned = ate_aligned(traj, rec.ground_truth)
+        aligned = ate_aligned(traj, gt)
     except MetricError:
         aligned = None
-    rt, rr = rpe(traj, rec.ground_truth, delta=min(10, len(traj) - 1))
-    n = len(rec.odometry)
-    return DetectorResult("odometry only", traj, np.ones((n, 6), bool), np.ones((n, 6)), ate(traj, rec.ground_truth),
-                          aligned, rt, rr, 0.0, 0, 0)
+    rt, rr = rpe(traj, gt, delta=min(10, len(gt) - 1))
+    return DetectorResult(name, traj, masks, probs, ate(traj, gt), aligned, rt, rr, seconds, unknown, fallbacks)
 
 
 def run_experiment(out_dir: str | Path, scene: str, detectors: list[str], sensor: str = "vlp16", seed: int = 0,

@@ -72,8 +72,10 @@ class Scan:
         if self.pattern.n_azimuth % width:
             raise ValueError(f"range image width {width} must divide {self.pattern.n_azimuth} columns")
         k = self.pattern.n_azimuth // width
-        img = np.full((self.pattern.n_beams, width), np.inf, dtype=np.float32)
-        np.minimum.at(img, (self.beam, self.column // k), np.linalg.norm(self.points, axis=1))
+        full = np.full(self.pattern.n_beams * self.pattern.n_azimuth, np.inf, dtype=np.float32)
+        # each (beam, column) holds at most one return, so a plain scatter suffices
+        full[self.beam.astype(np.int64) * self.pattern.n_azimuth + self.column] = np.linalg.norm(self.points, axis=1)
+        img = full.reshape(self.pattern.n_beams, width, k).min(axis=2)
         img[np.isinf(img)] = 0.0
         return img
 
