@@ -1,0 +1,257 @@
+"""The localizability classifier: one scan in, six probabilities of non-localizability out.
+
+Two backbones share the input sampling and the head: a sparse-convolutional ResUNet after
+FCGF (the L3E model) and a PointNet (the paper's ablation baseline). Checkpoints carry the
+architecture, its config, the per-axis thresholds and the sensor and registration settings
+the labels were made with, and are refused when they do not match this code.
+"""
+from __future__ import annotations
+
+import dataclasses
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from .config import from_dict
+from .sparse import DownConv, Level, SubmanifoldConv, UpConv, global_max_pool, voxelize
+
+CHECKPOINT_FORMAT = "l3e-classifier"
+CHECKPOINT_VERSION = 1
+MIN_POINTS = 50
+DEFAULT_CHECKPOINT = Path(__file__).parent / "models" / "resunet_vlp16.pt"
+
+
+class CheckpointError(RuntimeError):
+    """A checkpoint that is missing, unreadable, or of another architecture or version."""
+
+
+class ScanError(ValueError):
+    """A scan the classifier cannot judge (empty, too few points, NaN)."""
+
+
+@dataclass
+class ModelConfig:
+    architecture: str = "resunet"  # or "pointnet"
+    points: int = 4000  # sampled from the scan (all of them if it has fewer)
+    voxel: float = 0.2  # m, sparse quantization
+    # ResUNet widths at 0.2, 0.4, 0.8 and 1.6 m. FCGF's 32-64-128-256 costs 60-70 ms a scan here;
+    # half of it at the fine levels and a quarter at the coarsest meets the 15 ms budget on two
+    # cores (benchmarks/bench_classifier.py), and the labels depend on coarse geometry
+    channels: tuple[int, ...] = (16, 32, 48, 64)
+    pointnet_channels: tuple[int, ...] = (64, 64, 128, 256)
+    feature: int = 32  # global feature after max pooling
+    head: tuple[int, ...] = (64, 64, 32, 16)  # hidden widths: five linear layers with the output
+    dropout: float = 0.3
+    coordinate_scale: float = 10.0  # m; point coordinates enter as features divided by this
+
+
+def _bn_relu(c: int) -> nn.Sequential:
+    return nn.Sequential(nn.BatchNorm1d(c), nn.ReLU(inplace=True))
+
+
+class ResBlock(nn.Module):
+    """Two submanifold convolutions plus a skip (a linear map when the width changes)."""
+
+    def __init__(self, c_in: int, c_out: int):
+        super().__init__()
+        self.conv1, self.norm1 = SubmanifoldConv(c_in, c_out), _bn_relu(c_out)
+        self.conv2, self.norm2 = SubmanifoldConv(c_out, c_out), nn.BatchNorm1d(c_out)
+        self.skip = nn.Identity() if c_in == c_out else nn.Linear(c_in, c_out, bias=False)
+
+    def forward(self, x: torch.Tensor, level: Level) -> torch.Tensor:
+        y = self.norm1(self.conv1(x, level))
+        y = self.norm2(self.conv2(y, level))
+        return torch.relu(y + self.skip(x))
+
+
+class ResUNet(nn.Module):
+    """Encoder: stem, then (stride-2 conv, ResBlock) per level; decoder: (transposed conv onto the
+    encoder's sites, concatenation with the encoder's features, ResBlock) back to the finest level;
+    a linear map to the feature width and a global max pool."""
+
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        c = cfg.channels
+        self.voxel, self.scale = cfg.voxel, cfg.coordinate_scale
+        self.stem, self.stem_norm = SubmanifoldConv(4, c[0]), _bn_relu(c[0])
+        self.stem_block = ResBlock(c[0], c[0])
+        self.down = nn.ModuleList(DownConv(c[i], c[i + 1]) for i in range(len(c) - 1))
+        self.down_norm = nn.ModuleList(_bn_relu(c[i + 1]) for i in range(len(c) - 1))
+        self.down_block = nn.ModuleList(ResBlock(c[i + 1], c[i + 1]) for i in range(len(c) - 1))
+        self.up = nn.ModuleList(UpConv(c[i + 1], c[i]) for i in range(len(c) - 1))
+        self.up_norm = nn.ModuleList(_bn_relu(c[i]) for i in range(len(c) - 1))
+        # the concatenation is mixed down to the level's width by a linear map before the ResBlock:
+        # the same receptive field as a ResBlock on the concatenation for 40 % fewer operations
+        self.up_mix = nn.ModuleList(nn.Sequential(nn.Linear(2 * c[i], c[i], bias=False), _bn_relu(c[i]))
+                                    for i in range(len(c) - 1))
+        self.up_block = nn.ModuleList(ResBlock(c[i], c[i]) for i in range(len(c) - 1))
+        self.out = nn.Linear(c[0], cfg.feature)
+
+    def forward(self, points: list[torch.Tensor]) -> torch.Tensor:
+        level, means, _ = voxelize(points, self.voxel)
+        x = torch.cat([torch.ones(len(means), 1), means / self.scale], dim=1)
+        x = self.stem_block(self.stem_norm(self.stem(x, level)), level)
+        skips, levels = [x], [level]
+        for down, norm, block in zip(self.down, self.down_norm, self.down_block):
+            x, level = down(x, level)
+            x = block(norm(x), level)
+            skips.append(x)
+            levels.append(level)
+        for i in reversed(range(len(self.up))):
+            x = self.up_norm[i](self.up[i](x, levels[i]))
+            x = self.up_block[i](self.up_mix[i](torch.cat([x, skips[i]], dim=1)), levels[i])
+        return global_max_pool(self.out(x), levels[0], len(points))
+
+
+class PointNet(nn.Module):
+    """Shared per-point MLP and a global max pool (no transform nets, as in the L3E ablation)."""
+
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        widths = (3, *cfg.pointnet_channels)
+        layers: list[nn.Module] = []
+        for a, b in zip(widths[:-1], widths[1:]):
+            layers += [nn.Linear(a, b, bias=False), _bn_relu(b)]
+        self.mlp = nn.Sequential(*layers)
+        self.out = nn.Linear(widths[-1], cfg.feature)
+        self.scale = cfg.coordinate_scale
+
+    def forward(self, points: list[torch.Tensor]) -> torch.Tensor:
+        lengths = torch.tensor([len(p) for p in points])
+        x = self.mlp(torch.cat(points) / self.scale)
+        batch = torch.repeat_interleave(torch.arange(len(points)), lengths)
+        pooled = x.new_full((len(points), x.shape[1]), -torch.inf)
+        pooled = pooled.scatter_reduce(0, batch[:, None].expand_as(x), x, reduce="amax")
+        return self.out(pooled)
+
+
+class LocalizabilityNet(nn.Module):
+    """Backbone, then the paper's head: five linear layers with dropout, six logits."""
+
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        self.config = cfg
+        if cfg.architecture == "resunet":
+            self.backbone: nn.Module = ResUNet(cfg)
+        elif cfg.architecture == "pointnet":
+            self.backbone = PointNet(cfg)
+        else:
+            raise ValueError(f"unknown architecture '{cfg.architecture}' (resunet, pointnet)")
+        widths = (cfg.feature, *cfg.head)
+        layers: list[nn.Module] = []
+        for a, b in zip(widths[:-1], widths[1:]):
+            layers += [nn.Linear(a, b), nn.ReLU(inplace=True), nn.Dropout(cfg.dropout)]
+        self.head = nn.Sequential(*layers, nn.Linear(widths[-1], 6))
+
+    def forward(self, points: list[torch.Tensor]) -> torch.Tensor:
+        """Logits (B, 6) for a batch of point sets in the sensor frame."""
+        return self.head(self.backbone(points))
+
+
+def check_scan(points: np.ndarray) -> np.ndarray:
+    """The scan as float32 (N, 3), or ScanError naming what is wrong with it."""
+    points = np.asarray(points)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ScanError(f"a scan is an (N, 3) array of points, got shape {points.shape}")
+    if not np.isfinite(points).all():
+        raise ScanError(f"the scan holds {int((~np.isfinite(points)).any(axis=1).sum())} points with NaN or inf")
+    if len(points) < MIN_POINTS:
+        raise ScanError(f"the scan has {len(points)} points; the classifier needs at least {MIN_POINTS}")
+    return points.astype(np.float32, copy=False)
+
+
+def sample_points(points: np.ndarray, count: int, rng: np.random.Generator) -> torch.Tensor:
+    """`count` points drawn without replacement (all of them when the scan has fewer)."""
+    if len(points) > count:
+        points = points[rng.choice(len(points), count, replace=False)]
+    return torch.from_numpy(np.ascontiguousarray(points, dtype=np.float32))
+
+
+def save_checkpoint(path: str | Path, model: LocalizabilityNet, thresholds: np.ndarray, meta: dict[str, Any],
+                    extra: dict[str, Any] | None = None) -> None:
+    """Write atomically: a reader (or a resumed run) never sees half a checkpoint."""
+    path = Path(path)
+    state = {
+        "format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION,
+        "model": _plain(dataclasses.asdict(model.config)),
+        "state_dict": model.state_dict(), "thresholds": [float(t) for t in thresholds], **meta, **(extra or {}),
+    }
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save(state, tmp)
+    tmp.replace(path)
+
+
+def _plain(d: dict) -> dict:
+    return {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}
+
+
+def load_checkpoint(path: str | Path) -> dict[str, Any]:
+    """The checkpoint's dict, checked for format and version (weights only: no code is run)."""
+    path = Path(path)
+    if not path.exists():
+        raise CheckpointError(f"no checkpoint at {path}")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises many types for a corrupt file
+        raise CheckpointError(f"{path} is not a readable torch checkpoint ({exc})") from exc
+    if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT:
+        raise CheckpointError(f"{path} is not an l3e classifier checkpoint")
+    if state.get("version") != CHECKPOINT_VERSION:
+        raise CheckpointError(f"{path} has checkpoint version {state.get('version')}; this code reads "
+                              f"version {CHECKPOINT_VERSION}")
+    return state
+
+
+def model_from_checkpoint(state: dict[str, Any], source: str = "checkpoint") -> LocalizabilityNet:
+    cfg = from_dict(ModelConfig, state["model"])
+    model = LocalizabilityNet(cfg)
+    try:
+        model.load_state_dict(state["state_dict"])
+    except RuntimeError as exc:
+        raise CheckpointError(f"{source} does not fit the {cfg.architecture} architecture of this code: "
+                              f"{str(exc).splitlines()[0]}") from exc
+    return model.eval()
+
+
+@dataclass
+class Classifier:
+    """A trained model with its thresholds, ready to judge single scans."""
+
+    model: LocalizabilityNet
+    thresholds: np.ndarray
+    meta: dict[str, Any] = field(default_factory=dict)
+    seed: int = 0
+
+    @classmethod
+    def load(cls, path: str | Path | None = None) -> Classifier:
+        path = Path(path) if path is not None else DEFAULT_CHECKPOINT
+        state = load_checkpoint(path)
+        model = model_from_checkpoint(state, str(path))
+        meta = {k: v for k, v in state.items() if k not in ("state_dict", "optimizer", "scheduler")}
+        return cls(model, np.asarray(state["thresholds"], dtype=np.float64), meta)
+
+    def check_settings(self, lidar_model: str | None = None, registration: dict | None = None) -> None:
+        """Warn when the scans or the registration differ from those the labels were made with."""
+        trained = self.meta.get("lidar", {}).get("model")
+        if lidar_model is not None and trained is not None and lidar_model != trained:
+            warnings.warn(f"the classifier was trained on {trained} scans and now sees {lidar_model} scans",
+                          stacklevel=2)
+        if registration is not None and self.meta.get("registration") not in (None, registration):
+            warnings.warn("the classifier's labels were made with other registration settings than the "
+                          "ones in use", stacklevel=2)
+
+    @torch.no_grad()
+    def probabilities(self, scans: list[np.ndarray]) -> np.ndarray:
+        """(B, 6) probabilities of non-localizability; ScanError for a scan that cannot be judged."""
+        rng = np.random.default_rng(self.seed)
+        batch = [sample_points(check_scan(s), self.model.config.points, rng) for s in scans]
+        return torch.sigmoid(self.model(batch)).numpy().astype(np.float64)
+
+    def predict(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        p = self.probabilities([points])[0]
+        return p, p > self.thresholds

@@ -1,0 +1,84 @@
+"""Multi-label classification scores per axis: accuracy, precision, recall, F1, PR curves and
+thresholds. Pure numpy (a few lines do not justify scikit-learn as a dependency).
+
+An axis with no positive label and no positive prediction in a split has undefined precision,
+recall and F1; they are NaN there and left out of the averages (the count of axes that enter
+is reported with them), instead of being counted as 0 or 1.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .labels import AXES
+
+
+def axis_scores(labels: np.ndarray, predicted: np.ndarray) -> dict[str, np.ndarray]:
+    """Per-axis accuracy, precision, recall, F1 and support (positives), each (6,)."""
+    y = np.asarray(labels, dtype=bool).reshape(-1, 6)
+    p = np.asarray(predicted, dtype=bool).reshape(-1, 6)
+    tp = (y & p).sum(0).astype(float)
+    fp = (~y & p).sum(0).astype(float)
+    fn = (y & ~p).sum(0).astype(float)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        precision = np.where(tp + fp > 0, tp / (tp + fp), np.where(tp + fn > 0, 0.0, np.nan))
+        recall = np.where(tp + fn > 0, tp / (tp + fn), np.where(tp + fp > 0, 0.0, np.nan))
+        f1 = np.where(2 * tp + fp + fn > 0, 2 * tp / (2 * tp + fp + fn), np.nan)
+    return {"accuracy": (y == p).mean(0) if len(y) else np.full(6, np.nan), "precision": precision,
+            "recall": recall, "f1": f1, "support": y.sum(0)}
+
+
+def mean_scores(scores: dict[str, np.ndarray]) -> dict[str, float]:
+    """Averages over the axes where each score is defined."""
+    return {k: float(np.nanmean(v)) if np.isfinite(v).any() else float("nan")
+            for k, v in scores.items() if k != "support"}
+
+
+def pr_curve(labels: np.ndarray, probabilities: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Precision, recall and the threshold at each distinct probability (predict p > threshold
+    is evaluated as p >= t for the t listed), highest threshold first."""
+    y = np.asarray(labels, dtype=bool)
+    p = np.asarray(probabilities, dtype=float)
+    order = np.argsort(-p, kind="stable")
+    y, p = y[order], p[order]
+    last = np.r_[np.flatnonzero(np.diff(p)), len(p) - 1]  # last index of each distinct value
+    tp = np.cumsum(y)[last].astype(float)
+    fp = (last + 1 - tp).astype(float)
+    positives = max(int(y.sum()), 1)
+    return tp / (tp + fp), tp / positives, p[last]
+
+
+def best_thresholds(labels: np.ndarray, probabilities: np.ndarray, default: float = 0.5) -> np.ndarray:
+    """Per axis, the threshold that maximises F1 on the given (validation) set; `default` where
+    the axis has no positive label. Returned as values for `p > threshold`: midway between the
+    chosen probability and the next lower one, so that it is robust to tiny shifts."""
+    labels = np.asarray(labels, dtype=bool).reshape(-1, 6)
+    probabilities = np.asarray(probabilities, dtype=float).reshape(-1, 6)
+    out = np.full(6, default)
+    for a in range(6):
+        if not labels[:, a].any():
+            continue
+        precision, recall, thresholds = pr_curve(labels[:, a], probabilities[:, a])
+        with np.errstate(invalid="ignore", divide="ignore"):
+            f1 = np.nan_to_num(2 * precision * recall / (precision + recall))
+        i = int(np.argmax(f1))
+        lower = thresholds[i + 1] if i + 1 < len(thresholds) else 0.0
+        out[a] = 0.5 * (thresholds[i] + lower)
+    return out
+
+
+def format_table(rows: dict[str, dict[str, dict[str, np.ndarray]]], digits: int = 3) -> str:
+    """A Table III layout: one column per (model, split), rows are score x axis plus the mean."""
+    columns = [(m, s) for m, splits in rows.items() for s in splits]
+    head = f"{'':18s}" + "".join(f"{m[:12] + ' ' + s:>20s}" for m, s in columns)
+    lines = [head]
+    for score in ("accuracy", "f1", "precision", "recall"):
+        for a, axis in enumerate([*AXES, "mean"]):
+            cells = []
+            for m, s in columns:
+                sc = rows[m][s]
+                v = mean_scores(sc)[score] if axis == "mean" else sc[score][a]
+                cells.append(f"{'n/a' if not np.isfinite(v) else f'{v:.{digits}f}':>20s}")
+            lines.append(f"{score + ' ' + axis:18s}" + "".join(cells))
+    support = [" ".join(str(int(v)) for v in rows[m][s]["support"]) for m, s in columns]
+    lines.append(f"{'positives x..yaw':18s}" + "".join(f"{v:>20s}" for v in support))
+    return "\n".join(lines)

@@ -1,0 +1,184 @@
+"""Sparse 3D convolution in pure PyTorch: kernel maps by coordinate hashing, gather, matmul.
+
+Written by hand because MinkowskiEngine does not build on current torch, spconv's CPU build
+cannot back-propagate and torchsparse is not on the package registry. The scheme is
+"gather-GEMM": for every output site a table holds the row of the input feature at each
+kernel offset (or a zero row when that neighbour is empty); the features are gathered into
+one (N, K * C_in) matrix and multiplied once by the (K * C_in, C_out) weight. Autograd turns
+the gather into a scatter-add in the backward pass, so gradients need no extra code.
+
+Coordinates are int64 (N, 4) rows (batch, x, y, z) in voxel units of the current level.
+"""
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass, field
+
+import torch
+from torch import nn
+
+_BITS = 16  # per spatial axis: +-32768 voxels, 6.5 km at 0.2 m
+_SHIFT = 1 << (_BITS - 1)
+OFFSETS_3 = torch.tensor(list(itertools.product((-1, 0, 1), repeat=3)), dtype=torch.int64)  # (27, 3)
+OFFSETS_2 = torch.tensor(list(itertools.product((0, 1), repeat=3)), dtype=torch.int64)  # (8, 3)
+
+
+def hash_coords(coords: torch.Tensor, check: bool = True) -> torch.Tensor:
+    """One int64 key per (batch, x, y, z) row; order-preserving in batch, then x, y, z."""
+    xyz = coords[:, 1:] + _SHIFT
+    if check and bool((xyz < 0).any() | (xyz >= 1 << _BITS).any()):
+        raise ValueError(f"voxel coordinates beyond +-{_SHIFT}; the scan extends too far for this voxel size")
+    return (coords[:, 0] << 3 * _BITS) | (xyz[:, 0] << 2 * _BITS) | (xyz[:, 1] << _BITS) | xyz[:, 2]
+
+
+def unhash_coords(keys: torch.Tensor) -> torch.Tensor:
+    mask = (1 << _BITS) - 1
+    xyz = [((keys >> s) & mask) - _SHIFT for s in (2 * _BITS, _BITS, 0)]
+    return torch.stack([keys >> 3 * _BITS, *xyz], dim=1)
+
+
+def unique_coords(coords: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Sorted unique rows and the inverse map, through the 1-D keys (torch.unique(dim=0) is
+    an order of magnitude slower on CPU)."""
+    keys, inverse = torch.unique(hash_coords(coords), return_inverse=True)
+    return unhash_coords(keys), inverse
+
+
+class CoordinateIndex:
+    """Sorted hash keys of a set of sites, for vectorised lookup of any list of sites."""
+
+    def __init__(self, coords: torch.Tensor):
+        self.n = len(coords)
+        self.keys, self.order = torch.sort(hash_coords(coords))
+
+    def lookup(self, keys: torch.Tensor) -> torch.Tensor:
+        """Row of each queried key, or n (the zero row) where the site is empty."""
+        if self.n == 0:
+            return torch.zeros_like(keys)
+        pos = torch.searchsorted(self.keys, keys).clamp_(max=self.n - 1)
+        found = self.keys[pos] == keys
+        return torch.where(found, self.order[pos], torch.full_like(pos, self.n))
+
+
+# the key of a neighbour is the site's key plus a constant, because the key is linear in x, y, z
+_NEIGHBOUR_DELTAS = (OFFSETS_3[:, 0] << 2 * _BITS) + (OFFSETS_3[:, 1] << _BITS) + OFFSETS_3[:, 2]
+
+
+@dataclass
+class Level:
+    """The active sites of one resolution level and the kernel maps built on them (cached,
+    because every convolution at a level shares them)."""
+
+    coords: torch.Tensor  # (N, 4) int64
+    stride: int  # in units of the finest voxel
+    _index: CoordinateIndex | None = field(default=None, repr=False)
+    _neighbours: torch.Tensor | None = field(default=None, repr=False)
+    _coarser: tuple[Level, torch.Tensor, torch.Tensor, torch.Tensor] | None = field(default=None, repr=False)
+
+    @property
+    def index(self) -> CoordinateIndex:
+        if self._index is None:
+            self._index = CoordinateIndex(self.coords)
+        return self._index
+
+    def neighbours(self) -> torch.Tensor:
+        """(N, 27) rows of the 3x3x3 neighbours of each site (N where empty)."""
+        if self._neighbours is None:
+            index = self.index
+            keys = index.keys[torch.argsort(index.order)]  # this level's keys in row order
+            self._neighbours = index.lookup(keys[:, None] + _NEIGHBOUR_DELTAS)
+        return self._neighbours
+
+    def coarser(self) -> tuple[Level, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The level at twice the voxel size, plus (children table (M, 8) of this level's rows,
+        parent row of each site here (N,), child slot of each site here (N,))."""
+        if self._coarser is None:
+            parent = self.coords.clone()
+            parent[:, 1:] = torch.div(parent[:, 1:], 2, rounding_mode="floor")
+            unique, inverse = unique_coords(parent)
+            slot_xyz = self.coords[:, 1:] - 2 * parent[:, 1:]
+            slot = slot_xyz[:, 0] * 4 + slot_xyz[:, 1] * 2 + slot_xyz[:, 2]
+            children = torch.full((len(unique), 8), len(self.coords), dtype=torch.int64)
+            children[inverse, slot] = torch.arange(len(self.coords))
+            self._coarser = (Level(unique, self.stride * 2), children, inverse, slot)
+        return self._coarser
+
+
+def _gather_matmul(x: torch.Tensor, table: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+    """sum_k x[table[:, k]] @ weight[k], with row len(x) of the table meaning 'no neighbour'."""
+    padded = torch.cat([x, x.new_zeros(1, x.shape[1])])
+    gathered = padded.index_select(0, table.reshape(-1))  # (N * K, C_in); 2x faster than padded[table]
+    return gathered.reshape(len(table), -1) @ weight.reshape(-1, weight.shape[-1])
+
+
+def _init_weight(k: int, c_in: int, c_out: int) -> nn.Parameter:
+    w = torch.empty(k, c_in, c_out)
+    bound = math.sqrt(6.0 / (k * c_in))  # He-uniform for ReLU networks
+    nn.init.uniform_(w, -bound, bound)
+    return nn.Parameter(w)
+
+
+class SubmanifoldConv(nn.Module):
+    """3x3x3 convolution evaluated only at the active sites (output sites = input sites)."""
+
+    def __init__(self, c_in: int, c_out: int, bias: bool = False):
+        super().__init__()
+        self.weight = _init_weight(27, c_in, c_out)  # weight[k] for offset OFFSETS_3[k]
+        self.bias = nn.Parameter(torch.zeros(c_out)) if bias else None
+
+    def forward(self, x: torch.Tensor, level: Level) -> torch.Tensor:
+        y = _gather_matmul(x, level.neighbours(), self.weight)
+        return y + self.bias if self.bias is not None else y
+
+
+class DownConv(nn.Module):
+    """2x2x2 convolution with stride 2: each coarse site sums its up to eight children."""
+
+    def __init__(self, c_in: int, c_out: int):
+        super().__init__()
+        self.weight = _init_weight(8, c_in, c_out)  # weight[k] for child offset OFFSETS_2[k]
+
+    def forward(self, x: torch.Tensor, level: Level) -> tuple[torch.Tensor, Level]:
+        coarse, children, _, _ = level.coarser()
+        return _gather_matmul(x, children, self.weight), coarse
+
+
+class UpConv(nn.Module):
+    """Transposed 2x2x2 stride-2 convolution onto the finer level's sites (those of the encoder),
+    so the decoder never invents sites that the scan did not have."""
+
+    def __init__(self, c_in: int, c_out: int):
+        super().__init__()
+        self.weight = _init_weight(8, c_in, c_out)
+        self.c_out = c_out
+
+    def forward(self, x: torch.Tensor, fine: Level) -> torch.Tensor:
+        _, _, parent, slot = fine.coarser()
+        every_slot = (x @ self.weight.permute(1, 0, 2).reshape(x.shape[1], -1)).reshape(len(x), 8, self.c_out)
+        return every_slot[parent, slot]
+
+
+def voxelize(points: list[torch.Tensor], voxel: float) -> tuple[Level, torch.Tensor, torch.Tensor]:
+    """Quantize a batch of point sets: the finest level, each voxel's mean point (float, (N, 3)),
+    and the voxel row of every input point (for per-point features)."""
+    coords, means, rows = [], [], []
+    offset = 0
+    for b, p in enumerate(points):
+        q = torch.floor(p / voxel).to(torch.int64)
+        q = torch.cat([torch.full((len(q), 1), b, dtype=torch.int64), q], dim=1)
+        unique, inverse = unique_coords(q)
+        count = torch.zeros(len(unique)).index_add_(0, inverse, torch.ones(len(p)))
+        mean = torch.zeros(len(unique), 3).index_add_(0, inverse, p) / count[:, None]
+        coords.append(unique)
+        means.append(mean)
+        rows.append(inverse + offset)
+        offset += len(unique)
+    return Level(torch.cat(coords), 1), torch.cat(means), torch.cat(rows)
+
+
+def global_max_pool(x: torch.Tensor, level: Level, batch_size: int) -> torch.Tensor:
+    """(B, C) maximum over the sites of each scan of the batch."""
+    out = x.new_full((batch_size, x.shape[1]), -torch.inf)
+    index = level.coords[:, 0:1].expand_as(x)
+    return out.scatter_reduce(0, index, x, reduce="amax", include_self=True)

@@ -1,0 +1,221 @@
+"""Training the localizability classifier on a labelled dataset, resumable after a kill.
+
+Every epoch is seeded by (seed, epoch), so a run resumed from `last.pt` goes on exactly as the
+uninterrupted run would have. The folder holds:
+  config.yaml   the training and model settings
+  log.jsonl     one line of losses and validation scores per epoch
+  last.pt       the latest state (model, optimizer, scheduler), rewritten atomically each epoch
+  best.pt       the epoch with the best validation F1, with thresholds from its PR curves
+  model.pt      best.pt without the optimizer state: the file to ship and load
+"""
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from scenes import TRAIN_SCENES, VALIDATION_SCENES
+
+from .classifier import (
+    LocalizabilityNet,
+    ModelConfig,
+    load_checkpoint,
+    model_from_checkpoint,
+    sample_points,
+    save_checkpoint,
+)
+from .config import dump_yaml, to_dict
+from .dataset import LabelDataset
+from .scores import axis_scores, best_thresholds, mean_scores
+
+# a reflection of the scan in the x-z or y-z plane leaves every |error| unchanged; swapping x and y
+# swaps the x/y labels and the roll/pitch labels (the beam pattern is symmetric about z)
+SWAP_LABELS = np.array([1, 0, 2, 4, 3, 5])
+
+
+@dataclass
+class TrainConfig:
+    model: ModelConfig = field(default_factory=ModelConfig)
+    epochs: int = 24
+    batch_size: int = 8
+    optimizer: str = "sgd"  # "sgd" (the paper's, with momentum 0.9) or "adamw"
+    learning_rate: float = 0.02
+    weight_decay: float = 1e-4
+    lr_decay: float = 0.9  # exponential, per epoch
+    balance: bool = True  # power-set up-sampling to the second most common combination
+    max_upsampling: float = 100.0
+    samples_per_epoch: int = 2400  # drawn from the balanced pool; 0 = the whole pool each epoch
+    augment: bool = True  # mirror and x/y swap with the matching label permutation
+    train_scenes: list[str] = field(default_factory=lambda: list(TRAIN_SCENES))
+    validation_scenes: list[str] = field(default_factory=lambda: list(VALIDATION_SCENES))
+    seed: int = 0
+    threads: int = 2
+
+
+class TrainingError(RuntimeError):
+    """A run that cannot start or resume; the message says why."""
+
+
+def split_indices(data: LabelDataset, scenes: list[str]) -> np.ndarray:
+    """Rows of the dataset whose scene is in `scenes` (all must be in the dataset)."""
+    names = data.manifest["scenes"]
+    missing = sorted(set(scenes) - set(names))
+    if missing:
+        raise TrainingError(f"scenes {missing} are not in dataset {data.folder} (it has {names})")
+    wanted = [names.index(s) for s in scenes]
+    return np.flatnonzero(np.isin(np.asarray(data.arrays["scene"]), wanted))
+
+
+def balanced_pool(labels: np.ndarray, max_upsampling: float) -> np.ndarray:
+    """Row indices with each of the 64 label combinations repeated up to the count of the second
+    most common combination (at most `max_upsampling` times), as in the paper."""
+    codes = (np.asarray(labels, dtype=np.int64) << np.arange(6)).sum(1)
+    counts = np.bincount(codes, minlength=64)
+    target = np.sort(counts)[-2] if (counts > 0).sum() > 1 else counts.max()
+    pool = []
+    for code in np.flatnonzero(counts):
+        rows = np.flatnonzero(codes == code)
+        repeat = int(round(min(max(target / len(rows), 1.0), max_upsampling)))
+        pool.append(np.tile(rows, repeat))
+    return np.concatenate(pool)
+
+
+def augment(points: np.ndarray, labels: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    points = points * np.array([rng.choice([-1, 1]), rng.choice([-1, 1]), 1], dtype=np.float32)
+    if rng.random() < 0.5:
+        points, labels = points[:, [1, 0, 2]], labels[SWAP_LABELS]
+    return points, labels
+
+
+@torch.no_grad()
+def predict_dataset(model: LocalizabilityNet, data: LabelDataset, rows: np.ndarray, seed: int = 0,
+                    batch_size: int = 16, progress: bool = False) -> np.ndarray:
+    """(len(rows), 6) probabilities; the point sampling of scan i is seeded by (seed, i), so the
+    figures do not depend on the batch size or the order."""
+    model.eval()
+    out = np.zeros((len(rows), 6))
+    for start in tqdm(range(0, len(rows), batch_size), desc="predicting", disable=not progress, leave=False):
+        chunk = rows[start:start + batch_size]
+        batch = [sample_points(data.scan(int(i)), model.config.points, np.random.default_rng([seed, int(i)]))
+                 for i in chunk]
+        out[start:start + len(chunk)] = torch.sigmoid(model(batch)).numpy()
+    return out
+
+
+def _optimizer(cfg: TrainConfig, model: torch.nn.Module) -> torch.optim.Optimizer:
+    if cfg.optimizer == "sgd":
+        return torch.optim.SGD(model.parameters(), lr=cfg.learning_rate, momentum=0.9, weight_decay=cfg.weight_decay)
+    if cfg.optimizer == "adamw":
+        return torch.optim.AdamW(model.parameters(), lr=cfg.learning_rate, weight_decay=cfg.weight_decay)
+    raise TrainingError(f"unknown optimizer '{cfg.optimizer}' (sgd, adamw)")
+
+
+def _meta(cfg: TrainConfig, data: LabelDataset) -> dict[str, Any]:
+    settings = data.manifest["settings"]
+    return {"training": _plain(to_dict(cfg)), "lidar": settings["lidar"], "registration": settings["registration"],
+            "labels": settings["labels"], "dataset": {"folder": data.folder.name, "count": len(data),
+                                                      "seed": settings["seed"]}}
+
+
+def _plain(value: Any) -> Any:
+    if isinstance(value, dict):
+        return {k: _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    return value
+
+
+def train(dataset: str | Path, out_dir: str | Path, cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
+    """Train (or resume) into `out_dir`; returns the summary of the best epoch."""
+    torch.set_num_threads(cfg.threads)
+    data = LabelDataset(dataset)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    train_rows, val_rows = split_indices(data, cfg.train_scenes), split_indices(data, cfg.validation_scenes)
+    if len(train_rows) == 0:
+        raise TrainingError("the training split is empty")
+    labels = data.labels
+    meta = _meta(cfg, data)
+
+    model = LocalizabilityNet(cfg.model)
+    optimizer = _optimizer(cfg, model)
+    scheduler = torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma=cfg.lr_decay)
+    first_epoch, best = 0, {"f1": -1.0}
+    last = out / "last.pt"
+    if last.exists():
+        state = load_checkpoint(last)
+        if state["training"] != meta["training"] or state["dataset"] != meta["dataset"]:
+            raise TrainingError(f"{out} holds a run with other settings or another dataset; choose another folder")
+        model = model_from_checkpoint(state, str(last))
+        optimizer = _optimizer(cfg, model)
+        optimizer.load_state_dict(state["optimizer"])
+        scheduler = torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma=cfg.lr_decay)
+        scheduler.load_state_dict(state["scheduler"])
+        first_epoch, best = state["epoch"] + 1, state["best"]
+        print(f"resuming {out} after epoch {state['epoch'] + 1}")
+    else:
+        dump_yaml(cfg, out / "config.yaml")
+
+    pool = balanced_pool(labels[train_rows], cfg.max_upsampling) if cfg.balance else np.arange(len(train_rows))
+    loss_fn = torch.nn.BCEWithLogitsLoss()
+    for epoch in range(first_epoch, cfg.epochs):
+        t0 = time.perf_counter()
+        rng = np.random.default_rng([cfg.seed, epoch])
+        torch.manual_seed(cfg.seed * 100_003 + epoch)
+        count = cfg.samples_per_epoch or len(pool)
+        order = train_rows[rng.choice(pool, count, replace=count > len(pool))]
+        model.train()
+        losses = []
+        bar = tqdm(range(0, count - cfg.batch_size + 1, cfg.batch_size), disable=not progress, leave=False,
+                   desc=f"epoch {epoch + 1}/{cfg.epochs}")
+        for start in bar:
+            batch, targets = [], []
+            for i in order[start:start + cfg.batch_size]:
+                pts, lab = data.scan(int(i)), labels[i]
+                if cfg.augment:
+                    pts, lab = augment(pts, lab, rng)
+                batch.append(sample_points(pts, cfg.model.points, rng))
+                targets.append(lab)
+            loss = loss_fn(model(batch), torch.tensor(np.array(targets), dtype=torch.float32))
+            optimizer.zero_grad()
+            loss.backward()
+            optimizer.step()
+            losses.append(loss.item())
+            bar.set_postfix(loss=f"{np.mean(losses[-50:]):.3f}")
+        scheduler.step()
+        record = {"epoch": epoch + 1, "train_loss": float(np.mean(losses)), "lr": scheduler.get_last_lr()[0],
+                  "seconds": round(time.perf_counter() - t0, 1)}
+        if len(val_rows):
+            probs = predict_dataset(model, data, val_rows, seed=cfg.seed)
+            y = labels[val_rows]
+            record["val_loss"] = float(loss_fn(torch.logit(torch.tensor(probs).clamp(1e-6, 1 - 1e-6)),
+                                               torch.tensor(y, dtype=torch.float64)))
+            thresholds = best_thresholds(y, probs)
+            scores = mean_scores(axis_scores(y, probs > thresholds))
+            record.update({f"val_{k}": v for k, v in scores.items()})
+            record["thresholds"] = thresholds.round(4).tolist()
+            improved = scores["f1"] > best["f1"]
+        else:  # no validation split: keep the last epoch, thresholds 0.5
+            thresholds, improved = np.full(6, 0.5), True
+        with open(out / "log.jsonl", "a") as fh:
+            fh.write(json.dumps(record) + "\n")
+        if improved:
+            best = {"f1": record.get("val_f1", float("nan")), "epoch": epoch + 1}
+            save_checkpoint(out / "best.pt", model, thresholds, meta, {"epoch": epoch, "scores": record})
+        save_checkpoint(last, model, thresholds, meta, {
+            "epoch": epoch, "best": best, "optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict()})
+        if progress:
+            val = f", val loss {record['val_loss']:.3f}, F1 {record['val_f1']:.3f}" if "val_f1" in record else ""
+            print(f"epoch {epoch + 1}/{cfg.epochs}: train loss {record['train_loss']:.3f}{val} ({record['seconds']} s)")
+    state = load_checkpoint(out / "best.pt")
+    shipped = model_from_checkpoint(state, "best.pt")
+    save_checkpoint(out / "model.pt", shipped, np.asarray(state["thresholds"]), meta,
+                    {"epoch": state["epoch"], "scores": state["scores"]})
+    return {"best_epoch": state["epoch"] + 1, **state["scores"]}
+
