@@ -8,6 +8,7 @@ the labels were made with, and are refused when they do not match this code.
 from __future__ import annotations
 
 import dataclasses
+import json
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -241,7 +242,7 @@ class Classifier:
         if lidar_model is not None and trained is not None and lidar_model != trained:
             warnings.warn(f"the classifier was trained on {trained} scans and now sees {lidar_model} scans",
                           stacklevel=2)
-        if registration is not None and self.meta.get("registration") not in (None, registration):
+        if registration is not None and self.meta.get("registration") not in (None, json.loads(json.dumps(registration))):
             warnings.warn("the classifier's labels were made with other registration settings than the "
                           "ones in use", stacklevel=2)
 

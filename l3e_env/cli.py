@@ -80,6 +80,41 @@ def _cmd_ate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_train(args: argparse.Namespace) -> int:
+    from .config import from_dict, load_yaml
+    from .training import TrainConfig, train
+
+    cfg = load_yaml(TrainConfig, args.config) if args.config else TrainConfig()
+    overrides = {k: v for k, v in {"epochs": args.epochs, "seed": args.seed, "optimizer": args.optimizer,
+                                   "learning_rate": args.lr, "samples_per_epoch": args.samples_per_epoch}.items()
+                 if v is not None}
+    model = {"architecture": args.architecture} if args.architecture else {}
+    cfg = from_dict(TrainConfig, {**_asdict(cfg), **overrides, "model": {**_asdict(cfg.model), **model}})
+    print(f"training {cfg.model.architecture} on {args.dataset} -> {Path(args.out).resolve()} "
+          f"({cfg.epochs} epochs of {cfg.samples_per_epoch or 'all'} samples, {cfg.optimizer}, seed {cfg.seed})")
+    best = train(args.dataset, args.out, cfg, progress=not args.quiet)
+    print(f"best epoch {best['best_epoch']}: validation F1 {best.get('val_f1', float('nan')):.3f}, "
+          f"accuracy {best.get('val_accuracy', float('nan')):.3f}; thresholds {best.get('thresholds')}")
+    print(f"model: {Path(args.out) / 'model.pt'}")
+    return 0
+
+
+def _asdict(cfg) -> dict:
+    import dataclasses
+
+    return {f.name: getattr(cfg, f.name) for f in dataclasses.fields(cfg)}
+
+
+def _cmd_evaluate(args: argparse.Namespace) -> int:
+    from .evaluation import evaluate
+
+    out = Path(args.out or f"l3e_out/evaluate-{time.strftime('%Y%m%d-%H%M%S')}")
+    results = evaluate(args.checkpoint, args.dataset, out, other_sensor=args.other_sensor, progress=not args.quiet)
+    print(results["table"])
+    print(f"written: {out / 'table.txt'}, {out / 'results.json'}, {out / 'pr_curves.png'}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="l3e", description="Learned LiDAR localizability in simulation (L3E).")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -120,6 +155,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", help="output folder (default: l3e_out/ate-<scene>-<time>)")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_cmd_ate)
+    p = sub.add_parser("train", help="train the localizability classifier on a labelled dataset (resumable)")
+    p.add_argument("--dataset", required=True, help="dataset folder made by 'l3e dataset generate'")
+    p.add_argument("--out", required=True, help="run folder (an unfinished run there is resumed)")
+    p.add_argument("--config", help="YAML of TrainConfig (defaults: the shipped model's settings)")
+    p.add_argument("--architecture", choices=["resunet", "pointnet"])
+    p.add_argument("--epochs", type=int)
+    p.add_argument("--samples-per-epoch", type=int, dest="samples_per_epoch")
+    p.add_argument("--optimizer", choices=["sgd", "adamw"])
+    p.add_argument("--lr", type=float)
+    p.add_argument("--seed", type=int)
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=_cmd_train)
+    p = sub.add_parser("evaluate", help="Table III: per-axis scores on train, validation and test, PR curves")
+    p.add_argument("--checkpoint", action="append", required=True, help="model.pt of a run; repeat to compare")
+    p.add_argument("--dataset", required=True)
+    p.add_argument("--other-sensor", dest="other_sensor", help="dataset of another sensor, scored whole")
+    p.add_argument("--out", help="output folder (default: l3e_out/evaluate-<time>)")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=_cmd_evaluate)
     p = sub.add_parser("envs", help="list the registered Gymnasium environment ids")
     p.set_defaults(func=_cmd_envs)
     return parser

@@ -6,6 +6,7 @@ in (x, y, z, roll, pitch, yaw) order, 1/True = not localizable.
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -85,8 +86,35 @@ class OracleDetector:
         return self._last
 
 
+class LearnedDetector:
+    """The trained classifier (by default the checkpoint shipped with the package). A scan it
+    cannot judge (empty, fewer than 50 points, NaN) gives the UNKNOWN prediction: nothing is
+    masked, and `known` is False so that the caller can count it."""
+
+    name = "learned"
+
+    def __init__(self, checkpoint: str | None = None, lidar_model: str | None = None,
+                 registration: RegistrationConfig | None = None):
+        from .classifier import Classifier  # torch is imported only when a learned detector is made
+
+        self.classifier = Classifier.load(checkpoint)
+        if checkpoint:
+            self.name = f"learned:{checkpoint}"
+        self.classifier.check_settings(lidar_model, dataclasses.asdict(registration or RegistrationConfig()))
+
+    def predict(self, points, registration=None, T_w_s=None) -> Prediction:
+        from .classifier import ScanError
+
+        try:
+            p, mask = self.classifier.predict(points)
+        except ScanError:
+            return UNKNOWN
+        return Prediction(p, mask)
+
+
 def make_detector(spec: str, lidar: Lidar | None = None, seed: int = 0) -> Detector:
-    """'none', 'eigen:<tau>', 'oracle' or 'oracle:<M>'."""
+    """'none', 'eigen:<tau>', 'oracle', 'oracle:<M>', 'learned' (the shipped model) or
+    'learned:<checkpoint path>'."""
     kind, _, arg = spec.partition(":")
     if kind == "none":
         return NoDetector()
@@ -101,5 +129,5 @@ def make_detector(spec: str, lidar: Lidar | None = None, seed: int = 0) -> Detec
             raise ValueError("the oracle detector needs the scene's LiDAR")
         return OracleDetector(lidar, children=int(arg) if arg else 20, seed=seed)
     if kind == "learned":
-        raise ValueError("the learned detector needs the trained classifier, which is not in this version yet")
-    raise ValueError(f"unknown detector '{spec}' (none, eigen:<tau>, oracle[:M])")
+        return LearnedDetector(arg or None, lidar_model=lidar.config.model if lidar is not None else None)
+    raise ValueError(f"unknown detector '{spec}' (none, eigen:<tau>, oracle[:M], learned[:checkpoint])")

@@ -131,6 +131,12 @@ def _plain(value: Any) -> Any:
     return value
 
 
+def _resumable(training: dict[str, Any]) -> dict[str, Any]:
+    """The settings a resumed run must share with the first one: all but the epoch count, so
+    that a finished run can also be trained further."""
+    return {k: v for k, v in training.items() if k != "epochs"}
+
+
 def train(dataset: str | Path, out_dir: str | Path, cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
     """Train (or resume) into `out_dir`; returns the summary of the best epoch."""
     torch.set_num_threads(cfg.threads)
@@ -143,6 +149,7 @@ def train(dataset: str | Path, out_dir: str | Path, cfg: TrainConfig, progress: 
     labels = data.labels
     meta = _meta(cfg, data)
 
+    torch.manual_seed(cfg.seed)
     model = LocalizabilityNet(cfg.model)
     optimizer = _optimizer(cfg, model)
     scheduler = torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma=cfg.lr_decay)
@@ -150,7 +157,7 @@ def train(dataset: str | Path, out_dir: str | Path, cfg: TrainConfig, progress: 
     last = out / "last.pt"
     if last.exists():
         state = load_checkpoint(last)
-        if state["training"] != meta["training"] or state["dataset"] != meta["dataset"]:
+        if _resumable(state["training"]) != _resumable(meta["training"]) or state["dataset"] != meta["dataset"]:
             raise TrainingError(f"{out} holds a run with other settings or another dataset; choose another folder")
         model = model_from_checkpoint(state, str(last))
         optimizer = _optimizer(cfg, model)

@@ -1,0 +1,111 @@
+"""Table III for this project: per-axis scores of trained classifiers on the train, validation
+and test splits (and on datasets of another sensor), with PR curves per axis."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from scenes import TEST_SCENES
+
+from .classifier import Classifier
+from .dataset import LabelDataset
+from .labels import AXES
+from .scores import axis_scores, format_table, mean_scores, pr_curve
+from .training import predict_dataset, split_indices
+
+
+def model_name(classifier: Classifier, path: Path) -> str:
+    return f"{classifier.model.config.architecture}:{path.stem}"
+
+
+def evaluate(checkpoints: list[str | Path], dataset: str | Path, out_dir: str | Path,
+             other_sensor: str | Path | None = None, progress: bool = True) -> dict[str, Any]:
+    """Score each checkpoint on its own train/validation split and on the test families of the
+    dataset (and, if given, on every scan of a dataset made with another sensor); writes
+    table.txt, results.json and pr_curves.png into out_dir and returns the results."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    data = LabelDataset(dataset)
+    other = LabelDataset(other_sensor) if other_sensor else None
+    test_scenes = [s for s in TEST_SCENES if s in data.manifest["scenes"]]
+    table: dict[str, dict[str, dict[str, np.ndarray]]] = {}
+    curves: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = {}
+    results: dict[str, Any] = {"dataset": str(data.folder), "test_scenes": test_scenes, "models": {}}
+    for path in map(Path, checkpoints):
+        clf = Classifier.load(path)
+        name = model_name(clf, path)
+        training = clf.meta["training"]
+        splits = {"train": (data, split_indices(data, training["train_scenes"])),
+                  "valid": (data, split_indices(data, training["validation_scenes"])),
+                  "test": (data, split_indices(data, test_scenes))}
+        if other is not None:
+            splits[f"test {other.manifest['sensor']}"] = (other, np.arange(len(other)))
+        table[name], curves[name] = {}, {}
+        results["models"][name] = {"checkpoint": str(path), "thresholds": clf.thresholds.tolist(), "splits": {}}
+        for split, (ds, rows) in splits.items():
+            if len(rows) == 0:
+                continue
+            if progress:
+                print(f"{name}: {split} ({len(rows)} scans)")
+            probs = predict_dataset(clf.model, ds, rows, progress=progress)
+            y = ds.labels[rows]
+            scores = axis_scores(y, probs > clf.thresholds)
+            table[name][split] = scores
+            curves[name][split] = (y, probs)
+            results["models"][name]["splits"][split] = {
+                "count": len(rows), "mean": mean_scores(scores),
+                **{k: np.asarray(v).tolist() for k, v in scores.items()}}
+    text = format_table(table)
+    (out / "table.txt").write_text(text + "\n")
+    (out / "results.json").write_text(json.dumps(results, indent=1, default=_nan_safe))
+    plot_pr_curves(curves, {n: np.asarray(r["thresholds"]) for n, r in results["models"].items()},
+                   out / "pr_curves.png")
+    results["table"] = text
+    return results
+
+
+def _nan_safe(value: Any) -> Any:
+    return None if isinstance(value, float) and not np.isfinite(value) else value
+
+
+def plot_pr_curves(curves: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]], thresholds: dict[str, np.ndarray],
+                   path: Path) -> None:
+    """One panel per axis: the PR curve of each model on each non-training split, with the
+    operating point of its stored threshold."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(2, 3, figsize=(13, 8), sharex=True, sharey=True)
+    styles = ["-", "--", ":", "-."]
+    for a, ax in enumerate(axes.flat):
+        for m, (name, splits) in enumerate(curves.items()):
+            for s, (split, (y, p)) in enumerate((k, v) for k, v in splits.items() if k != "train"):
+                if not y[:, a].any():
+                    continue
+                precision, recall, _ = pr_curve(y[:, a], p[:, a])
+                line, = ax.plot(recall, precision, styles[s % 4], color=f"C{m}", label=f"{name} {split}")
+                op = axis_scores(y, p > thresholds[name])
+                ax.plot(op["recall"][a], op["precision"][a], "o", color=line.get_color())
+        ax.set_title(f"{AXES[a]} (dot: stored threshold)")
+        ax.set_xlim(0, 1.02)
+        ax.set_ylim(0, 1.02)
+        ax.grid(alpha=0.3)
+    for ax in axes[1]:
+        ax.set_xlabel("recall")
+    for ax in axes[:, 0]:
+        ax.set_ylabel("precision")
+    handles, labels = axes.flat[0].get_legend_handles_labels()
+    for ax in axes.flat[1:]:
+        for h, lab in zip(*ax.get_legend_handles_labels()):
+            if lab not in labels:
+                handles.append(h)
+                labels.append(lab)
+    fig.legend(handles, labels, loc="lower center", ncol=3, fontsize=8)
+    fig.tight_layout(rect=(0, 0.08, 1, 1))
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

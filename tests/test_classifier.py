@@ -1,0 +1,172 @@
+"""The classifier: input checks, checkpoints, batching, scores and thresholds, resumable training."""
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from l3e_env.classifier import (
+    CHECKPOINT_VERSION, DEFAULT_CHECKPOINT, CheckpointError, Classifier, LocalizabilityNet, ModelConfig, ScanError,
+    check_scan, save_checkpoint,
+)
+from l3e_env.dataset import config_for, generate
+from l3e_env.detectors import LearnedDetector, make_detector
+from l3e_env.scores import axis_scores, best_thresholds, mean_scores, pr_curve
+from l3e_env.training import SWAP_LABELS, TrainConfig, TrainingError, augment, balanced_pool, train
+
+SMALL = ModelConfig(points=600, channels=(8, 8, 16, 16), pointnet_channels=(16, 32), head=(16, 16, 16, 16))
+
+
+@pytest.fixture(scope="module")
+def tiny_dataset(tmp_path_factory):
+    out = tmp_path_factory.mktemp("tiny")
+    cfg = config_for(None, scenes=["tunnel-0", "office-0", "field-0"], parents_per_scene=4, shard_size=2,
+                     labels={"children": 8})
+    generate(out, cfg, workers=1, progress=False)
+    return out
+
+
+def _scan(rng, n=3000):
+    return (rng.standard_normal((n, 3)) * [8, 3, 1]).astype(np.float32)
+
+
+def _checkpoint(path, architecture="resunet", seed=0):
+    torch.manual_seed(seed)
+    model = LocalizabilityNet(ModelConfig(**{**SMALL.__dict__, "architecture": architecture}))
+    save_checkpoint(path, model.eval(), np.full(6, 0.5), {"lidar": {"model": "vlp16"}})
+    return path
+
+
+@pytest.mark.parametrize("bad, words", [
+    (np.zeros((0, 3)), "0 points"), (np.zeros((49, 3)), "49 points"), (np.zeros((100, 2)), "shape"),
+    (np.array([[np.nan, 0, 0]] + [[1, 2, 3]] * 99), "NaN"),
+])
+def test_scans_the_classifier_cannot_judge_are_named(bad, words):
+    with pytest.raises(ScanError, match=words):
+        check_scan(bad)
+
+
+def test_learned_detector_answers_unknown_to_an_unjudgeable_scan(tmp_path, rng):
+    det = LearnedDetector(str(_checkpoint(tmp_path / "m.pt")))
+    assert not det.predict(np.zeros((10, 3), np.float32)).known
+    assert not det.predict(np.full((500, 3), np.nan, np.float32)).known
+    good = det.predict(_scan(rng))
+    assert good.known and good.probabilities.shape == (6,) and ((0 < good.probabilities) & (good.probabilities < 1)).all()
+
+
+def test_a_scan_is_judged_the_same_alone_or_in_a_batch(tmp_path, rng):
+    clf = Classifier.load(_checkpoint(tmp_path / "m.pt"))
+    a, b = _scan(rng, 500), _scan(rng, 400) + np.float32(1.0)  # under `points`: no sampling differences
+    alone = clf.probabilities([a])[0]
+    together = clf.probabilities([b, a])[1]
+    assert np.allclose(alone, together, atol=1e-6)
+    with torch.no_grad():  # and the batch is not pooled across scans
+        feats = clf.model.backbone([torch.from_numpy(b), torch.from_numpy(a)])
+        assert torch.allclose(feats[1], clf.model.backbone([torch.from_numpy(a)])[0], atol=1e-5)
+        assert not torch.allclose(feats[0], feats[1], atol=1e-3)
+
+
+def test_wrong_checkpoints_are_refused_by_name(tmp_path):
+    path = _checkpoint(tmp_path / "p.pt", "pointnet")
+    state = torch.load(path, weights_only=True)
+    state["model"]["architecture"] = "resunet"
+    torch.save(state, tmp_path / "swapped.pt")
+    with pytest.raises(CheckpointError, match="does not fit the resunet architecture"):
+        Classifier.load(tmp_path / "swapped.pt")
+    state["version"] = CHECKPOINT_VERSION + 1
+    torch.save(state, tmp_path / "future.pt")
+    with pytest.raises(CheckpointError, match="version"):
+        Classifier.load(tmp_path / "future.pt")
+    (tmp_path / "junk.pt").write_bytes(b"not a checkpoint")
+    with pytest.raises(CheckpointError, match="not a readable"):
+        Classifier.load(tmp_path / "junk.pt")
+    torch.save({"weights": torch.zeros(3)}, tmp_path / "other.pt")
+    with pytest.raises(CheckpointError, match="not an l3e classifier"):
+        Classifier.load(tmp_path / "other.pt")
+    with pytest.raises(CheckpointError, match="no checkpoint"):
+        Classifier.load(tmp_path / "missing.pt")
+
+
+def test_the_shipped_model_loads_by_default_and_is_small():
+    assert DEFAULT_CHECKPOINT.exists() and DEFAULT_CHECKPOINT.stat().st_size <= 20 * 2**20
+    det = make_detector("learned")
+    assert det.classifier.model.config.architecture == "resunet"
+    assert det.classifier.meta["lidar"]["model"] == "vlp16"
+    assert ((det.classifier.thresholds > 0) & (det.classifier.thresholds < 1)).all()
+
+
+def test_sensor_mismatch_is_a_warning(tmp_path):
+    clf = Classifier.load(_checkpoint(tmp_path / "m.pt"))
+    with pytest.warns(UserWarning, match="os0-128"):
+        clf.check_settings("os0-128")
+
+
+def test_axis_scores_by_hand():
+    y = np.array([[1, 0, 0, 0, 0, 1], [1, 1, 0, 0, 0, 0], [0, 0, 0, 0, 0, 0], [0, 1, 0, 0, 0, 0]])
+    p = np.array([[1, 0, 0, 0, 0, 0], [0, 1, 0, 0, 1, 0], [0, 0, 0, 0, 0, 0], [1, 1, 0, 0, 0, 0]])
+    s = axis_scores(y, p)
+    assert s["accuracy"].tolist() == [0.5, 1.0, 1.0, 1.0, 0.75, 0.75]
+    assert s["precision"][0] == 0.5 and s["recall"][0] == 0.5 and s["f1"][0] == 0.5
+    assert s["f1"][1] == 1.0 and np.isnan(s["f1"][2]) and s["f1"][4] == 0.0 and s["f1"][5] == 0.0
+    assert mean_scores(s)["f1"] == pytest.approx((0.5 + 1 + 0 + 0) / 4)  # z and roll: undefined, left out
+
+
+def test_pr_curve_and_thresholds_match_brute_force(rng):
+    y = rng.random((300, 6)) < 0.3
+    p = np.clip(y * 0.3 + rng.random((300, 6)) * 0.7, 0, 1).round(2)  # ties on purpose
+    for a in range(6):
+        precision, recall, thr = pr_curve(y[:, a], p[:, a])
+        for t, pr, rc in zip(thr, precision, recall):
+            pred = p[:, a] >= t
+            assert pr == pytest.approx((pred & y[:, a]).sum() / pred.sum())
+            assert rc == pytest.approx((pred & y[:, a]).sum() / y[:, a].sum())
+    t = best_thresholds(y, p)
+    f1_at = axis_scores(y, p > t)["f1"]
+    for a in range(6):
+        brute = max(axis_scores(y[:, a:a + 1].repeat(6, 1), (p[:, a:a + 1] > c).repeat(6, 1))["f1"][0]
+                    for c in np.unique(np.r_[0.0, p[:, a]]) - 1e-9)
+        assert f1_at[a] == pytest.approx(brute)
+
+
+def test_power_set_balancing_up_samples_to_the_second_most_common_combination():
+    labels = np.array([[0] * 6] * 50 + [[1, 0, 0, 0, 0, 0]] * 20 + [[1, 1, 0, 0, 0, 1]] * 5 + [[0, 0, 1, 0, 0, 0]] * 1)
+    pool = balanced_pool(labels, max_upsampling=10)
+    codes = (labels[pool].astype(int) << np.arange(6)).sum(1)
+    assert np.bincount(codes, minlength=64)[[0, 1, 35, 4]].tolist() == [50, 20, 20, 10]  # 10: the cap
+
+
+def test_augmentation_permutes_the_labels_with_the_points(rng):
+    pts = _scan(rng, 100)
+    lab = np.array([1, 0, 0, 1, 0, 0], dtype=np.uint8)
+    seen = set()
+    for _ in range(40):
+        p2, l2 = augment(pts, lab, rng)
+        swapped = not np.allclose(np.abs(p2[:, 0]), np.abs(pts[:, 0]))
+        assert np.allclose(np.abs(p2[:, :2]), np.abs(pts[:, [1, 0]] if swapped else pts[:, :2]))
+        assert (l2 == (lab[SWAP_LABELS] if swapped else lab)).all()
+        seen.add(swapped)
+    assert seen == {True, False}
+
+
+def _train_cfg(**kw):
+    return TrainConfig(model=SMALL, epochs=2, samples_per_epoch=8, batch_size=4, train_scenes=["tunnel-0", "field-0"],
+                       validation_scenes=["office-0"], threads=1, **kw)
+
+
+def test_a_killed_run_resumes_to_the_same_model(tiny_dataset, tmp_path):
+    whole = train(tiny_dataset, tmp_path / "whole", _train_cfg(), progress=False)
+    cfg = _train_cfg()
+    cfg.epochs = 1
+    train(tiny_dataset, tmp_path / "cut", cfg, progress=False)
+    cfg.epochs = 2  # the 'kill' came after epoch 1; the same command with the full epoch count resumes
+    with pytest.raises(TrainingError, match="other settings"):
+        train(tiny_dataset, tmp_path / "cut", _train_cfg(seed=3), progress=False)
+    resumed = train(tiny_dataset, tmp_path / "cut", _train_cfg(), progress=False)
+    assert {k: v for k, v in resumed.items() if k != "seconds"} == {k: v for k, v in whole.items() if k != "seconds"}
+    log = [json.loads(line) for line in (tmp_path / "cut" / "log.jsonl").read_text().splitlines()]
+    assert [r["epoch"] for r in log] == [1, 2]
+    a = torch.load(tmp_path / "whole" / "last.pt", weights_only=True)["state_dict"]
+    b = torch.load(tmp_path / "cut" / "last.pt", weights_only=True)["state_dict"]
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    shipped = Classifier.load(tmp_path / "whole" / "model.pt")
+    assert "optimizer" not in shipped.meta and shipped.meta["registration"]["max_iterations"] > 0
