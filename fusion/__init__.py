@@ -5,8 +5,8 @@ project's (x, y, z, roll, pitch, yaw); `fusion.tangent` is the one place that co
 GTSAM's rotation-first tangent order.
 """
 from .graph import FusionConfig, FusionGraph, StepReport
-from .metrics import MetricError, ate, ate_aligned, rpe, umeyama
+from .metrics import MetricError, ate, ate_aligned, rpe, rpe_pairs, umeyama, write_tum
 from .tangent import to_gtsam_order, to_project_order
 
-__all__ = ["FusionConfig", "FusionGraph", "StepReport", "MetricError", "ate", "ate_aligned", "rpe", "umeyama",
+__all__ = ["FusionConfig", "FusionGraph", "StepReport", "MetricError", "ate", "ate_aligned", "rpe", "rpe_pairs", "umeyama", "write_tum",
            "to_gtsam_order", "to_project_order"]

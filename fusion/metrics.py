@@ -55,18 +55,46 @@ def ate_aligned(estimate: np.ndarray, ground_truth: np.ndarray) -> float:
     return ate(e @ T[:3, :3].T + T[:3, 3], g)
 
 
-def rpe(estimate: np.ndarray, ground_truth: np.ndarray, delta: int = 10) -> tuple[float, float]:
-    """Relative pose error over `delta` frames: (translation RMSE m, rotation RMSE rad)."""
+def rpe_pairs(ground_truth: np.ndarray, delta: float, unit: str = "frames") -> list[tuple[int, int]]:
+    """Index pairs of the RPE: 'frames': every (i, i + delta); 'meters': consecutive stretches
+    of at least `delta` metres of ground-truth path (evo's default pairing for metres)."""
+    if unit == "frames":
+        d = int(delta)
+        return [(i, i + d) for i in range(len(ground_truth) - d)]
+    if unit != "meters":
+        raise MetricError(f"rpe unit must be 'frames' or 'meters', got '{unit}'")
+    steps = np.linalg.norm(np.diff(_positions(ground_truth), axis=0), axis=1)
+    ids, travelled = [0], 0.0
+    for i, step in enumerate(steps, start=1):
+        travelled += float(step)
+        if travelled >= delta:
+            ids.append(i)
+            travelled = 0.0
+    return list(zip(ids[:-1], ids[1:]))
+
+
+def rpe(estimate: np.ndarray, ground_truth: np.ndarray, delta: float = 10, unit: str = "frames") -> tuple[float, float]:
+    """Relative pose error over a window of `delta` frames or metres (see `rpe_pairs`):
+    (translation RMSE m, rotation RMSE rad)."""
     E, G = np.asarray(estimate, dtype=np.float64), np.asarray(ground_truth, dtype=np.float64)
     if E.shape != G.shape or E.ndim != 3 or E.shape[1:] != (4, 4):
         raise MetricError(f"rpe needs two (N, 4, 4) pose arrays of equal length, got {E.shape} and {G.shape}")
-    if len(E) <= delta:
-        raise MetricError(f"trajectory of {len(E)} poses is too short for delta = {delta}")
+    pairs = rpe_pairs(G, delta, unit)
+    if not pairs:
+        raise MetricError(f"trajectory of {len(E)} poses is too short for a window of {delta} {unit}")
+    i, j = np.array(pairs).T
     inv = np.linalg.inv
-    errs_t, errs_r = [], []
-    for i in range(len(E) - delta):
-        dE, dG = inv(E[i]) @ E[i + delta], inv(G[i]) @ G[i + delta]
-        err = inv(dG) @ dE
-        errs_t.append(np.linalg.norm(err[:3, 3]))
-        errs_r.append(np.arccos(np.clip((np.trace(err[:3, :3]) - 1) / 2, -1, 1)))
-    return float(np.sqrt(np.mean(np.square(errs_t)))), float(np.sqrt(np.mean(np.square(errs_r))))
+    err = inv(inv(G[i]) @ G[j]) @ (inv(E[i]) @ E[j])
+    errs_t = np.linalg.norm(err[:, :3, 3], axis=1)
+    errs_r = np.arccos(np.clip((np.trace(err[:, :3, :3], axis1=1, axis2=2) - 1) / 2, -1, 1))
+    return float(np.sqrt(np.mean(errs_t**2))), float(np.sqrt(np.mean(errs_r**2)))
+
+
+def write_tum(path, stamps: np.ndarray, poses: np.ndarray) -> None:
+    """A trajectory in the TUM format ('t x y z qx qy qz qw' per line), for evo and other tools."""
+    from scipy.spatial.transform import Rotation
+
+    poses = np.asarray(poses, dtype=np.float64)
+    q = Rotation.from_matrix(poses[:, :3, :3]).as_quat()  # x, y, z, w
+    rows = np.column_stack([np.asarray(stamps, dtype=np.float64), poses[:, :3, 3], q])
+    np.savetxt(path, rows, fmt="%.9f")

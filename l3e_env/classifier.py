@@ -242,7 +242,8 @@ class Classifier:
         if lidar_model is not None and trained is not None and lidar_model != trained:
             warnings.warn(f"the classifier was trained on {trained} scans and now sees {lidar_model} scans",
                           stacklevel=2)
-        if registration is not None and self.meta.get("registration") not in (None, json.loads(json.dumps(registration))):
+        in_use = json.loads(json.dumps(registration)) if registration is not None else None
+        if in_use is not None and self.meta.get("registration") not in (None, in_use):
             warnings.warn("the classifier's labels were made with other registration settings than the "
                           "ones in use", stacklevel=2)
 

@@ -12,8 +12,15 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
     out = Path(args.out or f"l3e_out/demo-{time.strftime('%Y%m%d-%H%M%S')}")
     print(f"writing the demo into {out.resolve()}")
-    result = run_demo(out, scene=args.scene, sensor=args.sensor, seed=args.seed, progress=not args.quiet)
+    result = run_demo(out, scene=args.scene, sensor=args.sensor, seed=args.seed, progress=not args.quiet,
+                      checkpoint=args.checkpoint)
     print(f"{result['steps']} steps, goal {'reached' if result['reached_goal'] else 'NOT reached'}")
+    from .labels import AXES
+
+    print("share of scans flagged non-localizable by the learned detector:")
+    print(f"  {'':8s}" + "".join(f"{a:>7s}" for a in AXES))
+    for place, share in result["flagged"].items():
+        print(f"  {place:8s}" + "".join(f"{v:7.2f}" for v in share))
     for f in result["files"]:
         print(f"  {f}")
     return 0 if result["reached_goal"] else 1
@@ -123,6 +130,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scene", default="mine", help="scene name (default: mine)")
     p.add_argument("--sensor", default="vlp16", help="vlp16 or os0-128")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--checkpoint", help="classifier checkpoint (default: the shipped model)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_demo)
     p = sub.add_parser("scenes", help="list scenes and the train/validation/test split")

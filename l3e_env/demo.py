@@ -23,12 +23,19 @@ def _region_of(xy: np.ndarray, regions: dict[str, np.ndarray]) -> str | None:
     return None
 
 
-def run_demo(out_dir: str | Path, scene: str = "mine", sensor: str = "vlp16", seed: int = 0, progress: bool = True) -> dict:
-    """Drive the route, save a top view of the path and scan pictures at up to three places.
+def run_demo(out_dir: str | Path, scene: str = "mine", sensor: str = "vlp16", seed: int = 0, progress: bool = True,
+             checkpoint: str | None = None, classify_every: int = 5) -> dict:
+    """Drive the route, save a top view of the path and scan pictures at up to three places,
+    and judge every `classify_every`-th scan with the learned detector (the shipped model unless
+    `checkpoint` names another): a timeline of its probabilities and the flagged share per axis.
 
-    Returns a summary (steps, reached goal, files written). For the mine the places are the
-    yard, the tunnel and the quarry; other scenes use 20 %, 50 % and 80 % of the route.
+    Returns a summary (steps, reached goal, flagged shares, files written). For the mine the
+    places are the yard, the tunnel and the quarry; other scenes use 20 %, 50 % and 80 % of the route.
     """
+    from .detectors import LearnedDetector
+
+    detector = LearnedDetector(checkpoint, lidar_model=sensor)
+    judged: list[tuple[int, str, np.ndarray, np.ndarray]] = []  # step, place, probabilities, mask
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     config = EnvConfig(scene=scene, lidar=LidarConfig(model=sensor))
@@ -51,6 +58,10 @@ def run_demo(out_dir: str | Path, scene: str = "mine", sensor: str = "vlp16", se
             place = next((f"{int(p * 100)}pct" for p in (0.2, 0.5, 0.8) if abs(frac - p) < 0.01), None)
         if place and place not in snapshots and _centred(info["T_w_b"], env.scene.regions.get(place)):
             snapshots[place] = (info["T_w_b"].copy(), env.scan.points.copy())
+        if (len(poses) - 1) % classify_every == 0:
+            pred = detector.predict(env.scan.points)
+            if pred.known:
+                judged.append((len(poses) - 1, place or "", pred.probabilities, pred.mask))
     bar.close()
     env.close()
     trajectory = np.array([T[:3, 3] for T in poses])
@@ -58,7 +69,52 @@ def run_demo(out_dir: str | Path, scene: str = "mine", sensor: str = "vlp16", se
     for place, (T, points) in snapshots.items():
         files.append(_plot_scan(out / f"scan_{place}.png", place, T, points))
     np.savetxt(out / "trajectory.txt", trajectory, header="x y z (ground truth, world frame, 10 Hz)")
-    return {"steps": len(poses) - 1, "reached_goal": bool(reached), "files": [str(f) for f in files], "out": str(out)}
+    flagged = _flagged_shares(judged)
+    if judged:
+        files.append(_plot_localizability(out / "localizability.png", env, trajectory, judged, detector))
+    return {"steps": len(poses) - 1, "reached_goal": bool(reached), "files": [str(f) for f in files], "out": str(out),
+            "flagged": flagged}
+
+
+def _flagged_shares(judged: list) -> dict[str, np.ndarray]:
+    """Share of judged scans with each axis flagged, over the whole route and per place."""
+    out = {}
+    for place in ["route", *sorted({j[1] for j in judged if j[1]})]:
+        masks = [j[3] for j in judged if place == "route" or j[1] == place]
+        out[place] = np.mean(masks, axis=0)
+    return out
+
+
+def _plot_localizability(path: Path, env: NavigationEnv, trajectory: np.ndarray, judged: list, detector) -> Path:
+    from .labels import AXES
+
+    steps = np.array([j[0] for j in judged])
+    dist = np.r_[0, np.cumsum(np.linalg.norm(np.diff(trajectory[:, :2], axis=0), axis=1))][steps]
+    probs = np.array([j[2] for j in judged])
+    masks = np.array([j[3] for j in judged])
+    fig, axes = plt.subplots(7, 1, figsize=(12, 11), gridspec_kw={"height_ratios": [3, 1, 1, 1, 1, 1, 1]})
+    walls = wall_points(env.scene.mesh, 80_000)
+    axes[0].scatter(walls[:, 0], walls[:, 1], s=0.05, c="0.6", rasterized=True)
+    flagged = masks.any(axis=1)
+    xy = trajectory[steps, :2]
+    axes[0].scatter(*xy[~flagged].T, s=6, c="tab:green", label="all axes localizable")
+    axes[0].scatter(*xy[flagged].T, s=6, c="tab:red", label="some axis flagged")
+    axes[0].set_aspect("equal")
+    axes[0].legend(loc="upper left", fontsize=8)
+    axes[0].set_title(f"{env.scene.name}: learned localizability along the route")
+    for a, ax in enumerate(axes[1:]):
+        ax.plot(dist, probs[:, a], c="k", lw=0.8)
+        ax.axhline(detector.classifier.thresholds[a], c="tab:blue", ls="--", lw=0.8)
+        ax.fill_between(dist, 0, 1, where=masks[:, a], color="tab:red", alpha=0.25, step="mid")
+        ax.set_ylim(0, 1)
+        ax.set_ylabel(AXES[a])
+        if a < 5:
+            ax.set_xticklabels([])
+    axes[-1].set_xlabel("distance along the driven path [m] (shaded: flagged, dashed: threshold)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
 
 
 def _centred(T: np.ndarray, box: np.ndarray | None) -> bool:
