@@ -10,9 +10,8 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
+from .steps import MASK_MODES, StepReport, resolve_step
 from .tangent import to_gtsam_order
-
-MASK_MODES = ("mask", "full", "drop")
 
 
 @dataclass
@@ -27,13 +26,6 @@ class FusionConfig:
     robust_kernel: str | None = None  # None | "huber" | "cauchy"
     robust_threshold: float = 1.345
     relinearize_threshold: float = 0.01
-
-
-@dataclass
-class StepReport:
-    icp_used: bool
-    masked_axes: int
-    fallback: str | None  # why the step ran on a reduced set of factors
 
 
 def _pose3(T: np.ndarray) -> gtsam.Pose3:
@@ -79,17 +71,8 @@ class FusionGraph:
         ICP factor is kept whole (documented fallback), and with no ICP either the pose is tied to
         the previous one by a weak constant-position factor. A step never fails for that.
         """
-        mask = np.zeros(6, dtype=bool) if non_localizable is None else np.asarray(non_localizable, dtype=bool)
-        mode, fallback = self.config.mode, None
-        if mode == "full":
-            mask = np.zeros(6, dtype=bool)
-        elif mode == "drop" and mask.any():
-            icp_T_prev_cur, mask = None, np.ones(6, dtype=bool)
-        has_odom = odom_T_prev_cur is not None and np.isfinite(odom_T_prev_cur).all()
-        icp_ok = icp_T_prev_cur is not None and np.isfinite(icp_T_prev_cur).all()
-        has_icp = icp_ok and not mask.all()
-        if not has_odom and icp_ok and mask.all():
-            mask, has_icp, fallback = np.zeros(6, dtype=bool), True, "all axes masked and no odometry: full ICP factor"
+        step = resolve_step(self.config.mode, odom_T_prev_cur, icp_T_prev_cur, non_localizable)
+        has_odom, has_icp, mask, icp_T_prev_cur = step.has_odom, step.has_icp, step.mask, step.icp_T_prev_cur
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         i, j = self.k, self.k + 1
         if has_odom:
@@ -99,7 +82,6 @@ class FusionGraph:
             precision = np.where(mask, 0.0, 1.0 / np.asarray(self.config.icp_sigmas) ** 2)
             graph.add(gtsam.BetweenFactorPose3(i, j, _pose3(icp_T_prev_cur), self._noise(precision)))
         if not has_odom and not has_icp:
-            fallback = "no odometry and no ICP: constant-position factor"
             weak = gtsam.noiseModel.Isotropic.Sigma(6, 1.0)
             graph.add(gtsam.BetweenFactorPose3(i, j, gtsam.Pose3(), weak))
         guess = self.estimate.compose(_pose3(odom_T_prev_cur)) if has_odom else (
@@ -108,7 +90,7 @@ class FusionGraph:
         self.isam.update(graph, values)
         self.k = j
         self.estimate = self.isam.calculateEstimatePose3(j)
-        return self.estimate.matrix(), StepReport(has_icp, int(mask.sum()) if has_icp else 6, fallback)
+        return self.estimate.matrix(), step.report()
 
     def trajectory(self) -> np.ndarray:
         """All smoothed poses (k+1, 4, 4)."""

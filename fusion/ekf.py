@@ -1,0 +1,70 @@
+"""The same fusion as `FusionGraph`, as a filterpy extended Kalman filter with partial updates.
+
+The state is the error of the last two poses (stochastic cloning, 12-d, GTSAM tangent order,
+right perturbation T <- T Exp(d)): odometry propagates the clone, the scan-to-scan ICP is a
+relative measurement between the two, and only its localizable rows enter the update (the
+filter's partial update). A filter cannot revise old poses: `trajectory()` is the sequence of
+filtered estimates, which is what a robot has online.
+"""
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+from filterpy.kalman import ExtendedKalmanFilter
+
+from .graph import FusionConfig
+from .steps import StepReport, resolve_step
+from .tangent import GTSAM_FROM_PROJECT, to_gtsam_order
+
+
+class EKFFusion:
+    """Drop-in for `FusionGraph`: `add_step` takes the same inputs and returns the same report."""
+
+    def __init__(self, T_w_0: np.ndarray, config: FusionConfig | None = None):
+        self.config = config or FusionConfig()
+        resolve_step(self.config.mode, None, None, None)  # validates the mode
+        if self.config.robust_kernel is not None:
+            raise ValueError("the EKF backend has no robust kernel; use the graph backend for that")
+        self.T = gtsam.Pose3(np.asarray(T_w_0, dtype=np.float64))
+        self.P = np.diag(to_gtsam_order(np.asarray(self.config.prior_sigmas)) ** 2)
+        self.poses = [self.T.matrix()]
+        self.k = 0
+
+    def add_step(self, odom_T_prev_cur: np.ndarray | None, odom_sigmas: np.ndarray | None,
+                 icp_T_prev_cur: np.ndarray | None = None,
+                 non_localizable: np.ndarray | None = None) -> tuple[np.ndarray, StepReport]:
+        step = resolve_step(self.config.mode, odom_T_prev_cur, icp_T_prev_cur, non_localizable)
+        if step.has_odom:
+            motion, sigmas = gtsam.Pose3(np.asarray(odom_T_prev_cur, dtype=np.float64)), np.asarray(odom_sigmas)
+        elif step.has_icp:  # no odometry: ICP carries the motion, as in the graph
+            motion, sigmas = gtsam.Pose3(np.asarray(step.icp_T_prev_cur)), np.asarray(self.config.icp_sigmas)
+        else:
+            motion, sigmas = gtsam.Pose3(), np.ones(6)  # the graph's weak constant-position tie
+        Q = np.diag(to_gtsam_order(np.maximum(sigmas, 1e-9)) ** 2)
+        F = motion.inverse().AdjointMap()
+        prev, pred = self.T, self.T.compose(motion)
+        ekf = ExtendedKalmanFilter(dim_x=12, dim_z=6)
+        ekf.x = np.zeros(12)
+        ekf.P = np.block([[self.P, self.P @ F.T], [F @ self.P, F @ self.P @ F.T + Q]])
+        if step.has_odom and step.has_icp:
+            self._partial_update(ekf, prev, pred, gtsam.Pose3(np.asarray(step.icp_T_prev_cur)), step.mask)
+        self.T = pred.retract(ekf.x[6:])  # the previous pose is marginalised: a filter does not revise the past
+        self.P = 0.5 * (ekf.P[6:, 6:] + ekf.P[6:, 6:].T)
+        self.k += 1
+        self.poses.append(self.T.matrix())
+        return self.T.matrix(), step.report()
+
+    def _partial_update(self, ekf: ExtendedKalmanFilter, prev: gtsam.Pose3, pred: gtsam.Pose3, icp: gtsam.Pose3,
+                        mask_project: np.ndarray) -> None:
+        """ICP measures T_prev^-1 T_cur; residual Log(rel_pred^-1 icp) ~ d_cur - Ad(rel^-1) d_prev."""
+        rel = prev.between(pred)
+        keep = ~np.asarray(mask_project, dtype=bool)[GTSAM_FROM_PROJECT]  # rows in GTSAM order
+        H = np.hstack([-rel.inverse().AdjointMap(), np.eye(6)])[keep]
+        z = gtsam.Pose3.Logmap(rel.between(icp))[keep]
+        R = np.diag(to_gtsam_order(np.asarray(self.config.icp_sigmas))[keep] ** 2)
+        ekf.dim_z = int(keep.sum())
+        ekf.update(z, lambda x: H, lambda x: H @ x, R=R)
+
+    def trajectory(self) -> np.ndarray:
+        """The filtered poses (k+1, 4, 4)."""
+        return np.array(self.poses)

@@ -1,0 +1,51 @@
+"""What one fusion step uses, decided the same way by every backend (graph and filter)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+MASK_MODES = ("mask", "full", "drop")
+
+
+@dataclass
+class StepReport:
+    icp_used: bool
+    masked_axes: int
+    fallback: str | None  # why the step ran on a reduced set of factors
+
+
+@dataclass
+class StepInputs:
+    has_odom: bool
+    has_icp: bool
+    mask: np.ndarray  # (6,) bool in project order, True = no information on that axis
+    icp_T_prev_cur: np.ndarray | None
+    fallback: str | None
+
+    def report(self) -> StepReport:
+        return StepReport(self.has_icp, int(self.mask.sum()) if self.has_icp else 6, self.fallback)
+
+
+def resolve_step(mode: str, odom_T_prev_cur: np.ndarray | None, icp_T_prev_cur: np.ndarray | None,
+                 non_localizable: np.ndarray | None) -> StepInputs:
+    """Apply the mode (mask: drop the flagged axes; full: keep every axis; drop: drop the ICP
+    factor when any axis is flagged) and the documented fallbacks: missing odometry with every
+    ICP axis masked keeps the ICP factor whole; with neither, the caller adds a weak
+    constant-position tie. Non-finite inputs count as missing."""
+    if mode not in MASK_MODES:
+        raise ValueError(f"fusion mode must be one of {MASK_MODES}, got '{mode}'")
+    mask = np.zeros(6, dtype=bool) if non_localizable is None else np.asarray(non_localizable, dtype=bool).copy()
+    fallback = None
+    if mode == "full":
+        mask[:] = False
+    elif mode == "drop" and mask.any():
+        icp_T_prev_cur, mask = None, np.ones(6, dtype=bool)
+    has_odom = odom_T_prev_cur is not None and bool(np.isfinite(odom_T_prev_cur).all())
+    icp_ok = icp_T_prev_cur is not None and bool(np.isfinite(icp_T_prev_cur).all())
+    has_icp = icp_ok and not mask.all()
+    if not has_odom and icp_ok and mask.all():
+        mask[:], has_icp, fallback = False, True, "all axes masked and no odometry: full ICP factor"
+    if not has_odom and not has_icp:
+        fallback = "no odometry and no ICP: constant-position factor"
+    return StepInputs(has_odom, has_icp, mask, icp_T_prev_cur if icp_ok else None, fallback)
