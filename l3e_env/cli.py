@@ -82,7 +82,8 @@ def _cmd_ate(args: argparse.Namespace) -> int:
     out = Path(args.out or f"l3e_out/ate-{args.scene}-{time.strftime('%Y%m%d-%H%M%S')}")
     print(f"writing the experiment into {out.resolve()}")
     rows = run_experiment(out, args.scene, args.detector or ["none", "eigen:30", "eigen:110", "oracle"],
-                          sensor=args.sensor, seed=args.seed, recording=args.recording, progress=not args.quiet)
+                          sensor=args.sensor, seed=args.seed, recording=args.recording, progress=not args.quiet,
+                          backend=args.backend)
     print(format_table(rows))
     return 0
 
@@ -156,7 +157,9 @@ def build_parser() -> argparse.ArgumentParser:
     g.set_defaults(func=_cmd_dataset_stats)
     p = sub.add_parser("ate", help="drive a route once, fuse with each detector, compare ATE")
     p.add_argument("--scene", default="mine")
-    p.add_argument("--detector", action="append", help="none | eigen:<tau> | oracle[:M]; repeat for several")
+    p.add_argument("--detector", action="append",
+                   help="none | eigen:<tau> | oracle[:M] | learned[:checkpoint]; repeat for several")
+    p.add_argument("--backend", choices=["graph", "ekf"], default="graph", help="iSAM2 smoother or filterpy EKF")
     p.add_argument("--sensor", default="vlp16")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--recording", help="evaluate a saved recording.npz instead of driving again")

@@ -17,10 +17,10 @@ import numpy as np
 import small_gicp
 from tqdm import tqdm
 
-from fusion import FusionConfig, FusionGraph, MetricError, ate, ate_aligned, rpe
+from fusion import EKFFusion, FusionConfig, FusionGraph, MetricError, ate, ate_aligned, rpe
 
 from .config import EnvConfig, LidarConfig, OdometryConfig
-from .detectors import Detector, make_detector
+from .detectors import UNKNOWN, Detector, Prediction, make_detector
 from .envs.navigation import NavigationEnv
 from .follower import RouteFollower
 from .labels import AXES
@@ -29,7 +29,8 @@ from .raycast import EmbreeCaster
 from .registration import PreparedTarget, RegistrationConfig, RegistrationError, register
 from .transforms import inverse, matrix_to_pose
 
-STORE_VOXEL = 0.2  # stored scans are thinned to the classifier's own quantisation
+STORE_VOXEL = 0.2  # stored scans for ICP are thinned (ICP downsamples to 0.3 m anyway)
+CLASSIFIER_POINTS = 4000  # the classifier's input size (ModelConfig.points)
 
 
 @dataclass
@@ -40,22 +41,38 @@ class Recording:
     T_b_s: np.ndarray
     ground_truth: np.ndarray  # (N+1, 4, 4) body poses
     odometry: np.ndarray  # (N, 4, 4) increments T_b(k-1)_b(k)
-    scans: list[np.ndarray] = field(default_factory=list)  # N+1 scans, sensor frame
+    scans: list[np.ndarray] = field(default_factory=list)  # N+1 scans, sensor frame, thinned for ICP
+    # N+1 random subsets of the raw scans, as the classifier samples them (thinned scans have
+    # another point density than the raw scans it was trained on)
+    samples: list[np.ndarray] = field(default_factory=list)
 
     def save(self, path: str | Path) -> None:
-        lengths = np.array([len(s) for s in self.scans])
         np.savez_compressed(
             path, scene=self.scene, sensor=self.sensor, seed=self.seed, T_b_s=self.T_b_s,
-            ground_truth=self.ground_truth, odometry=self.odometry, points=np.concatenate(self.scans),
-            offsets=np.concatenate([[0], np.cumsum(lengths)]),
+            ground_truth=self.ground_truth, odometry=self.odometry, **_ragged("points", self.scans),
+            **_ragged("samples", self.samples),
         )
 
     @classmethod
     def load(cls, path: str | Path) -> "Recording":
         with np.load(path) as z:
-            o, pts = z["offsets"], z["points"]
+            samples = _unragged(z, "samples") if "samples_offsets" in z.files else []
             return cls(str(z["scene"]), str(z["sensor"]), int(z["seed"]), z["T_b_s"], z["ground_truth"], z["odometry"],
-                       [pts[o[i]:o[i + 1]] for i in range(len(o) - 1)])
+                       _unragged(z, "points"), samples)
+
+    def detector_input(self, k: int) -> np.ndarray:
+        return self.samples[k] if self.samples else self.scans[k]
+
+
+def _ragged(name: str, arrays: list[np.ndarray]) -> dict[str, np.ndarray]:
+    lengths = np.array([len(a) for a in arrays], dtype=np.int64)
+    flat = np.concatenate(arrays) if arrays else np.zeros((0, 3), np.float32)
+    return {name: flat, f"{name}_offsets" if name != "points" else "offsets": np.concatenate([[0], np.cumsum(lengths)])}
+
+
+def _unragged(z, name: str) -> list[np.ndarray]:
+    o, flat = z[f"{name}_offsets" if name != "points" else "offsets"], z[name]
+    return [flat[o[i]:o[i + 1]] for i in range(len(o) - 1)]
 
 
 def record_run(scene: str = "mine", sensor: str = "vlp16", seed: int = 0, progress: bool = True) -> Recording:
@@ -67,7 +84,14 @@ def record_run(scene: str = "mine", sensor: str = "vlp16", seed: int = 0, progre
         cloud = small_gicp.voxelgrid_sampling(points.astype(np.float64), STORE_VOXEL)
         return np.asarray(cloud.points())[:, :3].astype(np.float32)
 
-    gt, odom, scans = [info["T_w_b"]], [], [thin(env.scan.points)]
+    sampler = np.random.default_rng([seed, 1])
+
+    def sample(points: np.ndarray) -> np.ndarray:
+        if len(points) > CLASSIFIER_POINTS:
+            points = points[sampler.choice(len(points), CLASSIFIER_POINTS, replace=False)]
+        return points.astype(np.float32)
+
+    gt, odom, scans, samples = [info["T_w_b"]], [], [thin(env.scan.points)], [sample(env.scan.points)]
     bar = tqdm(total=env.max_steps, desc=f"recording {env.scene.name}", unit="step", disable=not progress)
     done = False
     while not done:
@@ -77,9 +101,10 @@ def record_run(scene: str = "mine", sensor: str = "vlp16", seed: int = 0, progre
         gt.append(info["T_w_b"])
         odom.append(inverse(prev_odom) @ info["odom_T_w_b"])
         scans.append(thin(env.scan.points))
+        samples.append(sample(env.scan.points))
         bar.update()
     bar.close()
-    rec = Recording(env.scene.name, sensor, seed, env.robot.T_b_s, np.array(gt), np.array(odom), scans)
+    rec = Recording(env.scene.name, sensor, seed, env.robot.T_b_s, np.array(gt), np.array(odom), scans, samples)
     env.close()
     return rec
 
@@ -97,6 +122,7 @@ class DetectorResult:
     seconds: float
     unknown_steps: int
     fallback_steps: int
+    detector_errors: int = 0
 
     def row(self) -> dict:
         flagged = self.masks.mean(axis=0)
@@ -105,7 +131,7 @@ class DetectorResult:
                 "rpe_m": round(self.rpe_translation, 4), "rpe_deg": round(float(np.degrees(self.rpe_rotation)), 3),
                 **{f"flagged_{a}": round(float(f), 3) for a, f in zip(AXES, flagged)},
                 "seconds": round(self.seconds, 2), "unknown_steps": self.unknown_steps,
-                "fallback_steps": self.fallback_steps}
+                "fallback_steps": self.fallback_steps, "detector_errors": self.detector_errors}
 
 
 def odometry_sigmas(increment: np.ndarray, cfg: OdometryConfig) -> np.ndarray:
@@ -136,19 +162,35 @@ def register_sequence(rec: Recording, config: RegistrationConfig, progress: bool
     return results
 
 
+BACKENDS = {"graph": FusionGraph, "ekf": EKFFusion}
+
+
+def safe_predict(det: Detector, points: np.ndarray, reg, T_w_s: np.ndarray) -> tuple[Prediction, bool]:
+    """The detector's prediction, or UNKNOWN (nothing masked) if it raises: one bad scan or a
+    detector bug must not end a run; the caller counts these."""
+    try:
+        return det.predict(points, reg, T_w_s), False
+    except Exception:  # noqa: BLE001 - any detector failure becomes a counted UNKNOWN step
+        return UNKNOWN, True
+
+
 def evaluate(rec: Recording, detectors: list[Detector], registrations: list, fusion: FusionConfig | None = None,
-             odometry: OdometryConfig | None = None, progress: bool = True) -> list[DetectorResult]:
+             odometry: OdometryConfig | None = None, progress: bool = True,
+             backend: str = "graph") -> list[DetectorResult]:
+    if backend not in BACKENDS:
+        raise ValueError(f"unknown fusion backend '{backend}' ({', '.join(BACKENDS)})")
     fusion, odometry = fusion or FusionConfig(), odometry or OdometryConfig()
     T_b_s, T_s_b = rec.T_b_s, inverse(rec.T_b_s)
     gt = rec.ground_truth
     out = []
     for det in detectors:
         t0 = time.perf_counter()
-        graph = FusionGraph(gt[0], fusion)
-        masks, probs, unknown, fallbacks = [], [], 0, 0
+        graph = BACKENDS[backend](gt[0], fusion)
+        masks, probs, unknown, fallbacks, errors = [], [], 0, 0, 0
         for k, reg in enumerate(tqdm(registrations, desc=f"fusing with {det.name}", unit="step", disable=not progress)):
-            pred = det.predict(rec.scans[k + 1], reg, gt[k + 1] @ T_b_s)
+            pred, failed = safe_predict(det, rec.detector_input(k + 1), reg, gt[k + 1] @ T_b_s)
             unknown += not pred.known
+            errors += failed
             icp = T_b_s @ reg.T_target_source @ T_s_b if reg is not None and reg.converged else None
             inc = rec.odometry[k]
             _, report = graph.add_step(inc, odometry_sigmas(inc, odometry), icp, pred.mask)
@@ -156,7 +198,7 @@ def evaluate(rec: Recording, detectors: list[Detector], registrations: list, fus
             masks.append(pred.mask)
             probs.append(pred.probabilities)
         out.append(_scored(det.name, graph.trajectory(), gt, np.array(masks), np.array(probs),
-                           time.perf_counter() - t0, unknown, fallbacks))
+                           time.perf_counter() - t0, unknown, fallbacks, errors))
     return out
 
 
@@ -169,18 +211,18 @@ def odometry_only(rec: Recording) -> DetectorResult:
 
 
 def _scored(name: str, traj: np.ndarray, gt: np.ndarray, masks: np.ndarray, probs: np.ndarray, seconds: float,
-            unknown: int, fallbacks: int) -> DetectorResult:
+            unknown: int, fallbacks: int, errors: int = 0) -> DetectorResult:
     """A trajectory with its metrics against ground truth (aligned ATE is None for colinear runs)."""
     try:
         aligned = ate_aligned(traj, gt)
     except MetricError:
         aligned = None
     rt, rr = rpe(traj, gt, delta=min(10, len(gt) - 1))
-    return DetectorResult(name, traj, masks, probs, ate(traj, gt), aligned, rt, rr, seconds, unknown, fallbacks)
+    return DetectorResult(name, traj, masks, probs, ate(traj, gt), aligned, rt, rr, seconds, unknown, fallbacks, errors)
 
 
 def run_experiment(out_dir: str | Path, scene: str, detectors: list[str], sensor: str = "vlp16", seed: int = 0,
-                   recording: str | Path | None = None, progress: bool = True) -> list[dict]:
+                   recording: str | Path | None = None, progress: bool = True, backend: str = "graph") -> list[dict]:
     """The `l3e ate` command as a function: returns the table rows and writes everything to out_dir."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -195,10 +237,11 @@ def run_experiment(out_dir: str | Path, scene: str, detectors: list[str], sensor
     t0 = time.perf_counter()
     regs = register_sequence(rec, RegistrationConfig(), progress)
     icp_seconds = time.perf_counter() - t0
-    results = [odometry_only(rec)] + evaluate(rec, dets, regs, progress=progress)
+    results = [odometry_only(rec)] + evaluate(rec, dets, regs, progress=progress, backend=backend)
     rows = [r.row() for r in results]
     failed = sum(r is None or not r.converged for r in regs)
-    summary = {"scene": rec.scene, "sensor": rec.sensor, "steps": len(rec.odometry), "icp_seconds": round(icp_seconds, 1),
+    summary = {"scene": rec.scene, "sensor": rec.sensor, "backend": backend, "steps": len(rec.odometry),
+               "icp_seconds": round(icp_seconds, 1),
                "icp_failed_or_not_converged": failed, "rows": rows}
     (out / "results.json").write_text(json.dumps(summary, indent=1))
     from .experiment_plots import plot_map, plot_timeline, plot_trajectories
