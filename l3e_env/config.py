@@ -59,6 +59,18 @@ class OdometryConfig:
 
 
 @dataclass
+class LoopFusionConfig:
+    """Fusion inside the environment loop (off by default: it costs ICP and a detector per step).
+    detector: none | eigen:<tau> | oracle[:M] | learned[:checkpoint]; backend: graph | ekf;
+    mode: mask | full | drop (see fusion.FusionConfig)."""
+
+    enabled: bool = False
+    detector: str = "learned"
+    backend: str = "graph"
+    mode: str = "mask"
+
+
+@dataclass
 class EnvConfig:
     """Gymnasium environment options."""
 
@@ -75,6 +87,7 @@ class EnvConfig:
     step_penalty: float = 0.01
     collision_penalty: float = 0.1
     goal_reward: float = 10.0
+    fusion: LoopFusionConfig = field(default_factory=LoopFusionConfig)
 
 
 def to_dict(cfg: Any) -> dict[str, Any]:

@@ -20,6 +20,7 @@ from tqdm import tqdm
 from fusion import EKFFusion, FusionConfig, FusionGraph, MetricError, ate, ate_aligned, rpe
 
 from .config import EnvConfig, LidarConfig, OdometryConfig
+from .odometry import odometry_sigmas
 from .detectors import UNKNOWN, Detector, Prediction, make_detector
 from .envs.navigation import NavigationEnv
 from .follower import RouteFollower
@@ -27,7 +28,7 @@ from .labels import AXES
 from .lidar import Lidar
 from .raycast import EmbreeCaster
 from .registration import PreparedTarget, RegistrationConfig, RegistrationError, register
-from .transforms import inverse, matrix_to_pose
+from .transforms import inverse
 
 STORE_VOXEL = 0.2  # stored scans for ICP are thinned (ICP downsamples to 0.3 m anyway)
 CLASSIFIER_POINTS = 4000  # the classifier's input size (ModelConfig.points)
@@ -132,17 +133,6 @@ class DetectorResult:
                 **{f"flagged_{a}": round(float(f), 3) for a, f in zip(AXES, flagged)},
                 "seconds": round(self.seconds, 2), "unknown_steps": self.unknown_steps,
                 "fallback_steps": self.fallback_steps, "detector_errors": self.detector_errors}
-
-
-def odometry_sigmas(increment: np.ndarray, cfg: OdometryConfig) -> np.ndarray:
-    """Per-step standard deviations of the leg odometry from its own noise model (plus a floor)."""
-    v = matrix_to_pose(increment)
-    d, a = float(np.linalg.norm(v[:3])), abs(float(v[5]))
-    bias = d * np.array([0, 0, cfg.z_bias_std, 0, 0, cfg.yaw_bias_std])
-    s = np.array([cfg.trans_noise_per_m * d, cfg.trans_noise_per_m * d, cfg.z_noise_per_m * d, cfg.rp_noise_per_m * d,
-                  cfg.rp_noise_per_m * d, cfg.yaw_noise_per_m * d + cfg.yaw_noise_per_rad * a])
-    scale = cfg.scale_error_std * np.abs(v) * np.array([1, 1, 1, 0, 0, 0])
-    return np.sqrt(s**2 + bias**2 + scale**2) + np.array([1e-3, 1e-3, 1e-3, 1e-4, 1e-4, 1e-4])
 
 
 def register_sequence(rec: Recording, config: RegistrationConfig, progress: bool = True) -> list:

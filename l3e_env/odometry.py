@@ -41,3 +41,14 @@ class LegOdometry:
         noisy[2] += self.z_bias * d
         noisy[5] += self.yaw_bias * d
         return pose_to_matrix(noisy)
+
+
+def odometry_sigmas(increment: np.ndarray, cfg: OdometryConfig) -> np.ndarray:
+    """Per-step standard deviations of the leg odometry from its own noise model (plus a floor)."""
+    v = matrix_to_pose(increment)
+    d, a = float(np.linalg.norm(v[:3])), abs(float(v[5]))
+    bias = d * np.array([0, 0, cfg.z_bias_std, 0, 0, cfg.yaw_bias_std])
+    s = np.array([cfg.trans_noise_per_m * d, cfg.trans_noise_per_m * d, cfg.z_noise_per_m * d, cfg.rp_noise_per_m * d,
+                  cfg.rp_noise_per_m * d, cfg.yaw_noise_per_m * d + cfg.yaw_noise_per_rad * a])
+    scale = cfg.scale_error_std * np.abs(v) * np.array([1, 1, 1, 0, 0, 0])
+    return np.sqrt(s**2 + bias**2 + scale**2) + np.array([1e-3, 1e-3, 1e-3, 1e-4, 1e-4, 1e-4])

@@ -4,6 +4,7 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 
 import l3e_env
+from l3e_env.envs.navigation import NavigationEnv
 from l3e_env.follower import RouteFollower
 
 
@@ -97,3 +98,34 @@ def test_os0_128_option_and_async_vector_env():
     obs, reward, terminated, truncated, info = envs.step(np.tile([[1.0, 0.0, 0.0]], (2, 1)).astype(np.float32))
     assert reward.shape == (2,) and np.all(reward > 0)
     envs.close()
+
+
+def test_fusion_in_the_loop_reports_estimate_mask_and_running_ate():
+    env = NavigationEnv(dict(scene="tunnel", fusion=dict(enabled=True, detector="eigen:110")))
+    _, info = env.reset(seed=0)
+    follow = RouteFollower(env.route)
+    assert info["running_ate"] == 0.0 and not info["localizability_known"]
+    odom_err, flagged_x = [], []
+    for _ in range(60):
+        _, _, _, _, info = env.step(follow(info["T_w_b"]))
+        odom_err.append(np.linalg.norm(info["odom_T_w_b"][:3, 3] - info["T_w_b"][:3, 3]))
+        flagged_x.append(info["localizability_mask"][0])
+    assert info["fused_T_w_b"].shape == (4, 4) and info["localizability_probabilities"].shape == (6,)
+    assert np.mean(flagged_x) > 0.5  # the tunnel's axis is x in the body frame at the start
+    assert 0 < info["running_ate"] < 0.5
+    assert info["fusion_counts"]["detector_errors"] == 0
+    env.close()
+
+
+def test_a_failing_detector_is_counted_and_the_episode_goes_on():
+    env = NavigationEnv(dict(scene="office", fusion=dict(enabled=True, detector="none", backend="ekf")))
+    _, info = env.reset(seed=0)
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("detector crashed")
+
+    env.fusion.detector.predict = broken
+    for _ in range(5):
+        _, _, _, _, info = env.step(np.zeros(3))
+    assert info["fusion_counts"]["detector_errors"] == 5 and np.isfinite(info["fused_T_w_b"]).all()
+    env.close()

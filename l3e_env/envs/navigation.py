@@ -33,6 +33,10 @@ class NavigationEnv(gym.Env):
     Terminated on arrival within goal_radius; truncated after max_episode_steps.
     info: T_w_b (4x4 ground truth), pose (x, y, z, roll, pitch, yaw), odom_T_w_b (dead reckoning),
       blocked, distance_to_goal. The current Scan (points in the sensor frame) is `env.unwrapped.scan`.
+      With `fusion.enabled` (see LoopFusionConfig) also: fused_T_w_b (odometry and masked ICP
+      fused), localizability_probabilities and localizability_mask (6,) in (x, y, z, roll,
+      pitch, yaw) order, localizability_known, running_ate (m, fused vs ground truth since reset)
+      and fusion_counts (ICP failures, unknown predictions, detector errors, fallbacks).
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
@@ -71,6 +75,12 @@ class NavigationEnv(gym.Env):
         speed = float(config.robot.max_twist[0])
         self.max_steps = config.max_episode_steps or int(np.ceil(3 * polyline_length(self.route) / (speed * config.robot.dt)))
         self._renderer: TopDownRenderer | None = None
+        self.fusion = None
+        if config.fusion.enabled:
+            from ..online import OnlineFusion  # ICP, detector and GTSAM only when asked for
+
+            self.fusion = OnlineFusion(config.fusion, self.lidar, config.odometry, self.robot.T_b_s)
+        self._fusion_info: dict[str, Any] = {}
 
     # -- gymnasium API -------------------------------------------------------------------
     def reset(self, *, seed: int | None = None, options: dict | None = None):
@@ -83,6 +93,8 @@ class NavigationEnv(gym.Env):
         self.trail = [self.robot.T_w_b[:3, 3].copy()]
         self._scan = self.lidar.scan(self.robot.T_w_s, self.np_random)
         self._distance = self._goal_distance()
+        if self.fusion is not None:
+            self._fusion_info = self.fusion.reset(self.robot.T_w_b, self._scan.points)
         return self._observation(np.eye(4)), self._info(blocked=False)
 
     def step(self, action):
@@ -96,6 +108,8 @@ class NavigationEnv(gym.Env):
         increment = self.odometry.measure(T_prev, T_cur)
         self.odom_T_w_b = self.odom_T_w_b @ increment
         self._scan = self.lidar.scan(self.robot.T_w_s, self.np_random)
+        if self.fusion is not None:
+            self._fusion_info = self.fusion.step(increment, self._scan.points, T_cur)
         self.steps += 1
         self.trail.append(T_cur[:3, 3].copy())
         distance = self._goal_distance()
@@ -146,4 +160,5 @@ class NavigationEnv(gym.Env):
             "odom_T_w_b": self.odom_T_w_b.copy(),
             "blocked": bool(blocked),
             "distance_to_goal": self._distance,
+            **self._fusion_info,
         }

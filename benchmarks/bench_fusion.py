@@ -1,0 +1,74 @@
+"""Fusion speed: the iSAM2 update per step over a long run (EKF step as the reference in the
+same run), and environment steps per second with the whole pipeline in the loop (scan,
+learned detector, ICP, iSAM2) against the bare environment.
+
+Run: python benchmarks/bench_fusion.py [--steps 3000] [--env-steps 300] [--scene mine]
+"""
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+import torch
+
+from fusion import EKFFusion, FusionGraph
+from l3e_env.config import EnvConfig, LoopFusionConfig
+from l3e_env.envs.navigation import NavigationEnv
+from l3e_env.follower import RouteFollower
+from l3e_env.transforms import pose_to_matrix
+
+
+def update_times(backend, steps: int, seed: int = 0) -> np.ndarray:
+    """Seconds per add_step along a winding 3-D run with noisy odometry, ICP and random masks."""
+    rng = np.random.default_rng(seed)
+    fusion = backend(np.eye(4))
+    sigmas = np.array([0.01, 0.01, 0.01, 0.002, 0.002, 0.004])
+    times = np.empty(steps)
+    for k in range(steps):
+        true = pose_to_matrix(np.array([0.1, 0.0, 0.0, 0.0, 0.0, 0.02 * np.sin(k / 50)]))
+        odom = true @ pose_to_matrix(rng.normal(0, sigmas))
+        icp = true @ pose_to_matrix(rng.normal(0, sigmas / 5))
+        mask = rng.random(6) < 0.2
+        t0 = time.perf_counter()
+        fusion.add_step(odom, sigmas, icp, mask)
+        times[k] = time.perf_counter() - t0
+    return times
+
+
+def env_rate(fusion: LoopFusionConfig, scene: str, steps: int) -> float:
+    env = NavigationEnv(EnvConfig(scene=scene, fusion=fusion))
+    _, info = env.reset(seed=0)
+    follow = RouteFollower(env.route)
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        _, _, terminated, truncated, info = env.step(follow(info["T_w_b"]))
+        if terminated or truncated:
+            _, info = env.reset()
+            follow.reset()
+    rate = steps / (time.perf_counter() - t0)
+    env.close()
+    return rate
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--steps", type=int, default=3000)
+    parser.add_argument("--env-steps", type=int, default=300)
+    parser.add_argument("--scene", default="mine")
+    parser.add_argument("--threads", type=int, default=2)
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    isam = update_times(FusionGraph, args.steps) * 1e3
+    ekf = update_times(EKFFusion, args.steps) * 1e3
+    print(f"iSAM2 update over {args.steps} steps: median {np.median(isam):.3f} ms, p90 {np.percentile(isam, 90):.3f} ms, "
+          f"last 500 median {np.median(isam[-500:]):.3f} ms (target <= 1 ms)")
+    print(f"EKF step (reference): median {np.median(ekf):.3f} ms; iSAM2 / EKF {np.median(isam) / np.median(ekf):.2f}x")
+    bare = env_rate(LoopFusionConfig(enabled=False), args.scene, args.env_steps)
+    full = env_rate(LoopFusionConfig(enabled=True, detector="learned"), args.scene, args.env_steps)
+    print(f"{args.scene} env, VLP-16: {full:.1f} steps/s with scan + learned detector + ICP + iSAM2 "
+          f"(target >= 25), bare env {bare:.1f} steps/s (ratio {full / bare:.2f})")
+
+
+if __name__ == "__main__":
+    main()
