@@ -123,6 +123,22 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_sweep(args: argparse.Namespace) -> int:
+    from .sweep import DEFAULT_TAUS, beaten_everywhere, run_sweep
+
+    out = Path(args.out or f"l3e_out/sweep-{time.strftime('%Y%m%d-%H%M%S')}")
+    print(f"writing the sweep into {out.resolve()}")
+    taus = tuple(float(t) for t in args.taus.split(",")) if args.taus else DEFAULT_TAUS
+    recordings = dict(r.split("=", 1) for r in args.recording or [])
+    results = run_sweep(out, args.scene or ["tunnel", "field", "office"], taus, recordings=recordings,
+                        progress=not args.quiet)
+    best = beaten_everywhere(results, "learned")
+    print("taus at least as good as the learned detector in every scene: " + (", ".join(f"{t:g}" for t in best)
+                                                                             if best else "none"))
+    print(f"plot: {out / 'tau_sweep.png'}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="l3e", description="Learned LiDAR localizability in simulation (L3E).")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -185,6 +201,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", help="output folder (default: l3e_out/evaluate-<time>)")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_cmd_evaluate)
+    p = sub.add_parser("sweep", help="ATE against the eigenvalue threshold in several scenes, with the learned "
+                                     "detector as reference")
+    p.add_argument("--scene", action="append", help="repeat; default tunnel, field, office")
+    p.add_argument("--taus", help="comma-separated thresholds (default 10 ... 300)")
+    p.add_argument("--recording", action="append", help="SCENE=recording.npz to skip driving that scene")
+    p.add_argument("--out", help="output folder (default: l3e_out/sweep-<time>)")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=_cmd_sweep)
     p = sub.add_parser("envs", help="list the registered Gymnasium environment ids")
     p.set_defaults(func=_cmd_envs)
     return parser
