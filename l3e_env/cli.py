@@ -94,7 +94,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
     cfg = load_yaml(TrainConfig, args.config) if args.config else TrainConfig()
     overrides = {k: v for k, v in {"epochs": args.epochs, "seed": args.seed, "optimizer": args.optimizer,
-                                   "learning_rate": args.lr, "samples_per_epoch": args.samples_per_epoch}.items()
+                                   "learning_rate": args.lr, "samples_per_epoch": args.samples_per_epoch,
+                                   "threads": args.threads}.items()
                  if v is not None}
     model = {"architecture": args.architecture} if args.architecture else {}
     cfg = from_dict(TrainConfig, {**_asdict(cfg), **overrides, "model": {**_asdict(cfg.model), **model}})
@@ -191,6 +192,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--samples-per-epoch", type=int, dest="samples_per_epoch")
     p.add_argument("--optimizer", choices=["sgd", "adamw"])
     p.add_argument("--lr", type=float)
+    p.add_argument("--threads", type=int, help="torch threads (default 2)")
     p.add_argument("--seed", type=int)
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_cmd_train)

@@ -42,7 +42,7 @@ SWAP_LABELS = np.array([1, 0, 2, 4, 3, 5])
 @dataclass
 class TrainConfig:
     model: ModelConfig = field(default_factory=ModelConfig)
-    epochs: int = 24
+    epochs: int = 12
     batch_size: int = 8
     optimizer: str = "sgd"  # "sgd" (the paper's, with momentum 0.9) or "adamw"
     learning_rate: float = 0.02
@@ -50,7 +50,7 @@ class TrainConfig:
     lr_decay: float = 0.9  # exponential, per epoch
     balance: bool = True  # power-set up-sampling to the second most common combination
     max_upsampling: float = 100.0
-    samples_per_epoch: int = 2400  # drawn from the balanced pool; 0 = the whole pool each epoch
+    samples_per_epoch: int = 1600  # drawn from the balanced pool; 0 = the whole pool each epoch
     augment: bool = True  # mirror and x/y swap with the matching label permutation
     train_scenes: list[str] = field(default_factory=lambda: list(TRAIN_SCENES))
     validation_scenes: list[str] = field(default_factory=lambda: list(VALIDATION_SCENES))
@@ -132,9 +132,9 @@ def _plain(value: Any) -> Any:
 
 
 def _resumable(training: dict[str, Any]) -> dict[str, Any]:
-    """The settings a resumed run must share with the first one: all but the epoch count, so
-    that a finished run can also be trained further."""
-    return {k: v for k, v in training.items() if k != "epochs"}
+    """The settings a resumed run must share with the first one: all but the epoch count (a
+    finished run can be trained further) and the thread count (a resumed run may get more cores)."""
+    return {k: v for k, v in training.items() if k not in ("epochs", "threads")}
 
 
 def train(dataset: str | Path, out_dir: str | Path, cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
