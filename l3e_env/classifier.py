@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from .config import from_dict
+from .config import from_dict, plain
 from .sparse import DownConv, Level, SubmanifoldConv, UpConv, global_max_pool, voxelize
 
 CHECKPOINT_FORMAT = "l3e-classifier"
@@ -179,16 +179,12 @@ def save_checkpoint(path: str | Path, model: LocalizabilityNet, thresholds: np.n
     path = Path(path)
     state = {
         "format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION,
-        "model": _plain(dataclasses.asdict(model.config)),
+        "model": plain(dataclasses.asdict(model.config)),
         "state_dict": model.state_dict(), "thresholds": [float(t) for t in thresholds], **meta, **(extra or {}),
     }
     tmp = path.with_name(path.name + ".tmp")
     torch.save(state, tmp)
     tmp.replace(path)
-
-
-def _plain(d: dict) -> dict:
-    return {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}
 
 
 def load_checkpoint(path: str | Path) -> dict[str, Any]:

@@ -113,16 +113,17 @@ def from_dict(cls: type[T], data: dict[str, Any] | None) -> T:
 
 
 def dump_yaml(cfg: Any, path: str | Path) -> None:
-    Path(path).write_text(yaml.safe_dump(_plain(to_dict(cfg)), sort_keys=False))
+    Path(path).write_text(yaml.safe_dump(plain(to_dict(cfg)), sort_keys=False))
 
 
 def load_yaml(cls: type[T], path: str | Path) -> T:
     return from_dict(cls, yaml.safe_load(Path(path).read_text()))
 
 
-def _plain(x: Any) -> Any:
+def plain(x: Any) -> Any:
+    """Tuples to lists, recursively: the form YAML, JSON and torch's weights-only loader keep."""
     if isinstance(x, dict):
-        return {k: _plain(v) for k, v in x.items()}
+        return {k: plain(v) for k, v in x.items()}
     if isinstance(x, (list, tuple)):
-        return [_plain(v) for v in x]
+        return [plain(v) for v in x]
     return x

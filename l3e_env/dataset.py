@@ -24,7 +24,7 @@ from typing import Any, BinaryIO, Callable, Iterator
 import numpy as np
 from tqdm import tqdm
 
-from scenes import TEST_SCENES, TRAIN_SCENES, VALIDATION_SCENES, make_scene
+from scenes import DATASET_SCENES, make_scene
 
 from .config import LidarConfig, from_dict
 from .labels import AXES, LabelConfig, SamplingError, label_parent, sample_parent_pose
@@ -52,7 +52,7 @@ PRESETS: dict[str, dict[str, Any]] = {
     "small": {"scenes": ["tunnel-0", "office-0", "field-0", "primitives-3"], "parents_per_scene": 6,
               "labels": {"children": 50}},
     # the paper's protocol on every environment of the split (M = 200)
-    "paper": {"scenes": TRAIN_SCENES + VALIDATION_SCENES + TEST_SCENES, "parents_per_scene": 150},
+    "paper": {"scenes": DATASET_SCENES, "parents_per_scene": 150},
 }
 
 

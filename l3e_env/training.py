@@ -30,7 +30,7 @@ from .classifier import (
     sample_points,
     save_checkpoint,
 )
-from .config import dump_yaml, to_dict
+from .config import dump_yaml, plain, to_dict
 from .dataset import LabelDataset
 from .scores import axis_scores, best_thresholds, mean_scores
 
@@ -118,17 +118,9 @@ def _optimizer(cfg: TrainConfig, model: torch.nn.Module) -> torch.optim.Optimize
 
 def _meta(cfg: TrainConfig, data: LabelDataset) -> dict[str, Any]:
     settings = data.manifest["settings"]
-    return {"training": _plain(to_dict(cfg)), "lidar": settings["lidar"], "registration": settings["registration"],
+    return {"training": plain(to_dict(cfg)), "lidar": settings["lidar"], "registration": settings["registration"],
             "labels": settings["labels"], "dataset": {"folder": data.folder.name, "count": len(data),
                                                       "seed": settings["seed"]}}
-
-
-def _plain(value: Any) -> Any:
-    if isinstance(value, dict):
-        return {k: _plain(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_plain(v) for v in value]
-    return value
 
 
 def _resumable(training: dict[str, Any]) -> dict[str, Any]:

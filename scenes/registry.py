@@ -6,6 +6,7 @@ from typing import Callable
 from .cave import make_cave
 from .field import make_field
 from .fork import make_fork
+from .gallery import make_gallery
 from .mine import make_mine
 from .office import make_office
 from .primitives import make_primitive
@@ -20,6 +21,7 @@ BUILDERS: dict[str, Callable[..., Scene]] = {
     "primitives": make_primitive,
     "mine": make_mine,
     "fork": make_fork,
+    "gallery": make_gallery,
 }
 
 
@@ -48,8 +50,15 @@ def make_scene(name: str, seed: int = 0, **params) -> Scene:
 
 # Training draws on at least 15 distinct environments as the paper did; the test split holds
 # families never seen in training (the mine among them), the paper's protocol.
+# Rock galleries span smooth to rough walls: without them every tube in training is a smooth,
+# non-localizable one, and a model learns "tube = degenerate" instead of looking at the walls.
+GALLERIES = [f"gallery-{s}" for s in range(8)]
 TRAIN_SCENES = [f"tunnel-{s}" for s in range(4)] + [f"primitives-{s}" for s in range(5)] + [
-    "field-0", "field-1", "office-0", "office-1", "office-2", "fork-0", "fork-1",
+    "field-0", "field-1", "office-0", "office-1", "office-2", "fork-0", "fork-1", *GALLERIES,
 ]
-VALIDATION_SCENES = ["tunnel-7", "primitives-7", "office-5", "field-3"]
+VALIDATION_SCENES = ["tunnel-7", "primitives-7", "office-5", "field-3", "gallery-9"]
 TEST_SCENES = ["mine-0", "cave-0", "cave-1"]
+# The order of scenes in a dataset matters (parent i of the s-th scene is seeded by (seed, s, i)):
+# scenes added to the split later are appended, so that earlier ones keep their labels.
+_FIRST = TRAIN_SCENES[:16] + VALIDATION_SCENES[:4] + TEST_SCENES
+DATASET_SCENES = _FIRST + [s for s in TRAIN_SCENES + VALIDATION_SCENES if s not in _FIRST]

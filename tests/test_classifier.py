@@ -170,3 +170,17 @@ def test_a_killed_run_resumes_to_the_same_model(tiny_dataset, tmp_path):
     assert all(torch.equal(a[k], b[k]) for k in a)
     shipped = Classifier.load(tmp_path / "whole" / "model.pt")
     assert "optimizer" not in shipped.meta and shipped.meta["registration"]["max_iterations"] > 0
+
+
+def test_evaluate_writes_table_curves_and_results(tiny_dataset, tmp_path):
+    from l3e_env.evaluation import evaluate
+
+    train(tiny_dataset, tmp_path / "run", _train_cfg(), progress=False)
+    res = evaluate([tmp_path / "run" / "model.pt"], tiny_dataset, tmp_path / "eval", other_sensor=tiny_dataset,
+                   progress=False)
+    (name, model), = res["models"].items()
+    assert set(model["splits"]) == {"train", "valid", "test vlp16"}  # no test family in this dataset
+    assert model["splits"]["train"]["count"] == 8 and model["splits"]["test vlp16"]["count"] == 12
+    assert "accuracy mean" in res["table"] and (tmp_path / "eval" / "pr_curves.png").stat().st_size > 10_000
+    stored = json.loads((tmp_path / "eval" / "results.json").read_text())
+    assert stored["models"][name]["thresholds"] == pytest.approx(model["thresholds"])

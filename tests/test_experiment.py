@@ -41,3 +41,13 @@ def test_detector_specs_and_errors():
         make_detector("oracle")
     unknown = EigenvalueDetector(10.0).predict(np.zeros((5, 3)), None)
     assert not unknown.known and not unknown.mask.any()
+
+
+def test_a_tau_is_reported_only_when_it_is_as_good_as_the_reference_everywhere():
+    from l3e_env.sweep import beaten_everywhere
+
+    results = {"tunnel": {"taus": [30.0, 110.0], "eigen_ate": [5.0, 1.0], "learned": 1.2},
+               "field": {"taus": [30.0, 110.0], "eigen_ate": [0.5, 3.0], "learned": 0.6}}
+    assert beaten_everywhere(results) == []
+    results["field"]["eigen_ate"][1] = 0.6
+    assert beaten_everywhere(results) == [110.0]
