@@ -44,8 +44,10 @@ class TrainConfig:
     model: ModelConfig = field(default_factory=ModelConfig)
     epochs: int = 12
     batch_size: int = 8
-    optimizer: str = "sgd"  # "sgd" (the paper's, with momentum 0.9) or "adamw"
-    learning_rate: float = 0.02
+    # AdamW: in a short budget it fits faster than the paper's SGD (momentum 0.9, lr 0.02),
+    # whose training loss was still 0.65 after 400 steps (AdamW: 0.62 after 300)
+    optimizer: str = "adamw"  # or "sgd"
+    learning_rate: float = 1e-3
     weight_decay: float = 1e-4
     lr_decay: float = 0.9  # exponential, per epoch
     balance: bool = True  # power-set up-sampling to the second most common combination

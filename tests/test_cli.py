@@ -8,7 +8,7 @@ from l3e_env.cli import main
 
 def test_help_lists_the_subcommands():
     out = subprocess.run([sys.executable, "-m", "l3e_env.cli", "--help"], capture_output=True, text=True, check=True).stdout
-    for cmd in ("demo", "scenes", "envs"):
+    for cmd in ("demo", "scenes", "envs", "dataset", "train", "evaluate", "ate", "sweep"):
         assert cmd in out
 
 
@@ -18,8 +18,11 @@ def test_unknown_scene_is_a_clear_error(capsys):
 
 
 @pytest.mark.slow
-def test_demo_drives_the_mine_and_writes_pictures(tmp_path):
+def test_demo_drives_the_mine_and_writes_pictures(tmp_path, capsys):
     assert main(["demo", "--out", str(tmp_path), "--quiet"]) == 0
     names = {p.name for p in tmp_path.iterdir()}
-    assert {"path_topdown.png", "scan_yard.png", "scan_tunnel.png", "scan_quarry.png", "config.yaml"} <= names
+    assert {"path_topdown.png", "scan_yard.png", "scan_tunnel.png", "scan_quarry.png", "config.yaml",
+            "localizability.png"} <= names
+    out = capsys.readouterr().out
+    assert "flagged non-localizable by the learned detector" in out and "tunnel" in out
     assert all((tmp_path / n).stat().st_size > 10_000 for n in names if n.endswith(".png"))
