@@ -47,10 +47,12 @@ def pr_curve(labels: np.ndarray, probabilities: np.ndarray) -> tuple[np.ndarray,
     return tp / (tp + fp), tp / positives, p[last]
 
 
-def best_thresholds(labels: np.ndarray, probabilities: np.ndarray, default: float = 0.5) -> np.ndarray:
-    """Per axis, the threshold that maximises F1 on the given (validation) set; `default` where
-    the axis has no positive label. Returned as values for `p > threshold`: midway between the
-    chosen probability and the next lower one, so that it is robust to tiny shifts."""
+def best_thresholds(labels: np.ndarray, probabilities: np.ndarray, default: float = 0.5,
+                    beta: float = 1.0) -> np.ndarray:
+    """Per axis, the threshold that maximises F-beta (beta > 1 weighs recall more) on the given
+    (validation) set; `default` where the axis has no positive label. Returned as values for
+    `p > threshold`: midway between the chosen probability and the next lower one, so that it is
+    robust to tiny shifts."""
     labels = np.asarray(labels, dtype=bool).reshape(-1, 6)
     probabilities = np.asarray(probabilities, dtype=float).reshape(-1, 6)
     out = np.full(6, default)
@@ -59,8 +61,8 @@ def best_thresholds(labels: np.ndarray, probabilities: np.ndarray, default: floa
             continue
         precision, recall, thresholds = pr_curve(labels[:, a], probabilities[:, a])
         with np.errstate(invalid="ignore", divide="ignore"):
-            f1 = np.nan_to_num(2 * precision * recall / (precision + recall))
-        i = int(np.argmax(f1))
+            f = np.nan_to_num((1 + beta**2) * precision * recall / (beta**2 * precision + recall))
+        i = int(np.argmax(f))
         lower = thresholds[i + 1] if i + 1 < len(thresholds) else 0.0
         out[a] = 0.5 * (thresholds[i] + lower)
     return out

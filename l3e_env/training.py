@@ -58,6 +58,10 @@ class TrainConfig:
     validation_scenes: list[str] = field(default_factory=lambda: list(VALIDATION_SCENES))
     seed: int = 0
     threads: int = 2
+    # model.pt stores the F-beta-best validation thresholds: in fusion a missed degenerate axis
+    # corrupts the estimate while a false flag only hands that axis to the odometry for a step,
+    # so recall weighs more (beta 2). Epochs are still chosen by validation F1.
+    threshold_beta: float = 2.0
 
 
 class TrainingError(RuntimeError):
@@ -128,7 +132,7 @@ def _meta(cfg: TrainConfig, data: LabelDataset) -> dict[str, Any]:
 def _resumable(training: dict[str, Any]) -> dict[str, Any]:
     """The settings a resumed run must share with the first one: all but the epoch count (a
     finished run can be trained further) and the thread count (a resumed run may get more cores)."""
-    return {k: v for k, v in training.items() if k not in ("epochs", "threads")}
+    return {k: v for k, v in training.items() if k not in ("epochs", "threads", "threshold_beta")}
 
 
 def train(dataset: str | Path, out_dir: str | Path, cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
@@ -214,9 +218,18 @@ def train(dataset: str | Path, out_dir: str | Path, cfg: TrainConfig, progress: 
         if progress:
             val = f", val loss {record['val_loss']:.3f}, F1 {record['val_f1']:.3f}" if "val_f1" in record else ""
             print(f"epoch {epoch + 1}/{cfg.epochs}: train loss {record['train_loss']:.3f}{val} ({record['seconds']} s)")
+    return finalize(data, out, cfg, val_rows, meta)
+
+
+def finalize(data: LabelDataset, out: Path, cfg: TrainConfig, val_rows: np.ndarray, meta: dict[str, Any]) -> dict:
+    """model.pt: the best epoch's weights with the operating thresholds (F-beta on validation)."""
     state = load_checkpoint(out / "best.pt")
-    shipped = model_from_checkpoint(state, "best.pt")
-    save_checkpoint(out / "model.pt", shipped, np.asarray(state["thresholds"]), meta,
+    model = model_from_checkpoint(state, "best.pt")
+    thresholds = np.asarray(state["thresholds"])
+    if len(val_rows):
+        probs = predict_dataset(model, data, val_rows, seed=cfg.seed)
+        thresholds = best_thresholds(data.labels[val_rows], probs, beta=cfg.threshold_beta)
+    save_checkpoint(out / "model.pt", model, thresholds, {**meta, "threshold_beta": cfg.threshold_beta},
                     {"epoch": state["epoch"], "scores": state["scores"]})
-    return {"best_epoch": state["epoch"] + 1, **state["scores"]}
+    return {"best_epoch": state["epoch"] + 1, **state["scores"], "thresholds": thresholds.round(4).tolist()}
 
