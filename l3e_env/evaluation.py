@@ -17,8 +17,10 @@ from .scores import axis_scores, format_table, mean_scores, pr_curve
 from .training import predict_dataset, split_indices
 
 
-def model_name(classifier: Classifier, path: Path) -> str:
-    return f"{classifier.model.config.architecture}:{path.stem}"
+def model_name(classifier: Classifier, path: Path, taken: set[str]) -> str:
+    """The architecture, with the run folder's name where two models share it."""
+    name = classifier.model.config.architecture
+    return name if name not in taken else f"{name}:{path.parent.name}/{path.stem}"
 
 
 def evaluate(checkpoints: list[str | Path], dataset: str | Path, out_dir: str | Path,
@@ -36,7 +38,7 @@ def evaluate(checkpoints: list[str | Path], dataset: str | Path, out_dir: str | 
     results: dict[str, Any] = {"dataset": str(data.folder), "test_scenes": test_scenes, "models": {}}
     for path in map(Path, checkpoints):
         clf = Classifier.load(path)
-        name = model_name(clf, path)
+        name = model_name(clf, path, set(table))
         training = clf.meta["training"]
         splits = {"train": (data, split_indices(data, training["train_scenes"])),
                   "valid": (data, split_indices(data, training["validation_scenes"])),

@@ -69,18 +69,21 @@ def best_thresholds(labels: np.ndarray, probabilities: np.ndarray, default: floa
 
 
 def format_table(rows: dict[str, dict[str, dict[str, np.ndarray]]], digits: int = 3) -> str:
-    """A Table III layout: one column per (model, split), rows are score x axis plus the mean."""
+    """A Table III layout: one column per (model, split), rows are score x axis plus the mean,
+    and the count of positives per axis under each column."""
     columns = [(m, s) for m, splits in rows.items() for s in splits]
-    head = f"{'':18s}" + "".join(f"{m[:12] + ' ' + s:>20s}" for m, s in columns)
-    lines = [head]
+    width = max(14, *(len(m) + 2 for m, _ in columns), *(len(s) + 2 for _, s in columns))
+    lines = [f"{'':16s}" + "".join(f"{m:>{width}s}" for m, _ in columns),
+             f"{'':16s}" + "".join(f"{s:>{width}s}" for _, s in columns)]
     for score in ("accuracy", "f1", "precision", "recall"):
         for a, axis in enumerate([*AXES, "mean"]):
             cells = []
             for m, s in columns:
                 sc = rows[m][s]
                 v = mean_scores(sc)[score] if axis == "mean" else sc[score][a]
-                cells.append(f"{'n/a' if not np.isfinite(v) else f'{v:.{digits}f}':>20s}")
-            lines.append(f"{score + ' ' + axis:18s}" + "".join(cells))
-    support = [" ".join(str(int(v)) for v in rows[m][s]["support"]) for m, s in columns]
-    lines.append(f"{'positives x..yaw':18s}" + "".join(f"{v:>20s}" for v in support))
+                cells.append(f"{'n/a' if not np.isfinite(v) else f'{v:.{digits}f}':>{width}s}")
+            lines.append(f"{score + ' ' + axis:16s}" + "".join(cells))
+    for a, axis in enumerate(AXES):
+        lines.append(f"{'positives ' + axis:16s}" + "".join(f"{int(rows[m][s]['support'][a]):>{width}d}"
+                                                            for m, s in columns))
     return "\n".join(lines)
