@@ -112,6 +112,15 @@ class LearnedDetector:
         return Prediction(p, mask)
 
 
+def safe_predict(det: Detector, points: np.ndarray, reg, T_w_s: np.ndarray) -> tuple[Prediction, bool]:
+    """The detector's prediction, or UNKNOWN (nothing masked) if it raises: one bad scan or a
+    detector bug must not end a run; the caller counts these."""
+    try:
+        return det.predict(points, reg, T_w_s), False
+    except Exception:  # noqa: BLE001 - any detector failure becomes a counted UNKNOWN step
+        return UNKNOWN, True
+
+
 def make_detector(spec: str, lidar: Lidar | None = None, seed: int = 0) -> Detector:
     """'none', 'eigen:<tau>', 'oracle', 'oracle:<M>', 'learned' (the shipped model) or
     'learned:<checkpoint path>'."""

@@ -20,12 +20,12 @@ from tqdm import tqdm
 from fusion import EKFFusion, FusionConfig, FusionGraph, MetricError, ate, ate_aligned, rpe
 
 from .config import EnvConfig, LidarConfig, OdometryConfig
-from .odometry import odometry_sigmas
-from .detectors import UNKNOWN, Detector, Prediction, make_detector
+from .detectors import Detector, make_detector, safe_predict
 from .envs.navigation import NavigationEnv
 from .follower import RouteFollower
 from .labels import AXES
 from .lidar import Lidar
+from .odometry import odometry_sigmas
 from .raycast import EmbreeCaster
 from .registration import PreparedTarget, RegistrationConfig, RegistrationError, register
 from .transforms import inverse
@@ -153,15 +153,6 @@ def register_sequence(rec: Recording, config: RegistrationConfig, progress: bool
 
 
 BACKENDS = {"graph": FusionGraph, "ekf": EKFFusion}
-
-
-def safe_predict(det: Detector, points: np.ndarray, reg, T_w_s: np.ndarray) -> tuple[Prediction, bool]:
-    """The detector's prediction, or UNKNOWN (nothing masked) if it raises: one bad scan or a
-    detector bug must not end a run; the caller counts these."""
-    try:
-        return det.predict(points, reg, T_w_s), False
-    except Exception:  # noqa: BLE001 - any detector failure becomes a counted UNKNOWN step
-        return UNKNOWN, True
 
 
 def evaluate(rec: Recording, detectors: list[Detector], registrations: list, fusion: FusionConfig | None = None,

@@ -13,7 +13,7 @@ import numpy as np
 from fusion import EKFFusion, FusionConfig, FusionGraph
 
 from .config import LoopFusionConfig, OdometryConfig
-from .detectors import UNKNOWN, Detector, Prediction, make_detector
+from .detectors import UNKNOWN, Detector, Prediction, make_detector, safe_predict
 from .lidar import Lidar
 from .odometry import odometry_sigmas
 from .registration import PreparedTarget, RegistrationConfig, RegistrationError, register
@@ -56,11 +56,8 @@ class OnlineFusion:
                 reg = None
         icp = self.T_b_s @ reg.T_target_source @ self.T_s_b if reg is not None and reg.converged else None
         self.counts["icp_failed"] += icp is None
-        try:
-            pred = self.detector.predict(points, reg, T_w_b_true @ self.T_b_s)
-        except Exception:  # noqa: BLE001 - a failing detector must not end the episode; it is counted
-            pred = UNKNOWN
-            self.counts["detector_errors"] += 1
+        pred, failed = safe_predict(self.detector, points, reg, T_w_b_true @ self.T_b_s)
+        self.counts["detector_errors"] += failed
         self.counts["unknown"] += not pred.known
         T, report = self.backend.add_step(odom_increment, odometry_sigmas(odom_increment, self.odometry), icp, pred.mask)
         self.counts["fallbacks"] += report.fallback is not None
