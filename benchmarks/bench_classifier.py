@@ -60,7 +60,7 @@ def main() -> None:
         model = LocalizabilityNet(cfg).eval()
 
         def run(s, model=model, cfg=cfg):
-            with torch.no_grad():
+            with torch.inference_mode():
                 return model([sample_points(s, cfg.points, rng)])
 
         rows.append((label, latency_ms(run, scans)))

@@ -246,7 +246,7 @@ class Classifier:
             warnings.warn("the classifier's labels were made with other registration settings than the "
                           "ones in use", stacklevel=2)
 
-    @torch.no_grad()
+    @torch.inference_mode()
     def probabilities(self, scans: list[np.ndarray]) -> np.ndarray:
         """(B, 6) probabilities of non-localizability; ScanError for a scan that cannot be judged."""
         rng = np.random.default_rng(self.seed)
