@@ -95,10 +95,21 @@ def test_the_shipped_model_loads_by_default_and_is_small():
     assert ((det.classifier.thresholds > 0) & (det.classifier.thresholds < 1)).all()
 
 
-def test_sensor_mismatch_is_a_warning(tmp_path):
+def test_sensor_or_registration_mismatch_is_a_warning_and_a_match_is_silent(tmp_path):
+    import warnings
+
     clf = Classifier.load(_checkpoint(tmp_path / "m.pt"))
-    with pytest.warns(UserWarning, match="os0-128"):
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
         clf.check_settings("os0-128")
+        clf.check_settings("vlp16")
+    assert [str(w.message) for w in caught] == ["the classifier was trained on vlp16 scans and now sees os0-128 scans"]
+    clf.meta["registration"] = {"max_iterations": 15}
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        clf.check_settings(registration={"max_iterations": 30})
+        clf.check_settings(registration={"max_iterations": 15})
+    assert len(caught) == 1 and "other registration settings" in str(caught[0].message)
 
 
 def test_axis_scores_by_hand():
