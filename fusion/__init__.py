@@ -6,9 +6,24 @@ GTSAM's rotation-first tangent order.
 """
 from .ekf import EKFFusion
 from .graph import FusionConfig, FusionGraph
-from .steps import StepReport
 from .metrics import MetricError, ate, ate_aligned, rpe, rpe_pairs, umeyama, write_tum
+from .steps import StepReport
 from .tangent import to_gtsam_order, to_project_order
 
-__all__ = ["EKFFusion", "FusionConfig", "FusionGraph", "StepReport", "MetricError", "ate", "ate_aligned", "rpe",
-           "rpe_pairs", "umeyama", "write_tum", "to_gtsam_order", "to_project_order"]
+BACKENDS = {"graph": FusionGraph, "ekf": EKFFusion}
+
+
+def check_backend(backend: str) -> str:
+    if backend not in BACKENDS:
+        raise ValueError(f"unknown fusion backend '{backend}' ({', '.join(BACKENDS)})")
+    return backend
+
+
+def make_fusion(backend: str, T_w_0, config: FusionConfig | None = None) -> FusionGraph | EKFFusion:
+    """'graph' (iSAM2 smoother) or 'ekf' (filterpy filter): the same add_step interface."""
+    return BACKENDS[check_backend(backend)](T_w_0, config)
+
+
+__all__ = ["BACKENDS", "check_backend", "make_fusion", "EKFFusion", "FusionConfig", "FusionGraph", "StepReport",
+           "MetricError", "ate", "ate_aligned", "rpe", "rpe_pairs", "umeyama", "write_tum", "to_gtsam_order",
+           "to_project_order"]

@@ -17,7 +17,7 @@ import numpy as np
 import small_gicp
 from tqdm import tqdm
 
-from fusion import EKFFusion, FusionConfig, FusionGraph, MetricError, ate, ate_aligned, rpe
+from fusion import FusionConfig, MetricError, ate, ate_aligned, check_backend, make_fusion, rpe
 
 from .config import EnvConfig, LidarConfig, OdometryConfig
 from .detectors import Detector, make_detector, safe_predict
@@ -152,21 +152,17 @@ def register_sequence(rec: Recording, config: RegistrationConfig, progress: bool
     return results
 
 
-BACKENDS = {"graph": FusionGraph, "ekf": EKFFusion}
-
-
 def evaluate(rec: Recording, detectors: list[Detector], registrations: list, fusion: FusionConfig | None = None,
              odometry: OdometryConfig | None = None, progress: bool = True,
              backend: str = "graph") -> list[DetectorResult]:
-    if backend not in BACKENDS:
-        raise ValueError(f"unknown fusion backend '{backend}' ({', '.join(BACKENDS)})")
+    check_backend(backend)
     fusion, odometry = fusion or FusionConfig(), odometry or OdometryConfig()
     T_b_s, T_s_b = rec.T_b_s, inverse(rec.T_b_s)
     gt = rec.ground_truth
     out = []
     for det in detectors:
         t0 = time.perf_counter()
-        graph = BACKENDS[backend](gt[0], fusion)
+        graph = make_fusion(backend, gt[0], fusion)
         masks, probs, unknown, fallbacks, errors = [], [], 0, 0, 0
         for k, reg in enumerate(tqdm(registrations, desc=f"fusing with {det.name}", unit="step", disable=not progress)):
             pred, failed = safe_predict(det, rec.detector_input(k + 1), reg, gt[k + 1] @ T_b_s)

@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from fusion import EKFFusion, FusionConfig, FusionGraph
+from fusion import FusionConfig, check_backend, make_fusion
 
 from .config import LoopFusionConfig, OdometryConfig
 from .detectors import UNKNOWN, Detector, Prediction, make_detector, safe_predict
@@ -19,23 +19,20 @@ from .odometry import odometry_sigmas
 from .registration import PreparedTarget, RegistrationConfig, RegistrationError, register
 from .transforms import inverse
 
-BACKENDS = {"graph": FusionGraph, "ekf": EKFFusion}
-
 
 class OnlineFusion:
     """One run of fusion along an episode; `reset` at every episode start."""
 
     def __init__(self, config: LoopFusionConfig, lidar: Lidar, odometry: OdometryConfig, T_b_s: np.ndarray,
                  seed: int = 0):
-        if config.backend not in BACKENDS:
-            raise ValueError(f"unknown fusion backend '{config.backend}' ({', '.join(BACKENDS)})")
+        check_backend(config.backend)
         self.config, self.odometry, self.T_b_s, self.T_s_b = config, odometry, T_b_s, inverse(T_b_s)
         self.registration = RegistrationConfig()
         self.fusion_config = FusionConfig(mode=config.mode)
         self.detector: Detector = make_detector(config.detector, lidar, seed)
 
     def reset(self, T_w_b: np.ndarray, points: np.ndarray) -> dict[str, Any]:
-        self.backend = BACKENDS[self.config.backend](T_w_b, self.fusion_config)
+        self.backend = make_fusion(self.config.backend, T_w_b, self.fusion_config)
         self.target = self._target(points)
         self.squared_errors: list[float] = [0.0]
         self.counts = {"icp_failed": 0, "unknown": 0, "detector_errors": 0, "fallbacks": 0}
@@ -59,7 +56,8 @@ class OnlineFusion:
         pred, failed = safe_predict(self.detector, points, reg, T_w_b_true @ self.T_b_s)
         self.counts["detector_errors"] += failed
         self.counts["unknown"] += not pred.known
-        T, report = self.backend.add_step(odom_increment, odometry_sigmas(odom_increment, self.odometry), icp, pred.mask)
+        sigmas = odometry_sigmas(odom_increment, self.odometry)
+        T, report = self.backend.add_step(odom_increment, sigmas, icp, pred.mask)
         self.counts["fallbacks"] += report.fallback is not None
         self.target = self._target(points)
         self.squared_errors.append(float(np.sum((T[:3, 3] - T_w_b_true[:3, 3]) ** 2)))

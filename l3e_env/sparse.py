@@ -38,19 +38,24 @@ def unhash_coords(keys: torch.Tensor) -> torch.Tensor:
     return torch.stack([keys >> 3 * _BITS, *xyz], dim=1)
 
 
-def unique_coords(coords: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Sorted unique rows and the inverse map, through the 1-D keys (torch.unique(dim=0) is
-    an order of magnitude slower on CPU)."""
+def unique_coords(coords: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Sorted unique rows, the inverse map and the rows' (sorted) keys, through the 1-D keys
+    (torch.unique(dim=0) is an order of magnitude slower on CPU)."""
     keys, inverse = torch.unique(hash_coords(coords), return_inverse=True)
-    return unhash_coords(keys), inverse
+    return unhash_coords(keys), inverse, keys
 
 
 class CoordinateIndex:
-    """Sorted hash keys of a set of sites, for vectorised lookup of any list of sites."""
+    """Sorted hash keys of a set of sites, for vectorised lookup of any list of sites.
+    `row_keys` are the sites' keys in row order; given and sorted, they are used as they are."""
 
-    def __init__(self, coords: torch.Tensor):
+    def __init__(self, coords: torch.Tensor, row_keys: torch.Tensor | None = None):
         self.n = len(coords)
-        self.keys, self.order = torch.sort(hash_coords(coords))
+        self.row_keys = hash_coords(coords) if row_keys is None else row_keys
+        if row_keys is not None and bool((row_keys[1:] > row_keys[:-1]).all()):
+            self.keys, self.order = row_keys, torch.arange(self.n)
+        else:
+            self.keys, self.order = torch.sort(self.row_keys)
 
     def lookup(self, keys: torch.Tensor) -> torch.Tensor:
         """Row of each queried key, or n (the zero row) where the site is empty."""
@@ -72,6 +77,7 @@ class Level:
 
     coords: torch.Tensor  # (N, 4) int64
     stride: int  # in units of the finest voxel
+    keys: torch.Tensor | None = field(default=None, repr=False)  # the rows' keys, if already known
     _index: CoordinateIndex | None = field(default=None, repr=False)
     _neighbours: torch.Tensor | None = field(default=None, repr=False)
     _coarser: tuple[Level, torch.Tensor, torch.Tensor, torch.Tensor] | None = field(default=None, repr=False)
@@ -79,15 +85,14 @@ class Level:
     @property
     def index(self) -> CoordinateIndex:
         if self._index is None:
-            self._index = CoordinateIndex(self.coords)
+            self._index = CoordinateIndex(self.coords, self.keys)
         return self._index
 
     def neighbours(self) -> torch.Tensor:
         """(N, 27) rows of the 3x3x3 neighbours of each site (N where empty)."""
         if self._neighbours is None:
             index = self.index
-            keys = index.keys[torch.argsort(index.order)]  # this level's keys in row order
-            self._neighbours = index.lookup(keys[:, None] + _NEIGHBOUR_DELTAS)
+            self._neighbours = index.lookup(index.row_keys[:, None] + _NEIGHBOUR_DELTAS)
         return self._neighbours
 
     def coarser(self) -> tuple[Level, torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -96,12 +101,12 @@ class Level:
         if self._coarser is None:
             parent = self.coords.clone()
             parent[:, 1:] = torch.div(parent[:, 1:], 2, rounding_mode="floor")
-            unique, inverse = unique_coords(parent)
+            unique, inverse, keys = unique_coords(parent)
             slot_xyz = self.coords[:, 1:] - 2 * parent[:, 1:]
             slot = slot_xyz[:, 0] * 4 + slot_xyz[:, 1] * 2 + slot_xyz[:, 2]
             children = torch.full((len(unique), 8), len(self.coords), dtype=torch.int64)
             children[inverse, slot] = torch.arange(len(self.coords))
-            self._coarser = (Level(unique, self.stride * 2), children, inverse, slot)
+            self._coarser = (Level(unique, self.stride * 2, keys), children, inverse, slot)
         return self._coarser
 
 
@@ -162,19 +167,13 @@ class UpConv(nn.Module):
 def voxelize(points: list[torch.Tensor], voxel: float) -> tuple[Level, torch.Tensor, torch.Tensor]:
     """Quantize a batch of point sets: the finest level, each voxel's mean point (float, (N, 3)),
     and the voxel row of every input point (for per-point features)."""
-    coords, means, rows = [], [], []
-    offset = 0
-    for b, p in enumerate(points):
-        q = torch.floor(p / voxel).to(torch.int64)
-        q = torch.cat([torch.full((len(q), 1), b, dtype=torch.int64), q], dim=1)
-        unique, inverse = unique_coords(q)
-        count = torch.zeros(len(unique)).index_add_(0, inverse, torch.ones(len(p)))
-        mean = torch.zeros(len(unique), 3).index_add_(0, inverse, p) / count[:, None]
-        coords.append(unique)
-        means.append(mean)
-        rows.append(inverse + offset)
-        offset += len(unique)
-    return Level(torch.cat(coords), 1), torch.cat(means), torch.cat(rows)
+    p = torch.cat(points)
+    batch = torch.repeat_interleave(torch.arange(len(points)), torch.tensor([len(q) for q in points]))
+    q = torch.cat([batch[:, None], torch.floor(p / voxel).to(torch.int64)], dim=1)
+    unique, inverse, keys = unique_coords(q)  # the batch index leads the key: scans stay in order
+    count = torch.zeros(len(unique)).index_add_(0, inverse, torch.ones(len(p)))
+    mean = torch.zeros(len(unique), 3).index_add_(0, inverse, p) / count[:, None]
+    return Level(unique, 1, keys), mean, inverse
 
 
 def global_max_pool(x: torch.Tensor, level: Level, batch_size: int) -> torch.Tensor:

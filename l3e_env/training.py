@@ -147,25 +147,24 @@ def train(dataset: str | Path, out_dir: str | Path, cfg: TrainConfig, progress: 
     labels = data.labels
     meta = _meta(cfg, data)
 
-    torch.manual_seed(cfg.seed)
-    model = LocalizabilityNet(cfg.model)
-    optimizer = _optimizer(cfg, model)
-    scheduler = torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma=cfg.lr_decay)
-    first_epoch, best = 0, {"f1": -1.0}
     last = out / "last.pt"
-    if last.exists():
-        state = load_checkpoint(last)
+    state = load_checkpoint(last) if last.exists() else None
+    if state is not None:
         if _resumable(state["training"]) != _resumable(meta["training"]) or state["dataset"] != meta["dataset"]:
             raise TrainingError(f"{out} holds a run with other settings or another dataset; choose another folder")
         model = model_from_checkpoint(state, str(last))
-        optimizer = _optimizer(cfg, model)
+    else:
+        torch.manual_seed(cfg.seed)
+        model = LocalizabilityNet(cfg.model)
+        dump_yaml(cfg, out / "config.yaml")
+    optimizer = _optimizer(cfg, model)
+    scheduler = torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma=cfg.lr_decay)
+    first_epoch, best = 0, {"f1": -1.0}
+    if state is not None:
         optimizer.load_state_dict(state["optimizer"])
-        scheduler = torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma=cfg.lr_decay)
         scheduler.load_state_dict(state["scheduler"])
         first_epoch, best = state["epoch"] + 1, state["best"]
         print(f"resuming {out} after epoch {state['epoch'] + 1}")
-    else:
-        dump_yaml(cfg, out / "config.yaml")
 
     pool = balanced_pool(labels[train_rows], cfg.max_upsampling) if cfg.balance else np.arange(len(train_rows))
     loss_fn = torch.nn.BCEWithLogitsLoss()

@@ -5,7 +5,7 @@ import gtsam
 import numpy as np
 import pytest
 
-from fusion import EKFFusion, FusionConfig, FusionGraph, MetricError, ate, ate_aligned, rpe, to_gtsam_order, to_project_order, umeyama
+from fusion import BACKENDS, FusionConfig, FusionGraph, MetricError, ate, ate_aligned, rpe, to_gtsam_order, to_project_order, umeyama
 
 
 def pose(x=0.0, y=0.0, z=0.0, yaw=0.0):
@@ -27,9 +27,6 @@ def test_tangent_order_conversion_matches_gtsam_semantics():
     assert to_gtsam_order(H)[0, 0] == 4.0 and to_project_order(to_gtsam_order(H))[5, 5] == 6.0
     with pytest.raises(ValueError):
         to_gtsam_order(np.zeros(5))
-
-
-BACKENDS = {"graph": FusionGraph, "ekf": EKFFusion}
 
 
 def drive(mode, mask_x, steps=200, backend="graph"):
