@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from importlib.metadata import entry_points
 from pathlib import Path
 
 
@@ -213,6 +214,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_sweep)
     p = sub.add_parser("envs", help="list the registered Gymnasium environment ids")
     p.set_defaults(func=_cmd_envs)
+    # packages built on l3e_env (policies: `l3e policy`) add their commands through this entry-point
+    # group, so that l3e_env never imports them
+    for entry in entry_points(group="l3e.commands"):
+        entry.load()(sub)
     return parser
 
 

@@ -1,0 +1,128 @@
+"""`l3e policy ...`: localizability maps, planning, PPO training and evaluation of navigation policies.
+
+Registered with the `l3e` command through the `l3e.commands` entry-point group."""
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def _scenes(args: argparse.Namespace) -> list[str]:
+    return [s for group in args.scene or ["fork"] for s in group.split(",")]
+
+
+def _cmd_map(args: argparse.Namespace) -> int:
+    from .context import scene_context
+    from .plots import plot_locmap
+
+    out = Path(args.out or "l3e_out/maps")
+    out.mkdir(parents=True, exist_ok=True)
+    for name in _scenes(args):
+        t0 = time.perf_counter()
+        ctx = scene_context(name, args.detector, args.cache_dir, sensor=args.sensor, resolution=args.resolution,
+                            progress=not args.quiet)
+        figure = out / f"{ctx.scene.name}-{args.detector.replace(':', '')}.png"
+        plot_locmap(figure, ctx.scene, ctx.locmap, ctx.space)
+        share = " ".join(f"{a} {100 * v:.0f}%" for a, v in zip("x y z roll pitch yaw".split(),
+                                                                  ctx.locmap.masked.mean(axis=(0, 1))))
+        print(f"{ctx.scene.name}: {len(ctx.locmap.positions)} positions x {len(ctx.locmap.yaws)} headings, "
+              f"masked: {share} ({time.perf_counter() - t0:.0f} s) -> {figure}")
+    return 0
+
+
+def _cmd_plan(args: argparse.Namespace) -> int:
+    from .context import scene_context
+    from .planner import Planner
+    from .plots import plot_paths
+
+    out = Path(args.out or "l3e_out/plans")
+    out.mkdir(parents=True, exist_ok=True)
+    for name in _scenes(args):
+        ctx = scene_context(name, args.detector, args.cache_dir, sensor=args.sensor, progress=not args.quiet)
+        start = np.array(args.start, dtype=float) if args.start else ctx.scene.start[:2]
+        goal = np.array(args.goal, dtype=float) if args.goal else ctx.scene.goal
+        plans = {"shortest": Planner(ctx.space, ctx.locmap, lam=0.0).plan(start, goal),
+                 f"planner (lambda {args.lam:g})": Planner(ctx.space, ctx.locmap, lam=args.lam).plan(start, goal)}
+        for label, plan in plans.items():
+            print(f"{ctx.scene.name} {label:22s} length {plan.length:6.1f} m, expected drift {plan.expected_drift:5.2f} m")
+        figure = out / f"{ctx.scene.name}-plans.png"
+        plot_paths(figure, ctx.scene, {k: v.path for k, v in plans.items()}, ctx.space,
+                   title=f"{ctx.scene.name}: shortest path and localizability-aware plan ({args.detector} map)")
+        print(f"  -> {figure}")
+    return 0
+
+
+def _cmd_train(args: argparse.Namespace) -> int:
+    from .context import scene_context
+    from .fastenv import FastEnvConfig
+    from .ppo import TRAIN_VARIANTS, train_ppo
+
+    scenes = _scenes(args) if args.scene else TRAIN_VARIANTS
+    print(f"PPO on {', '.join(scenes)} (fast map environment, {args.detector} maps) -> {Path(args.out).resolve()}")
+    contexts = [scene_context(name, args.detector, args.cache_dir, sensor=args.sensor, progress=not args.quiet)
+                for name in scenes]
+    summary = train_ppo(args.out, contexts, args.detector, args.timesteps, args.seed, args.envs,
+                        FastEnvConfig(lam=args.lam), progress=not args.quiet)
+    print(f"{summary['timesteps']} steps; policy: {Path(args.out) / 'policy.zip'}; logs: progress.csv, monitor.csv")
+    return 0
+
+
+def _cmd_evaluate(args: argparse.Namespace) -> int:
+    from .evaluation import evaluate_policies, format_rows
+    from .ppo import EVAL_VARIANTS
+
+    scenes = _scenes(args) if args.scene else EVAL_VARIANTS
+    out = Path(args.out or f"l3e_out/policy-eval-{time.strftime('%Y%m%d-%H%M%S')}")
+    print(f"{args.episodes} episodes per policy on {', '.join(scenes)}, full pipeline ({args.detector} detector) "
+          f"-> {out.resolve()}")
+    rows = evaluate_policies(out, args.policy or ["shortest", "planner"], scenes, args.episodes, args.seed,
+                             args.detector, args.cache_dir, args.lam, args.workers, progress=not args.quiet)
+    print(format_rows(rows))
+    print(f"routes: {out / 'routes.png'}")
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("policy", help="navigation: localizability maps, planner, PPO training and evaluation")
+    psub = p.add_subparsers(dest="policy_command", required=True)
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--cache-dir", dest="cache_dir", help="map cache (default: $L3E_CACHE/maps or ~/.cache/l3e/maps)")
+    common.add_argument("--sensor", default="vlp16", help="vlp16 or os0-128")
+    common.add_argument("--quiet", action="store_true", help="no progress bars")
+    g = psub.add_parser("map", parents=[common], help="build (or load) and plot localizability maps")
+    g.add_argument("--scene", action="append", help="scene names, comma-separated or repeated (default: fork)")
+    g.add_argument("--detector", default="learned", help="learned[:checkpoint] | eigen:<tau> | oracle[:M]")
+    g.add_argument("--resolution", type=float, default=2.0, help="metres between mapped positions (default 2)")
+    g.add_argument("--out", help="folder for the plots (default: l3e_out/maps)")
+    g.set_defaults(func=_cmd_map)
+    g = psub.add_parser("plan", parents=[common], help="shortest path and localizability-aware plan, with a plot")
+    g.add_argument("--scene", action="append", help="scene names (default: fork)")
+    g.add_argument("--detector", default="learned", help="map detector (default: learned)")
+    g.add_argument("--lam", type=float, default=50.0, help="weight of expected drift against length (default 50)")
+    g.add_argument("--start", type=float, nargs=2, metavar=("X", "Y"), help="default: the scene's start")
+    g.add_argument("--goal", type=float, nargs=2, metavar=("X", "Y"), help="default: the scene's goal")
+    g.add_argument("--out", help="folder for the plots (default: l3e_out/plans)")
+    g.set_defaults(func=_cmd_plan)
+    g = psub.add_parser("train", parents=[common], help="train a PPO navigation policy on fork variants (resumable)")
+    g.add_argument("--out", required=True, help="run folder (an unfinished run there is resumed)")
+    g.add_argument("--scene", action="append", help="training variants (default: fork-0 ... fork-6)")
+    g.add_argument("--detector", default="learned", help="map detector (default: learned)")
+    g.add_argument("--timesteps", type=int, default=300_000, help="decisions of 0.5 s (default 300000)")
+    g.add_argument("--envs", type=int, default=4, help="environments stepped together (default 4)")
+    g.add_argument("--lam", type=float, default=50.0, help="weight of expected drift in the reward (default 50)")
+    g.add_argument("--seed", type=int, default=0)
+    g.set_defaults(func=_cmd_train)
+    g = psub.add_parser("evaluate", parents=[common], help="seeded full-pipeline episodes: success, route, ATE, length")
+    g.add_argument("--policy", action="append",
+                   help="shortest | planner | ppo:<run folder>; repeat (default: shortest and planner)")
+    g.add_argument("--scene", action="append", help="evaluation variants (default: fork-100 ... fork-109)")
+    g.add_argument("--episodes", type=int, default=50, help="episodes per policy (default 50)")
+    g.add_argument("--detector", default="learned", help="detector of the fusion and the planner's map")
+    g.add_argument("--lam", type=float, default=50.0, help="the planner's drift weight (default 50)")
+    g.add_argument("--workers", type=int, default=1, help="episodes run in parallel processes")
+    g.add_argument("--seed", type=int, default=0)
+    g.add_argument("--out", help="output folder (default: l3e_out/policy-eval-<time>)")
+    g.set_defaults(func=_cmd_evaluate)

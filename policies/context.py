@@ -1,0 +1,58 @@
+"""One scene made ready for navigation: its free space and localizability map, both cached."""
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from l3e_env.config import LidarConfig, RobotConfig, plain, to_dict
+from scenes import Scene, make_scene
+
+from .freespace import FreeSpace, build_free_space, reachable_from
+from .locmap import LocalizabilityMap, default_cache_dir, get_map
+
+MAP_RESOLUTION = 2.0  # m between mapped positions; 4 headings each (about 40 s per fork variant)
+
+
+@dataclass
+class SceneContext:
+    scene: Scene
+    space: FreeSpace  # the part connected to the start
+    locmap: LocalizabilityMap | None
+
+
+def free_space(scene: Scene, cache_dir: str | Path | None = None, resolution: float = 0.5,
+               robot: RobotConfig | None = None, progress: bool = False) -> FreeSpace:
+    """The free space reachable from the scene's start, cached beside the maps."""
+    robot = robot or RobotConfig()
+    key = {"scene": scene.name, "faces": int(len(scene.mesh.faces)), "bounds": scene.bounds.round(3).tolist(),
+           "start": scene.start.round(3).tolist(), "resolution": resolution, "robot": to_dict(robot)}
+    digest = hashlib.sha256(json.dumps(plain(key), sort_keys=True).encode()).hexdigest()[:12]
+    path = Path(cache_dir or default_cache_dir()) / f"{scene.name}-free-{digest}.npz"
+    if path.exists():
+        with np.load(path) as z:
+            return FreeSpace(z["origin"], float(z["resolution"]), z["free"], z["ground"], z["clearance"])
+    space = reachable_from(build_free_space(scene, resolution, robot, progress=progress), scene.start[:2])
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as f:
+        np.savez(f, origin=space.origin, resolution=space.resolution, free=space.free, ground=space.ground,
+                 clearance=space.clearance)
+    tmp.replace(path)
+    return space
+
+
+def scene_context(name: str, detector: str | None = "learned", cache_dir: str | Path | None = None,
+                  build: bool = True, sensor: str = "vlp16", resolution: float = MAP_RESOLUTION,
+                  progress: bool = False) -> SceneContext:
+    """Scene, free space and (unless detector is None) its localizability map."""
+    scene = make_scene(name)
+    space = free_space(scene, cache_dir, progress=progress)
+    locmap = None
+    if detector is not None:
+        locmap = get_map(scene, space, detector, cache_dir, build=build, resolution=resolution,
+                         lidar=LidarConfig(model=sensor), progress=progress)
+    return SceneContext(scene, space, locmap)

@@ -1,0 +1,178 @@
+"""`l3e policy evaluate`: seeded episodes of navigation policies with the full pipeline (LiDAR,
+detector, ICP and fusion in the loop of NavigationEnv). Every policy steers on the fused
+estimate, the pose the robot believes, so that a policy that walks where localization fails
+pays for it in its ATE and may miss the goal.
+
+Per episode: success (reached the goal within the time limit), whether it took the scene's
+feature-rich route, final and mean position error of the fused estimate against ground truth,
+and path length."""
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict, dataclass
+from multiprocessing import get_context
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+from tqdm import tqdm
+
+from l3e_env.envs import NavigationEnv
+from l3e_env.follower import RouteFollower
+from l3e_env.transforms import yaw_of
+
+from .context import scene_context
+from .observation import PolicyView
+from .planner import Planner, route_of
+
+POLICY_KINDS = ("shortest", "planner", "ppo:<policy folder or zip>")
+
+
+@dataclass
+class Episode:
+    policy: str
+    scene: str
+    seed: int
+    success: bool
+    rich_route: bool
+    final_ate: float  # m, fused estimate against ground truth at the end
+    mean_ate: float  # m, RMS over the episode
+    path_length: float  # m, ground truth
+    steps: int
+    trajectory: list  # ground-truth (x, y) every 5 steps
+
+
+def on_route(trajectory: np.ndarray, routes: dict[str, np.ndarray], a: str = "rich", b: str = "short") -> bool:
+    """Whether the path keeps closer to route `a` than to route `b` (mean point-to-polyline distance)."""
+    def mean_distance(route: np.ndarray) -> float:
+        d = np.linalg.norm(trajectory[:, None, :2] - route[None, :, :2], axis=2).min(axis=1)
+        return float(d.mean())
+
+    return mean_distance(routes[a]) < mean_distance(routes[b])
+
+
+def make_controller(policy: str, scene: str, detector: str, cache_dir: str | Path | None, lam: float):
+    """A function (T_w_b estimate, step index) -> normalised twist, for one scene."""
+    if policy in ("shortest", "planner"):
+        ctx = scene_context(scene, detector if policy == "planner" else None, cache_dir, build=False)
+        plan = Planner(ctx.space, ctx.locmap, lam=lam if policy == "planner" else 0.0).plan(ctx.scene.start[:2],
+                                                                                             ctx.scene.goal)
+        follower = RouteFollower(route_of(plan, ctx.space))
+        return lambda T, i: follower(T)
+    if policy.startswith("ppo:"):
+        from .ppo import PPOPolicy
+
+        model = PPOPolicy(policy.partition(":")[2])
+        ctx = scene_context(scene, model.meta.get("detector", detector), cache_dir, build=False)
+        view = PolicyView(ctx.space, ctx.locmap, ctx.scene.goal)
+        held = {"action": np.zeros(3, dtype=np.float32)}
+
+        def act(T: np.ndarray, i: int) -> np.ndarray:
+            if i % model.action_repeat == 0:
+                held["action"] = model(view(T[0, 3], T[1, 3], yaw_of(T)))
+            return held["action"]
+
+        return act
+    raise ValueError(f"unknown policy '{policy}'; use one of {', '.join(POLICY_KINDS)}")
+
+
+def run_episode(policy: str, scene: str, seed: int, detector: str = "learned", cache_dir: str | Path | None = None,
+                lam: float = 50.0, backend: str = "graph") -> Episode:
+    import torch
+
+    torch.set_num_threads(1)
+    controller: Callable = make_controller(policy, scene, detector, cache_dir, lam)
+    env = NavigationEnv(scene=scene, fusion={"enabled": True, "detector": detector, "backend": backend})
+    try:
+        _, info = env.reset(seed=seed)
+        trail, length, terminated, truncated = [info["T_w_b"][:2, 3]], 0.0, False, False
+        while not (terminated or truncated):
+            previous = info["T_w_b"][:3, 3]
+            _, _, terminated, truncated, info = env.step(controller(info["fused_T_w_b"], env.steps))
+            length += float(np.linalg.norm(info["T_w_b"][:3, 3] - previous))
+            if env.steps % 5 == 0:
+                trail.append(info["T_w_b"][:2, 3])
+        trail.append(info["T_w_b"][:2, 3])
+        path = np.array(trail)
+        final = float(np.linalg.norm(info["fused_T_w_b"][:3, 3] - info["T_w_b"][:3, 3]))
+        return Episode(policy, scene, seed, bool(terminated), on_route(path, env.scene.routes), final,
+                       float(info["running_ate"]), length, env.steps, path.round(2).tolist())
+    finally:
+        env.close()
+
+
+def _run(job: tuple) -> Episode:
+    return run_episode(*job)
+
+
+def summarize(episodes: list[Episode]) -> list[dict[str, Any]]:
+    rows = []
+    for name in dict.fromkeys(e.policy for e in episodes):
+        group = [e for e in episodes if e.policy == name]
+        rows.append({"policy": name, "episodes": len(group),
+                     "success": float(np.mean([e.success for e in group])),
+                     "rich_route": float(np.mean([e.rich_route for e in group])),
+                     "final_ate": float(np.mean([e.final_ate for e in group])),
+                     "mean_ate": float(np.mean([e.mean_ate for e in group])),
+                     "path_length": float(np.mean([e.path_length for e in group]))})
+    return rows
+
+
+def format_rows(rows: list[dict[str, Any]]) -> str:
+    head = f"{'policy':28s} {'episodes':>8s} {'success':>8s} {'rich route':>10s} {'final ATE':>10s} " \
+           f"{'mean ATE':>9s} {'path [m]':>9s}"
+    lines = [head, "-" * len(head)]
+    for r in rows:
+        lines.append(f"{r['policy'][:28]:28s} {r['episodes']:8d} {r['success']:8.0%} {r['rich_route']:10.0%} "
+                     f"{r['final_ate']:10.2f} {r['mean_ate']:9.2f} {r['path_length']:9.1f}")
+    return "\n".join(lines)
+
+
+def evaluate_policies(out: str | Path, policies: list[str], scenes: list[str], episodes: int = 50, seed: int = 0,
+                      detector: str = "learned", cache_dir: str | Path | None = None, lam: float = 50.0,
+                      workers: int = 1, backend: str = "graph", progress: bool = True) -> list[dict[str, Any]]:
+    """Episode i of every policy runs on scenes[i % len(scenes)] with environment seed seed + i.
+    Writes episodes.json, summary.json, summary.txt and routes.png into `out`."""
+    from .plots import plot_paths
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    for name in dict.fromkeys(scenes):  # maps must exist: build them here, once, not in every worker
+        for p in policies:
+            if p != "shortest":
+                scene_context(name, detector if not p.startswith("ppo:") else _ppo_detector(p, detector),
+                              cache_dir, progress=progress)
+    jobs = [(p, scenes[i % len(scenes)], seed + i, detector, cache_dir, lam, backend)
+            for i in range(episodes) for p in policies]
+    t0 = time.perf_counter()
+    results: list[Episode] = []
+    bar = tqdm(total=len(jobs), desc="episodes", unit="ep", disable=not progress)
+    if workers > 1:
+        with get_context("spawn").Pool(workers) as pool:
+            for e in pool.imap(_run, jobs):
+                results.append(e)
+                bar.update()
+    else:
+        for job in jobs:
+            results.append(_run(job))
+            bar.update()
+    bar.close()
+    rows = summarize(results)
+    (out / "episodes.json").write_text(json.dumps([asdict(e) for e in results]))
+    (out / "summary.json").write_text(json.dumps({"rows": rows, "scenes": scenes, "episodes": episodes, "seed": seed,
+                                                  "detector": detector, "lam": lam, "backend": backend,
+                                                  "seconds": round(time.perf_counter() - t0, 1)}, indent=2))
+    (out / "summary.txt").write_text(format_rows(rows) + "\n")
+    first = scenes[0]
+    ctx = scene_context(first, None, cache_dir)
+    plot_paths(out / "routes.png", ctx.scene, {p: [np.array(e.trajectory) for e in results if e.policy == p and
+                                                   e.scene == first] for p in policies}, ctx.space,
+               title=f"{first}: routes taken (episodes on this variant)")
+    return rows
+
+
+def _ppo_detector(policy: str, default: str) -> str:
+    meta = Path(policy.partition(":")[2])
+    meta = (meta if meta.is_dir() else meta.parent) / "policy.json"
+    return json.loads(meta.read_text()).get("detector", default) if meta.exists() else default

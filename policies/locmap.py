@@ -1,0 +1,226 @@
+"""Localizability maps: the learned detector evaluated over a grid of level body poses (x, y,
+yaw bins) covering a scene's free space, cached on disk by scene, sensor, model and grid."""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy.spatial import cKDTree
+from tqdm import tqdm
+
+from l3e_env.classifier import DEFAULT_CHECKPOINT, Classifier, ScanError
+from l3e_env.config import LidarConfig, RobotConfig, plain, to_dict
+from l3e_env.detectors import make_detector
+from l3e_env.lidar import Lidar
+from l3e_env.raycast import make_caster
+from l3e_env.registration import RegistrationError, register
+from l3e_env.transforms import planar_pose
+from scenes import Scene
+
+from .freespace import FreeSpace
+
+MAP_FORMAT = 1
+
+
+class MapCacheError(FileNotFoundError):
+    """No cached map for these settings, or a cache file that does not match them."""
+
+
+@dataclass
+class LocalizabilityMap:
+    """probabilities[n, k] are the detector's six non-localizability probabilities (x, y, z,
+    roll, pitch, yaw; sensor frame) with the body level at positions[n] and heading yaws[k];
+    NaN where the scan could not be judged. `thresholds` are the detector's own."""
+
+    scene: str
+    positions: np.ndarray  # (N, 2)
+    yaws: np.ndarray  # (K,) radians, evenly spaced from 0
+    probabilities: np.ndarray  # (N, K, 6)
+    thresholds: np.ndarray  # (6,)
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self._tree = cKDTree(self.positions)
+
+    @property
+    def masked(self) -> np.ndarray:
+        """(N, K, 6) 1.0 where the fusion would drop ICP on that axis; unknown scans mask nothing,
+        as in the fusion loop."""
+        p = np.nan_to_num(self.probabilities, nan=0.0)
+        return (p > self.thresholds).astype(np.float64)
+
+    def lookup(self, xy: np.ndarray, yaw: np.ndarray | float, values: np.ndarray | None = None) -> np.ndarray:
+        """Values (default: `masked`) at the nearest mapped position, linear between yaw bins: (..., 6)."""
+        values = self.masked if values is None else values
+        xy = np.asarray(xy, dtype=np.float64)
+        _, n = self._tree.query(xy.reshape(-1, 2))
+        k = len(self.yaws)
+        f = (np.broadcast_to(np.asarray(yaw, dtype=np.float64), xy.shape[:-1]).reshape(-1) % (2 * np.pi)) / (2 * np.pi) * k
+        lo = np.floor(f).astype(np.int64) % k
+        w = (f - np.floor(f))[:, None]
+        out = (1 - w) * values[n, lo] + w * values[n, (lo + 1) % k]
+        return out.reshape(*xy.shape[:-1], values.shape[-1])
+
+    def save(self, path: str | Path) -> None:
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(path.name + ".tmp")
+        with open(tmp, "wb") as f:
+            np.savez_compressed(f, positions=self.positions, yaws=self.yaws, probabilities=self.probabilities,
+                                thresholds=self.thresholds,
+                                meta=np.array(json.dumps(plain({**self.meta, "format": MAP_FORMAT, "scene": self.scene}))))
+        os.replace(tmp, path)
+
+    @classmethod
+    def load(cls, path: str | Path) -> LocalizabilityMap:
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                meta = json.loads(str(z["meta"]))
+                arrays = {k: z[k] for k in ("positions", "yaws", "probabilities", "thresholds")}
+        except (OSError, KeyError, ValueError) as exc:
+            raise MapCacheError(f"{path}: not a readable localizability map ({exc})") from exc
+        if meta.get("format") != MAP_FORMAT:
+            raise MapCacheError(f"{path}: map format {meta.get('format')}, this version reads {MAP_FORMAT}")
+        return cls(meta["scene"], meta=meta, **arrays)
+
+
+def file_digest(path: str | Path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()[:12]
+
+
+class MapJudge:
+    """Six probabilities of non-localizability for a batch of sensor poses, and the thresholds
+    above which the fusion masks an axis. Kinds, as in l3e_env.detectors.make_detector:
+    - learned[:checkpoint]: the classifier on the scan at each pose (NaN: a scan it cannot judge);
+    - eigen:<tau>: Zhang's test on the Hessian of registering a scan taken `step` metres further
+      ahead onto the pose's scan (what the fusion loop sees between consecutive scans);
+    - oracle[:M]: Monte-Carlo ICP labels with M children at the pose (slow; ground truth).
+    Eigen and oracle give 0/1 masks as probabilities, with thresholds 0.5."""
+
+    def __init__(self, spec: str, lidar: Lidar, seed: int = 0, step: float = 0.1):
+        self.spec, self.lidar, self.seed, self.step = spec, lidar, seed, step
+        kind, _, arg = spec.partition(":")
+        self.kind = kind
+        if kind == "learned":
+            self.classifier = Classifier.load(arg or None)
+            self.classifier.check_settings(lidar.config.model)
+            self.thresholds = self.classifier.thresholds.copy()
+            self.identity = f"learned-{file_digest(arg or DEFAULT_CHECKPOINT)}"
+        elif kind in ("eigen", "oracle"):
+            self.detector = make_detector(spec, lidar, seed)
+            self.thresholds = np.full(6, 0.5)
+            self.identity = self.detector.name.replace(":", "")
+        else:
+            raise ValueError(f"map detector '{spec}': use learned[:checkpoint], eigen:<tau> or oracle[:M]")
+
+    def __call__(self, poses: list[np.ndarray], rngs: list[np.random.Generator]) -> np.ndarray:
+        out = np.full((len(poses), 6), np.nan)
+        if self.kind == "learned":
+            scans = [self.lidar.scan(T, rng).points for T, rng in zip(poses, rngs)]
+            try:
+                return self.classifier.probabilities(scans)
+            except ScanError:  # judge one by one; a scan that cannot be judged stays NaN
+                for i, scan in enumerate(scans):
+                    try:
+                        out[i] = self.classifier.probabilities([scan])[0]
+                    except ScanError:
+                        pass
+                return out
+        for i, (T, rng) in enumerate(zip(poses, rngs)):
+            if self.kind == "oracle":
+                pred = self.detector.predict(np.zeros((0, 3)), None, T)
+            else:
+                ahead = T @ planar_pose(self.step, 0.0, 0.0, 0.0)
+                try:
+                    reg = register(self.lidar.scan(ahead, rng).points, self.lidar.scan(T, rng).points)
+                except RegistrationError:
+                    continue
+                pred = self.detector.predict(None, reg, T)
+            if pred.known:
+                out[i] = pred.mask.astype(np.float64)
+        return out
+
+
+def map_settings(scene: Scene, free: FreeSpace, resolution: float, yaw_bins: int, judge: MapJudge,
+                 robot: RobotConfig, seed: int) -> dict[str, Any]:
+    """Everything a map depends on; its hash names the cache file."""
+    return {"format": MAP_FORMAT, "scene": scene.name, "scene_faces": int(len(scene.mesh.faces)),
+            "scene_bounds": scene.bounds.round(3).tolist(), "free_space_resolution": free.resolution,
+            "free_cells": int(free.free.sum()), "resolution": float(resolution), "yaw_bins": int(yaw_bins),
+            "detector": judge.identity, "lidar": to_dict(judge.lidar.config), "robot": to_dict(robot),
+            "seed": int(seed)}
+
+
+def cache_path(cache_dir: str | Path, settings: dict[str, Any]) -> Path:
+    key = hashlib.sha256(json.dumps(plain(settings), sort_keys=True).encode()).hexdigest()[:12]
+    return Path(cache_dir) / f"{settings['scene']}-{settings['lidar']['model']}-{settings['detector']}-{key}.npz"
+
+
+def default_cache_dir() -> Path:
+    """$L3E_CACHE/maps, else the user's cache folder."""
+    root = os.environ.get("L3E_CACHE") or Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "l3e"
+    return Path(root) / "maps"
+
+
+def map_positions(free: FreeSpace, resolution: float) -> np.ndarray:
+    """Free cells on the lattice of `resolution` through the world origin."""
+    cells = np.argwhere(free.free)
+    ratio = free.center(cells) / resolution
+    on = cells[np.isclose(ratio, np.round(ratio), atol=1e-6).all(axis=1)]
+    if len(on) == 0:
+        raise ValueError(f"no free cell on the {resolution} m map lattice; use a finer resolution")
+    return on
+
+
+def build_map(scene: Scene, free: FreeSpace, judge: MapJudge, resolution: float = 1.0, yaw_bins: int = 4,
+              robot: RobotConfig | None = None, seed: int = 0, batch: int = 8, progress: bool = False) -> LocalizabilityMap:
+    """Judge every (position, yaw) with the body level on the floor."""
+    robot = robot or RobotConfig()
+    if yaw_bins < 1:
+        raise ValueError(f"yaw_bins must be at least 1, got {yaw_bins}")
+    settings = map_settings(scene, free, resolution, yaw_bins, judge, robot, seed)
+    cells = map_positions(free, resolution)
+    positions = free.center(cells)
+    yaws = np.arange(yaw_bins) * 2 * np.pi / yaw_bins
+    T_b_s = planar_pose(*robot.lidar_offset, 0.0)
+    poses = [(n, k) for n in range(len(cells)) for k in range(yaw_bins)]
+    probabilities = np.full((len(cells), yaw_bins, 6), np.nan)
+    for start in tqdm(range(0, len(poses), batch), desc=f"{judge.spec} map of {scene.name}", unit="batch",
+                      disable=not progress):
+        chunk = poses[start:start + batch]
+        sensor_poses = [planar_pose(*positions[n], free.ground[tuple(cells[n])] + robot.standing_height, yaws[k]) @ T_b_s
+                        for n, k in chunk]
+        p = judge(sensor_poses, [np.random.default_rng([seed, n, k]) for n, k in chunk])
+        for (n, k), row in zip(chunk, p):
+            probabilities[n, k] = row
+    return LocalizabilityMap(scene.name, positions, yaws, probabilities, judge.thresholds.copy(), settings)
+
+
+def scene_lidar(scene: Scene, lidar: LidarConfig | None = None) -> Lidar:
+    return Lidar(make_caster("embree", scene.mesh), lidar or LidarConfig())
+
+
+def get_map(scene: Scene, free: FreeSpace, detector: str = "learned", cache_dir: str | Path | None = None,
+            build: bool = True, resolution: float = 1.0, yaw_bins: int = 4, lidar: LidarConfig | None = None,
+            robot: RobotConfig | None = None, seed: int = 0, progress: bool = False) -> LocalizabilityMap:
+    """The cached map for these settings; built and cached when missing if `build`, else MapCacheError."""
+    robot = robot or RobotConfig()
+    judge = MapJudge(detector, scene_lidar(scene, lidar), seed)
+    settings = map_settings(scene, free, resolution, yaw_bins, judge, robot, seed)
+    path = cache_path(cache_dir or default_cache_dir(), settings)
+    if path.exists():
+        cached = LocalizabilityMap.load(path)
+        if cached.meta != json.loads(json.dumps(plain(settings))):
+            raise MapCacheError(f"{path}: cached with other settings than the ones asked for; delete it to rebuild")
+        return cached
+    if not build:
+        raise MapCacheError(f"no {detector} localizability map of scene '{scene.name}' cached for these settings "
+                            f"({path}); make it with `l3e policy map --scene {scene.name} --detector {detector}`")
+    result = build_map(scene, free, judge, resolution, yaw_bins, robot, seed, progress=progress)
+    result.save(path)
+    return result

@@ -1,0 +1,243 @@
+"""Navigation: free space, localizability maps and their cache, the planner, the fast PPO
+environment, PPO checkpoints and full-pipeline episodes, on a small fork."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from policies.context import SceneContext, free_space
+from policies.fastenv import MapNavigationEnv
+from policies.freespace import FreeSpace, FreeSpaceError, build_free_space, reachable_from
+from policies.locmap import LocalizabilityMap, MapCacheError, get_map
+from policies.observation import PolicyView
+from policies.planner import Planner, PlanningError, drift_rates
+from scenes import make_scene
+from scenes.fork import make_fork
+from scenes.geometry import box, ground_plane, merge
+from scenes.scene import Scene
+
+
+@pytest.fixture(scope="module")
+def small_fork(tmp_path_factory):
+    cache = tmp_path_factory.mktemp("maps")
+    scene = make_fork(0, corridor_length=10.0, detour=8.0)
+    space = free_space(scene, cache)
+    return scene, space, cache
+
+
+def synthetic_map(space: FreeSpace, masked_region, yaw_bins: int = 4) -> LocalizabilityMap:
+    """A map on every free cell: x masked (probability 0.9) inside `masked_region(xy)`, else 0.1."""
+    positions = space.free_centers()
+    p = np.full((len(positions), yaw_bins, 6), 0.1)
+    p[masked_region(positions), :, 0] = 0.9
+    return LocalizabilityMap("synthetic", positions, np.arange(yaw_bins) * 2 * np.pi / yaw_bins, p, np.full(6, 0.5))
+
+
+def test_free_space_matches_the_robot(small_fork):
+    scene, space, _ = small_fork
+    # the corridor (walls at |y| = 1.5..1.7) is free in the middle and blocked at its walls
+    assert space.is_free(np.array([[10.0, 0.0], [10.0, 8.0], [0.0, 0.0]])).all()
+    assert not space.is_free(np.array([[10.0, 1.6], [10.0, -1.6]])).any()
+    # the ground outside the boundary walls is not reachable from the start
+    assert not space.is_free(np.array([10.0, -12.0]))
+    assert space.clearance[tuple(space.index(np.array([10.0, 0.0])))] < space.clearance[tuple(space.index(np.array([-5.0, 3.0])))]
+    with pytest.raises(FreeSpaceError, match="not in the free space"):
+        reachable_from(space, np.array([10.0, 1.6]))
+
+
+def test_scene_without_free_space_is_refused():
+    low = merge([ground_plane(-5, 5, -5, 5), box((0, 0, 0.6), (10, 10, 0.1))])  # a roof through the base
+    route = np.array([[0.0, 0, 0], [1.0, 0, 0]])
+    scene = Scene("low", low, [route], (0, 0, 0), (1, 0), {"main": route})
+    with pytest.raises(FreeSpaceError, match="no cell where the robot can stand"):
+        build_free_space(scene, resolution=1.0)
+
+
+def test_drift_rates_follow_the_odometry_model():
+    from l3e_env.config import OdometryConfig
+
+    base = drift_rates()
+    assert base.shape == (6,) and (base > 0).all()
+    assert base[0] > base[1]  # the stride-scale error drifts along the walking direction only
+    worse = drift_rates(OdometryConfig(scale_error_std=0.05))
+    assert worse[0] > base[0] and np.allclose(worse[1:], base[1:])
+
+
+def test_planner_avoids_masked_corridor_and_refuses_bad_goals(small_fork):
+    scene, space, _ = small_fork
+    corridor = lambda xy: (np.abs(xy[:, 1]) < 1.5) & (xy[:, 0] > 4) & (xy[:, 0] < 16)  # noqa: E731
+    locmap = synthetic_map(space, corridor)
+    start, goal = scene.start[:2], scene.goal
+    short = Planner(space, locmap, lam=0.0).plan(start, goal)
+    aware = Planner(space, locmap, lam=100.0).plan(start, goal)
+    assert np.abs(short.path[:, 1]).max() < 1.0  # straight through the corridor
+    assert np.abs(aware.path[:, 1]).max() > 2.0  # outside the corridor walls (|y| = 1.5 to 1.7)
+    assert aware.length > short.length and aware.expected_drift < short.expected_drift
+    # drift counted only while masked: the straight path's drift is about the corridor length times k_x
+    assert short.expected_drift == pytest.approx(12 * (drift_rates()[0] * 0.9 / 0.9), rel=0.3)
+    with pytest.raises(PlanningError, match="inside an obstacle"):
+        Planner(space, locmap).plan(start, np.array([10.0, 1.6]))
+    with pytest.raises(PlanningError, match="outside the scene's grid"):
+        Planner(space, locmap).plan(start, np.array([500.0, 0.0]))
+    walled = FreeSpace(space.origin, space.resolution, space.free.copy(), space.ground, space.clearance)
+    walled.free[space.index(np.array([18.0, 0.0]))[0], :] = False  # a wall across the whole scene
+    walled.free[tuple(space.index(goal))] = True
+    with pytest.raises(PlanningError, match="cannot be reached"):
+        Planner(walled, None, lam=0.0).plan(start, goal)
+    with pytest.raises(ValueError, match="needs a localizability map"):
+        Planner(space, None, lam=10.0)
+
+
+def test_map_lookup_interpolates_headings_and_round_trips(tmp_path, small_fork):
+    _, space, _ = small_fork
+    locmap = synthetic_map(space, lambda xy: xy[:, 0] > 1e9)
+    locmap.probabilities[:, 1, 1] = 0.9  # y masked at heading 90 degrees only
+    at = locmap.lookup(np.array([[10.0, 0.0]] * 3), np.array([np.pi / 4, np.pi / 2, np.pi]))
+    assert at[:, 1] == pytest.approx([0.5, 1.0, 0.0])
+    path = tmp_path / "m.npz"
+    locmap.save(path)
+    again = LocalizabilityMap.load(path)
+    assert np.array_equal(again.probabilities, locmap.probabilities) and again.scene == "synthetic"
+    path.write_bytes(b"not a map")
+    with pytest.raises(MapCacheError, match="not a readable localizability map"):
+        LocalizabilityMap.load(path)
+
+
+def test_eigen_map_is_cached_and_a_missing_cache_is_named(small_fork):
+    scene, space, cache = small_fork
+    with pytest.raises(MapCacheError, match="l3e policy map"):
+        get_map(scene, space, "eigen:30", cache, build=False, resolution=4.0)
+    built = get_map(scene, space, "eigen:30", cache, resolution=4.0)
+    cached = get_map(scene, space, "eigen:30", cache, build=False, resolution=4.0)
+    assert np.array_equal(built.probabilities, cached.probabilities, equal_nan=True)
+    inside = (np.abs(built.positions[:, 1]) < 1.0) & (built.positions[:, 0] > 6) & (built.positions[:, 0] < 14)
+    assert inside.any()
+    # in the smooth corridor, heading along it (yaw bin 0), x is degenerate; among the pillars it is not
+    assert built.masked[inside, 0, 0].mean() == 1.0
+    rich = np.abs(built.positions[:, 1] - 8.0) < 0.1
+    assert built.masked[rich, 0, 0].mean() < 0.5
+    with pytest.raises(ValueError, match="map detector"):
+        get_map(scene, space, "none", cache, resolution=4.0)
+
+
+def test_learned_map_gives_probabilities(small_fork):
+    scene, space, cache = small_fork
+    locmap = get_map(scene, space, "learned", cache, resolution=8.0)
+    assert locmap.probabilities.shape == (len(locmap.positions), 4, 6)
+    assert np.isfinite(locmap.probabilities).all()
+    assert ((locmap.probabilities >= 0) & (locmap.probabilities <= 1)).all()
+    assert locmap.meta["detector"].startswith("learned-")
+
+
+@pytest.fixture()
+def fast_env(small_fork):
+    scene, space, _ = small_fork
+    locmap = synthetic_map(space, lambda xy: (np.abs(xy[:, 1]) < 1.5) & (xy[:, 0] > 4) & (xy[:, 0] < 16))
+    return MapNavigationEnv([SceneContext(scene, space, locmap)])
+
+
+def test_fast_env_rewards_progress_and_penalises_drift(fast_env):
+    obs, info = fast_env.reset(seed=0)
+    assert fast_env.observation_space.contains(obs)
+    with pytest.raises(ValueError, match="finite"):
+        fast_env.step(np.array([np.nan, 0, 0]))
+    total, drift_steps = 0.0, 0
+    for _ in range(200):
+        obs, reward, terminated, truncated, info = fast_env.step(np.array([1.0, 0.0, 0.0]))
+        assert fast_env.observation_space.contains(obs)
+        total += reward
+        drift_steps += 0.5 * (info["expected_drift"] > 0)
+        if terminated or truncated:
+            break
+    assert terminated and not truncated  # straight ahead reaches the goal
+    assert info["path_length"] == pytest.approx(np.hypot(*(fast_env.view.goal - fast_env.contexts[0].scene.start[:2])) - 1,
+                                               abs=0.6)
+    assert info["expected_drift"] == pytest.approx(12 * drift_rates()[0], rel=0.15)
+    # the reward is progress minus lam times that drift (plus the goal, minus step penalties)
+    cfg = fast_env.config
+    expected = info["path_length"] - cfg.lam * info["expected_drift"] + cfg.goal_reward - cfg.step_penalty * fast_env.decisions
+    assert total == pytest.approx(expected, abs=1.0)
+
+
+def test_fast_env_blocks_at_walls(fast_env):
+    fast_env.reset(seed=0)
+    blocked = False
+    for _ in range(40):  # sideways to the right, 10 m: into the boundary wall
+        _, _, _, _, info = fast_env.step(np.array([0.0, -1.0, 0.0]))
+        blocked |= info["blocked"]
+    assert blocked  # the boundary wall at y = -8 stops it
+    assert fast_env.view.space.is_free(np.array(info["pose"][:2]))
+
+
+def test_policy_view_sees_the_corridor_ahead(small_fork):
+    scene, space, _ = small_fork
+    locmap = synthetic_map(space, lambda xy: (np.abs(xy[:, 1]) < 1.5) & (xy[:, 0] > 4) & (xy[:, 0] < 16))
+    view = PolicyView(space, locmap, scene.goal)
+    before = view(3.0, 0.0, 0.0)  # facing the corridor's mouth
+    drift = before[PolicyView.drift_ahead]
+    assert drift[0] > 0.3 and drift[4] == pytest.approx(0.0, abs=0.05)  # into the corridor; left is open ground
+    inside = view(8.0, 0.0, 0.0)[PolicyView.ranges]
+    assert inside[0] > 0.9 and inside[4] < 0.2  # free ahead along the corridor; its wall 1.5 m to the left
+    assert view.distance_to_go(scene.start[:2]) == pytest.approx(np.linalg.norm(scene.goal - scene.start[:2]), rel=0.05)
+
+
+def test_ppo_trains_resumes_and_refuses_other_observations(tmp_path, small_fork):
+    pytest.importorskip("stable_baselines3")
+    from policies.fastenv import FastEnvConfig
+    from policies.ppo import PolicyCheckpointError, PPOPolicy, train_ppo
+
+    scene, space, cache = small_fork
+    contexts = [SceneContext(scene, space, get_map(scene, space, "eigen:30", cache, resolution=4.0))]
+    out = tmp_path / "ppo"
+    first = train_ppo(out, contexts, "eigen:30", timesteps=512, n_envs=2, config=FastEnvConfig(), progress=False)
+    assert first["timesteps"] >= 512 and (out / "last.zip").exists()
+    resumed = train_ppo(out, contexts, "eigen:30", timesteps=1024, n_envs=2, progress=False)
+    assert resumed["timesteps"] >= 1024
+    assert (out / "progress.csv").exists() and (out / "monitor.csv").exists()
+    policy = PPOPolicy(out)
+    action = policy(np.zeros(PolicyView.size, dtype=np.float32))
+    assert action.shape == (3,) and np.all(np.abs(action) <= 1)
+    meta = json.loads((out / "policy.json").read_text())
+    meta["observation"]["size"] = 99
+    (out / "policy.json").write_text(json.dumps(meta))
+    with pytest.raises(PolicyCheckpointError, match="observation"):
+        PPOPolicy(out)
+    with pytest.raises(PolicyCheckpointError, match="no policy.zip"):
+        PPOPolicy(tmp_path / "nowhere")
+
+
+def test_full_pipeline_episode_on_the_small_fork(small_fork, monkeypatch):
+    from policies import evaluation
+
+    scene, space, cache = small_fork
+    monkeypatch.setattr("policies.context.make_scene", lambda name: scene)
+    monkeypatch.setattr("l3e_env.envs.navigation.make_scene", lambda name, **kw: scene)
+    get_map(scene, space, "eigen:30", cache, resolution=2.0)
+    shortest = evaluation.run_episode("shortest", "fork-0", 0, "eigen:30", cache)
+    planner = evaluation.run_episode("planner", "fork-0", 0, "eigen:30", cache, lam=200.0)
+    assert shortest.success and planner.success
+    assert not shortest.rich_route and planner.rich_route
+    assert planner.path_length > shortest.path_length
+    assert shortest.final_ate > 0 and np.isfinite(planner.mean_ate)
+    rows = evaluation.summarize([shortest, planner])
+    assert [r["policy"] for r in rows] == ["shortest", "planner"]
+    assert "rich route" in evaluation.format_rows(rows)
+    with pytest.raises(ValueError, match="unknown policy"):
+        evaluation.make_controller("wander", "fork-0", "eigen:30", cache, 50.0)
+
+
+def test_policy_commands_are_registered(capsys):
+    from l3e_env.cli import main
+
+    with pytest.raises(SystemExit):
+        main(["policy", "--help"])
+    text = capsys.readouterr().out
+    for command in ("map", "plan", "train", "evaluate"):
+        assert command in text
+
+
+def test_fork_variants_differ():
+    a, b = make_scene("fork-100"), make_scene("fork-101")
+    assert a.goal[0] != b.goal[0] or np.abs(a.routes["rich"][:, 1]).max() != np.abs(b.routes["rich"][:, 1]).max()
