@@ -35,7 +35,7 @@ class Episode:
     scene: str
     seed: int
     success: bool
-    rich_route: bool
+    rich_route: bool  # kept out of the degenerate corridor
     final_ate: float  # m, fused estimate against ground truth at the end
     mean_ate: float  # m, RMS over the episode
     path_length: float  # m, ground truth
@@ -43,13 +43,19 @@ class Episode:
     trajectory: list  # ground-truth (x, y) every 5 steps
 
 
-def on_route(trajectory: np.ndarray, routes: dict[str, np.ndarray], a: str = "rich", b: str = "short") -> bool:
-    """Whether the path keeps closer to route `a` than to route `b` (mean point-to-polyline distance)."""
-    def mean_distance(route: np.ndarray) -> float:
-        d = np.linalg.norm(trajectory[:, None, :2] - route[None, :, :2], axis=2).min(axis=1)
-        return float(d.mean())
+def avoided_corridor(trajectory: np.ndarray, scene) -> bool:
+    """Whether a path kept out of the scene's degenerate 'corridor' region (the fork's smooth
+    corridor); for scenes without one, whether it kept closer to the 'rich' route than to the
+    'short' one (mean point-to-polyline distance)."""
+    if "corridor" in scene.regions:
+        x0, y0, x1, y1 = scene.regions["corridor"]
+        xy = trajectory[:, :2]
+        return not bool(((xy[:, 0] > x0) & (xy[:, 0] < x1) & (xy[:, 1] > y0) & (xy[:, 1] < y1)).any())
 
-    return mean_distance(routes[a]) < mean_distance(routes[b])
+    def mean_distance(route: np.ndarray) -> float:
+        return float(np.linalg.norm(trajectory[:, None, :2] - route[None, :, :2], axis=2).min(axis=1).mean())
+
+    return mean_distance(scene.routes["rich"]) < mean_distance(scene.routes["short"])
 
 
 def make_controller(policy: str, scene: str, detector: str, cache_dir: str | Path | None, lam: float):
@@ -96,7 +102,7 @@ def run_episode(policy: str, scene: str, seed: int, detector: str = "learned", c
         trail.append(info["T_w_b"][:2, 3])
         path = np.array(trail)
         final = float(np.linalg.norm(info["fused_T_w_b"][:3, 3] - info["T_w_b"][:3, 3]))
-        return Episode(policy, scene, seed, bool(terminated), on_route(path, env.scene.routes), final,
+        return Episode(policy, scene, seed, bool(terminated), avoided_corridor(path, env.scene), final,
                        float(info["running_ate"]), length, env.steps, path.round(2).tolist())
     finally:
         env.close()
@@ -133,7 +139,7 @@ def evaluate_policies(out: str | Path, policies: list[str], scenes: list[str], e
                       detector: str = "learned", cache_dir: str | Path | None = None, lam: float = 50.0,
                       workers: int = 1, backend: str = "graph", progress: bool = True) -> list[dict[str, Any]]:
     """Episode i of every policy runs on scenes[i % len(scenes)] with environment seed seed + i.
-    Writes episodes.json, summary.json, summary.txt and routes.png into `out`."""
+    Writes episodes.jsonl, summary.json, summary.txt and routes.png into `out`."""
     from .plots import plot_paths
 
     out = Path(out)
@@ -145,21 +151,36 @@ def evaluate_policies(out: str | Path, policies: list[str], scenes: list[str], e
                               cache_dir, progress=progress)
     jobs = [(p, scenes[i % len(scenes)], seed + i, detector, cache_dir, lam, backend)
             for i in range(episodes) for p in policies]
+    # episodes are appended as they finish; a killed evaluation resumes where it stopped
+    log = out / "episodes.jsonl"
+    done = {}
+    if log.exists():
+        for line in log.read_text().splitlines():
+            try:
+                e = Episode(**json.loads(line))
+            except (json.JSONDecodeError, TypeError):
+                continue  # a line cut by the kill
+            done[(e.policy, e.scene, e.seed)] = e
+    todo = [j for j in jobs if j[:3] not in done]
     t0 = time.perf_counter()
-    results: list[Episode] = []
-    bar = tqdm(total=len(jobs), desc="episodes", unit="ep", disable=not progress)
-    if workers > 1:
-        with get_context("spawn").Pool(workers) as pool:
-            for e in pool.imap(_run, jobs):
-                results.append(e)
-                bar.update()
-    else:
-        for job in jobs:
-            results.append(_run(job))
+    bar = tqdm(total=len(jobs), initial=len(jobs) - len(todo), desc="episodes", unit="ep", disable=not progress)
+    with open(log, "a") as f:
+        def record(e: Episode) -> None:
+            done[(e.policy, e.scene, e.seed)] = e
+            f.write(json.dumps(asdict(e)) + "\n")
+            f.flush()
             bar.update()
+
+        if workers > 1 and len(todo) > 1:
+            with get_context("spawn").Pool(workers) as pool:
+                for e in pool.imap_unordered(_run, todo):
+                    record(e)
+        else:
+            for job in todo:
+                record(_run(job))
     bar.close()
+    results = [done[j[:3]] for j in jobs]
     rows = summarize(results)
-    (out / "episodes.json").write_text(json.dumps([asdict(e) for e in results]))
     (out / "summary.json").write_text(json.dumps({"rows": rows, "scenes": scenes, "episodes": episodes, "seed": seed,
                                                   "detector": detector, "lam": lam, "backend": backend,
                                                   "seconds": round(time.perf_counter() - t0, 1)}, indent=2))

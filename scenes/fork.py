@@ -42,4 +42,5 @@ def make_fork(seed: int = 0, corridor_length: float | None = None, detour: float
         routes={"short": short, "rich": rich, "main": rich},
         family="fork",
         seed=seed,
+        regions={"corridor": np.array([x0, -half, x1, half])},
     )

@@ -208,22 +208,27 @@ def test_ppo_trains_resumes_and_refuses_other_observations(tmp_path, small_fork)
         PPOPolicy(tmp_path / "nowhere")
 
 
-def test_full_pipeline_episode_on_the_small_fork(small_fork, monkeypatch):
+def test_full_pipeline_evaluation_on_the_small_fork(small_fork, monkeypatch, tmp_path):
     from policies import evaluation
 
     scene, space, cache = small_fork
     monkeypatch.setattr("policies.context.make_scene", lambda name: scene)
     monkeypatch.setattr("l3e_env.envs.navigation.make_scene", lambda name, **kw: scene)
-    get_map(scene, space, "eigen:30", cache, resolution=2.0)
-    shortest = evaluation.run_episode("shortest", "fork-0", 0, "eigen:30", cache)
-    planner = evaluation.run_episode("planner", "fork-0", 0, "eigen:30", cache, lam=200.0)
+    rows = evaluation.evaluate_policies(tmp_path, ["shortest", "planner"], ["fork-0"], episodes=1, detector="eigen:30",
+                                        cache_dir=cache, lam=200.0, progress=False)
+    shortest, planner = (evaluation.Episode(**json.loads(line))
+                         for line in (tmp_path / "episodes.jsonl").read_text().splitlines())
     assert shortest.success and planner.success
     assert not shortest.rich_route and planner.rich_route
     assert planner.path_length > shortest.path_length
     assert shortest.final_ate > 0 and np.isfinite(planner.mean_ate)
-    rows = evaluation.summarize([shortest, planner])
-    assert [r["policy"] for r in rows] == ["shortest", "planner"]
-    assert "rich route" in evaluation.format_rows(rows)
+    assert [r["policy"] for r in rows] == ["shortest", "planner"] and rows[1]["rich_route"] == 1.0
+    assert (tmp_path / "routes.png").stat().st_size > 10_000 and "rich route" in (tmp_path / "summary.txt").read_text()
+    # a second run (or one after a kill) reuses the finished episodes
+    monkeypatch.setattr(evaluation, "_run", lambda job: pytest.fail(f"episode {job[:3]} ran again"))
+    again = evaluation.evaluate_policies(tmp_path, ["shortest", "planner"], ["fork-0"], episodes=1,
+                                         detector="eigen:30", cache_dir=cache, lam=200.0, progress=False)
+    assert again == rows
     with pytest.raises(ValueError, match="unknown policy"):
         evaluation.make_controller("wander", "fork-0", "eigen:30", cache, 50.0)
 
