@@ -47,7 +47,8 @@ def _cmd_plan(args: argparse.Namespace) -> int:
         plans = {"shortest": Planner(ctx.space, ctx.locmap, lam=0.0).plan(start, goal),
                  f"planner (lambda {args.lam:g})": Planner(ctx.space, ctx.locmap, lam=args.lam).plan(start, goal)}
         for label, plan in plans.items():
-            print(f"{ctx.scene.name} {label:22s} length {plan.length:6.1f} m, expected drift {plan.expected_drift:5.2f} m")
+            print(f"{ctx.scene.name} {label:22s} length {plan.length:6.1f} m, "
+                  f"expected drift {plan.expected_drift:5.2f} m")
         figure = out / f"{ctx.scene.name}-plans.png"
         plot_paths(figure, ctx.scene, {k: v.path for k, v in plans.items()}, ctx.space,
                    title=f"{ctx.scene.name}: shortest path and localizability-aware plan ({args.detector} map)")
@@ -89,7 +90,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("policy", help="navigation: localizability maps, planner, PPO training and evaluation")
     psub = p.add_subparsers(dest="policy_command", required=True)
     common = argparse.ArgumentParser(add_help=False)
-    common.add_argument("--cache-dir", dest="cache_dir", help="map cache (default: $L3E_CACHE/maps or ~/.cache/l3e/maps)")
+    common.add_argument("--cache-dir", dest="cache_dir",
+                        help="map cache (default: $L3E_CACHE/maps or ~/.cache/l3e/maps)")
     common.add_argument("--sensor", default="vlp16", help="vlp16 or os0-128")
     common.add_argument("--quiet", action="store_true", help="no progress bars")
     g = psub.add_parser("map", parents=[common], help="build (or load) and plot localizability maps")

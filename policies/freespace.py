@@ -42,7 +42,8 @@ class FreeSpace:
 
     def inside(self, index: np.ndarray) -> np.ndarray:
         index = np.asarray(index)
-        return (index[..., 0] >= 0) & (index[..., 1] >= 0) & (index[..., 0] < self.shape[0]) & (index[..., 1] < self.shape[1])
+        return (index[..., 0] >= 0) & (index[..., 1] >= 0) & (index[..., 0] < self.shape[0]) \
+            & (index[..., 1] < self.shape[1])
 
     def is_free(self, xy: np.ndarray) -> np.ndarray:
         """Whether world points (..., 2) fall in free cells (False off the grid)."""
@@ -56,11 +57,13 @@ class FreeSpace:
         """(K, 2) world x, y of every free cell."""
         return self.center(np.argwhere(self.free))
 
-    def ray_distances(self, xy: np.ndarray, angles: np.ndarray, max_range: float, step: float | None = None) -> np.ndarray:
+    def ray_distances(self, xy: np.ndarray, angles: np.ndarray, max_range: float,
+                      step: float | None = None) -> np.ndarray:
         """Distance from `xy` to the first blocked cell along each world angle, capped at max_range."""
         step = step or self.resolution / 2
         r = np.arange(step, max_range + 1e-9, step)
-        pts = np.asarray(xy)[None, None, :] + r[None, :, None] * np.stack([np.cos(angles), np.sin(angles)], -1)[:, None, :]
+        unit = np.stack([np.cos(angles), np.sin(angles)], -1)
+        pts = np.asarray(xy)[None, None, :] + r[None, :, None] * unit[:, None, :]
         blocked = ~self.is_free(pts)
         first = np.where(blocked.any(axis=1), blocked.argmax(axis=1), len(r))
         return np.where(first < len(r), r[np.minimum(first, len(r) - 1)] - step, max_range)

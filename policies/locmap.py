@@ -60,7 +60,8 @@ class LocalizabilityMap:
         xy = np.asarray(xy, dtype=np.float64)
         _, n = self._tree.query(xy.reshape(-1, 2))
         k = len(self.yaws)
-        f = (np.broadcast_to(np.asarray(yaw, dtype=np.float64), xy.shape[:-1]).reshape(-1) % (2 * np.pi)) / (2 * np.pi) * k
+        yaw = np.broadcast_to(np.asarray(yaw, dtype=np.float64), xy.shape[:-1]).reshape(-1)
+        f = (yaw % (2 * np.pi)) / (2 * np.pi) * k
         lo = np.floor(f).astype(np.int64) % k
         w = (f - np.floor(f))[:, None]
         out = (1 - w) * values[n, lo] + w * values[n, (lo + 1) % k]
@@ -73,7 +74,8 @@ class LocalizabilityMap:
         with open(tmp, "wb") as f:
             np.savez_compressed(f, positions=self.positions, yaws=self.yaws, probabilities=self.probabilities,
                                 thresholds=self.thresholds,
-                                meta=np.array(json.dumps(plain({**self.meta, "format": MAP_FORMAT, "scene": self.scene}))))
+                                meta=np.array(json.dumps(plain({**self.meta, "format": MAP_FORMAT,
+                                                                "scene": self.scene}))))
         os.replace(tmp, path)
 
     @classmethod
@@ -178,7 +180,8 @@ def map_positions(free: FreeSpace, resolution: float) -> np.ndarray:
 
 
 def build_map(scene: Scene, free: FreeSpace, judge: MapJudge, resolution: float = 1.0, yaw_bins: int = 4,
-              robot: RobotConfig | None = None, seed: int = 0, batch: int = 8, progress: bool = False) -> LocalizabilityMap:
+              robot: RobotConfig | None = None, seed: int = 0, batch: int = 8,
+              progress: bool = False) -> LocalizabilityMap:
     """Judge every (position, yaw) with the body level on the floor."""
     robot = robot or RobotConfig()
     if yaw_bins < 1:
@@ -193,8 +196,8 @@ def build_map(scene: Scene, free: FreeSpace, judge: MapJudge, resolution: float 
     for start in tqdm(range(0, len(poses), batch), desc=f"{judge.spec} map of {scene.name}", unit="batch",
                       disable=not progress):
         chunk = poses[start:start + batch]
-        sensor_poses = [planar_pose(*positions[n], free.ground[tuple(cells[n])] + robot.standing_height, yaws[k]) @ T_b_s
-                        for n, k in chunk]
+        sensor_poses = [planar_pose(*positions[n], free.ground[tuple(cells[n])] + robot.standing_height, yaws[k])
+                        @ T_b_s for n, k in chunk]
         p = judge(sensor_poses, [np.random.default_rng([seed, n, k]) for n, k in chunk])
         for (n, k), row in zip(chunk, p):
             probabilities[n, k] = row

@@ -36,7 +36,8 @@ class PolicyView:
         centres = space.center(np.stack(np.meshgrid(np.arange(nx), np.arange(ny), indexing="ij"), -1).reshape(-1, 2))
         _, nearest = locmap._tree.query(centres)
         self.table = (locmap.masked @ rates)[nearest].reshape(nx, ny, len(locmap.yaws))
-        self.to_go = Planner(space, lam=0.0, clearance_weight=0.0).cost_to_go(self.goal)  # shortest distances through free space
+        # shortest distances through free space
+        self.to_go = Planner(space, lam=0.0, clearance_weight=0.0).cost_to_go(self.goal)
         self.angles = np.arange(SECTORS) * 2 * np.pi / SECTORS
         self.observation_space = spaces.Box(-1.0, float(rates.sum() / self.scale), (self.size,), np.float32)
 
@@ -85,5 +86,6 @@ class PolicyView:
         reach = ahead[None, :] <= ranges[:, None] + 1e-9  # drift beyond a wall is not on the way
         drift_ahead = np.where(reach.any(1), (values * reach).sum(1) / np.maximum(reach.sum(1), 1), 0.0)
         obs = np.concatenate([np.clip(goal_b / GOAL_SCALE, -1, 1), [min(np.linalg.norm(d) / GOAL_SCALE, 1.0)],
-                              [np.cos(path), np.sin(path)], ranges / RANGE, drift_ahead, [self.drift_rate(xy, yaw) / self.scale]])
+                              [np.cos(path), np.sin(path)], ranges / RANGE, drift_ahead,
+                              [self.drift_rate(xy, yaw) / self.scale]])
         return obs.astype(np.float32)

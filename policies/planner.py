@@ -27,7 +27,8 @@ class PlanningError(ValueError):
     """No path: the start or goal is blocked, off the grid, or the goal cannot be reached."""
 
 
-def drift_rates(odometry: OdometryConfig | None = None, step_length: float = 0.1, lever_arm: float = 10.0) -> np.ndarray:
+def drift_rates(odometry: OdometryConfig | None = None, step_length: float = 0.1,
+                lever_arm: float = 10.0) -> np.ndarray:
     """Metres of position error per metre walked while one axis (x, y, z, roll, pitch, yaw) is
     left to leg odometry, from its noise model (l3e_env.odometry.LegOdometry):
     - systematic parts grow linearly: the stride-scale error (x), the z and yaw biases; their

@@ -43,7 +43,8 @@ def plot_locmap(path: str | Path, scene: Scene, locmap: LocalizabilityMap, space
         worst = locmap.yaws[np.argmax(masked[:, :, i], axis=1)]
         show = masked[:, :, i].max(axis=1) > 0
         d = 0.6 * np.stack([np.cos(worst), np.sin(worst)], -1)[show]
-        ax.quiver(*locmap.positions[show].T, *d.T, angles="xy", scale_units="xy", scale=1, width=0.002, color="tab:cyan")
+        ax.quiver(*locmap.positions[show].T, *d.T, angles="xy", scale_units="xy", scale=1, width=0.002,
+                  color="tab:cyan")
         ax.set_title(f"{AXES[i]}: masked at {100 * masked[:, :, i].mean():.0f}% of poses")
         fig.colorbar(sc, ax=ax, shrink=0.7, label="p(non-localizable)")
     fig.suptitle(f"{scene.name}: localizability map ({len(locmap.positions)} positions x {len(locmap.yaws)} headings)")

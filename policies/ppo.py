@@ -87,7 +87,8 @@ def train_ppo(out: str | Path, contexts: list[SceneContext], detector: str = "le
                     reset_num_timesteps=False)
     model.save(last)
     model.save(out / "policy.zip")
-    summary = {"observation": OBSERVATION, "scenes": scenes, "detector": detector, "timesteps": int(model.num_timesteps),
+    summary = {"observation": OBSERVATION, "scenes": scenes, "detector": detector,
+               "timesteps": int(model.num_timesteps),
                "seed": seed, "fast_env": plain(dataclasses.asdict(config))}
     (out / "policy.json").write_text(json.dumps(summary, indent=2))
     return summary

@@ -42,7 +42,8 @@ def test_free_space_matches_the_robot(small_fork):
     assert not space.is_free(np.array([[10.0, 1.6], [10.0, -1.6]])).any()
     # the ground outside the boundary walls is not reachable from the start
     assert not space.is_free(np.array([10.0, -12.0]))
-    assert space.clearance[tuple(space.index(np.array([10.0, 0.0])))] < space.clearance[tuple(space.index(np.array([-5.0, 3.0])))]
+    clearance = lambda xy: space.clearance[tuple(space.index(np.array(xy)))]  # noqa: E731
+    assert clearance([10.0, 0.0]) < clearance([-5.0, 3.0])
     with pytest.raises(FreeSpaceError, match="not in the free space"):
         reachable_from(space, np.array([10.0, 1.6]))
 
@@ -152,12 +153,13 @@ def test_fast_env_rewards_progress_and_penalises_drift(fast_env):
         if terminated or truncated:
             break
     assert terminated and not truncated  # straight ahead reaches the goal
-    assert info["path_length"] == pytest.approx(np.hypot(*(fast_env.view.goal - fast_env.contexts[0].scene.start[:2])) - 1,
-                                               abs=0.6)
+    straight = np.hypot(*(fast_env.view.goal - fast_env.contexts[0].scene.start[:2]))
+    assert info["path_length"] == pytest.approx(straight - 1, abs=0.6)
     assert info["expected_drift"] == pytest.approx(12 * drift_rates()[0], rel=0.15)
     # the reward is progress minus lam times that drift (plus the goal, minus step penalties)
     cfg = fast_env.config
-    expected = info["path_length"] - cfg.lam * info["expected_drift"] + cfg.goal_reward - cfg.step_penalty * fast_env.decisions
+    expected = (info["path_length"] - cfg.lam * info["expected_drift"] + cfg.goal_reward
+                - cfg.step_penalty * fast_env.decisions)
     assert total == pytest.approx(expected, abs=1.0)
 
 
