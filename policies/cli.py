@@ -80,7 +80,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     print(f"{args.episodes} episodes per policy on {', '.join(scenes)}, full pipeline ({args.detector} detector) "
           f"-> {out.resolve()}")
     rows = evaluate_policies(out, args.policy or ["shortest", "planner"], scenes, args.episodes, args.seed,
-                             args.detector, args.cache_dir, args.lam, args.workers, progress=not args.quiet)
+                             args.detector, args.cache_dir, args.lam, args.workers, steer_on=args.steer_on,
+                             progress=not args.quiet)
     print(format_rows(rows))
     print(f"routes: {out / 'routes.png'}")
     return 0
@@ -125,6 +126,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--detector", default="learned", help="detector of the fusion and the planner's map")
     g.add_argument("--lam", type=float, default=50.0, help="the planner's drift weight (default 50)")
     g.add_argument("--workers", type=int, default=1, help="episodes run in parallel processes")
+    g.add_argument("--steer-on", dest="steer_on", choices=["estimate", "truth"], default="estimate",
+                   help="pose the policies steer on (default: the fused estimate); ATE is measured either way")
     g.add_argument("--seed", type=int, default=0)
     g.add_argument("--out", help="output folder (default: l3e_out/policy-eval-<time>)")
     g.set_defaults(func=_cmd_evaluate)

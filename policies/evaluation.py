@@ -1,7 +1,8 @@
 """`l3e policy evaluate`: seeded episodes of navigation policies with the full pipeline (LiDAR,
-detector, ICP and fusion in the loop of NavigationEnv). Every policy steers on the fused
+detector, ICP and fusion in the loop of NavigationEnv). By default every policy steers on the fused
 estimate, the pose the robot believes, so that a policy that walks where localization fails
-pays for it in its ATE and may miss the goal.
+pays for it in its ATE and may miss the goal; `steer_on="truth"` steers on the true pose and
+still measures the fused estimate's error, separating route choice from getting lost.
 
 Per episode: success (reached the goal within the time limit), whether it took the scene's
 feature-rich route, final and mean position error of the fused estimate against ground truth,
@@ -83,8 +84,11 @@ def make_controller(policy: str, scene: str, detector: str, cache_dir: str | Pat
     raise ValueError(f"unknown policy '{policy}'; use one of {', '.join(POLICY_KINDS)}")
 
 
+STEER_ON = ("estimate", "truth")
+
+
 def run_episode(policy: str, scene: str, seed: int, detector: str = "learned", cache_dir: str | Path | None = None,
-                lam: float = 50.0, backend: str = "graph") -> Episode:
+                lam: float = 50.0, backend: str = "graph", steer_on: str = "estimate") -> Episode:
     import torch
 
     torch.set_num_threads(1)
@@ -95,7 +99,8 @@ def run_episode(policy: str, scene: str, seed: int, detector: str = "learned", c
         trail, length, terminated, truncated = [info["T_w_b"][:2, 3]], 0.0, False, False
         while not (terminated or truncated):
             previous = info["T_w_b"][:3, 3]
-            _, _, terminated, truncated, info = env.step(controller(info["fused_T_w_b"], env.steps))
+            pose = info["fused_T_w_b"] if steer_on == "estimate" else info["T_w_b"]
+            _, _, terminated, truncated, info = env.step(controller(pose, env.steps))
             length += float(np.linalg.norm(info["T_w_b"][:3, 3] - previous))
             if env.steps % 5 == 0:
                 trail.append(info["T_w_b"][:2, 3])
@@ -137,11 +142,14 @@ def format_rows(rows: list[dict[str, Any]]) -> str:
 
 def evaluate_policies(out: str | Path, policies: list[str], scenes: list[str], episodes: int = 50, seed: int = 0,
                       detector: str = "learned", cache_dir: str | Path | None = None, lam: float = 50.0,
-                      workers: int = 1, backend: str = "graph", progress: bool = True) -> list[dict[str, Any]]:
+                      workers: int = 1, backend: str = "graph", steer_on: str = "estimate",
+                      progress: bool = True) -> list[dict[str, Any]]:
     """Episode i of every policy runs on scenes[i % len(scenes)] with environment seed seed + i.
     Writes episodes.jsonl, summary.json, summary.txt and routes.png into `out`."""
     from .plots import plot_paths
 
+    if steer_on not in STEER_ON:
+        raise ValueError(f"steer_on must be one of {STEER_ON}, got {steer_on!r}")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     for name in dict.fromkeys(scenes):  # maps must exist: build them here, once, not in every worker
@@ -149,9 +157,16 @@ def evaluate_policies(out: str | Path, policies: list[str], scenes: list[str], e
             if p != "shortest":
                 scene_context(name, detector if not p.startswith("ppo:") else _ppo_detector(p, detector),
                               cache_dir, progress=progress)
-    jobs = [(p, scenes[i % len(scenes)], seed + i, detector, cache_dir, lam, backend)
+    jobs = [(p, scenes[i % len(scenes)], seed + i, detector, cache_dir, lam, backend, steer_on)
             for i in range(episodes) for p in policies]
-    # episodes are appended as they finish; a killed evaluation resumes where it stopped
+    # episodes are appended as they finish; a killed evaluation resumes where it stopped, with the
+    # settings it started with
+    settings = {"detector": detector, "lam": lam, "backend": backend, "steer_on": steer_on}
+    settings_file = out / "settings.json"
+    if settings_file.exists() and json.loads(settings_file.read_text()) != settings:
+        raise ValueError(f"{out} holds episodes run with {settings_file.read_text()}; use another folder "
+                         f"for {settings}")
+    settings_file.write_text(json.dumps(settings))
     log = out / "episodes.jsonl"
     done = {}
     if log.exists():
@@ -183,6 +198,7 @@ def evaluate_policies(out: str | Path, policies: list[str], scenes: list[str], e
     rows = summarize(results)
     (out / "summary.json").write_text(json.dumps({"rows": rows, "scenes": scenes, "episodes": episodes, "seed": seed,
                                                   "detector": detector, "lam": lam, "backend": backend,
+                                                  "steer_on": steer_on,
                                                   "seconds": round(time.perf_counter() - t0, 1)}, indent=2))
     (out / "summary.txt").write_text(format_rows(rows) + "\n")
     first = scenes[0]

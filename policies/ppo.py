@@ -46,7 +46,6 @@ def train_ppo(out: str | Path, contexts: list[SceneContext], detector: str = "le
     import torch
     from stable_baselines3.common.callbacks import BaseCallback, CheckpointCallback
     from stable_baselines3.common.logger import configure
-    from stable_baselines3.common.monitor import Monitor
     from stable_baselines3.common.vec_env import DummyVecEnv, VecMonitor
 
     out = Path(out)
@@ -55,12 +54,12 @@ def train_ppo(out: str | Path, contexts: list[SceneContext], detector: str = "le
     config = config or FastEnvConfig()
     scenes = [c.scene.name for c in contexts]
 
-    def make(i: int):
-        return lambda: Monitor(MapNavigationEnv(contexts, config))
-
-    venv = VecMonitor(DummyVecEnv([make(i) for i in range(n_envs)]), str(out / "monitor.csv"))
-    venv.seed(seed)
     last = out / "last.zip"
+    # one episode log per run: monitor.csv, then monitor-1.csv, ... for each resumption
+    runs = len(list(out.glob("monitor*.csv")))
+    monitor = out / ("monitor.csv" if runs == 0 else f"monitor-{runs}.csv")
+    venv = VecMonitor(DummyVecEnv([lambda: MapNavigationEnv(contexts, config)] * n_envs), str(monitor))
+    venv.seed(seed)
     if last.exists():
         model = sb3.PPO.load(last, env=venv, device="cpu")
     else:

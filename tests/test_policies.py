@@ -197,7 +197,7 @@ def test_ppo_trains_resumes_and_refuses_other_observations(tmp_path, small_fork)
     assert first["timesteps"] >= 512 and (out / "last.zip").exists()
     resumed = train_ppo(out, contexts, "eigen:30", timesteps=1024, n_envs=2, progress=False)
     assert resumed["timesteps"] >= 1024
-    assert (out / "progress.csv").exists() and (out / "monitor.csv").exists()
+    assert (out / "progress.csv").exists() and (out / "monitor.csv").exists() and (out / "monitor-1.csv").exists()
     policy = PPOPolicy(out)
     action = policy(np.zeros(PolicyView.size, dtype=np.float32))
     assert action.shape == (3,) and np.all(np.abs(action) <= 1)
@@ -231,6 +231,9 @@ def test_full_pipeline_evaluation_on_the_small_fork(small_fork, monkeypatch, tmp
     again = evaluation.evaluate_policies(tmp_path, ["shortest", "planner"], ["fork-0"], episodes=1,
                                          detector="eigen:30", cache_dir=cache, lam=200.0, progress=False)
     assert again == rows
+    with pytest.raises(ValueError, match="holds episodes run with"):
+        evaluation.evaluate_policies(tmp_path, ["shortest"], ["fork-0"], episodes=1, detector="eigen:30",
+                                     cache_dir=cache, steer_on="truth", progress=False)
     with pytest.raises(ValueError, match="unknown policy"):
         evaluation.make_controller("wander", "fork-0", "eigen:30", cache, 50.0)
 
