@@ -55,9 +55,9 @@ def train_ppo(out: str | Path, contexts: list[SceneContext], detector: str = "le
     scenes = [c.scene.name for c in contexts]
 
     last = out / "last.zip"
-    # one episode log per run: monitor.csv, then monitor-1.csv, ... for each resumption
-    runs = len(list(out.glob("monitor*.csv")))
-    monitor = out / ("monitor.csv" if runs == 0 else f"monitor-{runs}.csv")
+    # one episode log per run: monitor.csv, then resume-1.monitor.csv, ... (SB3 wants the suffix)
+    runs = len(list(out.glob("*monitor.csv")))
+    monitor = out / ("monitor.csv" if runs == 0 else f"resume-{runs}.monitor.csv")
     venv = VecMonitor(DummyVecEnv([lambda: MapNavigationEnv(contexts, config)] * n_envs), str(monitor))
     venv.seed(seed)
     if last.exists():

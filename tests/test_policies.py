@@ -197,7 +197,8 @@ def test_ppo_trains_resumes_and_refuses_other_observations(tmp_path, small_fork)
     assert first["timesteps"] >= 512 and (out / "last.zip").exists()
     resumed = train_ppo(out, contexts, "eigen:30", timesteps=1024, n_envs=2, progress=False)
     assert resumed["timesteps"] >= 1024
-    assert (out / "progress.csv").exists() and (out / "monitor.csv").exists() and (out / "monitor-1.csv").exists()
+    assert (out / "progress.csv").exists() and (out / "monitor.csv").exists()
+    assert (out / "resume-1.monitor.csv").exists()  # the resumed run keeps its own episode log
     policy = PPOPolicy(out)
     action = policy(np.zeros(PolicyView.size, dtype=np.float32))
     assert action.shape == (3,) and np.all(np.abs(action) <= 1)
