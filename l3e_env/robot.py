@@ -8,6 +8,14 @@ from .transforms import planar_pose, yaw_of
 from .world import World
 
 
+def planar_motion(yaw: float, twist: np.ndarray, dt: float) -> tuple[float, float, float]:
+    """World (dx, dy) and the new yaw after applying the body twist (vx, vy, yaw_rate) for dt,
+    turning at the midpoint of the step."""
+    mid = yaw + 0.5 * twist[2] * dt
+    return ((np.cos(mid) * twist[0] - np.sin(mid) * twist[1]) * dt,
+            (np.sin(mid) * twist[0] + np.cos(mid) * twist[1]) * dt, yaw + twist[2] * dt)
+
+
 class SpawnError(RuntimeError):
     """The robot cannot stand at the requested pose (inside geometry or no ground)."""
 
@@ -52,10 +60,7 @@ class Robot:
         twist = np.clip(twist, -np.asarray(self.config.max_twist), self.config.max_twist)
         dt = self.config.dt
         x, y, yaw = self.T_w_b[0, 3], self.T_w_b[1, 3], yaw_of(self.T_w_b)
-        mid = yaw + 0.5 * twist[2] * dt
-        dx = (np.cos(mid) * twist[0] - np.sin(mid) * twist[1]) * dt
-        dy = (np.sin(mid) * twist[0] + np.cos(mid) * twist[1]) * dt
-        new_yaw = yaw + twist[2] * dt
+        dx, dy, new_yaw = planar_motion(yaw, twist, dt)
         candidates = [(dx, dy, new_yaw), (dx, 0.0, new_yaw), (0.0, dy, new_yaw), (0.0, 0.0, new_yaw), (0.0, 0.0, yaw)]
         for i, (cx, cy, cyaw) in enumerate(candidates):
             if i > 0 and (cx, cy, cyaw) == candidates[i - 1]:

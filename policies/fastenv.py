@@ -19,6 +19,7 @@ import numpy as np
 from gymnasium import spaces
 
 from l3e_env.config import RobotConfig
+from l3e_env.robot import planar_motion
 
 from .context import SceneContext
 from .observation import PolicyView
@@ -34,13 +35,6 @@ class FastEnvConfig:
     goal_reward: float = 10.0
     goal_radius: float = 1.0
     robot: RobotConfig = field(default_factory=RobotConfig)
-
-
-def integrate(x: float, y: float, yaw: float, twist: np.ndarray, dt: float) -> tuple[float, float, float]:
-    """The robot's planar motion for one step (the midpoint rule of l3e_env.robot.Robot.step)."""
-    mid = yaw + 0.5 * twist[2] * dt
-    return (x + (np.cos(mid) * twist[0] - np.sin(mid) * twist[1]) * dt,
-            y + (np.sin(mid) * twist[0] + np.cos(mid) * twist[1]) * dt, yaw + twist[2] * dt)
 
 
 class MapNavigationEnv(gym.Env):
@@ -80,7 +74,8 @@ class MapNavigationEnv(gym.Env):
         twist = np.clip(action, -1, 1) * np.asarray(robot.max_twist)
         blocked, drift, moved = False, 0.0, 0.0
         for _ in range(cfg.action_repeat):
-            x, y, yaw = integrate(self.x, self.y, self.yaw, twist, robot.dt)
+            dx, dy, yaw = planar_motion(self.yaw, twist, robot.dt)  # the simulated robot's own kinematics
+            x, y = self.x + dx, self.y + dy
             for cx, cy in ((x, y), (x, self.y), (self.x, y), (self.x, self.y)):  # slide along walls
                 if self.view.space.is_free(np.array([cx, cy])):
                     break

@@ -31,6 +31,14 @@ class MapCacheError(FileNotFoundError):
     """No cached map for these settings, or a cache file that does not match them."""
 
 
+def heading_bins(heading: np.ndarray, bins: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The two heading bins (of `bins` evenly spaced from 0) around each heading, and the weight
+    of the upper one, for linear interpolation around the circle."""
+    f = (np.asarray(heading, dtype=np.float64) % (2 * np.pi)) / (2 * np.pi) * bins
+    lo = np.floor(f).astype(np.int64) % bins
+    return lo, (lo + 1) % bins, f - np.floor(f)
+
+
 @dataclass
 class LocalizabilityMap:
     """probabilities[n, k] are the detector's six non-localizability probabilities (x, y, z,
@@ -59,12 +67,9 @@ class LocalizabilityMap:
         values = self.masked if values is None else values
         xy = np.asarray(xy, dtype=np.float64)
         _, n = self._tree.query(xy.reshape(-1, 2))
-        k = len(self.yaws)
         yaw = np.broadcast_to(np.asarray(yaw, dtype=np.float64), xy.shape[:-1]).reshape(-1)
-        f = (yaw % (2 * np.pi)) / (2 * np.pi) * k
-        lo = np.floor(f).astype(np.int64) % k
-        w = (f - np.floor(f))[:, None]
-        out = (1 - w) * values[n, lo] + w * values[n, (lo + 1) % k]
+        lo, hi, w = heading_bins(yaw, len(self.yaws))
+        out = (1 - w[:, None]) * values[n, lo] + w[:, None] * values[n, hi]
         return out.reshape(*xy.shape[:-1], values.shape[-1])
 
     def save(self, path: str | Path) -> None:

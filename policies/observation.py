@@ -7,7 +7,7 @@ import numpy as np
 from gymnasium import spaces
 
 from .freespace import FreeSpace
-from .locmap import LocalizabilityMap
+from .locmap import LocalizabilityMap, heading_bins
 from .planner import Planner, drift_rates
 
 SECTORS = 16  # body-frame directions, counter-clockwise from straight ahead
@@ -65,11 +65,8 @@ class PolicyView:
         idx = self.space.index(xy)
         ok = self.space.inside(idx)
         ix, iy = np.where(ok, idx[..., 0], 0), np.where(ok, idx[..., 1], 0)
-        k = self.table.shape[2]
-        f = (np.asarray(heading, dtype=np.float64) % (2 * np.pi)) / (2 * np.pi) * k
-        lo = np.floor(f).astype(np.int64) % k
-        w = f - np.floor(f)
-        value = (1 - w) * self.table[ix, iy, lo] + w * self.table[ix, iy, (lo + 1) % k]
+        lo, hi, w = heading_bins(heading, self.table.shape[2])
+        value = (1 - w) * self.table[ix, iy, lo] + w * self.table[ix, iy, hi]
         return np.where(ok, value, 0.0)
 
     def __call__(self, x: float, y: float, yaw: float) -> np.ndarray:

@@ -73,7 +73,7 @@ class Planner:
         ids = -np.ones(space.shape, dtype=np.int64)
         ids[cells[:, 0], cells[:, 1]] = np.arange(len(cells))
         self.ids = ids
-        rows, cols, lengths, drifts, costs = [], [], [], [], []
+        rows, cols, drifts, costs = [], [], [], []
         # near walls a path is longer in effect (the follower cuts corners): cost per metre grows
         # linearly to clearance_weight as the clearance falls from `clearance` to zero
         near = clearance_weight * np.clip(1 - space.clearance[cells[:, 0], cells[:, 1]] / clearance, 0, 1)
@@ -88,12 +88,12 @@ class Planner:
                 mid = space.center(cells[a] + 0.5 * np.array([dx, dy]))
                 masked = locmap.lookup(mid, np.full(len(a), np.arctan2(dy, dx)))
                 drift = length * masked @ self.rates
-            rows.append(a), cols.append(b), lengths.append(np.full(len(a), length)), drifts.append(drift)
+            rows.append(a), cols.append(b), drifts.append(drift)
             costs.append(length * (1 + 0.5 * (near[a] + near[b])) + self.lam * drift)
-        self.rows, self.cols = np.concatenate(rows), np.concatenate(cols)
-        self.edge_length, self.edge_drift = np.concatenate(lengths), np.concatenate(drifts)
-        n = len(cells)
-        self.graph = coo_matrix((np.concatenate(costs), (self.rows, self.cols)), shape=(n, n)).tocsr()
+        rows, cols, n = np.concatenate(rows), np.concatenate(cols), len(cells)
+        self.graph = coo_matrix((np.concatenate(costs), (rows, cols)), shape=(n, n)).tocsr()
+        # same sparsity as the cost graph: a plan reads its edges' drift back by (from, to)
+        self.drift_graph = coo_matrix((np.concatenate(drifts), (rows, cols)), shape=(n, n)).tocsr()
 
     def _node(self, xy: np.ndarray, what: str) -> int:
         xy = np.asarray(xy, dtype=np.float64)[:2]
@@ -126,9 +126,9 @@ class Planner:
             nodes.append(int(pred[nodes[-1]]))
         nodes.reverse()
         path = self.space.center(self.cells[nodes])
-        edge = {(int(a), int(b)): i for i, (a, b) in enumerate(zip(self.rows, self.cols))} if len(nodes) > 1 else {}
-        used = [edge[(a, b)] for a, b in zip(nodes[:-1], nodes[1:])]
-        return Plan(path, float(self.edge_length[used].sum()), float(self.edge_drift[used].sum()), float(dist[g]))
+        length = float(np.linalg.norm(np.diff(path, axis=0), axis=1).sum())
+        drift = float(np.asarray(self.drift_graph[nodes[:-1], nodes[1:]]).sum()) if len(nodes) > 1 else 0.0
+        return Plan(path, length, drift, float(dist[g]))
 
 
 def route_of(plan: Plan, space: FreeSpace) -> np.ndarray:
