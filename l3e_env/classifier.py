@@ -19,6 +19,7 @@ import torch
 from torch import nn
 
 from .config import from_dict, plain
+from .files import write_atomic
 from .sparse import DownConv, Level, SubmanifoldConv, UpConv, global_max_pool, voxelize
 
 CHECKPOINT_FORMAT = "l3e-classifier"
@@ -185,9 +186,7 @@ def save_checkpoint(path: str | Path, model: LocalizabilityNet, thresholds: np.n
         "model": plain(dataclasses.asdict(model.config)),
         "state_dict": model.state_dict(), "thresholds": [float(t) for t in thresholds], **meta, **(extra or {}),
     }
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save(state, tmp)
-    tmp.replace(path)
+    write_atomic(path, lambda fh: torch.save(state, fh))
 
 
 def load_checkpoint(path: str | Path) -> dict[str, Any]:

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
@@ -27,6 +26,7 @@ from tqdm import tqdm
 from scenes import DATASET_SCENES, make_scene
 
 from .config import LidarConfig, from_dict
+from .files import write_atomic
 from .labels import AXES, LabelConfig, SamplingError, label_parent, sample_parent_pose
 from .lidar import Lidar
 from .raycast import EmbreeCaster
@@ -134,18 +134,12 @@ def run_shard(config: DatasetConfig, shard: tuple[str, int, int, int]) -> dict[s
 
 
 def _write_atomic(path: Path, write: Callable[[BinaryIO], None]) -> None:
-    """Write through a temporary file, fsync, rename: a reader never sees half a file, and a
-    full disk leaves what was finished in place."""
-    tmp = path.with_name(path.name + ".tmp")
+    """A full disk leaves what was finished in place (`write_atomic`), with an error that says so."""
     try:
-        with open(tmp, "wb") as fh:
-            write(fh)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
+        write_atomic(path, write)
     except OSError as exc:
-        tmp.unlink(missing_ok=True)
-        raise DatasetError(f"cannot write {path} ({exc.strerror or exc}); finished shards are kept, run again to resume") from exc
+        raise DatasetError(f"cannot write {path} ({exc.strerror or exc}); finished shards are kept, "
+                           "run again to resume") from exc
 
 
 def _settings(config: DatasetConfig) -> dict[str, Any]:

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from l3e_env.config import LidarConfig, RobotConfig, plain, to_dict
+from l3e_env.files import write_atomic
 from scenes import Scene, make_scene
 
 from .freespace import FreeSpace, build_free_space, reachable_from
@@ -37,11 +38,8 @@ def free_space(scene: Scene, cache_dir: str | Path | None = None, resolution: fl
             return FreeSpace(z["origin"], float(z["resolution"]), z["free"], z["ground"], z["clearance"])
     space = reachable_from(build_free_space(scene, resolution, robot, progress=progress), scene.start[:2])
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
-        np.savez(f, origin=space.origin, resolution=space.resolution, free=space.free, ground=space.ground,
-                 clearance=space.clearance)
-    tmp.replace(path)
+    write_atomic(path, lambda fh: np.savez(fh, origin=space.origin, resolution=space.resolution, free=space.free,
+                                           ground=space.ground, clearance=space.clearance))
     return space
 
 

@@ -16,6 +16,7 @@ from tqdm import tqdm
 from l3e_env.classifier import DEFAULT_CHECKPOINT, Classifier, ScanError
 from l3e_env.config import LidarConfig, RobotConfig, plain, to_dict
 from l3e_env.detectors import make_detector
+from l3e_env.files import write_atomic
 from l3e_env.lidar import Lidar
 from l3e_env.raycast import make_caster
 from l3e_env.registration import RegistrationError, register
@@ -75,13 +76,10 @@ class LocalizabilityMap:
     def save(self, path: str | Path) -> None:
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(path.name + ".tmp")
-        with open(tmp, "wb") as f:
-            np.savez_compressed(f, positions=self.positions, yaws=self.yaws, probabilities=self.probabilities,
-                                thresholds=self.thresholds,
-                                meta=np.array(json.dumps(plain({**self.meta, "format": MAP_FORMAT,
-                                                                "scene": self.scene}))))
-        os.replace(tmp, path)
+        meta = np.array(json.dumps(plain({**self.meta, "format": MAP_FORMAT, "scene": self.scene})))
+        write_atomic(path, lambda fh: np.savez_compressed(fh, positions=self.positions, yaws=self.yaws,
+                                                          probabilities=self.probabilities,
+                                                          thresholds=self.thresholds, meta=meta))
 
     @classmethod
     def load(cls, path: str | Path) -> LocalizabilityMap:

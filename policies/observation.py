@@ -38,6 +38,7 @@ class PolicyView:
         self.table = (locmap.masked @ rates)[nearest].reshape(nx, ny, len(locmap.yaws))
         # shortest distances through free space
         self.to_go = Planner(space, lam=0.0, clearance_weight=0.0).cost_to_go(self.goal)
+        self.downhill = _downhill_headings(self.to_go)
         self.angles = np.arange(SECTORS) * 2 * np.pi / SECTORS
         self.observation_space = spaces.Box(-1.0, float(rates.sum() / self.scale), (self.size,), np.float32)
 
@@ -49,15 +50,12 @@ class PolicyView:
         return float(self.to_go[idx[0], idx[1]])
 
     def shortest_direction(self, xy: np.ndarray) -> float:
-        """World heading towards the neighbouring cell with the least distance to go."""
+        """World heading towards the neighbouring cell with the least distance to go (towards the
+        goal itself where no neighbour is closer, or off the grid)."""
         idx = self.space.index(xy)
-        best, heading = self.distance_to_go(xy), float(np.arctan2(*(self.goal - xy)[::-1]))
-        for dx in (-1, 0, 1):
-            for dy in (-1, 0, 1):
-                n = idx + (dx, dy)
-                if (dx or dy) and self.space.inside(n) and self.to_go[n[0], n[1]] < best:
-                    best, heading = self.to_go[n[0], n[1]], float(np.arctan2(dy, dx))
-        return heading
+        if self.space.inside(idx) and np.isfinite(heading := self.downhill[idx[0], idx[1]]):
+            return float(heading)
+        return float(np.arctan2(*(self.goal - xy)[::-1]))
 
     def drift_rate(self, xy: np.ndarray, heading: np.ndarray | float) -> np.ndarray:
         """Expected drift per metre walked (m/m) at points (..., 2) with headings (...), linear
@@ -86,3 +84,16 @@ class PolicyView:
                               [np.cos(path), np.sin(path)], ranges / RANGE, drift_ahead,
                               [self.drift_rate(xy, yaw) / self.scale]])
         return obs.astype(np.float32)
+
+
+def _downhill_headings(to_go: np.ndarray) -> np.ndarray:
+    """Per cell, the heading (rad) to the 8-neighbour with the least distance to go, NaN where no
+    neighbour is closer than the cell; ties go to the first neighbour in (dx, dy) order."""
+    steps = [(dx, dy) for dx in (-1, 0, 1) for dy in (-1, 0, 1) if dx or dy]
+    padded = np.pad(to_go, 1, constant_values=np.inf)
+    nx, ny = to_go.shape
+    around = np.stack([padded[1 + dx:1 + dx + nx, 1 + dy:1 + dy + ny] for dx, dy in steps])
+    best = np.argmin(around, axis=0)
+    headings = np.array([np.arctan2(dy, dx) for dx, dy in steps])[best]
+    closer = np.take_along_axis(around, best[None], 0)[0] < to_go
+    return np.where(closer, headings, np.nan)
