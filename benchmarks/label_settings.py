@@ -23,9 +23,11 @@ POSES = [("tunnel-0", (50, 0, 0.85, 0, 0, 0), "tunnel axis x"), ("office-0", (5,
          ("mine-0", (50, 0, 0.85, 0, 0, 0), "tunnel: x"), ("mine-0", (115, 0, 0.85, 0, 0, 0), "quarry")]
 SETTINGS = {
     "single 1.0 m, 30 it, 0.25 m voxels, all points": dict(max_correspondence_distance=(1.0,), max_iterations=30,
-                                                           downsampling_resolution=0.25, max_source_points=0),
-    "coarse-to-fine 2.0/0.5 m, 15 it, 0.3 m, 2000 pts": dict(max_source_points=2000),
-    "default: 2.0/0.5 m, 15 it, 0.3 m, 1000 pts": dict(),
+                                                           downsampling_resolution=0.25, max_source_points=0,
+                                                           num_neighbors=10),
+    "coarse-to-fine 2.0/0.5 m, 15 it, 0.3 m, 10 nb": dict(downsampling_resolution=0.3, num_neighbors=10),
+    "coarse-to-fine 2.0/0.5 m, 15 it, 0.15 m, 10 nb": dict(num_neighbors=10),
+    "default: 2.0/0.5 m, 15 it, 0.15 m, 20 nb, 1000 pts": dict(),
     "coarse-to-fine 5.0/1.0/0.3 m, 10 it": dict(max_correspondence_distance=(5.0, 1.0, 0.3), max_iterations=10),
 }
 

@@ -26,10 +26,15 @@ class RegistrationConfig:
     `max_correspondence_distance` is a coarse-to-fine schedule (metres), each stage starting
     from the previous estimate, as a tuned scan-to-scan odometry does: the coarse stage pulls in
     children that start 20-30 cm off, the fine one rejects wrong matches near convergence.
+
+    Voxels of 0.15 m with normals from 20 neighbours. Both scans are voxelised in their own
+    sensor frame, and at 0.3 m that grid pulls ICP towards zero motion: a 0.1 m step came out
+    as 0.08 m beside the fork's corridor (`benchmarks/icp_step_bias.py`). 20 neighbours keep the
+    finer normals as smooth as the coarse ones; with 10, the mine yard's labels turned noisy.
     """
 
-    downsampling_resolution: float = 0.3
-    num_neighbors: int = 10  # for target normals
+    downsampling_resolution: float = 0.15
+    num_neighbors: int = 20  # for target normals
     max_correspondence_distance: tuple[float, ...] = (2.0, 0.5)
     max_iterations: int = 15  # per stage
     max_source_points: int = 1000  # evenly strided subset of the downsampled source (0: all)
