@@ -1,19 +1,17 @@
 """One scene made ready for navigation: its free space and localizability map, both cached."""
 from __future__ import annotations
 
-import hashlib
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from l3e_env.config import LidarConfig, RobotConfig, plain, to_dict
+from l3e_env.config import LidarConfig, RobotConfig, to_dict
 from l3e_env.files import write_atomic
 from scenes import Scene, make_scene
 
 from .freespace import FreeSpace, build_free_space, reachable_from
-from .locmap import LocalizabilityMap, default_cache_dir, get_map
+from .locmap import LocalizabilityMap, default_cache_dir, get_map, settings_digest
 
 MAP_RESOLUTION = 2.0  # m between mapped positions; 4 headings each (about 40 s per fork variant)
 
@@ -31,8 +29,7 @@ def free_space(scene: Scene, cache_dir: str | Path | None = None, resolution: fl
     robot = robot or RobotConfig()
     key = {"scene": scene.name, "faces": int(len(scene.mesh.faces)), "bounds": scene.bounds.round(3).tolist(),
            "start": scene.start.round(3).tolist(), "resolution": resolution, "robot": to_dict(robot)}
-    digest = hashlib.sha256(json.dumps(plain(key), sort_keys=True).encode()).hexdigest()[:12]
-    path = Path(cache_dir or default_cache_dir()) / f"{scene.name}-free-{digest}.npz"
+    path = Path(cache_dir or default_cache_dir()) / f"{scene.name}-free-{settings_digest(key)}.npz"
     if path.exists():
         with np.load(path) as z:
             return FreeSpace(z["origin"], float(z["resolution"]), z["free"], z["ground"], z["clearance"])

@@ -161,8 +161,13 @@ def map_settings(scene: Scene, free: FreeSpace, resolution: float, yaw_bins: int
             "seed": int(seed)}
 
 
+def settings_digest(settings: dict[str, Any]) -> str:
+    """A short hash of everything a cached file depends on: other settings, another file name."""
+    return hashlib.sha256(json.dumps(plain(settings), sort_keys=True).encode()).hexdigest()[:12]
+
+
 def cache_path(cache_dir: str | Path, settings: dict[str, Any]) -> Path:
-    key = hashlib.sha256(json.dumps(plain(settings), sort_keys=True).encode()).hexdigest()[:12]
+    key = settings_digest(settings)
     return Path(cache_dir) / f"{settings['scene']}-{settings['lidar']['model']}-{settings['detector']}-{key}.npz"
 
 
