@@ -19,7 +19,7 @@ from l3e_env.detectors import make_detector
 from l3e_env.files import write_atomic
 from l3e_env.lidar import Lidar
 from l3e_env.raycast import make_caster
-from l3e_env.registration import RegistrationError, register
+from l3e_env.registration import RegistrationConfig, RegistrationError, register
 from l3e_env.transforms import planar_pose
 from scenes import Scene
 
@@ -153,12 +153,13 @@ class MapJudge:
 
 def map_settings(scene: Scene, free: FreeSpace, resolution: float, yaw_bins: int, judge: MapJudge,
                  robot: RobotConfig, seed: int) -> dict[str, Any]:
-    """Everything a map depends on; its hash names the cache file."""
+    """Everything a map depends on; its hash names the cache file. The registration is in it
+    because eigen and oracle maps run ICP, so a new ICP setting must not reuse their old maps."""
     return {"format": MAP_FORMAT, "scene": scene.name, "scene_faces": int(len(scene.mesh.faces)),
             "scene_bounds": scene.bounds.round(3).tolist(), "free_space_resolution": free.resolution,
             "free_cells": int(free.free.sum()), "resolution": float(resolution), "yaw_bins": int(yaw_bins),
             "detector": judge.identity, "lidar": to_dict(judge.lidar.config), "robot": to_dict(robot),
-            "seed": int(seed)}
+            "registration": to_dict(RegistrationConfig()), "seed": int(seed)}
 
 
 def settings_digest(settings: dict[str, Any]) -> str:

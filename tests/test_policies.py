@@ -7,6 +7,8 @@ import json
 import numpy as np
 import pytest
 
+from l3e_env.config import plain, to_dict
+from l3e_env.registration import RegistrationConfig
 from policies.context import SceneContext, free_space
 from policies.fastenv import MapNavigationEnv
 from policies.freespace import FreeSpace, FreeSpaceError, build_free_space, reachable_from
@@ -113,6 +115,8 @@ def test_eigen_map_is_cached_and_a_missing_cache_is_named(small_fork):
     built = get_map(scene, space, "eigen:30", cache, resolution=4.0)
     cached = get_map(scene, space, "eigen:30", cache, build=False, resolution=4.0)
     assert np.array_equal(built.probabilities, cached.probabilities, equal_nan=True)
+    # other ICP settings make another file
+    assert cached.meta["registration"] == json.loads(json.dumps(plain(to_dict(RegistrationConfig()))))
     inside = (np.abs(built.positions[:, 1]) < 1.0) & (built.positions[:, 0] > 6) & (built.positions[:, 0] < 14)
     assert inside.any()
     # in the smooth corridor, heading along it (yaw bin 0), x is degenerate; among the pillars it is not
