@@ -98,11 +98,18 @@ def _cmd_train(args: argparse.Namespace) -> int:
                                    "learning_rate": args.lr, "samples_per_epoch": args.samples_per_epoch,
                                    "threads": args.threads}.items()
                  if v is not None}
-    model = {"architecture": args.architecture} if args.architecture else {}
-    cfg = from_dict(TrainConfig, {**_asdict(cfg), **overrides, "model": {**_asdict(cfg.model), **model}})
-    print(f"training {cfg.model.architecture} on {args.dataset} -> {Path(args.out).resolve()} "
+    model = _asdict(cfg.model)
+    if args.init:  # fine-tuning keeps the model settings of the checkpoint it starts from
+        from .classifier import load_checkpoint
+
+        model, overrides["init"] = load_checkpoint(args.init)["model"], args.init
+    if args.architecture:
+        model["architecture"] = args.architecture
+    cfg = from_dict(TrainConfig, {**_asdict(cfg), **overrides, "model": model})
+    datasets = args.dataset[0] if len(args.dataset) == 1 else args.dataset
+    print(f"training {cfg.model.architecture} on {' + '.join(args.dataset)} -> {Path(args.out).resolve()} "
           f"({cfg.epochs} epochs of {cfg.samples_per_epoch or 'all'} samples, {cfg.optimizer}, seed {cfg.seed})")
-    best = train(args.dataset, args.out, cfg, progress=not args.quiet)
+    best = train(datasets, args.out, cfg, progress=not args.quiet)
     print(f"best epoch {best['best_epoch']}: validation F1 {best.get('val_f1', float('nan')):.3f}, "
           f"accuracy {best.get('val_accuracy', float('nan')):.3f}; thresholds {best.get('thresholds')}")
     print(f"model: {Path(args.out) / 'model.pt'}")
@@ -119,7 +126,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     from .evaluation import evaluate
 
     out = Path(args.out or f"l3e_out/evaluate-{time.strftime('%Y%m%d-%H%M%S')}")
-    results = evaluate(args.checkpoint, args.dataset, out, other_sensor=args.other_sensor, progress=not args.quiet)
+    datasets = args.dataset[0] if len(args.dataset) == 1 else args.dataset
+    results = evaluate(args.checkpoint, datasets, out, other_sensor=args.other_sensor, progress=not args.quiet)
     print(results["table"])
     print(f"written: {out / 'table.txt'}, {out / 'results.json'}, {out / 'pr_curves.png'}")
     return 0
@@ -159,7 +167,9 @@ def build_parser() -> argparse.ArgumentParser:
     dsub = p.add_subparsers(dest="dataset_command", required=True)
     g = dsub.add_parser("generate", help="generate or resume a labelled dataset")
     g.add_argument("--out", required=True, help="dataset folder (an unfinished one is resumed)")
-    g.add_argument("--preset", choices=["small", "paper"], default="small")
+    g.add_argument("--preset", choices=["small", "paper", "level"], default="small",
+                   help="small: a first look; paper: the paper's protocol; level: operating poses "
+                        "(level, heading along or across the paths)")
     g.add_argument("--scenes", help="comma-separated scene names (overrides the preset)")
     g.add_argument("--parents", type=int, help="parents per scene")
     g.add_argument("--children", type=int, help="M, children per parent (paper: 200)")
@@ -185,8 +195,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_cmd_ate)
     p = sub.add_parser("train", help="train the localizability classifier on a labelled dataset (resumable)")
-    p.add_argument("--dataset", required=True, help="dataset folder made by 'l3e dataset generate'")
+    p.add_argument("--dataset", required=True, action="append",
+                   help="dataset folder made by 'l3e dataset generate'; repeat to train on several as one")
     p.add_argument("--out", required=True, help="run folder (an unfinished run there is resumed)")
+    p.add_argument("--init", help="model.pt to start from (fine-tuning; its model settings are kept)")
     p.add_argument("--config", help="YAML of TrainConfig (defaults: the shipped model's settings)")
     p.add_argument("--architecture", choices=["resunet", "pointnet"])
     p.add_argument("--epochs", type=int)
@@ -199,7 +211,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_train)
     p = sub.add_parser("evaluate", help="Table III: per-axis scores on train, validation and test, PR curves")
     p.add_argument("--checkpoint", action="append", required=True, help="model.pt of a run; repeat to compare")
-    p.add_argument("--dataset", required=True)
+    p.add_argument("--dataset", required=True, action="append", help="repeat to score several datasets as one")
     p.add_argument("--other-sensor", dest="other_sensor", help="dataset of another sensor, scored whole")
     p.add_argument("--out", help="output folder (default: l3e_out/evaluate-<time>)")
     p.add_argument("--quiet", action="store_true")

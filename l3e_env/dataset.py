@@ -53,6 +53,10 @@ PRESETS: dict[str, dict[str, Any]] = {
               "labels": {"children": 50}},
     # the paper's protocol on every environment of the split (M = 200)
     "paper": {"scenes": DATASET_SCENES, "parents_per_scene": 150},
+    # operating poses on the same environments: level within a few degrees, sensor at the
+    # robot's height, heading along the path or across it (another seed: other positions)
+    "level": {"scenes": DATASET_SCENES, "parents_per_scene": 16, "seed": 1,
+              "labels": {"parent_sigma": [0.3, 0.3, 0.05, 3.0, 3.0, 15.0], "heading": "path"}},
 }
 
 
@@ -297,9 +301,68 @@ class LabelDataset:
         return np.asarray(self.arrays["points"][o[i] : o[i + 1]])
 
     @property
+    def name(self) -> str:
+        return self.folder.name
+
+    @property
     def labels(self) -> np.ndarray:
         return np.asarray(self.arrays["labels"])
 
     @property
     def errors(self) -> np.ndarray:
         return np.asarray(self.arrays["errors"])
+
+
+class DatasetUnion:
+    """Datasets of one sensor and one registration read as one, e.g. the paper's poses and the
+    level operating poses of the same scenes: scenes matched by name, rows in the given order.
+    Offers what training and evaluation read of a LabelDataset."""
+
+    def __init__(self, folders: list[str | Path]):
+        self.parts = [LabelDataset(f) for f in folders]
+        first = self.parts[0].manifest
+        for part in self.parts[1:]:
+            for key in ("lidar", "registration"):
+                if part.manifest["settings"][key] != first["settings"][key]:
+                    raise DatasetError(f"{part.folder} and {self.parts[0].folder} differ in their {key} settings: "
+                                       "they cannot be trained on together")
+        names: list[str] = []
+        for part in self.parts:
+            names += [s for s in part.manifest["scenes"] if s not in names]
+        scene = [np.array([names.index(s) for s in p.manifest["scenes"]], dtype=np.int16)[np.asarray(p.arrays["scene"])]
+                 for p in self.parts]
+        self.folder = self.parts[0].folder
+        self.manifest = {**first, "scenes": names, "settings": {
+            **first["settings"], "labels": [p.manifest["settings"]["labels"] for p in self.parts],
+            "seed": [p.manifest["settings"]["seed"] for p in self.parts]}}
+        self.arrays = {"scene": np.concatenate(scene)}
+        self._starts = np.cumsum([0] + [len(p) for p in self.parts])
+        self.manifest.update(count=len(self), statistics=label_statistics(self.labels))
+
+    @property
+    def name(self) -> str:
+        return "+".join(p.name for p in self.parts)
+
+    def __len__(self) -> int:
+        return int(self._starts[-1])
+
+    def scan(self, i: int) -> np.ndarray:
+        k = int(np.searchsorted(self._starts, i, side="right")) - 1
+        return self.parts[k].scan(i - int(self._starts[k]))
+
+    @property
+    def labels(self) -> np.ndarray:
+        return np.concatenate([p.labels for p in self.parts])
+
+    @property
+    def errors(self) -> np.ndarray:
+        return np.concatenate([p.errors for p in self.parts])
+
+
+def open_datasets(folders: str | Path | list[str | Path]) -> LabelDataset | DatasetUnion:
+    """One dataset folder, or several read as one."""
+    if isinstance(folders, (str, Path)):
+        return LabelDataset(folders)
+    if not folders:
+        raise DatasetError("no dataset folder given")
+    return LabelDataset(folders[0]) if len(folders) == 1 else DatasetUnion(list(folders))

@@ -11,7 +11,7 @@ import numpy as np
 from scenes import TEST_SCENES
 
 from .classifier import Classifier
-from .dataset import LabelDataset
+from .dataset import LabelDataset, open_datasets
 from .labels import AXES
 from .scores import axis_scores, format_table, mean_scores, pr_curve
 from .training import predict_dataset, split_indices
@@ -23,19 +23,19 @@ def model_name(classifier: Classifier, path: Path, taken: set[str]) -> str:
     return name if name not in taken else f"{name}:{path.parent.name}/{path.stem}"
 
 
-def evaluate(checkpoints: list[str | Path], dataset: str | Path, out_dir: str | Path,
+def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Path], out_dir: str | Path,
              other_sensor: str | Path | None = None, progress: bool = True) -> dict[str, Any]:
     """Score each checkpoint on its own train/validation split and on the test families of the
     dataset (and, if given, on every scan of a dataset made with another sensor); writes
     table.txt, results.json and pr_curves.png into out_dir and returns the results."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    data = LabelDataset(dataset)
+    data = open_datasets(dataset)
     other = LabelDataset(other_sensor) if other_sensor else None
     test_scenes = [s for s in TEST_SCENES if s in data.manifest["scenes"]]
     table: dict[str, dict[str, dict[str, np.ndarray]]] = {}
     curves: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = {}
-    results: dict[str, Any] = {"dataset": str(data.folder), "test_scenes": test_scenes, "models": {}}
+    results: dict[str, Any] = {"dataset": data.name, "test_scenes": test_scenes, "models": {}}
     for path in map(Path, checkpoints):
         clf = Classifier.load(path)
         name = model_name(clf, path, set(table))

@@ -31,6 +31,11 @@ class LabelConfig:
     # is yawed ~10 deg from its parent, so in a tunnel the axis error leaks into y (measured:
     # tunnel y flagged). Labels describe the parent scan, so the default is the parent frame.
     error_frame: str = "parent"  # parent | child
+    # Parent heading: "free" draws yaw around 0 with parent_sigma (the paper); "path" draws it
+    # around the path's direction turned by a random multiple of 90 deg, as a robot walking the
+    # path (forwards, backwards or sideways) holds it. With a small roll/pitch sigma this gives
+    # the operating poses that a policy's localizability map asks about.
+    heading: str = "free"  # free | path
 
     def sigma_vector(self, which: str) -> np.ndarray:
         s = np.array(self.parent_sigma if which == "parent" else self.child_sigma, dtype=np.float64)
@@ -71,7 +76,14 @@ def sample_parent_pose(scene: Scene, caster: RayCaster, rng: np.random.Generator
         seg = np.concatenate([[0], np.cumsum(np.linalg.norm(np.diff(path, axis=0), axis=1))])
         s = rng.uniform(0, seg[-1])
         ground = np.array([np.interp(s, seg, path[:, i]) for i in range(3)])
-        pose = np.concatenate([ground + (0, 0, config.sensor_height), np.zeros(3)]) + rng.normal(0, 1, 6) * sigma
+        mean = np.concatenate([ground + (0, 0, config.sensor_height), np.zeros(3)])
+        if config.heading == "path":
+            k = min(int(np.searchsorted(seg, s, side="right")) - 1, len(path) - 2)
+            dx, dy = path[k + 1, :2] - path[k, :2]
+            mean[5] = np.arctan2(dy, dx) + rng.integers(4) * np.pi / 2
+        elif config.heading != "free":
+            raise SamplingError(f"parent heading '{config.heading}': use 'free' or 'path'")
+        pose = mean + rng.normal(0, 1, 6) * sigma
         T = pose_to_matrix(pose)
         d = caster.cast(T[:3, 3], probe, 3.0 + config.sensor_height)
         if np.min(d[:-1]) > config.clearance and np.isfinite(d[-1]):

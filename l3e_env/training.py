@@ -31,7 +31,7 @@ from .classifier import (
     save_checkpoint,
 )
 from .config import dump_yaml, plain, to_dict
-from .dataset import LabelDataset
+from .dataset import DatasetUnion, LabelDataset, open_datasets
 from .scores import axis_scores, best_thresholds, mean_scores
 
 # a reflection of the scan in the x-z or y-z plane leaves every |error| unchanged; swapping x and y
@@ -58,6 +58,8 @@ class TrainConfig:
     validation_scenes: list[str] = field(default_factory=lambda: list(VALIDATION_SCENES))
     seed: int = 0
     threads: int = 2
+    # fine-tuning: start from this checkpoint's weights (same architecture and model settings)
+    init: str | None = None
     # model.pt stores the F-beta-best validation thresholds: in fusion a missed degenerate axis
     # corrupts the estimate while a false flag only hands that axis to the odometry for a step,
     # so recall weighs more (beta 2). Epochs are still chosen by validation F1.
@@ -68,7 +70,7 @@ class TrainingError(RuntimeError):
     """A run that cannot start or resume; the message says why."""
 
 
-def split_indices(data: LabelDataset, scenes: list[str]) -> np.ndarray:
+def split_indices(data: LabelDataset | DatasetUnion, scenes: list[str]) -> np.ndarray:
     """Rows of the dataset whose scene is in `scenes` (all must be in the dataset)."""
     names = data.manifest["scenes"]
     missing = sorted(set(scenes) - set(names))
@@ -100,7 +102,7 @@ def augment(points: np.ndarray, labels: np.ndarray, rng: np.random.Generator) ->
 
 
 @torch.no_grad()
-def predict_dataset(model: LocalizabilityNet, data: LabelDataset, rows: np.ndarray, seed: int = 0,
+def predict_dataset(model: LocalizabilityNet, data: LabelDataset | DatasetUnion, rows: np.ndarray, seed: int = 0,
                     batch_size: int = 16, progress: bool = False) -> np.ndarray:
     """(len(rows), 6) probabilities; the point sampling of scan i is seeded by (seed, i), so the
     figures do not depend on the batch size or the order."""
@@ -122,11 +124,23 @@ def _optimizer(cfg: TrainConfig, model: torch.nn.Module) -> torch.optim.Optimize
     raise TrainingError(f"unknown optimizer '{cfg.optimizer}' (sgd, adamw)")
 
 
-def _meta(cfg: TrainConfig, data: LabelDataset) -> dict[str, Any]:
+def _meta(cfg: TrainConfig, data: LabelDataset | DatasetUnion) -> dict[str, Any]:
     settings = data.manifest["settings"]
     return {"training": plain(to_dict(cfg)), "lidar": settings["lidar"], "registration": settings["registration"],
-            "labels": settings["labels"], "dataset": {"folder": data.folder.name, "count": len(data),
+            "labels": settings["labels"], "dataset": {"folder": data.name, "count": len(data),
                                                       "seed": settings["seed"]}}
+
+
+def _initial_model(cfg: TrainConfig) -> LocalizabilityNet:
+    """Fresh weights seeded by cfg.seed, or (fine-tuning) the weights of cfg.init."""
+    torch.manual_seed(cfg.seed)
+    if cfg.init is None:
+        return LocalizabilityNet(cfg.model)
+    model = model_from_checkpoint(load_checkpoint(cfg.init), cfg.init)
+    if plain(to_dict(model.config)) != plain(to_dict(cfg.model)):
+        raise TrainingError(f"--init {cfg.init}: its model settings {plain(to_dict(model.config))} differ from "
+                            f"this run's {plain(to_dict(cfg.model))}")
+    return model
 
 
 def _resumable(training: dict[str, Any]) -> dict[str, Any]:
@@ -135,10 +149,12 @@ def _resumable(training: dict[str, Any]) -> dict[str, Any]:
     return {k: v for k, v in training.items() if k not in ("epochs", "threads", "threshold_beta")}
 
 
-def train(dataset: str | Path, out_dir: str | Path, cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
-    """Train (or resume) into `out_dir`; returns the summary of the best epoch."""
+def train(dataset: str | Path | list[str | Path], out_dir: str | Path, cfg: TrainConfig,
+          progress: bool = True) -> dict[str, Any]:
+    """Train (or resume) into `out_dir` on one dataset or several read as one; returns the
+    summary of the best epoch."""
     torch.set_num_threads(cfg.threads)
-    data = LabelDataset(dataset)
+    data = open_datasets(dataset)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     train_rows, val_rows = split_indices(data, cfg.train_scenes), split_indices(data, cfg.validation_scenes)
@@ -154,8 +170,7 @@ def train(dataset: str | Path, out_dir: str | Path, cfg: TrainConfig, progress: 
             raise TrainingError(f"{out} holds a run with other settings or another dataset; choose another folder")
         model = model_from_checkpoint(state, str(last))
     else:
-        torch.manual_seed(cfg.seed)
-        model = LocalizabilityNet(cfg.model)
+        model = _initial_model(cfg)
         dump_yaml(cfg, out / "config.yaml")
     optimizer = _optimizer(cfg, model)
     scheduler = torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma=cfg.lr_decay)
@@ -220,7 +235,8 @@ def train(dataset: str | Path, out_dir: str | Path, cfg: TrainConfig, progress: 
     return finalize(data, out, cfg, val_rows, meta)
 
 
-def finalize(data: LabelDataset, out: Path, cfg: TrainConfig, val_rows: np.ndarray, meta: dict[str, Any]) -> dict:
+def finalize(data: LabelDataset | DatasetUnion, out: Path, cfg: TrainConfig, val_rows: np.ndarray,
+             meta: dict[str, Any]) -> dict:
     """model.pt: the best epoch's weights with the operating thresholds (F-beta on validation)."""
     state = load_checkpoint(out / "best.pt")
     model = model_from_checkpoint(state, "best.pt")

@@ -1,4 +1,5 @@
 """The classifier: input checks, checkpoints, batching, scores and thresholds, resumable training."""
+import dataclasses
 import json
 
 import numpy as np
@@ -9,10 +10,12 @@ from l3e_env.classifier import (
     CHECKPOINT_VERSION, DEFAULT_CHECKPOINT, CheckpointError, Classifier, LocalizabilityNet, ModelConfig, ScanError,
     check_scan, save_checkpoint,
 )
-from l3e_env.dataset import config_for, generate
+from l3e_env.dataset import DatasetError, LabelDataset, config_for, generate, open_datasets
 from l3e_env.detectors import LearnedDetector, make_detector
 from l3e_env.scores import axis_scores, best_thresholds, mean_scores, pr_curve
-from l3e_env.training import SWAP_LABELS, TrainConfig, TrainingError, augment, balanced_pool, train
+from l3e_env.training import (
+    SWAP_LABELS, TrainConfig, TrainingError, augment, balanced_pool, split_indices, train,
+)
 
 SMALL = ModelConfig(points=600, channels=(8, 8, 16, 16), pointnet_channels=(16, 32), head=(16, 16, 16, 16))
 
@@ -160,8 +163,8 @@ def test_augmentation_permutes_the_labels_with_the_points(rng):
 
 
 def _train_cfg(**kw):
-    return TrainConfig(model=SMALL, epochs=2, samples_per_epoch=8, batch_size=4, train_scenes=["tunnel-0", "field-0"],
-                       validation_scenes=["office-0"], threads=1, **kw)
+    return TrainConfig(**{"model": SMALL, "epochs": 2, "samples_per_epoch": 8, "batch_size": 4,
+                          "train_scenes": ["tunnel-0", "field-0"], "validation_scenes": ["office-0"], "threads": 1, **kw})
 
 
 def test_a_killed_run_resumes_to_the_same_model(tiny_dataset, tmp_path):
@@ -181,6 +184,40 @@ def test_a_killed_run_resumes_to_the_same_model(tiny_dataset, tmp_path):
     assert all(torch.equal(a[k], b[k]) for k in a)
     shipped = Classifier.load(tmp_path / "whole" / "model.pt")
     assert "optimizer" not in shipped.meta and shipped.meta["registration"]["max_iterations"] > 0
+
+
+def test_datasets_are_read_as_one_with_scenes_matched_by_name(tiny_dataset, tmp_path):
+    other = tmp_path / "other"
+    generate(other, config_for(None, scenes=["field-0", "tunnel-7"], parents_per_scene=2, shard_size=2, seed=4,
+                               labels={"children": 8}), workers=1, progress=False)
+    a, b = LabelDataset(tiny_dataset), LabelDataset(other)
+    union = open_datasets([tiny_dataset, other])
+    assert len(union) == len(a) + len(b) and union.name == f"{a.name}+{b.name}"
+    assert union.manifest["scenes"] == ["tunnel-0", "office-0", "field-0", "tunnel-7"]
+    np.testing.assert_array_equal(union.scan(len(a) + 1), b.scan(1))
+    np.testing.assert_array_equal(union.labels[len(a):], b.labels)
+    assert union.manifest["count"] == len(union) and union.manifest["settings"]["seed"] == [0, 4]
+    field = split_indices(union, ["field-0"])
+    assert len(field) == 4 + 2 and field[-2:].tolist() == [len(a), len(a) + 1]
+    assert split_indices(union, ["tunnel-7"]).tolist() == [len(a) + 2, len(a) + 3]
+    os0 = tmp_path / "os0"
+    generate(os0, config_for(None, scenes=["field-0"], parents_per_scene=1, shard_size=1, labels={"children": 4},
+                             lidar={"model": "os0-128"}), workers=1, progress=False)
+    with pytest.raises(DatasetError, match="lidar settings"):
+        open_datasets([tiny_dataset, os0])
+
+
+def test_fine_tuning_starts_from_the_given_weights(tiny_dataset, tmp_path):
+    train(tiny_dataset, tmp_path / "base", _train_cfg(), progress=False)
+    base = tmp_path / "base" / "model.pt"
+    start = _train_cfg(init=str(base), learning_rate=0.0, epochs=1)  # no step: the weights stay the base's
+    train(tiny_dataset, tmp_path / "tuned", start, progress=False)
+    weights = [dict(Classifier.load(p).model.named_parameters()) for p in (base, tmp_path / "tuned" / "model.pt")]
+    assert all(torch.equal(weights[0][k], weights[1][k]) for k in weights[0])  # batch-norm statistics may move
+    assert torch.load(tmp_path / "base" / "last.pt", weights_only=True)["training"]["init"] is None
+    other = dataclasses.replace(_train_cfg(init=str(base)), model=dataclasses.replace(SMALL, channels=(8, 8, 16, 24)))
+    with pytest.raises(TrainingError, match="model settings"):
+        train(tiny_dataset, tmp_path / "bad", other, progress=False)
 
 
 def test_evaluate_writes_table_curves_and_results(tiny_dataset, tmp_path):

@@ -8,7 +8,7 @@ from l3e_env.labels import LabelConfig, SamplingError, label_parent, sample_pare
 from l3e_env.lidar import Lidar
 from l3e_env.raycast import EmbreeCaster
 from l3e_env.registration import RegistrationConfig
-from l3e_env.transforms import pose_to_matrix
+from l3e_env.transforms import matrix_to_pose, pose_to_matrix
 from scenes import Scene, make_scene
 
 FAST = LabelConfig(children=30)
@@ -54,6 +54,24 @@ def test_parent_sampling_is_collision_free_and_seeded():
     bare = Scene("bare", scene.mesh, [], (0, 0, 0), (1, 1))
     with pytest.raises(SamplingError, match="no sampling paths"):
         sample_parent_pose(bare, caster, rng, FAST)
+
+
+def test_level_preset_samples_operating_poses_along_the_path():
+    scene = make_scene("tunnel-0")  # its sampling path runs along x
+    caster = EmbreeCaster(scene.mesh, threads=1)
+    cfg = config_for("level").labels
+    rng = np.random.default_rng(5)
+    poses = np.array([matrix_to_pose(sample_parent_pose(scene, caster, rng, cfg)) for _ in range(60)])
+    assert np.abs(poses[:, 3:5]).max() < np.radians(12)  # 3 deg sigma: level within 4 sigma
+    assert np.abs(poses[:, 2] - cfg.sensor_height).max() < 0.25
+    off_axis = np.angle(np.exp(4j * poses[:, 5])) / 4  # distance to the nearest multiple of 90 deg
+    assert np.abs(off_axis).max() < np.radians(60) and np.std(off_axis) < np.radians(25)
+    turns = np.round(poses[:, 5] / (np.pi / 2)) % 4
+    assert len(set(turns.tolist())) == 4  # along, against and across the path
+    free = [matrix_to_pose(sample_parent_pose(scene, caster, rng, FAST))[3:5] for _ in range(60)]
+    assert np.abs(free).max() > np.radians(15)  # the paper's sampling is not level
+    with pytest.raises(SamplingError, match="heading 'sideways'"):
+        sample_parent_pose(scene, caster, rng, LabelConfig(heading="sideways"))
 
 
 def test_statistics_count_the_64_combinations():
