@@ -106,10 +106,9 @@ def _cmd_train(args: argparse.Namespace) -> int:
     if args.architecture:
         model["architecture"] = args.architecture
     cfg = from_dict(TrainConfig, {**_asdict(cfg), **overrides, "model": model})
-    datasets = args.dataset[0] if len(args.dataset) == 1 else args.dataset
     print(f"training {cfg.model.architecture} on {' + '.join(args.dataset)} -> {Path(args.out).resolve()} "
           f"({cfg.epochs} epochs of {cfg.samples_per_epoch or 'all'} samples, {cfg.optimizer}, seed {cfg.seed})")
-    best = train(datasets, args.out, cfg, progress=not args.quiet)
+    best = train(args.dataset, args.out, cfg, progress=not args.quiet)
     print(f"best epoch {best['best_epoch']}: validation F1 {best.get('val_f1', float('nan')):.3f}, "
           f"accuracy {best.get('val_accuracy', float('nan')):.3f}; thresholds {best.get('thresholds')}")
     print(f"model: {Path(args.out) / 'model.pt'}")
@@ -126,8 +125,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     from .evaluation import evaluate
 
     out = Path(args.out or f"l3e_out/evaluate-{time.strftime('%Y%m%d-%H%M%S')}")
-    datasets = args.dataset[0] if len(args.dataset) == 1 else args.dataset
-    results = evaluate(args.checkpoint, datasets, out, other_sensor=args.other_sensor, progress=not args.quiet)
+    results = evaluate(args.checkpoint, args.dataset, out, other_sensor=args.other_sensor, progress=not args.quiet)
     print(results["table"])
     print(f"written: {out / 'table.txt'}, {out / 'results.json'}, {out / 'pr_curves.png'}")
     return 0

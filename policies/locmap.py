@@ -63,11 +63,16 @@ class LocalizabilityMap:
         p = np.nan_to_num(self.probabilities, nan=0.0)
         return (p > self.thresholds).astype(np.float64)
 
+    def nearest(self, xy: np.ndarray) -> np.ndarray:
+        """Index of the nearest mapped position for each of the points (..., 2), flattened."""
+        _, n = self._tree.query(np.asarray(xy, dtype=np.float64).reshape(-1, 2))
+        return n
+
     def lookup(self, xy: np.ndarray, yaw: np.ndarray | float, values: np.ndarray | None = None) -> np.ndarray:
         """Values (default: `masked`) at the nearest mapped position, linear between yaw bins: (..., 6)."""
         values = self.masked if values is None else values
         xy = np.asarray(xy, dtype=np.float64)
-        _, n = self._tree.query(xy.reshape(-1, 2))
+        n = self.nearest(xy)
         yaw = np.broadcast_to(np.asarray(yaw, dtype=np.float64), xy.shape[:-1]).reshape(-1)
         lo, hi, w = heading_bins(yaw, len(self.yaws))
         out = (1 - w[:, None]) * values[n, lo] + w[:, None] * values[n, hi]

@@ -34,8 +34,7 @@ class PolicyView:
         # thousands of lookups per second of fast training are array indexing
         nx, ny = space.shape
         centres = space.center(np.stack(np.meshgrid(np.arange(nx), np.arange(ny), indexing="ij"), -1).reshape(-1, 2))
-        _, nearest = locmap._tree.query(centres)
-        self.table = (locmap.masked @ rates)[nearest].reshape(nx, ny, len(locmap.yaws))
+        self.table = (locmap.masked @ rates)[locmap.nearest(centres)].reshape(nx, ny, len(locmap.yaws))
         # shortest distances through free space
         self.to_go = Planner(space, lam=0.0, clearance_weight=0.0).cost_to_go(self.goal)
         self.downhill = _downhill_headings(self.to_go)
