@@ -36,7 +36,7 @@ class PolicyView:
         centres = space.center(np.stack(np.meshgrid(np.arange(nx), np.arange(ny), indexing="ij"), -1).reshape(-1, 2))
         self.table = (locmap.masked @ rates)[locmap.nearest(centres)].reshape(nx, ny, len(locmap.yaws))
         # shortest distances through free space
-        self.to_go = Planner(space, lam=0.0, clearance_weight=0.0).cost_to_go(self.goal)
+        self.to_go = Planner(space, lam=0.0, clearance_weight=0.0, tight_weight=0.0).cost_to_go(self.goal)
         self.downhill = _downhill_headings(self.to_go)
         self.angles = np.arange(SECTORS) * 2 * np.pi / SECTORS
         self.observation_space = spaces.Box(-1.0, float(rates.sum() / self.scale), (self.size,), np.float32)

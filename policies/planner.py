@@ -63,7 +63,8 @@ class Planner:
     """Dijkstra on the 8-connected free cells (scipy's csgraph), with heading-dependent edge costs."""
 
     def __init__(self, space: FreeSpace, locmap: LocalizabilityMap | None = None, lam: float = 50.0,
-                 odometry: OdometryConfig | None = None, clearance: float = 0.75, clearance_weight: float = 1.0):
+                 odometry: OdometryConfig | None = None, clearance: float = 0.75, clearance_weight: float = 1.0,
+                 tight_clearance: float = 0.6, tight_weight: float = 10.0):
         if lam > 0 and locmap is None:
             raise ValueError("a localizability-aware plan (lam > 0) needs a localizability map")
         self.space, self.locmap, self.lam = space, locmap, float(lam)
@@ -76,7 +77,12 @@ class Planner:
         rows, cols, drifts, costs = [], [], [], []
         # near walls a path is longer in effect (the follower cuts corners): cost per metre grows
         # linearly to clearance_weight as the clearance falls from `clearance` to zero
-        near = clearance_weight * np.clip(1 - space.clearance[cells[:, 0], cells[:, 1]] / clearance, 0, 1)
+        cell_clearance = space.clearance[cells[:, 0], cells[:, 1]]
+        near = clearance_weight * np.clip(1 - cell_clearance / clearance, 0, 1)
+        # a cell next to a blocked one is free only at yaw 0 and 90 degrees at its centre: a robot
+        # turning or off by a few centimetres there hits the obstacle, so such squeezes cost
+        # tight_weight more per metre and are taken only where no wider way exists
+        near += tight_weight * (cell_clearance < tight_clearance)
         for dx, dy in MOVES:
             nxt = cells + (dx, dy)
             ok = space.inside(nxt)

@@ -93,6 +93,25 @@ def test_planner_avoids_masked_corridor_and_refuses_bad_goals(small_fork):
         Planner(space, None, lam=10.0)
 
 
+def test_planner_takes_one_cell_squeezes_only_without_a_wider_way():
+    from scipy import ndimage
+
+    # an open 20 x 9 grid with a wall at ix = 10; a one-cell gap in it at iy = 1, a three-cell gap at iy = 6
+    free = np.ones((21, 9), dtype=bool)
+    free[10, :] = False
+    free[10, 1] = True
+    free[10, 5:8] = True
+    space = FreeSpace(np.zeros(2), 0.5, free, np.zeros(free.shape), ndimage.distance_transform_edt(free) * 0.5)
+    start, goal = np.array([4.0, 0.5]), np.array([6.0, 0.5])
+    through = lambda plan: space.index(plan.path)[space.index(plan.path)[:, 0] == 10, 1]  # noqa: E731
+    assert (through(Planner(space, None, lam=0.0, tight_weight=0.0).plan(start, goal)) == 1).all()
+    wide = Planner(space, None, lam=0.0).plan(start, goal)
+    assert (through(wide) == 6).all()  # the middle of the wide gap, 2.5 m longer
+    free[10, 5:8] = False  # only the squeeze is left: still a plan
+    narrow = FreeSpace(space.origin, 0.5, free, space.ground, ndimage.distance_transform_edt(free) * 0.5)
+    assert (through(Planner(narrow, None, lam=0.0).plan(start, goal)) == 1).all()
+
+
 def test_map_lookup_interpolates_headings_and_round_trips(tmp_path, small_fork):
     _, space, _ = small_fork
     locmap = synthetic_map(space, lambda xy: xy[:, 0] > 1e9)
