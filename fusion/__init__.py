@@ -5,7 +5,7 @@ project's (x, y, z, roll, pitch, yaw); `fusion.tangent` is the one place that co
 GTSAM's rotation-first tangent order.
 """
 from .ekf import EKFFusion
-from .graph import FusionConfig, FusionGraph
+from .graph import FusionConfig, FusionError, FusionGraph
 from .metrics import MetricError, ate, ate_aligned, rpe, rpe_pairs, umeyama, write_tum
 from .steps import StepReport
 from .tangent import to_gtsam_order, to_project_order
@@ -24,6 +24,7 @@ def make_fusion(backend: str, T_w_0, config: FusionConfig | None = None) -> Fusi
     return BACKENDS[check_backend(backend)](T_w_0, config)
 
 
-__all__ = ["BACKENDS", "check_backend", "make_fusion", "EKFFusion", "FusionConfig", "FusionGraph", "StepReport",
+__all__ = ["BACKENDS", "check_backend", "make_fusion", "EKFFusion", "FusionConfig", "FusionError", "FusionGraph",
+           "StepReport",
            "MetricError", "ate", "ate_aligned", "rpe", "rpe_pairs", "umeyama", "write_tum", "to_gtsam_order",
            "to_project_order"]

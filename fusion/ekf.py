@@ -13,7 +13,7 @@ import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter
 
 from .graph import FusionConfig
-from .steps import StepReport, resolve_step
+from .steps import StepReport, check_odometry_sigmas, resolve_step
 from .tangent import GTSAM_FROM_PROJECT, to_gtsam_order
 
 
@@ -35,7 +35,8 @@ class EKFFusion:
                  non_localizable: np.ndarray | None = None) -> tuple[np.ndarray, StepReport]:
         step = resolve_step(self.config.mode, odom_T_prev_cur, icp_T_prev_cur, non_localizable)
         if step.has_odom:
-            motion, sigmas = gtsam.Pose3(np.asarray(odom_T_prev_cur, dtype=np.float64)), np.asarray(odom_sigmas)
+            sigmas = check_odometry_sigmas(odom_sigmas)
+            motion = gtsam.Pose3(np.asarray(odom_T_prev_cur, dtype=np.float64))
         elif step.has_icp:  # no odometry: ICP carries the motion, as in the graph
             motion, sigmas = gtsam.Pose3(np.asarray(step.icp_T_prev_cur)), np.asarray(self.config.icp_sigmas)
         else:

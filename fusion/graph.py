@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
-from .steps import MASK_MODES, StepReport, resolve_step
+from .steps import MASK_MODES, StepReport, check_odometry_sigmas, resolve_step
 from .tangent import to_gtsam_order
 
 
@@ -26,6 +26,10 @@ class FusionConfig:
     robust_kernel: str | None = None  # None | "huber" | "cauchy"
     robust_threshold: float = 1.345
     relinearize_threshold: float = 0.01
+
+
+class FusionError(RuntimeError):
+    """GTSAM could not solve a step (an under-determined or degenerate system): the message names the step."""
 
 
 def _pose3(T: np.ndarray) -> gtsam.Pose3:
@@ -48,7 +52,15 @@ class FusionGraph:
         prior = gtsam.noiseModel.Diagonal.Sigmas(to_gtsam_order(np.asarray(self.config.prior_sigmas)))
         graph.add(gtsam.PriorFactorPose3(0, self.estimate, prior))
         values.insert(0, self.estimate)
-        self.isam.update(graph, values)
+        self._update(graph, values, 0)
+
+    def _update(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, k: int) -> None:
+        try:
+            self.isam.update(graph, values)
+        except RuntimeError as exc:  # GTSAM's C++ exceptions (IndeterminantLinearSystem, ...) arrive as this
+            first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+            raise FusionError(f"fusion step {k}: GTSAM could not solve the graph ({first}); this graph cannot take "
+                              f"more steps") from exc
 
     def _noise(self, precisions_project: np.ndarray) -> gtsam.noiseModel.Base:
         base = gtsam.noiseModel.Diagonal.Precisions(to_gtsam_order(precisions_project))
@@ -76,7 +88,7 @@ class FusionGraph:
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         i, j = self.k, self.k + 1
         if has_odom:
-            precision = 1.0 / np.maximum(np.asarray(odom_sigmas, dtype=np.float64), 1e-9) ** 2
+            precision = 1.0 / np.maximum(check_odometry_sigmas(odom_sigmas), 1e-9) ** 2
             graph.add(gtsam.BetweenFactorPose3(i, j, _pose3(odom_T_prev_cur), self._noise(precision)))
         if has_icp:
             precision = np.where(mask, 0.0, 1.0 / np.asarray(self.config.icp_sigmas) ** 2)
@@ -87,7 +99,7 @@ class FusionGraph:
         guess = self.estimate.compose(_pose3(odom_T_prev_cur)) if has_odom else (
             self.estimate.compose(_pose3(icp_T_prev_cur)) if has_icp else self.estimate)
         values.insert(j, guess)
-        self.isam.update(graph, values)
+        self._update(graph, values, j)
         self.k = j
         self.estimate = self.isam.calculateEstimatePose3(j)
         return self.estimate.matrix(), step.report()

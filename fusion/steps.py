@@ -27,6 +27,16 @@ class StepInputs:
         return StepReport(self.has_icp, int(self.mask.sum()) if self.has_icp else 6, self.fallback)
 
 
+def check_odometry_sigmas(sigmas: np.ndarray | None) -> np.ndarray:
+    """The odometry's per-axis sigmas as 6 finite non-negative floats, or a ValueError that says so:
+    an infinite or NaN sigma would leave the new pose without information and the solve would fail
+    far from the cause."""
+    out = np.asarray(sigmas if sigmas is not None else np.full(6, np.nan), dtype=np.float64)
+    if out.shape != (6,) or not (np.isfinite(out).all() and (out >= 0).all()):
+        raise ValueError(f"odometry sigmas must be 6 finite non-negative numbers, got {sigmas!r}")
+    return out
+
+
 def resolve_step(mode: str, odom_T_prev_cur: np.ndarray | None, icp_T_prev_cur: np.ndarray | None,
                  non_localizable: np.ndarray | None) -> StepInputs:
     """Apply the mode (mask: drop the flagged axes; full: keep every axis; drop: drop the ICP

@@ -5,7 +5,7 @@ import gtsam
 import numpy as np
 import pytest
 
-from fusion import BACKENDS, FusionConfig, FusionGraph, MetricError, ate, ate_aligned, rpe, to_gtsam_order, to_project_order, umeyama
+from fusion import BACKENDS, FusionConfig, FusionError, FusionGraph, MetricError, ate, ate_aligned, rpe, to_gtsam_order, to_project_order, umeyama
 
 
 def pose(x=0.0, y=0.0, z=0.0, yaw=0.0):
@@ -80,6 +80,24 @@ def test_under_constrained_steps_fall_back_and_never_crash(backend):
     assert report.icp_used and np.isfinite(T).all()
     with pytest.raises(ValueError, match="fusion mode"):
         BACKENDS[backend](np.eye(4), FusionConfig(mode="sometimes"))
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_bad_odometry_sigmas_are_refused_by_name(backend):
+    graph = BACKENDS[backend](np.eye(4))
+    for bad in (np.full(6, np.inf), np.r_[np.ones(5), np.nan], np.ones(3), None):
+        with pytest.raises(ValueError, match="odometry sigmas"):
+            graph.add_step(pose(0.1), bad, pose(0.1), np.zeros(6, dtype=bool))
+
+
+def test_an_unsolvable_graph_names_the_step():
+    graph = FusionGraph(np.eye(4))
+    factors, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    blind = gtsam.noiseModel.Diagonal.Precisions(np.zeros(6))  # a factor that says nothing
+    factors.add(gtsam.BetweenFactorPose3(0, 1, gtsam.Pose3(), blind))
+    values.insert(1, gtsam.Pose3())
+    with pytest.raises(FusionError, match="fusion step 1: GTSAM could not solve"):
+        graph._update(factors, values, 1)
 
 
 def test_robust_kernels_build():
