@@ -16,6 +16,7 @@ import json
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
+from functools import cached_property
 from importlib import metadata
 from pathlib import Path
 from typing import Any, BinaryIO, Callable, Iterator
@@ -350,11 +351,11 @@ class DatasetUnion:
         k = int(np.searchsorted(self._starts, i, side="right")) - 1
         return self.parts[k].scan(i - int(self._starts[k]))
 
-    @property
+    @cached_property  # read many times per epoch; the parts do not change once opened
     def labels(self) -> np.ndarray:
         return np.concatenate([p.labels for p in self.parts])
 
-    @property
+    @cached_property
     def errors(self) -> np.ndarray:
         return np.concatenate([p.errors for p in self.parts])
 
