@@ -152,11 +152,11 @@ def evaluate_policies(out: str | Path, policies: list[str], scenes: list[str], e
         raise ValueError(f"steer_on must be one of {STEER_ON}, got {steer_on!r}")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
+    map_detectors = {_ppo_detector(p, detector) if p.startswith("ppo:") else detector
+                     for p in policies if p != "shortest"}
     for name in dict.fromkeys(scenes):  # maps must exist: build them here, once, not in every worker
-        for p in policies:
-            if p != "shortest":
-                scene_context(name, detector if not p.startswith("ppo:") else _ppo_detector(p, detector),
-                              cache_dir, progress=progress)
+        for d in sorted(map_detectors):
+            scene_context(name, d, cache_dir, progress=progress)
     jobs = [(p, scenes[i % len(scenes)], seed + i, detector, cache_dir, lam, backend, steer_on)
             for i in range(episodes) for p in policies]
     # episodes are appended as they finish; a killed evaluation resumes where it stopped, with the
