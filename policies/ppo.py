@@ -86,10 +86,14 @@ def train_ppo(out: str | Path, contexts: list[SceneContext], detector: str = "le
                     reset_num_timesteps=False)
     model.save(last)
     model.save(out / "policy.zip")
+    # a run resumed on other variants (a curriculum) keeps the record of every stage
+    meta_file = out / "policy.json"
+    history = json.loads(meta_file.read_text()).get("history", []) if meta_file.exists() else []
+    history.append({"scenes": scenes, "from_timestep": int(done), "to_timestep": int(model.num_timesteps)})
     summary = {"observation": OBSERVATION, "scenes": scenes, "detector": detector,
                "timesteps": int(model.num_timesteps),
-               "seed": seed, "fast_env": plain(dataclasses.asdict(config))}
-    (out / "policy.json").write_text(json.dumps(summary, indent=2))
+               "seed": seed, "fast_env": plain(dataclasses.asdict(config)), "history": history}
+    meta_file.write_text(json.dumps(summary, indent=2))
     return summary
 
 

@@ -226,6 +226,7 @@ def test_ppo_trains_resumes_and_refuses_other_observations(tmp_path, small_fork)
     action = policy(np.zeros(PolicyView.size, dtype=np.float32))
     assert action.shape == (3,) and np.all(np.abs(action) <= 1)
     meta = json.loads((out / "policy.json").read_text())
+    assert [h["from_timestep"] for h in meta["history"]] == [0, first["timesteps"]]  # both stages recorded
     meta["observation"]["size"] = 99
     (out / "policy.json").write_text(json.dumps(meta))
     with pytest.raises(PolicyCheckpointError, match="observation"):
