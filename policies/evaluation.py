@@ -72,7 +72,7 @@ def make_controller(policy: str, scene: str, detector: str, cache_dir: str | Pat
 
         model = PPOPolicy(policy.partition(":")[2])
         ctx = scene_context(scene, model.meta.get("detector", detector), cache_dir, build=False)
-        view = PolicyView(ctx.space, ctx.locmap, ctx.scene.goal)
+        view = PolicyView(ctx.space, ctx.locmap, ctx.scene.goal, float(model.meta["fast_env"]["lam"]))
         held = {"action": np.zeros(3, dtype=np.float32)}
 
         def act(T: np.ndarray, i: int) -> np.ndarray:

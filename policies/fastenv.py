@@ -4,7 +4,11 @@ per second instead of about 20). Policies trained here are evaluated with the fu
 
 Reward per decision: progress (metres of shortest free-space distance to the goal gained)
 - lam * expected drift of the motion (the planner's drift model on the map, see
-policies.planner) - step_penalty - collision_penalty when blocked + goal_reward on arrival.
+policies.planner) - step_penalty - collision_penalty when blocked - tight_penalty per metre walked
+in cells next to an obstacle + goal_reward on arrival.
+Here the robot is a point on free cells; the simulated robot is a 0.9 x 0.5 m box that fits a
+cell next to an obstacle only square to the grid at its centre, so brushing past obstacles (which
+gets it stuck there) costs as much as the walk gains, the planner's squeeze rule.
 The expected drift penalises steps taken where the detector will mask axes, weighted by how much
 the odometry drifts along them; the fused estimate's actual error is only known with the full
 pipeline, too slow to train on here, and its expectation is what this term is.
@@ -32,6 +36,8 @@ class FastEnvConfig:
     progress_reward: float = 1.0
     step_penalty: float = 0.05
     collision_penalty: float = 0.5
+    tight_penalty: float = 1.0  # per metre walked where the clearance is under tight_clearance
+    tight_clearance: float = 0.6  # m, as in the planner
     goal_reward: float = 10.0
     goal_radius: float = 1.0
     robot: RobotConfig = field(default_factory=RobotConfig)
@@ -47,7 +53,7 @@ class MapNavigationEnv(gym.Env):
         if missing:
             raise ValueError(f"scenes without a localizability map: {missing}")
         self.config = config or FastEnvConfig()
-        self.views = [PolicyView(c.space, c.locmap, c.scene.goal) for c in contexts]
+        self.views = [PolicyView(c.space, c.locmap, c.scene.goal, self.config.lam) for c in contexts]
         self.contexts = contexts
         self.observation_space = self.views[0].observation_space
         self.action_space = spaces.Box(-1.0, 1.0, (3,), dtype=np.float32)
@@ -62,7 +68,7 @@ class MapNavigationEnv(gym.Env):
             raise ValueError(f"scene '{ctx.scene.name}': the goal cannot be reached from the start")
         speed = self.config.robot.max_twist[0] * self.config.robot.dt * self.config.action_repeat
         self.max_decisions = int(np.ceil(3 * self.to_go / speed))
-        self.decisions, self.expected_drift, self.length = 0, 0.0, 0.0
+        self.decisions, self.expected_drift, self.length, self.tight_length = 0, 0.0, 0.0, 0.0
         self.trail = [(self.x, self.y)]
         return self.view(self.x, self.y, self.yaw), self._info(False)
 
@@ -72,7 +78,7 @@ class MapNavigationEnv(gym.Env):
             raise ValueError(f"action must be 3 finite numbers (vx, vy, yaw_rate), got {action!r}")
         cfg, robot = self.config, self.config.robot
         twist = np.clip(action, -1, 1) * np.asarray(robot.max_twist)
-        blocked, drift, moved = False, 0.0, 0.0
+        blocked, drift, moved, tight = False, 0.0, 0.0, 0.0
         for _ in range(cfg.action_repeat):
             dx, dy, yaw = planar_motion(self.yaw, twist, robot.dt)  # the simulated robot's own kinematics
             x, y = self.x + dx, self.y + dy
@@ -84,14 +90,16 @@ class MapNavigationEnv(gym.Env):
             if step > 0:
                 drift += step * float(self.view.drift_rate(np.array([cx, cy]), yaw))
             moved += step
+            tight += step * (self.view.clearance(np.array([cx, cy])) < cfg.tight_clearance)
             self.x, self.y, self.yaw = cx, cy, yaw
         self.trail.append((self.x, self.y))
         self.decisions += 1
         self.expected_drift += drift
         self.length += moved
+        self.tight_length += tight
         to_go = self.view.distance_to_go(np.array([self.x, self.y]))
         reward = cfg.progress_reward * (self.to_go - to_go) - cfg.lam * drift - cfg.step_penalty
-        reward -= cfg.collision_penalty * blocked
+        reward -= cfg.collision_penalty * blocked + cfg.tight_penalty * tight
         self.to_go = to_go
         terminated = bool(np.hypot(*(self.view.goal - (self.x, self.y))) <= cfg.goal_radius)
         reward += cfg.goal_reward * terminated
@@ -100,4 +108,5 @@ class MapNavigationEnv(gym.Env):
 
     def _info(self, blocked: bool) -> dict[str, Any]:
         return {"scene": self.contexts[self.k].scene.name, "pose": (self.x, self.y, self.yaw), "blocked": blocked,
-                "expected_drift": self.expected_drift, "path_length": self.length, "distance_to_go": self.to_go}
+                "expected_drift": self.expected_drift, "path_length": self.length,
+                "tight_length": self.tight_length, "distance_to_go": self.to_go}

@@ -19,14 +19,20 @@ GOAL_SCALE = 30.0  # m
 class PolicyView:
     """obs = [goal x, y in the body frame / GOAL_SCALE (clipped to [-1, 1]), distance / GOAL_SCALE,
     shortest-path direction (cos, sin) in the body frame, SECTORS free ranges / RANGE,
-    SECTORS drift-ahead values, drift rate here]; drift values are sum_i masked_i * k_i / max(k)
-    (policies.planner.drift_rates), heading along the sector: 1 means the worst single axis lost."""
+    SECTORS drift-ahead values, drift rate here, localizability-aware path direction (cos, sin)];
+    drift values are sum_i masked_i * k_i / max(k) (policies.planner.drift_rates), heading along
+    the sector: 1 means the worst single axis lost.
 
-    size = 6 + 2 * SECTORS
+    The aware direction is downhill on the planner's cost-to-go (length + lam x expected drift) over
+    the whole map: the drift ahead reaches 8 m, and without it the policy cannot tell how far a
+    detour should keep from a degenerate corridor it does not see yet."""
+
+    size = 8 + 2 * SECTORS
     ranges = slice(5, 5 + SECTORS)
     drift_ahead = slice(5 + SECTORS, 5 + 2 * SECTORS)
+    aware = slice(6 + 2 * SECTORS, 8 + 2 * SECTORS)
 
-    def __init__(self, space: FreeSpace, locmap: LocalizabilityMap, goal: np.ndarray):
+    def __init__(self, space: FreeSpace, locmap: LocalizabilityMap, goal: np.ndarray, lam: float = 50.0):
         self.space, self.locmap, self.goal = space, locmap, np.asarray(goal, dtype=np.float64)[:2]
         rates = drift_rates()
         self.scale = float(rates.max())
@@ -38,6 +44,7 @@ class PolicyView:
         # shortest distances through free space
         self.to_go = Planner(space, lam=0.0, clearance_weight=0.0, tight_weight=0.0).cost_to_go(self.goal)
         self.downhill = _downhill_headings(self.to_go)
+        self.aware_downhill = _downhill_headings(Planner(space, locmap, lam=lam).cost_to_go(self.goal))
         self.angles = np.arange(SECTORS) * 2 * np.pi / SECTORS
         self.observation_space = spaces.Box(-1.0, float(rates.sum() / self.scale), (self.size,), np.float32)
 
@@ -48,13 +55,20 @@ class PolicyView:
             return float("inf")
         return float(self.to_go[idx[0], idx[1]])
 
-    def shortest_direction(self, xy: np.ndarray) -> float:
-        """World heading towards the neighbouring cell with the least distance to go (towards the
-        goal itself where no neighbour is closer, or off the grid)."""
+    def shortest_direction(self, xy: np.ndarray, downhill: np.ndarray | None = None) -> float:
+        """World heading towards the neighbouring cell with the least distance to go (or the least
+        cost on another cost-to-go's `downhill` headings); towards the goal itself where no
+        neighbour is closer, or off the grid."""
+        downhill = self.downhill if downhill is None else downhill
         idx = self.space.index(xy)
-        if self.space.inside(idx) and np.isfinite(heading := self.downhill[idx[0], idx[1]]):
+        if self.space.inside(idx) and np.isfinite(heading := downhill[idx[0], idx[1]]):
             return float(heading)
         return float(np.arctan2(*(self.goal - xy)[::-1]))
+
+    def clearance(self, xy: np.ndarray) -> float:
+        """Distance (m) from the cell of xy to the nearest blocked cell; 0 off the grid."""
+        idx = self.space.index(xy)
+        return float(self.space.clearance[idx[0], idx[1]]) if self.space.inside(idx) else 0.0
 
     def drift_rate(self, xy: np.ndarray, heading: np.ndarray | float) -> np.ndarray:
         """Expected drift per metre walked (m/m) at points (..., 2) with headings (...), linear
@@ -72,6 +86,7 @@ class PolicyView:
         d = self.goal - xy
         goal_b = np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1]])
         path = self.shortest_direction(xy) - yaw
+        aware = self.shortest_direction(xy, self.aware_downhill) - yaw
         world = yaw + self.angles
         ranges = self.space.ray_distances(xy, world, RANGE)
         ahead = np.asarray(LOOKAHEAD)
@@ -81,7 +96,7 @@ class PolicyView:
         drift_ahead = np.where(reach.any(1), (values * reach).sum(1) / np.maximum(reach.sum(1), 1), 0.0)
         obs = np.concatenate([np.clip(goal_b / GOAL_SCALE, -1, 1), [min(np.linalg.norm(d) / GOAL_SCALE, 1.0)],
                               [np.cos(path), np.sin(path)], ranges / RANGE, drift_ahead,
-                              [self.drift_rate(xy, yaw) / self.scale]])
+                              [self.drift_rate(xy, yaw) / self.scale], [np.cos(aware), np.sin(aware)]])
         return obs.astype(np.float32)
 
 

@@ -22,7 +22,7 @@ from .observation import LOOKAHEAD, SECTORS, PolicyView
 
 TRAIN_VARIANTS = [f"fork-{s}" for s in range(7)]
 EVAL_VARIANTS = [f"fork-{s}" for s in range(100, 110)]  # never trained on
-OBSERVATION = {"layout": "policy-view-1", "size": PolicyView.size, "sectors": SECTORS, "lookahead": list(LOOKAHEAD)}
+OBSERVATION = {"layout": "policy-view-2", "size": PolicyView.size, "sectors": SECTORS, "lookahead": list(LOOKAHEAD)}
 
 
 class PolicyCheckpointError(RuntimeError):

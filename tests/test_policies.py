@@ -176,6 +176,7 @@ def test_fast_env_rewards_progress_and_penalises_drift(fast_env):
         if terminated or truncated:
             break
     assert terminated and not truncated  # straight ahead reaches the goal
+    assert info["tight_length"] == 0.0  # the corridor's middle is 1.5 m from its walls
     straight = np.hypot(*(fast_env.view.goal - fast_env.contexts[0].scene.start[:2]))
     assert info["path_length"] == pytest.approx(straight - 1, abs=0.6)
     assert info["expected_drift"] == pytest.approx(12 * drift_rates()[0], rel=0.15)
@@ -194,6 +195,13 @@ def test_fast_env_blocks_at_walls(fast_env):
         blocked |= info["blocked"]
     assert blocked  # the boundary wall at y = -8 stops it
     assert fast_env.view.space.is_free(np.array(info["pose"][:2]))
+    # walking on along the wall brushes past it: penalised per metre, beyond the step penalty
+    cfg, before = fast_env.config, info
+    _, reward, _, _, info = fast_env.step(np.array([1.0, 0.0, 0.0]))
+    walked = info["tight_length"] - before["tight_length"]
+    assert walked == pytest.approx(0.5, abs=0.01) and not info["blocked"]
+    gained = before["distance_to_go"] - info["distance_to_go"]
+    assert reward == pytest.approx(gained - cfg.tight_penalty * walked - cfg.step_penalty)
 
 
 def test_policy_view_sees_the_corridor_ahead(small_fork):
@@ -206,6 +214,11 @@ def test_policy_view_sees_the_corridor_ahead(small_fork):
     inside = view(8.0, 0.0, 0.0)[PolicyView.ranges]
     assert inside[0] > 0.9 and inside[4] < 0.2  # free ahead along the corridor; its wall 1.5 m to the left
     assert view.distance_to_go(scene.start[:2]) == pytest.approx(np.linalg.norm(scene.goal - scene.start[:2]), rel=0.05)
+    # the shortest way runs straight into the corridor; the localizability-aware way turns off before it,
+    # and with lam = 0 both are the same
+    assert before[3] == pytest.approx(1.0) and abs(before[PolicyView.aware][1]) > 0.5
+    blind = PolicyView(space, locmap, scene.goal, lam=0.0)(3.0, 0.0, 0.0)
+    np.testing.assert_allclose(blind[PolicyView.aware], blind[3:5], atol=1e-6)
 
 
 def test_ppo_trains_resumes_and_refuses_other_observations(tmp_path, small_fork):
