@@ -27,6 +27,7 @@ from l3e_env.robot import planar_motion
 
 from .context import SceneContext
 from .observation import PolicyView
+from .planner import TIGHT_CLEARANCE
 
 
 @dataclass
@@ -37,7 +38,7 @@ class FastEnvConfig:
     step_penalty: float = 0.05
     collision_penalty: float = 0.5
     tight_penalty: float = 1.0  # per metre walked where the clearance is under tight_clearance
-    tight_clearance: float = 0.6  # m, as in the planner
+    tight_clearance: float = TIGHT_CLEARANCE  # m, the planner's
     goal_reward: float = 10.0
     goal_radius: float = 1.0
     robot: RobotConfig = field(default_factory=RobotConfig)

@@ -55,11 +55,12 @@ class PolicyView:
             return float("inf")
         return float(self.to_go[idx[0], idx[1]])
 
-    def shortest_direction(self, xy: np.ndarray, downhill: np.ndarray | None = None) -> float:
-        """World heading towards the neighbouring cell with the least distance to go (or the least
-        cost on another cost-to-go's `downhill` headings); towards the goal itself where no
-        neighbour is closer, or off the grid."""
-        downhill = self.downhill if downhill is None else downhill
+    def shortest_direction(self, xy: np.ndarray) -> float:
+        """World heading towards the neighbouring cell with the least distance to go (towards the
+        goal itself where no neighbour is closer, or off the grid)."""
+        return self._downhill_direction(xy, self.downhill)
+
+    def _downhill_direction(self, xy: np.ndarray, downhill: np.ndarray) -> float:
         idx = self.space.index(xy)
         if self.space.inside(idx) and np.isfinite(heading := downhill[idx[0], idx[1]]):
             return float(heading)
@@ -86,7 +87,7 @@ class PolicyView:
         d = self.goal - xy
         goal_b = np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1]])
         path = self.shortest_direction(xy) - yaw
-        aware = self.shortest_direction(xy, self.aware_downhill) - yaw
+        aware = self._downhill_direction(xy, self.aware_downhill) - yaw
         world = yaw + self.angles
         ranges = self.space.ray_distances(xy, world, RANGE)
         ahead = np.asarray(LOOKAHEAD)

@@ -19,6 +19,9 @@ from l3e_env.config import OdometryConfig
 from .freespace import FreeSpace, FreeSpaceError
 from .locmap import LocalizabilityMap
 
+# m: a free cell with less clearance is next to a blocked one, where the robot fits only square to
+# the grid at the cell's centre (the planner's and the fast environment's squeeze rule)
+TIGHT_CLEARANCE = 0.6
 # 8-connected moves (dx, dy) in cells
 MOVES = np.array([(1, 0), (1, 1), (0, 1), (-1, 1), (-1, 0), (-1, -1), (0, -1), (1, -1)])
 
@@ -64,7 +67,7 @@ class Planner:
 
     def __init__(self, space: FreeSpace, locmap: LocalizabilityMap | None = None, lam: float = 50.0,
                  odometry: OdometryConfig | None = None, clearance: float = 0.75, clearance_weight: float = 1.0,
-                 tight_clearance: float = 0.6, tight_weight: float = 10.0):
+                 tight_clearance: float = TIGHT_CLEARANCE, tight_weight: float = 10.0):
         if lam > 0 and locmap is None:
             raise ValueError("a localizability-aware plan (lam > 0) needs a localizability map")
         self.space, self.locmap, self.lam = space, locmap, float(lam)
@@ -144,4 +147,4 @@ def route_of(plan: Plan, space: FreeSpace) -> np.ndarray:
     return np.column_stack([plan.path, z])
 
 
-__all__ = ["Plan", "Planner", "PlanningError", "FreeSpaceError", "drift_rates", "route_of"]
+__all__ = ["Plan", "Planner", "PlanningError", "FreeSpaceError", "TIGHT_CLEARANCE", "drift_rates", "route_of"]
