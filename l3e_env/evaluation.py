@@ -13,7 +13,7 @@ from scenes import TEST_SCENES
 from .classifier import Classifier
 from .dataset import LabelDataset, open_datasets
 from .labels import AXES
-from .scores import axis_scores, format_table, mean_scores, pr_curve
+from .scores import axis_scores, best_thresholds, format_table, mean_interval, mean_scores, pr_curve
 from .training import predict_dataset, split_indices
 
 
@@ -35,6 +35,7 @@ def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Pat
     test_scenes = [s for s in TEST_SCENES if s in data.manifest["scenes"]]
     table: dict[str, dict[str, dict[str, np.ndarray]]] = {}
     curves: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = {}
+    intervals: dict[tuple[str, str], dict[str, tuple[float, float]]] = {}
     results: dict[str, Any] = {"dataset": data.name, "test_scenes": test_scenes, "models": {}}
     for path in map(Path, checkpoints):
         clf = Classifier.load(path)
@@ -57,16 +58,41 @@ def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Pat
             scores = axis_scores(y, probs > clf.thresholds)
             table[name][split] = scores
             curves[name][split] = (y, probs)
+            intervals[name, split] = mean_interval(y, probs > clf.thresholds)
             results["models"][name]["splits"][split] = {
-                "count": len(rows), "mean": mean_scores(scores),
+                "count": len(rows), "mean": mean_scores(scores), "mean_95_interval": intervals[name, split],
                 **{k: np.asarray(v).tolist() for k, v in scores.items()}}
-    text = format_table(table)
+        if "valid" in curves[name]:
+            results["models"][name]["f1_operating_point"] = f1_operating_point(curves[name])
+    text = format_table(table, intervals=intervals) + format_f1_operating_points(results["models"])
     (out / "table.txt").write_text(text + "\n")
     (out / "results.json").write_text(json.dumps(results, indent=1, default=_nan_safe))
     plot_pr_curves(curves, {n: np.asarray(r["thresholds"]) for n, r in results["models"].items()},
                    out / "pr_curves.png")
     results["table"] = text
     return results
+
+
+def f1_operating_point(curves: dict[str, tuple[np.ndarray, np.ndarray]]) -> dict[str, Any]:
+    """Mean scores of every split at the F1-best validation thresholds. The stored thresholds
+    weigh recall (a missed degenerate axis corrupts the fused estimate); this shows what a pure
+    classification operating point would score instead."""
+    thresholds = best_thresholds(*curves["valid"], beta=1.0)
+    return {"thresholds": thresholds.tolist(),
+            "splits": {split: mean_scores(axis_scores(y, p > thresholds)) for split, (y, p) in curves.items()}}
+
+
+def format_f1_operating_points(models: dict[str, Any]) -> str:
+    lines = []
+    for name, model in models.items():
+        point = model.get("f1_operating_point")
+        if point is None:
+            continue
+        lines.append(f"{name} at the F1-best validation thresholds "
+                     f"({' '.join(f'{t:.2f}' for t in point['thresholds'])}), means over axes:")
+        lines += [f"  {split:16s} accuracy {m['accuracy']:.3f}  f1 {m['f1']:.3f}  precision {m['precision']:.3f}  "
+                  f"recall {m['recall']:.3f}" for split, m in point["splits"].items()]
+    return "\n\n" + "\n".join(lines) if lines else ""
 
 
 def _nan_safe(value: Any) -> Any:

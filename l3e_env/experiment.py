@@ -9,6 +9,7 @@ detectors without driving.
 from __future__ import annotations
 
 import json
+import re
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -226,8 +227,13 @@ def run_experiment(out_dir: str | Path, scene: str, detectors: list[str], sensor
     plot_trajectories(out / "trajectories.png", scene_obj, rec, results)
     plot_timeline(out / "timeline.png", results[1:])
     for r in results[1:]:
-        plot_map(out / f"map_{r.name.replace(':', '_')}", rec, r.trajectory)
+        plot_map(out / f"map_{file_stem(r.name)}", rec, r.trajectory)
     return rows
+
+
+def file_stem(detector_name: str) -> str:
+    """A detector's name as a file name: 'learned:runs/a/model.pt' names a path, not a folder."""
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", detector_name).strip("_")
 
 
 def format_table(rows: list[dict]) -> str:

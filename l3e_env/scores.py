@@ -33,6 +33,23 @@ def mean_scores(scores: dict[str, np.ndarray]) -> dict[str, float]:
             for k, v in scores.items() if k != "support"}
 
 
+def mean_interval(labels: np.ndarray, predicted: np.ndarray, resamples: int = 1000, level: float = 0.95,
+                  seed: int = 0) -> dict[str, tuple[float, float]]:
+    """Bootstrap interval (scans drawn with replacement) of each averaged score: how far a mean
+    over axes with a handful of positives can move on another draw of test scans."""
+    y = np.asarray(labels, dtype=bool).reshape(-1, 6)
+    p = np.asarray(predicted, dtype=bool).reshape(-1, 6)
+    rng = np.random.default_rng(seed)
+    draws: dict[str, list[float]] = {}
+    for _ in range(resamples):
+        rows = rng.integers(0, len(y), len(y))
+        for k, v in mean_scores(axis_scores(y[rows], p[rows])).items():
+            draws.setdefault(k, []).append(v)
+    tail = 100 * (1 - level) / 2
+    return {k: (float(np.nanpercentile(v, tail)), float(np.nanpercentile(v, 100 - tail)))
+            if np.isfinite(v).any() else (float("nan"), float("nan")) for k, v in draws.items()}
+
+
 def pr_curve(labels: np.ndarray, probabilities: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Precision, recall and the threshold at each distinct probability (predict p > threshold
     is evaluated as p >= t for the t listed), highest threshold first."""
@@ -68,9 +85,10 @@ def best_thresholds(labels: np.ndarray, probabilities: np.ndarray, default: floa
     return out
 
 
-def format_table(rows: dict[str, dict[str, dict[str, np.ndarray]]], digits: int = 3) -> str:
-    """A Table III layout: one column per (model, split), rows are score x axis plus the mean,
-    and the count of positives per axis under each column."""
+def format_table(rows: dict[str, dict[str, dict[str, np.ndarray]]], digits: int = 3,
+                 intervals: dict[tuple[str, str], dict[str, tuple[float, float]]] | None = None) -> str:
+    """A Table III layout: one column per (model, split), rows are score x axis plus the mean
+    (and its bootstrap interval where given), and the count of positives per axis."""
     columns = [(m, s) for m, splits in rows.items() for s in splits]
     width = max(14, *(len(m) + 2 for m, _ in columns), *(len(s) + 2 for _, s in columns))
     lines = [f"{'':16s}" + "".join(f"{m:>{width}s}" for m, _ in columns),
@@ -83,6 +101,13 @@ def format_table(rows: dict[str, dict[str, dict[str, np.ndarray]]], digits: int 
                 v = mean_scores(sc)[score] if axis == "mean" else sc[score][a]
                 cells.append(f"{'n/a' if not np.isfinite(v) else f'{v:.{digits}f}':>{width}s}")
             lines.append(f"{score + ' ' + axis:16s}" + "".join(cells))
+        if intervals:
+            cells = []
+            for column in columns:
+                lo, hi = intervals.get(column, {}).get(score, (np.nan, np.nan))
+                text = f"{lo:.{digits}f}-{hi:.{digits}f}" if np.isfinite(lo) else "n/a"
+                cells.append(f"{text:>{width}s}")
+            lines.append(f"{score + ' 95% CI':16s}" + "".join(cells))
     for a, axis in enumerate(AXES):
         lines.append(f"{'positives ' + axis:16s}" + "".join(f"{int(rows[m][s]['support'][a]):>{width}d}"
                                                             for m, s in columns))

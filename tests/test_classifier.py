@@ -12,9 +12,9 @@ from l3e_env.classifier import (
 )
 from l3e_env.dataset import DatasetError, LabelDataset, config_for, generate, open_datasets
 from l3e_env.detectors import LearnedDetector, make_detector
-from l3e_env.scores import axis_scores, best_thresholds, mean_scores, pr_curve
+from l3e_env.scores import axis_scores, best_thresholds, mean_interval, mean_scores, pr_curve
 from l3e_env.training import (
-    SWAP_LABELS, TrainConfig, TrainingError, augment, balanced_pool, split_indices, train,
+    SWAP_LABELS, TrainConfig, TrainingError, augment, balanced_pool, predict_dataset, split_indices, train,
 )
 
 SMALL = ModelConfig(points=600, channels=(8, 8, 16, 16), pointnet_channels=(16, 32), head=(16, 16, 16, 16))
@@ -125,6 +125,21 @@ def test_axis_scores_by_hand():
     assert mean_scores(s)["f1"] == pytest.approx((0.5 + 1 + 0 + 0) / 4)  # z and roll: undefined, left out
 
 
+def test_bootstrap_interval_brackets_the_mean_and_widens_with_few_positives(rng):
+    y = rng.random((400, 6)) < 0.3
+    assert mean_interval(y, y)["f1"] == (1.0, 1.0)
+    noisy = y ^ (rng.random((400, 6)) < 0.1)
+    lo, hi = mean_interval(y, noisy)["f1"]
+    assert lo < mean_scores(axis_scores(y, noisy))["f1"] < hi and hi - lo < 0.1
+    rare = np.zeros((400, 6), bool)
+    rare[:2] = True  # two positives per axis: one miss moves F1 a lot
+    guess = rare.copy()
+    guess[0] = False
+    guess[10] = True
+    lo_rare, hi_rare = mean_interval(rare, guess)["f1"]
+    assert hi_rare - lo_rare > 3 * (hi - lo)
+
+
 def test_pr_curve_and_thresholds_match_brute_force(rng):
     y = rng.random((300, 6)) < 0.3
     p = np.clip(y * 0.3 + rng.random((300, 6)) * 0.7, 0, 1).round(2)  # ties on purpose
@@ -232,3 +247,16 @@ def test_evaluate_writes_table_curves_and_results(tiny_dataset, tmp_path):
     assert "accuracy mean" in res["table"] and (tmp_path / "eval" / "pr_curves.png").stat().st_size > 10_000
     stored = json.loads((tmp_path / "eval" / "results.json").read_text())
     assert stored["models"][name]["thresholds"] == pytest.approx(model["thresholds"])
+    lo, hi = model["splits"]["valid"]["mean_95_interval"]["f1"]
+    assert lo <= model["splits"]["valid"]["mean"]["f1"] <= hi and "f1 95% CI" in res["table"]
+    point = model["f1_operating_point"]
+    valid_y, valid_p = _valid_predictions(tmp_path / "run" / "model.pt", tiny_dataset)
+    assert point["thresholds"] == pytest.approx(best_thresholds(valid_y, valid_p, beta=1.0).tolist())
+    assert "F1-best validation thresholds" in res["table"] and set(point["splits"]) == set(model["splits"])
+
+
+def _valid_predictions(checkpoint, dataset):
+    clf = Classifier.load(checkpoint)
+    data = open_datasets(dataset)
+    rows = split_indices(data, clf.meta["training"]["validation_scenes"])
+    return data.labels[rows], predict_dataset(clf.model, data, rows)

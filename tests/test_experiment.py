@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from l3e_env.detectors import EigenvalueDetector, NoDetector, make_detector
-from l3e_env.experiment import Recording, evaluate, format_table, record_run, register_sequence
+from l3e_env.experiment import Recording, evaluate, file_stem, format_table, record_run, register_sequence
 from l3e_env.registration import RegistrationConfig
 
 
@@ -51,3 +51,9 @@ def test_a_tau_is_reported_only_when_it_is_as_good_as_the_reference_everywhere()
     assert beaten_everywhere(results) == []
     results["field"]["eigen_ate"][1] = 0.6
     assert beaten_everywhere(results) == [110.0]
+
+
+def test_detector_names_become_flat_file_names():
+    assert file_stem("eigen:110") == "eigen_110"
+    assert file_stem("learned:runs/a b/model.pt") == "learned_runs_a_b_model.pt"
+    assert "/" not in file_stem("learned:/abs/path/model.pt")
