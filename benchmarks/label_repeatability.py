@@ -1,7 +1,7 @@
 """How repeatable are the Monte-Carlo labels? The ceiling any classifier's scores meet.
 
 Run: python benchmarks/label_repeatability.py --dataset data/l3e48 [--scenes mine-0,cave-0,cave-1]
-     [--children 200] [--workers 2] [--seed 1]
+     [--children 200] [--workers 2] [--seed 1] [--out errors.npz] [--translation 0.1,0.05,0.04]
 
 Each parent pose of the chosen scenes is labelled again with the dataset's own sensor, label and
 registration settings, but with another draw of the M children (and of the range noise). The
@@ -9,6 +9,8 @@ second labels are then scored against the stored ones exactly as a classifier is
 accuracy and F1, averaged over the axes as in Table III. A classifier that predicted the second
 draw perfectly would score this against the first, so a test F1 far above it would be luck.
 The reference in the same run is the stored labels scored against themselves (1.0).
+--translation repeats the comparison with other x/y/z label thresholds (both draws relabelled
+from their stored mean errors), to see which threshold gives labels that repeat.
 """
 from __future__ import annotations
 
@@ -53,6 +55,8 @@ def main() -> None:
     ap.add_argument("--children", type=int, default=None, help="default: the dataset's M")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--out", help="save both draws' mean errors here (.npz)")
+    ap.add_argument("--translation", default="", help="other x/y/z thresholds to compare, in m, comma-separated")
     args = ap.parse_args()
 
     data = LabelDataset(args.dataset)
@@ -69,6 +73,8 @@ def main() -> None:
         errors = np.array(list(tqdm(pool.map(relabel, jobs, chunksize=4), total=len(jobs), desc="relabelling")))
     seconds = time.perf_counter() - t0
     ok = np.isfinite(errors).all(axis=1)
+    if args.out:
+        np.savez(args.out, rows=rows, stored=data.errors[rows], again=errors, thresholds=thresholds)
     first, second = data.labels[rows][ok], (errors[ok] > thresholds).astype(np.uint8)
 
     print(f"{args.dataset}: {ok.sum()} parents of {args.scenes} relabelled with M = {children} "
@@ -83,6 +89,14 @@ def main() -> None:
               f"{scores['f1'][a]:6.3f} {corr:11.3f}")
     print(f"mean   accuracy {means['accuracy']:.3f} F1 {means['f1']:.3f}  (reference, stored vs stored: "
           f"accuracy {same['accuracy']:.3f} F1 {same['f1']:.3f}; ratio F1 {means['f1'] / same['f1']:.2f})")
+    for t in filter(None, args.translation.split(",")):
+        other = thresholds.copy()
+        other[:3] = float(t)
+        a, b = data.errors[rows][ok] > other, errors[ok] > other
+        s = axis_scores(a, b)
+        print(f"x/y/z threshold {float(t):.3f} m: positives {a[:, :3].sum(0)} / {b[:, :3].sum(0)}, "
+              f"F1 x/y/z {np.round(s['f1'][:3], 3)}, mean over axes accuracy {mean_scores(s)['accuracy']:.3f} "
+              f"F1 {mean_scores(s)['f1']:.3f}")
 
 
 if __name__ == "__main__":

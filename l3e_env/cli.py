@@ -96,7 +96,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
     cfg = load_yaml(TrainConfig, args.config) if args.config else TrainConfig()
     overrides = {k: v for k, v in {"epochs": args.epochs, "seed": args.seed, "optimizer": args.optimizer,
                                    "learning_rate": args.lr, "samples_per_epoch": args.samples_per_epoch,
-                                   "threads": args.threads}.items()
+                                   "threads": args.threads, "soft_labels": args.soft_labels}.items()
                  if v is not None}
     model = _asdict(cfg.model)
     if args.init:  # fine-tuning keeps the model settings of the checkpoint it starts from
@@ -205,6 +205,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--lr", type=float)
     p.add_argument("--threads", type=int, help="torch threads (default 2)")
     p.add_argument("--seed", type=int)
+    p.add_argument("--soft-labels", type=float, dest="soft_labels",
+                   help="k > 0: targets sigmoid(k ln(error / threshold)) instead of 0/1 labels")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_cmd_train)
     p = sub.add_parser("evaluate", help="Table III: per-axis scores on train, validation and test, PR curves")

@@ -30,8 +30,9 @@ from .classifier import (
     sample_points,
     save_checkpoint,
 )
-from .config import dump_yaml, plain, to_dict
+from .config import dump_yaml, from_dict, plain, to_dict
 from .dataset import DatasetUnion, LabelDataset, open_datasets
+from .labels import LabelConfig
 from .scores import axis_scores, best_thresholds, mean_scores
 
 # a reflection of the scan in the x-z or y-z plane leaves every |error| unchanged; swapping x and y
@@ -64,6 +65,10 @@ class TrainConfig:
     # corrupts the estimate while a false flag only hands that axis to the odometry for a step,
     # so recall weighs more (beta 2). Epochs are still chosen by validation F1.
     threshold_beta: float = 2.0
+    # 0: the paper's hard labels. k > 0: soft targets sigmoid(k * ln(error / label threshold)),
+    # so a scan whose error sits just at the threshold is taught 0.5 instead of a coin's 0 or 1
+    # (at k = 4, twice the threshold gives 0.94 and half of it 0.06)
+    soft_labels: float = 0.0
 
 
 class TrainingError(RuntimeError):
@@ -78,6 +83,18 @@ def split_indices(data: LabelDataset | DatasetUnion, scenes: list[str]) -> np.nd
         raise TrainingError(f"scenes {missing} are not in dataset {data.folder} (it has {names})")
     wanted = [names.index(s) for s in scenes]
     return np.flatnonzero(np.isin(np.asarray(data.arrays["scene"]), wanted))
+
+
+def training_targets(data: LabelDataset | DatasetUnion, softness: float) -> np.ndarray:
+    """(N, 6) float targets: the labels, or soft ones from each row's mean errors and its own
+    dataset's label thresholds (the parts of a union may differ)."""
+    if softness <= 0:
+        return data.labels.astype(np.float32)
+    parts = data.parts if isinstance(data, DatasetUnion) else [data]
+    thresholds = np.concatenate([np.tile(from_dict(LabelConfig, p.manifest["settings"]["labels"]).threshold_vector(),
+                                         (len(p), 1)) for p in parts])
+    ratio = np.maximum(data.errors, 1e-9) / thresholds
+    return (1.0 / (1.0 + ratio ** -softness)).astype(np.float32)  # = sigmoid(k ln ratio)
 
 
 def balanced_pool(labels: np.ndarray, max_upsampling: float) -> np.ndarray:
@@ -161,6 +178,7 @@ def train(dataset: str | Path | list[str | Path], out_dir: str | Path, cfg: Trai
     if len(train_rows) == 0:
         raise TrainingError("the training split is empty")
     labels = data.labels
+    targets_all = training_targets(data, cfg.soft_labels)
     meta = _meta(cfg, data)
 
     last = out / "last.pt"
@@ -196,7 +214,7 @@ def train(dataset: str | Path | list[str | Path], out_dir: str | Path, cfg: Trai
         for start in bar:
             batch, targets = [], []
             for i in order[start:start + cfg.batch_size]:
-                pts, lab = data.scan(int(i)), labels[i]
+                pts, lab = data.scan(int(i)), targets_all[i]
                 if cfg.augment:
                     pts, lab = augment(pts, lab, rng)
                 batch.append(sample_points(pts, cfg.model.points, rng))

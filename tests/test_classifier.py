@@ -15,6 +15,7 @@ from l3e_env.detectors import LearnedDetector, make_detector
 from l3e_env.scores import axis_scores, best_thresholds, mean_interval, mean_scores, pr_curve
 from l3e_env.training import (
     SWAP_LABELS, TrainConfig, TrainingError, augment, balanced_pool, predict_dataset, split_indices, train,
+    training_targets,
 )
 
 SMALL = ModelConfig(points=600, channels=(8, 8, 16, 16), pointnet_channels=(16, 32), head=(16, 16, 16, 16))
@@ -260,3 +261,15 @@ def _valid_predictions(checkpoint, dataset):
     data = open_datasets(dataset)
     rows = split_indices(data, clf.meta["training"]["validation_scenes"])
     return data.labels[rows], predict_dataset(clf.model, data, rows)
+
+
+def test_soft_targets_follow_the_error_to_threshold_ratio(tiny_dataset, tmp_path):
+    data = LabelDataset(tiny_dataset)
+    assert np.array_equal(training_targets(data, 0.0), data.labels)
+    soft = training_targets(data, 4.0)
+    t = np.array([0.1, 0.1, 0.1, *np.radians([2.0, 2.0, 2.0])])
+    ratio = data.errors / t
+    assert np.allclose(soft, 1 / (1 + np.exp(-4 * np.log(ratio))), atol=1e-5)
+    assert np.array_equal(soft > 0.5, data.labels.astype(bool))  # the same side of the threshold
+    train(tiny_dataset, tmp_path / "soft", _train_cfg(soft_labels=4.0, epochs=1), progress=False)
+    assert Classifier.load(tmp_path / "soft" / "model.pt").meta["training"]["soft_labels"] == 4.0
