@@ -66,7 +66,7 @@ class TrainConfig:
     # so recall weighs more (beta 2). Epochs are still chosen by validation F1.
     threshold_beta: float = 2.0
     # 0: the paper's hard labels. k > 0: soft targets sigmoid(k * ln(error / label threshold)),
-    # so a scan whose error sits just at the threshold is taught 0.5 instead of a coin's 0 or 1
+    # so a scan whose error sits just at the threshold is taught 0.5 instead of a hard 0 or 1
     # (at k = 4, twice the threshold gives 0.94 and half of it 0.06)
     soft_labels: float = 0.0
 
@@ -163,7 +163,8 @@ def _initial_model(cfg: TrainConfig) -> LocalizabilityNet:
 def _resumable(training: dict[str, Any]) -> dict[str, Any]:
     """The settings a resumed run must share with the first one: all but the epoch count (a
     finished run can be trained further) and the thread count (a resumed run may get more cores)."""
-    return {k: v for k, v in training.items() if k not in ("epochs", "threads", "threshold_beta")}
+    kept = {k: v for k, v in training.items() if k not in ("epochs", "threads", "threshold_beta")}
+    return {"soft_labels": 0.0, **kept}  # runs from before soft targets existed trained on hard labels
 
 
 def train(dataset: str | Path | list[str | Path], out_dir: str | Path, cfg: TrainConfig,

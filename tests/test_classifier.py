@@ -15,7 +15,7 @@ from l3e_env.detectors import LearnedDetector, make_detector
 from l3e_env.scores import axis_scores, best_thresholds, mean_interval, mean_scores, pr_curve
 from l3e_env.training import (
     SWAP_LABELS, TrainConfig, TrainingError, augment, balanced_pool, predict_dataset, split_indices, train,
-    training_targets,
+    _resumable, training_targets,
 )
 
 SMALL = ModelConfig(points=600, channels=(8, 8, 16, 16), pointnet_channels=(16, 32), head=(16, 16, 16, 16))
@@ -273,3 +273,5 @@ def test_soft_targets_follow_the_error_to_threshold_ratio(tiny_dataset, tmp_path
     assert np.array_equal(soft > 0.5, data.labels.astype(bool))  # the same side of the threshold
     train(tiny_dataset, tmp_path / "soft", _train_cfg(soft_labels=4.0, epochs=1), progress=False)
     assert Classifier.load(tmp_path / "soft" / "model.pt").meta["training"]["soft_labels"] == 4.0
+    # a run folder written before soft targets existed resumes as a hard-label run
+    assert _resumable({"seed": 0}) == _resumable({"seed": 0, "soft_labels": 0.0}) != _resumable({"soft_labels": 4.0})
