@@ -22,28 +22,21 @@ import numpy as np
 from tqdm import tqdm
 
 from l3e_env.config import LidarConfig, from_dict
-from l3e_env.dataset import LabelDataset
+from l3e_env.dataset import LabelDataset, scene_tools
 from l3e_env.labels import AXES, LabelConfig, label_parent
-from l3e_env.lidar import Lidar
-from l3e_env.raycast import EmbreeCaster
 from l3e_env.registration import RegistrationConfig, RegistrationError
 from l3e_env.scores import axis_scores, mean_scores
-from scenes import TEST_SCENES, make_scene
-
-_TOOLS: dict = {}
+from scenes import TEST_SCENES
 
 
 def relabel(job: tuple[str, np.ndarray, tuple[int, int], dict, int]) -> np.ndarray:
     """Mean registration errors (6,) of one parent pose with a fresh draw of children."""
     scene_name, T_w_p, seed, settings, children = job
-    if scene_name not in _TOOLS:
-        _TOOLS.clear()
-        caster = EmbreeCaster(make_scene(scene_name).mesh, threads=1)
-        _TOOLS[scene_name] = Lidar(caster, from_dict(LidarConfig, settings["lidar"]))
+    _, _, lidar = scene_tools(scene_name, from_dict(LidarConfig, settings["lidar"]))
     labels = from_dict(LabelConfig, {**settings["labels"], "children": children})
     registration = from_dict(RegistrationConfig, settings["registration"])
     try:
-        return label_parent(_TOOLS[scene_name], T_w_p, np.random.default_rng(seed), labels, registration).errors
+        return label_parent(lidar, T_w_p, np.random.default_rng(seed), labels, registration).errors
     except RegistrationError:
         return np.full(6, np.nan)
 

@@ -94,7 +94,8 @@ def _shards(config: DatasetConfig) -> list[tuple[str, int, int, int]]:
 _WORKER_CACHE: dict[str, tuple] = {}
 
 
-def _scene_tools(name: str, lidar_config: LidarConfig):
+def scene_tools(name: str, lidar_config: LidarConfig):
+    """(scene, caster, lidar) of a worker process, kept for the next job on the same scene."""
     if name not in _WORKER_CACHE:
         scene = make_scene(name)
         caster = EmbreeCaster(scene.mesh, threads=1)  # processes give the parallelism
@@ -106,7 +107,7 @@ def _scene_tools(name: str, lidar_config: LidarConfig):
 def run_shard(config: DatasetConfig, shard: tuple[str, int, int, int]) -> dict[str, Any]:
     """Label the parents of one shard; returns arrays and per-parent failure records."""
     shard_id, si, start, stop = shard
-    scene, caster, lidar = _scene_tools(config.scenes[si], config.lidar)
+    scene, caster, lidar = scene_tools(config.scenes[si], config.lidar)
     rows: dict[str, list] = {k: [] for k in ("points", "poses", "errors", "labels", "index", "children_failed")}
     failures = []
     for i in range(start, stop):

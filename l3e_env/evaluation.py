@@ -55,10 +55,11 @@ def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Pat
                 print(f"{name}: {split} ({len(rows)} scans)")
             probs = predict_dataset(clf.model, ds, rows, progress=progress)
             y = ds.labels[rows]
-            scores = axis_scores(y, probs > clf.thresholds)
+            predicted = probs > clf.thresholds
+            scores = axis_scores(y, predicted)
             table[name][split] = scores
             curves[name][split] = (y, probs)
-            intervals[name, split] = mean_interval(y, probs > clf.thresholds)
+            intervals[name, split] = mean_interval(y, predicted)
             results["models"][name]["splits"][split] = {
                 "count": len(rows), "mean": mean_scores(scores), "mean_95_interval": intervals[name, split],
                 **{k: np.asarray(v).tolist() for k, v in scores.items()}}

@@ -163,8 +163,8 @@ def _initial_model(cfg: TrainConfig) -> LocalizabilityNet:
 def _resumable(training: dict[str, Any]) -> dict[str, Any]:
     """The settings a resumed run must share with the first one: all but the epoch count (a
     finished run can be trained further) and the thread count (a resumed run may get more cores)."""
-    kept = {k: v for k, v in training.items() if k not in ("epochs", "threads", "threshold_beta")}
-    return {"soft_labels": 0.0, **kept}  # runs from before soft targets existed trained on hard labels
+    full = {**plain(to_dict(TrainConfig())), **training}  # settings added since the run began: their defaults
+    return {k: v for k, v in full.items() if k not in ("epochs", "threads", "threshold_beta")}
 
 
 def train(dataset: str | Path | list[str | Path], out_dir: str | Path, cfg: TrainConfig,
