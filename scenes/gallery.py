@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .geometry import polar_profile, resample_polyline, smooth_noise, sweep
+from .geometry import polar_profile, resample_polyline, seed_spread, smooth_noise, sweep
 from .scene import Scene
 from .tunnel import PROFILES
 
@@ -17,7 +17,7 @@ def make_gallery(seed: int = 0, roughness: float | None = None, length: float | 
     golden-ratio sequence), so any few consecutive seeds cover smooth and rough walls."""
     rng = np.random.default_rng(seed + 2000)
     if roughness is None:
-        roughness = float(np.exp(np.log(0.02) + ((seed * 0.6180339887) % 1.0) * np.log(0.5 / 0.02)))
+        roughness = float(np.exp(np.log(0.02) + seed_spread(seed) * np.log(0.5 / 0.02)))
     length = length or float(rng.uniform(60, 110))
     profile = PROFILES[int(rng.integers(len(PROFILES)))]
     width = float(rng.uniform(3.0, 6.0))

@@ -14,6 +14,12 @@ def box(center: tuple[float, float, float], size: tuple[float, float, float], ya
     return trimesh.creation.box(extents=size, transform=tf)
 
 
+def seed_spread(seed: int) -> float:
+    """A number in [0, 1) that covers the interval evenly over any few consecutive seeds (the
+    golden-ratio sequence), so a family's seeds span its range of a parameter."""
+    return (seed * 0.6180339887) % 1.0
+
+
 def ground_plane(x0: float, x1: float, y0: float, y1: float, z: float = 0.0, cell: float = 0.0) -> trimesh.Trimesh:
     """A flat rectangle at height z, split into cells of about `cell` m (0: two triangles)."""
     nx = max(1, int(np.ceil((x1 - x0) / cell))) if cell > 0 else 1

@@ -4,6 +4,7 @@ from __future__ import annotations
 from typing import Callable
 
 from .cave import make_cave
+from .chamber import make_chamber
 from .field import make_field
 from .fork import make_fork
 from .gallery import make_gallery
@@ -12,6 +13,7 @@ from .office import make_office
 from .primitives import make_primitive
 from .scene import Scene, SceneError
 from .tunnel import make_tunnel
+from .yard import make_yard
 
 BUILDERS: dict[str, Callable[..., Scene]] = {
     "tunnel": make_tunnel,
@@ -22,6 +24,8 @@ BUILDERS: dict[str, Callable[..., Scene]] = {
     "mine": make_mine,
     "fork": make_fork,
     "gallery": make_gallery,
+    "yard": make_yard,
+    "chamber": make_chamber,
 }
 
 
@@ -52,11 +56,15 @@ def make_scene(name: str, seed: int = 0, **params) -> Scene:
 # families never seen in training (the mine among them), the paper's protocol.
 # Rock galleries span smooth to rough walls: without them every tube in training is a smooth,
 # non-localizable one, and a model learns "tube = degenerate" instead of looking at the walls.
+# Yards (open ground, empty to dense) and chambers (large rooms, smooth to rough) do the same for
+# open ground and for big rooms: the fields' open part and the primitives' smooth rooms alone
+# teach "much ground = degenerate" and "a room = yaw-free".
 GALLERIES = [f"gallery-{s}" for s in range(8)]
+YARDS_AND_CHAMBERS = [f"yard-{s}" for s in range(8)] + [f"chamber-{s}" for s in range(8)]
 TRAIN_SCENES = [f"tunnel-{s}" for s in range(4)] + [f"primitives-{s}" for s in range(5)] + [
-    "field-0", "field-1", "office-0", "office-1", "office-2", "fork-0", "fork-1", *GALLERIES,
+    "field-0", "field-1", "office-0", "office-1", "office-2", "fork-0", "fork-1", *GALLERIES, *YARDS_AND_CHAMBERS,
 ]
-VALIDATION_SCENES = ["tunnel-7", "primitives-7", "office-5", "field-3", "gallery-9"]
+VALIDATION_SCENES = ["tunnel-7", "primitives-7", "office-5", "field-3", "gallery-9", "yard-9", "chamber-9"]
 TEST_SCENES = ["mine-0", "cave-0", "cave-1"]
 # The order of scenes in a dataset matters (parent i of the s-th scene is seeded by (seed, s, i)):
 # scenes added to the split later are appended, so that earlier ones keep their labels.

@@ -87,3 +87,35 @@ def test_broken_and_missing_mesh_files_raise_clear_errors(tmp_path):
     nan_obj.write_text("v 0 0 0\nv 1 0 nan\nv 0 1 0\nf 1 2 3\n")
     with pytest.raises(SceneError, match="NaN"):
         load_mesh(nan_obj)
+
+
+def _horizontal_clearance(scene: Scene, points: np.ndarray, height: float = 1.0, max_range: float = 60.0) -> np.ndarray:
+    from l3e_env.raycast import EmbreeCaster
+
+    caster = EmbreeCaster(scene.mesh, threads=1)
+    angles = np.linspace(0, 2 * np.pi, 32, endpoint=False)
+    dirs = np.column_stack([np.cos(angles), np.sin(angles), np.zeros_like(angles)]).astype(np.float32)
+    return np.array([caster.cast(p + (0, 0, height), dirs, max_range) for p in points])
+
+
+def test_yards_span_empty_to_dense_and_keep_their_paths_clear():
+    counts = []
+    for seed in range(6):
+        yard = make_scene(f"yard-{seed}")
+        counts.append(len(yard.mesh.split(only_watertight=False)) - 1)  # minus the ground
+        paths = np.vstack(yard.sampling_paths)
+        assert _horizontal_clearance(yard, paths[::3]).min() > 1.5  # structures keep 2 m off the paths
+    assert min(counts) <= 6 and max(counts) >= 15
+
+
+def test_chambers_are_closed_rooms_from_smooth_to_rough():
+    roughness = []
+    from scenes.chamber import make_chamber
+
+    for seed in range(5):
+        chamber = make_scene(f"chamber-{seed}")
+        middle = chamber.sampling_paths[0][len(chamber.sampling_paths[0]) // 2]
+        assert np.isfinite(_horizontal_clearance(chamber, middle[None])).all()  # no ray leaves the room
+        smooth = make_chamber(seed, roughness=1e-9)  # the same room without the noise field
+        roughness.append(np.abs(chamber.mesh.vertices - smooth.mesh.vertices).max(axis=1).mean())
+    assert max(roughness) > 5 * min(roughness)
