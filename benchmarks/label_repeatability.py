@@ -58,7 +58,7 @@ def main() -> None:
     names = data.manifest["scenes"]
     scene_of_row = np.asarray(data.arrays["scene"])
     poses = np.asarray(data.arrays["poses"])
-    thresholds = from_dict(LabelConfig, settings["labels"]).threshold_vector()
+    thresholds = data.label_config.threshold_vector()
     rows = np.flatnonzero(np.isin(scene_of_row, [names.index(s) for s in args.scenes.split(",")]))
     jobs = [(names[scene_of_row[i]], poses[i], (args.seed, int(i)), settings, children) for i in rows]
     t0 = time.perf_counter()
@@ -87,9 +87,9 @@ def main() -> None:
         other[:3] = float(t)
         a, b = data.errors[rows][ok] > other, errors[ok] > other
         s = axis_scores(a, b)
+        m = mean_scores(s)
         print(f"x/y/z threshold {float(t):.3f} m: positives {a[:, :3].sum(0)} / {b[:, :3].sum(0)}, "
-              f"F1 x/y/z {np.round(s['f1'][:3], 3)}, mean over axes accuracy {mean_scores(s)['accuracy']:.3f} "
-              f"F1 {mean_scores(s)['f1']:.3f}")
+              f"F1 x/y/z {np.round(s['f1'][:3], 3)}, mean over axes accuracy {m['accuracy']:.3f} F1 {m['f1']:.3f}")
 
 
 if __name__ == "__main__":

@@ -314,6 +314,11 @@ class LabelDataset:
     def errors(self) -> np.ndarray:
         return np.asarray(self.arrays["errors"])
 
+    @property
+    def label_config(self) -> LabelConfig:
+        """The label settings the dataset was made with (its thresholds turn errors into labels)."""
+        return from_dict(LabelConfig, self.manifest["settings"]["labels"])
+
 
 class DatasetUnion:
     """Datasets of one sensor and one registration read as one, e.g. the paper's poses and the

@@ -30,9 +30,8 @@ from .classifier import (
     sample_points,
     save_checkpoint,
 )
-from .config import dump_yaml, from_dict, plain, to_dict
+from .config import dump_yaml, plain, to_dict
 from .dataset import DatasetUnion, LabelDataset, open_datasets
-from .labels import LabelConfig
 from .scores import axis_scores, best_thresholds, mean_scores
 
 # a reflection of the scan in the x-z or y-z plane leaves every |error| unchanged; swapping x and y
@@ -91,8 +90,7 @@ def training_targets(data: LabelDataset | DatasetUnion, softness: float) -> np.n
     if softness <= 0:
         return data.labels.astype(np.float32)
     parts = data.parts if isinstance(data, DatasetUnion) else [data]
-    thresholds = np.concatenate([np.tile(from_dict(LabelConfig, p.manifest["settings"]["labels"]).threshold_vector(),
-                                         (len(p), 1)) for p in parts])
+    thresholds = np.concatenate([np.tile(p.label_config.threshold_vector(), (len(p), 1)) for p in parts])
     ratio = np.maximum(data.errors, 1e-9) / thresholds
     return (1.0 / (1.0 + ratio ** -softness)).astype(np.float32)  # = sigmoid(k ln ratio)
 
