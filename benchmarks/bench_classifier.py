@@ -1,6 +1,7 @@
 """Classifier inference latency on single VLP-16 scans along the mine route (yard, tunnel,
 quarry), with the paper's 28 ms (i7-10700F, 8 cores) as the reference, plus the PointNet
-baseline and a full-width (FCGF 32-64-128-256) ResUNet measured in the same run.
+baseline, the shipped model averaged over its eight mirror/swap views, and a full-width (FCGF
+32-64-128-256) ResUNet measured in the same run.
 
 Run: python benchmarks/bench_classifier.py [--checkpoint PATH] [--scans 60] [--threads 2]
 """
@@ -54,6 +55,8 @@ def main() -> None:
     scans = route_scans(args.scans)
     clf = Classifier.load(args.checkpoint)
     rows = [("shipped ResUNet (scan -> mask)", latency_ms(clf.predict, scans))]
+    symmetric = Classifier.load(args.checkpoint, symmetric=True)
+    rows.append(("the same, 8 mirror/swap views", latency_ms(symmetric.predict, scans)))
     rng = np.random.default_rng(0)
     for label, cfg in [("PointNet baseline", ModelConfig(architecture="pointnet")),
                        ("ResUNet at FCGF width", ModelConfig(channels=(32, 64, 128, 256)))]:

@@ -26,6 +26,13 @@ CHECKPOINT_FORMAT = "l3e-classifier"
 CHECKPOINT_VERSION = 1
 MIN_POINTS = 50
 DEFAULT_CHECKPOINT = Path(__file__).parent / "models" / "resunet_vlp16.pt"
+# Mirroring a scan in x or y, or swapping x and y, gives a scan whose labels are the same up to the
+# order of the axes (a degenerate direction stays degenerate whatever its sign): swapping x and y
+# swaps the x/y and the roll/pitch labels. Training draws from these views; symmetric inference
+# averages over all eight.
+SWAP_LABELS = np.array([1, 0, 2, 4, 3, 5])
+SYMMETRIES: list[tuple[float, float, bool]] = [(sx, sy, swap) for sx in (1.0, -1.0) for sy in (1.0, -1.0)
+                                               for swap in (False, True)]
 
 
 class CheckpointError(RuntimeError):
@@ -177,6 +184,25 @@ def sample_points(points: np.ndarray, count: int, rng: np.random.Generator) -> t
     return torch.from_numpy(np.ascontiguousarray(points, dtype=np.float32))
 
 
+def symmetry_view(points: torch.Tensor, symmetry: tuple[float, float, bool]) -> torch.Tensor:
+    sx, sy, swap = symmetry
+    view = points * points.new_tensor([sx, sy, 1.0])
+    return view[:, [1, 0, 2]] if swap else view
+
+
+@torch.inference_mode()
+def model_probabilities(model: LocalizabilityNet, batch: list[torch.Tensor], symmetric: bool = False) -> np.ndarray:
+    """(B, 6) probabilities; symmetric: the mean over the eight mirror/swap views of each scan (one
+    forward pass of 8 B scans), each view's output mapped back onto the scan's own axes."""
+    if not symmetric:
+        return torch.sigmoid(model(batch)).numpy().astype(np.float64)
+    views = [symmetry_view(p, sym) for sym in SYMMETRIES for p in batch]
+    probs = torch.sigmoid(model(views)).numpy().astype(np.float64).reshape(len(SYMMETRIES), len(batch), 6)
+    swapped = np.array([swap for _, _, swap in SYMMETRIES])
+    probs[swapped] = probs[swapped][..., SWAP_LABELS]
+    return probs.mean(axis=0)
+
+
 def save_checkpoint(path: str | Path, model: LocalizabilityNet, thresholds: np.ndarray, meta: dict[str, Any],
                     extra: dict[str, Any] | None = None) -> None:
     """Write atomically: a reader (or a resumed run) never sees half a checkpoint."""
@@ -225,14 +251,21 @@ class Classifier:
     thresholds: np.ndarray
     meta: dict[str, Any] = field(default_factory=dict)
     seed: int = 0
+    # average over the eight mirror/swap views (8x the inference time), with the thresholds
+    # chosen for those averages
+    symmetric: bool = False
 
     @classmethod
-    def load(cls, path: str | Path | None = None) -> Classifier:
+    def load(cls, path: str | Path | None = None, symmetric: bool = False) -> Classifier:
         path = Path(path) if path is not None else DEFAULT_CHECKPOINT
         state = load_checkpoint(path)
         model = model_from_checkpoint(state, str(path))
         meta = {k: v for k, v in state.items() if k not in ("state_dict", "optimizer", "scheduler")}
-        return cls(model, np.asarray(state["thresholds"], dtype=np.float64), meta)
+        key = "symmetric_thresholds" if symmetric else "thresholds"
+        if key not in state:
+            raise CheckpointError(f"{path} has no thresholds for symmetric inference; add them with "
+                                  f"'l3e calibrate --checkpoint {path} --dataset <its dataset>'")
+        return cls(model, np.asarray(state[key], dtype=np.float64), meta, symmetric=symmetric)
 
     def check_settings(self, lidar_model: str | None = None, registration: dict | None = None) -> None:
         """Warn when the scans or the registration differ from those the labels were made with."""
@@ -245,12 +278,11 @@ class Classifier:
             warnings.warn("the classifier's labels were made with other registration settings than the "
                           "ones in use", stacklevel=2)
 
-    @torch.inference_mode()
     def probabilities(self, scans: list[np.ndarray]) -> np.ndarray:
         """(B, 6) probabilities of non-localizability; ScanError for a scan that cannot be judged."""
         rng = np.random.default_rng(self.seed)
         batch = [sample_points(check_scan(s), self.model.config.points, rng) for s in scans]
-        return torch.sigmoid(self.model(batch)).numpy().astype(np.float64)
+        return model_probabilities(self.model, batch, self.symmetric)
 
     def predict(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         p = self.probabilities([points])[0]

@@ -125,9 +125,18 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     from .evaluation import evaluate
 
     out = Path(args.out or f"l3e_out/evaluate-{time.strftime('%Y%m%d-%H%M%S')}")
-    results = evaluate(args.checkpoint, args.dataset, out, other_sensor=args.other_sensor, progress=not args.quiet)
+    results = evaluate(args.checkpoint, args.dataset, out, other_sensor=args.other_sensor, progress=not args.quiet,
+                       symmetric=args.symmetric)
     print(results["table"])
     print(f"written: {out / 'table.txt'}, {out / 'results.json'}, {out / 'pr_curves.png'}")
+    return 0
+
+
+def _cmd_calibrate(args: argparse.Namespace) -> int:
+    from .training import calibrate_symmetric
+
+    thresholds = calibrate_symmetric(args.checkpoint, args.dataset, args.out, progress=not args.quiet)
+    print(f"symmetric thresholds {' '.join(f'{t:.3f}' for t in thresholds)} -> {args.out or args.checkpoint}")
     return 0
 
 
@@ -214,8 +223,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--dataset", required=True, action="append", help="repeat to score several datasets as one")
     p.add_argument("--other-sensor", dest="other_sensor", help="dataset of another sensor, scored whole")
     p.add_argument("--out", help="output folder (default: l3e_out/evaluate-<time>)")
+    p.add_argument("--symmetric", action="store_true",
+                   help="average each scan's probabilities over its eight mirror/swap views (8x slower)")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_cmd_evaluate)
+    p = sub.add_parser("calibrate", help="add symmetric-inference thresholds to a checkpoint, from its validation "
+                                         "scenes")
+    p.add_argument("--checkpoint", required=True, help="model.pt to complete (rewritten unless --out is given)")
+    p.add_argument("--dataset", required=True, action="append", help="the dataset(s) it was trained on")
+    p.add_argument("--out", help="write the completed checkpoint here instead")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=_cmd_calibrate)
     p = sub.add_parser("sweep", help="ATE against the eigenvalue threshold in several scenes, with the learned "
                                      "detector as reference")
     p.add_argument("--scene", action="append", help="repeat; default tunnel, field, office")

@@ -94,12 +94,11 @@ class LearnedDetector:
     name = "learned"
 
     def __init__(self, checkpoint: str | None = None, lidar_model: str | None = None,
-                 registration: RegistrationConfig | None = None):
+                 registration: RegistrationConfig | None = None, symmetric: bool = False):
         from .classifier import Classifier  # torch is imported only when a learned detector is made
 
-        self.classifier = Classifier.load(checkpoint)
-        if checkpoint:
-            self.name = f"learned:{checkpoint}"
+        self.classifier = Classifier.load(checkpoint, symmetric=symmetric)
+        self.name = ("learned-sym" if symmetric else "learned") + (f":{checkpoint}" if checkpoint else "")
         self.classifier.check_settings(lidar_model, dataclasses.asdict(registration or RegistrationConfig()))
 
     def predict(self, points, registration=None, T_w_s=None) -> Prediction:
@@ -123,7 +122,8 @@ def safe_predict(det: Detector, points: np.ndarray, reg, T_w_s: np.ndarray) -> t
 
 def make_detector(spec: str, lidar: Lidar | None = None, seed: int = 0) -> Detector:
     """'none', 'eigen:<tau>', 'oracle', 'oracle:<M>', 'learned' (the shipped model) or
-    'learned:<checkpoint path>'."""
+    'learned:<checkpoint path>'; 'learned-sym[:<checkpoint path>]' averages over the eight mirror/swap
+    views of each scan."""
     kind, _, arg = spec.partition(":")
     if kind == "none":
         return NoDetector()
@@ -137,6 +137,7 @@ def make_detector(spec: str, lidar: Lidar | None = None, seed: int = 0) -> Detec
         if lidar is None:
             raise ValueError("the oracle detector needs the scene's LiDAR")
         return OracleDetector(lidar, children=int(arg) if arg else 20, seed=seed)
-    if kind == "learned":
-        return LearnedDetector(arg or None, lidar_model=lidar.config.model if lidar is not None else None)
-    raise ValueError(f"unknown detector '{spec}' (none, eigen:<tau>, oracle[:M], learned[:checkpoint])")
+    if kind in ("learned", "learned-sym"):
+        return LearnedDetector(arg or None, lidar_model=lidar.config.model if lidar is not None else None,
+                               symmetric=kind == "learned-sym")
+    raise ValueError(f"unknown detector '{spec}' (none, eigen:<tau>, oracle[:M], learned[-sym][:checkpoint])")

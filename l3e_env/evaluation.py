@@ -24,10 +24,11 @@ def model_name(classifier: Classifier, path: Path, taken: set[str]) -> str:
 
 
 def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Path], out_dir: str | Path,
-             other_sensor: str | Path | None = None, progress: bool = True) -> dict[str, Any]:
+             other_sensor: str | Path | None = None, progress: bool = True, symmetric: bool = False) -> dict[str, Any]:
     """Score each checkpoint on its own train/validation split and on the test families of the
     dataset (and, if given, on every scan of a dataset made with another sensor); writes
-    table.txt, results.json and pr_curves.png into out_dir and returns the results."""
+    table.txt, results.json and pr_curves.png into out_dir and returns the results. `symmetric`:
+    probabilities averaged over the eight mirror/swap views, with the thresholds chosen for them."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     data = open_datasets(dataset)
@@ -36,9 +37,10 @@ def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Pat
     table: dict[str, dict[str, dict[str, np.ndarray]]] = {}
     curves: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = {}
     intervals: dict[tuple[str, str], dict[str, tuple[float, float]]] = {}
-    results: dict[str, Any] = {"dataset": data.name, "test_scenes": test_scenes, "models": {}}
+    results: dict[str, Any] = {"dataset": data.name, "test_scenes": test_scenes, "symmetric": symmetric,
+                               "models": {}}
     for path in map(Path, checkpoints):
-        clf = Classifier.load(path)
+        clf = Classifier.load(path, symmetric=symmetric)
         name = model_name(clf, path, set(table))
         training = clf.meta["training"]
         splits = {"train": (data, split_indices(data, training["train_scenes"])),
@@ -53,7 +55,7 @@ def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Pat
                 continue
             if progress:
                 print(f"{name}: {split} ({len(rows)} scans)")
-            probs = predict_dataset(clf.model, ds, rows, progress=progress)
+            probs = predict_dataset(clf.model, ds, rows, progress=progress, symmetric=symmetric)
             y = ds.labels[rows]
             predicted = probs > clf.thresholds
             scores = axis_scores(y, predicted)
@@ -66,6 +68,8 @@ def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Pat
         if "valid" in curves[name]:
             results["models"][name]["f1_operating_point"] = f1_operating_point(curves[name])
     text = format_table(table, intervals=intervals) + format_f1_operating_points(results["models"])
+    if symmetric:
+        text = "probabilities averaged over the eight mirror/swap views of each scan\n" + text
     (out / "table.txt").write_text(text + "\n")
     (out / "results.json").write_text(json.dumps(results, indent=1, default=_nan_safe))
     plot_pr_curves(curves, {n: np.asarray(r["thresholds"]) for n, r in results["models"].items()},

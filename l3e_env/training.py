@@ -23,10 +23,14 @@ from tqdm import tqdm
 from scenes import TRAIN_SCENES, VALIDATION_SCENES
 
 from .classifier import (
+    SWAP_LABELS,
+    SYMMETRIES,
+    CheckpointError,
     LocalizabilityNet,
     ModelConfig,
     load_checkpoint,
     model_from_checkpoint,
+    model_probabilities,
     sample_points,
     save_checkpoint,
 )
@@ -34,9 +38,6 @@ from .config import dump_yaml, plain, to_dict
 from .dataset import DatasetUnion, LabelDataset, open_datasets
 from .scores import axis_scores, best_thresholds, mean_scores
 
-# a reflection of the scan in the x-z or y-z plane leaves every |error| unchanged; swapping x and y
-# swaps the x/y labels and the roll/pitch labels (the beam pattern is symmetric about z)
-SWAP_LABELS = np.array([1, 0, 2, 4, 3, 5])
 
 
 @dataclass
@@ -116,18 +117,20 @@ def augment(points: np.ndarray, labels: np.ndarray, rng: np.random.Generator) ->
     return points, labels
 
 
-@torch.no_grad()
 def predict_dataset(model: LocalizabilityNet, data: LabelDataset | DatasetUnion, rows: np.ndarray, seed: int = 0,
-                    batch_size: int = 16, progress: bool = False) -> np.ndarray:
-    """(len(rows), 6) probabilities; the point sampling of scan i is seeded by (seed, i), so the
-    figures do not depend on the batch size or the order."""
+                    batch_size: int = 16, progress: bool = False, symmetric: bool = False) -> np.ndarray:
+    """(len(rows), 6) probabilities (averaged over the mirror/swap views if `symmetric`); the point
+    sampling of scan i is seeded by (seed, i), so the figures do not depend on the batch size or the
+    order."""
     model.eval()
+    if symmetric:  # the same number of views per forward pass
+        batch_size = max(1, batch_size // len(SYMMETRIES))
     out = np.zeros((len(rows), 6))
     for start in tqdm(range(0, len(rows), batch_size), desc="predicting", disable=not progress, leave=False):
         chunk = rows[start:start + batch_size]
         batch = [sample_points(data.scan(int(i)), model.config.points, np.random.default_rng([seed, int(i)]))
                  for i in chunk]
-        out[start:start + len(chunk)] = torch.sigmoid(model(batch)).numpy()
+        out[start:start + len(chunk)] = model_probabilities(model, batch, symmetric)
     return out
 
 
@@ -254,14 +257,45 @@ def train(dataset: str | Path | list[str | Path], out_dir: str | Path, cfg: Trai
 
 def finalize(data: LabelDataset | DatasetUnion, out: Path, cfg: TrainConfig, val_rows: np.ndarray,
              meta: dict[str, Any]) -> dict:
-    """model.pt: the best epoch's weights with the operating thresholds (F-beta on validation)."""
+    """model.pt: the best epoch's weights with the operating thresholds (F-beta on validation), for
+    single and for symmetric (eight-view) inference."""
     state = load_checkpoint(out / "best.pt")
     model = model_from_checkpoint(state, "best.pt")
-    thresholds = np.asarray(state["thresholds"])
+    thresholds = symmetric = np.asarray(state["thresholds"])
     if len(val_rows):
         probs = predict_dataset(model, data, val_rows, seed=cfg.seed)
         thresholds = best_thresholds(data.labels[val_rows], probs, beta=cfg.threshold_beta)
+        symmetric = symmetric_thresholds(model, data, val_rows, cfg.seed, cfg.threshold_beta)
     save_checkpoint(out / "model.pt", model, thresholds, {**meta, "threshold_beta": cfg.threshold_beta},
-                    {"epoch": state["epoch"], "scores": state["scores"]})
+                    {"epoch": state["epoch"], "scores": state["scores"],
+                     "symmetric_thresholds": [float(t) for t in symmetric]})
     return {"best_epoch": state["epoch"] + 1, **state["scores"], "thresholds": thresholds.round(4).tolist()}
+
+
+def symmetric_thresholds(model: LocalizabilityNet, data: LabelDataset | DatasetUnion, val_rows: np.ndarray,
+                         seed: int, beta: float, progress: bool = False) -> np.ndarray:
+    """F-beta-best validation thresholds for the eight-view averaged probabilities: averaging
+    narrows the spread of the probabilities, so the single-view thresholds do not carry over."""
+    probs = predict_dataset(model, data, val_rows, seed=seed, progress=progress, symmetric=True)
+    return best_thresholds(data.labels[val_rows], probs, beta=beta)
+
+
+def calibrate_symmetric(checkpoint: str | Path, dataset: str | Path | list[str | Path], out: str | Path | None = None,
+                        progress: bool = True) -> np.ndarray:
+    """Add symmetric-inference thresholds to a checkpoint made before they existed, from its own
+    validation scenes and F-beta; everything else in the file is kept. Written to `out`, or back
+    into the checkpoint (atomically)."""
+    state = load_checkpoint(checkpoint)
+    training = state.get("training")
+    if not isinstance(training, dict) or not training.get("validation_scenes"):
+        raise CheckpointError(f"{checkpoint} does not name its validation scenes")
+    data = open_datasets(dataset)
+    rows = split_indices(data, training["validation_scenes"])
+    model = model_from_checkpoint(state, str(checkpoint))
+    thresholds = symmetric_thresholds(model, data, rows, int(training.get("seed", 0)),
+                                      float(state.get("threshold_beta", 1.0)), progress)
+    rest = {k: v for k, v in state.items() if k not in ("format", "version", "model", "state_dict", "thresholds")}
+    save_checkpoint(out or checkpoint, model, np.asarray(state["thresholds"]), rest,
+                    {"symmetric_thresholds": [float(t) for t in thresholds]})
+    return thresholds
 

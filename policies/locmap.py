@@ -107,6 +107,7 @@ class MapJudge:
     """Six probabilities of non-localizability for a batch of sensor poses, and the thresholds
     above which the fusion masks an axis. Kinds, as in l3e_env.detectors.make_detector:
     - learned[:checkpoint]: the classifier on the scan at each pose (NaN: a scan it cannot judge);
+      learned-sym[:checkpoint] averages it over the eight mirror/swap views of each scan;
     - eigen:<tau>: Zhang's test on the Hessian of registering a scan taken `step` metres further
       ahead onto the pose's scan (what the fusion loop sees between consecutive scans);
     - oracle[:M]: Monte-Carlo ICP labels with M children at the pose (slow; ground truth).
@@ -116,21 +117,21 @@ class MapJudge:
         self.spec, self.lidar, self.seed, self.step = spec, lidar, seed, step
         kind, _, arg = spec.partition(":")
         self.kind = kind
-        if kind == "learned":
-            self.classifier = Classifier.load(arg or None)
+        if kind in ("learned", "learned-sym"):
+            self.classifier = Classifier.load(arg or None, symmetric=kind == "learned-sym")
             self.classifier.check_settings(lidar.config.model)
             self.thresholds = self.classifier.thresholds.copy()
-            self.identity = f"learned-{file_digest(arg or DEFAULT_CHECKPOINT)}"
+            self.identity = f"{kind}-{file_digest(arg or DEFAULT_CHECKPOINT)}"
         elif kind in ("eigen", "oracle"):
             self.detector = make_detector(spec, lidar, seed)
             self.thresholds = np.full(6, 0.5)
             self.identity = self.detector.name.replace(":", "")
         else:
-            raise ValueError(f"map detector '{spec}': use learned[:checkpoint], eigen:<tau> or oracle[:M]")
+            raise ValueError(f"map detector '{spec}': use learned[-sym][:checkpoint], eigen:<tau> or oracle[:M]")
 
     def __call__(self, poses: list[np.ndarray], rngs: list[np.random.Generator]) -> np.ndarray:
         out = np.full((len(poses), 6), np.nan)
-        if self.kind == "learned":
+        if self.kind in ("learned", "learned-sym"):
             scans = [self.lidar.scan(T, rng).points for T, rng in zip(poses, rngs)]
             try:
                 return self.classifier.probabilities(scans)

@@ -7,15 +7,15 @@ import pytest
 import torch
 
 from l3e_env.classifier import (
-    CHECKPOINT_VERSION, DEFAULT_CHECKPOINT, CheckpointError, Classifier, LocalizabilityNet, ModelConfig, ScanError,
-    check_scan, save_checkpoint,
+    CHECKPOINT_VERSION, DEFAULT_CHECKPOINT, SYMMETRIES, CheckpointError, Classifier, LocalizabilityNet, ModelConfig,
+    ScanError, check_scan, save_checkpoint,
 )
 from l3e_env.dataset import DatasetError, LabelDataset, config_for, generate, open_datasets
 from l3e_env.detectors import LearnedDetector, make_detector
 from l3e_env.scores import axis_scores, best_thresholds, mean_interval, mean_scores, pr_curve
 from l3e_env.training import (
-    SWAP_LABELS, TrainConfig, TrainingError, augment, balanced_pool, predict_dataset, split_indices, train,
-    _resumable, training_targets,
+    SWAP_LABELS, TrainConfig, TrainingError, augment, balanced_pool, calibrate_symmetric, predict_dataset,
+    split_indices, train, _resumable, training_targets,
 )
 
 SMALL = ModelConfig(points=600, channels=(8, 8, 16, 16), pointnet_channels=(16, 32), head=(16, 16, 16, 16))
@@ -34,10 +34,11 @@ def _scan(rng, n=3000):
     return (rng.standard_normal((n, 3)) * [8, 3, 1]).astype(np.float32)
 
 
-def _checkpoint(path, architecture="resunet", seed=0):
+def _checkpoint(path, architecture="resunet", seed=0, symmetric_thresholds=None):
     torch.manual_seed(seed)
     model = LocalizabilityNet(ModelConfig(**{**SMALL.__dict__, "architecture": architecture}))
-    save_checkpoint(path, model.eval(), np.full(6, 0.5), {"lidar": {"model": "vlp16"}})
+    extra = None if symmetric_thresholds is None else {"symmetric_thresholds": [float(t) for t in symmetric_thresholds]}
+    save_checkpoint(path, model.eval(), np.full(6, 0.5), {"lidar": {"model": "vlp16"}}, extra)
     return path
 
 
@@ -70,6 +71,27 @@ def test_a_scan_is_judged_the_same_alone_or_in_a_batch(tmp_path, rng):
         assert not torch.allclose(feats[0], feats[1], atol=1e-3)
 
 
+def test_symmetric_inference_is_the_mean_over_the_views_and_blind_to_mirrors_and_swaps(tmp_path, rng):
+    path = _checkpoint(tmp_path / "m.pt", symmetric_thresholds=np.full(6, 0.4))
+    plain, sym = Classifier.load(path), Classifier.load(path, symmetric=True)
+    assert sym.thresholds.tolist() == [0.4] * 6 and plain.thresholds.tolist() == [0.5] * 6
+    scan = _scan(rng, 500)  # under `points`: every view holds the same points
+    views = []
+    for sx, sy, swap in SYMMETRIES:
+        view = scan * np.float32([sx, sy, 1])
+        p = plain.probabilities([view[:, [1, 0, 2]] if swap else view])[0]
+        views.append(p[SWAP_LABELS] if swap else p)
+    assert np.allclose(sym.probabilities([scan])[0], np.mean(views, axis=0), atol=1e-5)
+    assert np.ptp(np.array(views), axis=0).max() > 1e-3  # the views differ: the average is not trivial
+    mirrored, swapped = scan * np.float32([-1, 1, 1]), scan[:, [1, 0, 2]]
+    assert np.allclose(sym.probabilities([mirrored])[0], sym.probabilities([scan])[0], atol=1e-5)
+    assert np.allclose(sym.probabilities([swapped])[0], sym.probabilities([scan])[0][SWAP_LABELS], atol=1e-5)
+    det = make_detector(f"learned-sym:{path}")
+    assert det.name == f"learned-sym:{path}" and det.classifier.symmetric
+    with pytest.raises(CheckpointError, match="l3e calibrate"):
+        Classifier.load(_checkpoint(tmp_path / "old.pt"), symmetric=True)
+
+
 def test_wrong_checkpoints_are_refused_by_name(tmp_path):
     path = _checkpoint(tmp_path / "p.pt", "pointnet")
     state = torch.load(path, weights_only=True)
@@ -97,6 +119,8 @@ def test_the_shipped_model_loads_by_default_and_is_small():
     assert det.classifier.model.config.architecture == "resunet"
     assert det.classifier.meta["lidar"]["model"] == "vlp16"
     assert ((det.classifier.thresholds > 0) & (det.classifier.thresholds < 1)).all()
+    symmetric = make_detector("learned-sym").classifier.thresholds
+    assert ((symmetric > 0) & (symmetric < 1)).all() and not np.allclose(symmetric, det.classifier.thresholds)
 
 
 def test_sensor_or_registration_mismatch_is_a_warning_and_a_match_is_silent(tmp_path):
@@ -254,13 +278,37 @@ def test_evaluate_writes_table_curves_and_results(tiny_dataset, tmp_path):
     valid_y, valid_p = _valid_predictions(tmp_path / "run" / "model.pt", tiny_dataset)
     assert point["thresholds"] == pytest.approx(best_thresholds(valid_y, valid_p, beta=1.0).tolist())
     assert "F1-best validation thresholds" in res["table"] and set(point["splits"]) == set(model["splits"])
+    sym = evaluate([tmp_path / "run" / "model.pt"], tiny_dataset, tmp_path / "eval-sym", progress=False,
+                   symmetric=True)
+    assert sym["symmetric"] and sym["table"].startswith("probabilities averaged over the eight")
+    stored = Classifier.load(tmp_path / "run" / "model.pt", symmetric=True).thresholds
+    assert sym["models"][name]["thresholds"] == pytest.approx(stored.tolist())
 
 
-def _valid_predictions(checkpoint, dataset):
+def _valid_predictions(checkpoint, dataset, symmetric=False):
     clf = Classifier.load(checkpoint)
     data = open_datasets(dataset)
     rows = split_indices(data, clf.meta["training"]["validation_scenes"])
-    return data.labels[rows], predict_dataset(clf.model, data, rows)
+    return data.labels[rows], predict_dataset(clf.model, data, rows, symmetric=symmetric)
+
+
+def test_training_stores_symmetric_thresholds_and_calibrate_adds_them_to_older_checkpoints(tiny_dataset, tmp_path):
+    train(tiny_dataset, tmp_path / "run", _train_cfg(), progress=False)
+    model = tmp_path / "run" / "model.pt"
+    valid_y, valid_p = _valid_predictions(model, tiny_dataset, symmetric=True)
+    expected = best_thresholds(valid_y, valid_p, beta=TrainConfig().threshold_beta)
+    assert Classifier.load(model, symmetric=True).thresholds == pytest.approx(expected)
+    state = torch.load(model, weights_only=True)
+    del state["symmetric_thresholds"]
+    torch.save(state, tmp_path / "old.pt")
+    with pytest.raises(CheckpointError, match="no thresholds for symmetric"):
+        Classifier.load(tmp_path / "old.pt", symmetric=True)
+    assert calibrate_symmetric(tmp_path / "old.pt", tiny_dataset, progress=False) == pytest.approx(expected)
+    done = torch.load(tmp_path / "old.pt", weights_only=True)
+    assert done["symmetric_thresholds"] == pytest.approx(expected.tolist())
+    assert {k: v for k, v in done.items() if k != "state_dict"} == {
+        k: v for k, v in torch.load(model, weights_only=True).items() if k != "state_dict"}
+    assert all(torch.equal(done["state_dict"][k], state["state_dict"][k]) for k in state["state_dict"])
 
 
 def test_soft_targets_follow_the_error_to_threshold_ratio(tiny_dataset, tmp_path):
