@@ -39,7 +39,6 @@ from .dataset import DatasetUnion, LabelDataset, open_datasets
 from .scores import axis_scores, best_thresholds, mean_scores
 
 
-
 @dataclass
 class TrainConfig:
     model: ModelConfig = field(default_factory=ModelConfig)
