@@ -261,11 +261,13 @@ class Classifier:
         state = load_checkpoint(path)
         model = model_from_checkpoint(state, str(path))
         meta = {k: v for k, v in state.items() if k not in ("state_dict", "optimizer", "scheduler")}
-        key = "symmetric_thresholds" if symmetric else "thresholds"
-        if key not in state:
+        if "thresholds" not in state:
+            raise CheckpointError(f"{path} holds no thresholds")
+        if symmetric and "symmetric_thresholds" not in state:
             raise CheckpointError(f"{path} has no thresholds for symmetric inference; add them with "
                                   f"'l3e calibrate --checkpoint {path} --dataset <its dataset>'")
-        return cls(model, np.asarray(state[key], dtype=np.float64), meta, symmetric=symmetric)
+        thresholds = state["symmetric_thresholds" if symmetric else "thresholds"]
+        return cls(model, np.asarray(thresholds, dtype=np.float64), meta, symmetric=symmetric)
 
     def check_settings(self, lidar_model: str | None = None, registration: dict | None = None) -> None:
         """Warn when the scans or the registration differ from those the labels were made with."""

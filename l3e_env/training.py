@@ -297,4 +297,3 @@ def calibrate_symmetric(checkpoint: str | Path, dataset: str | Path | list[str |
     save_checkpoint(out or checkpoint, model, np.asarray(state["thresholds"]), rest,
                     {"symmetric_thresholds": [float(t) for t in thresholds]})
     return thresholds
-
