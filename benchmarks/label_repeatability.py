@@ -26,6 +26,7 @@ from l3e_env.dataset import LabelDataset, scene_tools
 from l3e_env.labels import AXES, LabelConfig, label_parent
 from l3e_env.registration import RegistrationConfig, RegistrationError
 from l3e_env.scores import axis_scores, mean_scores
+from l3e_env.training import split_indices
 from scenes import TEST_SCENES
 
 
@@ -59,7 +60,7 @@ def main() -> None:
     scene_of_row = np.asarray(data.arrays["scene"])
     poses = np.asarray(data.arrays["poses"])
     thresholds = data.label_config.threshold_vector()
-    rows = np.flatnonzero(np.isin(scene_of_row, [names.index(s) for s in args.scenes.split(",")]))
+    rows = split_indices(data, args.scenes.split(","))
     jobs = [(names[scene_of_row[i]], poses[i], (args.seed, int(i)), settings, children) for i in rows]
     t0 = time.perf_counter()
     with ProcessPoolExecutor(args.workers) as pool:

@@ -120,6 +120,13 @@ def safe_predict(det: Detector, points: np.ndarray, reg, T_w_s: np.ndarray) -> t
         return UNKNOWN, True
 
 
+def learned_spec(spec: str) -> tuple[str | None, bool] | None:
+    """(checkpoint, None for the shipped one; symmetric) of a 'learned[-sym][:checkpoint]' spec, or
+    None for another kind: the fusion's detectors and the policy maps read it alike."""
+    kind, _, arg = spec.partition(":")
+    return (arg or None, kind == "learned-sym") if kind in ("learned", "learned-sym") else None
+
+
 def make_detector(spec: str, lidar: Lidar | None = None, seed: int = 0) -> Detector:
     """'none', 'eigen:<tau>', 'oracle', 'oracle:<M>', 'learned' (the shipped model) or
     'learned:<checkpoint path>'; 'learned-sym[:<checkpoint path>]' averages over the eight mirror/swap
@@ -137,7 +144,8 @@ def make_detector(spec: str, lidar: Lidar | None = None, seed: int = 0) -> Detec
         if lidar is None:
             raise ValueError("the oracle detector needs the scene's LiDAR")
         return OracleDetector(lidar, children=int(arg) if arg else 20, seed=seed)
-    if kind in ("learned", "learned-sym"):
-        return LearnedDetector(arg or None, lidar_model=lidar.config.model if lidar is not None else None,
-                               symmetric=kind == "learned-sym")
+    if (learned := learned_spec(spec)) is not None:
+        checkpoint, symmetric = learned
+        return LearnedDetector(checkpoint, lidar_model=lidar.config.model if lidar is not None else None,
+                               symmetric=symmetric)
     raise ValueError(f"unknown detector '{spec}' (none, eigen:<tau>, oracle[:M], learned[-sym][:checkpoint])")

@@ -15,7 +15,7 @@ from tqdm import tqdm
 
 from l3e_env.classifier import DEFAULT_CHECKPOINT, Classifier, ScanError
 from l3e_env.config import LidarConfig, RobotConfig, plain, to_dict
-from l3e_env.detectors import make_detector
+from l3e_env.detectors import learned_spec, make_detector
 from l3e_env.files import write_atomic
 from l3e_env.lidar import Lidar
 from l3e_env.raycast import make_caster
@@ -115,13 +115,14 @@ class MapJudge:
 
     def __init__(self, spec: str, lidar: Lidar, seed: int = 0, step: float = 0.1):
         self.spec, self.lidar, self.seed, self.step = spec, lidar, seed, step
-        kind, _, arg = spec.partition(":")
-        self.kind = kind
-        if kind in ("learned", "learned-sym"):
-            self.classifier = Classifier.load(arg or None, symmetric=kind == "learned-sym")
+        kind, learned = spec.partition(":")[0], learned_spec(spec)
+        self.kind = "learned" if learned is not None else kind
+        if learned is not None:
+            checkpoint, symmetric = learned
+            self.classifier = Classifier.load(checkpoint, symmetric=symmetric)
             self.classifier.check_settings(lidar.config.model)
             self.thresholds = self.classifier.thresholds.copy()
-            self.identity = f"{kind}-{file_digest(arg or DEFAULT_CHECKPOINT)}"
+            self.identity = f"{kind}-{file_digest(checkpoint or DEFAULT_CHECKPOINT)}"
         elif kind in ("eigen", "oracle"):
             self.detector = make_detector(spec, lidar, seed)
             self.thresholds = np.full(6, 0.5)
@@ -131,7 +132,7 @@ class MapJudge:
 
     def __call__(self, poses: list[np.ndarray], rngs: list[np.random.Generator]) -> np.ndarray:
         out = np.full((len(poses), 6), np.nan)
-        if self.kind in ("learned", "learned-sym"):
+        if self.kind == "learned":
             scans = [self.lidar.scan(T, rng).points for T, rng in zip(poses, rngs)]
             try:
                 return self.classifier.probabilities(scans)
