@@ -366,6 +366,14 @@ class DatasetUnion:
         return np.concatenate([p.errors for p in self.parts])
 
 
+def error_ratios(data: LabelDataset | DatasetUnion) -> np.ndarray:
+    """(N, 6) mean registration errors over each row's own label thresholds (the parts of a union
+    may differ): above 1 is a positive label."""
+    parts = data.parts if isinstance(data, DatasetUnion) else [data]
+    thresholds = np.concatenate([np.tile(p.label_config.threshold_vector(), (len(p), 1)) for p in parts])
+    return data.errors / thresholds
+
+
 def open_datasets(folders: str | Path | list[str | Path]) -> LabelDataset | DatasetUnion:
     """One dataset folder, or several read as one."""
     if isinstance(folders, (str, Path)):

@@ -64,6 +64,20 @@ def pr_curve(labels: np.ndarray, probabilities: np.ndarray) -> tuple[np.ndarray,
     return tp / (tp + fp), tp / positives, p[last]
 
 
+def auroc(labels: np.ndarray, scores: np.ndarray) -> float:
+    """Area under the ROC curve of one axis: the chance that a positive scores above a negative
+    (ties count half); how well the scores rank, whatever the threshold. NaN without both classes."""
+    y = np.asarray(labels, dtype=bool)
+    s = np.asarray(scores, dtype=float)
+    positives, negatives = int(y.sum()), int((~y).sum())
+    if positives == 0 or negatives == 0:
+        return float("nan")
+    _, inverse, counts = np.unique(s, return_inverse=True, return_counts=True)
+    first = np.cumsum(counts) - counts  # tied scores share the mean of their ranks
+    ranks = (first + (counts + 1) / 2.0)[inverse]
+    return float((ranks[y].sum() - positives * (positives + 1) / 2.0) / (positives * negatives))
+
+
 def best_thresholds(labels: np.ndarray, probabilities: np.ndarray, default: float = 0.5,
                     beta: float = 1.0) -> np.ndarray:
     """Per axis, the threshold that maximises F-beta (beta > 1 weighs recall more) on the given

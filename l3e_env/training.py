@@ -35,7 +35,7 @@ from .classifier import (
     save_checkpoint,
 )
 from .config import dump_yaml, plain, to_dict
-from .dataset import DatasetUnion, LabelDataset, open_datasets
+from .dataset import DatasetUnion, LabelDataset, error_ratios, open_datasets
 from .scores import axis_scores, best_thresholds, mean_scores
 
 
@@ -89,9 +89,7 @@ def training_targets(data: LabelDataset | DatasetUnion, softness: float) -> np.n
     dataset's label thresholds (the parts of a union may differ)."""
     if softness <= 0:
         return data.labels.astype(np.float32)
-    parts = data.parts if isinstance(data, DatasetUnion) else [data]
-    thresholds = np.concatenate([np.tile(p.label_config.threshold_vector(), (len(p), 1)) for p in parts])
-    ratio = np.maximum(data.errors, 1e-9) / thresholds
+    ratio = np.maximum(error_ratios(data), 1e-9)
     return (1.0 / (1.0 + ratio ** -softness)).astype(np.float32)  # = sigmoid(k ln ratio)
 
 

@@ -10,9 +10,9 @@ from l3e_env.classifier import (
     CHECKPOINT_VERSION, DEFAULT_CHECKPOINT, SYMMETRIES, CheckpointError, Classifier, LocalizabilityNet, ModelConfig,
     ScanError, check_scan, save_checkpoint,
 )
-from l3e_env.dataset import DatasetError, LabelDataset, config_for, generate, open_datasets
+from l3e_env.dataset import DatasetError, LabelDataset, config_for, error_ratios, generate, open_datasets
 from l3e_env.detectors import LearnedDetector, make_detector
-from l3e_env.scores import axis_scores, best_thresholds, mean_interval, mean_scores, pr_curve
+from l3e_env.scores import auroc, axis_scores, best_thresholds, mean_interval, mean_scores, pr_curve
 from l3e_env.training import (
     SWAP_LABELS, TrainConfig, TrainingError, augment, balanced_pool, calibrate_symmetric, predict_dataset,
     split_indices, train, _resumable, training_targets,
@@ -182,6 +182,15 @@ def test_pr_curve_and_thresholds_match_brute_force(rng):
         assert f1_at[a] == pytest.approx(brute)
 
 
+def test_auroc_is_the_chance_a_positive_outranks_a_negative(rng):
+    y = rng.random(200) < 0.2
+    p = (y * 0.2 + rng.random(200)).round(1)  # ties on purpose
+    pairs = p[y][:, None] - p[~y][None, :]
+    assert auroc(y, p) == pytest.approx(((pairs > 0) + 0.5 * (pairs == 0)).mean())
+    assert auroc(y, np.where(y, 1.0, 0.0)) == 1.0 and auroc(y, np.where(y, 0.0, 1.0)) == 0.0
+    assert np.isnan(auroc(np.zeros(5, bool), np.arange(5.0)))
+
+
 def test_power_set_balancing_up_samples_to_the_second_most_common_combination():
     labels = np.array([[0] * 6] * 50 + [[1, 0, 0, 0, 0, 0]] * 20 + [[1, 1, 0, 0, 0, 1]] * 5 + [[0, 0, 1, 0, 0, 0]] * 1)
     pool = balanced_pool(labels, max_upsampling=10)
@@ -317,6 +326,7 @@ def test_soft_targets_follow_the_error_to_threshold_ratio(tiny_dataset, tmp_path
     soft = training_targets(data, 4.0)
     t = np.array([0.1, 0.1, 0.1, *np.radians([2.0, 2.0, 2.0])])
     ratio = data.errors / t
+    assert np.allclose(error_ratios(data), ratio) and np.array_equal(error_ratios(data) > 1, data.labels.astype(bool))
     assert np.allclose(soft, 1 / (1 + np.exp(-4 * np.log(ratio))), atol=1e-5)
     assert np.array_equal(soft > 0.5, data.labels.astype(bool))  # the same side of the threshold
     train(tiny_dataset, tmp_path / "soft", _train_cfg(soft_labels=4.0, epochs=1), progress=False)
