@@ -125,7 +125,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     from .evaluation import evaluate
 
     out = Path(args.out or f"l3e_out/evaluate-{time.strftime('%Y%m%d-%H%M%S')}")
-    results = evaluate(args.checkpoint, args.dataset, out, other_sensor=args.other_sensor, progress=not args.quiet,
+    results = evaluate(args.checkpoint, args.dataset, out, others=args.other, progress=not args.quiet,
                        symmetric=args.symmetric)
     print(results["table"])
     print(f"written: {out / 'table.txt'}, {out / 'results.json'}, {out / 'pr_curves.png'}")
@@ -221,7 +221,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("evaluate", help="Table III: per-axis scores on train, validation and test, PR curves")
     p.add_argument("--checkpoint", action="append", required=True, help="model.pt of a run; repeat to compare")
     p.add_argument("--dataset", required=True, action="append", help="repeat to score several datasets as one")
-    p.add_argument("--other-sensor", dest="other_sensor", help="dataset of another sensor, scored whole")
+    p.add_argument("--other", "--other-sensor", dest="other", action="append",
+                   help="another dataset, scored whole: another sensor, or scene families never trained on; "
+                        "repeat for several")
     p.add_argument("--out", help="output folder (default: l3e_out/evaluate-<time>)")
     p.add_argument("--symmetric", action="store_true",
                    help="average each scan's probabilities over its eight mirror/swap views (8x slower)")

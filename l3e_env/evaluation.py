@@ -1,5 +1,5 @@
 """Table III for this project: per-axis scores of trained classifiers on the train, validation
-and test splits (and on datasets of another sensor), with PR curves per axis."""
+and test splits (and on whole datasets of another sensor or of unseen families), with PR curves per axis."""
 from __future__ import annotations
 
 import json
@@ -24,15 +24,16 @@ def model_name(classifier: Classifier, path: Path, taken: set[str]) -> str:
 
 
 def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Path], out_dir: str | Path,
-             other_sensor: str | Path | None = None, progress: bool = True, symmetric: bool = False) -> dict[str, Any]:
+             others: list[str | Path] | None = None, progress: bool = True, symmetric: bool = False) -> dict[str, Any]:
     """Score each checkpoint on its own train/validation split and on the test families of the
-    dataset (and, if given, on every scan of a dataset made with another sensor); writes
-    table.txt, results.json and pr_curves.png into out_dir and returns the results. `symmetric`:
-    probabilities averaged over the eight mirror/swap views, with the thresholds chosen for them."""
+    dataset, and on every scan of each of `others` (a dataset of another sensor, or of scene
+    families the model never saw: column 'all of <folder>'); writes table.txt, results.json and
+    pr_curves.png into out_dir and returns the results. `symmetric`: probabilities averaged over
+    the eight mirror/swap views, with the thresholds chosen for them."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     data = open_datasets(dataset)
-    other = LabelDataset(other_sensor) if other_sensor else None
+    extra = {f"all of {d.name}": d for d in map(LabelDataset, others or [])}
     test_scenes = [s for s in TEST_SCENES if s in data.manifest["scenes"]]
     table: dict[str, dict[str, dict[str, np.ndarray]]] = {}
     curves: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = {}
@@ -46,8 +47,7 @@ def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Pat
         splits = {"train": (data, split_indices(data, training["train_scenes"])),
                   "valid": (data, split_indices(data, training["validation_scenes"])),
                   "test": (data, split_indices(data, test_scenes))}
-        if other is not None:
-            splits[f"test {other.manifest['sensor']}"] = (other, np.arange(len(other)))
+        splits.update({column: (d, np.arange(len(d))) for column, d in extra.items()})
         table[name], curves[name] = {}, {}
         results["models"][name] = {"checkpoint": str(path), "thresholds": clf.thresholds.tolist(), "splits": {}}
         for split, (ds, rows) in splits.items():
@@ -63,7 +63,8 @@ def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Pat
             curves[name][split] = (y, probs)
             intervals[name, split] = mean_interval(y, predicted)
             results["models"][name]["splits"][split] = {
-                "count": len(rows), "mean": mean_scores(scores), "mean_95_interval": intervals[name, split],
+                "count": len(rows), "dataset": ds.name, "sensor": ds.manifest["sensor"],
+                "mean": mean_scores(scores), "mean_95_interval": intervals[name, split],
                 **{k: np.asarray(v).tolist() for k, v in scores.items()}}
         if "valid" in curves[name]:
             results["models"][name]["f1_operating_point"] = f1_operating_point(curves[name])

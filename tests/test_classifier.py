@@ -1,6 +1,7 @@
 """The classifier: input checks, checkpoints, batching, scores and thresholds, resumable training."""
 import dataclasses
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -273,11 +274,13 @@ def test_evaluate_writes_table_curves_and_results(tiny_dataset, tmp_path):
     from l3e_env.evaluation import evaluate
 
     train(tiny_dataset, tmp_path / "run", _train_cfg(), progress=False)
-    res = evaluate([tmp_path / "run" / "model.pt"], tiny_dataset, tmp_path / "eval", other_sensor=tiny_dataset,
+    res = evaluate([tmp_path / "run" / "model.pt"], tiny_dataset, tmp_path / "eval", others=[tiny_dataset],
                    progress=False)
     (name, model), = res["models"].items()
-    assert set(model["splits"]) == {"train", "valid", "test vlp16"}  # no test family in this dataset
-    assert model["splits"]["train"]["count"] == 8 and model["splits"]["test vlp16"]["count"] == 12
+    whole = f"all of {Path(tiny_dataset).name}"
+    assert set(model["splits"]) == {"train", "valid", whole}  # no test family in this dataset
+    assert model["splits"]["train"]["count"] == 8 and model["splits"][whole]["count"] == 12
+    assert model["splits"][whole]["sensor"] == "vlp16"
     assert "accuracy mean" in res["table"] and (tmp_path / "eval" / "pr_curves.png").stat().st_size > 10_000
     stored = json.loads((tmp_path / "eval" / "results.json").read_text())
     assert stored["models"][name]["thresholds"] == pytest.approx(model["thresholds"])
