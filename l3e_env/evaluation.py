@@ -33,7 +33,9 @@ def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Pat
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     data = open_datasets(dataset)
-    extra = {f"all of {d.name}": d for d in map(LabelDataset, others or [])}
+    extra: dict[str, LabelDataset] = {}
+    for d in map(LabelDataset, others or []):
+        extra[f"all of {d.name}" if f"all of {d.name}" not in extra else f"all of {d.folder}"] = d
     test_scenes = [s for s in TEST_SCENES if s in data.manifest["scenes"]]
     table: dict[str, dict[str, dict[str, np.ndarray]]] = {}
     curves: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = {}

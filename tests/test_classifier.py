@@ -274,11 +274,11 @@ def test_evaluate_writes_table_curves_and_results(tiny_dataset, tmp_path):
     from l3e_env.evaluation import evaluate
 
     train(tiny_dataset, tmp_path / "run", _train_cfg(), progress=False)
-    res = evaluate([tmp_path / "run" / "model.pt"], tiny_dataset, tmp_path / "eval", others=[tiny_dataset],
+    res = evaluate([tmp_path / "run" / "model.pt"], tiny_dataset, tmp_path / "eval", others=[tiny_dataset, tiny_dataset],
                    progress=False)
     (name, model), = res["models"].items()
     whole = f"all of {Path(tiny_dataset).name}"
-    assert set(model["splits"]) == {"train", "valid", whole}  # no test family in this dataset
+    assert set(model["splits"]) == {"train", "valid", whole, f"all of {tiny_dataset}"}  # no test family here
     assert model["splits"]["train"]["count"] == 8 and model["splits"][whole]["count"] == 12
     assert model["splits"][whole]["sensor"] == "vlp16"
     assert "accuracy mean" in res["table"] and (tmp_path / "eval" / "pr_curves.png").stat().st_size > 10_000

@@ -3,13 +3,19 @@ import sys
 
 import pytest
 
-from l3e_env.cli import main
+from l3e_env.cli import build_parser, main
 
 
 def test_help_lists_the_subcommands():
     out = subprocess.run([sys.executable, "-m", "l3e_env.cli", "--help"], capture_output=True, text=True, check=True).stdout
     for cmd in ("demo", "scenes", "envs", "dataset", "train", "evaluate", "ate", "sweep"):
         assert cmd in out
+
+
+def test_evaluate_reads_other_datasets_under_both_names():
+    args = build_parser().parse_args(["evaluate", "--checkpoint", "m.pt", "--dataset", "d", "--other-sensor", "os0",
+                                      "--other", "rooms"])
+    assert args.other == ["os0", "rooms"]
 
 
 def test_unknown_scene_is_a_clear_error(capsys):
