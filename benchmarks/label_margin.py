@@ -15,7 +15,8 @@ which the mean F1 falls to 0.70, the issue's target.
 Then the checkpoint's own probabilities on each split (default: the shipped model): mean F1 at its
 stored thresholds; at the thresholds best for that very split (no threshold choice can do better
 with these probabilities); AUROC per axis (how well they rank, whatever the threshold); and the
-"equivalent sigma", the noise of the estimator with the same mean F1 at the stored thresholds.
+"equivalent sigma", the noise of the estimator with the same mean F1 at the stored thresholds; and
+how many of its false flags lie far from the threshold (where no label noise can excuse them).
 """
 from __future__ import annotations
 
@@ -105,6 +106,10 @@ def main() -> None:
         print(f"  {'model AUROC':24s}" + "".join(f"{auroc(labels[:, a], probs[:, a]):7.2f}" for a in range(6)))
         print(f"  the model's mean F1 equals that of an estimate with sigma "
               f"{sigma_at(curves[split], model_f1[split]):.2f}")
+        flagged = probs > clf.thresholds
+        false_flags, misses = flagged & ~labels, ~flagged & labels
+        print(f"  false flags {false_flags.sum()}, of them {(false_flags & (ratios < 0.5)).sum()} on errors under half "
+              f"the threshold; misses {misses.sum()}, of them {(misses & (ratios <= 1.25)).sum()} within 1.25x")
 
     if args.plot:
         import matplotlib
