@@ -126,7 +126,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
     out = Path(args.out or f"l3e_out/evaluate-{time.strftime('%Y%m%d-%H%M%S')}")
     results = evaluate(args.checkpoint, args.dataset, out, others=args.other, progress=not args.quiet,
-                       symmetric=args.symmetric)
+                       symmetric=args.symmetric, eigen=args.eigen)
     print(results["table"])
     print(f"written: {out / 'table.txt'}, {out / 'results.json'}, {out / 'pr_curves.png'}")
     return 0
@@ -223,6 +223,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--dataset", required=True, action="append", help="repeat to score several datasets as one")
     p.add_argument("--other", "--other-sensor", dest="other", action="append",
                    help="another dataset, scored whole: another sensor, or scene families never trained on; "
+                        "repeat for several")
+    p.add_argument("--eigen", type=float, action="append", metavar="TAU",
+                   help="also score the eigenvalue detector at this threshold (Hessian of each scan onto itself); "
                         "repeat for several")
     p.add_argument("--out", help="output folder (default: l3e_out/evaluate-<time>)")
     p.add_argument("--symmetric", action="store_true",

@@ -1,5 +1,6 @@
-"""Table III for this project: per-axis scores of trained classifiers on the train, validation
-and test splits (and on whole datasets of another sensor or of unseen families), with PR curves per axis."""
+"""Table III for this project: per-axis scores of trained classifiers, and of the eigenvalue
+detector they replace, on the train, validation and test splits (and on whole datasets of another
+sensor or of unseen families), with PR curves per axis."""
 from __future__ import annotations
 
 import json
@@ -7,12 +8,15 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from tqdm import tqdm
 
 from scenes import TEST_SCENES
 
 from .classifier import Classifier
-from .dataset import LabelDataset, open_datasets
+from .config import from_dict
+from .dataset import DatasetUnion, LabelDataset, open_datasets
 from .labels import AXES
+from .registration import RegistrationConfig, RegistrationError, eigen_mask, scan_hessian
 from .scores import axis_scores, best_thresholds, format_table, mean_interval, mean_scores, pr_curve
 from .training import predict_dataset, split_indices
 
@@ -24,12 +28,15 @@ def model_name(classifier: Classifier, path: Path, taken: set[str]) -> str:
 
 
 def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Path], out_dir: str | Path,
-             others: list[str | Path] | None = None, progress: bool = True, symmetric: bool = False) -> dict[str, Any]:
+             others: list[str | Path] | None = None, progress: bool = True, symmetric: bool = False,
+             eigen: list[float] | None = None) -> dict[str, Any]:
     """Score each checkpoint on its own train/validation split and on the test families of the
     dataset, and on every scan of each of `others` (a dataset of another sensor, or of scene
     families the model never saw: column 'all of <folder>'); writes table.txt, results.json and
     pr_curves.png into out_dir and returns the results. `symmetric`: probabilities averaged over
-    the eight mirror/swap views, with the thresholds chosen for them."""
+    the eight mirror/swap views, with the thresholds chosen for them. `eigen`: thresholds tau of
+    the eigenvalue detector, scored on the first checkpoint's splits from each scan's own Hessian
+    (`scan_hessian`); a scan too small to register flags nothing, as the detector's UNKNOWN does."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     data = open_datasets(dataset)
@@ -42,6 +49,18 @@ def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Pat
     intervals: dict[tuple[str, str], dict[str, tuple[float, float]]] = {}
     results: dict[str, Any] = {"dataset": data.name, "test_scenes": test_scenes, "symmetric": symmetric,
                                "models": {}}
+
+    def score(name: str, split: str, ds: LabelDataset | DatasetUnion, rows: np.ndarray, predicted: np.ndarray,
+              **fields: Any) -> None:
+        y = ds.labels[rows]
+        table[name][split] = scores = axis_scores(y, predicted)
+        intervals[name, split] = mean_interval(y, predicted)
+        results["models"][name]["splits"][split] = {
+            "count": len(rows), "dataset": ds.name, "sensor": ds.manifest["sensor"], **fields,
+            "mean": mean_scores(scores), "mean_95_interval": intervals[name, split],
+            **{k: np.asarray(v).tolist() for k, v in scores.items()}}
+
+    first_splits: dict[str, tuple[LabelDataset | DatasetUnion, np.ndarray]] = {}
     for path in map(Path, checkpoints):
         clf = Classifier.load(path, symmetric=symmetric)
         name = model_name(clf, path, set(table))
@@ -50,35 +69,51 @@ def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Pat
                   "valid": (data, split_indices(data, training["validation_scenes"])),
                   "test": (data, split_indices(data, test_scenes))}
         splits.update({column: (d, np.arange(len(d))) for column, d in extra.items()})
+        splits = {split: (ds, rows) for split, (ds, rows) in splits.items() if len(rows)}
+        first_splits = first_splits or splits
         table[name], curves[name] = {}, {}
         results["models"][name] = {"checkpoint": str(path), "thresholds": clf.thresholds.tolist(), "splits": {}}
         for split, (ds, rows) in splits.items():
-            if len(rows) == 0:
-                continue
             if progress:
                 print(f"{name}: {split} ({len(rows)} scans)")
             probs = predict_dataset(clf.model, ds, rows, progress=progress, symmetric=symmetric)
-            y = ds.labels[rows]
-            predicted = probs > clf.thresholds
-            scores = axis_scores(y, predicted)
-            table[name][split] = scores
-            curves[name][split] = (y, probs)
-            intervals[name, split] = mean_interval(y, predicted)
-            results["models"][name]["splits"][split] = {
-                "count": len(rows), "dataset": ds.name, "sensor": ds.manifest["sensor"],
-                "mean": mean_scores(scores), "mean_95_interval": intervals[name, split],
-                **{k: np.asarray(v).tolist() for k, v in scores.items()}}
+            curves[name][split] = (ds.labels[rows], probs)
+            score(name, split, ds, rows, probs > clf.thresholds)
         if "valid" in curves[name]:
             results["models"][name]["f1_operating_point"] = f1_operating_point(curves[name])
+    hessians = {}
+    if eigen:  # one Hessian per scan serves every tau
+        hessians = {split: dataset_hessians(ds, rows, progress) for split, (ds, rows) in first_splits.items()}
+    for tau in eigen or []:
+        name = f"eigen:{tau:g}"
+        table[name], results["models"][name] = {}, {"tau": tau, "splits": {}}
+        for split, (ds, rows) in first_splits.items():
+            known = np.isfinite(hessians[split]).all(axis=(1, 2))
+            predicted = np.zeros((len(rows), 6), bool)
+            predicted[known] = [eigen_mask(H, tau)[1] for H in hessians[split][known]]
+            score(name, split, ds, rows, predicted, unregistrable=int((~known).sum()))
     text = format_table(table, intervals=intervals) + format_f1_operating_points(results["models"])
     if symmetric:
         text = "probabilities averaged over the eight mirror/swap views of each scan\n" + text
     (out / "table.txt").write_text(text + "\n")
     (out / "results.json").write_text(json.dumps(results, indent=1, default=_nan_safe))
-    plot_pr_curves(curves, {n: np.asarray(r["thresholds"]) for n, r in results["models"].items()},
+    plot_pr_curves(curves, {n: np.asarray(r["thresholds"]) for n, r in results["models"].items() if n in curves},
                    out / "pr_curves.png")
     results["table"] = text
     return results
+
+
+def dataset_hessians(data: LabelDataset | DatasetUnion, rows: np.ndarray, progress: bool = False) -> np.ndarray:
+    """(len(rows), 6, 6) Hessians of the scans registered onto themselves with the dataset's own
+    registration settings; NaN for a scan too small to register."""
+    config = from_dict(RegistrationConfig, data.manifest["settings"]["registration"])
+    out = np.full((len(rows), 6, 6), np.nan)
+    for k, i in enumerate(tqdm(rows, desc="Hessians", disable=not progress, leave=False)):
+        try:
+            out[k] = scan_hessian(data.scan(int(i)), config)
+        except RegistrationError:
+            pass
+    return out
 
 
 def f1_operating_point(curves: dict[str, tuple[np.ndarray, np.ndarray]]) -> dict[str, Any]:

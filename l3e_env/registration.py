@@ -148,6 +148,16 @@ def point_to_plane_hessian(source: np.ndarray, target: PreparedTarget, T: np.nda
     return J.T @ J
 
 
+def scan_hessian(points: np.ndarray, config: RegistrationConfig | None = None) -> np.ndarray:
+    """The point-to-plane Hessian of a scan registered onto itself at identity: what Zhang's test
+    sees in a single scan (the same source thinning, normals and distance as `register`), so that
+    the eigenvalue detector can be scored on labelled single scans beside the classifier."""
+    config = config or RegistrationConfig()
+    target = PreparedTarget(points, config)
+    source = np.asarray(prepare_source(points, config).points())[:, :3]
+    return point_to_plane_hessian(source, target, np.eye(4), config.max_correspondence_distance[-1])
+
+
 def eigen_mask(hessian: np.ndarray, tau: float) -> tuple[np.ndarray, np.ndarray]:
     """Zhang et al. (2016) degeneracy, projected to axes: returns (scores, mask).
 

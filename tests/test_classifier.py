@@ -274,9 +274,15 @@ def test_evaluate_writes_table_curves_and_results(tiny_dataset, tmp_path):
     from l3e_env.evaluation import evaluate
 
     train(tiny_dataset, tmp_path / "run", _train_cfg(), progress=False)
-    res = evaluate([tmp_path / "run" / "model.pt"], tiny_dataset, tmp_path / "eval", others=[tiny_dataset, tiny_dataset],
-                   progress=False)
+    res = evaluate([tmp_path / "run" / "model.pt"], tiny_dataset, tmp_path / "eval",
+                   others=[tiny_dataset, tiny_dataset], progress=False, eigen=[1e9])
+    eigen = res["models"].pop("eigen:1e+09")
     (name, model), = res["models"].items()
+    assert set(eigen["splits"]) == set(model["splits"]) and eigen["splits"]["valid"]["unregistrable"] == 0
+    data = LabelDataset(tiny_dataset)
+    rows = split_indices(data, ["office-0"])  # the validation scene: an enormous tau flags every axis
+    everything = axis_scores(data.labels[rows], np.ones((len(rows), 6)))
+    assert eigen["splits"]["valid"]["f1"] == pytest.approx(everything["f1"], nan_ok=True)
     whole = f"all of {Path(tiny_dataset).name}"
     assert set(model["splits"]) == {"train", "valid", whole, f"all of {tiny_dataset}"}  # no test family here
     assert model["splits"]["train"]["count"] == 8 and model["splits"][whole]["count"] == 12

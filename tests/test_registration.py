@@ -7,6 +7,7 @@ from l3e_env.lidar import Lidar
 from l3e_env.raycast import EmbreeCaster
 from l3e_env.registration import (
     TO_PROJECT_ORDER, PreparedTarget, RegistrationConfig, RegistrationError, eigen_mask, prepare_source, register,
+    scan_hessian,
 )
 from l3e_env.transforms import inverse, matrix_to_pose, pose_to_matrix
 from scenes import make_scene
@@ -67,6 +68,18 @@ def test_eigenvalue_detector_flags_the_tunnel_axis_only():
     assert scores[0] > 0.9
     assert not eigen_mask(res.hessian, 0.0)[1].any()
     assert eigen_mask(res.hessian, 1e12)[1].all()
+
+
+def test_a_single_scan_hessian_is_that_of_registering_the_scan_onto_itself():
+    tunnel, _, _ = scan_pair("tunnel", [50, 0, 0.85, 0, 0, 0], [0, 0, 0, 0, 0, 0])
+    H = scan_hessian(tunnel)
+    assert np.abs(H - register(tunnel, tunnel).hessian).max() < 1e-4 * np.abs(H).max()  # ICP stays at identity
+    w, V = np.linalg.eigh(H)
+    assert abs(V[0, 0]) > 0.95 and w[1] > 20 * w[0]  # the weakest direction runs along the tunnel (x)
+    office, _, _ = scan_pair("office", [5, 0, 0.85, 0, 0, 0.3], [0, 0, 0, 0, 0, 0])
+    assert np.linalg.eigvalsh(scan_hessian(office))[0] > 5 * w[0]
+    with pytest.raises(RegistrationError, match="points"):
+        scan_hessian(tunnel[:20])
 
 
 def test_bad_scans_raise_clear_errors():
