@@ -26,10 +26,10 @@ import numpy as np
 
 from l3e_env.classifier import Classifier
 from l3e_env.dataset import error_ratios, open_datasets
+from l3e_env.evaluation import split_rows
 from l3e_env.labels import AXES
 from l3e_env.scores import auroc, axis_scores, best_thresholds, mean_scores
-from l3e_env.training import predict_dataset, split_indices
-from scenes import TEST_SCENES
+from l3e_env.training import predict_dataset
 
 TARGET_F1 = 0.70
 SIGMA_GRID = np.round(np.arange(0.0, 3.001, 0.05), 2)
@@ -66,10 +66,7 @@ def main() -> None:
 
     data = open_datasets(args.dataset)
     clf = Classifier.load(args.checkpoint)
-    training = clf.meta["training"]
-    names = data.manifest["scenes"]
-    splits = {"train": training["train_scenes"], "valid": training["validation_scenes"],
-              "test": [s for s in TEST_SCENES if s in names]}
+    splits = split_rows(data, clf.meta["training"])
     ratios_all = error_ratios(data)
     rng = np.random.default_rng(args.seed)
     sigmas = [float(s) for s in args.noise.split(",") if s]
@@ -77,13 +74,12 @@ def main() -> None:
     model_f1: dict[str, float] = {}
 
     print(f"{data.name}: mean errors over label thresholds; noisy estimators over {args.draws} draws")
-    for split, scenes in splits.items():
-        rows = split_indices(data, scenes)
+    for split, rows in splits.items():
         ratios = ratios_all[rows]
         labels = ratios > 1
         near = ((ratios > 1) & (ratios <= 1.25)).sum(0) / np.maximum(labels.sum(0), 1)
         curves[split] = np.array([noisy_scores(ratios, s, args.draws, rng)[1]["f1"] for s in SIGMA_GRID])
-        print(f"\n{split}: {len(rows)} scans of {len(scenes)} scenes")
+        print(f"\n{split}: {len(rows)} scans")
         print(f"  {'':24s}" + "".join(f"{a:>7s}" for a in AXES) + "   mean")
         print(f"  {'positives':24s}" + "".join(f"{n:7d}" for n in labels.sum(0)))
         print(f"  {'of them within 1.25x':24s}" + "".join(f"{v:7.2f}" for v in near))
@@ -96,7 +92,8 @@ def main() -> None:
               f"(the estimate within a factor {np.exp(sigma_at(curves[split], TARGET_F1)):.2f}, one sigma)")
 
         probs = predict_dataset(clf.model, data, rows, progress=True)
-        stored = axis_scores(labels, probs > clf.thresholds)
+        flagged = probs > clf.thresholds
+        stored = axis_scores(labels, flagged)
         own = axis_scores(labels, probs > best_thresholds(labels, probs))
         model_f1[split] = mean_scores(stored)["f1"]
         print(f"  {'model, stored thresh.':24s}" + "".join(f"{v:7.2f}" for v in stored["f1"]) +
@@ -106,7 +103,6 @@ def main() -> None:
         print(f"  {'model AUROC':24s}" + "".join(f"{auroc(labels[:, a], probs[:, a]):7.2f}" for a in range(6)))
         print(f"  the model's mean F1 equals that of an estimate with sigma "
               f"{sigma_at(curves[split], model_f1[split]):.2f}")
-        flagged = probs > clf.thresholds
         false_flags, misses = flagged & ~labels, ~flagged & labels
         print(f"  false flags {false_flags.sum()}, of them {(false_flags & (ratios < 0.5)).sum()} on errors under half "
               f"the threshold; misses {misses.sum()}, of them {(misses & (ratios <= 1.25)).sum()} within 1.25x")

@@ -27,6 +27,15 @@ def model_name(classifier: Classifier, path: Path, taken: set[str]) -> str:
     return name if name not in taken else f"{name}:{path.parent.name}/{path.stem}"
 
 
+def split_rows(data: LabelDataset | DatasetUnion, training: dict[str, Any]) -> dict[str, np.ndarray]:
+    """A checkpoint's train and validation rows (its own scenes) and the test rows (the test
+    families that the dataset holds)."""
+    test_scenes = [s for s in TEST_SCENES if s in data.manifest["scenes"]]
+    return {"train": split_indices(data, training["train_scenes"]),
+            "valid": split_indices(data, training["validation_scenes"]),
+            "test": split_indices(data, test_scenes)}
+
+
 def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Path], out_dir: str | Path,
              others: list[str | Path] | None = None, progress: bool = True, symmetric: bool = False,
              eigen: list[float] | None = None) -> dict[str, Any]:
@@ -64,10 +73,7 @@ def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Pat
     for path in map(Path, checkpoints):
         clf = Classifier.load(path, symmetric=symmetric)
         name = model_name(clf, path, set(table))
-        training = clf.meta["training"]
-        splits = {"train": (data, split_indices(data, training["train_scenes"])),
-                  "valid": (data, split_indices(data, training["validation_scenes"])),
-                  "test": (data, split_indices(data, test_scenes))}
+        splits = {split: (data, rows) for split, rows in split_rows(data, clf.meta["training"]).items()}
         splits.update({column: (d, np.arange(len(d))) for column, d in extra.items()})
         splits = {split: (ds, rows) for split, (ds, rows) in splits.items() if len(rows)}
         first_splits = first_splits or splits
