@@ -16,7 +16,10 @@ Then the checkpoint's own probabilities on each split (default: the shipped mode
 stored thresholds; at the thresholds best for that very split (no threshold choice can do better
 with these probabilities); AUROC per axis (how well they rank, whatever the threshold); and the
 "equivalent sigma", the noise of the estimator with the same mean F1 at the stored thresholds; and
-how many of its false flags lie far from the threshold (where no label noise can excuse them).
+how many of its false flags lie far from the threshold (where no label noise can excuse them);
+the mean F1 it would score with x and y exact and its other axes as they are (what the rarer axes
+cost the mean); and, as a model-free score, the AUROC of the sensor's tilt from the vertical (what
+an IMU knows) per axis.
 """
 from __future__ import annotations
 
@@ -47,6 +50,11 @@ def noisy_scores(ratios: np.ndarray, sigma: float, draws: int, rng: np.random.Ge
     return np.nanmean(f1, axis=0), {k: float(np.mean([m[k] for m in means])) for k in means[0]}
 
 
+def tilt_deg(poses: np.ndarray) -> np.ndarray:
+    """Angle between each sensor's z axis and the world's vertical, degrees."""
+    return np.degrees(np.arccos(np.clip(poses[:, 2, 2], -1.0, 1.0)))
+
+
 def sigma_at(f1_curve: np.ndarray, f1: float) -> float:
     """The sigma of SIGMA_GRID at which the (falling) mean-F1 curve reaches f1; inf if it never falls that low."""
     if f1 < f1_curve[-1]:
@@ -68,6 +76,7 @@ def main() -> None:
     clf = Classifier.load(args.checkpoint)
     splits = split_rows(data, clf.meta["training"])
     ratios_all = error_ratios(data)
+    tilt_all = tilt_deg(data.poses)
     rng = np.random.default_rng(args.seed)
     sigmas = [float(s) for s in args.noise.split(",") if s]
     curves: dict[str, np.ndarray] = {}
@@ -101,6 +110,13 @@ def main() -> None:
         print(f"  {'model, best for split':24s}" + "".join(f"{v:7.2f}" for v in own["f1"]) +
               f"   F1 {mean_scores(own)['f1']:.3f} accuracy {mean_scores(own)['accuracy']:.3f}")
         print(f"  {'model AUROC':24s}" + "".join(f"{auroc(labels[:, a], probs[:, a]):7.2f}" for a in range(6)))
+        exact_xy = flagged.copy()
+        exact_xy[:, :2] = labels[:, :2]
+        print(f"  {'model, x and y exact':24s}" + "".join(f"{v:7.2f}" for v in axis_scores(labels, exact_xy)["f1"]) +
+              f"   F1 {mean_scores(axis_scores(labels, exact_xy))['f1']:.3f}")
+        tilt = tilt_all[rows]
+        print(f"  {'sensor tilt AUROC':24s}" + "".join(f"{auroc(labels[:, a], tilt):7.2f}" for a in range(6)) +
+              f"   median tilt {np.median(tilt):.1f} deg")
         print(f"  the model's mean F1 equals that of an estimate with sigma "
               f"{sigma_at(curves[split], model_f1[split]):.2f}")
         false_flags, misses = flagged & ~labels, ~flagged & labels

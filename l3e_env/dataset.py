@@ -315,6 +315,11 @@ class LabelDataset:
         return np.asarray(self.arrays["errors"])
 
     @property
+    def poses(self) -> np.ndarray:
+        """(N, 4, 4) world-from-sensor poses of the parent scans."""
+        return np.asarray(self.arrays["poses"])
+
+    @property
     def label_config(self) -> LabelConfig:
         """The label settings the dataset was made with (its thresholds turn errors into labels)."""
         return from_dict(LabelConfig, self.manifest["settings"]["labels"])
@@ -364,6 +369,10 @@ class DatasetUnion:
     @cached_property
     def errors(self) -> np.ndarray:
         return np.concatenate([p.errors for p in self.parts])
+
+    @cached_property
+    def poses(self) -> np.ndarray:
+        return np.concatenate([p.poses for p in self.parts])
 
 
 def error_ratios(data: LabelDataset | DatasetUnion) -> np.ndarray:

@@ -246,6 +246,8 @@ def test_datasets_are_read_as_one_with_scenes_matched_by_name(tiny_dataset, tmp_
     assert union.manifest["scenes"] == ["tunnel-0", "office-0", "field-0", "tunnel-7"]
     np.testing.assert_array_equal(union.scan(len(a) + 1), b.scan(1))
     np.testing.assert_array_equal(union.labels[len(a):], b.labels)
+    np.testing.assert_array_equal(union.poses[len(a) + 1], b.poses[1])
+    assert union.poses.shape == (len(union), 4, 4) and np.allclose(union.poses[:, 3], [0, 0, 0, 1])
     assert union.manifest["count"] == len(union) and union.manifest["settings"]["seed"] == [0, 4]
     field = split_indices(union, ["field-0"])
     assert len(field) == 4 + 2 and field[-2:].tolist() == [len(a), len(a) + 1]
