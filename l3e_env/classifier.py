@@ -57,6 +57,9 @@ class ModelConfig:
     head: tuple[int, ...] = (64, 64, 32, 16)  # hidden widths: five linear layers with the output
     dropout: float = 0.1  # 0.3 on the 16-wide last hidden layer slowed learning markedly
     coordinate_scale: float = 10.0  # m; point coordinates enter as features divided by this
+    # the world's up direction in the sensor frame (what an IMU gives a legged robot) enters the
+    # head beside the pooled feature: on uneven ground the scan alone does not show the tilt
+    gravity: bool = False
 
 
 def _bn_relu(c: int) -> nn.Sequential:
@@ -154,15 +157,27 @@ class LocalizabilityNet(nn.Module):
             self.backbone = PointNet(cfg)
         else:
             raise ValueError(f"unknown architecture '{cfg.architecture}' (resunet, pointnet)")
-        widths = (cfg.feature, *cfg.head)
+        widths = (cfg.feature + (3 if cfg.gravity else 0), *cfg.head)
         layers: list[nn.Module] = []
         for a, b in zip(widths[:-1], widths[1:]):
             layers += [nn.Linear(a, b), nn.ReLU(inplace=True), nn.Dropout(cfg.dropout)]
         self.head = nn.Sequential(*layers, nn.Linear(widths[-1], 6))
 
-    def forward(self, points: list[torch.Tensor]) -> torch.Tensor:
-        """Logits (B, 6) for a batch of point sets in the sensor frame."""
-        return self.head(self.backbone(points))
+    def forward(self, points: list[torch.Tensor], up: torch.Tensor | None = None) -> torch.Tensor:
+        """Logits (B, 6) for a batch of point sets in the sensor frame; `up` (B, 3): the world's up
+        direction in each sensor frame, for a model with config.gravity (ignored otherwise)."""
+        feature = self.backbone(points)
+        if not self.config.gravity:
+            return self.head(feature)
+        if up is None or tuple(up.shape) != (len(points), 3):
+            raise ValueError("this classifier was trained with the gravity direction: give the up vector of "
+                             "each scan's sensor frame, (B, 3)")
+        return self.head(torch.cat([feature, up.to(feature.dtype)], dim=1))
+
+
+def up_vector(T_w_s: np.ndarray) -> np.ndarray:
+    """The world's up direction in the sensor frame of world-from-sensor pose(s) (..., 4, 4)."""
+    return np.asarray(T_w_s)[..., 2, :3]
 
 
 def check_scan(points: np.ndarray) -> np.ndarray:
@@ -185,19 +200,24 @@ def sample_points(points: np.ndarray, count: int, rng: np.random.Generator) -> t
 
 
 def symmetry_view(points: torch.Tensor, symmetry: tuple[float, float, bool]) -> torch.Tensor:
+    """Points (or up vectors), (N, 3), mirrored and swapped as the view says."""
     sx, sy, swap = symmetry
     view = points * points.new_tensor([sx, sy, 1.0])
     return view[:, [1, 0, 2]] if swap else view
 
 
 @torch.inference_mode()
-def model_probabilities(model: LocalizabilityNet, batch: list[torch.Tensor], symmetric: bool = False) -> np.ndarray:
+def model_probabilities(model: LocalizabilityNet, batch: list[torch.Tensor], symmetric: bool = False,
+                        up: np.ndarray | None = None) -> np.ndarray:
     """(B, 6) probabilities; symmetric: the mean over the eight mirror/swap views of each scan (one
-    forward pass of 8 B scans), each view's output mapped back onto the scan's own axes."""
+    forward pass of 8 B scans), each view's output mapped back onto the scan's own axes. `up`
+    (B, 3): see LocalizabilityNet.forward."""
+    ups = None if up is None else torch.from_numpy(np.array(up, dtype=np.float32).reshape(-1, 3))
     if not symmetric:
-        return torch.sigmoid(model(batch)).numpy().astype(np.float64)
+        return torch.sigmoid(model(batch, ups)).numpy().astype(np.float64)
     views = [symmetry_view(p, sym) for sym in SYMMETRIES for p in batch]
-    probs = torch.sigmoid(model(views)).numpy().astype(np.float64).reshape(len(SYMMETRIES), len(batch), 6)
+    view_ups = None if ups is None else torch.cat([symmetry_view(ups, sym) for sym in SYMMETRIES])
+    probs = torch.sigmoid(model(views, view_ups)).numpy().astype(np.float64).reshape(len(SYMMETRIES), len(batch), 6)
     swapped = np.array([swap for _, _, swap in SYMMETRIES])
     probs[swapped] = probs[swapped][..., SWAP_LABELS]
     return probs.mean(axis=0)
@@ -280,12 +300,22 @@ class Classifier:
             warnings.warn("the classifier's labels were made with other registration settings than the "
                           "ones in use", stacklevel=2)
 
-    def probabilities(self, scans: list[np.ndarray]) -> np.ndarray:
-        """(B, 6) probabilities of non-localizability; ScanError for a scan that cannot be judged."""
+    @property
+    def needs_pose(self) -> bool:
+        """Whether the model reads the sensor's tilt (from the pose's rotation) beside the scan."""
+        return self.model.config.gravity
+
+    def probabilities(self, scans: list[np.ndarray], poses: np.ndarray | None = None) -> np.ndarray:
+        """(B, 6) probabilities of non-localizability; ScanError for a scan that cannot be judged.
+        `poses` (B, 4, 4) world-from-sensor: only their tilt is read, by a model that needs it."""
         rng = np.random.default_rng(self.seed)
         batch = [sample_points(check_scan(s), self.model.config.points, rng) for s in scans]
-        return model_probabilities(self.model, batch, self.symmetric)
+        if self.needs_pose and poses is None:
+            raise ValueError("this classifier reads the sensor's tilt: give the scans' poses (an IMU's roll and "
+                             "pitch suffice)")
+        up = up_vector(poses) if self.needs_pose else None
+        return model_probabilities(self.model, batch, self.symmetric, up)
 
-    def predict(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        p = self.probabilities([points])[0]
+    def predict(self, points: np.ndarray, T_w_s: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        p = self.probabilities([points], None if T_w_s is None else np.asarray(T_w_s)[None])[0]
         return p, p > self.thresholds

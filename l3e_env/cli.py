@@ -105,6 +105,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
         model, overrides["init"] = load_checkpoint(args.init)["model"], args.init
     if args.architecture:
         model["architecture"] = args.architecture
+    if args.gravity:
+        model["gravity"] = True
     cfg = from_dict(TrainConfig, {**_asdict(cfg), **overrides, "model": model})
     print(f"training {cfg.model.architecture} on {' + '.join(args.dataset)} -> {Path(args.out).resolve()} "
           f"({cfg.epochs} epochs of {cfg.samples_per_epoch or 'all'} samples, {cfg.optimizer}, seed {cfg.seed})")
@@ -208,6 +210,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--init", help="model.pt to start from (fine-tuning; its model settings are kept)")
     p.add_argument("--config", help="YAML of TrainConfig (defaults: the shipped model's settings)")
     p.add_argument("--architecture", choices=["resunet", "pointnet"])
+    p.add_argument("--gravity", action="store_true",
+                   help="the model also reads the sensor's tilt (the world's up direction in the sensor frame)")
     p.add_argument("--epochs", type=int)
     p.add_argument("--samples-per-epoch", type=int, dest="samples_per_epoch")
     p.add_argument("--optimizer", choices=["sgd", "adamw"])

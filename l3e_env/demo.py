@@ -59,7 +59,7 @@ def run_demo(out_dir: str | Path, scene: str = "mine", sensor: str = "vlp16", se
         if place and place not in snapshots and _centred(info["T_w_b"], env.scene.regions.get(place)):
             snapshots[place] = (info["T_w_b"].copy(), env.scan.points.copy())
         if (len(poses) - 1) % classify_every == 0:
-            pred = detector.predict(env.scan.points)
+            pred = detector.predict(env.scan.points, None, env.robot.T_w_s)
             if pred.known:
                 judged.append((len(poses) - 1, place or "", pred.probabilities, pred.mask))
     bar.close()

@@ -105,7 +105,7 @@ class LearnedDetector:
         from .classifier import ScanError
 
         try:
-            p, mask = self.classifier.predict(points)
+            p, mask = self.classifier.predict(points, T_w_s)
         except ScanError:
             return UNKNOWN
         return Prediction(p, mask)

@@ -33,6 +33,7 @@ from .classifier import (
     model_probabilities,
     sample_points,
     save_checkpoint,
+    up_vector,
 )
 from .config import dump_yaml, plain, to_dict
 from .dataset import DatasetUnion, LabelDataset, error_ratios, open_datasets
@@ -107,11 +108,17 @@ def balanced_pool(labels: np.ndarray, max_upsampling: float) -> np.ndarray:
     return np.concatenate(pool)
 
 
-def augment(points: np.ndarray, labels: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    points = points * np.array([rng.choice([-1, 1]), rng.choice([-1, 1]), 1], dtype=np.float32)
-    if rng.random() < 0.5:
-        points, labels = points[:, [1, 0, 2]], labels[SWAP_LABELS]
-    return points, labels
+def augment(points: np.ndarray, labels: np.ndarray, rng: np.random.Generator,
+            up: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """A random mirror/swap view of the scan, with its labels (and up vector) to match."""
+    sign = np.array([rng.choice([-1, 1]), rng.choice([-1, 1]), 1], dtype=np.float32)
+    swap = rng.random() < 0.5
+
+    def view(v: np.ndarray) -> np.ndarray:
+        v = v * sign
+        return v[..., [1, 0, 2]] if swap else v
+
+    return view(points), labels[SWAP_LABELS] if swap else labels, None if up is None else view(up)
 
 
 def predict_dataset(model: LocalizabilityNet, data: LabelDataset | DatasetUnion, rows: np.ndarray, seed: int = 0,
@@ -120,6 +127,7 @@ def predict_dataset(model: LocalizabilityNet, data: LabelDataset | DatasetUnion,
     sampling of scan i is seeded by (seed, i), so the figures do not depend on the batch size or the
     order."""
     model.eval()
+    ups = up_vector(data.poses[rows]) if model.config.gravity else None
     if symmetric:  # the same number of views per forward pass
         batch_size = max(1, batch_size // len(SYMMETRIES))
     out = np.zeros((len(rows), 6))
@@ -127,7 +135,8 @@ def predict_dataset(model: LocalizabilityNet, data: LabelDataset | DatasetUnion,
         chunk = rows[start:start + batch_size]
         batch = [sample_points(data.scan(int(i)), model.config.points, np.random.default_rng([seed, int(i)]))
                  for i in chunk]
-        out[start:start + len(chunk)] = model_probabilities(model, batch, symmetric)
+        up = None if ups is None else ups[start:start + len(chunk)]
+        out[start:start + len(chunk)] = model_probabilities(model, batch, symmetric, up)
     return out
 
 
@@ -178,6 +187,7 @@ def train(dataset: str | Path | list[str | Path], out_dir: str | Path, cfg: Trai
         raise TrainingError("the training split is empty")
     labels = data.labels
     targets_all = training_targets(data, cfg.soft_labels)
+    up_all = up_vector(data.poses) if cfg.model.gravity else None
     meta = _meta(cfg, data)
 
     last = out / "last.pt"
@@ -211,14 +221,16 @@ def train(dataset: str | Path | list[str | Path], out_dir: str | Path, cfg: Trai
         bar = tqdm(range(0, count - cfg.batch_size + 1, cfg.batch_size), disable=not progress, leave=False,
                    desc=f"epoch {epoch + 1}/{cfg.epochs}")
         for start in bar:
-            batch, targets = [], []
+            batch, targets, ups = [], [], []
             for i in order[start:start + cfg.batch_size]:
-                pts, lab = data.scan(int(i)), targets_all[i]
+                pts, lab, up = data.scan(int(i)), targets_all[i], up_all[i] if up_all is not None else None
                 if cfg.augment:
-                    pts, lab = augment(pts, lab, rng)
+                    pts, lab, up = augment(pts, lab, rng, up)
                 batch.append(sample_points(pts, cfg.model.points, rng))
                 targets.append(lab)
-            loss = loss_fn(model(batch), torch.tensor(np.array(targets), dtype=torch.float32))
+                ups.append(up)
+            up_batch = torch.tensor(np.array(ups), dtype=torch.float32) if up_all is not None else None
+            loss = loss_fn(model(batch, up_batch), torch.tensor(np.array(targets), dtype=torch.float32))
             optimizer.zero_grad()
             loss.backward()
             optimizer.step()

@@ -135,11 +135,11 @@ class MapJudge:
         if self.kind == "learned":
             scans = [self.lidar.scan(T, rng).points for T, rng in zip(poses, rngs)]
             try:
-                return self.classifier.probabilities(scans)
+                return self.classifier.probabilities(scans, np.asarray(poses))
             except ScanError:  # judge one by one; a scan that cannot be judged stays NaN
-                for i, scan in enumerate(scans):
+                for i, (scan, T) in enumerate(zip(scans, poses)):
                     try:
-                        out[i] = self.classifier.probabilities([scan])[0]
+                        out[i] = self.classifier.probabilities([scan], T[None])[0]
                     except ScanError:
                         pass
                 return out

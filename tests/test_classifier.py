@@ -9,7 +9,7 @@ import torch
 
 from l3e_env.classifier import (
     CHECKPOINT_VERSION, DEFAULT_CHECKPOINT, SYMMETRIES, CheckpointError, Classifier, LocalizabilityNet, ModelConfig,
-    ScanError, check_scan, save_checkpoint,
+    ScanError, check_scan, model_probabilities, sample_points, save_checkpoint, up_vector,
 )
 from l3e_env.dataset import DatasetError, LabelDataset, config_for, error_ratios, generate, open_datasets
 from l3e_env.detectors import LearnedDetector, make_detector
@@ -18,6 +18,7 @@ from l3e_env.training import (
     SWAP_LABELS, TrainConfig, TrainingError, augment, balanced_pool, calibrate_symmetric, predict_dataset,
     split_indices, train, _resumable, training_targets,
 )
+from l3e_env.transforms import pose_to_matrix
 
 SMALL = ModelConfig(points=600, channels=(8, 8, 16, 16), pointnet_channels=(16, 32), head=(16, 16, 16, 16))
 
@@ -199,17 +200,49 @@ def test_power_set_balancing_up_samples_to_the_second_most_common_combination():
     assert np.bincount(codes, minlength=64)[[0, 1, 35, 4]].tolist() == [50, 20, 20, 10]  # 10: the cap
 
 
-def test_augmentation_permutes_the_labels_with_the_points(rng):
+def test_augmentation_permutes_the_labels_and_turns_the_up_vector_with_the_points(rng):
     pts = _scan(rng, 100)
     lab = np.array([1, 0, 0, 1, 0, 0], dtype=np.uint8)
+    up = np.array([0.3, -0.5, 0.81])
     seen = set()
     for _ in range(40):
-        p2, l2 = augment(pts, lab, rng)
+        p2, l2, up2 = augment(pts, lab, rng, up)
         swapped = not np.allclose(np.abs(p2[:, 0]), np.abs(pts[:, 0]))
         assert np.allclose(np.abs(p2[:, :2]), np.abs(pts[:, [1, 0]] if swapped else pts[:, :2]))
         assert (l2 == (lab[SWAP_LABELS] if swapped else lab)).all()
-        seen.add(swapped)
-    assert seen == {True, False}
+        # the up vector is a direction of the same frame: mirrored and swapped as the points are
+        sign = np.sign(p2[0, :2] / (pts[0, [1, 0]] if swapped else pts[0, :2]))
+        assert np.allclose(up2[:2], sign * (up[[1, 0]] if swapped else up[:2])) and up2[2] == up[2]
+        seen.add((swapped, *sign))
+    assert len(seen) == 8
+    assert augment(pts, lab, rng)[2] is None
+
+
+def test_a_gravity_model_reads_the_tilt_and_refuses_to_guess_without_it(tiny_dataset, tmp_path, rng):
+    roll = 0.3
+    T = pose_to_matrix(np.array([1.0, 2.0, 0.5, roll, 0.0, 0.0]))
+    assert np.allclose(up_vector(T), [0.0, np.sin(roll), np.cos(roll)])  # the world's up seen from the sensor
+    train(tiny_dataset, tmp_path / "g", _train_cfg(model=dataclasses.replace(SMALL, gravity=True)), progress=False)
+    clf = Classifier.load(tmp_path / "g" / "model.pt")
+    assert clf.needs_pose and clf.model.head[0].in_features == SMALL.feature + 3
+    scan = _scan(rng, 500)
+    with pytest.raises(ValueError, match="tilt"):
+        clf.probabilities([scan])
+    level, tilted = clf.probabilities([scan, scan], np.stack([np.eye(4), T]))
+    assert not np.allclose(level, tilted)  # the tilt changes the answer for the same points
+    det = LearnedDetector(str(tmp_path / "g" / "model.pt"))
+    assert np.allclose(det.predict(scan, None, T).probabilities, tilted)
+    with pytest.raises(ValueError, match="tilt"):  # a caller that gives no pose is told, not guessed for
+        det.predict(scan)
+    # symmetric inference turns the up vector with each view: mirrored scan and pose, same answer
+    probs = [model_probabilities(clf.model, [torch.from_numpy(s)], True, u[None])[0]
+             for s, u in [(scan, up_vector(T)), (scan * np.float32([1, -1, 1]), up_vector(T) * [1, -1, 1])]]
+    assert np.allclose(*probs, atol=1e-5)
+    data = LabelDataset(tiny_dataset)  # predictions on a dataset read each parent's tilt from its pose
+    sampled = [sample_points(data.scan(i), SMALL.points, np.random.default_rng([0, i])) for i in range(3)]
+    expected = [model_probabilities(clf.model, [pts], False, up_vector(data.poses[i])[None])[0]
+                for i, pts in enumerate(sampled)]
+    assert np.allclose(predict_dataset(clf.model, data, np.arange(3)), expected, atol=1e-6)
 
 
 def _train_cfg(**kw):
