@@ -27,7 +27,7 @@ import argparse
 
 import numpy as np
 
-from l3e_env.classifier import Classifier
+from l3e_env.classifier import Classifier, up_vector
 from l3e_env.dataset import error_ratios, open_datasets
 from l3e_env.evaluation import split_rows
 from l3e_env.labels import AXES
@@ -52,7 +52,7 @@ def noisy_scores(ratios: np.ndarray, sigma: float, draws: int, rng: np.random.Ge
 
 def tilt_deg(poses: np.ndarray) -> np.ndarray:
     """Angle between each sensor's z axis and the world's vertical, degrees."""
-    return np.degrees(np.arccos(np.clip(poses[:, 2, 2], -1.0, 1.0)))
+    return np.degrees(np.arccos(np.clip(up_vector(poses)[:, 2], -1.0, 1.0)))
 
 
 def sigma_at(f1_curve: np.ndarray, f1: float) -> float:

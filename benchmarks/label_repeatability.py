@@ -58,7 +58,7 @@ def main() -> None:
     children = args.children or settings["labels"]["children"]
     names = data.manifest["scenes"]
     scene_of_row = np.asarray(data.arrays["scene"])
-    poses = np.asarray(data.arrays["poses"])
+    poses = data.poses
     thresholds = data.label_config.threshold_vector()
     rows = split_indices(data, args.scenes.split(","))
     jobs = [(names[scene_of_row[i]], poses[i], (args.seed, int(i)), settings, children) for i in rows]

@@ -27,13 +27,17 @@ def model_name(classifier: Classifier, path: Path, taken: set[str]) -> str:
     return name if name not in taken else f"{name}:{path.parent.name}/{path.stem}"
 
 
+def test_scenes_in(data: LabelDataset | DatasetUnion) -> list[str]:
+    """The test families that the dataset holds."""
+    return [s for s in TEST_SCENES if s in data.manifest["scenes"]]
+
+
 def split_rows(data: LabelDataset | DatasetUnion, training: dict[str, Any]) -> dict[str, np.ndarray]:
     """A checkpoint's train and validation rows (its own scenes) and the test rows (the test
     families that the dataset holds)."""
-    test_scenes = [s for s in TEST_SCENES if s in data.manifest["scenes"]]
     return {"train": split_indices(data, training["train_scenes"]),
             "valid": split_indices(data, training["validation_scenes"]),
-            "test": split_indices(data, test_scenes)}
+            "test": split_indices(data, test_scenes_in(data))}
 
 
 def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Path], out_dir: str | Path,
@@ -52,7 +56,7 @@ def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Pat
     extra: dict[str, LabelDataset] = {}
     for d in map(LabelDataset, others or []):
         extra[f"all of {d.name}" if f"all of {d.name}" not in extra else f"all of {d.folder}"] = d
-    test_scenes = [s for s in TEST_SCENES if s in data.manifest["scenes"]]
+    test_scenes = test_scenes_in(data)
     table: dict[str, dict[str, dict[str, np.ndarray]]] = {}
     curves: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = {}
     intervals: dict[tuple[str, str], dict[str, tuple[float, float]]] = {}
