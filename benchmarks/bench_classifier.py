@@ -1,6 +1,7 @@
 """Classifier inference latency on single VLP-16 scans along the mine route (yard, tunnel,
 quarry), with the paper's 28 ms (i7-10700F, 8 cores) as the reference, plus the PointNet
-baseline, the shipped model averaged over its eight mirror/swap views, and a full-width (FCGF
+baseline, the shipped model averaged over its eight mirror/swap views, the shipped widths reading
+one point of each of 2000 voxels (ModelConfig.sampling "voxels") and a full-width (FCGF
 32-64-128-256) ResUNet measured in the same run.
 
 Run: python benchmarks/bench_classifier.py [--checkpoint PATH] [--scans 60] [--threads 2]
@@ -13,7 +14,7 @@ import time
 import numpy as np
 import torch
 
-from l3e_env.classifier import Classifier, LocalizabilityNet, ModelConfig, sample_points
+from l3e_env.classifier import Classifier, LocalizabilityNet, ModelConfig, model_input
 from l3e_env.lidar import Lidar
 from l3e_env.raycast import EmbreeCaster
 from l3e_env.transforms import pose_to_matrix
@@ -59,12 +60,13 @@ def main() -> None:
     rows.append(("the same, 8 mirror/swap views", latency_ms(symmetric.predict, scans)))
     rng = np.random.default_rng(0)
     for label, cfg in [("PointNet baseline", ModelConfig(architecture="pointnet")),
+                       ("ResUNet on 2000 voxels' points", ModelConfig(sampling="voxels", points=2000)),
                        ("ResUNet at FCGF width", ModelConfig(channels=(32, 64, 128, 256)))]:
         model = LocalizabilityNet(cfg).eval()
 
         def run(s, model=model, cfg=cfg):
             with torch.inference_mode():
-                return model([sample_points(s, cfg.points, rng)])
+                return model([model_input(s, cfg, rng)])
 
         rows.append((label, latency_ms(run, scans)))
     print(f"{len(scans)} VLP-16 scans along the mine route, {args.threads} threads, "

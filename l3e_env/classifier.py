@@ -47,6 +47,10 @@ class ScanError(ValueError):
 class ModelConfig:
     architecture: str = "resunet"  # or "pointnet"
     points: int = 4000  # sampled from the scan (all of them if it has fewer)
+    # "points": drawn from the scan's points, so the dense ground next to the sensor dominates;
+    # "voxels": the scan is first thinned to one random point per voxel, so every voxel counts once
+    # whatever its range, as in the voxel-thinned registration that makes the labels
+    sampling: str = "points"
     voxel: float = 0.2  # m, sparse quantization
     # ResUNet widths at 0.2, 0.4, 0.8 and 1.6 m. FCGF's 32-64-128-256 costs 60-70 ms a scan here;
     # half of it at the fine levels and a quarter at the coarsest meets the 15 ms budget on two
@@ -157,6 +161,8 @@ class LocalizabilityNet(nn.Module):
             self.backbone = PointNet(cfg)
         else:
             raise ValueError(f"unknown architecture '{cfg.architecture}' (resunet, pointnet)")
+        if cfg.sampling not in ("points", "voxels"):
+            raise ValueError(f"unknown sampling '{cfg.sampling}' (points, voxels)")
         widths = (cfg.feature + (3 if cfg.gravity else 0), *cfg.head)
         layers: list[nn.Module] = []
         for a, b in zip(widths[:-1], widths[1:]):
@@ -192,11 +198,28 @@ def check_scan(points: np.ndarray) -> np.ndarray:
     return points.astype(np.float32, copy=False)
 
 
+def one_per_voxel(points: np.ndarray, voxel: float, rng: np.random.Generator) -> np.ndarray:
+    """One point drawn at random from each occupied voxel of the scan."""
+    cells = np.floor(points / voxel).astype(np.int64)
+    cells -= cells.min(axis=0)
+    keys = np.ravel_multi_index(cells.T, tuple(cells.max(axis=0) + 1))
+    order = rng.permutation(len(points))
+    _, first = np.unique(keys[order], return_index=True)  # the first of each voxel in a random order
+    return points[order[first]]
+
+
 def sample_points(points: np.ndarray, count: int, rng: np.random.Generator) -> torch.Tensor:
     """`count` points drawn without replacement (all of them when the scan has fewer)."""
     if len(points) > count:
         points = points[rng.choice(len(points), count, replace=False)]
     return torch.from_numpy(np.ascontiguousarray(points, dtype=np.float32))
+
+
+def model_input(points: np.ndarray, cfg: ModelConfig, rng: np.random.Generator) -> torch.Tensor:
+    """The point set a model of this config reads from one scan (see ModelConfig.sampling)."""
+    if cfg.sampling == "voxels":
+        points = one_per_voxel(points, cfg.voxel, rng)
+    return sample_points(points, cfg.points, rng)
 
 
 def symmetry_view(points: torch.Tensor, symmetry: tuple[float, float, bool]) -> torch.Tensor:
@@ -309,7 +332,7 @@ class Classifier:
         """(B, 6) probabilities of non-localizability; ScanError for a scan that cannot be judged.
         `poses` (B, 4, 4) world-from-sensor: only their tilt is read, by a model that needs it."""
         rng = np.random.default_rng(self.seed)
-        batch = [sample_points(check_scan(s), self.model.config.points, rng) for s in scans]
+        batch = [model_input(check_scan(s), self.model.config, rng) for s in scans]
         if self.needs_pose and poses is None:
             raise ValueError("this classifier reads the sensor's tilt: give the scans' poses (an IMU's roll and "
                              "pitch suffice)")

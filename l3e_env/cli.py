@@ -107,6 +107,10 @@ def _cmd_train(args: argparse.Namespace) -> int:
         model["architecture"] = args.architecture
     if args.gravity:
         model["gravity"] = True
+    if args.sampling:
+        model["sampling"] = args.sampling
+    if args.points:
+        model["points"] = args.points
     cfg = from_dict(TrainConfig, {**_asdict(cfg), **overrides, "model": model})
     print(f"training {cfg.model.architecture} on {' + '.join(args.dataset)} -> {Path(args.out).resolve()} "
           f"({cfg.epochs} epochs of {cfg.samples_per_epoch or 'all'} samples, {cfg.optimizer}, seed {cfg.seed})")
@@ -212,6 +216,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--architecture", choices=["resunet", "pointnet"])
     p.add_argument("--gravity", action="store_true",
                    help="the model also reads the sensor's tilt (the world's up direction in the sensor frame)")
+    p.add_argument("--sampling", choices=["points", "voxels"],
+                   help="draw the input from the scan's points (default) or from one point per voxel")
+    p.add_argument("--points", type=int, help="points (or voxels) the model reads from a scan (default 4000)")
     p.add_argument("--epochs", type=int)
     p.add_argument("--samples-per-epoch", type=int, dest="samples_per_epoch")
     p.add_argument("--optimizer", choices=["sgd", "adamw"])

@@ -31,7 +31,7 @@ from .classifier import (
     load_checkpoint,
     model_from_checkpoint,
     model_probabilities,
-    sample_points,
+    model_input,
     save_checkpoint,
     up_vector,
 )
@@ -133,7 +133,7 @@ def predict_dataset(model: LocalizabilityNet, data: LabelDataset | DatasetUnion,
     out = np.zeros((len(rows), 6))
     for start in tqdm(range(0, len(rows), batch_size), desc="predicting", disable=not progress, leave=False):
         chunk = rows[start:start + batch_size]
-        batch = [sample_points(data.scan(int(i)), model.config.points, np.random.default_rng([seed, int(i)]))
+        batch = [model_input(data.scan(int(i)), model.config, np.random.default_rng([seed, int(i)]))
                  for i in chunk]
         up = None if ups is None else ups[start:start + len(chunk)]
         out[start:start + len(chunk)] = model_probabilities(model, batch, symmetric, up)
@@ -226,7 +226,7 @@ def train(dataset: str | Path | list[str | Path], out_dir: str | Path, cfg: Trai
                 pts, lab, up = data.scan(int(i)), targets_all[i], up_all[i] if up_all is not None else None
                 if cfg.augment:
                     pts, lab, up = augment(pts, lab, rng, up)
-                batch.append(sample_points(pts, cfg.model.points, rng))
+                batch.append(model_input(pts, cfg.model, rng))
                 targets.append(lab)
                 ups.append(up)
             up_batch = torch.tensor(np.array(ups), dtype=torch.float32) if up_all is not None else None

@@ -9,7 +9,7 @@ import torch
 
 from l3e_env.classifier import (
     CHECKPOINT_VERSION, DEFAULT_CHECKPOINT, SYMMETRIES, CheckpointError, Classifier, LocalizabilityNet, ModelConfig,
-    ScanError, check_scan, model_probabilities, sample_points, save_checkpoint, up_vector,
+    ScanError, check_scan, model_input, model_probabilities, one_per_voxel, sample_points, save_checkpoint, up_vector,
 )
 from l3e_env.dataset import DatasetError, LabelDataset, config_for, error_ratios, generate, open_datasets
 from l3e_env.detectors import LearnedDetector, make_detector
@@ -198,6 +198,24 @@ def test_power_set_balancing_up_samples_to_the_second_most_common_combination():
     pool = balanced_pool(labels, max_upsampling=10)
     codes = (labels[pool].astype(int) << np.arange(6)).sum(1)
     assert np.bincount(codes, minlength=64)[[0, 1, 35, 4]].tolist() == [50, 20, 20, 10]  # 10: the cap
+
+
+def test_voxel_sampling_keeps_one_scan_point_per_voxel_whatever_the_density(rng):
+    near = rng.normal(0, 0.15, (5000, 3))  # a dense blob next to the sensor, a few voxels wide
+    far = rng.uniform(-40, 40, (300, 3))  # sparse points far out, almost one per voxel
+    scan = np.vstack([near, far])
+    kept = one_per_voxel(scan, 0.2, rng)
+    cells = lambda p: {tuple(c) for c in np.floor(p / 0.2).astype(int)}  # noqa: E731
+    assert cells(kept) == cells(scan) and len(kept) == len(cells(scan))
+    assert {tuple(p) for p in kept} <= {tuple(p) for p in scan}  # scan points, not voxel centres
+    # drawn from the points, the far ones are a few percent of the input; from the voxels, most of it
+    by_points = model_input(scan, ModelConfig(points=400), rng).numpy()
+    by_voxels = model_input(scan, ModelConfig(points=400, sampling="voxels"), rng).numpy()
+    share = lambda p: float(np.mean(np.abs(p).max(axis=1) > 2))  # noqa: E731
+    assert len(by_points) == len(by_voxels) == 400
+    assert share(by_points) < 0.15 and share(by_voxels) > 0.5
+    with pytest.raises(ValueError, match="sampling"):
+        LocalizabilityNet(ModelConfig(sampling="grid"))
 
 
 def test_augmentation_permutes_the_labels_and_turns_the_up_vector_with_the_points(rng):
