@@ -163,6 +163,8 @@ class LocalizabilityNet(nn.Module):
             raise ValueError(f"unknown architecture '{cfg.architecture}' (resunet, pointnet)")
         if cfg.sampling not in ("points", "voxels"):
             raise ValueError(f"unknown sampling '{cfg.sampling}' (points, voxels)")
+        if cfg.points < 1:
+            raise ValueError(f"a model reads at least one point of a scan, not {cfg.points}")
         widths = (cfg.feature + (3 if cfg.gravity else 0), *cfg.head)
         layers: list[nn.Module] = []
         for a, b in zip(widths[:-1], widths[1:]):

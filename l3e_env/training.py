@@ -30,8 +30,8 @@ from .classifier import (
     ModelConfig,
     load_checkpoint,
     model_from_checkpoint,
-    model_probabilities,
     model_input,
+    model_probabilities,
     save_checkpoint,
     up_vector,
 )

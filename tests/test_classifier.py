@@ -216,6 +216,8 @@ def test_voxel_sampling_keeps_one_scan_point_per_voxel_whatever_the_density(rng)
     assert share(by_points) < 0.15 and share(by_voxels) > 0.5
     with pytest.raises(ValueError, match="sampling"):
         LocalizabilityNet(ModelConfig(sampling="grid"))
+    with pytest.raises(ValueError, match="at least one point"):
+        LocalizabilityNet(ModelConfig(points=0))
 
 
 def test_augmentation_permutes_the_labels_and_turns_the_up_vector_with_the_points(rng):
