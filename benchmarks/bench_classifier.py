@@ -1,14 +1,16 @@
 """Classifier inference latency on single VLP-16 scans along the mine route (yard, tunnel,
-quarry), with the paper's 28 ms (i7-10700F, 8 cores) as the reference, plus the PointNet
-baseline, the shipped model averaged over its eight mirror/swap views, the shipped widths reading
-one point of each of 2000 voxels (ModelConfig.sampling "voxels") and a full-width (FCGF
-32-64-128-256) ResUNet measured in the same run.
+quarry), with the paper's 28 ms (i7-10700F, 8 cores) as the reference, plus the shipped network
+without its constraint layer, the shipped model averaged over its eight mirror/swap views, the
+PointNet baseline, the shipped widths reading one point of each of 2000 voxels
+(ModelConfig.sampling "voxels") and a full-width (FCGF 32-64-128-256) ResUNet, measured in the
+same run.
 
 Run: python benchmarks/bench_classifier.py [--checkpoint PATH] [--scans 60] [--threads 2]
 """
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import time
 
 import numpy as np
@@ -56,6 +58,10 @@ def main() -> None:
     scans = route_scans(args.scans)
     clf = Classifier.load(args.checkpoint)
     rows = [("shipped ResUNet (scan -> mask)", latency_ms(clf.predict, scans))]
+    if clf.model.config.constraints:  # the same network without the constraint layer's Hessian
+        network = LocalizabilityNet(dataclasses.replace(clf.model.config, constraints=False)).eval()
+        network.load_state_dict({k: v for k, v in clf.model.state_dict().items() if not k.startswith("stacker.")})
+        rows.append(("the same, no constraint layer", latency_ms(Classifier(network, clf.thresholds).predict, scans)))
     symmetric = Classifier.load(args.checkpoint, symmetric=True)
     rows.append(("the same, 8 mirror/swap views", latency_ms(symmetric.predict, scans)))
     rng = np.random.default_rng(0)

@@ -19,6 +19,7 @@ import torch
 from torch import nn
 
 from .config import from_dict, plain
+from .constraints import AxisStacker, hessian_features, voxel_hessian
 from .files import write_atomic
 from .sparse import DownConv, Level, SubmanifoldConv, UpConv, global_max_pool, voxelize
 
@@ -64,6 +65,9 @@ class ModelConfig:
     # the world's up direction in the sensor frame (what an IMU gives a legged robot) enters the
     # head beside the pooled feature: on uneven ground the scan alone does not show the tilt
     gravity: bool = False
+    # a per-axis logistic layer over the network's logit and the scan's point-to-plane Hessian
+    # (l3e_env.constraints), fitted after the network on its training scenes (l3e fit-constraints)
+    constraints: bool = False
 
 
 def _bn_relu(c: int) -> nn.Sequential:
@@ -110,6 +114,10 @@ class ResUNet(nn.Module):
 
     def forward(self, points: list[torch.Tensor]) -> torch.Tensor:
         level, means, _ = voxelize(points, self.voxel)
+        return self.encode(level, means, len(points))
+
+    def encode(self, level: Level, means: torch.Tensor, batch_size: int) -> torch.Tensor:
+        """The pooled feature (B, C) of scans already quantised (see voxelize)."""
         # where in its voxel the surface passes (sub-voxel shape, e.g. wall roughness) and where
         # the voxel is in the scan (range and direction matter for the constraint it gives)
         inside = means / self.voxel - level.coords[:, 1:] - 0.5
@@ -124,7 +132,7 @@ class ResUNet(nn.Module):
         for i in reversed(range(len(self.up))):
             x = self.up_norm[i](self.up[i](x, levels[i]))
             x = self.up_block[i](self.up_mix[i](torch.cat([x, skips[i]], dim=1)), levels[i])
-        return global_max_pool(self.out(x), levels[0], len(points))
+        return global_max_pool(self.out(x), levels[0], batch_size)
 
 
 class PointNet(nn.Module):
@@ -170,17 +178,35 @@ class LocalizabilityNet(nn.Module):
         for a, b in zip(widths[:-1], widths[1:]):
             layers += [nn.Linear(a, b), nn.ReLU(inplace=True), nn.Dropout(cfg.dropout)]
         self.head = nn.Sequential(*layers, nn.Linear(widths[-1], 6))
+        if cfg.constraints and cfg.architecture != "resunet":
+            raise ValueError("the constraint layer reads the ResUNet's voxels; a PointNet has none")
+        self.stacker = AxisStacker() if cfg.constraints else None
 
     def forward(self, points: list[torch.Tensor], up: torch.Tensor | None = None) -> torch.Tensor:
         """Logits (B, 6) for a batch of point sets in the sensor frame; `up` (B, 3): the world's up
         direction in each sensor frame, for a model with config.gravity (ignored otherwise)."""
-        feature = self.backbone(points)
+        logits, features = self.parts(points, up)
+        return logits if self.stacker is None else self.stacker(logits, features)
+
+    def parts(self, points: list[torch.Tensor], up: torch.Tensor | None = None,
+              constraints: bool | None = None) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """The network's logits (B, 6) and, for a model with config.constraints (or when asked),
+        the scans' Hessian features (B, 12) (l3e_env.constraints), else None."""
+        constraints = self.config.constraints if constraints is None else constraints
+        features = None
+        if isinstance(self.backbone, ResUNet):
+            level, means, _ = voxelize(points, self.config.voxel)
+            feature = self.backbone.encode(level, means, len(points))
+            if constraints:
+                features = hessian_features(voxel_hessian(level, means, len(points)))
+        else:
+            feature = self.backbone(points)
         if not self.config.gravity:
-            return self.head(feature)
+            return self.head(feature), features
         if up is None or tuple(up.shape) != (len(points), 3):
             raise ValueError("this classifier was trained with the gravity direction: give the up vector of "
                              "each scan's sensor frame, (B, 3)")
-        return self.head(torch.cat([feature, up.to(feature.dtype)], dim=1))
+        return self.head(torch.cat([feature, up.to(feature.dtype)], dim=1)), features
 
 
 def up_vector(T_w_s: np.ndarray) -> np.ndarray:

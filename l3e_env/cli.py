@@ -146,6 +146,14 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_fit_constraints(args: argparse.Namespace) -> int:
+    from .training import fit_constraints
+
+    result = fit_constraints(args.checkpoint, args.dataset, args.out, beta=args.beta, progress=not args.quiet)
+    print(f"thresholds {' '.join(f'{t:.3f}' for t in result['thresholds'])} -> {args.out}")
+    return 0
+
+
 def _cmd_sweep(args: argparse.Namespace) -> int:
     from .sweep import DEFAULT_TAUS, beaten_everywhere, run_sweep
 
@@ -250,6 +258,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", help="write the completed checkpoint here instead")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_cmd_calibrate)
+    p = sub.add_parser("fit-constraints", help="add a per-axis logistic layer over the network's logits and the "
+                                               "scan's point-to-plane Hessian, fitted on the training scenes")
+    p.add_argument("--checkpoint", required=True, help="a trained ResUNet model.pt (left as it is)")
+    p.add_argument("--dataset", required=True, action="append", help="the dataset(s) it was trained on")
+    p.add_argument("--out", required=True, help="the new checkpoint")
+    p.add_argument("--beta", type=float, help="F-beta of the validation thresholds (default: the checkpoint's)")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=_cmd_fit_constraints)
     p = sub.add_parser("sweep", help="ATE against the eigenvalue threshold in several scenes, with the learned "
                                      "detector as reference")
     p.add_argument("--scene", action="append", help="repeat; default tunnel, field, office")

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -36,6 +36,7 @@ from .classifier import (
     up_vector,
 )
 from .config import dump_yaml, plain, to_dict
+from .constraints import FEATURES, fit_stacker
 from .dataset import DatasetUnion, LabelDataset, error_ratios, open_datasets
 from .scores import axis_scores, best_thresholds, mean_scores
 
@@ -121,23 +122,42 @@ def augment(points: np.ndarray, labels: np.ndarray, rng: np.random.Generator,
     return view(points), labels[SWAP_LABELS] if swap else labels, None if up is None else view(up)
 
 
-def predict_dataset(model: LocalizabilityNet, data: LabelDataset | DatasetUnion, rows: np.ndarray, seed: int = 0,
-                    batch_size: int = 16, progress: bool = False, symmetric: bool = False) -> np.ndarray:
-    """(len(rows), 6) probabilities (averaged over the mirror/swap views if `symmetric`); the point
-    sampling of scan i is seeded by (seed, i), so the figures do not depend on the batch size or the
-    order."""
-    model.eval()
+def _dataset_batches(model: LocalizabilityNet, data: LabelDataset | DatasetUnion, rows: np.ndarray, seed: int,
+                     batch_size: int, progress: bool):
+    """(start, model inputs, up vectors or None) per batch of `rows`; the point sampling of scan i
+    is seeded by (seed, i), so the figures do not depend on the batch size or the order."""
     ups = up_vector(data.poses[rows]) if model.config.gravity else None
-    if symmetric:  # the same number of views per forward pass
-        batch_size = max(1, batch_size // len(SYMMETRIES))
-    out = np.zeros((len(rows), 6))
     for start in tqdm(range(0, len(rows), batch_size), desc="predicting", disable=not progress, leave=False):
         chunk = rows[start:start + batch_size]
         batch = [model_input(data.scan(int(i)), model.config, np.random.default_rng([seed, int(i)]))
                  for i in chunk]
-        up = None if ups is None else ups[start:start + len(chunk)]
-        out[start:start + len(chunk)] = model_probabilities(model, batch, symmetric, up)
+        yield start, batch, None if ups is None else ups[start:start + len(chunk)]
+
+
+def predict_dataset(model: LocalizabilityNet, data: LabelDataset | DatasetUnion, rows: np.ndarray, seed: int = 0,
+                    batch_size: int = 16, progress: bool = False, symmetric: bool = False) -> np.ndarray:
+    """(len(rows), 6) probabilities (averaged over the mirror/swap views if `symmetric`)."""
+    model.eval()
+    if symmetric:  # the same number of views per forward pass
+        batch_size = max(1, batch_size // len(SYMMETRIES))
+    out = np.zeros((len(rows), 6))
+    for start, batch, up in _dataset_batches(model, data, rows, seed, batch_size, progress):
+        out[start:start + len(batch)] = model_probabilities(model, batch, symmetric, up)
     return out
+
+
+@torch.inference_mode()
+def network_parts(model: LocalizabilityNet, data: LabelDataset | DatasetUnion, rows: np.ndarray, seed: int = 0,
+                  batch_size: int = 16, progress: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """The network's own logits (len(rows), 6), before any constraint layer, and the scans' Hessian
+    features (len(rows), 12)."""
+    model.eval()
+    logits, features = np.zeros((len(rows), 6)), np.zeros((len(rows), FEATURES))
+    for start, batch, up in _dataset_batches(model, data, rows, seed, batch_size, progress):
+        ups = None if up is None else torch.from_numpy(np.asarray(up, dtype=np.float32))
+        net, feats = model.parts(batch, ups, constraints=True)
+        logits[start:start + len(batch)], features[start:start + len(batch)] = net.numpy(), feats.numpy()
+    return logits, features
 
 
 def _optimizer(cfg: TrainConfig, model: torch.nn.Module) -> torch.optim.Optimizer:
@@ -157,6 +177,9 @@ def _meta(cfg: TrainConfig, data: LabelDataset | DatasetUnion) -> dict[str, Any]
 
 def _initial_model(cfg: TrainConfig) -> LocalizabilityNet:
     """Fresh weights seeded by cfg.seed, or (fine-tuning) the weights of cfg.init."""
+    if cfg.model.constraints:
+        raise TrainingError("the constraint layer is fitted after training (l3e fit-constraints): train the network "
+                            "without it, from a checkpoint without it")
     torch.manual_seed(cfg.seed)
     if cfg.init is None:
         return LocalizabilityNet(cfg.model)
@@ -307,3 +330,39 @@ def calibrate_symmetric(checkpoint: str | Path, dataset: str | Path | list[str |
     save_checkpoint(out or checkpoint, model, np.asarray(state["thresholds"]), rest,
                     {"symmetric_thresholds": [float(t) for t in thresholds]})
     return thresholds
+
+
+def fit_constraints(checkpoint: str | Path, dataset: str | Path | list[str | Path], out: str | Path,
+                    beta: float | None = None, progress: bool = True) -> dict[str, Any]:
+    """A checkpoint with the constraint layer (l3e_env.constraints): the network of `checkpoint` as
+    it is, a per-axis logistic layer over its logits and the scans' Hessian features fitted on its
+    own training scenes, and thresholds (single and eight-view) chosen on its validation scenes by
+    F-beta (`beta`: the checkpoint's own by default)."""
+    state = load_checkpoint(checkpoint)
+    training = state.get("training")
+    if not isinstance(training, dict) or not training.get("train_scenes") or not training.get("validation_scenes"):
+        raise CheckpointError(f"{checkpoint} does not name its training and validation scenes")
+    base = model_from_checkpoint(state, str(checkpoint))
+    if base.config.architecture != "resunet":
+        raise CheckpointError(f"{checkpoint} is a {base.config.architecture}; the constraint layer reads a ResUNet's "
+                              "voxels")
+    data = open_datasets(dataset)
+    train_rows = split_indices(data, training["train_scenes"])
+    val_rows = split_indices(data, training["validation_scenes"])
+    if not len(train_rows) or not len(val_rows):
+        raise TrainingError(f"the dataset holds no scans of {checkpoint}'s training or validation scenes")
+    seed = int(training.get("seed", 0))
+    logits, features = network_parts(base, data, train_rows, seed, progress=progress)
+    stacker = fit_stacker(logits, features, data.labels[train_rows])
+    model = LocalizabilityNet(replace(base.config, constraints=True))
+    model.load_state_dict({**base.state_dict(), **{f"stacker.{k}": v for k, v in stacker.state_dict().items()}})
+    model.eval()
+    beta = float(state.get("threshold_beta", 1.0) if beta is None else beta)
+    thresholds = best_thresholds(data.labels[val_rows], predict_dataset(model, data, val_rows, seed), beta=beta)
+    symmetric = symmetric_thresholds(model, data, val_rows, seed, beta, progress)
+    rest = {k: v for k, v in state.items()
+            if k not in ("format", "version", "model", "state_dict", "thresholds", "symmetric_thresholds")}
+    rest["threshold_beta"] = beta
+    rest["constraints"] = {"base": str(checkpoint), "fitted_rows": int(len(train_rows))}
+    save_checkpoint(out, model, thresholds, rest, {"symmetric_thresholds": [float(t) for t in symmetric]})
+    return {"thresholds": thresholds.round(4).tolist(), "weights": stacker.weight.detach().numpy().round(3).tolist()}

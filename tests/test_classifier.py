@@ -23,15 +23,6 @@ from l3e_env.transforms import pose_to_matrix
 SMALL = ModelConfig(points=600, channels=(8, 8, 16, 16), pointnet_channels=(16, 32), head=(16, 16, 16, 16))
 
 
-@pytest.fixture(scope="module")
-def tiny_dataset(tmp_path_factory):
-    out = tmp_path_factory.mktemp("tiny")
-    cfg = config_for(None, scenes=["tunnel-0", "office-0", "field-0"], parents_per_scene=4, shard_size=2,
-                     labels={"children": 8})
-    generate(out, cfg, workers=1, progress=False)
-    return out
-
-
 def _scan(rng, n=3000):
     return (rng.standard_normal((n, 3)) * [8, 3, 1]).astype(np.float32)
 

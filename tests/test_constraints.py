@@ -1,0 +1,142 @@
+"""The scan's point-to-plane Hessian and the constraint layer fitted over the network's logits."""
+import dataclasses
+import itertools
+
+import numpy as np
+import pytest
+import torch
+
+from l3e_env.classifier import Classifier, LocalizabilityNet, ModelConfig, model_probabilities
+from l3e_env.constraints import AxisStacker, fit_stacker, hessian_features, smallest_eigenvector, voxel_hessian
+from l3e_env.dataset import LabelDataset
+from l3e_env.scores import auroc
+from l3e_env.sparse import voxelize
+from l3e_env.training import TrainConfig, TrainingError, fit_constraints, network_parts, split_indices, train
+
+SMALL = ModelConfig(points=600, channels=(8, 8, 16, 16), head=(16, 16, 16, 16))
+
+
+def _box_room(rng, length: float, width: float = 4.0, height: float = 3.0, ends: bool = True, n: int = 6000):
+    """Points on the walls, floor and ceiling of a box around the sensor; without its two end
+    walls it is a corridor along x."""
+    faces = [(1, -width / 2), (1, width / 2), (2, -1.0), (2, height - 1.0)]
+    if ends:
+        faces += [(0, -length / 2), (0, length / 2)]
+    extent = np.array([length / 2, width / 2, height / 2])
+    centre = np.array([0.0, 0.0, height / 2 - 1.0])
+    points = []
+    for axis, value in faces:
+        p = centre + rng.uniform(-1, 1, (n // len(faces), 3)) * extent
+        p[:, axis] = value
+        points.append(p)
+    return torch.from_numpy(np.concatenate(points).astype(np.float32))
+
+
+def _brute_force_hessian(points: np.ndarray, voxel: float) -> np.ndarray:
+    """The same Hessian by explicit loops: voxel means, each voxel's 3x3x3 block, eigh normals."""
+    cells: dict[tuple, list] = {}
+    for p in points:
+        cells.setdefault(tuple(np.floor(p / voxel).astype(int)), []).append(p)
+    means = {c: np.mean(v, axis=0) for c, v in cells.items()}
+    H = np.zeros((6, 6))
+    for c, m in means.items():
+        block = [means[k] for k in (tuple(np.add(c, d)) for d in itertools.product((-1, 0, 1), repeat=3)) if k in means]
+        if len(block) < 4:
+            continue
+        block = np.array(block, dtype=np.float64)
+        w, V = np.linalg.eigh(np.cov(block.T, bias=True))
+        if not w[0] < 0.1 * w[1]:
+            continue
+        row = np.r_[V[:, 0], np.cross(m, V[:, 0])]
+        H += np.outer(row, row)
+    return H
+
+
+def test_the_closed_form_normal_is_the_smallest_eigenvector(rng):
+    a = torch.from_numpy(rng.standard_normal((500, 3, 3)))
+    c = a @ a.transpose(1, 2)
+    c[0] = torch.diag(torch.tensor([1.0, 2.0, 0.01], dtype=c.dtype))  # axis-aligned plane
+    c[1] = torch.diag(torch.tensor([1.0, 1.0, 0.0], dtype=c.dtype))  # a perfect plane: rank two
+    normal, smallest, middle = smallest_eigenvector(c)
+    w, V = torch.linalg.eigh(c)
+    assert torch.allclose(smallest, w[:, 0], atol=1e-6) and torch.allclose(middle, w[:, 1], atol=1e-6)
+    assert torch.allclose((normal * V[:, :, 0]).sum(1).abs(), torch.ones(500, dtype=c.dtype), atol=1e-6)
+    assert torch.allclose(normal[:2].abs(), torch.tensor([[0.0, 0.0, 1.0]] * 2, dtype=c.dtype))
+
+
+def test_voxel_hessian_matches_a_brute_force_sum_and_keeps_scans_apart(rng):
+    room = _box_room(rng, 8.0, n=1500)
+    corridor = _box_room(rng, 30.0, ends=False, n=1500) + torch.tensor([0.05, 0.0, 0.0])
+    level, means, _ = voxelize([room, corridor], 0.2)
+    both = voxel_hessian(level, means, 2)
+    for k, points in enumerate([room, corridor]):
+        expected = _brute_force_hessian(points.numpy().astype(np.float64), 0.2)
+        assert np.allclose(both[k].numpy(), expected, rtol=1e-4, atol=1e-3)
+    assert expected[0, 0] < 0.02 * expected[1, 1]  # the corridor's walls hold (almost) nothing along x
+
+
+def test_the_features_see_a_corridor_along_x_and_a_closed_room_everywhere(rng):
+    def features(points):
+        level, means, _ = voxelize([points], 0.2)
+        return hessian_features(voxel_hessian(level, means, 1))[0].numpy()
+
+    corridor, room = features(_box_room(rng, 30.0, ends=False)), features(_box_room(rng, 8.0))
+    log_var = {"corridor": corridor[:6], "room": room[:6]}
+    assert log_var["corridor"][0] > log_var["corridor"][1] + 3  # x is free, y is held by the walls
+    assert log_var["corridor"][0] > log_var["room"][0] + 3  # the end walls hold x
+    assert abs(log_var["room"][0] - log_var["room"][1]) < 2  # a room holds x and y alike
+    assert np.all(np.isfinite(corridor)) and np.all(np.diff(corridor[6:]) >= 0)  # eigenvalues ascending
+
+
+def test_an_unfitted_stacker_passes_the_logits_and_a_fitted_one_learns_the_features(rng):
+    logits = torch.from_numpy(rng.standard_normal((40, 6)).astype(np.float32))
+    features = torch.from_numpy(rng.standard_normal((40, 12)).astype(np.float32))
+    assert torch.allclose(AxisStacker()(logits, features), logits)
+    n = 400
+    logits, features = rng.standard_normal((n, 6)), rng.standard_normal((n, 12))
+    labels = np.zeros((n, 6), dtype=bool)
+    labels[:, 0] = features[:, 0] > 1.0  # x: told by the first variance alone, not by the logit
+    labels[:, 1:] = (logits[:, 1:] + 0.3 * rng.standard_normal((n, 5))) > 0.5  # the others: by the logit
+    stacker = fit_stacker(logits, features, labels)
+    out = stacker(torch.from_numpy(logits).float(), torch.from_numpy(features).float()).detach().numpy()
+    assert auroc(labels[:, 0], out[:, 0]) > 0.95 and auroc(labels[:, 0], logits[:, 0]) < 0.7
+    assert all(auroc(labels[:, a], out[:, a]) > 0.9 for a in range(1, 6))
+    with pytest.raises(ValueError, match="NaN"):
+        fit_stacker(np.full((4, 6), np.nan), features[:4], labels[:4])
+
+
+def test_a_constraint_model_saves_loads_and_refuses_a_pointnet(tmp_path, rng):
+    from l3e_env.classifier import save_checkpoint
+
+    model = LocalizabilityNet(dataclasses.replace(SMALL, constraints=True)).eval()
+    with torch.no_grad():
+        model.stacker.weight.normal_()
+    save_checkpoint(tmp_path / "c.pt", model, np.full(6, 0.5), {})
+    scan = _box_room(rng, 20.0, ends=False, n=500).numpy()  # fewer than SMALL.points: all are read
+    clf = Classifier.load(tmp_path / "c.pt")
+    batch = [torch.from_numpy(scan)]
+    assert np.allclose(clf.probabilities([scan]), model_probabilities(model, batch), atol=1e-6)
+    net, feats = model.parts(batch)
+    assert feats.shape == (1, 12) and not torch.allclose(model(batch), net)
+    with pytest.raises(ValueError, match="PointNet"):
+        LocalizabilityNet(dataclasses.replace(SMALL, architecture="pointnet", constraints=True))
+
+
+def test_fit_constraints_fits_on_training_scenes_and_keeps_the_network(tiny_dataset, tmp_path):
+    cfg = TrainConfig(model=SMALL, epochs=1, samples_per_epoch=8, batch_size=4, threads=1,
+                      train_scenes=["tunnel-0", "field-0"], validation_scenes=["office-0"])
+    train(tiny_dataset, tmp_path / "run", cfg, progress=False)
+    base = Classifier.load(tmp_path / "run" / "model.pt")
+    result = fit_constraints(tmp_path / "run" / "model.pt", tiny_dataset, tmp_path / "c.pt", beta=1.0, progress=False)
+    fitted = Classifier.load(tmp_path / "c.pt")
+    assert fitted.model.config.constraints and fitted.meta["threshold_beta"] == 1.0
+    assert np.allclose(fitted.thresholds, result["thresholds"], atol=1e-4)
+    for name, weight in base.model.state_dict().items():  # the network itself is untouched
+        assert torch.equal(weight, fitted.model.state_dict()[name])
+    data = LabelDataset(tiny_dataset)
+    rows = split_indices(data, ["tunnel-0", "field-0"])
+    logits, features = network_parts(base.model, data, rows)
+    assert np.all(np.isfinite(features)) and features.shape == (len(rows), 12)
+    assert fitted.model.stacker.mean[1:].numpy() == pytest.approx(features.mean(0), rel=1e-4, abs=1e-4)
+    with pytest.raises(TrainingError, match="fit-constraints"):  # the layer is never trained with the network
+        train(tiny_dataset, tmp_path / "bad", dataclasses.replace(cfg, model=fitted.model.config), progress=False)
