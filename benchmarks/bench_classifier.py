@@ -10,7 +10,7 @@ Run: python benchmarks/bench_classifier.py [--checkpoint PATH] [--scans 60] [--t
 from __future__ import annotations
 
 import argparse
-import dataclasses
+import copy
 import time
 
 import numpy as np
@@ -58,9 +58,9 @@ def main() -> None:
     scans = route_scans(args.scans)
     clf = Classifier.load(args.checkpoint)
     rows = [("shipped ResUNet (scan -> mask)", latency_ms(clf.predict, scans))]
-    if clf.model.config.constraints:  # the same network without the constraint layer's Hessian
-        network = LocalizabilityNet(dataclasses.replace(clf.model.config, constraints=False)).eval()
-        network.load_state_dict({k: v for k, v in clf.model.state_dict().items() if not k.startswith("stacker.")})
+    if clf.model.stacker is not None:  # the same network without the constraint layer's Hessian
+        network = copy.deepcopy(clf.model)
+        network.stacker = None
         rows.append(("the same, no constraint layer", latency_ms(Classifier(network, clf.thresholds).predict, scans)))
     symmetric = Classifier.load(args.checkpoint, symmetric=True)
     rows.append(("the same, 8 mirror/swap views", latency_ms(symmetric.predict, scans)))

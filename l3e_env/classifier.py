@@ -185,7 +185,7 @@ class LocalizabilityNet(nn.Module):
     def forward(self, points: list[torch.Tensor], up: torch.Tensor | None = None) -> torch.Tensor:
         """Logits (B, 6) for a batch of point sets in the sensor frame; `up` (B, 3): the world's up
         direction in each sensor frame, for a model with config.gravity (ignored otherwise)."""
-        logits, features = self.parts(points, up)
+        logits, features = self.parts(points, up, constraints=self.stacker is not None)
         return logits if self.stacker is None else self.stacker(logits, features)
 
     def parts(self, points: list[torch.Tensor], up: torch.Tensor | None = None,
