@@ -4,7 +4,7 @@ layer that weighs it against the network's logits.
 The network learns the scene families it was trained on; the Hessian is what point-to-plane ICP
 itself linearises, so it carries over to families never seen. On the mine and caves of the test
 split, the marginal variances diag(H^-1) of the model's own 0.2 m voxels rank the labels better than
-the network does on every axis but roll (benchmarks/RESULTS.md). A logistic layer per axis over the
+the network does on every axis, y only just (benchmarks/RESULTS.md). A logistic layer per axis over the
 network's logit, the six log marginal variances and the six log eigenvalues (13 weights an axis)
 is fitted on the training scenes after the network, so it cannot overfit the way a layer trained
 with the network would.
