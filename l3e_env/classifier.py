@@ -214,6 +214,11 @@ def up_vector(T_w_s: np.ndarray) -> np.ndarray:
     return np.asarray(T_w_s)[..., 2, :3]
 
 
+def up_tensor(up: np.ndarray | None) -> torch.Tensor | None:
+    """Up vectors (B, 3) as the model's float32 input; None stays None."""
+    return None if up is None else torch.from_numpy(np.array(up, dtype=np.float32).reshape(-1, 3))
+
+
 def check_scan(points: np.ndarray) -> np.ndarray:
     """The scan as float32 (N, 3), or ScanError naming what is wrong with it."""
     points = np.asarray(points)
@@ -263,7 +268,7 @@ def model_probabilities(model: LocalizabilityNet, batch: list[torch.Tensor], sym
     """(B, 6) probabilities; symmetric: the mean over the eight mirror/swap views of each scan (one
     forward pass of 8 B scans), each view's output mapped back onto the scan's own axes. `up`
     (B, 3): see LocalizabilityNet.forward."""
-    ups = None if up is None else torch.from_numpy(np.array(up, dtype=np.float32).reshape(-1, 3))
+    ups = up_tensor(up)
     if not symmetric:
         return torch.sigmoid(model(batch, ups)).numpy().astype(np.float64)
     views = [symmetry_view(p, sym) for sym in SYMMETRIES for p in batch]

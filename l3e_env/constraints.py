@@ -85,6 +85,11 @@ def hessian_features(hessian: torch.Tensor) -> torch.Tensor:
     return torch.cat([variances.log(), eigenvalues.log()], dim=1).float()
 
 
+def axis_rows(logits: torch.Tensor, features: torch.Tensor) -> torch.Tensor:
+    """(B, 6, 13): per axis, that axis's logit followed by the scan's 12 features."""
+    return torch.cat([logits[..., None], features[:, None, :].expand(-1, 6, -1)], dim=2)
+
+
 class AxisStacker(nn.Module):
     """Per axis, a logistic layer over (the network's logit for that axis, the 12 features),
     on features standardised with the statistics of the rows it was fitted on."""
@@ -99,8 +104,7 @@ class AxisStacker(nn.Module):
 
     def inputs(self, logits: torch.Tensor, features: torch.Tensor) -> torch.Tensor:
         """(B, 6, 13) standardised inputs, one row per axis."""
-        rows = torch.cat([logits[..., None], features[:, None, :].expand(-1, 6, -1)], dim=2)
-        return (rows - self.mean) / self.std
+        return (axis_rows(logits, features) - self.mean) / self.std
 
     def forward(self, logits: torch.Tensor, features: torch.Tensor) -> torch.Tensor:
         return (self.inputs(logits, features) * self.weight).sum(2) + self.bias
@@ -117,7 +121,7 @@ def fit_stacker(logits: np.ndarray, features: np.ndarray, labels: np.ndarray, l2
     if not (torch.isfinite(logits_t).all() and torch.isfinite(features_t).all()):
         raise ValueError("the stacker's inputs hold NaN or inf")
     stacker = AxisStacker().double()
-    rows = torch.cat([logits_t[..., None], features_t[:, None, :].expand(-1, 6, -1)], dim=2)
+    rows = axis_rows(logits_t, features_t)
     stacker.mean.copy_(rows.reshape(-1, 1 + FEATURES).mean(0))
     stacker.std.copy_(rows.reshape(-1, 1 + FEATURES).std(0).clamp_min(1e-6))
     share = targets.mean(0).clamp(1e-3, 1 - 1e-3)

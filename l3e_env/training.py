@@ -33,6 +33,7 @@ from .classifier import (
     model_input,
     model_probabilities,
     save_checkpoint,
+    up_tensor,
     up_vector,
 )
 from .config import dump_yaml, plain, to_dict
@@ -154,8 +155,7 @@ def network_parts(model: LocalizabilityNet, data: LabelDataset | DatasetUnion, r
     model.eval()
     logits, features = np.zeros((len(rows), 6)), np.zeros((len(rows), FEATURES))
     for start, batch, up in _dataset_batches(model, data, rows, seed, batch_size, progress):
-        ups = None if up is None else torch.from_numpy(np.asarray(up, dtype=np.float32))
-        net, feats = model.parts(batch, ups, constraints=True)
+        net, feats = model.parts(batch, up_tensor(up), constraints=True)
         logits[start:start + len(batch)], features[start:start + len(batch)] = net.numpy(), feats.numpy()
     return logits, features
 
@@ -312,6 +312,11 @@ def symmetric_thresholds(model: LocalizabilityNet, data: LabelDataset | DatasetU
     return best_thresholds(data.labels[val_rows], probs, beta=beta)
 
 
+def _checkpoint_meta(state: dict[str, Any]) -> dict[str, Any]:
+    """What a rewritten checkpoint keeps of the old one: all but what save_checkpoint writes anew."""
+    return {k: v for k, v in state.items() if k not in ("format", "version", "model", "state_dict", "thresholds")}
+
+
 def calibrate_symmetric(checkpoint: str | Path, dataset: str | Path | list[str | Path], out: str | Path | None = None,
                         progress: bool = True) -> np.ndarray:
     """Add symmetric-inference thresholds to a checkpoint made before they existed, from its own
@@ -326,8 +331,7 @@ def calibrate_symmetric(checkpoint: str | Path, dataset: str | Path | list[str |
     model = model_from_checkpoint(state, str(checkpoint))
     thresholds = symmetric_thresholds(model, data, rows, int(training.get("seed", 0)),
                                       float(state.get("threshold_beta", 1.0)), progress)
-    rest = {k: v for k, v in state.items() if k not in ("format", "version", "model", "state_dict", "thresholds")}
-    save_checkpoint(out or checkpoint, model, np.asarray(state["thresholds"]), rest,
+    save_checkpoint(out or checkpoint, model, np.asarray(state["thresholds"]), _checkpoint_meta(state),
                     {"symmetric_thresholds": [float(t) for t in thresholds]})
     return thresholds
 
@@ -360,9 +364,7 @@ def fit_constraints(checkpoint: str | Path, dataset: str | Path | list[str | Pat
     beta = float(state.get("threshold_beta", 1.0) if beta is None else beta)
     thresholds = best_thresholds(data.labels[val_rows], predict_dataset(model, data, val_rows, seed), beta=beta)
     symmetric = symmetric_thresholds(model, data, val_rows, seed, beta, progress)
-    rest = {k: v for k, v in state.items()
-            if k not in ("format", "version", "model", "state_dict", "thresholds", "symmetric_thresholds")}
-    rest["threshold_beta"] = beta
-    rest["constraints"] = {"base": str(checkpoint), "fitted_rows": int(len(train_rows))}
-    save_checkpoint(out, model, thresholds, rest, {"symmetric_thresholds": [float(t) for t in symmetric]})
+    meta = {**_checkpoint_meta(state), "threshold_beta": beta,
+            "constraints": {"base": str(checkpoint), "fitted_rows": int(len(train_rows))}}
+    save_checkpoint(out, model, thresholds, meta, {"symmetric_thresholds": [float(t) for t in symmetric]})
     return {"thresholds": thresholds.round(4).tolist(), "weights": stacker.weight.detach().numpy().round(3).tolist()}
