@@ -5,6 +5,10 @@ PointNet baseline, the shipped widths reading one point of each of 2000 voxels
 (ModelConfig.sampling "voxels") and a full-width (FCGF 32-64-128-256) ResUNet, measured in the
 same run.
 
+The rows take turns on blocks of five scans, so that a machine that slows down for a while
+slows every row alike; the last column is each row's speed relative to the FCGF-width ResUNet
+(the issue's starting point) in the same run.
+
 Run: python benchmarks/bench_classifier.py [--checkpoint PATH] [--scans 60] [--threads 2]
 """
 from __future__ import annotations
@@ -37,15 +41,20 @@ def route_scans(count: int) -> list[np.ndarray]:
     return [lidar.scan(pose_to_matrix(np.array([x, y, 0.85, 0, 0, h])), rng).points for (x, y), h in zip(xy, heading)]
 
 
-def latency_ms(fn, scans: list[np.ndarray], warmup: int = 3) -> np.ndarray:
-    for s in scans[:warmup]:
-        fn(s)
-    times = []
-    for s in scans:
-        t0 = time.perf_counter()
-        fn(s)
-        times.append(time.perf_counter() - t0)
-    return np.array(times) * 1e3
+def latencies_ms(fns: list, scans: list[np.ndarray], block: int = 5) -> np.ndarray:
+    """(len(fns), len(scans)) milliseconds. The functions take turns, in a rotating order, on blocks
+    of `block` scans, each after one untimed call on its block's first scan: a machine that slows
+    down for a while slows every row alike, and no row is timed cold just after another model ran."""
+    times = np.zeros((len(fns), len(scans)))
+    for b, start in enumerate(range(0, len(scans), block)):
+        for k in range(len(fns)):
+            i = (b + k) % len(fns)  # the order rotates from block to block
+            fns[i](scans[start])
+            for j in range(start, min(start + block, len(scans))):
+                t0 = time.perf_counter()
+                fns[i](scans[j])
+                times[i, j] = time.perf_counter() - t0
+    return times * 1e3
 
 
 def main() -> None:
@@ -57,13 +66,13 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     scans = route_scans(args.scans)
     clf = Classifier.load(args.checkpoint)
-    rows = [("shipped ResUNet (scan -> mask)", latency_ms(clf.predict, scans))]
+    rows = [("shipped ResUNet (scan -> mask)", clf.predict)]
     if clf.model.stacker is not None:  # the same network without the constraint layer's Hessian
         network = copy.deepcopy(clf.model)
         network.stacker = None
-        rows.append(("the same, no constraint layer", latency_ms(Classifier(network, clf.thresholds).predict, scans)))
+        rows.append(("the same, no constraint layer", Classifier(network, clf.thresholds).predict))
     symmetric = Classifier.load(args.checkpoint, symmetric=True)
-    rows.append(("the same, 8 mirror/swap views", latency_ms(symmetric.predict, scans)))
+    rows.append(("the same, 8 mirror/swap views", symmetric.predict))
     rng = np.random.default_rng(0)
     for label, cfg in [("PointNet baseline", ModelConfig(architecture="pointnet")),
                        ("ResUNet on 2000 voxels' points", ModelConfig(sampling="voxels", points=2000)),
@@ -74,12 +83,15 @@ def main() -> None:
             with torch.inference_mode():
                 return model([model_input(s, cfg, rng)])
 
-        rows.append((label, latency_ms(run, scans)))
+        rows.append((label, run))
+    times = latencies_ms([fn for _, fn in rows], scans)
     print(f"{len(scans)} VLP-16 scans along the mine route, {args.threads} threads, "
           f"median {np.median([len(s) for s in scans]):.0f} points per scan")
-    print(f"{'model':32s} {'median ms':>10s} {'p90 ms':>8s} {'paper 28 ms / ours':>20s}")
-    for label, ms in rows:
-        print(f"{label:32s} {np.median(ms):10.1f} {np.percentile(ms, 90):8.1f} {PAPER_MS / np.median(ms):19.2f}x")
+    reference = np.median(times[-1])  # the FCGF-width ResUNet, the issue's starting point
+    print(f"{'model':32s} {'median ms':>10s} {'p90 ms':>8s} {'paper 28 ms / ours':>20s} {'FCGF width / ours':>18s}")
+    for (label, _), ms in zip(rows, times):
+        print(f"{label:32s} {np.median(ms):10.1f} {np.percentile(ms, 90):8.1f} {PAPER_MS / np.median(ms):19.2f}x"
+              f" {reference / np.median(ms):17.2f}x")
 
 
 if __name__ == "__main__":
