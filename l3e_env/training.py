@@ -343,6 +343,7 @@ def fit_constraints(checkpoint: str | Path, dataset: str | Path | list[str | Pat
     own training scenes, and thresholds (single and eight-view) chosen on its validation scenes by
     F-beta (`beta`: the checkpoint's own by default)."""
     state = load_checkpoint(checkpoint)
+    Path(out).parent.mkdir(parents=True, exist_ok=True)  # before minutes of fitting, not after
     training = state.get("training")
     if not isinstance(training, dict) or not training.get("train_scenes") or not training.get("validation_scenes"):
         raise CheckpointError(f"{checkpoint} does not name its training and validation scenes")

@@ -127,8 +127,9 @@ def test_fit_constraints_fits_on_training_scenes_and_keeps_the_network(tiny_data
                       train_scenes=["tunnel-0", "field-0"], validation_scenes=["office-0"])
     train(tiny_dataset, tmp_path / "run", cfg, progress=False)
     base = Classifier.load(tmp_path / "run" / "model.pt")
-    result = fit_constraints(tmp_path / "run" / "model.pt", tiny_dataset, tmp_path / "c.pt", beta=1.0, progress=False)
-    fitted = Classifier.load(tmp_path / "c.pt")
+    out = tmp_path / "new" / "c.pt"  # a folder that does not exist yet
+    result = fit_constraints(tmp_path / "run" / "model.pt", tiny_dataset, out, beta=1.0, progress=False)
+    fitted = Classifier.load(out)
     assert fitted.model.config.constraints and fitted.meta["threshold_beta"] == 1.0
     assert np.allclose(fitted.thresholds, result["thresholds"], atol=1e-4)
     for name, weight in base.model.state_dict().items():  # the network itself is untouched
