@@ -343,7 +343,6 @@ def fit_constraints(checkpoint: str | Path, dataset: str | Path | list[str | Pat
     own training scenes, and thresholds (single and eight-view) chosen on its validation scenes by
     F-beta (`beta`: the checkpoint's own by default)."""
     state = load_checkpoint(checkpoint)
-    Path(out).parent.mkdir(parents=True, exist_ok=True)  # before minutes of fitting, not after
     training = state.get("training")
     if not isinstance(training, dict) or not training.get("train_scenes") or not training.get("validation_scenes"):
         raise CheckpointError(f"{checkpoint} does not name its training and validation scenes")
@@ -356,6 +355,7 @@ def fit_constraints(checkpoint: str | Path, dataset: str | Path | list[str | Pat
     val_rows = split_indices(data, training["validation_scenes"])
     if not len(train_rows) or not len(val_rows):
         raise TrainingError(f"the dataset holds no scans of {checkpoint}'s training or validation scenes")
+    Path(out).parent.mkdir(parents=True, exist_ok=True)  # before minutes of fitting, not after
     seed = int(training.get("seed", 0))
     logits, features = network_parts(base, data, train_rows, seed, progress=progress)
     stacker = fit_stacker(logits, features, data.labels[train_rows])
