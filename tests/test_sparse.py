@@ -28,8 +28,12 @@ def _compare(sparse_out, dense_out, coords, sparse_params, dense_params, inputs)
     return grads_s, grads_d
 
 
-def test_submanifold_conv_matches_dense_conv3d():
+@pytest.mark.parametrize("shuffled", [False, True])
+def test_submanifold_conv_matches_dense_conv3d(shuffled: bool):
     coords, feats, dense = _sparse_grid(0)
+    if shuffled:  # sites in no particular order: the kernel map must map sorted keys back to rows
+        order = torch.randperm(len(coords), generator=torch.Generator().manual_seed(3))
+        coords, feats = coords[order], feats[order]
     feats.requires_grad_(True)
     dense.requires_grad_(True)
     sconv = SubmanifoldConv(3, 4, bias=True).double()
