@@ -46,7 +46,7 @@ def unique_coords(coords: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, tor
 
 
 class CoordinateIndex:
-    """Sorted hash keys of a set of sites, for vectorised lookup of any list of sites by binary search.
+    """Sorted hash keys of a set of sites, for vectorised lookup of any list of sites.
     `row_keys` are the sites' keys in row order; given and sorted, they are used as they are."""
 
     def __init__(self, coords: torch.Tensor, row_keys: torch.Tensor | None = None):
@@ -57,11 +57,17 @@ class CoordinateIndex:
         else:
             self.keys, self.order = torch.sort(self.row_keys)
 
+    def lookup(self, keys: torch.Tensor) -> torch.Tensor:
+        """Row of each queried key, or n (the zero row) where the site is empty."""
+        if self.n == 0:
+            return torch.zeros_like(keys)
+        pos = torch.searchsorted(self.keys, keys).clamp_(max=self.n - 1)
+        found = self.keys[pos] == keys
+        return torch.where(found, self.order[pos], torch.full_like(pos, self.n))
 
-# the key of a neighbour is the site's key plus a constant, because the key is linear in x, y, z; the 27
-# neighbours form 9 columns (dx, dy) of three consecutive keys (dz = -1, 0, 1), and OFFSETS_3 lists them
-# column by column
-_COLUMN_DELTAS = (OFFSETS_3[::3, 0] << 2 * _BITS) + (OFFSETS_3[::3, 1] << _BITS)
+
+# the key of a neighbour is the site's key plus a constant, because the key is linear in x, y, z
+_NEIGHBOUR_DELTAS = (OFFSETS_3[:, 0] << 2 * _BITS) + (OFFSETS_3[:, 1] << _BITS) + OFFSETS_3[:, 2]
 
 
 @dataclass
@@ -83,21 +89,10 @@ class Level:
         return self._index
 
     def neighbours(self) -> torch.Tensor:
-        """(N, 27) rows of the 3x3x3 neighbours of each site (N where empty). One binary search per
-        column of three neighbours: a column's keys are consecutive integers, so each sits where the
-        one below it was searched for, or one place further when that one was found."""
+        """(N, 27) rows of the 3x3x3 neighbours of each site (N where empty)."""
         if self._neighbours is None:
-            index, n = self.index, len(self.coords)
-            centres = index.row_keys[:, None] + _COLUMN_DELTAS  # (N, 9) keys of the dz = 0 neighbours
-            position = torch.searchsorted(index.keys, centres - 1)
-            keys = torch.cat([index.keys, index.keys.new_full((3,), -1)])  # no key is negative
-            rows = torch.cat([index.order, index.order.new_full((3,), n)])
-            found = []
-            for dz in (-1, 0, 1):
-                hit = keys[position] == centres + dz
-                found.append(torch.where(hit, rows[position], n))
-                position = position + hit
-            self._neighbours = torch.stack(found, dim=2).reshape(n, 27)
+            index = self.index
+            self._neighbours = index.lookup(index.row_keys[:, None] + _NEIGHBOUR_DELTAS)
         return self._neighbours
 
     def coarser(self) -> tuple[Level, torch.Tensor, torch.Tensor, torch.Tensor]:
