@@ -363,9 +363,14 @@ def fit_constraints(checkpoint: str | Path, dataset: str | Path | list[str | Pat
     model.load_state_dict({**base.state_dict(), **{f"stacker.{k}": v for k, v in stacker.state_dict().items()}})
     model.eval()
     beta = float(state.get("threshold_beta", 1.0) if beta is None else beta)
-    thresholds = best_thresholds(data.labels[val_rows], predict_dataset(model, data, val_rows, seed), beta=beta)
+    val_labels, val_probs = data.labels[val_rows], predict_dataset(model, data, val_rows, seed)
+    thresholds = best_thresholds(val_labels, val_probs, beta=beta)
     symmetric = symmetric_thresholds(model, data, val_rows, seed, beta, progress)
-    meta = {**_checkpoint_meta(state), "threshold_beta": beta,
-            "constraints": {"base": str(checkpoint), "fitted_rows": int(len(train_rows))}}
+    # the base network's epoch and validation scores describe the network without the layer: kept apart
+    kept = {k: v for k, v in _checkpoint_meta(state).items() if k not in ("epoch", "scores")}
+    scores = {f"val_{k}": v for k, v in mean_scores(axis_scores(val_labels, val_probs > thresholds)).items()}
+    meta = {**kept, "threshold_beta": beta, "scores": scores,
+            "constraints": {"base": str(checkpoint), "fitted_rows": int(len(train_rows)),
+                            "base_epoch": state.get("epoch"), "base_scores": state.get("scores")}}
     save_checkpoint(out, model, thresholds, meta, {"symmetric_thresholds": [float(t) for t in symmetric]})
     return {"thresholds": thresholds.round(4).tolist(), "weights": stacker.weight.detach().numpy().round(3).tolist()}

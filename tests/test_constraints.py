@@ -9,9 +9,17 @@ import torch
 from l3e_env.classifier import Classifier, LocalizabilityNet, ModelConfig, model_probabilities
 from l3e_env.constraints import AxisStacker, fit_stacker, hessian_features, smallest_eigenvector, voxel_hessian
 from l3e_env.dataset import LabelDataset
-from l3e_env.scores import auroc
+from l3e_env.scores import auroc, axis_scores, mean_scores
 from l3e_env.sparse import voxelize
-from l3e_env.training import TrainConfig, TrainingError, fit_constraints, network_parts, split_indices, train
+from l3e_env.training import (
+    TrainConfig,
+    TrainingError,
+    fit_constraints,
+    network_parts,
+    predict_dataset,
+    split_indices,
+    train,
+)
 
 SMALL = ModelConfig(points=600, channels=(8, 8, 16, 16), head=(16, 16, 16, 16))
 
@@ -139,5 +147,11 @@ def test_fit_constraints_fits_on_training_scenes_and_keeps_the_network(tiny_data
     logits, features = network_parts(base.model, data, rows)
     assert np.all(np.isfinite(features)) and features.shape == (len(rows), 12)
     assert fitted.model.stacker.mean[1:].numpy() == pytest.approx(features.mean(0), rel=1e-4, abs=1e-4)
+    # its scores are its own on the validation scenes; the network's are kept apart
+    val_rows = split_indices(data, ["office-0"])
+    predicted = predict_dataset(fitted.model, data, val_rows) > fitted.thresholds
+    own = mean_scores(axis_scores(data.labels[val_rows], predicted))
+    assert fitted.meta["scores"]["val_f1"] == pytest.approx(own["f1"]) and "epoch" not in fitted.meta
+    assert fitted.meta["constraints"]["base_scores"] == base.meta["scores"]
     with pytest.raises(TrainingError, match="fit-constraints"):  # the layer is never trained with the network
         train(tiny_dataset, tmp_path / "bad", dataclasses.replace(cfg, model=fitted.model.config), progress=False)
