@@ -53,8 +53,8 @@ class ModelConfig:
     # whatever its range, as in the voxel-thinned registration that makes the labels
     sampling: str = "points"
     voxel: float = 0.2  # m, sparse quantization
-    # ResUNet widths at 0.2, 0.4, 0.8 and 1.6 m. FCGF's 32-64-128-256 costs 60-70 ms a scan here;
-    # half of it at the fine levels and a quarter at the coarsest meets the 15 ms budget on two
+    # ResUNet widths at 0.2, 0.4, 0.8 and 1.6 m. FCGF's 32-64-128-256 costs 47-70 ms a scan here;
+    # half of it at the fine levels and a quarter at the coarsest takes about 0.3 of that on two
     # cores (benchmarks/bench_classifier.py), and the labels depend on coarse geometry
     channels: tuple[int, ...] = (16, 32, 48, 64)
     pointnet_channels: tuple[int, ...] = (64, 64, 128, 256)
@@ -185,7 +185,7 @@ class LocalizabilityNet(nn.Module):
     def forward(self, points: list[torch.Tensor], up: torch.Tensor | None = None) -> torch.Tensor:
         """Logits (B, 6) for a batch of point sets in the sensor frame; `up` (B, 3): the world's up
         direction in each sensor frame, for a model with config.gravity (ignored otherwise)."""
-        logits, features = self.parts(points, up, constraints=self.stacker is not None)
+        logits, features = self.parts(points, up)  # the features only for a model with the layer
         return logits if self.stacker is None else self.stacker(logits, features)
 
     def parts(self, points: list[torch.Tensor], up: torch.Tensor | None = None,
