@@ -19,7 +19,7 @@ import torch
 from torch import nn
 
 from .config import from_dict, plain
-from .constraints import AxisStacker, hessian_features, voxel_hessian
+from .constraints import FEATURES, AxisStacker, scan_features
 from .files import write_atomic
 from .sparse import DownConv, Level, SubmanifoldConv, UpConv, global_max_pool, voxelize
 
@@ -68,6 +68,8 @@ class ModelConfig:
     # a per-axis logistic layer over the network's logit and the scan's point-to-plane Hessian
     # (l3e_env.constraints), fitted after the network on its training scenes (l3e fit-constraints)
     constraints: bool = False
+    # the ResUNet levels whose Hessian features the layer reads (0: 0.2 m voxels, 1: 0.4 m)
+    constraint_levels: tuple[int, ...] = (0,)
 
 
 def _bn_relu(c: int) -> nn.Sequential:
@@ -180,7 +182,11 @@ class LocalizabilityNet(nn.Module):
         self.head = nn.Sequential(*layers, nn.Linear(widths[-1], 6))
         if cfg.constraints and cfg.architecture != "resunet":
             raise ValueError("the constraint layer reads the ResUNet's voxels; a PointNet has none")
-        self.stacker = AxisStacker() if cfg.constraints else None
+        levels = cfg.constraint_levels
+        if not levels or sorted(set(levels)) != list(levels) or levels[0] < 0 or levels[-1] >= len(cfg.channels):
+            raise ValueError(f"constraint levels {levels}: distinct, ascending, each a ResUNet level 0-"
+                             f"{len(cfg.channels) - 1}")
+        self.stacker = AxisStacker(FEATURES * len(levels)) if cfg.constraints else None
 
     def forward(self, points: list[torch.Tensor], up: torch.Tensor | None = None) -> torch.Tensor:
         """Logits (B, 6) for a batch of point sets in the sensor frame; `up` (B, 3): the world's up
@@ -191,14 +197,14 @@ class LocalizabilityNet(nn.Module):
     def parts(self, points: list[torch.Tensor], up: torch.Tensor | None = None,
               constraints: bool | None = None) -> tuple[torch.Tensor, torch.Tensor | None]:
         """The network's logits (B, 6) and, for a model with config.constraints (or when asked),
-        the scans' Hessian features (B, 12) (l3e_env.constraints), else None."""
+        the scans' Hessian features (B, 12 per constraint level) (l3e_env.constraints), else None."""
         constraints = self.config.constraints if constraints is None else constraints
         features = None
         if isinstance(self.backbone, ResUNet):
             level, means, _ = voxelize(points, self.config.voxel)
             feature = self.backbone.encode(level, means, len(points))
             if constraints:
-                features = hessian_features(voxel_hessian(level, means, len(points)))
+                features = scan_features(level, means, len(points), self.config.constraint_levels)
         else:
             feature = self.backbone(points)
         if not self.config.gravity:

@@ -149,7 +149,8 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
 def _cmd_fit_constraints(args: argparse.Namespace) -> int:
     from .training import fit_constraints
 
-    result = fit_constraints(args.checkpoint, args.dataset, args.out, beta=args.beta, progress=not args.quiet)
+    result = fit_constraints(args.checkpoint, args.dataset, args.out, beta=args.beta, levels=tuple(args.levels),
+                             progress=not args.quiet)
     print(f"thresholds {' '.join(f'{t:.3f}' for t in result['thresholds'])} -> {args.out}")
     return 0
 
@@ -264,6 +265,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--dataset", required=True, action="append", help="the dataset(s) it was trained on")
     p.add_argument("--out", required=True, help="the new checkpoint")
     p.add_argument("--beta", type=float, help="F-beta of the validation thresholds (default: the checkpoint's)")
+    p.add_argument("--levels", type=int, nargs="+", default=[0, 1],
+                   help="ResUNet levels whose Hessian features the layer reads (0: 0.2 m voxels, 1: 0.4 m; "
+                        "default 0 1)")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_cmd_fit_constraints)
     p = sub.add_parser("sweep", help="ATE against the eigenvalue threshold in several scenes, with the learned "

@@ -151,9 +151,10 @@ def predict_dataset(model: LocalizabilityNet, data: LabelDataset | DatasetUnion,
 def network_parts(model: LocalizabilityNet, data: LabelDataset | DatasetUnion, rows: np.ndarray, seed: int = 0,
                   batch_size: int = 16, progress: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """The network's own logits (len(rows), 6), before any constraint layer, and the scans' Hessian
-    features (len(rows), 12)."""
+    features (len(rows), 12 per level of config.constraint_levels)."""
     model.eval()
-    logits, features = np.zeros((len(rows), 6)), np.zeros((len(rows), FEATURES))
+    logits = np.zeros((len(rows), 6))
+    features = np.zeros((len(rows), FEATURES * len(model.config.constraint_levels)))
     for start, batch, up in _dataset_batches(model, data, rows, seed, batch_size, progress):
         net, feats = model.parts(batch, up_tensor(up), constraints=True)
         logits[start:start + len(batch)], features[start:start + len(batch)] = net.numpy(), feats.numpy()
@@ -337,11 +338,12 @@ def calibrate_symmetric(checkpoint: str | Path, dataset: str | Path | list[str |
 
 
 def fit_constraints(checkpoint: str | Path, dataset: str | Path | list[str | Path], out: str | Path,
-                    beta: float | None = None, progress: bool = True) -> dict[str, Any]:
+                    beta: float | None = None, levels: tuple[int, ...] = (0, 1),
+                    progress: bool = True) -> dict[str, Any]:
     """A checkpoint with the constraint layer (l3e_env.constraints): the network of `checkpoint` as
-    it is, a per-axis logistic layer over its logits and the scans' Hessian features fitted on its
-    own training scenes, and thresholds (single and eight-view) chosen on its validation scenes by
-    F-beta (`beta`: the checkpoint's own by default)."""
+    it is, a per-axis logistic layer over its logits and the Hessian features of the ResUNet levels
+    `levels` fitted on its own training scenes, and thresholds (single and eight-view) chosen on its
+    validation scenes by F-beta (`beta`: the checkpoint's own by default)."""
     state = load_checkpoint(checkpoint)
     training = state.get("training")
     if not isinstance(training, dict) or not training.get("train_scenes") or not training.get("validation_scenes"):
@@ -357,10 +359,14 @@ def fit_constraints(checkpoint: str | Path, dataset: str | Path | list[str | Pat
         raise TrainingError(f"the dataset holds no scans of {checkpoint}'s training or validation scenes")
     Path(out).parent.mkdir(parents=True, exist_ok=True)  # before minutes of fitting, not after
     seed = int(training.get("seed", 0))
-    logits, features = network_parts(base, data, train_rows, seed, progress=progress)
+    try:
+        model = LocalizabilityNet(replace(base.config, constraints=True, constraint_levels=tuple(levels)))
+    except ValueError as exc:
+        raise TrainingError(str(exc)) from exc
+    model.load_state_dict({**base.state_dict(), **{f"stacker.{k}": v for k, v in model.stacker.state_dict().items()}})
+    logits, features = network_parts(model, data, train_rows, seed, progress=progress)
     stacker = fit_stacker(logits, features, data.labels[train_rows])
-    model = LocalizabilityNet(replace(base.config, constraints=True))
-    model.load_state_dict({**base.state_dict(), **{f"stacker.{k}": v for k, v in stacker.state_dict().items()}})
+    model.stacker.load_state_dict(stacker.state_dict())
     model.eval()
     beta = float(state.get("threshold_beta", 1.0) if beta is None else beta)
     val_labels, val_probs = data.labels[val_rows], predict_dataset(model, data, val_rows, seed)

@@ -7,7 +7,14 @@ import pytest
 import torch
 
 from l3e_env.classifier import Classifier, LocalizabilityNet, ModelConfig, model_probabilities
-from l3e_env.constraints import AxisStacker, fit_stacker, hessian_features, smallest_eigenvector, voxel_hessian
+from l3e_env.constraints import (
+    AxisStacker,
+    fit_stacker,
+    hessian_features,
+    scan_features,
+    smallest_eigenvector,
+    voxel_hessian,
+)
 from l3e_env.dataset import LabelDataset
 from l3e_env.scores import auroc, axis_scores, mean_scores
 from l3e_env.sparse import voxelize
@@ -83,6 +90,25 @@ def test_voxel_hessian_matches_a_brute_force_sum_and_keeps_scans_apart(rng):
     assert expected[0, 0] < 0.02 * expected[1, 1]  # the corridor's walls hold (almost) nothing along x
 
 
+def test_the_coarser_levels_features_are_those_of_the_finer_voxels_means_on_the_coarser_grid(rng):
+    corridor = _box_room(rng, 30.0, ends=False, n=3000)
+    level, means, _ = voxelize([corridor], 0.2)
+    both = scan_features(level, means, 1, (0, 1))[0].numpy()
+    assert both.shape == (24,)
+    assert np.allclose(both[:12], hessian_features(voxel_hessian(level, means, 1))[0].numpy())
+    # a 0.2 m voxel's mean lies in its 0.4 m parent, so the brute force over the means on the 0.4 m grid
+    # weighs every finer voxel once, as the coarser level does
+    expected = _brute_force_hessian(means.numpy().astype(np.float64), 0.4)
+    assert np.allclose(both[12:], hessian_features(torch.from_numpy(expected)[None])[0].numpy(), atol=1e-3)
+    assert np.allclose(scan_features(level, means, 1, (1,))[0].numpy(), both[12:])
+    room = _box_room(rng, 8.0, n=3000)
+    level, means, _ = voxelize([room, corridor], 0.2)  # a batch: each scan keeps its own rows
+    batch = scan_features(level, means, 2, (0, 1)).numpy()
+    alone = scan_features(*voxelize([room], 0.2)[:2], 1, (0, 1))[0].numpy()
+    assert np.allclose(batch[1], both, atol=1e-4) and np.allclose(batch[0], alone, atol=1e-4)
+    assert not np.allclose(batch[0], batch[1], atol=0.1)
+
+
 def test_the_features_see_a_corridor_along_x_and_a_closed_room_everywhere(rng):
     def features(points):
         level, means, _ = voxelize([points], 0.2)
@@ -116,7 +142,7 @@ def test_an_unfitted_stacker_passes_the_logits_and_a_fitted_one_learns_the_featu
 def test_a_constraint_model_saves_loads_and_refuses_a_pointnet(tmp_path, rng):
     from l3e_env.classifier import save_checkpoint
 
-    model = LocalizabilityNet(dataclasses.replace(SMALL, constraints=True)).eval()
+    model = LocalizabilityNet(dataclasses.replace(SMALL, constraints=True, constraint_levels=(0, 1))).eval()
     with torch.no_grad():
         model.stacker.weight.normal_()
     save_checkpoint(tmp_path / "c.pt", model, np.full(6, 0.5), {})
@@ -125,9 +151,12 @@ def test_a_constraint_model_saves_loads_and_refuses_a_pointnet(tmp_path, rng):
     batch = [torch.from_numpy(scan)]
     assert np.allclose(clf.probabilities([scan]), model_probabilities(model, batch), atol=1e-6)
     net, feats = model.parts(batch)
-    assert feats.shape == (1, 12) and not torch.allclose(model(batch), net)
+    assert feats.shape == (1, 24) and not torch.allclose(model(batch), net)
     with pytest.raises(ValueError, match="PointNet"):
         LocalizabilityNet(dataclasses.replace(SMALL, architecture="pointnet", constraints=True))
+    for levels in [(), (1, 0), (0, 4)]:  # none, out of order, beyond the four levels
+        with pytest.raises(ValueError, match="constraint levels"):
+            LocalizabilityNet(dataclasses.replace(SMALL, constraints=True, constraint_levels=levels))
 
 
 def test_fit_constraints_fits_on_training_scenes_and_keeps_the_network(tiny_dataset, tmp_path):
@@ -136,16 +165,18 @@ def test_fit_constraints_fits_on_training_scenes_and_keeps_the_network(tiny_data
     train(tiny_dataset, tmp_path / "run", cfg, progress=False)
     base = Classifier.load(tmp_path / "run" / "model.pt")
     out = tmp_path / "new" / "c.pt"  # a folder that does not exist yet
-    result = fit_constraints(tmp_path / "run" / "model.pt", tiny_dataset, out, beta=1.0, progress=False)
+    result = fit_constraints(tmp_path / "run" / "model.pt", tiny_dataset, out, beta=1.0, levels=(0, 1), progress=False)
     fitted = Classifier.load(out)
     assert fitted.model.config.constraints and fitted.meta["threshold_beta"] == 1.0
+    assert fitted.model.config.constraint_levels == (0, 1)
     assert np.allclose(fitted.thresholds, result["thresholds"], atol=1e-4)
     for name, weight in base.model.state_dict().items():  # the network itself is untouched
         assert torch.equal(weight, fitted.model.state_dict()[name])
     data = LabelDataset(tiny_dataset)
     rows = split_indices(data, ["tunnel-0", "field-0"])
-    logits, features = network_parts(base.model, data, rows)
-    assert np.all(np.isfinite(features)) and features.shape == (len(rows), 12)
+    logits, features = network_parts(fitted.model, data, rows)
+    assert np.all(np.isfinite(features)) and features.shape == (len(rows), 24)
+    assert np.allclose(network_parts(base.model, data, rows)[1], features[:, :12])  # the base reads level 0 only
     assert fitted.model.stacker.mean[1:].numpy() == pytest.approx(features.mean(0), rel=1e-4, abs=1e-4)
     # its scores are its own on the validation scenes; the network's are kept apart
     val_rows = split_indices(data, ["office-0"])
@@ -153,5 +184,7 @@ def test_fit_constraints_fits_on_training_scenes_and_keeps_the_network(tiny_data
     own = mean_scores(axis_scores(data.labels[val_rows], predicted))
     assert fitted.meta["scores"]["val_f1"] == pytest.approx(own["f1"]) and "epoch" not in fitted.meta
     assert fitted.meta["constraints"]["base_scores"] == base.meta["scores"]
+    with pytest.raises(TrainingError, match="constraint levels"):
+        fit_constraints(tmp_path / "run" / "model.pt", tiny_dataset, tmp_path / "bad.pt", levels=(5,), progress=False)
     with pytest.raises(TrainingError, match="fit-constraints"):  # the layer is never trained with the network
         train(tiny_dataset, tmp_path / "bad", dataclasses.replace(cfg, model=fitted.model.config), progress=False)
