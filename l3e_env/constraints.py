@@ -5,8 +5,8 @@ The network learns the scene families it was trained on; the Hessian is what poi
 itself linearises, so it carries over to families never seen. On the mine and caves of the test
 split, the marginal variances diag(H^-1) of the model's own 0.2 m voxels rank the labels better than
 the network does on every axis, y only just (benchmarks/RESULTS.md). A logistic layer per axis over the
-network's logit, the six log marginal variances and the six log eigenvalues (13 weights an axis)
-is fitted on the training scenes after the network, so it cannot overfit the way a layer trained
+network's logit, the six log marginal variances and the six log eigenvalues (13 weights an axis
+for one level) is fitted on the training scenes after the network, so it cannot overfit the way a layer trained
 with the network would. The same twelve features of the next coarser level (0.4 m voxels, normals of
 1.2 m blocks) can be added (ModelConfig.constraint_levels): they see the larger structure that the
 registration's coarse first stage locks onto, and they help on scene families never trained on

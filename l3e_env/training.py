@@ -363,7 +363,7 @@ def fit_constraints(checkpoint: str | Path, dataset: str | Path | list[str | Pat
         model = LocalizabilityNet(replace(base.config, constraints=True, constraint_levels=tuple(levels)))
     except ValueError as exc:
         raise TrainingError(str(exc)) from exc
-    model.load_state_dict({**base.state_dict(), **{f"stacker.{k}": v for k, v in model.stacker.state_dict().items()}})
+    model.load_state_dict({**model.state_dict(), **base.state_dict()})  # the base's network, the layer unfitted
     logits, features = network_parts(model, data, train_rows, seed, progress=progress)
     stacker = fit_stacker(logits, features, data.labels[train_rows])
     model.stacker.load_state_dict(stacker.state_dict())
