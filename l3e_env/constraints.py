@@ -63,27 +63,36 @@ def voxel_hessian(level: Level, means: torch.Tensor, batch_size: int) -> torch.T
     as the labels' axes), over the planar voxels of each scan: each voxel's mean point with the
     normal of its 3x3x3 neighbourhood. The ICP that makes the labels thins its scans to voxels too,
     so every voxel weighs one."""
-    return _planar_hessians(level.neighbours(), means, level.coords[:, 0], batch_size)
+    return _planar_hessians([level.neighbours()], [means], level.coords[:, 0], batch_size)
 
 
-def _planar_hessians(neighbours: torch.Tensor, means: torch.Tensor, groups: torch.Tensor, count: int) -> torch.Tensor:
-    """(count, 6, 6): voxel_hessian over voxels with their (N, 27) neighbour rows (N: empty) and an
-    ascending group index each (a scan, or a scan at one level)."""
-    n = len(means)
-    means = means.double()  # moments about the sensor: float32 would cancel the scatter of far voxels
-    # the neighbourhood's scatter from summed moments (1, p, p p^T) of its voxels: one gather
-    moments = torch.cat([torch.ones(n, 1, dtype=means.dtype), means,
-                         (means[:, :, None] * means[:, None, :]).reshape(n, 9)], dim=1)
-    padded = torch.cat([moments, moments.new_zeros(1, 13)])
-    summed = padded.index_select(0, neighbours.reshape(-1)).reshape(n, 27, 13).sum(1)
-    voxels = summed[:, 0]
-    centre = summed[:, 1:4] / voxels[:, None]
-    scatter = summed[:, 4:].reshape(n, 3, 3) / voxels[:, None, None] - centre[:, :, None] * centre[:, None, :]
+def _planar_hessians(tables: list[torch.Tensor], means: list[torch.Tensor], groups: torch.Tensor,
+                     count: int) -> torch.Tensor:
+    """(count, 6, 6): voxel_hessian over sets of voxels, each set with its (N, 27) neighbour rows
+    (N: empty), and an ascending group index for each voxel of the sets stacked (a scan, or a scan
+    at one level)."""
+    voxels, scatter = map(torch.cat, zip(*(_neighbourhood_scatter(t, m) for t, m in zip(tables, means))))
+    means = torch.cat(means).double()
     normal, smallest, middle = smallest_eigenvector(scatter)
     planar = (voxels >= MIN_NEIGHBOURS) & (smallest < PLANARITY * middle)
     rows = torch.cat([normal, torch.linalg.cross(means, normal)], dim=1)[planar]
     sizes = torch.bincount(groups[planar], minlength=count).tolist()
     return torch.stack([r.T @ r for r in torch.split(rows, sizes)])
+
+
+def _neighbourhood_scatter(table: torch.Tensor, means: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per voxel, the number of occupied voxels in its 3x3x3 block and the scatter of their mean
+    points, from the block's summed moments (1, p, p p^T): one gather. In float64, as the moments
+    are about the sensor and float32 would cancel the scatter of far voxels."""
+    n = len(means)
+    means = means.double()
+    moments = torch.cat([torch.ones(n, 1, dtype=means.dtype), means,
+                         (means[:, :, None] * means[:, None, :]).reshape(n, 9)], dim=1)
+    padded = torch.cat([moments, moments.new_zeros(1, 13)])
+    summed = padded.index_select(0, table.reshape(-1)).reshape(n, 27, 13).sum(1)
+    voxels = summed[:, 0]
+    centre = summed[:, 1:4] / voxels[:, None]
+    return voxels, summed[:, 4:].reshape(n, 3, 3) / voxels[:, None, None] - centre[:, :, None] * centre[:, None, :]
 
 
 def coarser_means(level: Level, means: torch.Tensor) -> tuple[Level, torch.Tensor]:
@@ -97,8 +106,9 @@ def coarser_means(level: Level, means: torch.Tensor) -> tuple[Level, torch.Tenso
 
 def scan_features(level: Level, means: torch.Tensor, batch_size: int, levels: tuple[int, ...] = (0,)) -> torch.Tensor:
     """(B, FEATURES * len(levels)): the Hessian features of each of `levels` (0: the finest voxels).
-    The levels' voxels go through one pass, as if each level were more scans of the batch: the
-    work is small and the operations' overhead would otherwise be paid once per level."""
+    The levels' voxels, once their neighbourhoods are summed, go through one pass, as if each level
+    were more scans of the batch: the work is small and the operations' overhead would otherwise be
+    paid once per level."""
     tables, points, groups = [], [], []
     for k in range(max(levels) + 1):
         if k in levels:
@@ -107,11 +117,7 @@ def scan_features(level: Level, means: torch.Tensor, batch_size: int, levels: tu
             groups.append(level.coords[:, 0] + len(groups) * batch_size)
         if k < max(levels):
             level, means = coarser_means(level, means)
-    total, start = sum(len(p) for p in points), 0
-    for i, p in enumerate(points):  # rows into the levels' voxels stacked, `total` for an empty neighbour
-        tables[i] = torch.where(tables[i] == len(p), total, tables[i] + start)
-        start += len(p)
-    hessians = _planar_hessians(torch.cat(tables), torch.cat(points), torch.cat(groups), batch_size * len(levels))
+    hessians = _planar_hessians(tables, points, torch.cat(groups), batch_size * len(levels))
     per_level = hessian_features(hessians).reshape(len(levels), batch_size, FEATURES)
     return per_level.permute(1, 0, 2).reshape(batch_size, -1)
 

@@ -52,7 +52,8 @@ class CoordinateIndex:
     def __init__(self, coords: torch.Tensor, row_keys: torch.Tensor | None = None):
         self.n = len(coords)
         self.row_keys = hash_coords(coords) if row_keys is None else row_keys
-        if row_keys is not None and bool((row_keys[1:] > row_keys[:-1]).all()):
+        self.sorted = row_keys is not None and bool((row_keys[1:] > row_keys[:-1]).all())
+        if self.sorted:  # rows in key order: a key's position is its row
             self.keys, self.order = row_keys, torch.arange(self.n)
         else:
             self.keys, self.order = torch.sort(self.row_keys)
@@ -63,7 +64,8 @@ class CoordinateIndex:
             return torch.zeros_like(keys)
         pos = torch.searchsorted(self.keys, keys).clamp_(max=self.n - 1)
         found = self.keys[pos] == keys
-        return torch.where(found, self.order[pos], torch.full_like(pos, self.n))
+        rows = pos if self.sorted else self.order[pos]
+        return torch.where(found, rows, torch.full_like(pos, self.n))
 
 
 # the key of a neighbour is the site's key plus a constant, because the key is linear in x, y, z
@@ -110,11 +112,13 @@ class Level:
         return self._coarser
 
 
-def _gather_matmul(x: torch.Tensor, table: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
-    """sum_k x[table[:, k]] @ weight[k], with row len(x) of the table meaning 'no neighbour'."""
+def _gather_matmul(x: torch.Tensor, table: torch.Tensor, weight: torch.Tensor,
+                   bias: torch.Tensor | None = None) -> torch.Tensor:
+    """sum_k x[table[:, k]] @ weight[k] (+ bias), with row len(x) of the table meaning 'no neighbour'."""
     padded = torch.cat([x, x.new_zeros(1, x.shape[1])])
-    gathered = padded.index_select(0, table.reshape(-1))  # (N * K, C_in); 2x faster than padded[table]
-    return gathered.reshape(len(table), -1) @ weight.reshape(-1, weight.shape[-1])
+    gathered = padded.index_select(0, table.reshape(-1)).reshape(len(table), -1)  # 2x faster than padded[table]
+    weight = weight.reshape(-1, weight.shape[-1])
+    return gathered @ weight if bias is None else torch.addmm(bias, gathered, weight)
 
 
 def _init_weight(k: int, c_in: int, c_out: int) -> nn.Parameter:
@@ -133,8 +137,7 @@ class SubmanifoldConv(nn.Module):
         self.bias = nn.Parameter(torch.zeros(c_out)) if bias else None
 
     def forward(self, x: torch.Tensor, level: Level) -> torch.Tensor:
-        y = _gather_matmul(x, level.neighbours(), self.weight)
-        return y + self.bias if self.bias is not None else y
+        return _gather_matmul(x, level.neighbours(), self.weight, self.bias)
 
 
 class DownConv(nn.Module):
@@ -143,10 +146,11 @@ class DownConv(nn.Module):
     def __init__(self, c_in: int, c_out: int):
         super().__init__()
         self.weight = _init_weight(8, c_in, c_out)  # weight[k] for child offset OFFSETS_2[k]
+        self.register_parameter("bias", None)  # none in training; see classifier.fold_batch_norms
 
     def forward(self, x: torch.Tensor, level: Level) -> tuple[torch.Tensor, Level]:
         coarse, children, _, _ = level.coarser()
-        return _gather_matmul(x, children, self.weight), coarse
+        return _gather_matmul(x, children, self.weight, self.bias), coarse
 
 
 class UpConv(nn.Module):
@@ -156,12 +160,14 @@ class UpConv(nn.Module):
     def __init__(self, c_in: int, c_out: int):
         super().__init__()
         self.weight = _init_weight(8, c_in, c_out)
+        self.register_parameter("bias", None)  # none in training; see classifier.fold_batch_norms
         self.c_out = c_out
 
     def forward(self, x: torch.Tensor, fine: Level) -> torch.Tensor:
         _, _, parent, slot = fine.coarser()
-        every_slot = (x @ self.weight.permute(1, 0, 2).reshape(x.shape[1], -1)).reshape(len(x), 8, self.c_out)
-        return every_slot[parent, slot]
+        weight = self.weight.permute(1, 0, 2).reshape(x.shape[1], -1)  # (C_in, 8 C_out): every slot at once
+        every_slot = x @ weight if self.bias is None else torch.addmm(self.bias.repeat(8), x, weight)
+        return every_slot.reshape(-1, self.c_out).index_select(0, parent * 8 + slot)
 
 
 def voxelize(points: list[torch.Tensor], voxel: float) -> tuple[Level, torch.Tensor, torch.Tensor]:

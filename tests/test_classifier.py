@@ -1,4 +1,5 @@
 """The classifier: input checks, checkpoints, batching, scores and thresholds, resumable training."""
+import copy
 import dataclasses
 import json
 from pathlib import Path
@@ -9,7 +10,8 @@ import torch
 
 from l3e_env.classifier import (
     CHECKPOINT_VERSION, DEFAULT_CHECKPOINT, SYMMETRIES, CheckpointError, Classifier, LocalizabilityNet, ModelConfig,
-    ScanError, check_scan, model_input, model_probabilities, one_per_voxel, sample_points, save_checkpoint, up_vector,
+    ScanError, check_scan, fold_batch_norms, load_checkpoint, model_from_checkpoint, model_input, model_probabilities,
+    one_per_voxel, sample_points, save_checkpoint, up_vector,
 )
 from l3e_env.dataset import DatasetError, LabelDataset, config_for, error_ratios, generate, open_datasets
 from l3e_env.detectors import LearnedDetector, make_detector
@@ -62,6 +64,43 @@ def test_a_scan_is_judged_the_same_alone_or_in_a_batch(tmp_path, rng):
         feats = clf.model.backbone([torch.from_numpy(b), torch.from_numpy(a)])
         assert torch.allclose(feats[1], clf.model.backbone([torch.from_numpy(a)])[0], atol=1e-5)
         assert not torch.allclose(feats[0], feats[1], atol=1e-3)
+
+
+@pytest.mark.parametrize("architecture", ["resunet", "pointnet"])
+def test_folding_the_batch_norms_into_their_layers_keeps_the_outputs(architecture, rng):
+    torch.manual_seed(0)
+    cfg = dataclasses.replace(SMALL, architecture=architecture, constraints=architecture == "resunet")
+    model = LocalizabilityNet(cfg)
+    norms = [m for m in model.modules() if isinstance(m, torch.nn.BatchNorm1d)]
+    with torch.no_grad():  # trained-looking norms: statistics and affine maps far from the identity
+        for m in norms:
+            m.running_mean.uniform_(-1, 1), m.running_var.uniform_(0.5, 2)
+            m.weight.uniform_(0.5, 2), m.bias.uniform_(-1, 1)
+    batch = [torch.from_numpy(_scan(rng, 500)), torch.from_numpy(_scan(rng, 400))]
+    with torch.no_grad():
+        untouched = copy.deepcopy(model).eval()  # the same layers with the norms back at the identity
+        for m in untouched.modules():
+            if isinstance(m, torch.nn.BatchNorm1d):
+                m.reset_parameters()
+        before, features = model.eval()(batch), model.backbone(batch)
+        folded = fold_batch_norms(copy.deepcopy(model))
+        after, folded_features = folded(batch), folded.backbone(batch)
+        assert len(norms) >= 2 and not any(isinstance(m, torch.nn.BatchNorm1d) for m in folded.modules())
+        assert torch.allclose(before, after, atol=1e-5)
+        assert torch.allclose(features, folded_features, atol=1e-4 * features.abs().max().item())
+        assert (features - untouched.backbone(batch)).abs().max() > 0.1 * features.abs().max()  # the norms did matter
+    with pytest.raises(ValueError, match="folded twice"):
+        fold_batch_norms(folded)
+
+
+def test_a_loaded_classifier_runs_with_its_norms_folded(tmp_path, rng):
+    path = _checkpoint(tmp_path / "m.pt")
+    clf = Classifier.load(path)
+    assert not any(isinstance(m, torch.nn.BatchNorm1d) for m in clf.model.modules())
+    scan = _scan(rng, 500)  # under `points`: the model reads every point
+    with torch.no_grad():
+        unfolded = torch.sigmoid(model_from_checkpoint(load_checkpoint(path))([torch.from_numpy(scan)]))
+    assert np.allclose(clf.probabilities([scan]), unfolded.numpy(), atol=1e-6)
 
 
 def test_symmetric_inference_is_the_mean_over_the_views_and_blind_to_mirrors_and_swaps(tmp_path, rng):
@@ -308,7 +347,8 @@ def test_fine_tuning_starts_from_the_given_weights(tiny_dataset, tmp_path):
     base = tmp_path / "base" / "model.pt"
     start = _train_cfg(init=str(base), learning_rate=0.0, epochs=1)  # no step: the weights stay the base's
     train(tiny_dataset, tmp_path / "tuned", start, progress=False)
-    weights = [dict(Classifier.load(p).model.named_parameters()) for p in (base, tmp_path / "tuned" / "model.pt")]
+    weights = [dict(model_from_checkpoint(load_checkpoint(p)).named_parameters())
+               for p in (base, tmp_path / "tuned" / "model.pt")]
     assert all(torch.equal(weights[0][k], weights[1][k]) for k in weights[0])  # batch-norm statistics may move
     assert torch.load(tmp_path / "base" / "last.pt", weights_only=True)["training"]["init"] is None
     other = dataclasses.replace(_train_cfg(init=str(base)), model=dataclasses.replace(SMALL, channels=(8, 8, 16, 24)))

@@ -2,7 +2,9 @@
 import pytest
 import torch
 
-from l3e_env.sparse import OFFSETS_2, OFFSETS_3, DownConv, Level, SubmanifoldConv, UpConv, global_max_pool, voxelize
+from l3e_env.sparse import (
+    OFFSETS_2, OFFSETS_3, DownConv, Level, SubmanifoldConv, UpConv, global_max_pool, hash_coords, voxelize,
+)
 
 
 def _sparse_grid(seed: int, size: int = 6, fill: float = 0.3, batch: int = 2, channels: int = 3):
@@ -28,10 +30,10 @@ def _compare(sparse_out, dense_out, coords, sparse_params, dense_params, inputs)
     return grads_s, grads_d
 
 
-@pytest.mark.parametrize("shuffled", [False, True])
-def test_submanifold_conv_matches_dense_conv3d(shuffled: bool):
+@pytest.mark.parametrize("order", ["sorted", "shuffled", "keyed"])
+def test_submanifold_conv_matches_dense_conv3d(order: str):
     coords, feats, dense = _sparse_grid(0)
-    if shuffled:  # sites in no particular order: the kernel map must map sorted keys back to rows
+    if order == "shuffled":  # sites in no particular order: the kernel map must map sorted keys back to rows
         order = torch.randperm(len(coords), generator=torch.Generator().manual_seed(3))
         coords, feats = coords[order], feats[order]
     feats.requires_grad_(True)
@@ -42,7 +44,9 @@ def test_submanifold_conv_matches_dense_conv3d(shuffled: bool):
         for k, (dx, dy, dz) in enumerate(OFFSETS_3.tolist()):
             conv.weight[:, :, dx + 1, dy + 1, dz + 1] = sconv.weight[k].T
         conv.bias.copy_(sconv.bias)
-    level = Level(coords, 1)
+    # "keyed": the sorted rows' keys come with them (as from voxelize), so a key's position is its row
+    level = Level(coords, 1, hash_coords(coords) if order == "keyed" else None)
+    assert level.index.sorted == (order == "keyed")
     out_s, out_d = sconv(feats, level), conv(dense)
     (gx, gw, gb), (gxd, gwd, gbd) = _compare(out_s, out_d, coords, [sconv.weight, sconv.bias],
                                              [conv.weight, conv.bias], (feats, dense))
