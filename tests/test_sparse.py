@@ -108,6 +108,8 @@ def test_voxelize_and_pool_keep_scans_apart():
     feats = torch.tensor([[1.0], [5.0], [2.0]])
     pooled = global_max_pool(feats, level, 2)
     assert pooled[:, 0].tolist() == [5.0, 2.0]
+    alone, _, _ = voxelize([a], 0.2)  # one scan takes a shortcut of its own
+    assert global_max_pool(torch.tensor([[1.0, -3.0], [5.0, -4.0]]), alone, 1).tolist() == [[5.0, -3.0]]
 
 
 def test_far_coordinates_are_refused():
