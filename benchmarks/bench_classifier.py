@@ -1,9 +1,10 @@
 """Classifier inference latency on single VLP-16 scans along the mine route (yard, tunnel,
 quarry), with the paper's 28 ms (i7-10700F, 8 cores) as the reference, plus the shipped network
-without its constraint layer, the shipped model averaged over its eight mirror/swap views, the
-PointNet baseline, the shipped widths reading one point of each of 2000 voxels
-(ModelConfig.sampling "voxels") and a full-width (FCGF 32-64-128-256) ResUNet, measured in the
-same run.
+without its constraint layer, the shipped model with its batch norms as trained (Classifier.load
+folds them into the layers before them), the shipped model averaged over its eight mirror/swap
+views, the PointNet baseline, the shipped widths reading one point of each of 2000 voxels
+(ModelConfig.sampling "voxels") and a full-width (FCGF 32-64-128-256) ResUNet (these three folded
+too), measured in the same run.
 
 The rows take turns on blocks of five scans, so that a machine that slows down for a while
 slows every row alike; the last column is each row's speed relative to the FCGF-width ResUNet
@@ -20,7 +21,9 @@ import time
 import numpy as np
 import torch
 
-from l3e_env.classifier import Classifier, LocalizabilityNet, ModelConfig, model_input
+from l3e_env.classifier import (
+    DEFAULT_CHECKPOINT, Classifier, LocalizabilityNet, ModelConfig, fold_batch_norms, load_checkpoint, model_from_checkpoint, model_input,
+)
 from l3e_env.lidar import Lidar
 from l3e_env.raycast import EmbreeCaster
 from l3e_env.transforms import pose_to_matrix
@@ -71,13 +74,15 @@ def main() -> None:
         network = copy.deepcopy(clf.model)
         network.stacker = None
         rows.append(("the same, no constraint layer", Classifier(network, clf.thresholds).predict))
+    unfolded = model_from_checkpoint(load_checkpoint(args.checkpoint or DEFAULT_CHECKPOINT))
+    rows.append(("the same, batch norms not folded", Classifier(unfolded, clf.thresholds).predict))
     symmetric = Classifier.load(args.checkpoint, symmetric=True)
     rows.append(("the same, 8 mirror/swap views", symmetric.predict))
     rng = np.random.default_rng(0)
     for label, cfg in [("PointNet baseline", ModelConfig(architecture="pointnet")),
                        ("ResUNet on 2000 voxels' points", ModelConfig(sampling="voxels", points=2000)),
                        ("ResUNet at FCGF width", ModelConfig(channels=(32, 64, 128, 256)))]:
-        model = LocalizabilityNet(cfg).eval()
+        model = fold_batch_norms(LocalizabilityNet(cfg))  # as Classifier.load runs a model
 
         def run(s, model=model, cfg=cfg):
             with torch.inference_mode():
