@@ -22,7 +22,8 @@ import numpy as np
 import torch
 
 from l3e_env.classifier import (
-    DEFAULT_CHECKPOINT, Classifier, LocalizabilityNet, ModelConfig, fold_batch_norms, load_checkpoint, model_from_checkpoint, model_input,
+    DEFAULT_CHECKPOINT, Classifier, LocalizabilityNet, ModelConfig, fold_batch_norms, load_checkpoint,
+    model_from_checkpoint, model_input,
 )
 from l3e_env.lidar import Lidar
 from l3e_env.raycast import EmbreeCaster
