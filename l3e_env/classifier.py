@@ -234,8 +234,8 @@ def _norm_sites(backbone: nn.Module) -> list[tuple[nn.Module, nn.Module, str]]:
 def fold_batch_norms(model: LocalizabilityNet) -> LocalizabilityNet:
     """The model in eval mode with each batch norm folded into the layer before it: in eval mode a
     norm is a per-channel scale and shift, which the layer's weight and a bias carry at no cost, so
-    inference skips two dozen passes over the features. For inference only: the folded model
-    cannot be trained or saved as a checkpoint of its config."""
+    inference skips a pass over the features per norm (24 in the ResUNet). For inference only: the
+    folded model has no norms left to train and is not a checkpoint of its config."""
     model.eval()
     for layer, owner, name in _norm_sites(model.backbone):
         norm = getattr(owner, name)
