@@ -52,11 +52,16 @@ class CoordinateIndex:
     def __init__(self, coords: torch.Tensor, row_keys: torch.Tensor | None = None):
         self.n = len(coords)
         self.row_keys = hash_coords(coords) if row_keys is None else row_keys
-        self.sorted = row_keys is not None and bool((row_keys[1:] > row_keys[:-1]).all())
-        if self.sorted:  # rows in key order: a key's position is its row
-            self.keys, self.order = row_keys, torch.arange(self.n)
+        # the row of each sorted key; None when the rows come in key order: a key's position is its row
+        self.order: torch.Tensor | None = None
+        if row_keys is not None and bool((row_keys[1:] > row_keys[:-1]).all()):
+            self.keys = row_keys
         else:
             self.keys, self.order = torch.sort(self.row_keys)
+
+    @property
+    def sorted(self) -> bool:
+        return self.order is None
 
     def lookup(self, keys: torch.Tensor) -> torch.Tensor:
         """Row of each queried key, or n (the zero row) where the site is empty."""
@@ -64,7 +69,7 @@ class CoordinateIndex:
             return torch.zeros_like(keys)
         pos = torch.searchsorted(self.keys, keys).clamp_(max=self.n - 1)
         found = self.keys[pos] == keys
-        rows = pos if self.sorted else self.order[pos]
+        rows = pos if self.order is None else self.order[pos]
         return torch.where(found, rows, torch.full_like(pos, self.n))
 
 
