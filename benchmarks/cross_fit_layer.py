@@ -86,7 +86,8 @@ def main() -> None:
         other = open_datasets(folder)
         for fam in sorted({family(s) for s in other.manifest["scenes"]}):
             r = split_indices(other, [s for s in other.manifest["scenes"] if family(s) == fam])
-            parts[f"{fam} ({folder})"], labels[f"{fam} ({folder})"] = network_parts(model, other, r, args.seed), other.labels[r]
+            name = f"{fam} ({folder})"
+            parts[name], labels[name] = network_parts(model, other, r, args.seed), other.labels[r]
     held = held_out_logits(args.fold, data, state["training"]["train_scenes"], rows["train"], args.seed)
 
     beta = float(state.get("threshold_beta", 1.0))
