@@ -29,7 +29,7 @@ import torch
 
 from l3e_env.classifier import load_checkpoint, model_from_checkpoint
 from l3e_env.constraints import AxisStacker, fit_stacker
-from l3e_env.dataset import open_datasets
+from l3e_env.dataset import DatasetUnion, LabelDataset, open_datasets
 from l3e_env.evaluation import split_rows
 from l3e_env.scores import axis_scores, best_thresholds, mean_scores
 from l3e_env.training import network_parts, split_indices
@@ -39,7 +39,7 @@ def family(scene: str) -> str:
     return scene.rsplit("-", 1)[0]
 
 
-def held_out_logits(folds: list[str], data, train_scenes: list[str], rows: np.ndarray, seed: int) -> np.ndarray:
+def held_out_logits(folds: list[str], data: LabelDataset | DatasetUnion, rows: np.ndarray, seed: int) -> np.ndarray:
     """Each training row's logits from the one fold network whose training left out its family."""
     scene_of_row = np.asarray(data.manifest["scenes"])[np.asarray(data.arrays["scene"])[rows]]
     out = np.full((len(rows), 6), np.nan)
@@ -88,7 +88,7 @@ def main() -> None:
             r = split_indices(other, [s for s in other.manifest["scenes"] if family(s) == fam])
             name = f"{fam} ({folder})"
             parts[name], labels[name] = network_parts(model, other, r, args.seed), other.labels[r]
-    held = held_out_logits(args.fold, data, state["training"]["train_scenes"], rows["train"], args.seed)
+    held = held_out_logits(args.fold, data, rows["train"], args.seed)
 
     beta = float(state.get("threshold_beta", 1.0))
     own, features = parts["train"]
