@@ -21,7 +21,7 @@ from torch import nn
 from .config import from_dict, plain
 from .constraints import FEATURES, AxisStacker, scan_features
 from .files import write_atomic
-from .sparse import DownConv, Level, SubmanifoldConv, UpConv, global_max_pool, voxelize
+from .sparse import DownConv, GatherConv, Level, SubmanifoldConv, UpConv, global_max_pool, int8_products_work, voxelize
 
 CHECKPOINT_FORMAT = "l3e-classifier"
 CHECKPOINT_VERSION = 1
@@ -124,13 +124,15 @@ class ResUNet(nn.Module):
         # the voxel is in the scan (range and direction matter for the constraint it gives)
         inside = means / self.voxel - level.coords[:, 1:] - 0.5
         x = torch.cat([torch.ones(len(means), 1), inside, means / self.scale], dim=1)
+        levels = [level]
+        for _ in self.down:  # coarser levels first: their kernel maps give the finer ones (Level.neighbours)
+            levels.append(levels[-1].coarser()[0])
         x = self.stem_block(self.stem_norm(self.stem(x, level)), level)
-        skips, levels = [x], [level]
+        skips = [x]
         for down, norm, block in zip(self.down, self.down_norm, self.down_block):
             x, level = down(x, level)
             x = block(norm(x), level)
             skips.append(x)
-            levels.append(level)
         for i in reversed(range(len(self.up))):
             x = self.up_norm[i](self.up[i](x, levels[i]))
             x = self.up_block[i](self.up_mix[i](torch.cat([x, skips[i]], dim=1)), levels[i])
@@ -248,6 +250,19 @@ def fold_batch_norms(model: LocalizabilityNet) -> LocalizabilityNet:
         bias = shift if layer.bias is None else layer.bias * scale + shift
         layer.bias = nn.Parameter(bias)
         setattr(owner, name, nn.Identity())
+    return model
+
+
+def quantize_int8(model: LocalizabilityNet) -> LocalizabilityNet:
+    """The ResUNet's gather convolutions switched to int8 gathers and products (see
+    sparse.GatherConv.quantize), for inference after fold_batch_norms. The stem stays in float32:
+    its inputs mix sub-voxel offsets of +-0.5 with positions of several units, which one 8-bit
+    scale would round away. A torch without CPU int8 products keeps the model as it is."""
+    if not isinstance(model.backbone, ResUNet) or not int8_products_work():
+        return model
+    for module in model.backbone.modules():
+        if isinstance(module, GatherConv) and module is not model.backbone.stem:
+            module.quantize()
     return model
 
 
@@ -374,10 +389,14 @@ class Classifier:
     symmetric: bool = False
 
     @classmethod
-    def load(cls, path: str | Path | None = None, symmetric: bool = False) -> Classifier:
+    def load(cls, path: str | Path | None = None, symmetric: bool = False, int8: bool = True) -> Classifier:
+        """`int8`: the ResUNet's convolutions in int8 (quantize_int8), about 0.7 of the float32
+        time, probabilities within about 1e-3 of it (benchmarks/RESULTS.md)."""
         path = Path(path) if path is not None else DEFAULT_CHECKPOINT
         state = load_checkpoint(path)
         model = fold_batch_norms(model_from_checkpoint(state, str(path)))
+        if int8:
+            quantize_int8(model)
         meta = {k: v for k, v in state.items() if k not in ("state_dict", "optimizer", "scheduler")}
         if "thresholds" not in state:
             raise CheckpointError(f"{path} holds no thresholds")

@@ -15,6 +15,7 @@ from l3e_env.classifier import (
 )
 from l3e_env.dataset import DatasetError, LabelDataset, config_for, error_ratios, generate, open_datasets
 from l3e_env.detectors import LearnedDetector, make_detector
+from l3e_env.sparse import GatherConv, int8_products_work
 from l3e_env.scores import auroc, axis_scores, best_thresholds, mean_interval, mean_scores, pr_curve
 from l3e_env.training import (
     SWAP_LABELS, TrainConfig, TrainingError, augment, balanced_pool, calibrate_symmetric, predict_dataset,
@@ -95,12 +96,23 @@ def test_folding_the_batch_norms_into_their_layers_keeps_the_outputs(architectur
 
 def test_a_loaded_classifier_runs_with_its_norms_folded(tmp_path, rng):
     path = _checkpoint(tmp_path / "m.pt")
-    clf = Classifier.load(path)
+    clf = Classifier.load(path, int8=False)
     assert not any(isinstance(m, torch.nn.BatchNorm1d) for m in clf.model.modules())
     scan = _scan(rng, 500)  # under `points`: the model reads every point
     with torch.no_grad():
         unfolded = torch.sigmoid(model_from_checkpoint(load_checkpoint(path))([torch.from_numpy(scan)]))
     assert np.allclose(clf.probabilities([scan]), unfolded.numpy(), atol=1e-6)
+
+
+@pytest.mark.skipif(not int8_products_work(), reason="this torch build has no CPU int8 products")
+def test_a_loaded_classifier_convolves_in_int8_except_its_stem_and_stays_near_float32(tmp_path, rng):
+    path = _checkpoint(tmp_path / "m.pt")
+    quantised, exact = Classifier.load(path), Classifier.load(path, int8=False)
+    convs = [m for m in quantised.model.backbone.modules() if isinstance(m, GatherConv)]
+    assert [m.int8_weight is None for m in convs].count(True) == 1 and quantised.model.backbone.stem.int8_weight is None
+    scans = [_scan(rng, 500) for _ in range(4)]
+    p, q = quantised.probabilities(scans), exact.probabilities(scans)
+    assert np.abs(p - q).max() < 0.02 and not np.array_equal(p, q)
 
 
 def test_symmetric_inference_is_the_mean_over_the_views_and_blind_to_mirrors_and_swaps(tmp_path, rng):

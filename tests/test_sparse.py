@@ -3,7 +3,8 @@ import pytest
 import torch
 
 from l3e_env.sparse import (
-    OFFSETS_2, OFFSETS_3, DownConv, Level, SubmanifoldConv, UpConv, global_max_pool, hash_coords, voxelize,
+    OFFSETS_2, OFFSETS_3, DownConv, Level, SubmanifoldConv, UpConv, global_max_pool, hash_coords, int8_products_work,
+    voxelize,
 )
 
 
@@ -115,3 +116,53 @@ def test_voxelize_and_pool_keep_scans_apart():
 def test_far_coordinates_are_refused():
     with pytest.raises(ValueError, match="too far"):
         Level(torch.tensor([[0, 40000, 0, 0]]), 1).neighbours()
+
+
+@pytest.mark.skipif(not int8_products_work(), reason="this torch build has no CPU int8 products")
+@pytest.mark.parametrize("conv_type", [SubmanifoldConv, DownConv])
+def test_int8_convolution_is_close_to_float32_and_scales_each_scan_alone(conv_type):
+    coords, feats, _ = _sparse_grid(4, size=8, fill=0.4, channels=16)
+    feats = feats.float().relu()  # as after a ReLU, the inputs of the quantised convolutions
+    torch.manual_seed(0)
+    conv = conv_type(16, 24)
+    conv.bias = torch.nn.Parameter(torch.randn(24))  # as after fold_batch_norms
+    level = Level(coords, 1, hash_coords(coords))
+
+    def run(x, lv):
+        out = conv(x, lv)
+        return out[0] if isinstance(out, tuple) else out
+
+    exact = run(feats, level)
+    conv.quantize()
+    assert conv.int8_weight.dtype == torch.int8
+    rounded = run(feats, level)
+    assert (rounded - exact).abs().max() < 0.02 * exact.abs().max()  # 8 bits: about 1 % of the range
+    assert not torch.equal(rounded, exact)  # the int8 path did run
+    # scan 0 a hundred times louder: scan 1 keeps its own scale, so its outputs do not move
+    louder = feats.clone()
+    louder[coords[:, 0] == 0] *= 100
+    out_coords = level.coarser()[0].coords if conv_type is DownConv else coords
+    second = out_coords[:, 0] == 1
+    assert torch.allclose(run(louder, level)[second], rounded[second], atol=1e-5)
+    assert not torch.allclose(run(louder, level)[~second], rounded[~second], atol=1e-3)
+
+
+def test_kernel_maps_read_off_the_coarser_level_equal_the_searched_ones():
+    g = torch.Generator().manual_seed(5)
+    coords = torch.unique(torch.cat([torch.randint(0, 3, (600, 1), generator=g),  # three scans
+                                     torch.randint(-9, 9, (600, 3), generator=g)], dim=1), dim=0)
+    searched = [Level(coords, 1)]
+    derived = [Level(coords, 1)]
+    for _ in range(3):
+        coarse = Level(searched[-1].coords, 1).coarser()[0].coords  # on a copy: `searched` keeps no coarser level
+        searched.append(Level(coarse, searched[-1].stride * 2))
+        derived.append(derived[-1].coarser()[0])
+    for s, d in zip(searched, derived):  # each derived level but the last comes from its coarser one
+        assert torch.equal(s.neighbours(), d.neighbours())
+    assert derived[0]._coarser is not None and searched[0]._coarser is None
+    # every table entry is a true 3x3x3 neighbour or the empty row, and some of both occur
+    table = derived[0].neighbours()
+    found = table < len(coords)
+    assert 0 < found.float().mean() < 1
+    rows, k = found.nonzero(as_tuple=True)
+    assert torch.equal(coords[table[rows, k]] - coords[rows], torch.cat([torch.zeros_like(rows)[:, None], OFFSETS_3[k]], 1))
