@@ -1,6 +1,7 @@
 """Classifier inference latency on single VLP-16 scans along the mine route (yard, tunnel,
-quarry), with the paper's 28 ms (i7-10700F, 8 cores) as the reference, plus the shipped network
-without its constraint layer, the shipped model with its batch norms as trained (Classifier.load
+quarry), with the paper's 28 ms (i7-10700F, 8 cores) as the reference, plus the shipped model with
+float32 convolutions (Classifier.load runs them in int8), the shipped network without its
+constraint layer, the shipped model with its batch norms as trained and in float32 (Classifier.load
 folds them into the layers before them), the shipped model averaged over its eight mirror/swap
 views, the PointNet baseline, the shipped widths reading one point of each of 2000 voxels
 (ModelConfig.sampling "voxels") and a full-width (FCGF 32-64-128-256) ResUNet (these three folded
@@ -70,12 +71,13 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     scans = route_scans(args.scans)
     clf = Classifier.load(args.checkpoint)
-    rows = [("shipped ResUNet (scan -> mask)", clf.predict)]
+    rows = [("shipped ResUNet (scan -> mask)", clf.predict),
+            ("the same in float32", Classifier.load(args.checkpoint, int8=False).predict)]
     if clf.model.stacker is not None:  # the same network without the constraint layer's Hessian
         network = copy.deepcopy(clf.model)
         network.stacker = None
         rows.append(("the same, no constraint layer", Classifier(network, clf.thresholds).predict))
-    unfolded = model_from_checkpoint(load_checkpoint(args.checkpoint or DEFAULT_CHECKPOINT))
+    unfolded = model_from_checkpoint(load_checkpoint(args.checkpoint or DEFAULT_CHECKPOINT))  # and float32
     rows.append(("the same, batch norms not folded", Classifier(unfolded, clf.thresholds).predict))
     symmetric = Classifier.load(args.checkpoint, symmetric=True)
     rows.append(("the same, 8 mirror/swap views", symmetric.predict))

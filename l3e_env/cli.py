@@ -132,7 +132,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
     out = Path(args.out or f"l3e_out/evaluate-{time.strftime('%Y%m%d-%H%M%S')}")
     results = evaluate(args.checkpoint, args.dataset, out, others=args.other, progress=not args.quiet,
-                       symmetric=args.symmetric, eigen=args.eigen)
+                       symmetric=args.symmetric, eigen=args.eigen, int8=not args.float32)
     print(results["table"])
     print(f"written: {out / 'table.txt'}, {out / 'results.json'}, {out / 'pr_curves.png'}")
     return 0
@@ -250,6 +250,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", help="output folder (default: l3e_out/evaluate-<time>)")
     p.add_argument("--symmetric", action="store_true",
                    help="average each scan's probabilities over its eight mirror/swap views (8x slower)")
+    p.add_argument("--float32", action="store_true",
+                   help="run the ResUNet's convolutions in float32 instead of int8 (as deployed)")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_cmd_evaluate)
     p = sub.add_parser("calibrate", help="add symmetric-inference thresholds to a checkpoint, from its validation "

@@ -19,6 +19,7 @@ eigen-decomposition of the 3x3 scatter: torch.linalg.eigh on a few thousand 3x3 
 from __future__ import annotations
 
 import math
+import warnings
 
 import numpy as np
 import torch
@@ -88,8 +89,15 @@ def _neighbourhood_scatter(table: torch.Tensor, means: torch.Tensor) -> tuple[to
     means = means.double()
     moments = torch.cat([torch.ones(n, 1, dtype=means.dtype), means,
                          (means[:, :, None] * means[:, None, :]).reshape(n, 9)], dim=1)
-    padded = torch.cat([moments, moments.new_zeros(1, 13)])
-    summed = padded.index_select(0, table.reshape(-1)).reshape(n, 27, 13).sum(1)
+    # the block sums as a sparse (N, N) product: three quarters of the table's entries are empty,
+    # so this moves a third less memory than gathering all 27 rows and summing them
+    occupied = table < n
+    starts = torch.cat([occupied.new_zeros(1, dtype=torch.int64), occupied.sum(1).cumsum(0)])
+    with warnings.catch_warnings():  # "sparse CSR support is in beta": the product is exact here
+        warnings.simplefilter("ignore", UserWarning)
+        pairs = table[occupied]
+        blocks = torch.sparse_csr_tensor(starts, pairs, torch.ones(len(pairs), dtype=moments.dtype), (n, n))
+    summed = blocks @ moments
     voxels = summed[:, 0]
     centre = summed[:, 1:4] / voxels[:, None]
     return voxels, summed[:, 4:].reshape(n, 3, 3) / voxels[:, None, None] - centre[:, :, None] * centre[:, None, :]

@@ -42,14 +42,15 @@ def split_rows(data: LabelDataset | DatasetUnion, training: dict[str, Any]) -> d
 
 def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Path], out_dir: str | Path,
              others: list[str | Path] | None = None, progress: bool = True, symmetric: bool = False,
-             eigen: list[float] | None = None) -> dict[str, Any]:
+             eigen: list[float] | None = None, int8: bool = True) -> dict[str, Any]:
     """Score each checkpoint on its own train/validation split and on the test families of the
     dataset, and on every scan of each of `others` (a dataset of another sensor, or of scene
     families the model never saw: column 'all of <folder>'); writes table.txt, results.json and
     pr_curves.png into out_dir and returns the results. `symmetric`: probabilities averaged over
     the eight mirror/swap views, with the thresholds chosen for them. `eigen`: thresholds tau of
     the eigenvalue detector, scored on the first checkpoint's splits from each scan's own Hessian
-    (`scan_hessian`); a scan too small to register flags nothing, as the detector's UNKNOWN does."""
+    (`scan_hessian`); a scan too small to register flags nothing, as the detector's UNKNOWN does.
+    `int8`: the ResUNet's convolutions as deployed (Classifier.load); False scores them in float32."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     data = open_datasets(dataset)
@@ -61,7 +62,7 @@ def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Pat
     curves: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = {}
     intervals: dict[tuple[str, str], dict[str, tuple[float, float]]] = {}
     results: dict[str, Any] = {"dataset": data.name, "test_scenes": test_scenes, "symmetric": symmetric,
-                               "models": {}}
+                               "int8": int8, "models": {}}
 
     def score(name: str, split: str, ds: LabelDataset | DatasetUnion, rows: np.ndarray, predicted: np.ndarray,
               **fields: Any) -> None:
@@ -75,7 +76,7 @@ def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Pat
 
     first_splits: dict[str, tuple[LabelDataset | DatasetUnion, np.ndarray]] = {}
     for path in map(Path, checkpoints):
-        clf = Classifier.load(path, symmetric=symmetric)
+        clf = Classifier.load(path, symmetric=symmetric, int8=int8)
         name = model_name(clf, path, set(table))
         splits = {split: (data, rows) for split, rows in split_rows(data, clf.meta["training"]).items()}
         splits.update({column: (d, np.arange(len(d))) for column, d in extra.items()})

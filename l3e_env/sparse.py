@@ -93,11 +93,14 @@ class Level:
     keys: torch.Tensor | None = field(default=None, repr=False)  # the rows' keys, if already known
     _index: CoordinateIndex | None = field(default=None, repr=False)
     _neighbours: torch.Tensor | None = field(default=None, repr=False)
+    _one_scan: bool | None = field(default=None, repr=False)
     _coarser: tuple[Level, torch.Tensor, torch.Tensor, torch.Tensor] | None = field(default=None, repr=False)
 
     def batch_index(self) -> torch.Tensor | None:
         """The scan of each site, or None when all are of one scan (rows are in scan order)."""
-        return None if len(self.coords) == 0 or int(self.coords[-1, 0]) == 0 else self.coords[:, 0]
+        if self._one_scan is None:
+            self._one_scan = len(self.coords) == 0 or int(self.coords[-1, 0]) == 0
+        return None if self._one_scan else self.coords[:, 0]
 
     @property
     def index(self) -> CoordinateIndex:
@@ -166,11 +169,11 @@ def _int8_rows(x: torch.Tensor, batch: torch.Tensor | None) -> tuple[torch.Tenso
     """x rounded to int8 with one scale per scan (so that a scan's answer does not depend on the
     other scans of its batch), a zero row appended for the empty neighbour; and the scales, one
     per scan ((B,), a scalar tensor for one scan)."""
-    magnitude = x.abs()
     if batch is None:
-        scale = magnitude.amax() / 127
+        low, high = torch.aminmax(x)  # one pass, and no |x| copy
+        scale = torch.maximum(-low, high) / 127
     else:
-        scale = x.new_zeros(int(batch[-1]) + 1).scatter_reduce_(0, batch, magnitude.amax(1), "amax") / 127
+        scale = x.new_zeros(int(batch[-1]) + 1).scatter_reduce_(0, batch, x.abs().amax(1), "amax") / 127
     scale = scale.clamp_min(torch.finfo(x.dtype).tiny)
     rows = torch.round(x / (scale if batch is None else scale[batch, None])).to(torch.int8)
     return torch.cat([rows, rows.new_zeros(1, x.shape[1])]), scale
@@ -206,8 +209,10 @@ class GatherConv(nn.Module):
             return _gather_matmul(x, table, self.weight, self.bias)
         batch_in, batch_out = rows_in.batch_index(), rows_out.batch_index()
         rows, scale = _int8_rows(x, batch_in)
-        gathered = rows.index_select(0, table.reshape(-1)).reshape(len(table), -1)
-        products = torch._int_mm(gathered, self.int8_weight).to(x.dtype)
+        if rows.shape[1] == 16:  # a 16-byte row as one complex128: index_select copies elements, not rows
+            rows = rows.view(torch.complex128).reshape(-1)
+        gathered = rows.index_select(0, table.reshape(-1)).view(torch.int8).reshape(len(table), -1)
+        products = torch._int_mm(gathered, self.int8_weight)  # int32, scaled to float below
         scale = self.int8_scale * (scale if batch_out is None else scale[batch_out, None])
         return products * scale if self.bias is None else torch.addcmul(self.bias, products, scale)
 

@@ -15,8 +15,8 @@ from l3e_env.classifier import (
 )
 from l3e_env.dataset import DatasetError, LabelDataset, config_for, error_ratios, generate, open_datasets
 from l3e_env.detectors import LearnedDetector, make_detector
-from l3e_env.sparse import GatherConv, int8_products_work
 from l3e_env.scores import auroc, axis_scores, best_thresholds, mean_interval, mean_scores, pr_curve
+from l3e_env.sparse import GatherConv, int8_products_work
 from l3e_env.training import (
     SWAP_LABELS, TrainConfig, TrainingError, augment, balanced_pool, calibrate_symmetric, predict_dataset,
     split_indices, train, _resumable, training_targets,

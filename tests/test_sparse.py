@@ -165,4 +165,5 @@ def test_kernel_maps_read_off_the_coarser_level_equal_the_searched_ones():
     found = table < len(coords)
     assert 0 < found.float().mean() < 1
     rows, k = found.nonzero(as_tuple=True)
-    assert torch.equal(coords[table[rows, k]] - coords[rows], torch.cat([torch.zeros_like(rows)[:, None], OFFSETS_3[k]], 1))
+    same_scan_offsets = torch.cat([torch.zeros_like(rows)[:, None], OFFSETS_3[k]], 1)
+    assert torch.equal(coords[table[rows, k]] - coords[rows], same_scan_offsets)
