@@ -186,7 +186,7 @@ class GatherConv(nn.Module):
     rounded to 8 bits with one scale per scan, the weight with one scale per output channel, and
     the int32 products scaled back. The gathered matrix is a quarter of the bytes and the CPU's
     int8 matrix units multiply several times faster than float32 (benchmarks/RESULTS.md); the
-    shipped model's probabilities move by about 1e-3."""
+    shipped model's probabilities move by at most 0.006 on the test families."""
 
     weight: nn.Parameter
     bias: nn.Parameter | None
