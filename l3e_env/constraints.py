@@ -83,7 +83,7 @@ def _planar_hessians(tables: list[torch.Tensor], means: list[torch.Tensor], grou
 
 def _neighbourhood_scatter(table: torch.Tensor, means: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Per voxel, the number of occupied voxels in its 3x3x3 block and the scatter of their mean
-    points, from the block's summed moments (1, p, p p^T): one gather. In float64, as the moments
+    points, from the block's summed moments (1, p, p p^T): one sparse product. In float64, as the moments
     are about the sensor and float32 would cancel the scatter of far voxels."""
     n = len(means)
     means = means.double()
