@@ -19,9 +19,9 @@ eigen-decomposition of the 3x3 scatter: torch.linalg.eigh on a few thousand 3x3 
 from __future__ import annotations
 
 import math
-import warnings
 
 import numpy as np
+import scipy.sparse
 import torch
 from torch import nn
 
@@ -32,75 +32,88 @@ MIN_NEIGHBOURS = 4  # occupied voxels in the 3x3x3 block, the voxel itself inclu
 PLANARITY = 0.1  # smallest scatter eigenvalue under this share of the middle one: a surface
 
 
-def smallest_eigenvector(c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def smallest_eigenvector(c: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(unit eigenvector of the smallest eigenvalue, smallest, middle eigenvalue) of symmetric
-    (N, 3, 3) matrices, in closed form (the trigonometric solution of the characteristic cubic).
-    Written out entry by entry on contiguous (N,) vectors: reductions over the small 3-wide
-    dimensions and argmax over three rows cost more here than all the arithmetic."""
-    a, e, f, _, b, g, _, _, d = c.reshape(-1, 9).T.contiguous()  # the six distinct entries
+    (N, 3, 3) matrices, in closed form (see _smallest_eigenvector)."""
+    c = np.asarray(c, dtype=np.float64)
+    return _smallest_eigenvector(*(c[:, i, j] for i, j in _UPPER))
+
+
+_UPPER = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))  # the six distinct entries, in this order
+
+
+def _smallest_eigenvector(a: np.ndarray, e: np.ndarray, f: np.ndarray, b: np.ndarray, g: np.ndarray,
+                          d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """smallest_eigenvector of [[a, e, f], [e, b, g], [f, g, d]], each entry an (N,) vector: the
+    trigonometric solution of the characteristic cubic, entry by entry, because reductions and
+    argmax over the small 3-wide dimensions cost more than all the arithmetic."""
     q = (a + b + d) / 3
     a0, b0, d0 = a - q, b - q, d - q
-    p = torch.sqrt((a0 * a0 + b0 * b0 + d0 * d0 + 2 * (e * e + f * f + g * g)) / 6).clamp_min(1e-12)
+    p = np.sqrt((a0 * a0 + b0 * b0 + d0 * d0 + 2 * (e * e + f * f + g * g)) / 6).clip(1e-12)
     det = a0 * (b0 * d0 - g * g) - e * (e * d0 - g * f) + f * (e * g - b0 * f)  # of C - q I
-    phi = torch.acos((det / (2 * p**3)).clamp(-1.0, 1.0)) / 3
-    largest = q + 2 * p * torch.cos(phi)
-    smallest = q + 2 * p * torch.cos(phi + 2 * math.pi / 3)
+    phi = np.arccos((det / (2 * p**3)).clip(-1.0, 1.0)) / 3
+    largest = q + 2 * p * np.cos(phi)
+    smallest = q + 2 * p * np.cos(phi + 2 * math.pi / 3)
     middle = 3 * q - largest - smallest
     # the eigenvector is orthogonal to every row of C - lambda I: the longest cross product of two rows
     a1, b1, d1 = a - smallest, b - smallest, d - smallest
-    crosses = torch.stack([e * g - f * b1, f * e - a1 * g, a1 * b1 - e * e,  # rows 0 x 1
-                           e * d1 - f * g, f * f - a1 * d1, a1 * g - e * f,  # rows 0 x 2
-                           b1 * d1 - g * g, g * f - e * d1, e * g - b1 * f]).reshape(3, 3, -1)  # rows 1 x 2
+    crosses = np.stack([e * g - f * b1, f * e - a1 * g, a1 * b1 - e * e,  # rows 0 x 1
+                        e * d1 - f * g, f * f - a1 * d1, a1 * g - e * f,  # rows 0 x 2
+                        b1 * d1 - g * g, g * f - e * d1, e * g - b1 * f]).reshape(3, 3, -1)  # rows 1 x 2
     n0, n1, n2 = (crosses * crosses).sum(1)
     first = n0 >= n1
-    best, longest = torch.where(first, crosses[0], crosses[1]), torch.where(first, n0, n1)
+    best, longest = np.where(first, crosses[0], crosses[1]), np.where(first, n0, n1)
     third = n2 > longest
-    best, longest = torch.where(third, crosses[2], best), torch.where(third, n2, longest)
-    return (best / longest.sqrt().clamp_min(1e-12)).T, smallest, middle
+    best, longest = np.where(third, crosses[2], best), np.where(third, n2, longest)
+    return (best / np.sqrt(longest).clip(1e-12)).T, smallest, middle
 
 
-def voxel_hessian(level: Level, means: torch.Tensor, batch_size: int) -> torch.Tensor:
+def voxel_hessian(level: Level, means: torch.Tensor, batch_size: int) -> np.ndarray:
     """(B, 6, 6) point-to-plane Hessians sum_v J_v^T J_v, J_v = [n_v, p_v x n_v] (translation first,
     as the labels' axes), over the planar voxels of each scan: each voxel's mean point with the
     normal of its 3x3x3 neighbourhood. The ICP that makes the labels thins its scans to voxels too,
     so every voxel weighs one."""
-    return _planar_hessians([level.neighbours()], [means], level.coords[:, 0], batch_size)
+    return _planar_hessians([level.neighbours().numpy()], [means.numpy()], level.coords[:, 0].numpy(), batch_size)
 
 
-def _planar_hessians(tables: list[torch.Tensor], means: list[torch.Tensor], groups: torch.Tensor,
-                     count: int) -> torch.Tensor:
+def _planar_hessians(tables: list[np.ndarray], means: list[np.ndarray], groups: np.ndarray,
+                     count: int) -> np.ndarray:
     """(count, 6, 6): voxel_hessian over sets of voxels, each set with its (N, 27) neighbour rows
     (N: empty), and an ascending group index for each voxel of the sets stacked (a scan, or a scan
-    at one level)."""
-    voxels, scatter = map(torch.cat, zip(*(_neighbourhood_scatter(t, m) for t, m in zip(tables, means))))
-    means = torch.cat(means).double()
-    normal, smallest, middle = smallest_eigenvector(scatter)
-    planar = (voxels >= MIN_NEIGHBOURS) & (smallest < PLANARITY * middle)
-    rows = torch.cat([normal, torch.linalg.cross(means, normal)], dim=1)[planar]
-    sizes = torch.bincount(groups[planar], minlength=count).tolist()
-    return torch.stack([r.T @ r for r in torch.split(rows, sizes)])
+    at one level). In numpy: a few thousand voxels make small arrays, on which numpy's operations
+    cost a fraction of torch's (benchmarks/RESULTS.md), and no gradient flows through the features."""
+    counts, scatters = zip(*(_neighbourhood_scatter(t, m) for t, m in zip(tables, means)))
+    voxels, scatter = np.concatenate(counts), np.concatenate(scatters, axis=1)
+    candidates = np.flatnonzero(voxels >= MIN_NEIGHBOURS)
+    normal, smallest, middle = _smallest_eigenvector(*scatter[:, candidates])
+    planar = smallest < PLANARITY * middle
+    chosen = candidates[planar]
+    (px, py, pz), (nx, ny, nz) = np.concatenate(means)[chosen].T.astype(np.float64), normal[planar].T
+    # J = [n, p x n], written out: np.cross costs several times more on a few thousand rows
+    rows = np.stack([nx, ny, nz, py * nz - pz * ny, pz * nx - px * nz, px * ny - py * nx], axis=1)
+    bounds = np.searchsorted(groups[chosen], np.arange(count + 1))
+    return np.stack([rows[i:j].T @ rows[i:j] for i, j in zip(bounds[:-1], bounds[1:])])
 
 
-def _neighbourhood_scatter(table: torch.Tensor, means: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Per voxel, the number of occupied voxels in its 3x3x3 block and the scatter of their mean
-    points, from the block's summed moments (1, p, p p^T): one sparse product. In float64, as the moments
-    are about the sensor and float32 would cancel the scatter of far voxels."""
+def _neighbourhood_scatter(table: np.ndarray, means: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per voxel, the number of occupied voxels in its 3x3x3 block and the six distinct entries of
+    the scatter of their mean points ((6, N), in _UPPER's order), from the block's summed moments
+    (1, p, the products of p's coordinates). In float64, as the moments are about the sensor and
+    float32 would cancel the scatter of far voxels."""
     n = len(means)
-    means = means.double()
-    moments = torch.cat([torch.ones(n, 1, dtype=means.dtype), means,
-                         (means[:, :, None] * means[:, None, :]).reshape(n, 9)], dim=1)
-    # the block sums as a sparse (N, N) product: three quarters of the table's entries are empty,
-    # so this moves a third less memory than gathering all 27 rows and summing them
+    x, y, z = np.asarray(means, dtype=np.float64).T
+    moments = np.stack([x, y, z, x * x, x * y, x * z, y * y, y * z, z * z], axis=1)
+    # the block sums as a sparse (N, N) product: about three quarters of the table's entries are empty
     occupied = table < n
-    starts = torch.cat([occupied.new_zeros(1, dtype=torch.int64), occupied.sum(1).cumsum(0)])
-    with warnings.catch_warnings():  # "sparse CSR support is in beta": the product is exact here
-        warnings.simplefilter("ignore", UserWarning)
-        pairs = table[occupied]
-        blocks = torch.sparse_csr_tensor(starts, pairs, torch.ones(len(pairs), dtype=moments.dtype), (n, n))
-    summed = blocks @ moments
-    voxels = summed[:, 0]
-    centre = summed[:, 1:4] / voxels[:, None]
-    return voxels, summed[:, 4:].reshape(n, 3, 3) / voxels[:, None, None] - centre[:, :, None] * centre[:, None, :]
+    voxels = np.count_nonzero(occupied, axis=1)
+    starts = np.zeros(n + 1, dtype=np.int64)
+    np.cumsum(voxels, out=starts[1:])
+    pairs = np.take(table, np.flatnonzero(occupied))
+    summed = scipy.sparse.csr_array((np.ones(len(pairs)), pairs, starts), shape=(n, n)) @ moments
+    centre = summed[:, :3] / voxels[:, None]
+    second = summed[:, 3:] / voxels[:, None]
+    scatter = [second[:, k] - centre[:, i] * centre[:, j] for k, (i, j) in enumerate(_UPPER)]
+    return voxels.astype(np.float64), np.stack(scatter)
 
 
 def coarser_means(level: Level, means: torch.Tensor) -> tuple[Level, torch.Tensor]:
@@ -120,26 +133,26 @@ def scan_features(level: Level, means: torch.Tensor, batch_size: int, levels: tu
     tables, points, groups = [], [], []
     for k in range(max(levels) + 1):
         if k in levels:
-            tables.append(level.neighbours())
-            points.append(means)
-            groups.append(level.coords[:, 0] + len(groups) * batch_size)
+            tables.append(level.neighbours().numpy())
+            points.append(means.numpy())
+            groups.append(level.coords[:, 0].numpy() + len(groups) * batch_size)
         if k < max(levels):
             level, means = coarser_means(level, means)
-    hessians = _planar_hessians(tables, points, torch.cat(groups), batch_size * len(levels))
+    hessians = _planar_hessians(tables, points, np.concatenate(groups), batch_size * len(levels))
     per_level = hessian_features(hessians).reshape(len(levels), batch_size, FEATURES)
-    return per_level.permute(1, 0, 2).reshape(batch_size, -1)
+    return torch.from_numpy(np.ascontiguousarray(per_level.transpose(1, 0, 2).reshape(batch_size, -1)))
 
 
-def hessian_features(hessian: torch.Tensor) -> torch.Tensor:
-    """(B, 12): log diag(H^-1) (how far each axis can move for a unit rise in the cost, the other
-    axes free) and log eigenvalues of H. A small ridge keeps a scan with no constraint on an axis
-    finite (and large) instead of singular."""
-    h = hessian.double()  # the eigenvalues span several decades
-    ridge = 1e-6 * h.diagonal(dim1=1, dim2=2).sum(1).clamp_min(1e-6)
-    h = h + ridge[:, None, None] * torch.eye(6, dtype=h.dtype)
-    variances = torch.linalg.inv(h).diagonal(dim1=1, dim2=2)
-    eigenvalues = torch.linalg.eigvalsh(h).clamp_min(1e-3)
-    return torch.cat([variances.log(), eigenvalues.log()], dim=1).float()
+def hessian_features(hessian: np.ndarray) -> np.ndarray:
+    """(B, 12) float32: log diag(H^-1) (how far each axis can move for a unit rise in the cost, the
+    other axes free) and log eigenvalues of H. A small ridge keeps a scan with no constraint on an
+    axis finite (and large) instead of singular."""
+    h = np.asarray(hessian, dtype=np.float64)  # the eigenvalues span several decades
+    ridge = 1e-6 * np.trace(h, axis1=1, axis2=2).clip(1e-6)
+    h = h + ridge[:, None, None] * np.eye(6)
+    variances = np.linalg.inv(h).diagonal(axis1=1, axis2=2)
+    eigenvalues = np.linalg.eigvalsh(h).clip(1e-3)
+    return np.concatenate([np.log(variances), np.log(eigenvalues)], axis=1).astype(np.float32)
 
 
 def axis_rows(logits: torch.Tensor, features: torch.Tensor) -> torch.Tensor:

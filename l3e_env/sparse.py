@@ -1,4 +1,4 @@
-"""Sparse 3D convolution in pure PyTorch: kernel maps by coordinate hashing, gather, matmul.
+"""Sparse 3D convolution in pure PyTorch: kernel maps by coordinate keys, gather, matmul.
 
 Written by hand because MinkowskiEngine does not build on current torch, spconv's CPU build
 cannot back-propagate and torchsparse is not on the package registry. The scheme is
@@ -7,7 +7,12 @@ kernel offset (or a zero row when that neighbour is empty); the features are gat
 one (N, K * C_in) matrix and multiplied once by the (K * C_in, C_out) weight. Autograd turns
 the gather into a scatter-add in the backward pass, so gradients need no extra code.
 
-Coordinates are int64 (N, 4) rows (batch, x, y, z) in voxel units of the current level.
+Coordinates are int64 (N, 4) rows (batch, x, y, z) in voxel units of the current level. The
+levels and their kernel maps are index bookkeeping on a few thousand sites, done in numpy: its
+operations cost a fraction of torch's on arrays this small (benchmarks/RESULTS.md), and nothing
+there needs a gradient. voxelize sorts the sites once, by Morton key (the batch, then the bits of
+x, y and z interleaved), so that the eight children of every coarser site are consecutive rows
+and each coarser level follows from the finer one without another sort.
 """
 from __future__ import annotations
 
@@ -15,6 +20,7 @@ import itertools
 import math
 from dataclasses import dataclass, field
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -23,64 +29,54 @@ _SHIFT = 1 << (_BITS - 1)
 OFFSETS_3 = torch.tensor(list(itertools.product((-1, 0, 1), repeat=3)), dtype=torch.int64)  # (27, 3)
 OFFSETS_2 = torch.tensor(list(itertools.product((0, 1), repeat=3)), dtype=torch.int64)  # (8, 3)
 
-
-def hash_coords(coords: torch.Tensor, check: bool = True) -> torch.Tensor:
-    """One int64 key per (batch, x, y, z) row; order-preserving in batch, then x, y, z."""
-    xyz = coords[:, 1:] + _SHIFT
-    if check and bool((xyz < 0).any() | (xyz >= 1 << _BITS).any()):
-        raise ValueError(f"voxel coordinates beyond +-{_SHIFT}; the scan extends too far for this voxel size")
-    return (coords[:, 0] << 3 * _BITS) | (xyz[:, 0] << 2 * _BITS) | (xyz[:, 1] << _BITS) | xyz[:, 2]
-
-
-def unhash_coords(keys: torch.Tensor) -> torch.Tensor:
-    mask = (1 << _BITS) - 1
-    xyz = [((keys >> s) & mask) - _SHIFT for s in (2 * _BITS, _BITS, 0)]
-    return torch.stack([keys >> 3 * _BITS, *xyz], dim=1)
-
-
-def unique_coords(coords: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Sorted unique rows, the inverse map and the rows' (sorted) keys, through the 1-D keys
-    (torch.unique(dim=0) is an order of magnitude slower on CPU)."""
-    keys, inverse = torch.unique(hash_coords(coords), return_inverse=True)
-    return unhash_coords(keys), inverse, keys
-
-
-class CoordinateIndex:
-    """Sorted hash keys of a set of sites, for vectorised lookup of any list of sites.
-    `row_keys` are the sites' keys in row order; given and sorted, they are used as they are."""
-
-    def __init__(self, coords: torch.Tensor, row_keys: torch.Tensor | None = None):
-        self.n = len(coords)
-        self.row_keys = hash_coords(coords) if row_keys is None else row_keys
-        # the row of each sorted key; None when the rows come in key order: a key's position is its row
-        self.order: torch.Tensor | None = None
-        if row_keys is not None and bool((row_keys[1:] > row_keys[:-1]).all()):
-            self.keys = row_keys
-        else:
-            self.keys, self.order = torch.sort(self.row_keys)
-
-    @property
-    def sorted(self) -> bool:
-        return self.order is None
-
-    def lookup(self, keys: torch.Tensor) -> torch.Tensor:
-        """Row of each queried key, or n (the zero row) where the site is empty."""
-        if self.n == 0:
-            return torch.zeros_like(keys)
-        pos = torch.searchsorted(self.keys, keys).clamp_(max=self.n - 1)
-        found = self.keys[pos] == keys
-        rows = pos if self.order is None else self.order[pos]
-        return torch.where(found, rows, torch.full_like(pos, self.n))
-
-
-# the key of a neighbour is the site's key plus a constant, because the key is linear in x, y, z
-_NEIGHBOUR_DELTAS = (OFFSETS_3[:, 0] << 2 * _BITS) + (OFFSETS_3[:, 1] << _BITS) + OFFSETS_3[:, 2]
-
+# the neighbour at OFFSETS_3[k] of a site has the site's search key plus _NEIGHBOUR_DELTAS[k]
+_NEIGHBOUR_DELTAS = ((OFFSETS_3[:, 0] << 2 * _BITS) + (OFFSETS_3[:, 1] << _BITS) + OFFSETS_3[:, 2]).numpy()
 # A site in child slot s (OFFSETS_2[s]) of its parent has its neighbour at OFFSETS_3[k] in the
 # parent's neighbour _PARENT_OFFSET[s, k] (an OFFSETS_3 row), in child slot _CHILD_SLOT[s, k].
-_FINE = OFFSETS_2[:, None, :] + OFFSETS_3[None, :, :]  # (8, 27, 3), each in -1..2
-_PARENT_OFFSET = (torch.div(_FINE, 2, rounding_mode="floor") + 1) @ torch.tensor([9, 3, 1])
-_CHILD_SLOT = torch.remainder(_FINE, 2) @ torch.tensor([4, 2, 1])
+_FINE = (OFFSETS_2[:, None, :] + OFFSETS_3[None, :, :]).numpy()  # (8, 27, 3), each in -1..2
+_PARENT_OFFSET = (np.floor_divide(_FINE, 2) + 1) @ np.array([9, 3, 1])
+_CHILD_SLOT = np.remainder(_FINE, 2) @ np.array([4, 2, 1])
+# a byte's bits spread to every third bit, for Morton keys
+_SPREAD = np.array([sum(((v >> b) & 1) << 3 * b for b in range(8)) for v in range(256)], dtype=np.int64)
+
+
+def _shifted(xyz: np.ndarray) -> np.ndarray:
+    """Voxel coordinates moved into 0 .. 2^16 - 1, or ValueError."""
+    shifted = xyz + _SHIFT
+    if len(shifted) and (shifted.min() < 0 or shifted.max() >= 1 << _BITS):
+        raise ValueError(f"voxel coordinates beyond +-{_SHIFT}; the scan extends too far for this voxel size")
+    return shifted
+
+
+def morton_keys(coords: np.ndarray) -> np.ndarray:
+    """One int64 key per (batch, x, y, z) row: the batch above the interleaved bits of x, y, z, so
+    that sorted keys keep the scans in order and a site's key shifted right by 3 is its parent's."""
+    xyz = _shifted(coords[:, 1:])
+    spread = np.take(_SPREAD, xyz & 255) | (np.take(_SPREAD, xyz >> 8) << 24)
+    return (coords[:, 0] << 3 * _BITS) | (spread[:, 0] << 2) | (spread[:, 1] << 1) | spread[:, 2]
+
+
+def _runs(sorted_keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The first position of each run of equal keys, and the run of every position."""
+    new = np.empty(len(sorted_keys), dtype=bool)
+    new[:1] = True
+    np.not_equal(sorted_keys[1:], sorted_keys[:-1], out=new[1:])
+    return np.flatnonzero(new), np.cumsum(new) - 1
+
+
+def _searched_neighbours(coords: np.ndarray) -> np.ndarray:
+    """(N, 27) rows of the 3x3x3 neighbours of each site (N where empty), by binary search of
+    keys that are linear in x, y, z (a neighbour's key is the site's plus a constant)."""
+    n = len(coords)
+    xyz = _shifted(coords[:, 1:])
+    keys = (coords[:, 0] << 3 * _BITS) | (xyz[:, 0] << 2 * _BITS) | (xyz[:, 1] << _BITS) | xyz[:, 2]
+    if n == 0:
+        return np.zeros((0, 27), dtype=np.int64)
+    order = np.argsort(keys)
+    sorted_keys = np.take(keys, order)
+    wanted = keys[:, None] + _NEIGHBOUR_DELTAS
+    pos = np.searchsorted(sorted_keys, wanted).clip(max=n - 1)
+    return np.where(np.take(sorted_keys, pos) == wanted, np.take(order, pos), n)
 
 
 @dataclass
@@ -90,8 +86,8 @@ class Level:
 
     coords: torch.Tensor  # (N, 4) int64
     stride: int  # in units of the finest voxel
-    keys: torch.Tensor | None = field(default=None, repr=False)  # the rows' keys, if already known
-    _index: CoordinateIndex | None = field(default=None, repr=False)
+    # the rows' Morton keys when the rows come in ascending Morton order (as from voxelize and coarser)
+    morton: np.ndarray | None = field(default=None, repr=False)
     _neighbours: torch.Tensor | None = field(default=None, repr=False)
     _one_scan: bool | None = field(default=None, repr=False)
     _coarser: tuple[Level, torch.Tensor, torch.Tensor, torch.Tensor] | None = field(default=None, repr=False)
@@ -102,41 +98,45 @@ class Level:
             self._one_scan = len(self.coords) == 0 or int(self.coords[-1, 0]) == 0
         return None if self._one_scan else self.coords[:, 0]
 
-    @property
-    def index(self) -> CoordinateIndex:
-        if self._index is None:
-            self._index = CoordinateIndex(self.coords, self.keys)
-        return self._index
-
     def neighbours(self) -> torch.Tensor:
         """(N, 27) rows of the 3x3x3 neighbours of each site (N where empty). Once the coarser level
         exists (ResUNet.encode builds them all first), the table is read off that level's own:
-        every neighbour of a site is a child of a neighbour of the site's parent, so four table
-        lookups replace 27 searches of the keys (exact, and 3-4x faster)."""
+        every neighbour of a site is a child of a neighbour of the site's parent, so two table
+        lookups replace 27 binary searches per site (exact, and several times faster)."""
         if self._neighbours is None:
+            n = len(self.coords)
             if self._coarser is not None:
                 coarse, children, parent, slot = self._coarser
-                parents = coarse.neighbours().index_select(0, parent).gather(1, _PARENT_OFFSET.index_select(0, slot))
-                no_child = children.new_full((8,), len(self.coords))  # the children of "no neighbour"
-                rows = torch.cat([children.reshape(-1), no_child])
-                self._neighbours = rows.take(parents * 8 + _CHILD_SLOT.index_select(0, slot))
+                parent, slot = parent.numpy(), slot.numpy()
+                offsets = np.take(_PARENT_OFFSET, slot, axis=0)
+                parents = np.take(coarse.neighbours().numpy(), (parent * 27)[:, None] + offsets)
+                rows = np.append(children.numpy().reshape(-1), np.full(8, n))  # the children of "no neighbour": none
+                table = np.take(rows, parents * 8 + np.take(_CHILD_SLOT, slot, axis=0))
             else:
-                index = self.index
-                self._neighbours = index.lookup(index.row_keys[:, None] + _NEIGHBOUR_DELTAS)
+                table = _searched_neighbours(self.coords.numpy())
+            self._neighbours = torch.from_numpy(table)
         return self._neighbours
 
     def coarser(self) -> tuple[Level, torch.Tensor, torch.Tensor, torch.Tensor]:
-        """The level at twice the voxel size, plus (children table (M, 8) of this level's rows,
-        parent row of each site here (N,), child slot of each site here (N,))."""
+        """The level at twice the voxel size (in Morton order), plus (children table (M, 8) of this
+        level's rows (N where none), parent row of each site here (N,), child slot of each site here
+        (N,), an OFFSETS_2 row)."""
         if self._coarser is None:
-            parent = self.coords.clone()
-            parent[:, 1:] = torch.div(parent[:, 1:], 2, rounding_mode="floor")
-            unique, inverse, keys = unique_coords(parent)
-            slot_xyz = self.coords[:, 1:] - 2 * parent[:, 1:]
-            slot = slot_xyz[:, 0] * 4 + slot_xyz[:, 1] * 2 + slot_xyz[:, 2]
-            children = torch.full((len(unique), 8), len(self.coords), dtype=torch.int64)
-            children[inverse, slot] = torch.arange(len(self.coords))
-            self._coarser = (Level(unique, self.stride * 2, keys), children, inverse, slot)
+            coords = self.coords.numpy()
+            keys = morton_keys(coords) if self.morton is None else self.morton
+            parent_keys = keys >> 3
+            if self.morton is not None:  # each parent's children are consecutive rows: no sort
+                first, parent = _runs(parent_keys)
+                coarse_keys = np.take(parent_keys, first)
+            else:
+                coarse_keys, first, parent = np.unique(parent_keys, return_index=True, return_inverse=True)
+            coarse = np.take(coords, first, axis=0)
+            coarse[:, 1:] >>= 1  # floor(x / 2)
+            slot = keys & 7  # the lowest bits of x, y and z: 4 dx + 2 dy + dz
+            children = np.full((len(first), 8), len(coords), dtype=np.int64)
+            children[parent, slot] = np.arange(len(coords))
+            self._coarser = (Level(torch.from_numpy(coarse), self.stride * 2, coarse_keys),
+                             torch.from_numpy(children), torch.from_numpy(parent), torch.from_numpy(slot))
         return self._coarser
 
 
@@ -260,15 +260,24 @@ class UpConv(nn.Module):
 
 
 def voxelize(points: list[torch.Tensor], voxel: float) -> tuple[Level, torch.Tensor, torch.Tensor]:
-    """Quantize a batch of point sets: the finest level, each voxel's mean point (float, (N, 3)),
-    and the voxel row of every input point (for per-point features)."""
-    p = torch.cat(points)
-    batch = torch.repeat_interleave(torch.arange(len(points)), torch.tensor([len(q) for q in points]))
-    q = torch.cat([batch[:, None], torch.floor(p / voxel).to(torch.int64)], dim=1)
-    unique, inverse, keys = unique_coords(q)  # the batch index leads the key: scans stay in order
-    count = torch.zeros(len(unique)).index_add_(0, inverse, torch.ones(len(p)))
-    mean = torch.zeros(len(unique), 3).index_add_(0, inverse, p) / count[:, None]
-    return Level(unique, 1, keys), mean, inverse
+    """Quantize a batch of point sets: the finest level (rows in Morton order, scans in order), each
+    voxel's mean point (float, (N, 3)), and the voxel row of every input point (for per-point
+    features)."""
+    p = torch.cat(points).numpy()
+    batch = np.repeat(np.arange(len(points)), [len(q) for q in points])
+    cells = np.concatenate([batch[:, None], np.floor(p / voxel).astype(np.int64)], axis=1)
+    keys = morton_keys(cells)
+    order = np.argsort(keys)
+    sorted_keys = np.take(keys, order)
+    first, run = _runs(sorted_keys)
+    inverse = np.empty(len(p), dtype=np.int64)
+    inverse[order] = run
+    count = np.bincount(inverse, minlength=len(first))
+    mean = np.stack([np.bincount(inverse, weights=p[:, k], minlength=len(first)) for k in range(3)], axis=1)
+    mean = (mean / count[:, None]).astype(np.float32)
+    coords = np.take(cells, np.take(order, first), axis=0)
+    level = Level(torch.from_numpy(coords), 1, np.take(sorted_keys, first))
+    return level, torch.from_numpy(mean), torch.from_numpy(inverse)
 
 
 def global_max_pool(x: torch.Tensor, level: Level, batch_size: int) -> torch.Tensor:

@@ -68,15 +68,15 @@ def _brute_force_hessian(points: np.ndarray, voxel: float) -> np.ndarray:
 
 
 def test_the_closed_form_normal_is_the_smallest_eigenvector(rng):
-    a = torch.from_numpy(rng.standard_normal((500, 3, 3)))
-    c = a @ a.transpose(1, 2)
-    c[0] = torch.diag(torch.tensor([1.0, 2.0, 0.01], dtype=c.dtype))  # axis-aligned plane
-    c[1] = torch.diag(torch.tensor([1.0, 1.0, 0.0], dtype=c.dtype))  # a perfect plane: rank two
+    a = rng.standard_normal((500, 3, 3))
+    c = a @ a.transpose(0, 2, 1)
+    c[0] = np.diag([1.0, 2.0, 0.01])  # axis-aligned plane
+    c[1] = np.diag([1.0, 1.0, 0.0])  # a perfect plane: rank two
     normal, smallest, middle = smallest_eigenvector(c)
-    w, V = torch.linalg.eigh(c)
-    assert torch.allclose(smallest, w[:, 0], atol=1e-6) and torch.allclose(middle, w[:, 1], atol=1e-6)
-    assert torch.allclose((normal * V[:, :, 0]).sum(1).abs(), torch.ones(500, dtype=c.dtype), atol=1e-6)
-    assert torch.allclose(normal[:2].abs(), torch.tensor([[0.0, 0.0, 1.0]] * 2, dtype=c.dtype))
+    w, V = np.linalg.eigh(c)
+    assert np.allclose(smallest, w[:, 0], atol=1e-6) and np.allclose(middle, w[:, 1], atol=1e-6)
+    assert np.allclose(np.abs((normal * V[:, :, 0]).sum(1)), 1.0, atol=1e-6)
+    assert np.allclose(np.abs(normal[:2]), [[0.0, 0.0, 1.0]] * 2)
 
 
 def test_voxel_hessian_matches_a_brute_force_sum_and_keeps_scans_apart(rng):
@@ -86,7 +86,7 @@ def test_voxel_hessian_matches_a_brute_force_sum_and_keeps_scans_apart(rng):
     both = voxel_hessian(level, means, 2)
     for k, points in enumerate([room, corridor]):
         expected = _brute_force_hessian(points.numpy().astype(np.float64), 0.2)
-        assert np.allclose(both[k].numpy(), expected, rtol=1e-4, atol=1e-3)
+        assert np.allclose(both[k], expected, rtol=1e-4, atol=1e-3)
     assert expected[0, 0] < 0.02 * expected[1, 1]  # the corridor's walls hold (almost) nothing along x
 
 
@@ -95,11 +95,11 @@ def test_the_coarser_levels_features_are_those_of_the_finer_voxels_means_on_the_
     level, means, _ = voxelize([corridor], 0.2)
     both = scan_features(level, means, 1, (0, 1))[0].numpy()
     assert both.shape == (24,)
-    assert np.allclose(both[:12], hessian_features(voxel_hessian(level, means, 1))[0].numpy())
+    assert np.allclose(both[:12], hessian_features(voxel_hessian(level, means, 1))[0])
     # a 0.2 m voxel's mean lies in its 0.4 m parent, so the brute force over the means on the 0.4 m grid
     # weighs every finer voxel once, as the coarser level does
     expected = _brute_force_hessian(means.numpy().astype(np.float64), 0.4)
-    assert np.allclose(both[12:], hessian_features(torch.from_numpy(expected)[None])[0].numpy(), atol=1e-3)
+    assert np.allclose(both[12:], hessian_features(expected[None])[0], atol=1e-3)
     assert np.allclose(scan_features(level, means, 1, (1,))[0].numpy(), both[12:])
     room = _box_room(rng, 8.0, n=3000)
     level, means, _ = voxelize([room, corridor], 0.2)  # a batch: each scan keeps its own rows
@@ -112,7 +112,7 @@ def test_the_coarser_levels_features_are_those_of_the_finer_voxels_means_on_the_
 def test_the_features_see_a_corridor_along_x_and_a_closed_room_everywhere(rng):
     def features(points):
         level, means, _ = voxelize([points], 0.2)
-        return hessian_features(voxel_hessian(level, means, 1))[0].numpy()
+        return hessian_features(voxel_hessian(level, means, 1))[0]
 
     corridor, room = features(_box_room(rng, 30.0, ends=False)), features(_box_room(rng, 8.0))
     log_var = {"corridor": corridor[:6], "room": room[:6]}

@@ -3,8 +3,7 @@ import pytest
 import torch
 
 from l3e_env.sparse import (
-    OFFSETS_2, OFFSETS_3, DownConv, Level, SubmanifoldConv, UpConv, global_max_pool, hash_coords, int8_products_work,
-    voxelize,
+    OFFSETS_2, OFFSETS_3, DownConv, Level, SubmanifoldConv, UpConv, global_max_pool, int8_products_work, voxelize,
 )
 
 
@@ -31,7 +30,7 @@ def _compare(sparse_out, dense_out, coords, sparse_params, dense_params, inputs)
     return grads_s, grads_d
 
 
-@pytest.mark.parametrize("order", ["sorted", "shuffled", "keyed"])
+@pytest.mark.parametrize("order", ["sorted", "shuffled"])
 def test_submanifold_conv_matches_dense_conv3d(order: str):
     coords, feats, dense = _sparse_grid(0)
     if order == "shuffled":  # sites in no particular order: the kernel map must map sorted keys back to rows
@@ -45,9 +44,7 @@ def test_submanifold_conv_matches_dense_conv3d(order: str):
         for k, (dx, dy, dz) in enumerate(OFFSETS_3.tolist()):
             conv.weight[:, :, dx + 1, dy + 1, dz + 1] = sconv.weight[k].T
         conv.bias.copy_(sconv.bias)
-    # "keyed": the sorted rows' keys come with them (as from voxelize), so a key's position is its row
-    level = Level(coords, 1, hash_coords(coords) if order == "keyed" else None)
-    assert level.index.sorted == (order == "keyed")
+    level = Level(coords, 1)
     out_s, out_d = sconv(feats, level), conv(dense)
     (gx, gw, gb), (gxd, gwd, gbd) = _compare(out_s, out_d, coords, [sconv.weight, sconv.bias],
                                              [conv.weight, conv.bias], (feats, dense))
@@ -126,7 +123,7 @@ def test_int8_convolution_is_close_to_float32_and_scales_each_scan_alone(conv_ty
     torch.manual_seed(0)
     conv = conv_type(16, 24)
     conv.bias = torch.nn.Parameter(torch.randn(24))  # as after fold_batch_norms
-    level = Level(coords, 1, hash_coords(coords))
+    level = Level(coords, 1)
 
     def run(x, lv):
         out = conv(x, lv)
@@ -167,3 +164,25 @@ def test_kernel_maps_read_off_the_coarser_level_equal_the_searched_ones():
     rows, k = found.nonzero(as_tuple=True)
     same_scan_offsets = torch.cat([torch.zeros_like(rows)[:, None], OFFSETS_3[k]], 1)
     assert torch.equal(coords[table[rows, k]] - coords[rows], same_scan_offsets)
+
+
+def test_voxelize_orders_sites_so_that_coarser_levels_need_no_sort():
+    g = torch.Generator().manual_seed(6)
+    scans = [torch.randn(400, 3, generator=g) * 2.0 - 1.0 for _ in range(3)]  # negative coordinates too
+    level, means, rows = voxelize(scans, 0.2)
+    assert torch.equal(level.coords[:, 0], level.coords[:, 0].sort().values)  # scans in order
+    point_cells = torch.floor(torch.cat(scans) / 0.2).long()
+    assert torch.equal(level.coords[rows, 1:], point_cells)  # every point lies in its voxel
+    sizes = [len(level.coords)]
+    for _ in range(3):
+        generic = Level(level.coords.clone(), level.stride)  # no keys: coarser() sorts for itself
+        fast, slow = level.coarser(), generic.coarser()
+        for a, b in zip(fast, slow):
+            assert torch.equal(a.coords, b.coords) if isinstance(a, Level) else torch.equal(a, b)
+        coarse, children, parent, slot = fast
+        assert torch.equal(coarse.coords[parent, 1:], torch.div(level.coords[:, 1:], 2, rounding_mode="floor"))
+        assert torch.equal(level.coords[:, 1:] - 2 * coarse.coords[parent, 1:], OFFSETS_2[slot])
+        assert torch.equal(children[parent, slot], torch.arange(len(level.coords)))
+        level = coarse
+        sizes.append(len(level.coords))
+    assert sizes == sorted(sizes, reverse=True) and sizes[-1] < sizes[0] / 2
