@@ -301,7 +301,7 @@ def one_per_voxel(points: np.ndarray, voxel: float, rng: np.random.Generator) ->
 def sample_points(points: np.ndarray, count: int, rng: np.random.Generator) -> torch.Tensor:
     """`count` points drawn without replacement (all of them when the scan has fewer)."""
     if len(points) > count:
-        points = points[rng.choice(len(points), count, replace=False)]
+        points = np.take(points, rng.choice(len(points), count, replace=False), axis=0)
     return torch.from_numpy(np.ascontiguousarray(points, dtype=np.float32))
 
 

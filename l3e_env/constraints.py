@@ -104,11 +104,11 @@ def _neighbourhood_scatter(table: np.ndarray, means: np.ndarray) -> tuple[np.nda
     x, y, z = np.asarray(means, dtype=np.float64).T
     moments = np.stack([x, y, z, x * x, x * y, x * z, y * y, y * z, z * z], axis=1)
     # the block sums as a sparse (N, N) product: about three quarters of the table's entries are empty
-    occupied = table < n
-    voxels = np.count_nonzero(occupied, axis=1)
+    occupied = np.flatnonzero(table < n)  # row-major: grouped by voxel
+    voxels = np.bincount(occupied // table.shape[1], minlength=n)
     starts = np.zeros(n + 1, dtype=np.int64)
     np.cumsum(voxels, out=starts[1:])
-    pairs = np.take(table, np.flatnonzero(occupied))
+    pairs = np.take(table, occupied)
     summed = scipy.sparse.csr_array((np.ones(len(pairs)), pairs, starts), shape=(n, n)) @ moments
     centre = summed[:, :3] / voxels[:, None]
     second = summed[:, 3:] / voxels[:, None]
