@@ -255,8 +255,8 @@ class UpConv(nn.Module):
     def forward(self, x: torch.Tensor, fine: Level) -> torch.Tensor:
         _, _, parent, slot = fine.coarser()
         weight = self.weight.permute(1, 0, 2).reshape(x.shape[1], -1)  # (C_in, 8 C_out): every slot at once
-        every_slot = x @ weight if self.bias is None else torch.addmm(self.bias.repeat(8), x, weight)
-        return every_slot.reshape(-1, self.c_out).index_select(0, parent * 8 + slot)
+        out = (x @ weight).reshape(-1, self.c_out).index_select(0, parent * 8 + slot)
+        return out if self.bias is None else out.add_(self.bias)  # after the gather: bias.repeat(8) costs more
 
 
 def voxelize(points: list[torch.Tensor], voxel: float) -> tuple[Level, torch.Tensor, torch.Tensor]:
