@@ -165,17 +165,19 @@ def int8_products_work() -> bool:
         return False
 
 
-def _int8_rows(x: torch.Tensor, batch: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+def _int8_rows(x: torch.Tensor, batch: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor | float]:
     """x rounded to int8 with one scale per scan (so that a scan's answer does not depend on the
     other scans of its batch), a zero row appended for the empty neighbour; and the scales, one
-    per scan ((B,), a scalar tensor for one scan)."""
+    per scan ((B,); a float for one scan, which saves the tensor operations on a scalar)."""
+    tiny = torch.finfo(x.dtype).tiny
     if batch is None:
         low, high = torch.aminmax(x)  # one pass, and no |x| copy
-        scale = torch.maximum(-low, high) / 127
+        scale = max(-float(low), float(high), 127 * tiny) / 127
+        rows = torch.round(x * (1 / scale)).to(torch.int8)
     else:
         scale = x.new_zeros(int(batch[-1]) + 1).scatter_reduce_(0, batch, x.abs().amax(1), "amax") / 127
-    scale = scale.clamp_min(torch.finfo(x.dtype).tiny)
-    rows = torch.round(x / (scale if batch is None else scale[batch, None])).to(torch.int8)
+        scale = scale.clamp_min(tiny)
+        rows = torch.round(x / scale[batch, None]).to(torch.int8)
     return torch.cat([rows, rows.new_zeros(1, x.shape[1])]), scale
 
 
