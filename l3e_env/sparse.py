@@ -165,20 +165,29 @@ def int8_products_work() -> bool:
         return False
 
 
+_HALF = torch.tensor(0.5)
+
+
 def _int8_rows(x: torch.Tensor, batch: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor | float]:
     """x rounded to int8 with one scale per scan (so that a scan's answer does not depend on the
     other scans of its batch), a zero row appended for the empty neighbour; and the scales, one
     per scan ((B,); a float for one scan, which saves the tensor operations on a scalar)."""
     tiny = torch.finfo(x.dtype).tiny
+    rows = torch.empty(len(x) + 1, x.shape[1], dtype=torch.int8)
+    rows[-1] = 0
     if batch is None:
         low, high = torch.aminmax(x)  # one pass, and no |x| copy
-        scale = max(-float(low), float(high), 127 * tiny) / 127
-        rows = torch.round(x * (1 / scale)).to(torch.int8)
+        low, high = float(low), float(high)
+        scale = max(-low, high, 127 * tiny) / 127
+        if low >= 0:  # after a ReLU, as in the ResUNet: x / scale + 0.5 truncated is x / scale rounded
+            rows[:-1] = torch.add(_HALF, x, alpha=1 / scale)  # the copy truncates: one pass fewer than round
+        else:
+            rows[:-1] = torch.round(x * (1 / scale))
     else:
         scale = x.new_zeros(int(batch[-1]) + 1).scatter_reduce_(0, batch, x.abs().amax(1), "amax") / 127
         scale = scale.clamp_min(tiny)
-        rows = torch.round(x / scale[batch, None]).to(torch.int8)
-    return torch.cat([rows, rows.new_zeros(1, x.shape[1])]), scale
+        rows[:-1] = torch.round(x / scale[batch, None])
+    return rows, scale
 
 
 class GatherConv(nn.Module):
@@ -215,7 +224,11 @@ class GatherConv(nn.Module):
             rows = rows.view(torch.complex128).reshape(-1)
         gathered = rows.index_select(0, table.reshape(-1)).view(torch.int8).reshape(len(table), -1)
         products = torch._int_mm(gathered, self.int8_weight)  # int32, scaled to float below
-        scale = self.int8_scale * (scale if batch_out is None else scale[batch_out, None])
+        if batch_out is None:  # one scan: its scale as addcmul's value saves a product
+            if self.bias is None:
+                return products * (self.int8_scale * scale)
+            return torch.addcmul(self.bias, products, self.int8_scale, value=scale)
+        scale = self.int8_scale * scale[batch_out, None]
         return products * scale if self.bias is None else torch.addcmul(self.bias, products, scale)
 
 
