@@ -40,6 +40,7 @@ def smallest_eigenvector(c: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndar
 
 
 _UPPER = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))  # the six distinct entries, in this order
+_ROW, _COLUMN = np.array(_UPPER).T
 
 
 def _smallest_eigenvector(a: np.ndarray, e: np.ndarray, f: np.ndarray, b: np.ndarray, g: np.ndarray,
@@ -110,19 +111,17 @@ def _neighbourhood_scatter(table: np.ndarray, means: np.ndarray) -> tuple[np.nda
     np.cumsum(voxels, out=starts[1:])
     pairs = np.take(table, occupied)
     summed = scipy.sparse.csr_array((np.ones(len(pairs)), pairs, starts), shape=(n, n)) @ moments
-    centre = summed[:, :3] / voxels[:, None]
-    second = summed[:, 3:] / voxels[:, None]
-    scatter = [second[:, k] - centre[:, i] * centre[:, j] for k, (i, j) in enumerate(_UPPER)]
-    return voxels.astype(np.float64), np.stack(scatter)
+    mean = summed.T / voxels  # (9, N): the centre, then the second moments in _UPPER's order
+    return voxels.astype(np.float64), mean[3:] - mean[_ROW] * mean[_COLUMN]
 
 
-def coarser_means(level: Level, means: torch.Tensor) -> tuple[Level, torch.Tensor]:
+def coarser_means(level: Level, means: np.ndarray) -> tuple[Level, np.ndarray]:
     """The next coarser level (the network's own, cached on `level`) and the mean of each coarse
     voxel's finer mean points: every finer voxel weighs one, whatever its point count."""
     coarse, _, parent, _ = level.coarser()
-    count = torch.zeros(len(coarse.coords), dtype=means.dtype).index_add_(0, parent, torch.ones_like(means[:, 0]))
-    summed = torch.zeros(len(coarse.coords), 3, dtype=means.dtype).index_add_(0, parent, means)
-    return coarse, summed / count[:, None]
+    parent, size = parent.numpy(), len(coarse.coords)
+    summed = np.stack([np.bincount(parent, weights=means[:, k], minlength=size) for k in range(3)], axis=1)
+    return coarse, summed / np.bincount(parent, minlength=size)[:, None]  # float64, as the moments
 
 
 def scan_features(level: Level, means: torch.Tensor, batch_size: int, levels: tuple[int, ...] = (0,)) -> torch.Tensor:
@@ -131,13 +130,14 @@ def scan_features(level: Level, means: torch.Tensor, batch_size: int, levels: tu
     were more scans of the batch: the work is small and the operations' overhead would otherwise be
     paid once per level."""
     tables, points, groups = [], [], []
+    points_here = means.numpy()
     for k in range(max(levels) + 1):
         if k in levels:
             tables.append(level.neighbours().numpy())
-            points.append(means.numpy())
+            points.append(points_here)
             groups.append(level.coords[:, 0].numpy() + len(groups) * batch_size)
         if k < max(levels):
-            level, means = coarser_means(level, means)
+            level, points_here = coarser_means(level, points_here)
     hessians = _planar_hessians(tables, points, np.concatenate(groups), batch_size * len(levels))
     per_level = hessian_features(hessians).reshape(len(levels), batch_size, FEATURES)
     return torch.from_numpy(np.ascontiguousarray(per_level.transpose(1, 0, 2).reshape(batch_size, -1)))
