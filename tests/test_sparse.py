@@ -3,7 +3,8 @@ import pytest
 import torch
 
 from l3e_env.sparse import (
-    OFFSETS_2, OFFSETS_3, DownConv, Level, SubmanifoldConv, UpConv, global_max_pool, int8_products_work, voxelize,
+    OFFSETS_2, OFFSETS_3, DownConv, Level, SubmanifoldConv, UpConv, _int8_rows, global_max_pool, int8_products_work,
+    voxelize,
 )
 
 
@@ -142,6 +143,20 @@ def test_int8_convolution_is_close_to_float32_and_scales_each_scan_alone(conv_ty
     second = out_coords[:, 0] == 1
     assert torch.allclose(run(louder, level)[second], rounded[second], atol=1e-5)
     assert not torch.allclose(run(louder, level)[~second], rounded[~second], atol=1e-3)
+
+
+def test_int8_rows_are_the_features_rounded_with_the_empty_row_last():
+    g = torch.Generator().manual_seed(3)
+    after_relu, signed = torch.rand(60, 16, generator=g) * 3, torch.randn(60, 16, generator=g)
+    for x in (after_relu, signed):  # the two roundings of one scan
+        rows, scale = _int8_rows(x, None)
+        assert rows.dtype == torch.int8 and rows.shape == (61, 16) and not rows[-1].any()
+        assert scale == pytest.approx(float(x.abs().max()) / 127)
+        assert ((rows[:-1] - x / scale).abs() <= 0.5 + 1e-4).all()  # to the nearest step
+    batch = torch.tensor([0] * 30 + [1] * 30)
+    rows, scales = _int8_rows(signed, batch)
+    assert torch.allclose(scales, torch.stack([signed[:30].abs().max(), signed[30:].abs().max()]) / 127)
+    assert ((rows[:-1] - signed / scales[batch, None]).abs() <= 0.5 + 1e-4).all() and not rows[-1].any()
 
 
 def test_kernel_maps_read_off_the_coarser_level_equal_the_searched_ones():
