@@ -13,16 +13,17 @@ registration's coarse first stage locks onto, and they help on scene families ne
 (benchmarks/RESULTS.md).
 
 The normals are those of the 3x3x3 voxel neighbourhood of each voxel, from a closed-form
-eigen-decomposition of the 3x3 scatter: torch.linalg.eigh on a few thousand 3x3 matrices costs
-4 ms here, the closed form a tenth of that.
+eigen-decomposition of the 3x3 scatter (torch.linalg.eigh on a few thousand 3x3 matrices costs
+4 ms here). The Hessian is summed by a loop compiled with numba, one voxel at a time: numpy's
+operations on arrays of a few thousand voxels cost more in overhead than in arithmetic.
 """
 from __future__ import annotations
 
 import math
 
 import numpy as np
-import scipy.sparse
 import torch
+from numba import njit
 from torch import nn
 
 from .sparse import Level
@@ -34,39 +35,50 @@ PLANARITY = 0.1  # smallest scatter eigenvalue under this share of the middle on
 
 def smallest_eigenvector(c: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(unit eigenvector of the smallest eigenvalue, smallest, middle eigenvalue) of symmetric
-    (N, 3, 3) matrices, in closed form (see _smallest_eigenvector)."""
+    (N, 3, 3) matrices, in closed form (see _closed_form_normal)."""
     c = np.asarray(c, dtype=np.float64)
-    return _smallest_eigenvector(*(c[:, i, j] for i, j in _UPPER))
+    return _smallest_eigenvectors(np.stack([c[:, i, j] for i, j in _UPPER]))
 
 
 _UPPER = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))  # the six distinct entries, in this order
-_ROW, _COLUMN = np.array(_UPPER).T
 
 
-def _smallest_eigenvector(a: np.ndarray, e: np.ndarray, f: np.ndarray, b: np.ndarray, g: np.ndarray,
-                          d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """smallest_eigenvector of [[a, e, f], [e, b, g], [f, g, d]], each entry an (N,) vector: the
-    trigonometric solution of the characteristic cubic, entry by entry, because reductions and
-    argmax over the small 3-wide dimensions cost more than all the arithmetic."""
+@njit(cache=True, nogil=True)
+def _closed_form_normal(a: float, e: float, f: float, b: float, g: float, d: float) -> tuple[float, ...]:
+    """(nx, ny, nz, smallest, middle eigenvalue) of [[a, e, f], [e, b, g], [f, g, d]]: the
+    trigonometric solution of the characteristic cubic, and the eigenvector as the longest cross
+    product of two rows of C - smallest I (it is orthogonal to every row)."""
     q = (a + b + d) / 3
     a0, b0, d0 = a - q, b - q, d - q
-    p = np.sqrt((a0 * a0 + b0 * b0 + d0 * d0 + 2 * (e * e + f * f + g * g)) / 6).clip(1e-12)
+    p = max(math.sqrt((a0 * a0 + b0 * b0 + d0 * d0 + 2 * (e * e + f * f + g * g)) / 6), 1e-12)
     det = a0 * (b0 * d0 - g * g) - e * (e * d0 - g * f) + f * (e * g - b0 * f)  # of C - q I
-    phi = np.arccos((det / (2 * p**3)).clip(-1.0, 1.0)) / 3
-    largest = q + 2 * p * np.cos(phi)
-    smallest = q + 2 * p * np.cos(phi + 2 * math.pi / 3)
+    phi = math.acos(min(max(det / (2 * p**3), -1.0), 1.0)) / 3
+    largest = q + 2 * p * math.cos(phi)
+    smallest = q + 2 * p * math.cos(phi + 2 * math.pi / 3)
     middle = 3 * q - largest - smallest
-    # the eigenvector is orthogonal to every row of C - lambda I: the longest cross product of two rows
     a1, b1, d1 = a - smallest, b - smallest, d - smallest
-    crosses = np.stack([e * g - f * b1, f * e - a1 * g, a1 * b1 - e * e,  # rows 0 x 1
-                        e * d1 - f * g, f * f - a1 * d1, a1 * g - e * f,  # rows 0 x 2
-                        b1 * d1 - g * g, g * f - e * d1, e * g - b1 * f]).reshape(3, 3, -1)  # rows 1 x 2
-    n0, n1, n2 = (crosses * crosses).sum(1)
-    first = n0 >= n1
-    best, longest = np.where(first, crosses[0], crosses[1]), np.where(first, n0, n1)
-    third = n2 > longest
-    best, longest = np.where(third, crosses[2], best), np.where(third, n2, longest)
-    return (best / np.sqrt(longest).clip(1e-12)).T, smallest, middle
+    x, y, z = e * g - f * b1, f * e - a1 * g, a1 * b1 - e * e  # rows 0 x 1
+    longest = x * x + y * y + z * z
+    x2, y2, z2 = e * d1 - f * g, f * f - a1 * d1, a1 * g - e * f  # rows 0 x 2
+    if x2 * x2 + y2 * y2 + z2 * z2 > longest:
+        x, y, z, longest = x2, y2, z2, x2 * x2 + y2 * y2 + z2 * z2
+    x2, y2, z2 = b1 * d1 - g * g, g * f - e * d1, e * g - b1 * f  # rows 1 x 2
+    if x2 * x2 + y2 * y2 + z2 * z2 > longest:
+        x, y, z, longest = x2, y2, z2, x2 * x2 + y2 * y2 + z2 * z2
+    length = max(math.sqrt(longest), 1e-12)
+    return x / length, y / length, z / length, smallest, middle
+
+
+@njit(cache=True, nogil=True)
+def _smallest_eigenvectors(entries: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """smallest_eigenvector of the (6, N) distinct entries, in _UPPER's order."""
+    n = entries.shape[1]
+    normal, smallest, middle = np.empty((n, 3)), np.empty(n), np.empty(n)
+    for i in range(n):
+        a, e, f, b, g, d = entries[:, i]
+        nx, ny, nz, smallest[i], middle[i] = _closed_form_normal(a, e, f, b, g, d)
+        normal[i, 0], normal[i, 1], normal[i, 2] = nx, ny, nz
+    return normal, smallest, middle
 
 
 def voxel_hessian(level: Level, means: torch.Tensor, batch_size: int) -> np.ndarray:
@@ -74,45 +86,55 @@ def voxel_hessian(level: Level, means: torch.Tensor, batch_size: int) -> np.ndar
     as the labels' axes), over the planar voxels of each scan: each voxel's mean point with the
     normal of its 3x3x3 neighbourhood. The ICP that makes the labels thins its scans to voxels too,
     so every voxel weighs one."""
-    return _planar_hessians([level.neighbours().numpy()], [means.numpy()], level.coords[:, 0].numpy(), batch_size)
+    hessians = np.zeros((batch_size, 6, 6))
+    _add_planar_hessians(level.neighbours().numpy(), means.numpy().astype(np.float64), level.coords[:, 0].numpy(),
+                         hessians)
+    return hessians
 
 
-def _planar_hessians(tables: list[np.ndarray], means: list[np.ndarray], groups: np.ndarray,
-                     count: int) -> np.ndarray:
-    """(count, 6, 6): voxel_hessian over sets of voxels, each set with its (N, 27) neighbour rows
-    (N: empty), and an ascending group index for each voxel of the sets stacked (a scan, or a scan
-    at one level). In numpy: a few thousand voxels make small arrays, on which numpy's operations
-    cost a fraction of torch's (benchmarks/RESULTS.md), and no gradient flows through the features."""
-    counts, scatters = zip(*(_neighbourhood_scatter(t, m) for t, m in zip(tables, means)))
-    voxels, scatter = np.concatenate(counts), np.concatenate(scatters, axis=1)
-    candidates = np.flatnonzero(voxels >= MIN_NEIGHBOURS)
-    normal, smallest, middle = _smallest_eigenvector(*scatter[:, candidates])
-    planar = smallest < PLANARITY * middle
-    chosen = candidates[planar]
-    (px, py, pz), (nx, ny, nz) = np.concatenate(means)[chosen].T.astype(np.float64), normal[planar].T
-    # J = [n, p x n], written out: np.cross costs several times more on a few thousand rows
-    rows = np.stack([nx, ny, nz, py * nz - pz * ny, pz * nx - px * nz, px * ny - py * nx], axis=1)
-    bounds = np.searchsorted(groups[chosen], np.arange(count + 1))
-    return np.stack([rows[i:j].T @ rows[i:j] for i, j in zip(bounds[:-1], bounds[1:])])
+@njit(cache=True, nogil=True)
+def _add_planar_hessians(table: np.ndarray, means: np.ndarray, groups: np.ndarray, hessians: np.ndarray) -> None:
+    """hessians[groups[v]] += J_v^T J_v over the planar voxels v, each voxel with its (27,) row of
+    neighbours in `table` (len(means): empty) and its mean point; the normal is that of the scatter
+    of the block's mean points (float64: the moments are about the sensor, and float32 would cancel
+    the scatter of far voxels).
 
-
-def _neighbourhood_scatter(table: np.ndarray, means: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per voxel, the number of occupied voxels in its 3x3x3 block and the six distinct entries of
-    the scatter of their mean points ((6, N), in _UPPER's order), from the block's summed moments
-    (1, p, the products of p's coordinates). In float64, as the moments are about the sensor and
-    float32 would cancel the scatter of far voxels."""
+    A compiled loop, one voxel at a time: in numpy the same work is some sixty passes over a few
+    thousand voxels, whose per-operation overhead cost several times the arithmetic
+    (benchmarks/RESULTS.md)."""
     n = len(means)
-    x, y, z = np.asarray(means, dtype=np.float64).T
-    moments = np.stack([x, y, z, x * x, x * y, x * z, y * y, y * z, z * z], axis=1)
-    # the block sums as a sparse (N, N) product: about three quarters of the table's entries are empty
-    occupied = np.flatnonzero(table < n)  # row-major: grouped by voxel
-    voxels = np.bincount(occupied // table.shape[1], minlength=n)
-    starts = np.zeros(n + 1, dtype=np.int64)
-    np.cumsum(voxels, out=starts[1:])
-    pairs = np.take(table, occupied)
-    summed = scipy.sparse.csr_array((np.ones(len(pairs)), pairs, starts), shape=(n, n)) @ moments
-    mean = summed.T / voxels  # (9, N): the centre, then the second moments in _UPPER's order
-    return voxels.astype(np.float64), mean[3:] - mean[_ROW] * mean[_COLUMN]
+    row = np.empty(6)
+    for v in range(n):
+        count = 0
+        sx = sy = sz = sxx = sxy = sxz = syy = syz = szz = 0.0
+        for u in table[v]:
+            if u < n:
+                x, y, z = means[u, 0], means[u, 1], means[u, 2]
+                count += 1
+                sx += x
+                sy += y
+                sz += z
+                sxx += x * x
+                sxy += x * y
+                sxz += x * z
+                syy += y * y
+                syz += y * z
+                szz += z * z
+        if count < MIN_NEIGHBOURS:
+            continue
+        mx, my, mz = sx / count, sy / count, sz / count
+        nx, ny, nz, smallest, middle = _closed_form_normal(sxx / count - mx * mx, sxy / count - mx * my,
+                                                           sxz / count - mx * mz, syy / count - my * my,
+                                                           syz / count - my * mz, szz / count - mz * mz)
+        if not smallest < PLANARITY * middle:
+            continue
+        px, py, pz = means[v, 0], means[v, 1], means[v, 2]
+        row[0], row[1], row[2] = nx, ny, nz
+        row[3], row[4], row[5] = py * nz - pz * ny, pz * nx - px * nz, px * ny - py * nx  # p x n
+        hessian = hessians[groups[v]]
+        for i in range(6):
+            for j in range(6):
+                hessian[i, j] += row[i] * row[j]
 
 
 def coarser_means(level: Level, means: np.ndarray) -> tuple[Level, np.ndarray]:
@@ -125,21 +147,16 @@ def coarser_means(level: Level, means: np.ndarray) -> tuple[Level, np.ndarray]:
 
 
 def scan_features(level: Level, means: torch.Tensor, batch_size: int, levels: tuple[int, ...] = (0,)) -> torch.Tensor:
-    """(B, FEATURES * len(levels)): the Hessian features of each of `levels` (0: the finest voxels).
-    The levels' voxels, once their neighbourhoods are summed, go through one pass, as if each level
-    were more scans of the batch: the work is small and the operations' overhead would otherwise be
-    paid once per level."""
-    tables, points, groups = [], [], []
-    points_here = means.numpy()
+    """(B, FEATURES * len(levels)): the Hessian features of each of `levels` (0: the finest voxels)."""
+    hessians = np.zeros((len(levels), batch_size, 6, 6))
+    points = means.numpy().astype(np.float64)
     for k in range(max(levels) + 1):
         if k in levels:
-            tables.append(level.neighbours().numpy())
-            points.append(points_here)
-            groups.append(level.coords[:, 0].numpy() + len(groups) * batch_size)
+            _add_planar_hessians(level.neighbours().numpy(), points, level.coords[:, 0].numpy(),
+                                 hessians[levels.index(k)])
         if k < max(levels):
-            level, points_here = coarser_means(level, points_here)
-    hessians = _planar_hessians(tables, points, np.concatenate(groups), batch_size * len(levels))
-    per_level = hessian_features(hessians).reshape(len(levels), batch_size, FEATURES)
+            level, points = coarser_means(level, points)
+    per_level = hessian_features(hessians.reshape(-1, 6, 6)).reshape(len(levels), batch_size, FEATURES)
     return torch.from_numpy(np.ascontiguousarray(per_level.transpose(1, 0, 2).reshape(batch_size, -1)))
 
 
