@@ -8,11 +8,13 @@ one (N, K * C_in) matrix and multiplied once by the (K * C_in, C_out) weight. Au
 the gather into a scatter-add in the backward pass, so gradients need no extra code.
 
 Coordinates are int64 (N, 4) rows (batch, x, y, z) in voxel units of the current level. The
-levels and their kernel maps are index bookkeeping on a few thousand sites, done in numpy: its
-operations cost a fraction of torch's on arrays this small (benchmarks/RESULTS.md), and nothing
-there needs a gradient. voxelize sorts the sites once, by Morton key (the batch, then the bits of
-x, y and z interleaved), so that the eight children of every coarser site are consecutive rows
-and each coarser level follows from the finer one without another sort.
+levels and their kernel maps are index bookkeeping on a few thousand sites, where nothing needs a
+gradient: loops compiled with numba, one site at a time, because numpy's and torch's per-operation
+overhead on arrays this small costs several times the work (benchmarks/RESULTS.md); the sorts stay
+in numpy, whose sort is several times faster than numba's. voxelize sorts the sites once, by Morton
+key (the batch, then the bits of x, y and z interleaved), so that the eight children of every
+coarser site are consecutive rows and each coarser level follows from the finer one without
+another sort.
 """
 from __future__ import annotations
 
@@ -22,6 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import torch
+from numba import njit
 from torch import nn
 
 _BITS = 16  # per spatial axis: +-32768 voxels, 6.5 km at 0.2 m
@@ -40,43 +43,127 @@ _CHILD_SLOT = np.remainder(_FINE, 2) @ np.array([4, 2, 1])
 _SPREAD = np.array([sum(((v >> b) & 1) << 3 * b for b in range(8)) for v in range(256)], dtype=np.int64)
 
 
-def _shifted(xyz: np.ndarray) -> np.ndarray:
-    """Voxel coordinates moved into 0 .. 2^16 - 1, or ValueError."""
-    shifted = xyz + _SHIFT
-    if len(shifted) and (shifted.min() < 0 or shifted.max() >= 1 << _BITS):
-        raise ValueError(f"voxel coordinates beyond +-{_SHIFT}; the scan extends too far for this voxel size")
-    return shifted
+_TOO_FAR = f"voxel coordinates beyond +-{_SHIFT}; the scan extends too far for this voxel size"
 
 
 def morton_keys(coords: np.ndarray) -> np.ndarray:
     """One int64 key per (batch, x, y, z) row: the batch above the interleaved bits of x, y, z, so
     that sorted keys keep the scans in order and a site's key shifted right by 3 is its parent's."""
-    xyz = _shifted(coords[:, 1:])
-    spread = np.take(_SPREAD, xyz & 255) | (np.take(_SPREAD, xyz >> 8) << 24)
-    return (coords[:, 0] << 3 * _BITS) | (spread[:, 0] << 2) | (spread[:, 1] << 1) | spread[:, 2]
+    return _interleaved(np.ascontiguousarray(coords, dtype=np.int64))
 
 
+@njit(cache=True, nogil=True)
+def _shifted(v: int) -> int:
+    """A voxel coordinate moved into 0 .. 2^16 - 1, or ValueError."""
+    v += _SHIFT
+    if v < 0 or v >= 1 << _BITS:
+        raise ValueError(_TOO_FAR)
+    return v
+
+
+@njit(cache=True, nogil=True)
+def _interleaved(coords: np.ndarray) -> np.ndarray:
+    keys = np.empty(len(coords), dtype=np.int64)
+    for i in range(len(coords)):
+        key = coords[i, 0] << 3 * _BITS
+        for a in range(3):
+            v = _shifted(coords[i, a + 1])
+            key |= (_SPREAD[v & 255] | (_SPREAD[v >> 8] << 24)) << (2 - a)
+        keys[i] = key
+    return keys
+
+
+@njit(cache=True, nogil=True)
+def _linear_keys(coords: np.ndarray) -> np.ndarray:
+    """Keys linear in x, y and z: a neighbour's key is the site's plus a constant (_NEIGHBOUR_DELTAS)."""
+    keys = np.empty(len(coords), dtype=np.int64)
+    for i in range(len(coords)):
+        keys[i] = (coords[i, 0] << 3 * _BITS) | (_shifted(coords[i, 1]) << 2 * _BITS) | (
+            _shifted(coords[i, 2]) << _BITS) | _shifted(coords[i, 3])
+    return keys
+
+
+@njit(cache=True, nogil=True)
+def _cells(points: np.ndarray, voxel: np.float32, scan: np.ndarray) -> np.ndarray:
+    """(N, 4) rows (scan, floor(p / voxel)), the division in float32 as numpy does it for float32 points."""
+    cells = np.empty((len(points), 4), dtype=np.int64)
+    for i in range(len(points)):
+        cells[i, 0] = scan[i]
+        for a in range(3):
+            cells[i, a + 1] = math.floor(points[i, a] / voxel)
+    return cells
+
+
+@njit(cache=True, nogil=True)
 def _runs(sorted_keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The first position of each run of equal keys, and the run of every position."""
-    new = np.empty(len(sorted_keys), dtype=bool)
-    new[:1] = True
-    np.not_equal(sorted_keys[1:], sorted_keys[:-1], out=new[1:])
-    return np.flatnonzero(new), np.cumsum(new) - 1
+    run = np.empty(len(sorted_keys), dtype=np.int64)
+    first = np.empty(len(sorted_keys), dtype=np.int64)
+    count = 0
+    for i in range(len(sorted_keys)):
+        if i == 0 or sorted_keys[i] != sorted_keys[i - 1]:
+            first[count] = i
+            count += 1
+        run[i] = count - 1
+    return first[:count], run
 
 
 def _searched_neighbours(coords: np.ndarray) -> np.ndarray:
-    """(N, 27) rows of the 3x3x3 neighbours of each site (N where empty), by binary search of
-    keys that are linear in x, y, z (a neighbour's key is the site's plus a constant)."""
-    n = len(coords)
-    xyz = _shifted(coords[:, 1:])
-    keys = (coords[:, 0] << 3 * _BITS) | (xyz[:, 0] << 2 * _BITS) | (xyz[:, 1] << _BITS) | xyz[:, 2]
-    if n == 0:
-        return np.zeros((0, 27), dtype=np.int64)
-    order = np.argsort(keys)
-    sorted_keys = np.take(keys, order)
-    wanted = keys[:, None] + _NEIGHBOUR_DELTAS
-    pos = np.searchsorted(sorted_keys, wanted).clip(max=n - 1)
-    return np.where(np.take(sorted_keys, pos) == wanted, np.take(order, pos), n)
+    """(N, 27) rows of the 3x3x3 neighbours of each site (N where empty), from keys that are linear
+    in x, y, z (a neighbour's key is the site's plus a constant, see _merged_table)."""
+    keys = _linear_keys(coords)
+    return _merged_table(keys, np.argsort(keys))  # numpy's sort: several times faster than numba's
+
+
+@njit(cache=True, nogil=True)
+def _merged_table(keys: np.ndarray, order: np.ndarray) -> np.ndarray:
+    """The sites' keys sorted once; the keys wanted at one offset are the sorted keys plus a
+    constant, sorted as well, so one merge of the two finds them all: O(27 N) after the sort."""
+    n = len(keys)
+    sorted_keys = keys[order]
+    table = np.empty((n, 27), dtype=np.int64)
+    for k in range(27):
+        j = 0
+        for i in range(n):
+            wanted = sorted_keys[i] + _NEIGHBOUR_DELTAS[k]
+            while j < n and sorted_keys[j] < wanted:
+                j += 1
+            table[order[i], k] = order[j] if j < n and sorted_keys[j] == wanted else n
+    return table
+
+
+@njit(cache=True, nogil=True)
+def _child_table(coarse_table: np.ndarray, children: np.ndarray, parent: np.ndarray, slot: np.ndarray) -> np.ndarray:
+    """(N, 27) neighbour rows read off the coarser level's table (see Level.neighbours)."""
+    n, m = len(parent), len(coarse_table)
+    table = np.empty((n, 27), dtype=np.int64)
+    for v in range(n):
+        p, s = parent[v], slot[v]
+        for k in range(27):
+            q = coarse_table[p, _PARENT_OFFSET[s, k]]
+            table[v, k] = children[q, _CHILD_SLOT[s, k]] if q < m else n
+    return table
+
+
+@njit(cache=True, nogil=True)
+def _parents(keys: np.ndarray, coords: np.ndarray) -> tuple[np.ndarray, ...]:
+    """For sites in ascending Morton order: the coarser level's keys and coords, its (M, 8) children
+    table (N where none), and each site's parent row and child slot."""
+    n = len(keys)
+    first, parent = _runs(keys >> 3)
+    m = len(first)
+    coarse_keys, coarse = np.empty(m, dtype=np.int64), np.empty((m, 4), dtype=np.int64)
+    children = np.full((m, 8), n, dtype=np.int64)
+    slot = keys & 7  # the lowest bits of x, y and z: 4 dx + 2 dy + dz
+    for j in range(m):
+        i = first[j]
+        coarse_keys[j] = keys[i] >> 3
+        coarse[j, 0] = coords[i, 0]
+        for a in range(1, 4):
+            coarse[j, a] = coords[i, a] >> 1  # floor(x / 2)
+    for i in range(n):
+        children[parent[i], slot[i]] = i
+    return coarse_keys, coarse, children, parent, slot
 
 
 @dataclass
@@ -104,14 +191,9 @@ class Level:
         every neighbour of a site is a child of a neighbour of the site's parent, so two table
         lookups replace 27 binary searches per site (exact, and several times faster)."""
         if self._neighbours is None:
-            n = len(self.coords)
             if self._coarser is not None:
                 coarse, children, parent, slot = self._coarser
-                parent, slot = parent.numpy(), slot.numpy()
-                offsets = np.take(_PARENT_OFFSET, slot, axis=0)
-                parents = np.take(coarse.neighbours().numpy(), (parent * 27)[:, None] + offsets)
-                rows = np.append(children.numpy().reshape(-1), np.full(8, n))  # the children of "no neighbour": none
-                table = np.take(rows, parents * 8 + np.take(_CHILD_SLOT, slot, axis=0))
+                table = _child_table(coarse.neighbours().numpy(), children.numpy(), parent.numpy(), slot.numpy())
             else:
                 table = _searched_neighbours(self.coords.numpy())
             self._neighbours = torch.from_numpy(table)
@@ -123,18 +205,16 @@ class Level:
         (N,), an OFFSETS_2 row)."""
         if self._coarser is None:
             coords = self.coords.numpy()
-            keys = morton_keys(coords) if self.morton is None else self.morton
-            parent_keys = keys >> 3
             if self.morton is not None:  # each parent's children are consecutive rows: no sort
-                first, parent = _runs(parent_keys)
-                coarse_keys = np.take(parent_keys, first)
+                coarse_keys, coarse, children, parent, slot = _parents(self.morton, coords)
             else:
-                coarse_keys, first, parent = np.unique(parent_keys, return_index=True, return_inverse=True)
-            coarse = np.take(coords, first, axis=0)
-            coarse[:, 1:] >>= 1  # floor(x / 2)
-            slot = keys & 7  # the lowest bits of x, y and z: 4 dx + 2 dy + dz
-            children = np.full((len(first), 8), len(coords), dtype=np.int64)
-            children[parent, slot] = np.arange(len(coords))
+                keys = morton_keys(coords)
+                coarse_keys, first, parent = np.unique(keys >> 3, return_index=True, return_inverse=True)
+                coarse = np.take(coords, first, axis=0)
+                coarse[:, 1:] >>= 1  # floor(x / 2)
+                slot = keys & 7  # the lowest bits of x, y and z: 4 dx + 2 dy + dz
+                children = np.full((len(first), 8), len(coords), dtype=np.int64)
+                children[parent, slot] = np.arange(len(coords))
             self._coarser = (Level(torch.from_numpy(coarse), self.stride * 2, coarse_keys),
                              torch.from_numpy(children), torch.from_numpy(parent), torch.from_numpy(slot))
         return self._coarser
@@ -280,19 +360,34 @@ def voxelize(points: list[torch.Tensor], voxel: float) -> tuple[Level, torch.Ten
     features)."""
     p = torch.cat(points).numpy()
     batch = np.repeat(np.arange(len(points)), [len(q) for q in points])
-    cells = np.concatenate([batch[:, None], np.floor(p / voxel).astype(np.int64)], axis=1)
-    keys = morton_keys(cells)
-    order = np.argsort(keys)
-    sorted_keys = np.take(keys, order)
-    first, run = _runs(sorted_keys)
-    inverse = np.empty(len(p), dtype=np.int64)
-    inverse[order] = run
-    count = np.bincount(inverse, minlength=len(first))
-    mean = np.stack([np.bincount(inverse, weights=p[:, k], minlength=len(first)) for k in range(3)], axis=1)
-    mean = (mean / count[:, None]).astype(np.float32)
-    coords = np.take(cells, np.take(order, first), axis=0)
-    level = Level(torch.from_numpy(coords), 1, np.take(sorted_keys, first))
+    cells = _cells(p, np.float32(voxel), batch)
+    keys = _interleaved(cells)
+    coords, mean, inverse, keys = _voxels(keys, np.argsort(keys), cells, p)  # numpy's sort: faster than numba's
+    level = Level(torch.from_numpy(coords), 1, keys)
     return level, torch.from_numpy(mean), torch.from_numpy(inverse)
+
+
+@njit(cache=True, nogil=True)
+def _voxels(keys: np.ndarray, order: np.ndarray, cells: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, ...]:
+    """The occupied voxels in key order (`order` sorts the keys): their cells, mean points
+    (float32), the voxel of every point, and their keys."""
+    sorted_keys = keys[order]
+    first, run = _runs(sorted_keys)
+    m = len(first)
+    inverse = np.empty(len(keys), dtype=np.int64)
+    inverse[order] = run
+    count, summed = np.zeros(m), np.zeros((m, 3))
+    for i in range(len(keys)):  # in the points' order, as np.bincount sums
+        v = inverse[i]
+        count[v] += 1
+        for a in range(3):
+            summed[v, a] += points[i, a]
+    mean = np.empty((m, 3), dtype=np.float32)
+    for v in range(m):
+        for a in range(3):
+            mean[v, a] = summed[v, a] / count[v]
+    head = order[first]
+    return cells[head], mean, inverse, sorted_keys[first]
 
 
 def global_max_pool(x: torch.Tensor, level: Level, batch_size: int) -> torch.Tensor:
