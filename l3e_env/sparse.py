@@ -245,29 +245,82 @@ def int8_products_work() -> bool:
         return False
 
 
-_HALF = torch.tensor(0.5)
+_TINY = float(np.finfo(np.float32).tiny)
 
 
 def _int8_rows(x: torch.Tensor, batch: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor | float]:
     """x rounded to int8 with one scale per scan (so that a scan's answer does not depend on the
     other scans of its batch), a zero row appended for the empty neighbour; and the scales, one
     per scan ((B,); a float for one scan, which saves the tensor operations on a scalar)."""
-    tiny = torch.finfo(x.dtype).tiny
-    rows = torch.empty(len(x) + 1, x.shape[1], dtype=torch.int8)
-    rows[-1] = 0
     if batch is None:
-        low, high = torch.aminmax(x)  # one pass, and no |x| copy
-        low, high = float(low), float(high)
-        scale = max(-low, high, 127 * tiny) / 127
-        if low >= 0:  # after a ReLU, as in the ResUNet: x / scale + 0.5 truncated is x / scale rounded
-            rows[:-1] = torch.add(_HALF, x, alpha=1 / scale)  # the copy truncates: one pass fewer than round
-        else:
-            rows[:-1] = torch.round(x * (1 / scale))
+        rows, scale = _scan_rows(x.detach().contiguous().numpy())
+        if scale > 0:
+            return torch.from_numpy(rows), scale
+        scale = max(float(x.abs().max()), 127 * _TINY) / 127  # a negative entry: not after a ReLU
     else:
         scale = x.new_zeros(int(batch[-1]) + 1).scatter_reduce_(0, batch, x.abs().amax(1), "amax") / 127
-        scale = scale.clamp_min(tiny)
-        rows[:-1] = torch.round(x / scale[batch, None])
+        scale = scale.clamp_min(_TINY)
+    rows = torch.empty(len(x) + 1, x.shape[1], dtype=torch.int8)
+    rows[-1] = 0
+    rows[:-1] = torch.round(x * (1 / scale) if batch is None else x / scale[batch, None])
     return rows, scale
+
+
+@njit(cache=True, nogil=True)
+def _scan_rows(x: np.ndarray) -> tuple[np.ndarray, float]:
+    """One scan's features (N, C) rounded to int8 with one scale, the empty row last, and the
+    scale; scale -1 when x has a negative entry (the rounding below holds for x >= 0 only)."""
+    n, c = x.shape
+    high, low = np.zeros(c, dtype=x.dtype), np.zeros(c, dtype=x.dtype)  # per column, so that the loop vectorises
+    for i in range(n):
+        for j in range(c):
+            high[j] = max(high[j], x[i, j])
+            low[j] = min(low[j], x[i, j])
+    if low.min() < 0:
+        return np.zeros((0, c), dtype=np.int8), -1.0
+    return _rounded_rows(x, high.max())
+
+
+@njit(cache=True, nogil=True)
+def _rounded_rows(y: np.ndarray, high: float) -> tuple[np.ndarray, float]:
+    """y >= 0 (N, C) over the scale high / 127, rounded to int8 (y / scale + 0.5 truncated by the
+    conversion: rounding half up), with a zero row appended; and the scale."""
+    n, c = y.shape
+    scale = max(high, 127 * _TINY) / 127
+    inverse = np.float32(1 / scale)
+    rows = np.empty((n + 1, c), dtype=np.int8)
+    for i in range(n):
+        for j in range(c):
+            rows[i, j] = np.int8(y[i, j] * inverse + np.float32(0.5))
+    rows[n] = 0
+    return rows, scale
+
+
+@njit(cache=True, nogil=True)
+def _relu_rows(products: np.ndarray, weight_scale: np.ndarray, scale: float, bias: np.ndarray
+               ) -> tuple[np.ndarray, float]:
+    """relu(products * weight_scale * scale + bias) of one scan as int8 rows (see _rounded_rows)."""
+    n, c = products.shape
+    factor = weight_scale * np.float32(scale)
+    y, high = np.empty((n, c), dtype=np.float32), np.zeros(c, dtype=np.float32)
+    for i in range(n):
+        for j in range(c):
+            y[i, j] = max(np.float32(products[i, j]) * factor[j] + bias[j], np.float32(0))
+            high[j] = max(high[j], y[i, j])
+    return _rounded_rows(y, high.max())
+
+
+@njit(cache=True, nogil=True)
+def _residual_relu(products: np.ndarray, weight_scale: np.ndarray, scale: float, bias: np.ndarray,
+                   residual: np.ndarray) -> np.ndarray:
+    """relu(products * weight_scale * scale + bias + residual), float32."""
+    n, c = products.shape
+    factor = weight_scale * np.float32(scale)
+    out = np.empty((n, c), dtype=np.float32)
+    for i in range(n):
+        for j in range(c):
+            out[i, j] = max(np.float32(products[i, j]) * factor[j] + bias[j] + residual[i, j], np.float32(0))
+    return out
 
 
 class GatherConv(nn.Module):
@@ -293,6 +346,14 @@ class GatherConv(nn.Module):
         self.int8_scale = w.abs().amax(0).clamp_min(torch.finfo(w.dtype).tiny) / 127
         self.int8_weight = torch.round(w / self.int8_scale).to(torch.int8)
 
+    def int8_products(self, rows: torch.Tensor, table: torch.Tensor) -> torch.Tensor:
+        """(len(table), C_out) int32: the int8 rows (the empty row last) gathered by `table` and
+        multiplied by the int8 weight."""
+        if rows.shape[1] == 16:  # a 16-byte row as one complex128: index_select copies elements, not rows
+            rows = rows.view(torch.complex128).reshape(-1)
+        gathered = rows.index_select(0, table.reshape(-1)).view(torch.int8).reshape(len(table), -1)
+        return torch._int_mm(gathered, self.int8_weight)
+
     def product(self, x: torch.Tensor, table: torch.Tensor, rows_in: Level, rows_out: Level) -> torch.Tensor:
         """sum_k x[table[:, k]] @ weight[k] (+ bias): one output row per row of `table`, whose
         entries index `x` (len(x): no neighbour); the levels say which scan each row is of."""
@@ -300,16 +361,33 @@ class GatherConv(nn.Module):
             return _gather_matmul(x, table, self.weight, self.bias)
         batch_in, batch_out = rows_in.batch_index(), rows_out.batch_index()
         rows, scale = _int8_rows(x, batch_in)
-        if rows.shape[1] == 16:  # a 16-byte row as one complex128: index_select copies elements, not rows
-            rows = rows.view(torch.complex128).reshape(-1)
-        gathered = rows.index_select(0, table.reshape(-1)).view(torch.int8).reshape(len(table), -1)
-        products = torch._int_mm(gathered, self.int8_weight)  # int32, scaled to float below
+        products = self.int8_products(rows, table)  # int32, scaled to float below
         if batch_out is None:  # one scan: its scale as addcmul's value saves a product
             if self.bias is None:
                 return products * (self.int8_scale * scale)
             return torch.addcmul(self.bias, products, self.int8_scale, value=scale)
         scale = self.int8_scale * scale[batch_out, None]
         return products * scale if self.bias is None else torch.addcmul(self.bias, products, scale)
+
+
+def int8_residual_block(conv1: GatherConv, conv2: GatherConv, x: torch.Tensor, level: Level) -> torch.Tensor | None:
+    """relu(conv2(relu(conv1(x))) + x) of one scan, for int8 submanifold convolutions whose batch
+    norms are folded into their biases: three compiled passes and two gather-products, where the
+    modules take some twenty torch operations, and the middle features never exist in float32.
+    None where it does not apply: a batch, convolutions not quantised or without biases, or a
+    negative entry in x."""
+    if level.batch_index() is not None or any(c.int8_weight is None or c.bias is None for c in (conv1, conv2)):
+        return None
+    features = x.detach().contiguous().numpy()
+    rows, scale = _scan_rows(features)
+    if scale < 0:
+        return None
+    table = level.neighbours()
+    products = conv1.int8_products(torch.from_numpy(rows), table).numpy()
+    rows, scale = _relu_rows(products, conv1.int8_scale.numpy(), scale, conv1.bias.detach().numpy())
+    products = conv2.int8_products(torch.from_numpy(rows), table).numpy()
+    return torch.from_numpy(_residual_relu(products, conv2.int8_scale.numpy(), scale, conv2.bias.detach().numpy(),
+                                           features))
 
 
 class SubmanifoldConv(GatherConv):

@@ -11,12 +11,12 @@ import torch
 from l3e_env.classifier import (
     CHECKPOINT_VERSION, DEFAULT_CHECKPOINT, SYMMETRIES, CheckpointError, Classifier, LocalizabilityNet, ModelConfig,
     ScanError, check_scan, fold_batch_norms, load_checkpoint, model_from_checkpoint, model_input, model_probabilities,
-    one_per_voxel, sample_points, save_checkpoint, up_vector,
+    one_per_voxel, quantize_int8, sample_points, save_checkpoint, up_vector,
 )
 from l3e_env.dataset import DatasetError, LabelDataset, config_for, error_ratios, generate, open_datasets
 from l3e_env.detectors import LearnedDetector, make_detector
 from l3e_env.scores import auroc, axis_scores, best_thresholds, mean_interval, mean_scores, pr_curve
-from l3e_env.sparse import GatherConv, int8_products_work
+from l3e_env.sparse import GatherConv, int8_products_work, int8_residual_block, voxelize
 from l3e_env.training import (
     SWAP_LABELS, TrainConfig, TrainingError, augment, balanced_pool, calibrate_symmetric, predict_dataset,
     split_indices, train, _resumable, training_targets,
@@ -113,6 +113,30 @@ def test_a_loaded_classifier_convolves_in_int8_except_its_stem_and_stays_near_fl
     scans = [_scan(rng, 500) for _ in range(4)]
     p, q = quantised.probabilities(scans), exact.probabilities(scans)
     assert np.abs(p - q).max() < 0.02 and not np.array_equal(p, q)
+
+
+@pytest.mark.skipif(not int8_products_work(), reason="this torch build has no CPU int8 products")
+@torch.no_grad()
+def test_the_fused_int8_residual_block_matches_its_modules_and_steps_aside_where_it_does_not_apply(rng):
+    torch.manual_seed(1)
+    model = LocalizabilityNet(SMALL)
+    for norm in (m for m in model.modules() if isinstance(m, torch.nn.BatchNorm1d)):  # folded biases not zero
+        norm.running_mean.uniform_(-0.5, 0.5)
+        norm.running_var.uniform_(0.5, 2.0)
+        norm.bias.data.uniform_(-0.3, 0.3)
+    block = quantize_int8(fold_batch_norms(model)).backbone.down_block[1]  # 16 channels in and out
+    points = torch.from_numpy(_scan(rng, 2000))
+    level, _, _ = voxelize([points], 0.2)
+    x = torch.rand(len(level.coords), 16) * 2
+    fused = int8_residual_block(block.conv1, block.conv2, x, level)
+    modules = torch.relu(block.conv2(block.norm1(block.conv1(x, level)), level) + x)
+    scale = float(modules.abs().max())
+    assert fused is not None and (fused - modules).abs().max() < 1e-3 * scale
+    assert (fused - torch.relu(x)).abs().max() > 0.1 * scale  # the convolutions did add something
+    assert torch.equal(block(x, level), fused)  # the module takes the fused path
+    assert int8_residual_block(block.conv1, block.conv2, x - 0.5, level) is None  # not after a ReLU
+    two_scans, _, _ = voxelize([points, points], 0.2)
+    assert int8_residual_block(block.conv1, block.conv2, torch.rand(len(two_scans.coords), 16), two_scans) is None
 
 
 def test_symmetric_inference_is_the_mean_over_the_views_and_blind_to_mirrors_and_swaps(tmp_path, rng):
