@@ -63,6 +63,7 @@ def _shifted(v: int) -> int:
 
 @njit(cache=True, nogil=True)
 def _interleaved(coords: np.ndarray) -> np.ndarray:
+    """morton_keys of (N, 4) int64 rows."""
     keys = np.empty(len(coords), dtype=np.int64)
     for i in range(len(coords)):
         key = coords[i, 0] << 3 * _BITS
