@@ -190,7 +190,8 @@ class Level:
         """(N, 27) rows of the 3x3x3 neighbours of each site (N where empty). Once the coarser level
         exists (ResUNet.encode builds them all first), the table is read off that level's own:
         every neighbour of a site is a child of a neighbour of the site's parent, so two table
-        lookups replace 27 binary searches per site (exact, and several times faster)."""
+        lookups per neighbour replace a search of the keys (exact, and several times faster); the
+        coarsest level's table comes from _searched_neighbours."""
         if self._neighbours is None:
             if self._coarser is not None:
                 coarse, children, parent, slot = self._coarser
