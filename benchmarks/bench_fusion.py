@@ -61,7 +61,8 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     isam = update_times(FusionGraph, args.steps) * 1e3
     ekf = update_times(EKFFusion, args.steps) * 1e3
-    print(f"iSAM2 update over {args.steps} steps: median {np.median(isam):.3f} ms, p90 {np.percentile(isam, 90):.3f} ms, "
+    print(f"iSAM2 update over {args.steps} steps: median {np.median(isam):.3f} ms, "
+          f"p90 {np.percentile(isam, 90):.3f} ms, "
           f"last 500 median {np.median(isam[-500:]):.3f} ms (target <= 1 ms)")
     print(f"EKF step (reference): median {np.median(ekf):.3f} ms; iSAM2 / EKF {np.median(isam) / np.median(ekf):.2f}x")
     bare = env_rate(LoopFusionConfig(enabled=False), args.scene, args.env_steps)

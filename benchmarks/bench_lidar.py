@@ -18,7 +18,8 @@ from l3e_env.raycast import EmbreeCaster, PyBulletCaster
 from l3e_env.transforms import pose_to_matrix
 from scenes import make_scene
 
-PLACES = {"yard": (-30.0, 0.5, 0.85, 0, 0, 0.3), "tunnel": (50.0, 0.0, 0.85, 0, 0, 0.0), "quarry": (115.0, 0.0, 0.85, 0, 0, 1.0)}
+PLACES = {"yard": (-30.0, 0.5, 0.85, 0, 0, 0.3), "tunnel": (50.0, 0.0, 0.85, 0, 0, 0.0),
+          "quarry": (115.0, 0.0, 0.85, 0, 0, 1.0)}
 
 
 def best_of(fn, repeats: int) -> float:
@@ -41,7 +42,8 @@ def main() -> None:
     embree = EmbreeCaster(scene.mesh)
     pybullet = PyBulletCaster.for_mesh(scene.mesh)
     rng = np.random.default_rng(0)
-    print(f"{'sensor':8s} {'place':7s} {'rays':>7s} {'raw embree':>11s} {'embree scan':>12s} {'ratio':>6s} {'pybullet scan':>14s} {'ratio':>6s}")
+    print(f"{'sensor':8s} {'place':7s} {'rays':>7s} {'raw embree':>11s} {'embree scan':>12s} {'ratio':>6s} "
+          f"{'pybullet scan':>14s} {'ratio':>6s}")
     for model in ("vlp16", "os0-128"):
         pattern = get_pattern(model)
         lidar_e, lidar_p = Lidar(embree, LidarConfig(model=model)), Lidar(pybullet, LidarConfig(model=model))
@@ -54,7 +56,8 @@ def main() -> None:
             pyb = best_of(lambda: lidar_p.scan(T, rng), max(3, args.repeats // 20))
             n = len(dirs)
             print(f"{model:8s} {place:7s} {n:7d} {raw * 1e3:8.2f} ms {full * 1e3:9.2f} ms {raw / full:6.2f} "
-                  f"{pyb * 1e3:11.1f} ms {raw / pyb:6.3f}   ({n / full / 1e6:.1f} M rays/s embree, {n / pyb / 1e6:.2f} pybullet)")
+                  f"{pyb * 1e3:11.1f} ms {raw / pyb:6.3f}   "
+                  f"({n / full / 1e6:.1f} M rays/s embree, {n / pyb / 1e6:.2f} pybullet)")
 
 
 if __name__ == "__main__":

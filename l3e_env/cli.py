@@ -35,7 +35,8 @@ def _cmd_scenes(args: argparse.Namespace) -> int:
         print(make_scene(name).summary())
     if not args.names:
         print(f"\ntraining environments ({len(TRAIN_SCENES)}): {', '.join(TRAIN_SCENES)}")
-        print(f"validation: {', '.join(VALIDATION_SCENES)}\ntest (families unseen in training): {', '.join(TEST_SCENES)}")
+        print(f"validation: {', '.join(VALIDATION_SCENES)}")
+        print(f"test (families unseen in training): {', '.join(TEST_SCENES)}")
     return 0
 
 
@@ -59,7 +60,8 @@ def _cmd_dataset_generate(args: argparse.Namespace) -> int:
     }
     config = config_for(args.preset, **overrides)
     print(f"dataset -> {Path(args.out).resolve()}: {len(config.scenes)} scenes x {config.parents_per_scene} parents, "
-          f"M = {config.labels.children}, {config.lidar.model}, seed {config.seed}, {args.workers} workers ({args.backend})")
+          f"M = {config.labels.children}, {config.lidar.model}, seed {config.seed}, "
+          f"{args.workers} workers ({args.backend})")
     manifest = generate(args.out, config, workers=args.workers, backend=args.backend, ray_address=args.address,
                         progress=not args.quiet)
     print(f"{manifest['count']} labelled parents, {len(manifest['failures'])} failed "
@@ -72,7 +74,8 @@ def _cmd_dataset_stats(args: argparse.Namespace) -> int:
     from .dataset import LabelDataset, format_statistics
 
     data = LabelDataset(args.folder)
-    print(f"{args.folder}: {len(data)} parents, sensor {data.manifest['sensor']}, scenes {', '.join(data.manifest['scenes'])}")
+    print(f"{args.folder}: {len(data)} parents, sensor {data.manifest['sensor']}, "
+          f"scenes {', '.join(data.manifest['scenes'])}")
     print(format_statistics(data.manifest["statistics"]))
     return 0
 

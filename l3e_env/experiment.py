@@ -237,10 +237,12 @@ def file_stem(detector_name: str) -> str:
 
 
 def format_table(rows: list[dict]) -> str:
-    head = f"{'detector':14s} {'ATE m':>7s} {'aligned':>8s} {'RPE m':>7s} {'RPE deg':>8s}  flagged x/y/z/roll/pitch/yaw      {'s':>6s}"
+    head = (f"{'detector':14s} {'ATE m':>7s} {'aligned':>8s} {'RPE m':>7s} {'RPE deg':>8s}  "
+            f"flagged x/y/z/roll/pitch/yaw      {'s':>6s}")
     lines = [head, "-" * len(head)]
     for r in rows:
         flags = " ".join(f"{r[f'flagged_{a}']:.2f}" for a in AXES)
         al = "-" if r["ate_aligned_m"] is None else f"{r['ate_aligned_m']:.3f}"
-        lines.append(f"{r['detector']:14s} {r['ate_m']:7.3f} {al:>8s} {r['rpe_m']:7.4f} {r['rpe_deg']:8.3f}  {flags}  {r['seconds']:6.1f}")
+        lines.append(f"{r['detector']:14s} {r['ate_m']:7.3f} {al:>8s} {r['rpe_m']:7.4f} {r['rpe_deg']:8.3f}  "
+                     f"{flags}  {r['seconds']:6.1f}")
     return "\n".join(lines)

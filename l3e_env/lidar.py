@@ -91,7 +91,8 @@ class Lidar:
         self.min_range = self.pattern.min_range if self.config.min_range is None else self.config.min_range
         self._dirs = self.pattern.directions()
         idx = np.arange(len(self._dirs))
-        self._beam, self._column = (idx // self.pattern.n_azimuth).astype(np.int16), (idx % self.pattern.n_azimuth).astype(np.int16)
+        beam, column = np.divmod(idx, self.pattern.n_azimuth)
+        self._beam, self._column = beam.astype(np.int16), column.astype(np.int16)
 
     def scan(self, T_w_s: np.ndarray, rng: np.random.Generator | None = None) -> Scan:
         """Scan from sensor pose T_w_s. Noise and dropout need `rng`; without it the scan is exact."""

@@ -106,7 +106,8 @@ class PyBulletCaster:
         """Distances along one direction from many origins (a few rays: ground sensing)."""
         starts = np.asarray(origins, dtype=np.float64)
         hits = pb.rayTestBatch(
-            starts, starts + np.asarray(direction) * max_range, collisionFilterMask=self.mask, physicsClientId=self.client
+            starts, starts + np.asarray(direction) * max_range, collisionFilterMask=self.mask,
+            physicsClientId=self.client
         )
         return np.array([h[2] * max_range if h[0] >= 0 else np.inf for h in hits])
 

@@ -131,7 +131,8 @@ def register(
     return RegistrationResult(T, H, converged, iterations, inliers, int(src.size()), float(result.error))
 
 
-def point_to_plane_hessian(source: np.ndarray, target: PreparedTarget, T: np.ndarray, max_distance: float) -> np.ndarray:
+def point_to_plane_hessian(source: np.ndarray, target: PreparedTarget, T: np.ndarray,
+                           max_distance: float) -> np.ndarray:
     """A^T A of the point-to-plane residuals at T, from the final correspondences.
 
     small_gicp's `H` is that of its last linearisation, one update before the solution (5 %

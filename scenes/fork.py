@@ -30,9 +30,12 @@ def make_fork(seed: int = 0, corridor_length: float | None = None, detour: float
             if rng.random() < 0.5:
                 parts.append(cylinder((x + rng.uniform(-1, 1), y), rng.uniform(0.2, 0.5), rng.uniform(1.5, 3.0)))
             else:
-                parts.append(box((x + rng.uniform(-1, 1), y, 0.75), tuple(rng.uniform(0.6, 1.8, 2)) + (1.5,), yaw=rng.uniform(0, np.pi)))
+                centre = (x + rng.uniform(-1, 1), y, 0.75)  # draws in this order: centre, size, yaw
+                size = tuple(rng.uniform(0.6, 1.8, 2)) + (1.5,)
+                parts.append(box(centre, size, yaw=rng.uniform(0, np.pi)))
     short = resample_polyline(np.array([[0.0, 0, 0], [gx, 0, 0]]), 1.0)
-    rich = resample_polyline(np.array([[0.0, 0, 0], [2.0, 0, 0], [2.0, detour, 0], [gx - 2, detour, 0], [gx - 2, 0, 0], [gx, 0, 0]]), 1.0)
+    corners = [[0.0, 0, 0], [2.0, 0, 0], [2.0, detour, 0], [gx - 2, detour, 0], [gx - 2, 0, 0], [gx, 0, 0]]
+    rich = resample_polyline(np.array(corners), 1.0)
     return Scene(
         name=f"fork-{seed}",
         mesh=merge(parts),

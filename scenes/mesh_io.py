@@ -9,7 +9,8 @@ import trimesh
 from .geometry import resample_polyline
 from .scene import Scene, SceneError, validate_mesh
 
-UP_AXES = {"z": np.eye(3), "y": np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]]), "x": np.array([[0, 0, -1.0], [0, 1, 0], [1, 0, 0]])}
+UP_AXES = {"z": np.eye(3), "y": np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]]),
+           "x": np.array([[0, 0, -1.0], [0, 1, 0], [1, 0, 0]])}
 FORMATS = (".obj", ".stl", ".ply", ".glb", ".gltf", ".off")
 
 

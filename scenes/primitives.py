@@ -24,7 +24,8 @@ def make_primitive(seed: int = 0, kind: str | None = None) -> Scene:
         path = np.array([[-20.0, 0, 0], [20.0, 0, 0]])
     elif kind == "walls":
         w, h = rng.uniform(3, 8), rng.uniform(2, 5)
-        mesh = merge([ground_plane(-150, 150, -20, 20, cell=50)] + [box((0, s * w / 2, h / 2), (300, 0.2, h)) for s in (-1, 1)])
+        walls = [box((0, s * w / 2, h / 2), (300, 0.2, h)) for s in (-1, 1)]
+        mesh = merge([ground_plane(-150, 150, -20, 20, cell=50)] + walls)
         path = np.array([[-30.0, 0, 0], [30.0, 0, 0]])
     elif kind == "box_room":
         lx, ly, h = rng.uniform(6, 20), rng.uniform(6, 20), rng.uniform(2.5, 6)

@@ -52,7 +52,8 @@ def test_learned_detector_answers_unknown_to_an_unjudgeable_scan(tmp_path, rng):
     assert not det.predict(np.zeros((10, 3), np.float32)).known
     assert not det.predict(np.full((500, 3), np.nan, np.float32)).known
     good = det.predict(_scan(rng))
-    assert good.known and good.probabilities.shape == (6,) and ((0 < good.probabilities) & (good.probabilities < 1)).all()
+    assert good.known and good.probabilities.shape == (6,)
+    assert ((0 < good.probabilities) & (good.probabilities < 1)).all()
 
 
 def test_a_scan_is_judged_the_same_alone_or_in_a_batch(tmp_path, rng):
@@ -333,7 +334,8 @@ def test_a_gravity_model_reads_the_tilt_and_refuses_to_guess_without_it(tiny_dat
 
 def _train_cfg(**kw):
     return TrainConfig(**{"model": SMALL, "epochs": 2, "samples_per_epoch": 8, "batch_size": 4,
-                          "train_scenes": ["tunnel-0", "field-0"], "validation_scenes": ["office-0"], "threads": 1, **kw})
+                          "train_scenes": ["tunnel-0", "field-0"], "validation_scenes": ["office-0"],
+                          "threads": 1, **kw})
 
 
 def test_a_killed_run_resumes_to_the_same_model(tiny_dataset, tmp_path):

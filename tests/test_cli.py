@@ -7,7 +7,8 @@ from l3e_env.cli import build_parser, main
 
 
 def test_help_lists_the_subcommands():
-    out = subprocess.run([sys.executable, "-m", "l3e_env.cli", "--help"], capture_output=True, text=True, check=True).stdout
+    out = subprocess.run([sys.executable, "-m", "l3e_env.cli", "--help"], capture_output=True, text=True,
+                         check=True).stdout
     for cmd in ("demo", "scenes", "envs", "dataset", "train", "evaluate", "ate", "sweep"):
         assert cmd in out
 

@@ -24,7 +24,8 @@ def test_masking_the_wall_axis_beats_full_icp(walls_run, tmp_path):
     # a saved recording evaluates to the same numbers without driving again
     rec.save(tmp_path / "rec.npz")
     again = Recording.load(tmp_path / "rec.npz")
-    (eigen2,) = evaluate(again, [EigenvalueDetector(tau)], register_sequence(again, RegistrationConfig(), False), progress=False)
+    registered = register_sequence(again, RegistrationConfig(), False)
+    (eigen2,) = evaluate(again, [EigenvalueDetector(tau)], registered, progress=False)
     assert eigen2.ate == pytest.approx(eigen.ate, rel=1e-9)
 
 

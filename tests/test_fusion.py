@@ -5,7 +5,10 @@ import gtsam
 import numpy as np
 import pytest
 
-from fusion import BACKENDS, FusionConfig, FusionError, FusionGraph, MetricError, ate, ate_aligned, rpe, to_gtsam_order, to_project_order, umeyama
+from fusion import (
+    BACKENDS, FusionConfig, FusionError, FusionGraph, MetricError, ate, ate_aligned, rpe, to_gtsam_order,
+    to_project_order, umeyama,
+)
 
 
 def pose(x=0.0, y=0.0, z=0.0, yaw=0.0):
@@ -133,5 +136,6 @@ def test_fusion_imports_nothing_of_the_project():
     for path in Path(__file__).parents[1].joinpath("fusion").glob("*.py"):
         tree = ast.parse(path.read_text())
         names = {a.name.split(".")[0] for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
-        names |= {n.module.split(".")[0] for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n.module and n.level == 0}
+        names |= {n.module.split(".")[0] for n in ast.walk(tree)
+                  if isinstance(n, ast.ImportFrom) and n.module and n.level == 0}
         assert not names & {"l3e_env", "scenes", "policies"}, path

@@ -15,7 +15,8 @@ def _trajectories(seed=0, n=400):
     t = np.arange(n) * 0.1
     gt = np.tile(np.eye(4), (n, 1, 1))
     gt[:, :3, 3] = np.column_stack([5 * np.sin(0.05 * t) + t, 3 * np.cos(0.11 * t), 0.2 * np.sin(0.3 * t)])
-    gt[:, :3, :3] = Rotation.from_euler("xyz", np.column_stack([0.05 * np.sin(t), 0.03 * np.cos(t), 0.2 * t])).as_matrix()
+    angles = np.column_stack([0.05 * np.sin(t), 0.03 * np.cos(t), 0.2 * t])
+    gt[:, :3, :3] = Rotation.from_euler("xyz", angles).as_matrix()
     est = gt.copy()
     drift = np.cumsum(rng.normal(0, 0.01, (n, 3)), axis=0)
     est[:, :3, 3] += drift + [0.5, -0.2, 0.1]
@@ -26,7 +27,8 @@ def _trajectories(seed=0, n=400):
 def _evo(tmp_path, t, gt, est):
     write_tum(tmp_path / "gt.txt", t, gt)
     write_tum(tmp_path / "est.txt", t, est)
-    return evo_file.read_tum_trajectory_file(tmp_path / "gt.txt"), evo_file.read_tum_trajectory_file(tmp_path / "est.txt")
+    read = evo_file.read_tum_trajectory_file
+    return read(tmp_path / "gt.txt"), read(tmp_path / "est.txt")
 
 
 def _rmse(metric, data):

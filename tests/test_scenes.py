@@ -2,7 +2,10 @@ import numpy as np
 import pytest
 import trimesh
 
-from scenes import TEST_SCENES, TRAIN_SCENES, VALIDATION_SCENES, Scene, SceneError, list_scenes, load_mesh, make_scene, scene_from_mesh
+from scenes import (
+    TEST_SCENES, TRAIN_SCENES, VALIDATION_SCENES, Scene, SceneError, list_scenes, load_mesh, make_scene,
+    scene_from_mesh,
+)
 
 
 @pytest.mark.parametrize("name", list_scenes())

@@ -75,8 +75,9 @@ def test_leg_odometry_is_exact_at_rest_and_drifts_in_motion():
             true = nxt
         errs.append(np.linalg.norm(est[:3, 3] - true[:3, 3]))
     assert 0.3 < np.median(errs) < 10.0
-    a = LegOdometry(OdometryConfig(), np.random.default_rng(7)).measure(np.eye(4), pose_to_matrix([0.1, 0, 0, 0, 0, 0.05]))
-    b = LegOdometry(OdometryConfig(), np.random.default_rng(7)).measure(np.eye(4), pose_to_matrix([0.1, 0, 0, 0, 0, 0.05]))
+    step = pose_to_matrix([0.1, 0, 0, 0, 0, 0.05])
+    a = LegOdometry(OdometryConfig(), np.random.default_rng(7)).measure(np.eye(4), step)
+    b = LegOdometry(OdometryConfig(), np.random.default_rng(7)).measure(np.eye(4), step)
     np.testing.assert_array_equal(a, b)
     assert not np.allclose(a, pose_to_matrix([0.1, 0, 0, 0, 0, 0.05]))
 

@@ -41,7 +41,8 @@ class NavigationEnv(gym.Env):
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
 
-    def __init__(self, config: EnvConfig | dict | None = None, render_mode: str | None = None, scene_object: Scene | None = None, **overrides: Any):
+    def __init__(self, config: EnvConfig | dict | None = None, render_mode: str | None = None,
+                 scene_object: Scene | None = None, **overrides: Any):
         super().__init__()
         if isinstance(config, dict) or config is None:
             config = from_dict(EnvConfig, {**(config or {}), **overrides})
@@ -52,7 +53,8 @@ class NavigationEnv(gym.Env):
         self.config, self.render_mode = config, render_mode
         self.scene = scene_object or make_scene(config.scene, **config.scene_params)
         if config.route not in self.scene.routes:
-            raise ValueError(f"scene '{self.scene.name}' has no route '{config.route}'; routes: {sorted(self.scene.routes)}")
+            raise ValueError(f"scene '{self.scene.name}' has no route '{config.route}'; "
+                             f"routes: {sorted(self.scene.routes)}")
         self.route = self.scene.routes[config.route]
         self.world = World(self.scene, config.robot)
         self.robot = Robot(self.world)
@@ -61,7 +63,8 @@ class NavigationEnv(gym.Env):
         pattern = self.lidar.pattern
         self.width = config.range_image_width or pattern.image_width
         if pattern.n_azimuth % self.width:
-            raise ValueError(f"range_image_width {self.width} must divide the {pattern.n_azimuth} columns of {pattern.name}")
+            raise ValueError(f"range_image_width {self.width} must divide the {pattern.n_azimuth} columns of "
+                             f"{pattern.name}")
         shape = (pattern.n_beams, self.width)
         odom_bound = np.array([5.0, 5.0, 5.0, np.pi, np.pi, np.pi], dtype=np.float32)
         extent = np.float32(2 * np.linalg.norm(self.scene.bounds[1] - self.scene.bounds[0]))
@@ -73,7 +76,8 @@ class NavigationEnv(gym.Env):
         })
         self.action_space = spaces.Box(-1.0, 1.0, (3,), dtype=np.float32)
         speed = float(config.robot.max_twist[0])
-        self.max_steps = config.max_episode_steps or int(np.ceil(3 * polyline_length(self.route) / (speed * config.robot.dt)))
+        route_length = polyline_length(self.route)
+        self.max_steps = config.max_episode_steps or int(np.ceil(3 * route_length / (speed * config.robot.dt)))
         self._renderer: TopDownRenderer | None = None
         self.fusion = None
         if config.fusion.enabled:
@@ -102,7 +106,8 @@ class NavigationEnv(gym.Env):
         if action.shape != (3,) or not np.isfinite(action).all():
             raise ValueError(f"action must be 3 finite numbers (vx, vy, yaw_rate), got {action!r}")
         if not self.action_space.contains(action.astype(np.float32)):
-            raise ValueError(f"action {action} is outside the action space [{self.action_space.low}, {self.action_space.high}]")
+            raise ValueError(f"action {action} is outside the action space "
+                             f"[{self.action_space.low}, {self.action_space.high}]")
         T_prev = self.robot.T_w_b
         T_cur, blocked = self.robot.step(action * np.asarray(self.config.robot.max_twist))
         increment = self.odometry.measure(T_prev, T_cur)
