@@ -33,10 +33,7 @@ from l3e_env.dataset import DatasetUnion, LabelDataset, open_datasets
 from l3e_env.evaluation import split_rows
 from l3e_env.scores import axis_scores, best_thresholds, mean_scores
 from l3e_env.training import network_parts, split_indices
-
-
-def family(scene: str) -> str:
-    return scene.rsplit("-", 1)[0]
+from scenes import scene_family
 
 
 def held_out_logits(folds: list[str], data: LabelDataset | DatasetUnion, rows: np.ndarray, seed: int) -> np.ndarray:
@@ -45,14 +42,14 @@ def held_out_logits(folds: list[str], data: LabelDataset | DatasetUnion, rows: n
     out = np.full((len(rows), 6), np.nan)
     for path in folds:
         state = load_checkpoint(path)
-        seen = {family(s) for s in state["training"]["train_scenes"]}
-        held = np.array([family(s) not in seen for s in scene_of_row])
+        seen = {scene_family(s) for s in state["training"]["train_scenes"]}
+        held = np.array([scene_family(s) not in seen for s in scene_of_row])
         if np.isfinite(out[held]).any():
             raise SystemExit(f"{path} leaves out a family that another fold leaves out too")
         out[held] = network_parts(model_from_checkpoint(state, path), data, rows[held], seed)[0]
         print(f"{path}: logits of {held.sum()} held-out rows "
-              f"({', '.join(sorted({family(s) for s in scene_of_row[held]}))})", flush=True)
-    missing = sorted({family(s) for s in scene_of_row[np.isnan(out[:, 0])]})
+              f"({', '.join(sorted({scene_family(s) for s in scene_of_row[held]}))})", flush=True)
+    missing = sorted({scene_family(s) for s in scene_of_row[np.isnan(out[:, 0])]})
     if missing:
         raise SystemExit(f"no fold leaves out the families {missing}: every training family needs one")
     return out
@@ -84,8 +81,8 @@ def main() -> None:
     labels = {name: data.labels[r] for name, r in rows.items()}
     for folder in args.other:
         other = open_datasets(folder)
-        for fam in sorted({family(s) for s in other.manifest["scenes"]}):
-            r = split_indices(other, [s for s in other.manifest["scenes"] if family(s) == fam])
+        for fam in sorted({scene_family(s) for s in other.manifest["scenes"]}):
+            r = split_indices(other, [s for s in other.manifest["scenes"] if scene_family(s) == fam])
             name = f"{fam} ({folder})"
             parts[name], labels[name] = network_parts(model, other, r, args.seed), other.labels[r]
     held = held_out_logits(args.fold, data, rows["train"], args.seed)

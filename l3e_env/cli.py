@@ -135,7 +135,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
     out = Path(args.out or f"l3e_out/evaluate-{time.strftime('%Y%m%d-%H%M%S')}")
     results = evaluate(args.checkpoint, args.dataset, out, others=args.other, progress=not args.quiet,
-                       symmetric=args.symmetric, eigen=args.eigen, int8=not args.float32)
+                       symmetric=args.symmetric, eigen=args.eigen, int8=not args.float32, by_family=args.by_family)
     print(results["table"])
     print(f"written: {out / 'table.txt'}, {out / 'results.json'}, {out / 'pr_curves.png'}")
     return 0
@@ -247,6 +247,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--other", "--other-sensor", dest="other", action="append",
                    help="another dataset, scored whole: another sensor, or scene families never trained on; "
                         "repeat for several")
+    p.add_argument("--by-family", action="store_true", dest="by_family",
+                   help="also score each scene family of an --other dataset on its own (e.g. 'yard of rooms48')")
     p.add_argument("--eigen", type=float, action="append", metavar="TAU",
                    help="also score the eigenvalue detector at this threshold (Hessian of each scan onto itself); "
                         "repeat for several")

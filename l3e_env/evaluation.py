@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from scenes import TEST_SCENES
+from scenes import TEST_SCENES, scene_family
 
 from .classifier import Classifier
 from .config import from_dict
@@ -32,6 +32,14 @@ def test_scenes_in(data: LabelDataset | DatasetUnion) -> list[str]:
     return [s for s in TEST_SCENES if s in data.manifest["scenes"]]
 
 
+def family_rows(data: LabelDataset | DatasetUnion) -> dict[str, np.ndarray]:
+    """The rows of each scene family of a dataset ('yard': those of yard-0, yard-1, ...), in the
+    order the dataset lists its scenes."""
+    names = data.manifest["scenes"]
+    of_row = np.array([scene_family(n) for n in names] or [""])[np.asarray(data.arrays["scene"], dtype=np.int64)]
+    return {f: np.flatnonzero(of_row == f) for f in dict.fromkeys(map(scene_family, names))}
+
+
 def split_rows(data: LabelDataset | DatasetUnion, training: dict[str, Any]) -> dict[str, np.ndarray]:
     """A checkpoint's train and validation rows (its own scenes) and the test rows (the test
     families that the dataset holds)."""
@@ -42,7 +50,7 @@ def split_rows(data: LabelDataset | DatasetUnion, training: dict[str, Any]) -> d
 
 def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Path], out_dir: str | Path,
              others: list[str | Path] | None = None, progress: bool = True, symmetric: bool = False,
-             eigen: list[float] | None = None, int8: bool = True) -> dict[str, Any]:
+             eigen: list[float] | None = None, int8: bool = True, by_family: bool = False) -> dict[str, Any]:
     """Score each checkpoint on its own train/validation split and on the test families of the
     dataset, and on every scan of each of `others` (a dataset of another sensor, or of scene
     families the model never saw: column 'all of <folder>'); writes table.txt, results.json and
@@ -50,13 +58,18 @@ def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Pat
     the eight mirror/swap views, with the thresholds chosen for them. `eigen`: thresholds tau of
     the eigenvalue detector, scored on the first checkpoint's splits from each scan's own Hessian
     (`scan_hessian`); a scan too small to register flags nothing, as the detector's UNKNOWN does.
-    `int8`: the ResUNet's convolutions as deployed (Classifier.load); False scores them in float32."""
+    `int8`: the ResUNet's convolutions as deployed (Classifier.load); False scores them in float32.
+    `by_family`: each scene family of an `others` dataset of several also gets a column of its own
+    ('yard of rooms48'): a mean over families of unlike difficulty hides which one a model fails on."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     data = open_datasets(dataset)
     extra: dict[str, LabelDataset] = {}
     for d in map(LabelDataset, others or []):
         extra[f"all of {d.name}" if f"all of {d.name}" not in extra else f"all of {d.folder}"] = d
+    families = {column: {f"{f} of {column.removeprefix('all of ')}": rows for f, rows in family_rows(d).items()}
+                for column, d in extra.items() if by_family}
+    families = {column: parts for column, parts in families.items() if len(parts) > 1}
     test_scenes = test_scenes_in(data)
     table: dict[str, dict[str, dict[str, np.ndarray]]] = {}
     curves: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = {}
@@ -66,13 +79,16 @@ def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Pat
 
     def score(name: str, split: str, ds: LabelDataset | DatasetUnion, rows: np.ndarray, predicted: np.ndarray,
               **fields: Any) -> None:
-        y = ds.labels[rows]
-        table[name][split] = scores = axis_scores(y, predicted)
-        intervals[name, split] = mean_interval(y, predicted)
-        results["models"][name]["splits"][split] = {
-            "count": len(rows), "dataset": ds.name, "sensor": ds.manifest["sensor"], **fields,
-            "mean": mean_scores(scores), "mean_95_interval": intervals[name, split],
-            **{k: np.asarray(v).tolist() for k, v in scores.items()}}
+        """The split's scores, and those of each of its families where asked (`families`)."""
+        parts = {split: np.arange(len(rows)), **families.get(split, {})}
+        for column, subset in parts.items():
+            y = ds.labels[rows[subset]]
+            table[name][column] = scores = axis_scores(y, predicted[subset])
+            intervals[name, column] = mean_interval(y, predicted[subset])
+            results["models"][name]["splits"][column] = {
+                "count": len(subset), "dataset": ds.name, "sensor": ds.manifest["sensor"],
+                **(fields if column == split else {}), "mean": mean_scores(scores),
+                "mean_95_interval": intervals[name, column], **{k: np.asarray(v).tolist() for k, v in scores.items()}}
 
     first_splits: dict[str, tuple[LabelDataset | DatasetUnion, np.ndarray]] = {}
     for path in map(Path, checkpoints):
@@ -91,7 +107,7 @@ def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Pat
             curves[name][split] = (ds.labels[rows], probs)
             score(name, split, ds, rows, probs > clf.thresholds)
         if "valid" in curves[name]:
-            results["models"][name]["f1_operating_point"] = f1_operating_point(curves[name])
+            results["models"][name]["f1_operating_point"] = f1_operating_point(curves[name], families)
     hessians = {}
     if eigen:  # one Hessian per scan serves every tau
         hessians = {split: dataset_hessians(ds, rows, progress) for split, (ds, rows) in first_splits.items()}
@@ -127,13 +143,17 @@ def dataset_hessians(data: LabelDataset | DatasetUnion, rows: np.ndarray, progre
     return out
 
 
-def f1_operating_point(curves: dict[str, tuple[np.ndarray, np.ndarray]]) -> dict[str, Any]:
-    """Mean scores of every split at the F1-best validation thresholds. The stored thresholds
-    weigh recall (a missed degenerate axis corrupts the fused estimate); this shows what a pure
-    classification operating point would score instead."""
+def f1_operating_point(curves: dict[str, tuple[np.ndarray, np.ndarray]],
+                       families: dict[str, dict[str, np.ndarray]] | None = None) -> dict[str, Any]:
+    """Mean scores of every split (and of the `families` columns of a split: column -> its rows) at
+    the F1-best validation thresholds. The stored thresholds weigh recall (a missed degenerate axis
+    corrupts the fused estimate); this shows what a pure classification operating point would score."""
     thresholds = best_thresholds(*curves["valid"], beta=1.0)
-    return {"thresholds": thresholds.tolist(),
-            "splits": {split: mean_scores(axis_scores(y, p > thresholds)) for split, (y, p) in curves.items()}}
+    splits = {}
+    for split, (y, p) in curves.items():
+        for column, rows in {split: np.arange(len(y)), **(families or {}).get(split, {})}.items():
+            splits[column] = mean_scores(axis_scores(y[rows], p[rows] > thresholds))
+    return {"thresholds": thresholds.tolist(), "splits": splits}
 
 
 def format_f1_operating_points(models: dict[str, Any]) -> str:

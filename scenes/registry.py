@@ -33,6 +33,11 @@ def list_scenes() -> list[str]:
     return sorted(BUILDERS)
 
 
+def scene_family(name: str) -> str:
+    """The family of a scene name: 'cave' for 'cave-3' and for 'cave'."""
+    return name.partition("-")[0]
+
+
 def make_scene(name: str, seed: int = 0, **params) -> Scene:
     """Build a scene by family name ('tunnel', 'mine', ...) or 'family-seed' ('cave-3').
 
@@ -42,7 +47,7 @@ def make_scene(name: str, seed: int = 0, **params) -> Scene:
         from .mesh_io import scene_from_mesh
 
         return scene_from_mesh(name, **params)
-    family, _, suffix = name.partition("-")
+    family, suffix = scene_family(name), name.partition("-")[2]
     if suffix:
         if not suffix.isdigit():
             raise SceneError(f"scene name '{name}': expected 'family' or 'family-<seed>'")

@@ -399,7 +399,7 @@ def test_evaluate_writes_table_curves_and_results(tiny_dataset, tmp_path):
 
     train(tiny_dataset, tmp_path / "run", _train_cfg(), progress=False)
     res = evaluate([tmp_path / "run" / "model.pt"], tiny_dataset, tmp_path / "eval",
-                   others=[tiny_dataset, tiny_dataset], progress=False, eigen=[1e9])
+                   others=[tiny_dataset, tiny_dataset], progress=False, eigen=[1e9], by_family=True)
     eigen = res["models"].pop("eigen:1e+09")
     (name, model), = res["models"].items()
     assert set(eigen["splits"]) == set(model["splits"]) and eigen["splits"]["valid"]["unregistrable"] == 0
@@ -408,8 +408,17 @@ def test_evaluate_writes_table_curves_and_results(tiny_dataset, tmp_path):
     everything = axis_scores(data.labels[rows], np.ones((len(rows), 6)))
     assert eigen["splits"]["valid"]["f1"] == pytest.approx(everything["f1"], nan_ok=True)
     whole = f"all of {Path(tiny_dataset).name}"
-    assert set(model["splits"]) == {"train", "valid", whole, f"all of {tiny_dataset}"}  # no test family here
+    families = {f"{f} of {d}" for f in ("tunnel", "office", "field") for d in (Path(tiny_dataset).name, tiny_dataset)}
+    assert set(model["splits"]) == {"train", "valid", whole, f"all of {tiny_dataset}", *families}  # no test family
     assert model["splits"]["train"]["count"] == 8 and model["splits"][whole]["count"] == 12
+    clf = Classifier.load(tmp_path / "run" / "model.pt")
+    for family in ("tunnel", "office", "field"):  # each family's column: the whole column's predictions on its rows
+        rows = split_indices(data, [f"{family}-0"])
+        expected = axis_scores(data.labels[rows], predict_dataset(clf.model, data, rows) > clf.thresholds)
+        column = model["splits"][f"{family} of {Path(tiny_dataset).name}"]
+        assert column["count"] == 4 and column["f1"] == pytest.approx(expected["f1"].tolist(), nan_ok=True)
+        assert column["accuracy"] == pytest.approx(expected["accuracy"].tolist())
+    assert f"office of {Path(tiny_dataset).name}" in res["table"]
     assert model["splits"][whole]["sensor"] == "vlp16"
     assert "accuracy mean" in res["table"] and (tmp_path / "eval" / "pr_curves.png").stat().st_size > 10_000
     stored = json.loads((tmp_path / "eval" / "results.json").read_text())

@@ -4,7 +4,7 @@ import trimesh
 
 from scenes import (
     TEST_SCENES, TRAIN_SCENES, VALIDATION_SCENES, Scene, SceneError, list_scenes, load_mesh, make_scene,
-    scene_from_mesh,
+    scene_family, scene_from_mesh,
 )
 
 
@@ -22,7 +22,7 @@ def test_every_family_builds_a_valid_scene(name):
 
 def test_seeds_are_reproducible_and_vary():
     a, b, c = make_scene("cave", seed=3), make_scene("cave-3"), make_scene("cave", seed=4)
-    assert a.name == b.name == "cave-3"
+    assert a.name == b.name == "cave-3" and scene_family(a.name) == scene_family("cave") == "cave"
     np.testing.assert_array_equal(a.mesh.vertices, b.mesh.vertices)
     assert a.mesh.vertices.shape != c.mesh.vertices.shape or not np.allclose(a.mesh.vertices, c.mesh.vertices)
 
