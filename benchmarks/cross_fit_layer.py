@@ -30,9 +30,9 @@ import torch
 from l3e_env.classifier import load_checkpoint, model_from_checkpoint
 from l3e_env.constraints import AxisStacker, fit_stacker
 from l3e_env.dataset import DatasetUnion, LabelDataset, open_datasets
-from l3e_env.evaluation import split_rows
+from l3e_env.evaluation import family_rows, split_rows
 from l3e_env.scores import axis_scores, best_thresholds, mean_scores
-from l3e_env.training import network_parts, split_indices
+from l3e_env.training import network_parts
 from scenes import scene_family
 
 
@@ -81,8 +81,7 @@ def main() -> None:
     labels = {name: data.labels[r] for name, r in rows.items()}
     for folder in args.other:
         other = open_datasets(folder)
-        for fam in sorted({scene_family(s) for s in other.manifest["scenes"]}):
-            r = split_indices(other, [s for s in other.manifest["scenes"] if scene_family(s) == fam])
+        for fam, r in family_rows(other).items():
             name = f"{fam} ({folder})"
             parts[name], labels[name] = network_parts(model, other, r, args.seed), other.labels[r]
     held = held_out_logits(args.fold, data, rows["train"], args.seed)

@@ -61,6 +61,8 @@ def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Pat
     `int8`: the ResUNet's convolutions as deployed (Classifier.load); False scores them in float32.
     `by_family`: each scene family of an `others` dataset of several also gets a column of its own
     ('yard of rooms48'): a mean over families of unlike difficulty hides which one a model fails on."""
+    if by_family and not others:
+        raise ValueError("by_family splits the datasets given as `others` (--other) by scene family: give one")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     data = open_datasets(dataset)

@@ -419,6 +419,8 @@ def test_evaluate_writes_table_curves_and_results(tiny_dataset, tmp_path):
         assert column["count"] == 4 and column["f1"] == pytest.approx(expected["f1"].tolist(), nan_ok=True)
         assert column["accuracy"] == pytest.approx(expected["accuracy"].tolist())
     assert f"office of {Path(tiny_dataset).name}" in res["table"]
+    with pytest.raises(ValueError, match="by scene family"):
+        evaluate([tmp_path / "run" / "model.pt"], tiny_dataset, tmp_path / "eval-none", by_family=True)
     assert model["splits"][whole]["sensor"] == "vlp16"
     assert "accuracy mean" in res["table"] and (tmp_path / "eval" / "pr_curves.png").stat().st_size > 10_000
     stored = json.loads((tmp_path / "eval" / "results.json").read_text())
