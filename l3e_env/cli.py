@@ -248,7 +248,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="another dataset, scored whole: another sensor, or scene families never trained on; "
                         "repeat for several")
     p.add_argument("--by-family", action="store_true", dest="by_family",
-                   help="also score each scene family of an --other dataset on its own (e.g. 'yard of rooms48')")
+                   help="also score each scene family of the test split and of an --other dataset on its own "
+                        "(e.g. 'mine of test', 'yard of rooms48')")
     p.add_argument("--eigen", type=float, action="append", metavar="TAU",
                    help="also score the eigenvalue detector at this threshold (Hessian of each scan onto itself); "
                         "repeat for several")

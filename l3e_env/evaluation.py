@@ -32,12 +32,13 @@ def test_scenes_in(data: LabelDataset | DatasetUnion) -> list[str]:
     return [s for s in TEST_SCENES if s in data.manifest["scenes"]]
 
 
-def family_rows(data: LabelDataset | DatasetUnion) -> dict[str, np.ndarray]:
-    """The rows of each scene family of a dataset ('yard': those of yard-0, yard-1, ...), in the
-    order the dataset lists its scenes."""
+def family_rows(data: LabelDataset | DatasetUnion, rows: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """The positions in `rows` (default: every row) of each scene family present ('yard': the rows
+    of yard-0, yard-1, ...), the families in the order the dataset lists its scenes."""
     names = data.manifest["scenes"]
-    of_row = np.array([scene_family(n) for n in names] or [""])[np.asarray(data.arrays["scene"], dtype=np.int64)]
-    return {f: np.flatnonzero(of_row == f) for f in dict.fromkeys(map(scene_family, names))}
+    scene = np.asarray(data.arrays["scene"], dtype=np.int64)
+    of_row = np.array([scene_family(n) for n in names] or [""])[scene if rows is None else scene[rows]]
+    return {f: np.flatnonzero(of_row == f) for f in dict.fromkeys(map(scene_family, names)) if (of_row == f).any()}
 
 
 def split_rows(data: LabelDataset | DatasetUnion, training: dict[str, Any]) -> dict[str, np.ndarray]:
@@ -59,20 +60,24 @@ def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Pat
     the eigenvalue detector, scored on the first checkpoint's splits from each scan's own Hessian
     (`scan_hessian`); a scan too small to register flags nothing, as the detector's UNKNOWN does.
     `int8`: the ResUNet's convolutions as deployed (Classifier.load); False scores them in float32.
-    `by_family`: each scene family of an `others` dataset of several also gets a column of its own
-    ('yard of rooms48'): a mean over families of unlike difficulty hides which one a model fails on."""
-    if by_family and not others:
-        raise ValueError("by_family splits the datasets given as `others` (--other) by scene family: give one")
+    `by_family`: each scene family of the test split and of an `others` dataset, where it holds
+    several, also gets a column of its own ('mine of test', 'yard of rooms48'): a mean over families
+    of unlike difficulty hides which one a model fails on."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     data = open_datasets(dataset)
     extra: dict[str, LabelDataset] = {}
     for d in map(LabelDataset, others or []):
         extra[f"all of {d.name}" if f"all of {d.name}" not in extra else f"all of {d.folder}"] = d
-    families = {column: {f"{f} of {column.removeprefix('all of ')}": rows for f, rows in family_rows(d).items()}
-                for column, d in extra.items() if by_family}
-    families = {column: parts for column, parts in families.items() if len(parts) > 1}
     test_scenes = test_scenes_in(data)
+    # split -> {column: positions in the split's rows}, for the splits that hold several families
+    families: dict[str, dict[str, np.ndarray]] = {}
+    if by_family:
+        whole = {"test": (data, split_indices(data, test_scenes))} | {c: (d, None) for c, d in extra.items()}
+        for split, (ds, rows) in whole.items():
+            parts = family_rows(ds, rows)
+            if len(parts) > 1:
+                families[split] = {f"{f} of {split.removeprefix('all of ')}": at for f, at in parts.items()}
     table: dict[str, dict[str, dict[str, np.ndarray]]] = {}
     curves: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = {}
     intervals: dict[tuple[str, str], dict[str, tuple[float, float]]] = {}

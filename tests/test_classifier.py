@@ -394,7 +394,8 @@ def test_fine_tuning_starts_from_the_given_weights(tiny_dataset, tmp_path):
         train(tiny_dataset, tmp_path / "bad", other, progress=False)
 
 
-def test_evaluate_writes_table_curves_and_results(tiny_dataset, tmp_path):
+def test_evaluate_writes_table_curves_and_results(tiny_dataset, tmp_path, monkeypatch):
+    from l3e_env import evaluation
     from l3e_env.evaluation import evaluate
 
     train(tiny_dataset, tmp_path / "run", _train_cfg(), progress=False)
@@ -419,8 +420,14 @@ def test_evaluate_writes_table_curves_and_results(tiny_dataset, tmp_path):
         assert column["count"] == 4 and column["f1"] == pytest.approx(expected["f1"].tolist(), nan_ok=True)
         assert column["accuracy"] == pytest.approx(expected["accuracy"].tolist())
     assert f"office of {Path(tiny_dataset).name}" in res["table"]
-    with pytest.raises(ValueError, match="by scene family"):
-        evaluate([tmp_path / "run" / "model.pt"], tiny_dataset, tmp_path / "eval-none", by_family=True)
+    monkeypatch.setattr(evaluation, "TEST_SCENES", ["field-0", "tunnel-0"])  # a test split of two families
+    splits = evaluate([tmp_path / "run" / "model.pt"], tiny_dataset, tmp_path / "eval-test", progress=False,
+                      by_family=True)["models"][name]["splits"]
+    assert set(splits) == {"train", "valid", "test", "tunnel of test", "field of test"}
+    rows = split_indices(data, ["tunnel-0"])
+    expected = axis_scores(data.labels[rows], predict_dataset(clf.model, data, rows) > clf.thresholds)
+    assert splits["test"]["count"] == 8 and splits["tunnel of test"]["count"] == 4
+    assert splits["tunnel of test"]["f1"] == pytest.approx(expected["f1"].tolist(), nan_ok=True)
     assert model["splits"][whole]["sensor"] == "vlp16"
     assert "accuracy mean" in res["table"] and (tmp_path / "eval" / "pr_curves.png").stat().st_size > 10_000
     stored = json.loads((tmp_path / "eval" / "results.json").read_text())
