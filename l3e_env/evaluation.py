@@ -70,24 +70,21 @@ def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Pat
     for d in map(LabelDataset, others or []):
         extra[f"all of {d.name}" if f"all of {d.name}" not in extra else f"all of {d.folder}"] = d
     test_scenes = test_scenes_in(data)
-    # split -> {column: positions in the split's rows}, for the splits that hold several families
-    families: dict[str, dict[str, np.ndarray]] = {}
-    if by_family:
-        whole = {"test": (data, split_indices(data, test_scenes))} | {c: (d, None) for c, d in extra.items()}
-        for split, (ds, rows) in whole.items():
-            parts = family_rows(ds, rows)
-            if len(parts) > 1:
-                families[split] = {f"{f} of {split.removeprefix('all of ')}": at for f, at in parts.items()}
     table: dict[str, dict[str, dict[str, np.ndarray]]] = {}
     curves: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = {}
     intervals: dict[tuple[str, str], dict[str, tuple[float, float]]] = {}
     results: dict[str, Any] = {"dataset": data.name, "test_scenes": test_scenes, "symmetric": symmetric,
                                "int8": int8, "models": {}}
 
+    def family_columns(split: str, ds: LabelDataset | DatasetUnion, rows: np.ndarray) -> dict[str, np.ndarray]:
+        """Column name -> positions in `rows` of each family, for a test or `others` split of several."""
+        parts = family_rows(ds, rows) if by_family and (split == "test" or split in extra) else {}
+        return {f"{f} of {split.removeprefix('all of ')}": at for f, at in parts.items()} if len(parts) > 1 else {}
+
     def score(name: str, split: str, ds: LabelDataset | DatasetUnion, rows: np.ndarray, predicted: np.ndarray,
               **fields: Any) -> None:
-        """The split's scores, and those of each of its families where asked (`families`)."""
-        parts = {split: np.arange(len(rows)), **families.get(split, {})}
+        """The split's scores, and those of each of its families where asked (`by_family`)."""
+        parts = {split: np.arange(len(rows)), **family_columns(split, ds, rows)}
         for column, subset in parts.items():
             y = ds.labels[rows[subset]]
             table[name][column] = scores = axis_scores(y, predicted[subset])
@@ -114,6 +111,7 @@ def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Pat
             curves[name][split] = (ds.labels[rows], probs)
             score(name, split, ds, rows, probs > clf.thresholds)
         if "valid" in curves[name]:
+            families = {split: family_columns(split, *splits[split]) for split in curves[name]}
             results["models"][name]["f1_operating_point"] = f1_operating_point(curves[name], families)
     hessians = {}
     if eigen:  # one Hessian per scan serves every tau

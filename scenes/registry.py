@@ -47,7 +47,7 @@ def make_scene(name: str, seed: int = 0, **params) -> Scene:
         from .mesh_io import scene_from_mesh
 
         return scene_from_mesh(name, **params)
-    family, suffix = scene_family(name), name.partition("-")[2]
+    family, _, suffix = name.partition("-")
     if suffix:
         if not suffix.isdigit():
             raise SceneError(f"scene name '{name}': expected 'family' or 'family-<seed>'")
