@@ -296,7 +296,8 @@ def check_scan(points: np.ndarray) -> np.ndarray:
     if points.ndim != 2 or points.shape[1] != 3:
         raise ScanError(f"a scan is an (N, 3) array of points, got shape {points.shape}")
     if not np.isfinite(points).all():
-        raise ScanError(f"the scan holds {int((~np.isfinite(points)).any(axis=1).sum())} points with NaN or inf")
+        bad = int((~np.isfinite(points)).any(axis=1).sum())
+        raise ScanError(f"the scan holds {bad} point{'s' if bad != 1 else ''} with NaN or inf")
     if len(points) < MIN_POINTS:
         raise ScanError(f"the scan has {len(points)} points; the classifier needs at least {MIN_POINTS}")
     return points.astype(np.float32, copy=False)
@@ -362,6 +363,14 @@ def save_checkpoint(path: str | Path, model: LocalizabilityNet, thresholds: np.n
     write_atomic(path, lambda fh: torch.save(state, fh))
 
 
+def torch_load_reason(exc: Exception) -> str:
+    """torch.load's error in one line; its weights-only advice (load with code execution) is not ours to give."""
+    lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
+    if lines and lines[0].startswith("Weights only load failed"):
+        return "not a weights-only torch file, or corrupt"
+    return lines[0] if lines else type(exc).__name__
+
+
 def load_checkpoint(path: str | Path) -> dict[str, Any]:
     """The checkpoint's dict, checked for format and version (weights only: no code is run)."""
     path = Path(path)
@@ -370,7 +379,7 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # torch raises many types for a corrupt file
-        raise CheckpointError(f"{path} is not a readable torch checkpoint ({exc})") from exc
+        raise CheckpointError(f"{path} is not a readable torch checkpoint ({torch_load_reason(exc)})") from exc
     if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT:
         raise CheckpointError(f"{path} is not an l3e classifier checkpoint")
     if state.get("version") != CHECKPOINT_VERSION:
