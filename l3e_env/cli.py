@@ -8,6 +8,29 @@ from importlib.metadata import entry_points
 from pathlib import Path
 
 
+def scene_name(text: str) -> str:
+    """argparse type: a scene name or mesh path, refused at parse time (before any folder or worker)."""
+    from scenes import SceneError, check_scene_name
+
+    try:
+        return check_scene_name(text)
+    except SceneError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from exc
+
+
+def scene_names(text: str) -> list[str]:
+    """argparse type: comma-separated scene names, each checked as `scene_name` does."""
+    return [scene_name(name.strip()) for name in text.split(",")]
+
+
+def float_list(text: str) -> tuple[float, ...]:
+    """argparse type: comma-separated numbers."""
+    try:
+        return tuple(float(t) for t in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got '{text}'") from None
+
+
 def _cmd_demo(args: argparse.Namespace) -> int:
     from .demo import run_demo
 
@@ -52,7 +75,7 @@ def _cmd_dataset_generate(args: argparse.Namespace) -> int:
     from .dataset import config_for, format_statistics, generate
 
     overrides = {
-        "scenes": args.scenes.split(",") if args.scenes else None,
+        "scenes": args.scenes,
         "parents_per_scene": args.parents,
         "seed": args.seed,
         "lidar": {"model": args.sensor} if args.sensor else None,
@@ -163,7 +186,7 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
 
     out = Path(args.out or f"l3e_out/sweep-{time.strftime('%Y%m%d-%H%M%S')}")
     print(f"writing the sweep into {out.resolve()}")
-    taus = tuple(float(t) for t in args.taus.split(",")) if args.taus else DEFAULT_TAUS
+    taus = args.taus or DEFAULT_TAUS
     recordings = dict(r.split("=", 1) for r in args.recording or [])
     results = run_sweep(out, args.scene or ["tunnel", "field", "office"], taus, recordings=recordings,
                         progress=not args.quiet)
@@ -179,14 +202,14 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
     p = sub.add_parser("demo", help="drive the mine route and save a top view and scan pictures")
     p.add_argument("--out", help="output folder (default: l3e_out/demo-<time>)")
-    p.add_argument("--scene", default="mine", help="scene name (default: mine)")
+    p.add_argument("--scene", type=scene_name, default="mine", help="scene name (default: mine)")
     p.add_argument("--sensor", default="vlp16", help="vlp16 or os0-128")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--checkpoint", help="classifier checkpoint (default: the shipped model)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_demo)
     p = sub.add_parser("scenes", help="list scenes and the train/validation/test split")
-    p.add_argument("names", nargs="*", help="scene names to describe (default: all families)")
+    p.add_argument("names", nargs="*", type=scene_name, help="scene names to describe (default: all families)")
     p.set_defaults(func=_cmd_scenes)
     p = sub.add_parser("dataset", help="Monte-Carlo localizability labels")
     dsub = p.add_subparsers(dest="dataset_command", required=True)
@@ -195,7 +218,7 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--preset", choices=["small", "paper", "level"], default="small",
                    help="small: a first look; paper: the paper's protocol; level: operating poses "
                         "(level, heading along or across the paths)")
-    g.add_argument("--scenes", help="comma-separated scene names (overrides the preset)")
+    g.add_argument("--scenes", type=scene_names, help="comma-separated scene names (overrides the preset)")
     g.add_argument("--parents", type=int, help="parents per scene")
     g.add_argument("--children", type=int, help="M, children per parent (paper: 200)")
     g.add_argument("--sensor", help="vlp16 or os0-128")
@@ -209,7 +232,7 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("folder")
     g.set_defaults(func=_cmd_dataset_stats)
     p = sub.add_parser("ate", help="drive a route once, fuse with each detector, compare ATE")
-    p.add_argument("--scene", default="mine")
+    p.add_argument("--scene", type=scene_name, default="mine")
     p.add_argument("--detector", action="append",
                    help="none | eigen:<tau> | oracle[:M] | learned[:checkpoint]; repeat for several")
     p.add_argument("--backend", choices=["graph", "ekf"], default="graph", help="iSAM2 smoother or filterpy EKF")
@@ -280,8 +303,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_fit_constraints)
     p = sub.add_parser("sweep", help="ATE against the eigenvalue threshold in several scenes, with the learned "
                                      "detector as reference")
-    p.add_argument("--scene", action="append", help="repeat; default tunnel, field, office")
-    p.add_argument("--taus", help="comma-separated thresholds (default 10 ... 300)")
+    p.add_argument("--scene", type=scene_name, action="append", help="repeat; default tunnel, field, office")
+    p.add_argument("--taus", type=float_list, help="comma-separated thresholds (default 10 ... 300)")
     p.add_argument("--recording", action="append", help="SCENE=recording.npz to skip driving that scene")
     p.add_argument("--out", help="output folder (default: l3e_out/sweep-<time>)")
     p.add_argument("--quiet", action="store_true")

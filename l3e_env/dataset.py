@@ -24,7 +24,7 @@ from typing import Any, BinaryIO, Callable, Iterator
 import numpy as np
 from tqdm import tqdm
 
-from scenes import DATASET_SCENES, make_scene
+from scenes import DATASET_SCENES, check_scene_name, make_scene
 
 from .config import LidarConfig, from_dict
 from .files import write_atomic
@@ -188,6 +188,8 @@ def generate(
 ) -> dict[str, Any]:
     """Generate (or resume) a dataset; returns the manifest. Finished shards are never redone."""
     out = Path(out_dir)
+    for name in config.scenes:  # a misspelt scene fails here, before the folder or any worker exists
+        check_scene_name(name)
     manifest = _open_folder(out, config)
     todo = [s for s in _shards(config) if not (out / "shards" / f"{s[0]}.npz").exists()]
     total = config.parents_per_scene * len(config.scenes)

@@ -9,9 +9,11 @@ from pathlib import Path
 
 import numpy as np
 
+from l3e_env.cli import scene_names
+
 
 def _scenes(args: argparse.Namespace) -> list[str]:
-    return [s for group in args.scene or ["fork"] for s in group.split(",")]
+    return [s for group in args.scene or [["fork"]] for s in group]
 
 
 def _cmd_map(args: argparse.Namespace) -> int:
@@ -96,13 +98,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     common.add_argument("--sensor", default="vlp16", help="vlp16 or os0-128")
     common.add_argument("--quiet", action="store_true", help="no progress bars")
     g = psub.add_parser("map", parents=[common], help="build (or load) and plot localizability maps")
-    g.add_argument("--scene", action="append", help="scene names, comma-separated or repeated (default: fork)")
+    g.add_argument("--scene", type=scene_names, action="append",
+                   help="scene names, comma-separated or repeated (default: fork)")
     g.add_argument("--detector", default="learned", help="learned[:checkpoint] | eigen:<tau> | oracle[:M]")
     g.add_argument("--resolution", type=float, default=2.0, help="metres between mapped positions (default 2)")
     g.add_argument("--out", help="folder for the plots (default: l3e_out/maps)")
     g.set_defaults(func=_cmd_map)
     g = psub.add_parser("plan", parents=[common], help="shortest path and localizability-aware plan, with a plot")
-    g.add_argument("--scene", action="append", help="scene names (default: fork)")
+    g.add_argument("--scene", type=scene_names, action="append", help="scene names (default: fork)")
     g.add_argument("--detector", default="learned", help="map detector (default: learned)")
     g.add_argument("--lam", type=float, default=50.0, help="weight of expected drift against length (default 50)")
     g.add_argument("--start", type=float, nargs=2, metavar=("X", "Y"), help="default: the scene's start")
@@ -111,7 +114,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.set_defaults(func=_cmd_plan)
     g = psub.add_parser("train", parents=[common], help="train a PPO navigation policy on fork variants (resumable)")
     g.add_argument("--out", required=True, help="run folder (an unfinished run there is resumed)")
-    g.add_argument("--scene", action="append", help="training variants (default: fork-0 ... fork-6)")
+    g.add_argument("--scene", type=scene_names, action="append", help="training variants (default: fork-0 ... fork-6)")
     g.add_argument("--detector", default="learned", help="map detector (default: learned)")
     g.add_argument("--timesteps", type=int, default=300_000, help="decisions of 0.5 s (default 300000)")
     g.add_argument("--envs", type=int, default=4, help="environments stepped together (default 4)")
@@ -121,7 +124,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     g = psub.add_parser("evaluate", parents=[common], help="seeded full-pipeline episodes: success, route, ATE, length")
     g.add_argument("--policy", action="append",
                    help="shortest | planner | ppo:<run folder>; repeat (default: shortest and planner)")
-    g.add_argument("--scene", action="append", help="evaluation variants (default: fork-100 ... fork-109)")
+    g.add_argument("--scene", type=scene_names, action="append",
+                   help="evaluation variants (default: fork-100 ... fork-109)")
     g.add_argument("--episodes", type=int, default=50, help="episodes per policy (default 50)")
     g.add_argument("--detector", default="learned", help="detector of the fusion and the planner's map")
     g.add_argument("--lam", type=float, default=50.0, help="the planner's drift weight (default 50)")

@@ -1,6 +1,7 @@
 """Scene names, seeded variants and the split of environments into training and test."""
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Callable
 
 from .cave import make_cave
@@ -8,6 +9,7 @@ from .chamber import make_chamber
 from .field import make_field
 from .fork import make_fork
 from .gallery import make_gallery
+from .mesh_io import FORMATS, scene_from_mesh
 from .mine import make_mine
 from .office import make_office
 from .primitives import make_primitive
@@ -43,18 +45,28 @@ def make_scene(name: str, seed: int = 0, **params) -> Scene:
 
     A path to a mesh file is accepted too (see scenes.mesh_io.scene_from_mesh).
     """
-    if name.lower().endswith((".obj", ".stl", ".ply", ".glb", ".gltf", ".off")):
-        from .mesh_io import scene_from_mesh
-
+    check_scene_name(name)
+    if name.lower().endswith(FORMATS):
         return scene_from_mesh(name, **params)
     family, _, suffix = name.partition("-")
     if suffix:
-        if not suffix.isdigit():
-            raise SceneError(f"scene name '{name}': expected 'family' or 'family-<seed>'")
         seed = int(suffix)
+    return BUILDERS[family](seed=seed, **params)
+
+
+def check_scene_name(name: str) -> str:
+    """The name if make_scene would accept it, else SceneError; builds nothing, so that a command
+    can refuse a misspelt scene before it creates folders or starts workers."""
+    if name.lower().endswith(FORMATS):
+        if not Path(name).is_file():
+            raise SceneError(f"mesh file not found: {name}")
+        return name
+    family, _, suffix = name.partition("-")
+    if suffix and not suffix.isdigit():
+        raise SceneError(f"scene name '{name}': expected 'family' or 'family-<seed>'")
     if family not in BUILDERS:
         raise SceneError(f"unknown scene '{name}'; known scenes: {', '.join(list_scenes())}")
-    return BUILDERS[family](seed=seed, **params)
+    return name
 
 
 # Training draws on at least 15 distinct environments as the paper did; the test split holds

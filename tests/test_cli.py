@@ -19,9 +19,28 @@ def test_evaluate_reads_other_datasets_under_both_names():
     assert args.other == ["os0", "rooms"]
 
 
-def test_unknown_scene_is_a_clear_error(capsys):
-    assert main(["scenes", "volcano"]) == 2
-    assert "unknown scene 'volcano'" in capsys.readouterr().err
+@pytest.mark.parametrize("argv", [
+    ["scenes", "volcano"],
+    ["ate", "--scene", "volcano", "--out", "{out}"],
+    ["demo", "--scene", "volcano", "--out", "{out}"],
+    ["sweep", "--scene", "tunnel", "--scene", "volcano", "--out", "{out}"],
+    ["dataset", "generate", "--scenes", "tunnel-0,volcano-1", "--out", "{out}"],
+    ["policy", "plan", "--scene", "fork-0,volcano", "--out", "{out}"],
+])
+def test_unknown_scene_is_refused_before_anything_is_written(argv, tmp_path, capsys):
+    out = tmp_path / "out"
+    with pytest.raises(SystemExit) as exit_info:
+        main([a.format(out=out) for a in argv])
+    assert exit_info.value.code == 2
+    assert "unknown scene 'volcano" in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_sweep_thresholds_must_be_numbers(capsys):
+    assert build_parser().parse_args(["sweep", "--taus", "10,30.5"]).taus == (10.0, 30.5)
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["sweep", "--taus", "10,abc"])
+    assert "expected comma-separated numbers" in capsys.readouterr().err
 
 
 @pytest.mark.slow

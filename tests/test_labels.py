@@ -3,6 +3,7 @@ import json
 import numpy as np
 import pytest
 
+from scenes import SceneError
 from l3e_env.dataset import DatasetError, LabelDataset, config_for, generate, label_statistics
 from l3e_env.labels import LabelConfig, SamplingError, label_parent, sample_parent_pose
 from l3e_env.lidar import Lidar
@@ -118,6 +119,9 @@ def test_resuming_with_other_settings_or_reading_unfinished_data_is_refused(tmp_
         LabelDataset(tmp_path / "e")
     with pytest.raises(DatasetError, match="unknown preset"):
         config_for("huge")
+    with pytest.raises(SceneError, match="unknown scene 'volcano-0'"):
+        generate(tmp_path / "f", config_for(None, scenes=["tunnel-0", "volcano-0"]), workers=1, progress=False)
+    assert not (tmp_path / "f").exists()
 
 
 def test_ray_backend_gives_the_same_dataset(tmp_path):

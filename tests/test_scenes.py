@@ -3,8 +3,8 @@ import pytest
 import trimesh
 
 from scenes import (
-    TEST_SCENES, TRAIN_SCENES, VALIDATION_SCENES, Scene, SceneError, list_scenes, load_mesh, make_scene,
-    scene_family, scene_from_mesh,
+    TEST_SCENES, TRAIN_SCENES, VALIDATION_SCENES, Scene, SceneError, check_scene_name, list_scenes, load_mesh,
+    make_scene, scene_family, scene_from_mesh,
 )
 
 
@@ -48,6 +48,10 @@ def test_unknown_scene_names_are_reported_with_the_known_ones():
         make_scene("volcano")
     with pytest.raises(SceneError, match="family-<seed>"):
         make_scene("cave-x")
+    assert check_scene_name("cave-12") == "cave-12"
+    for bad, message in [("volcano-2", "known scenes"), ("cave-x", "family-<seed>"), ("missing.obj", "not found")]:
+        with pytest.raises(SceneError, match=message):
+            check_scene_name(bad)
 
 
 def test_empty_and_nan_meshes_are_rejected():
