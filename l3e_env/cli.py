@@ -23,6 +23,16 @@ def scene_names(text: str) -> list[str]:
     return [scene_name(name.strip()) for name in text.split(",")]
 
 
+def sensor_name(text: str) -> str:
+    """argparse type: a registered LiDAR model (vlp16, os0-128 or one added with register_pattern)."""
+    from .lidar import get_pattern
+
+    try:
+        return get_pattern(text).name
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from exc
+
+
 def float_list(text: str) -> tuple[float, ...]:
     """argparse type: comma-separated numbers."""
     try:
@@ -203,7 +213,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("demo", help="drive the mine route and save a top view and scan pictures")
     p.add_argument("--out", help="output folder (default: l3e_out/demo-<time>)")
     p.add_argument("--scene", type=scene_name, default="mine", help="scene name (default: mine)")
-    p.add_argument("--sensor", default="vlp16", help="vlp16 or os0-128")
+    p.add_argument("--sensor", type=sensor_name, default="vlp16", help="vlp16 or os0-128")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--checkpoint", help="classifier checkpoint (default: the shipped model)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -221,7 +231,7 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--scenes", type=scene_names, help="comma-separated scene names (overrides the preset)")
     g.add_argument("--parents", type=int, help="parents per scene")
     g.add_argument("--children", type=int, help="M, children per parent (paper: 200)")
-    g.add_argument("--sensor", help="vlp16 or os0-128")
+    g.add_argument("--sensor", type=sensor_name, help="vlp16 or os0-128")
     g.add_argument("--seed", type=int)
     g.add_argument("--workers", type=int, default=2)
     g.add_argument("--backend", choices=["local", "ray"], default="local")
@@ -236,7 +246,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--detector", action="append",
                    help="none | eigen:<tau> | oracle[:M] | learned[:checkpoint]; repeat for several")
     p.add_argument("--backend", choices=["graph", "ekf"], default="graph", help="iSAM2 smoother or filterpy EKF")
-    p.add_argument("--sensor", default="vlp16")
+    p.add_argument("--sensor", type=sensor_name, default="vlp16", help="vlp16 or os0-128")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--recording", help="evaluate a saved recording.npz instead of driving again")
     p.add_argument("--out", help="output folder (default: l3e_out/ate-<scene>-<time>)")

@@ -29,7 +29,7 @@ from scenes import DATASET_SCENES, check_scene_name, make_scene
 from .config import LidarConfig, from_dict
 from .files import write_atomic
 from .labels import AXES, LabelConfig, SamplingError, label_parent, sample_parent_pose
-from .lidar import Lidar
+from .lidar import Lidar, get_pattern
 from .raycast import EmbreeCaster
 from .registration import RegistrationConfig, RegistrationError
 
@@ -162,6 +162,25 @@ def _versions() -> dict[str, str]:
     return out
 
 
+def check_dataset_config(config: DatasetConfig) -> None:
+    """DatasetError for settings no run can use (SceneError for a misspelt scene), before the
+    folder, its manifest or any worker exists."""
+    for name in config.scenes:
+        check_scene_name(name)
+    problems = [f"{name} must be {rule}, got {value}" for name, value, ok, rule in [
+        ("scenes", config.scenes, len(config.scenes) > 0, "at least one scene"),
+        ("parents_per_scene", config.parents_per_scene, config.parents_per_scene >= 1, "at least 1"),
+        ("shard_size", config.shard_size, config.shard_size >= 1, "at least 1"),
+        ("labels.children", config.labels.children, config.labels.children >= 1, "at least 1"),
+    ] if not ok]
+    try:
+        get_pattern(config.lidar.model)
+    except ValueError as exc:
+        problems.append(str(exc))
+    if problems:
+        raise DatasetError("; ".join(problems))
+
+
 def _open_folder(out: Path, config: DatasetConfig) -> dict[str, Any]:
     """Create the folder or check that it holds a run of the same settings (to resume)."""
     manifest_path = out / "manifest.json"
@@ -188,8 +207,7 @@ def generate(
 ) -> dict[str, Any]:
     """Generate (or resume) a dataset; returns the manifest. Finished shards are never redone."""
     out = Path(out_dir)
-    for name in config.scenes:  # a misspelt scene fails here, before the folder or any worker exists
-        check_scene_name(name)
+    check_dataset_config(config)
     manifest = _open_folder(out, config)
     todo = [s for s in _shards(config) if not (out / "shards" / f"{s[0]}.npz").exists()]
     total = config.parents_per_scene * len(config.scenes)

@@ -202,16 +202,17 @@ def _scored(name: str, traj: np.ndarray, gt: np.ndarray, masks: np.ndarray, prob
 def run_experiment(out_dir: str | Path, scene: str, detectors: list[str], sensor: str = "vlp16", seed: int = 0,
                    recording: str | Path | None = None, progress: bool = True, backend: str = "graph") -> list[dict]:
     """The `l3e ate` command as a function: returns the table rows and writes everything to out_dir."""
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    rec = Recording.load(recording) if recording else record_run(scene, sensor, seed, progress)
-    if not recording:
-        rec.save(out / "recording.npz")
     from scenes import make_scene
 
-    scene_obj = make_scene(rec.scene)
-    lidar = Lidar(EmbreeCaster(scene_obj.mesh), LidarConfig(model=rec.sensor))
-    dets = [make_detector(spec, lidar, seed) for spec in detectors]
+    out = Path(out_dir)
+    rec = Recording.load(recording) if recording else None
+    scene_obj = make_scene(rec.scene if rec else scene)
+    lidar = Lidar(EmbreeCaster(scene_obj.mesh), LidarConfig(model=rec.sensor if rec else sensor))
+    dets = [make_detector(spec, lidar, seed) for spec in detectors]  # a bad spec fails before the drive
+    out.mkdir(parents=True, exist_ok=True)
+    if rec is None:
+        rec = record_run(scene, sensor, seed, progress)
+        rec.save(out / "recording.npz")
     t0 = time.perf_counter()
     regs = register_sequence(rec, RegistrationConfig(), progress)
     icp_seconds = time.perf_counter() - t0

@@ -176,6 +176,21 @@ def _meta(cfg: TrainConfig, data: LabelDataset | DatasetUnion) -> dict[str, Any]
                                                       "seed": settings["seed"]}}
 
 
+def check_train_config(cfg: TrainConfig) -> None:
+    """TrainingError for settings no run can use, before any folder or data is touched."""
+    problems = [f"{name} must be {rule}, got {value}" for name, value, ok, rule in [
+        ("epochs", cfg.epochs, cfg.epochs >= 1, "at least 1"),
+        ("batch_size", cfg.batch_size, cfg.batch_size >= 1, "at least 1"),
+        ("learning_rate", cfg.learning_rate, cfg.learning_rate > 0, "positive"),
+        ("lr_decay", cfg.lr_decay, 0 < cfg.lr_decay <= 1, "in (0, 1]"),
+        ("samples_per_epoch", cfg.samples_per_epoch, cfg.samples_per_epoch >= 0, "0 (the whole pool) or more"),
+        ("threads", cfg.threads, cfg.threads >= 1, "at least 1"),
+        ("optimizer", cfg.optimizer, cfg.optimizer in ("sgd", "adamw"), "sgd or adamw"),
+    ] if not ok]
+    if problems:
+        raise TrainingError("; ".join(problems))
+
+
 def _initial_model(cfg: TrainConfig) -> LocalizabilityNet:
     """Fresh weights seeded by cfg.seed, or (fine-tuning) the weights of cfg.init."""
     if cfg.model.constraints:
@@ -202,6 +217,7 @@ def train(dataset: str | Path | list[str | Path], out_dir: str | Path, cfg: Trai
           progress: bool = True) -> dict[str, Any]:
     """Train (or resume) into `out_dir` on one dataset or several read as one; returns the
     summary of the best epoch."""
+    check_train_config(cfg)
     torch.set_num_threads(cfg.threads)
     data = open_datasets(dataset)
     out = Path(out_dir)

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from l3e_env.cli import scene_names
+from l3e_env.cli import scene_names, sensor_name
 
 
 def _scenes(args: argparse.Namespace) -> list[str]:
@@ -95,7 +95,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     common = argparse.ArgumentParser(add_help=False)
     common.add_argument("--cache-dir", dest="cache_dir",
                         help="map cache (default: $L3E_CACHE/maps or ~/.cache/l3e/maps)")
-    common.add_argument("--sensor", default="vlp16", help="vlp16 or os0-128")
+    common.add_argument("--sensor", type=sensor_name, default="vlp16", help="vlp16 or os0-128")
     common.add_argument("--quiet", action="store_true", help="no progress bars")
     g = psub.add_parser("map", parents=[common], help="build (or load) and plot localizability maps")
     g.add_argument("--scene", type=scene_names, action="append",

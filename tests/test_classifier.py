@@ -338,6 +338,12 @@ def _train_cfg(**kw):
                           "threads": 1, **kw})
 
 
+def test_settings_no_run_can_use_are_refused_before_the_folder(tiny_dataset, tmp_path):
+    with pytest.raises(TrainingError, match="epochs must be at least 1, got 0; optimizer must be sgd or adamw"):
+        train(tiny_dataset, tmp_path / "run", _train_cfg(epochs=0, optimizer="adam"), progress=False)
+    assert not (tmp_path / "run").exists()
+
+
 def test_a_killed_run_resumes_to_the_same_model(tiny_dataset, tmp_path):
     whole = train(tiny_dataset, tmp_path / "whole", _train_cfg(), progress=False)
     cfg = _train_cfg()

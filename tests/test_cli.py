@@ -36,6 +36,13 @@ def test_unknown_scene_is_refused_before_anything_is_written(argv, tmp_path, cap
     assert not out.exists()
 
 
+def test_sensor_names_are_checked_at_parse_time(capsys):
+    assert build_parser().parse_args(["ate", "--sensor", "os0-128"]).sensor == "os0-128"
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["policy", "plan", "--sensor", "vlp32"])
+    assert "unknown LiDAR model 'vlp32'" in capsys.readouterr().err
+
+
 def test_sweep_thresholds_must_be_numbers(capsys):
     assert build_parser().parse_args(["sweep", "--taus", "10,30.5"]).taus == (10.0, 30.5)
     with pytest.raises(SystemExit):

@@ -1,8 +1,12 @@
+import json
+
 import numpy as np
 import pytest
 
 from l3e_env.detectors import EigenvalueDetector, NoDetector, make_detector
-from l3e_env.experiment import Recording, evaluate, file_stem, format_table, record_run, register_sequence
+from l3e_env.experiment import (
+    Recording, evaluate, file_stem, format_table, record_run, register_sequence, run_experiment,
+)
 from l3e_env.registration import RegistrationConfig
 
 
@@ -29,6 +33,18 @@ def test_masking_the_wall_axis_beats_full_icp(walls_run, tmp_path):
     assert eigen2.ate == pytest.approx(eigen.ate, rel=1e-9)
 
 
+def test_ate_from_a_recording_writes_results_and_figures(walls_run, tmp_path):
+    rec, _ = walls_run
+    rec.save(tmp_path / "rec.npz")
+    rows = run_experiment(tmp_path / "out", "mine", ["eigen:30", "none"], recording=tmp_path / "rec.npz",
+                          progress=False)  # the recording's scene, not the argument, is used
+    assert [r["detector"] for r in rows] == ["odometry only", "eigen:30", "none"]
+    written = {p.name for p in (tmp_path / "out").iterdir()}
+    assert {"results.json", "trajectories.png", "timeline.png", "map_eigen_30.png", "map_none.png"} <= written
+    assert "recording.npz" not in written
+    assert json.loads((tmp_path / "out" / "results.json").read_text())["scene"] == "primitives-1"
+
+
 def test_detector_specs_and_errors():
     assert make_detector("none").name == "none"
     assert make_detector("eigen:110").tau == 110.0
@@ -42,6 +58,17 @@ def test_detector_specs_and_errors():
         make_detector("oracle")
     unknown = EigenvalueDetector(10.0).predict(np.zeros((5, 3)), None)
     assert not unknown.known and not unknown.mask.any()
+
+
+@pytest.mark.parametrize("spec, message", [("eigen:lots", "eigen:<tau>"), ("learned:missing.pt", "no checkpoint")])
+def test_a_bad_detector_fails_before_the_drive(spec, message, tmp_path, monkeypatch):
+    def no_drive(*args, **kwargs):
+        raise AssertionError("the route was driven before the detectors were checked")
+
+    monkeypatch.setattr("l3e_env.experiment.record_run", no_drive)
+    with pytest.raises((ValueError, RuntimeError), match=message):  # what `l3e` reports as an error
+        run_experiment(tmp_path / "out", "primitives-1", ["none", spec], progress=False)
+    assert not (tmp_path / "out").exists()
 
 
 def test_a_tau_is_reported_only_when_it_is_as_good_as_the_reference_everywhere():

@@ -121,6 +121,8 @@ def test_resuming_with_other_settings_or_reading_unfinished_data_is_refused(tmp_
         config_for("huge")
     with pytest.raises(SceneError, match="unknown scene 'volcano-0'"):
         generate(tmp_path / "f", config_for(None, scenes=["tunnel-0", "volcano-0"]), workers=1, progress=False)
+    with pytest.raises(DatasetError, match="parents_per_scene must be at least 1, got 0; unknown LiDAR model 'vlp32'"):
+        generate(tmp_path / "f", config_for(None, parents_per_scene=0, lidar={"model": "vlp32"}), progress=False)
     assert not (tmp_path / "f").exists()
 
 
