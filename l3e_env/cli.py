@@ -41,13 +41,40 @@ def float_list(text: str) -> tuple[float, ...]:
         raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got '{text}'") from None
 
 
+def add_mesh_options(parser: argparse.ArgumentParser) -> None:
+    """--route, --up-axis and --scale: what it takes to drive a scene given as a mesh file."""
+    g = parser.add_argument_group("a scene given as a mesh file (OBJ, STL, PLY, GLB, glTF, OFF)")
+    g.add_argument("--route", help="text file of waypoints on the floor, one 'x y z' per line, in the mesh's "
+                                   "axes and units (needed to drive a mesh)")
+    g.add_argument("--up-axis", dest="up_axis", choices=["x", "y", "z"], help="the mesh's up axis (default z)")
+    g.add_argument("--scale", type=float, help="metres per mesh unit (default 1; 0.001 for millimetres)")
+
+
+def scene_params(args: argparse.Namespace) -> dict:
+    """make_scene's keyword arguments from the mesh options; ValueError where they do not apply."""
+    from scenes import MESH_FORMATS, load_route
+
+    given = [f"--{n.replace('_', '-')}" for n in ("route", "up_axis", "scale") if getattr(args, n) is not None]
+    if not args.scene.lower().endswith(MESH_FORMATS):
+        if given:
+            raise ValueError(f"{', '.join(given)} {'is' if len(given) == 1 else 'are'} only for a scene given as "
+                             f"a mesh file, not for '{args.scene}'")
+        return {}
+    if args.route is None:
+        raise ValueError(f"to drive the mesh {args.scene}, give its route: --route FILE (waypoints on its floor)")
+    up_axis, scale = args.up_axis or "z", 1.0 if args.scale is None else args.scale
+    route = load_route(args.route, up_axis, scale)
+    return {"up_axis": up_axis, "scale": scale, "sampling_paths": [route.tolist()]}
+
+
 def _cmd_demo(args: argparse.Namespace) -> int:
     from .demo import run_demo
 
+    params = scene_params(args)
     out = Path(args.out or f"l3e_out/demo-{time.strftime('%Y%m%d-%H%M%S')}")
     print(f"writing the demo into {out.resolve()}")
     result = run_demo(out, scene=args.scene, sensor=args.sensor, seed=args.seed, progress=not args.quiet,
-                      checkpoint=args.checkpoint)
+                      checkpoint=args.checkpoint, scene_params=params)
     print(f"{result['steps']} steps, goal {'reached' if result['reached_goal'] else 'NOT reached'}")
     from .labels import AXES
 
@@ -116,11 +143,12 @@ def _cmd_dataset_stats(args: argparse.Namespace) -> int:
 def _cmd_ate(args: argparse.Namespace) -> int:
     from .experiment import format_table, run_experiment
 
-    out = Path(args.out or f"l3e_out/ate-{args.scene}-{time.strftime('%Y%m%d-%H%M%S')}")
+    params = scene_params(args)
+    out = Path(args.out or f"l3e_out/ate-{Path(args.scene).stem}-{time.strftime('%Y%m%d-%H%M%S')}")
     print(f"writing the experiment into {out.resolve()}")
     rows = run_experiment(out, args.scene, args.detector or ["none", "eigen:30", "eigen:110", "oracle"],
                           sensor=args.sensor, seed=args.seed, recording=args.recording, progress=not args.quiet,
-                          backend=args.backend)
+                          backend=args.backend, scene_params=params)
     print(format_table(rows))
     return 0
 
@@ -217,6 +245,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--checkpoint", help="classifier checkpoint (default: the shipped model)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_mesh_options(p)
     p.set_defaults(func=_cmd_demo)
     p = sub.add_parser("scenes", help="list scenes and the train/validation/test split")
     p.add_argument("names", nargs="*", type=scene_name, help="scene names to describe (default: all families)")
@@ -251,6 +280,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--recording", help="evaluate a saved recording.npz instead of driving again")
     p.add_argument("--out", help="output folder (default: l3e_out/ate-<scene>-<time>)")
     p.add_argument("--quiet", action="store_true")
+    add_mesh_options(p)
     p.set_defaults(func=_cmd_ate)
     p = sub.add_parser("train", help="train the localizability classifier on a labelled dataset (resumable)")
     p.add_argument("--dataset", required=True, action="append",

@@ -24,22 +24,23 @@ def _region_of(xy: np.ndarray, regions: dict[str, np.ndarray]) -> str | None:
 
 
 def run_demo(out_dir: str | Path, scene: str = "mine", sensor: str = "vlp16", seed: int = 0, progress: bool = True,
-             checkpoint: str | None = None, classify_every: int = 5) -> dict:
+             checkpoint: str | None = None, classify_every: int = 5, scene_params: dict | None = None) -> dict:
     """Drive the route, save a top view of the path and scan pictures at up to three places,
     and judge every `classify_every`-th scan with the learned detector (the shipped model unless
     `checkpoint` names another): a timeline of its probabilities and the flagged share per axis.
 
     Returns a summary (steps, reached goal, flagged shares, files written). For the mine the
     places are the yard, the tunnel and the quarry; other scenes use 20 %, 50 % and 80 % of the route.
+    `scene_params` go to make_scene (a mesh scene's up axis, scale and route).
     """
     from .detectors import LearnedDetector
 
     detector = LearnedDetector(checkpoint, lidar_model=sensor)
     judged: list[tuple[int, str, np.ndarray, np.ndarray]] = []  # step, place, probabilities, mask
+    config = EnvConfig(scene=scene, lidar=LidarConfig(model=sensor), scene_params=scene_params or {})
+    env = NavigationEnv(config)  # a broken mesh or route fails here, before the folder exists
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    config = EnvConfig(scene=scene, lidar=LidarConfig(model=sensor))
-    env = NavigationEnv(config)
     dump_yaml(config, out / "config.yaml")
     follower = RouteFollower(env.route)
     env.reset(seed=seed)
@@ -52,12 +53,16 @@ def run_demo(out_dir: str | Path, scene: str = "mine", sensor: str = "vlp16", se
         poses.append(info["T_w_b"])
         reached, done = terminated, terminated or truncated
         bar.update()
-        place = _region_of(info["T_w_b"][:2, 3], env.scene.regions) if env.scene.regions else None
-        if place is None and not env.scene.regions:
-            frac = follower.index / route_len
-            place = next((f"{int(p * 100)}pct" for p in (0.2, 0.5, 0.8) if abs(frac - p) < 0.01), None)
-        if place and place not in snapshots and _centred(info["T_w_b"], env.scene.regions.get(place)):
-            snapshots[place] = (info["T_w_b"].copy(), env.scan.points.copy())
+        if env.scene.regions:  # named places (the mine's yard, tunnel, quarry): a scan from the middle of each
+            place = _region_of(info["T_w_b"][:2, 3], env.scene.regions)
+            shot = place if place and _centred(info["T_w_b"], env.scene.regions.get(place)) else None
+        else:  # a scan where the route passes 20, 50 and 80 % of its length; shares for the whole route only
+            place = None
+            frac = follower.index / max(route_len - 1, 1)
+            shot = next((f"{int(p * 100)}pct" for p in (0.2, 0.5, 0.8) if frac >= p and f"{int(p * 100)}pct"
+                         not in snapshots), None)
+        if shot and shot not in snapshots:
+            snapshots[shot] = (info["T_w_b"].copy(), env.scan.points.copy())
         if (len(poses) - 1) % classify_every == 0:
             pred = detector.predict(env.scan.points, None, env.robot.T_w_s)
             if pred.known:

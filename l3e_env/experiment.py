@@ -18,6 +18,8 @@ import numpy as np
 import small_gicp
 from tqdm import tqdm
 
+from scenes import MESH_FORMATS
+
 from fusion import FusionConfig, MetricError, ate, ate_aligned, check_backend, make_fusion, rpe
 
 from .config import EnvConfig, LidarConfig, OdometryConfig
@@ -47,10 +49,13 @@ class Recording:
     # N+1 random subsets of the raw scans, as the classifier samples them (thinned scans have
     # another point density than the raw scans it was trained on)
     samples: list[np.ndarray] = field(default_factory=list)
+    # make_scene's keyword arguments (a mesh scene's up axis, scale and route), to rebuild the scene
+    scene_params: dict = field(default_factory=dict)
 
     def save(self, path: str | Path) -> None:
         np.savez_compressed(
             path, scene=self.scene, sensor=self.sensor, seed=self.seed, T_b_s=self.T_b_s,
+            scene_params=json.dumps(self.scene_params),
             ground_truth=self.ground_truth, odometry=self.odometry, **_ragged("points", self.scans),
             **_ragged("samples", self.samples),
         )
@@ -59,8 +64,9 @@ class Recording:
     def load(cls, path: str | Path) -> "Recording":
         with np.load(path) as z:
             samples = _unragged(z, "samples") if "samples_offsets" in z.files else []
+            params = json.loads(str(z["scene_params"])) if "scene_params" in z.files else {}
             return cls(str(z["scene"]), str(z["sensor"]), int(z["seed"]), z["T_b_s"], z["ground_truth"], z["odometry"],
-                       _unragged(z, "points"), samples)
+                       _unragged(z, "points"), samples, params)
 
     def detector_input(self, k: int) -> np.ndarray:
         return self.samples[k] if self.samples else self.scans[k]
@@ -77,8 +83,9 @@ def _unragged(z, name: str) -> list[np.ndarray]:
     return [flat[o[i]:o[i + 1]] for i in range(len(o) - 1)]
 
 
-def record_run(scene: str = "mine", sensor: str = "vlp16", seed: int = 0, progress: bool = True) -> Recording:
-    env = NavigationEnv(EnvConfig(scene=scene, lidar=LidarConfig(model=sensor)))
+def record_run(scene: str = "mine", sensor: str = "vlp16", seed: int = 0, progress: bool = True,
+               scene_params: dict | None = None) -> Recording:
+    env = NavigationEnv(EnvConfig(scene=scene, lidar=LidarConfig(model=sensor), scene_params=scene_params or {}))
     obs, info = env.reset(seed=seed)
     follow = RouteFollower(env.route)
 
@@ -106,7 +113,10 @@ def record_run(scene: str = "mine", sensor: str = "vlp16", seed: int = 0, progre
         samples.append(sample(env.scan.points))
         bar.update()
     bar.close()
-    rec = Recording(env.scene.name, sensor, seed, env.robot.T_b_s, np.array(gt), np.array(odom), scans, samples)
+    # a mesh scene is rebuilt from its file, a procedural one from its canonical name ('tunnel' -> 'tunnel-0')
+    name = str(Path(scene).resolve()) if scene.lower().endswith(MESH_FORMATS) else env.scene.name
+    rec = Recording(name, sensor, seed, env.robot.T_b_s, np.array(gt), np.array(odom), scans, samples,
+                    dict(scene_params or {}))
     env.close()
     return rec
 
@@ -200,18 +210,20 @@ def _scored(name: str, traj: np.ndarray, gt: np.ndarray, masks: np.ndarray, prob
 
 
 def run_experiment(out_dir: str | Path, scene: str, detectors: list[str], sensor: str = "vlp16", seed: int = 0,
-                   recording: str | Path | None = None, progress: bool = True, backend: str = "graph") -> list[dict]:
-    """The `l3e ate` command as a function: returns the table rows and writes everything to out_dir."""
+                   recording: str | Path | None = None, progress: bool = True, backend: str = "graph",
+                   scene_params: dict | None = None) -> list[dict]:
+    """The `l3e ate` command as a function: returns the table rows and writes everything to out_dir.
+    `scene_params` go to make_scene (a mesh scene's up axis, scale and route)."""
     from scenes import make_scene
 
     out = Path(out_dir)
     rec = Recording.load(recording) if recording else None
-    scene_obj = make_scene(rec.scene if rec else scene)
+    scene_obj = make_scene(rec.scene, **rec.scene_params) if rec else make_scene(scene, **(scene_params or {}))
     lidar = Lidar(EmbreeCaster(scene_obj.mesh), LidarConfig(model=rec.sensor if rec else sensor))
     dets = [make_detector(spec, lidar, seed) for spec in detectors]  # a bad spec fails before the drive
     out.mkdir(parents=True, exist_ok=True)
     if rec is None:
-        rec = record_run(scene, sensor, seed, progress)
+        rec = record_run(scene, sensor, seed, progress, scene_params)
         rec.save(out / "recording.npz")
     t0 = time.perf_counter()
     regs = register_sequence(rec, RegistrationConfig(), progress)

@@ -1,6 +1,7 @@
 """Import user meshes (OBJ, STL, PLY, GLB) as scenes, validated."""
 from __future__ import annotations
 
+import io
 from pathlib import Path
 
 import numpy as np
@@ -38,6 +39,30 @@ def load_mesh(path: str | Path, up_axis: str = "z", scale: float = 1.0) -> trime
     return trimesh.Trimesh(loaded.vertices, loaded.faces, process=False)
 
 
+def load_route(path: str | Path, up_axis: str = "z", scale: float = 1.0) -> np.ndarray:
+    """Waypoints on the floor from a text file (one 'x y z' or 'x, y, z' per line; 'x y' puts the
+    floor at z = 0 in a z-up file), in the mesh file's own axes and units: they are rotated and
+    scaled as `load_mesh` does the mesh, so they can be read off the same model. Returns (N, 3) metres."""
+    path = Path(path)
+    if not path.is_file():
+        raise SceneError(f"route file not found: {path}")
+    if up_axis not in UP_AXES:
+        raise SceneError(f"up_axis must be one of {sorted(UP_AXES)}, got '{up_axis}'")
+    try:
+        points = np.loadtxt(io.StringIO(path.read_text().replace(",", " ")), ndmin=2, comments="#")
+    except ValueError as exc:
+        raise SceneError(f"{path}: not a table of numbers ({exc})") from exc
+    if points.shape[1] not in (2, 3) or len(points) < 2:
+        raise SceneError(f"{path}: a route is two or more lines of 'x y' or 'x y z', got shape {points.shape}")
+    if not np.isfinite(points).all():
+        raise SceneError(f"{path}: the route holds NaN or inf")
+    if points.shape[1] == 2:
+        if up_axis != "z":
+            raise SceneError(f"{path}: with up axis '{up_axis}' give the waypoints as 'x y z'")
+        points = np.column_stack([points, np.zeros(len(points))])
+    return points @ UP_AXES[up_axis].T * scale
+
+
 def scene_from_mesh(
     path: str | Path,
     up_axis: str = "z",
@@ -46,12 +71,19 @@ def scene_from_mesh(
     start: tuple[float, float, float] | None = None,
     goal: tuple[float, float] | None = None,
 ) -> Scene:
-    """A scene from a mesh file. Without sampling paths the scene can be driven but not labelled."""
+    """A scene from a mesh file, its sampling paths in metres in the scene's frame (z up). The first
+    path is also the route the robot drives, from its first point facing along it, unless `start`
+    and `goal` say otherwise. Without sampling paths the scene can be stepped but not labelled or
+    driven along a route."""
     mesh = load_mesh(path, up_axis, scale)
     paths = [resample_polyline(np.asarray(p, dtype=np.float64), 1.0) for p in (sampling_paths or [])]
-    if start is None:
+    if start is None and paths:
+        first = paths[0]
+        start = (first[0, 0], first[0, 1], float(np.arctan2(*(first[1, :2] - first[0, :2])[::-1])))
+    elif start is None:
         c = mesh.bounds.mean(axis=0)
         start = (c[0], c[1], 0.0)
-    goal = goal if goal is not None else start[:2]
+    if goal is None:
+        goal = paths[0][-1, :2] if paths else start[:2]
     routes = {"main": paths[0]} if paths else {}
     return Scene(name=Path(path).stem, mesh=mesh, sampling_paths=paths, start=start, goal=goal, routes=routes)

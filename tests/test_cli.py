@@ -43,6 +43,15 @@ def test_sensor_names_are_checked_at_parse_time(capsys):
     assert "unknown LiDAR model 'vlp32'" in capsys.readouterr().err
 
 
+def test_mesh_options_apply_to_mesh_scenes_only(tmp_path, capsys):
+    (tmp_path / "hall.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    assert main(["ate", "--scene", "mine", "--route", "r.csv", "--out", str(tmp_path / "a")]) == 2
+    assert "--route is only for a scene given as a mesh file" in capsys.readouterr().err
+    assert main(["demo", "--scene", str(tmp_path / "hall.obj"), "--out", str(tmp_path / "b")]) == 2
+    assert "give its route: --route FILE" in capsys.readouterr().err
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+
+
 def test_sweep_thresholds_must_be_numbers(capsys):
     assert build_parser().parse_args(["sweep", "--taus", "10,30.5"]).taus == (10.0, 30.5)
     with pytest.raises(SystemExit):

@@ -4,7 +4,7 @@ import trimesh
 
 from scenes import (
     TEST_SCENES, TRAIN_SCENES, VALIDATION_SCENES, Scene, SceneError, check_scene_name, list_scenes, load_mesh,
-    make_scene, scene_family, scene_from_mesh,
+    load_route, make_scene, scene_family, scene_from_mesh,
 )
 
 
@@ -75,6 +75,28 @@ def test_mesh_import_round_trip_with_up_axis_and_scale(tmp_path, suffix):
     np.testing.assert_allclose(loaded.extents, (4.0, 2.0, 1.0), atol=1e-6)
     scene = scene_from_mesh(path, up_axis="y", scale=0.001, sampling_paths=[[[0, 0, -1], [1, 0, -1]]])
     assert len(scene.sampling_paths[0]) >= 2 and "main" in scene.routes
+
+
+def test_a_route_file_is_read_in_the_mesh_files_axes_and_units(tmp_path):
+    (tmp_path / "route.csv").write_text("# x, y, z in mm, y up\n1000, 0, -500\n4000, 0, -500\n4000, 0, -2500\n")
+    route = load_route(tmp_path / "route.csv", up_axis="y", scale=0.001)
+    np.testing.assert_allclose(route, [[1, 0.5, 0], [4, 0.5, 0], [4, 2.5, 0]], atol=1e-12)  # as load_mesh turns it
+    (tmp_path / "flat.txt").write_text("0 0\n3 4\n")
+    np.testing.assert_allclose(load_route(tmp_path / "flat.txt"), [[0, 0, 0], [3, 4, 0]])
+    mesh = trimesh.creation.box(extents=(8000.0, 1000.0, 6000.0))
+    mesh.export(tmp_path / "hall.obj")
+    scene = scene_from_mesh(tmp_path / "hall.obj", up_axis="y", scale=0.001, sampling_paths=[route])
+    np.testing.assert_allclose(scene.start, [1, 0.5, 0])  # at the route's first point, facing along it
+    np.testing.assert_allclose(scene.goal, [4, 2.5])
+    for text, message in [("1 2 3\n", "two or more"), ("1 2 3 4\n5 6 7 8\n", "two or more"),
+                          ("0 0 0\nnan 1 0\n", "NaN"), ("v 0 0 0\nv 1 0 0\n", "not a table")]:
+        (tmp_path / "bad.txt").write_text(text)
+        with pytest.raises(SceneError, match=message):
+            load_route(tmp_path / "bad.txt")
+    with pytest.raises(SceneError, match="'x y z'"):
+        load_route(tmp_path / "flat.txt", up_axis="y")
+    with pytest.raises(SceneError, match="route file not found"):
+        load_route(tmp_path / "missing.csv")
 
 
 def test_broken_and_missing_mesh_files_raise_clear_errors(tmp_path):
