@@ -18,9 +18,8 @@ import numpy as np
 import small_gicp
 from tqdm import tqdm
 
-from scenes import MESH_FORMATS
-
 from fusion import FusionConfig, MetricError, ate, ate_aligned, check_backend, make_fusion, rpe
+from scenes import MESH_FORMATS, Scene, make_scene
 
 from .config import EnvConfig, LidarConfig, OdometryConfig
 from .detectors import Detector, make_detector, safe_predict
@@ -84,8 +83,10 @@ def _unragged(z, name: str) -> list[np.ndarray]:
 
 
 def record_run(scene: str = "mine", sensor: str = "vlp16", seed: int = 0, progress: bool = True,
-               scene_params: dict | None = None) -> Recording:
-    env = NavigationEnv(EnvConfig(scene=scene, lidar=LidarConfig(model=sensor), scene_params=scene_params or {}))
+               scene_params: dict | None = None, scene_object: Scene | None = None) -> Recording:
+    """Drive the scene's route once; `scene_object`, if given, is that scene already built."""
+    env = NavigationEnv(EnvConfig(scene=scene, lidar=LidarConfig(model=sensor), scene_params=scene_params or {}),
+                        scene_object=scene_object)
     obs, info = env.reset(seed=seed)
     follow = RouteFollower(env.route)
 
@@ -214,8 +215,6 @@ def run_experiment(out_dir: str | Path, scene: str, detectors: list[str], sensor
                    scene_params: dict | None = None) -> list[dict]:
     """The `l3e ate` command as a function: returns the table rows and writes everything to out_dir.
     `scene_params` go to make_scene (a mesh scene's up axis, scale and route)."""
-    from scenes import make_scene
-
     out = Path(out_dir)
     rec = Recording.load(recording) if recording else None
     scene_obj = make_scene(rec.scene, **rec.scene_params) if rec else make_scene(scene, **(scene_params or {}))
@@ -223,7 +222,7 @@ def run_experiment(out_dir: str | Path, scene: str, detectors: list[str], sensor
     dets = [make_detector(spec, lidar, seed) for spec in detectors]  # a bad spec fails before the drive
     out.mkdir(parents=True, exist_ok=True)
     if rec is None:
-        rec = record_run(scene, sensor, seed, progress, scene_params)
+        rec = record_run(scene, sensor, seed, progress, scene_params, scene_object=scene_obj)
         rec.save(out / "recording.npz")
     t0 = time.perf_counter()
     regs = register_sequence(rec, RegistrationConfig(), progress)
