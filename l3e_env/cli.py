@@ -50,18 +50,20 @@ def add_mesh_options(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--scale", type=float, help="metres per mesh unit (default 1; 0.001 for millimetres)")
 
 
-def scene_params(args: argparse.Namespace) -> dict:
-    """make_scene's keyword arguments from the mesh options; ValueError where they do not apply."""
+def scene_params(args: argparse.Namespace, scene: str | None = None) -> dict:
+    """make_scene's keyword arguments for `scene` (default args.scene) from the mesh options;
+    ValueError where they do not apply."""
     from scenes import MESH_FORMATS, load_route
 
+    scene = scene or args.scene
     given = [f"--{n.replace('_', '-')}" for n in ("route", "up_axis", "scale") if getattr(args, n) is not None]
-    if not args.scene.lower().endswith(MESH_FORMATS):
+    if not scene.lower().endswith(MESH_FORMATS):
         if given:
             raise ValueError(f"{', '.join(given)} {'is' if len(given) == 1 else 'are'} only for a scene given as "
-                             f"a mesh file, not for '{args.scene}'")
+                             f"a mesh file, not for '{scene}'")
         return {}
     if args.route is None:
-        raise ValueError(f"to drive the mesh {args.scene}, give its route: --route FILE (waypoints on its floor)")
+        raise ValueError(f"to drive the mesh {scene}, give its route: --route FILE (waypoints on its floor)")
     up_axis, scale = args.up_axis or "z", 1.0 if args.scale is None else args.scale
     route = load_route(args.route, up_axis, scale)
     return {"up_axis": up_axis, "scale": scale, "sampling_paths": [route.tolist()]}

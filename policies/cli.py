@@ -9,23 +9,32 @@ from pathlib import Path
 
 import numpy as np
 
-from l3e_env.cli import scene_names, sensor_name
+from l3e_env.cli import add_mesh_options, scene_names, scene_params, sensor_name
 
 
 def _scenes(args: argparse.Namespace) -> list[str]:
     return [s for group in args.scene or [["fork"]] for s in group]
 
 
+def _scenes_with_params(args: argparse.Namespace) -> dict[str, dict]:
+    """Each scene with make_scene's keyword arguments; the mesh options describe one mesh scene."""
+    names = _scenes(args)
+    if len(names) > 1 and any(getattr(args, n) is not None for n in ("route", "up_axis", "scale")):
+        raise ValueError("--route, --up-axis and --scale describe one mesh: give it as the only --scene")
+    return {name: scene_params(args, name) for name in names}
+
+
 def _cmd_map(args: argparse.Namespace) -> int:
     from .context import scene_context
     from .plots import plot_locmap
 
+    scenes = _scenes_with_params(args)
     out = Path(args.out or "l3e_out/maps")
     out.mkdir(parents=True, exist_ok=True)
-    for name in _scenes(args):
+    for name, params in scenes.items():
         t0 = time.perf_counter()
         ctx = scene_context(name, args.detector, args.cache_dir, sensor=args.sensor, resolution=args.resolution,
-                            progress=not args.quiet)
+                            progress=not args.quiet, scene_params=params)
         figure = out / f"{ctx.scene.name}-{args.detector.replace(':', '')}.png"
         plot_locmap(figure, ctx.scene, ctx.locmap, ctx.space)
         share = " ".join(f"{a} {100 * v:.0f}%" for a, v in zip("x y z roll pitch yaw".split(),
@@ -40,10 +49,12 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     from .planner import Planner
     from .plots import plot_paths
 
+    scenes = _scenes_with_params(args)
     out = Path(args.out or "l3e_out/plans")
     out.mkdir(parents=True, exist_ok=True)
-    for name in _scenes(args):
-        ctx = scene_context(name, args.detector, args.cache_dir, sensor=args.sensor, progress=not args.quiet)
+    for name, params in scenes.items():
+        ctx = scene_context(name, args.detector, args.cache_dir, sensor=args.sensor, progress=not args.quiet,
+                            scene_params=params)
         start = np.array(args.start, dtype=float) if args.start else ctx.scene.start[:2]
         goal = np.array(args.goal, dtype=float) if args.goal else ctx.scene.goal
         plans = {"shortest": Planner(ctx.space, ctx.locmap, lam=0.0).plan(start, goal),
@@ -103,6 +114,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--detector", default="learned", help="learned[:checkpoint] | eigen:<tau> | oracle[:M]")
     g.add_argument("--resolution", type=float, default=2.0, help="metres between mapped positions (default 2)")
     g.add_argument("--out", help="folder for the plots (default: l3e_out/maps)")
+    add_mesh_options(g)
     g.set_defaults(func=_cmd_map)
     g = psub.add_parser("plan", parents=[common], help="shortest path and localizability-aware plan, with a plot")
     g.add_argument("--scene", type=scene_names, action="append", help="scene names (default: fork)")
@@ -111,6 +123,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--start", type=float, nargs=2, metavar=("X", "Y"), help="default: the scene's start")
     g.add_argument("--goal", type=float, nargs=2, metavar=("X", "Y"), help="default: the scene's goal")
     g.add_argument("--out", help="folder for the plots (default: l3e_out/plans)")
+    add_mesh_options(g)
     g.set_defaults(func=_cmd_plan)
     g = psub.add_parser("train", parents=[common], help="train a PPO navigation policy on fork variants (resumable)")
     g.add_argument("--out", required=True, help="run folder (an unfinished run there is resumed)")

@@ -286,6 +286,29 @@ def test_policy_commands_are_registered(capsys):
         assert command in text
 
 
+def test_a_users_mesh_is_mapped_and_planned(tmp_path, capsys):
+    """A 60 m roofed corridor (STL, z up, metres) with its route as 'x y' lines: the corridor axis is free."""
+    import trimesh
+
+    from l3e_env.cli import main
+
+    parts = [trimesh.creation.box(extents) for extents in ([60, 4, 0.2], [60, 0.2, 3], [60, 0.2, 3], [60, 4, 0.2])]
+    for part, offset in zip(parts, ([30, 0, -0.1], [30, 2, 1.5], [30, -2, 1.5], [30, 0, 3.1])):
+        part.apply_translation(offset)
+    trimesh.util.concatenate(parts).export(tmp_path / "corridor.stl")
+    (tmp_path / "route.txt").write_text("5 0\n55 0\n")
+    mesh_args = ["--scene", str(tmp_path / "corridor.stl"), "--route", str(tmp_path / "route.txt"),
+                 "--detector", "eigen:30", "--cache-dir", str(tmp_path / "cache"), "--out", str(tmp_path), "--quiet"]
+    assert main(["policy", "map", "--resolution", "4", *mesh_args]) == 0
+    assert (tmp_path / "corridor-eigen30.png").stat().st_size > 10_000
+    masked = capsys.readouterr().out.split("masked:")[1]
+    assert masked.split()[:4] == ["x", "50%", "y", "50%"]  # along the corridor at two of the four headings
+    assert main(["policy", "plan", *mesh_args]) == 0
+    assert "corridor shortest" in capsys.readouterr().out
+    assert main(["policy", "map", *mesh_args, "--scene", "fork-0"]) == 2
+    assert "describe one mesh" in capsys.readouterr().err
+
+
 def test_fork_variants_differ():
     a, b = make_scene("fork-100"), make_scene("fork-101")
     assert a.goal[0] != b.goal[0] or np.abs(a.routes["rich"][:, 1]).max() != np.abs(b.routes["rich"][:, 1]).max()
