@@ -181,7 +181,7 @@ def check_train_config(cfg: TrainConfig) -> None:
     problems = [f"{name} must be {rule}, got {value}" for name, value, ok, rule in [
         ("epochs", cfg.epochs, cfg.epochs >= 1, "at least 1"),
         ("batch_size", cfg.batch_size, cfg.batch_size >= 1, "at least 1"),
-        ("learning_rate", cfg.learning_rate, cfg.learning_rate > 0, "positive"),
+        ("learning_rate", cfg.learning_rate, cfg.learning_rate >= 0, "0 or more"),
         ("lr_decay", cfg.lr_decay, 0 < cfg.lr_decay <= 1, "in (0, 1]"),
         ("samples_per_epoch", cfg.samples_per_epoch, cfg.samples_per_epoch >= 0, "0 (the whole pool) or more"),
         ("threads", cfg.threads, cfg.threads >= 1, "at least 1"),
