@@ -78,8 +78,8 @@ def scene_from_mesh(
     mesh = load_mesh(path, up_axis, scale)
     paths = [resample_polyline(np.asarray(p, dtype=np.float64), 1.0) for p in (sampling_paths or [])]
     if start is None and paths:
-        first = paths[0]
-        start = (first[0, 0], first[0, 1], float(np.arctan2(*(first[1, :2] - first[0, :2])[::-1])))
+        (x0, y0, _), (x1, y1, _) = paths[0][:2]
+        start = (x0, y0, float(np.arctan2(y1 - y0, x1 - x0)))
     elif start is None:
         c = mesh.bounds.mean(axis=0)
         start = (c[0], c[1], 0.0)
