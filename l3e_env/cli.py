@@ -50,14 +50,19 @@ def add_mesh_options(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--scale", type=float, help="metres per mesh unit (default 1; 0.001 for millimetres)")
 
 
+def mesh_options_given(args: argparse.Namespace) -> list[str]:
+    """The mesh options set on the command line, as spelt there."""
+    return [f"--{n.replace('_', '-')}" for n in ("route", "up_axis", "scale") if getattr(args, n) is not None]
+
+
 def scene_params(args: argparse.Namespace, scene: str | None = None) -> dict:
     """make_scene's keyword arguments for `scene` (default args.scene) from the mesh options;
     ValueError where they do not apply."""
-    from scenes import MESH_FORMATS, load_route
+    from scenes import is_mesh_path, load_route
 
     scene = scene or args.scene
-    given = [f"--{n.replace('_', '-')}" for n in ("route", "up_axis", "scale") if getattr(args, n) is not None]
-    if not scene.lower().endswith(MESH_FORMATS):
+    given = mesh_options_given(args)
+    if not is_mesh_path(scene):
         if given:
             raise ValueError(f"{', '.join(given)} {'is' if len(given) == 1 else 'are'} only for a scene given as "
                              f"a mesh file, not for '{scene}'")

@@ -23,6 +23,9 @@ def _region_of(xy: np.ndarray, regions: dict[str, np.ndarray]) -> str | None:
     return None
 
 
+ROUTE_SHOTS = {"20pct": 0.2, "50pct": 0.5, "80pct": 0.8}  # scan pictures on a route without named places
+
+
 def run_demo(out_dir: str | Path, scene: str = "mine", sensor: str = "vlp16", seed: int = 0, progress: bool = True,
              checkpoint: str | None = None, classify_every: int = 5, scene_params: dict | None = None) -> dict:
     """Drive the route, save a top view of the path and scan pictures at up to three places,
@@ -59,8 +62,7 @@ def run_demo(out_dir: str | Path, scene: str = "mine", sensor: str = "vlp16", se
         else:  # a scan where the route passes 20, 50 and 80 % of its length; shares for the whole route only
             place = None
             frac = follower.index / max(route_len - 1, 1)
-            shot = next((f"{int(p * 100)}pct" for p in (0.2, 0.5, 0.8) if frac >= p and f"{int(p * 100)}pct"
-                         not in snapshots), None)
+            shot = next((name for name, at in ROUTE_SHOTS.items() if frac >= at and name not in snapshots), None)
         if shot and shot not in snapshots:
             snapshots[shot] = (info["T_w_b"].copy(), env.scan.points.copy())
         if (len(poses) - 1) % classify_every == 0:

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from l3e_env.cli import add_mesh_options, scene_names, scene_params, sensor_name
+from l3e_env.cli import add_mesh_options, mesh_options_given, scene_names, scene_params, sensor_name
 
 
 def _scenes(args: argparse.Namespace) -> list[str]:
@@ -19,7 +19,7 @@ def _scenes(args: argparse.Namespace) -> list[str]:
 def _scenes_with_params(args: argparse.Namespace) -> dict[str, dict]:
     """Each scene with make_scene's keyword arguments; the mesh options describe one mesh scene."""
     names = _scenes(args)
-    if len(names) > 1 and any(getattr(args, n) is not None for n in ("route", "up_axis", "scale")):
+    if len(names) > 1 and mesh_options_given(args):
         raise ValueError("--route, --up-axis and --scale describe one mesh: give it as the only --scene")
     return {name: scene_params(args, name) for name in names}
 

@@ -1,6 +1,5 @@
 """Procedural and imported scenes (geometry only, trimesh): meshes, sampling paths, routes."""
-from .mesh_io import FORMATS as MESH_FORMATS
-from .mesh_io import load_mesh, load_route, scene_from_mesh
+from .mesh_io import is_mesh_path, load_mesh, load_route, scene_from_mesh
 from .registry import (
     DATASET_SCENES, TEST_SCENES, TRAIN_SCENES, VALIDATION_SCENES, check_scene_name, list_scenes, make_scene,
     scene_family,
@@ -9,6 +8,6 @@ from .scene import Scene, SceneError, validate_mesh
 
 __all__ = [
     "Scene", "SceneError", "make_scene", "check_scene_name", "list_scenes", "scene_family", "load_mesh",
-    "load_route", "scene_from_mesh", "MESH_FORMATS", "validate_mesh",
+    "load_route", "scene_from_mesh", "is_mesh_path", "validate_mesh",
     "TRAIN_SCENES", "VALIDATION_SCENES", "TEST_SCENES", "DATASET_SCENES",
 ]

@@ -15,6 +15,11 @@ UP_AXES = {"z": np.eye(3), "y": np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]]),
 FORMATS = (".obj", ".stl", ".ply", ".glb", ".gltf", ".off")
 
 
+def is_mesh_path(name: str | Path) -> bool:
+    """Whether a scene name is a mesh file to load (by its suffix) rather than a procedural family."""
+    return str(name).lower().endswith(FORMATS)
+
+
 def load_mesh(path: str | Path, up_axis: str = "z", scale: float = 1.0) -> trimesh.Trimesh:
     """Load a triangle mesh file, rotate its up axis onto +z and scale it to metres."""
     path = Path(path)

@@ -9,7 +9,7 @@ from .chamber import make_chamber
 from .field import make_field
 from .fork import make_fork
 from .gallery import make_gallery
-from .mesh_io import FORMATS, scene_from_mesh
+from .mesh_io import is_mesh_path, scene_from_mesh
 from .mine import make_mine
 from .office import make_office
 from .primitives import make_primitive
@@ -46,7 +46,7 @@ def make_scene(name: str, seed: int = 0, **params) -> Scene:
     A path to a mesh file is accepted too (see scenes.mesh_io.scene_from_mesh).
     """
     check_scene_name(name)
-    if name.lower().endswith(FORMATS):
+    if is_mesh_path(name):
         return scene_from_mesh(name, **params)
     family, _, suffix = name.partition("-")
     if suffix:
@@ -57,7 +57,7 @@ def make_scene(name: str, seed: int = 0, **params) -> Scene:
 def check_scene_name(name: str) -> str:
     """The name if make_scene would accept it, else SceneError; builds nothing, so that a command
     can refuse a misspelt scene before it creates folders or starts workers."""
-    if name.lower().endswith(FORMATS):
+    if is_mesh_path(name):
         if not Path(name).is_file():
             raise SceneError(f"mesh file not found: {name}")
         return name
