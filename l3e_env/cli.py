@@ -68,7 +68,7 @@ def scene_params(args: argparse.Namespace, scene: str | None = None) -> dict:
                              f"a mesh file, not for '{scene}'")
         return {}
     if args.route is None:
-        raise ValueError(f"to drive the mesh {scene}, give its route: --route FILE (waypoints on its floor)")
+        raise ValueError(f"to drive or label the mesh {scene}, give its route: --route FILE (waypoints on its floor)")
     up_axis, scale = args.up_axis or "z", 1.0 if args.scale is None else args.scale
     route = load_route(args.route, up_axis, scale)
     return {"up_axis": up_axis, "scale": scale, "sampling_paths": [route.tolist()]}
@@ -115,11 +115,29 @@ def _cmd_envs(args: argparse.Namespace) -> int:
     return 0
 
 
+def dataset_scenes(args: argparse.Namespace) -> tuple[list[str] | None, dict[str, dict]]:
+    """--scenes with a mesh file's path made absolute (a dataset names its scenes for good), and
+    the mesh's make_scene arguments from the mesh options; ValueError where they do not apply."""
+    from scenes import canonical_scene_name, is_mesh_path
+
+    meshes = [s for s in args.scenes or [] if is_mesh_path(s)]
+    if len(meshes) > 1:
+        raise ValueError(f"one mesh file per dataset, as --route gives one route; got {', '.join(meshes)} "
+                         "(make a dataset of each and pass them all to train or evaluate)")
+    if not meshes:
+        scene_params(args, (args.scenes or ["the preset's scenes"])[0])  # refuses stray mesh options
+        return args.scenes, {}
+    params = scene_params(args, meshes[0])
+    return [canonical_scene_name(s) for s in args.scenes], {canonical_scene_name(meshes[0]): params}
+
+
 def _cmd_dataset_generate(args: argparse.Namespace) -> int:
     from .dataset import config_for, format_statistics, generate
 
+    scenes, params = dataset_scenes(args)
     overrides = {
-        "scenes": args.scenes,
+        "scenes": scenes,
+        "scene_params": params or None,
         "parents_per_scene": args.parents,
         "seed": args.seed,
         "lidar": {"model": args.sensor} if args.sensor else None,
@@ -201,9 +219,15 @@ def _asdict(cfg) -> dict:
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     from .evaluation import evaluate
 
+    from .classifier import DEFAULT_CHECKPOINT
+
+    if not args.dataset and not args.other:
+        raise ValueError("give --dataset (the training data, scored by split), --other (any dataset, scored whole), "
+                         "or both")
     out = Path(args.out or f"l3e_out/evaluate-{time.strftime('%Y%m%d-%H%M%S')}")
-    results = evaluate(args.checkpoint, args.dataset, out, others=args.other, progress=not args.quiet,
-                       symmetric=args.symmetric, eigen=args.eigen, int8=not args.float32, by_family=args.by_family)
+    results = evaluate(args.checkpoint or [DEFAULT_CHECKPOINT], args.dataset, out, others=args.other,
+                       progress=not args.quiet, symmetric=args.symmetric, eigen=args.eigen, int8=not args.float32,
+                       by_family=args.by_family)
     print(results["table"])
     print(f"written: {out / 'table.txt'}, {out / 'results.json'}, {out / 'pr_curves.png'}")
     return 0
@@ -264,7 +288,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--preset", choices=["small", "paper", "level"], default="small",
                    help="small: a first look; paper: the paper's protocol; level: operating poses "
                         "(level, heading along or across the paths)")
-    g.add_argument("--scenes", type=scene_names, help="comma-separated scene names (overrides the preset)")
+    g.add_argument("--scenes", type=scene_names,
+                   help="comma-separated scene names (overrides the preset); one may be a mesh file, with --route")
     g.add_argument("--parents", type=int, help="parents per scene")
     g.add_argument("--children", type=int, help="M, children per parent (paper: 200)")
     g.add_argument("--sensor", type=sensor_name, help="vlp16 or os0-128")
@@ -273,6 +298,7 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--backend", choices=["local", "ray"], default="local")
     g.add_argument("--address", help="Ray cluster address (default: start a local Ray instance)")
     g.add_argument("--quiet", action="store_true")
+    add_mesh_options(g)
     g.set_defaults(func=_cmd_dataset_generate)
     g = dsub.add_parser("stats", help="label statistics of a dataset")
     g.add_argument("folder")
@@ -312,8 +338,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_cmd_train)
     p = sub.add_parser("evaluate", help="Table III: per-axis scores on train, validation and test, PR curves")
-    p.add_argument("--checkpoint", action="append", required=True, help="model.pt of a run; repeat to compare")
-    p.add_argument("--dataset", required=True, action="append", help="repeat to score several datasets as one")
+    p.add_argument("--checkpoint", action="append",
+                   help="model.pt of a run; repeat to compare (default: the shipped model)")
+    p.add_argument("--dataset", action="append",
+                   help="the dataset(s) the models were trained on, scored by their train, validation and test "
+                        "splits; repeat to score several as one (may be left out when --other is given)")
     p.add_argument("--other", "--other-sensor", dest="other", action="append",
                    help="another dataset, scored whole: another sensor, or scene families never trained on; "
                         "repeat for several")

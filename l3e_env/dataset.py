@@ -12,7 +12,9 @@ not depend on the number of workers or on which shards a killed run had finished
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
+import re
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
@@ -24,7 +26,7 @@ from typing import Any, BinaryIO, Callable, Iterator
 import numpy as np
 from tqdm import tqdm
 
-from scenes import DATASET_SCENES, check_scene_name, make_scene
+from scenes import DATASET_SCENES, check_scene_name, is_mesh_path, make_scene
 
 from .config import LidarConfig, from_dict
 from .files import write_atomic
@@ -46,6 +48,9 @@ class DatasetConfig:
     lidar: LidarConfig = field(default_factory=LidarConfig)
     labels: LabelConfig = field(default_factory=LabelConfig)
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
+    # make_scene's keyword arguments by scene name: a mesh file's route (as its sampling path),
+    # up axis and scale; procedural scenes need none
+    scene_params: dict[str, dict[str, Any]] = field(default_factory=dict)
 
 
 PRESETS: dict[str, dict[str, Any]] = {
@@ -81,33 +86,43 @@ def config_for(preset: str | None = None, **overrides: Any) -> DatasetConfig:
     return from_dict(DatasetConfig, base)
 
 
+def shard_prefix(si: int, scene: str) -> str:
+    """The start of a scene's shard file names: the scene's name, or for a mesh file its position
+    and stem, so that a path makes a plain file name and two meshes of one stem do not share it."""
+    if not is_mesh_path(scene):
+        return scene
+    return f"mesh{si}-" + re.sub(r"[^A-Za-z0-9_.-]", "_", Path(scene).stem)
+
+
 def _shards(config: DatasetConfig) -> list[tuple[str, int, int, int]]:
     """(shard id, scene index, first parent, last parent + 1) for every shard."""
     out = []
     for si, scene in enumerate(config.scenes):
         for start in range(0, config.parents_per_scene, config.shard_size):
             stop = min(start + config.shard_size, config.parents_per_scene)
-            out.append((f"{scene}-{start // config.shard_size:05d}", si, start, stop))
+            out.append((f"{shard_prefix(si, scene)}-{start // config.shard_size:05d}", si, start, stop))
     return out
 
 
 _WORKER_CACHE: dict[str, tuple] = {}
 
 
-def scene_tools(name: str, lidar_config: LidarConfig):
+def scene_tools(name: str, lidar_config: LidarConfig, params: dict[str, Any] | None = None):
     """(scene, caster, lidar) of a worker process, kept for the next job on the same scene."""
-    if name not in _WORKER_CACHE:
-        scene = make_scene(name)
+    key = json.dumps([name, params or {}, dataclasses.asdict(lidar_config)], sort_keys=True)
+    if key not in _WORKER_CACHE:
+        scene = make_scene(name, **(params or {}))
         caster = EmbreeCaster(scene.mesh, threads=1)  # processes give the parallelism
         _WORKER_CACHE.clear()  # one scene at a time keeps worker memory flat
-        _WORKER_CACHE[name] = (scene, caster, Lidar(caster, lidar_config))
-    return _WORKER_CACHE[name]
+        _WORKER_CACHE[key] = (scene, caster, Lidar(caster, lidar_config))
+    return _WORKER_CACHE[key]
 
 
 def run_shard(config: DatasetConfig, shard: tuple[str, int, int, int]) -> dict[str, Any]:
     """Label the parents of one shard; returns arrays and per-parent failure records."""
     shard_id, si, start, stop = shard
-    scene, caster, lidar = scene_tools(config.scenes[si], config.lidar)
+    name = config.scenes[si]
+    scene, caster, lidar = scene_tools(name, config.lidar, config.scene_params.get(name))
     rows: dict[str, list] = {k: [] for k in ("points", "poses", "errors", "labels", "index", "children_failed")}
     failures = []
     for i in range(start, stop):
@@ -149,7 +164,19 @@ def _write_atomic(path: Path, write: Callable[[BinaryIO], None]) -> None:
 
 
 def _settings(config: DatasetConfig) -> dict[str, Any]:
-    return json.loads(json.dumps(dataclasses.asdict(config)))
+    """What a resumed run must match. A mesh file's bytes count too: an edited mesh is another dataset."""
+    settings = json.loads(json.dumps(dataclasses.asdict(config)))
+    if not config.scene_params:
+        del settings["scene_params"]  # so that datasets made before meshes were taken still resume
+    meshes = {name: _file_digest(name) for name in config.scenes if is_mesh_path(name)}
+    if meshes:
+        settings["mesh_sha256"] = meshes
+    return settings
+
+
+def _file_digest(path: str) -> str:
+    with open(path, "rb") as fh:
+        return hashlib.file_digest(fh, "sha256").hexdigest()
 
 
 def _versions() -> dict[str, str]:
@@ -167,7 +194,14 @@ def check_dataset_config(config: DatasetConfig) -> None:
     folder, its manifest or any worker exists."""
     for name in config.scenes:
         check_scene_name(name)
-    problems = [f"{name} must be {rule}, got {value}" for name, value, ok, rule in [
+    problems = [f"scene_params are given for '{name}', which is not among the scenes"
+                for name in config.scene_params if name not in config.scenes]
+    for name in filter(is_mesh_path, config.scenes):
+        if not config.scene_params.get(name, {}).get("sampling_paths"):
+            problems.append(f"the mesh {name} has no route to sample parents along (--route FILE)")
+        else:  # a broken mesh or route fails here, not in every worker
+            make_scene(name, **config.scene_params[name])
+    problems += [f"{name} must be {rule}, got {value}" for name, value, ok, rule in [
         ("scenes", config.scenes, len(config.scenes) > 0, "at least one scene"),
         ("parents_per_scene", config.parents_per_scene, config.parents_per_scene >= 1, "at least 1"),
         ("shard_size", config.shard_size, config.shard_size >= 1, "at least 1"),

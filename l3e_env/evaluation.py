@@ -49,7 +49,7 @@ def split_rows(data: LabelDataset | DatasetUnion, training: dict[str, Any]) -> d
             "test": split_indices(data, test_scenes_in(data))}
 
 
-def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Path], out_dir: str | Path,
+def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Path] | None, out_dir: str | Path,
              others: list[str | Path] | None = None, progress: bool = True, symmetric: bool = False,
              eigen: list[float] | None = None, int8: bool = True, by_family: bool = False) -> dict[str, Any]:
     """Score each checkpoint on its own train/validation split and on the test families of the
@@ -62,19 +62,22 @@ def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Pat
     `int8`: the ResUNet's convolutions as deployed (Classifier.load); False scores them in float32.
     `by_family`: each scene family of the test split and of an `others` dataset, where it holds
     several, also gets a column of its own ('mine of test', 'yard of rooms48'): a mean over families
-    of unlike difficulty hides which one a model fails on."""
+    of unlike difficulty hides which one a model fails on. Without `dataset` only `others` are
+    scored: how a model does on a user's own scenes needs no training data."""
+    if not dataset and not others:
+        raise ValueError("nothing to score: give the training dataset(s), other datasets, or both")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    data = open_datasets(dataset)
+    data = open_datasets(dataset) if dataset else None
     extra: dict[str, LabelDataset] = {}
     for d in map(LabelDataset, others or []):
         extra[f"all of {d.name}" if f"all of {d.name}" not in extra else f"all of {d.folder}"] = d
-    test_scenes = test_scenes_in(data)
+    test_scenes = test_scenes_in(data) if data is not None else []
     table: dict[str, dict[str, dict[str, np.ndarray]]] = {}
     curves: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = {}
     intervals: dict[tuple[str, str], dict[str, tuple[float, float]]] = {}
-    results: dict[str, Any] = {"dataset": data.name, "test_scenes": test_scenes, "symmetric": symmetric,
-                               "int8": int8, "models": {}}
+    results: dict[str, Any] = {"dataset": data.name if data is not None else None, "test_scenes": test_scenes,
+                               "symmetric": symmetric, "int8": int8, "models": {}}
 
     def family_columns(split: str, ds: LabelDataset | DatasetUnion, rows: np.ndarray) -> dict[str, np.ndarray]:
         """Column name -> positions in `rows` of each family, for a test or `others` split of several."""
@@ -98,7 +101,8 @@ def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Pat
     for path in map(Path, checkpoints):
         clf = Classifier.load(path, symmetric=symmetric, int8=int8)
         name = model_name(clf, path, set(table))
-        splits = {split: (data, rows) for split, rows in split_rows(data, clf.meta["training"]).items()}
+        splits = {} if data is None else {
+            split: (data, rows) for split, rows in split_rows(data, clf.meta["training"]).items()}
         splits.update({column: (d, np.arange(len(d))) for column, d in extra.items()})
         splits = {split: (ds, rows) for split, (ds, rows) in splits.items() if len(rows)}
         first_splits = first_splits or splits

@@ -19,7 +19,7 @@ import small_gicp
 from tqdm import tqdm
 
 from fusion import FusionConfig, MetricError, ate, ate_aligned, check_backend, make_fusion, rpe
-from scenes import Scene, is_mesh_path, make_scene
+from scenes import Scene, canonical_scene_name, is_mesh_path, make_scene
 
 from .config import EnvConfig, LidarConfig, OdometryConfig
 from .detectors import Detector, make_detector, safe_predict
@@ -115,7 +115,7 @@ def record_run(scene: str = "mine", sensor: str = "vlp16", seed: int = 0, progre
         bar.update()
     bar.close()
     # a mesh scene is rebuilt from its file, a procedural one from its canonical name ('tunnel' -> 'tunnel-0')
-    name = str(Path(scene).resolve()) if is_mesh_path(scene) else env.scene.name
+    name = canonical_scene_name(scene) if is_mesh_path(scene) else env.scene.name
     rec = Recording(name, sensor, seed, env.robot.T_b_s, np.array(gt), np.array(odom), scans, samples,
                     dict(scene_params or {}))
     env.close()

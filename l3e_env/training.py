@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from scenes import TRAIN_SCENES, VALIDATION_SCENES
+from scenes import TRAIN_SCENES, VALIDATION_SCENES, canonical_scene_name
 
 from .classifier import (
     SWAP_LABELS,
@@ -218,6 +218,9 @@ def train(dataset: str | Path | list[str | Path], out_dir: str | Path, cfg: Trai
     """Train (or resume) into `out_dir` on one dataset or several read as one; returns the
     summary of the best epoch."""
     check_train_config(cfg)
+    # a mesh scene by its absolute path, as its dataset names it, whatever folder the config was written in
+    cfg = replace(cfg, train_scenes=[canonical_scene_name(s) for s in cfg.train_scenes],
+                  validation_scenes=[canonical_scene_name(s) for s in cfg.validation_scenes])
     torch.set_num_threads(cfg.threads)
     data = open_datasets(dataset)
     out = Path(out_dir)

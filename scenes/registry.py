@@ -36,7 +36,9 @@ def list_scenes() -> list[str]:
 
 
 def scene_family(name: str) -> str:
-    """The family of a scene name: 'cave' for 'cave-3' and for 'cave'."""
+    """The family of a scene name: 'cave' for 'cave-3' and for 'cave'; a mesh file's stem for its path."""
+    if is_mesh_path(name):
+        return Path(name).stem
     return name.partition("-")[0]
 
 
@@ -52,6 +54,12 @@ def make_scene(name: str, seed: int = 0, **params) -> Scene:
     if suffix:
         seed = int(suffix)
     return BUILDERS[family](seed=seed, **params)
+
+
+def canonical_scene_name(name: str) -> str:
+    """A mesh file by its absolute path, as datasets, recordings and checkpoints name it for good
+    (a relative path would change meaning with the folder a command runs in); other names as given."""
+    return str(Path(name).resolve()) if is_mesh_path(name) else name
 
 
 def check_scene_name(name: str) -> str:

@@ -1,5 +1,8 @@
+from pathlib import Path
+
 import numpy as np
 import pytest
+import trimesh
 
 from l3e_env.dataset import config_for, generate
 from scenes import make_scene
@@ -28,3 +31,18 @@ def tiny_dataset(tmp_path_factory):
                      labels={"children": 8})
     generate(out, cfg, workers=1, progress=False)
     return out
+
+
+@pytest.fixture
+def cad_corridor(tmp_path) -> tuple[Path, Path]:
+    """A 10 m corridor exported as a CAD tool would (y up, millimetres; floor, two walls, an end wall
+    behind the start, no roof) and its route file in the same axes and units: (mesh, route)."""
+    parts = [trimesh.creation.box(extents) for extents in ([10, 4, 0.2], [10, 0.2, 3], [10, 0.2, 3], [0.2, 4, 3])]
+    for part, offset in zip(parts, ([5, 0, -0.1], [5, 2, 1.5], [5, -2, 1.5], [-0.1, 0, 1.5])):
+        part.apply_translation(offset)
+    to_y_up = np.array([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]])
+    mesh = trimesh.util.concatenate(parts)
+    mesh.vertices = mesh.vertices @ to_y_up.T * 1000
+    mesh.export(tmp_path / "corridor.obj")
+    np.savetxt(tmp_path / "route.csv", np.array([[1.0, 0, 0], [8, 0, 0]]) @ to_y_up.T * 1000, delimiter=",")
+    return tmp_path / "corridor.obj", tmp_path / "route.csv"

@@ -2,7 +2,6 @@ import json
 
 import numpy as np
 import pytest
-import trimesh
 
 from l3e_env.detectors import EigenvalueDetector, NoDetector, make_detector
 from l3e_env.experiment import (
@@ -46,20 +45,13 @@ def test_ate_from_a_recording_writes_results_and_figures(walls_run, tmp_path):
     assert json.loads((tmp_path / "out" / "results.json").read_text())["scene"] == "primitives-1"
 
 
-def test_a_users_mesh_and_route_are_driven_and_replayed(tmp_path):
+def test_a_users_mesh_and_route_are_driven_and_replayed(cad_corridor, tmp_path):
     """A corridor exported as a CAD tool would (y up, millimetres) with its route in the same units."""
     from l3e_env.cli import main
 
-    parts = [trimesh.creation.box(extents) for extents in ([10, 4, 0.2], [10, 0.2, 3], [10, 0.2, 3], [0.2, 4, 3])]
-    for part, offset in zip(parts, ([5, 0, -0.1], [5, 2, 1.5], [5, -2, 1.5], [-0.1, 0, 1.5])):
-        part.apply_translation(offset)
-    to_y_up = np.array([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]])
-    mesh = trimesh.util.concatenate(parts)
-    mesh.vertices = mesh.vertices @ to_y_up.T * 1000
-    mesh.export(tmp_path / "corridor.obj")
-    np.savetxt(tmp_path / "route.csv", np.array([[1.0, 0, 0], [8, 0, 0]]) @ to_y_up.T * 1000, delimiter=",")
+    mesh, route = cad_corridor
     out = tmp_path / "ate"
-    assert main(["ate", "--scene", str(tmp_path / "corridor.obj"), "--route", str(tmp_path / "route.csv"),
+    assert main(["ate", "--scene", str(mesh), "--route", str(route),
                  "--up-axis", "y", "--scale", "0.001", "--detector", "eigen:30", "--out", str(out), "--quiet"]) == 0
     first = json.loads((out / "results.json").read_text())["rows"]
     rec = Recording.load(out / "recording.npz")

@@ -126,6 +126,48 @@ def test_resuming_with_other_settings_or_reading_unfinished_data_is_refused(tmp_
     assert not (tmp_path / "f").exists()
 
 
+def test_a_users_mesh_is_labelled_resumed_by_its_own_bytes_and_scored(cad_corridor, tmp_path, capsys):
+    """`l3e dataset generate --scenes corridor.obj --route ...` and then `l3e evaluate --other` alone:
+    how the shipped model does on a user's own scene, without the training data."""
+    from l3e_env.cli import main
+
+    mesh, route = cad_corridor
+    out, args = tmp_path / "d", ["--up-axis", "y", "--scale", "0.001", "--parents", "2", "--children", "5",
+                                 "--workers", "1", "--quiet"]
+    assert main(["dataset", "generate", "--out", str(out), "--scenes", f"{mesh},office-0", "--route", str(route),
+                 *args]) == 0
+    data = LabelDataset(out)
+    assert data.manifest["scenes"] == [str(mesh.resolve()), "office-0"]
+    assert sorted(p.name for p in (out / "shards").glob("*.npz")) == ["mesh0-corridor-00000.npz",
+                                                                       "office-0-00000.npz"]
+    mesh_rows = np.flatnonzero(np.asarray(data.arrays["scene"]) == 0)
+    assert len(mesh_rows) == 2
+    ground = data.poses[mesh_rows][:, :3, 3]  # sampled along the route: 1-8 m down the corridor, on its floor
+    assert (ground[:, 0] > 0.5).all() and (ground[:, 0] < 8.5).all() and (np.abs(ground[:, 1]) < 1.7).all()
+    assert (np.abs(ground[:, 2] - 0.85) < 1.2).all()
+    assert main(["evaluate", "--other", str(out), "--by-family", "--out", str(tmp_path / "ev"), "--quiet"]) == 0
+    columns = json.loads((tmp_path / "ev" / "results.json").read_text())["models"]["resunet"]["splits"]
+    assert columns["all of d"]["count"] == 4 and columns["corridor of d"]["count"] == 2
+    # the same command resumes; another route, or the mesh file edited, is another dataset
+    assert main(["dataset", "generate", "--out", str(out), "--scenes", f"{mesh},office-0", "--route", str(route),
+                 *args]) == 0
+    np.savetxt(tmp_path / "other.csv", [[1000.0, 0, 0], [6000, 0, 0]])
+    assert main(["dataset", "generate", "--out", str(out), "--scenes", f"{mesh},office-0", "--route",
+                 str(tmp_path / "other.csv"), *args]) == 2
+    assert "other settings" in capsys.readouterr().err
+    mesh.write_text(mesh.read_text() + "# edited\n")
+    assert main(["dataset", "generate", "--out", str(out), "--scenes", f"{mesh},office-0", "--route", str(route),
+                 *args]) == 2
+    assert "other settings" in capsys.readouterr().err
+    # a mesh needs its route, one mesh a dataset, mesh options a mesh; all refused before the folder
+    for scenes, extra, message in [(str(mesh), [], "give its route"),
+                                   (f"{mesh},{mesh}", ["--route", str(route)], "one mesh file per dataset"),
+                                   ("office-0", ["--route", str(route)], "only for a scene given as a mesh")]:
+        assert main(["dataset", "generate", "--out", str(tmp_path / "no"), "--scenes", scenes, *extra]) == 2
+        assert message in capsys.readouterr().err
+    assert not (tmp_path / "no").exists()
+
+
 def test_ray_backend_gives_the_same_dataset(tmp_path):
     pytest.importorskip("ray")
     cfg = config_for(None, scenes=["office-0"], parents_per_scene=2, shard_size=1, labels={"children": 8})
