@@ -257,7 +257,9 @@ def train(dataset: str | Path | list[str | Path], out_dir: str | Path, cfg: Trai
         t0 = time.perf_counter()
         rng = np.random.default_rng([cfg.seed, epoch])
         torch.manual_seed(cfg.seed * 100_003 + epoch)
-        count = cfg.samples_per_epoch or len(pool)
+        # at least one whole batch: a pool smaller than a batch (a small dataset of one's own scene)
+        # would otherwise give epochs without a single step
+        count = max(cfg.samples_per_epoch or len(pool), cfg.batch_size)
         order = train_rows[rng.choice(pool, count, replace=count > len(pool))]
         model.train()
         losses = []

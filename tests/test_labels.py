@@ -1,4 +1,5 @@
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -126,9 +127,10 @@ def test_resuming_with_other_settings_or_reading_unfinished_data_is_refused(tmp_
     assert not (tmp_path / "f").exists()
 
 
-def test_a_users_mesh_is_labelled_resumed_by_its_own_bytes_and_scored(cad_corridor, tmp_path, capsys):
+def test_a_users_mesh_is_labelled_resumed_by_its_own_bytes_and_scored(cad_corridor, tmp_path, capsys, monkeypatch):
     """`l3e dataset generate --scenes corridor.obj --route ...` and then `l3e evaluate --other` alone:
     how the shipped model does on a user's own scene, without the training data."""
+    from l3e_env.classifier import load_checkpoint
     from l3e_env.cli import main
 
     mesh, route = cad_corridor
@@ -148,6 +150,13 @@ def test_a_users_mesh_is_labelled_resumed_by_its_own_bytes_and_scored(cad_corrid
     assert main(["evaluate", "--other", str(out), "--by-family", "--out", str(tmp_path / "ev"), "--quiet"]) == 0
     columns = json.loads((tmp_path / "ev" / "results.json").read_text())["models"]["resunet"]["splits"]
     assert columns["all of d"]["count"] == 4 and columns["corridor of d"]["count"] == 2
+    # a training config names the mesh relative to the folder it runs in; the checkpoint, for good
+    monkeypatch.chdir(mesh.parent)
+    Path("split.yaml").write_text("train_scenes: [corridor.obj]\nvalidation_scenes: [office-0]\nsamples_per_epoch: 4\n")
+    assert main(["train", "--dataset", str(out), "--out", "run", "--config", "split.yaml", "--epochs", "1",
+                 "--quiet"]) == 0
+    assert load_checkpoint("run/model.pt")["training"]["train_scenes"] == [str(mesh.resolve())]
+    assert np.isfinite(json.loads(Path("run/log.jsonl").read_text())["train_loss"])  # 4 samples: still one batch
     # the same command resumes; another route, or the mesh file edited, is another dataset
     assert main(["dataset", "generate", "--out", str(out), "--scenes", f"{mesh},office-0", "--route", str(route),
                  *args]) == 0
