@@ -12,13 +12,10 @@ import numpy as np
 from l3e_env.cli import add_mesh_options, mesh_options_given, scene_names, scene_params, sensor_name
 
 
-def _scenes(args: argparse.Namespace) -> list[str]:
-    return [s for group in args.scene or [["fork"]] for s in group]
-
-
-def _scenes_with_params(args: argparse.Namespace) -> dict[str, dict]:
-    """Each scene with make_scene's keyword arguments; the mesh options describe one mesh scene."""
-    names = _scenes(args)
+def _scenes_with_params(args: argparse.Namespace, default: tuple[str, ...] = ("fork",)) -> dict[str, dict]:
+    """Each scene (--scene, else `default`) with make_scene's keyword arguments; the mesh options
+    describe one mesh scene."""
+    names = [s for group in args.scene or [list(default)] for s in group]
     if len(names) > 1 and mesh_options_given(args):
         raise ValueError("--route, --up-axis and --scale describe one mesh: give it as the only --scene")
     return {name: scene_params(args, name) for name in names}
@@ -74,10 +71,10 @@ def _cmd_train(args: argparse.Namespace) -> int:
     from .fastenv import FastEnvConfig
     from .ppo import TRAIN_VARIANTS, train_ppo
 
-    scenes = _scenes(args) if args.scene else TRAIN_VARIANTS
+    scenes = _scenes_with_params(args, tuple(TRAIN_VARIANTS))
     print(f"PPO on {', '.join(scenes)} (fast map environment, {args.detector} maps) -> {Path(args.out).resolve()}")
-    contexts = [scene_context(name, args.detector, args.cache_dir, sensor=args.sensor, progress=not args.quiet)
-                for name in scenes]
+    contexts = [scene_context(name, args.detector, args.cache_dir, sensor=args.sensor, progress=not args.quiet,
+                              scene_params=params) for name, params in scenes.items()]
     summary = train_ppo(args.out, contexts, args.detector, args.timesteps, args.seed, args.envs,
                         FastEnvConfig(lam=args.lam), progress=not args.quiet)
     print(f"{summary['timesteps']} steps; policy: {Path(args.out) / 'policy.zip'}; logs: progress.csv, monitor.csv")
@@ -88,13 +85,13 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     from .evaluation import evaluate_policies, format_rows
     from .ppo import EVAL_VARIANTS
 
-    scenes = _scenes(args) if args.scene else EVAL_VARIANTS
+    scenes = _scenes_with_params(args, tuple(EVAL_VARIANTS))
     out = Path(args.out or f"l3e_out/policy-eval-{time.strftime('%Y%m%d-%H%M%S')}")
     print(f"{args.episodes} episodes per policy on {', '.join(scenes)}, full pipeline ({args.detector} detector) "
           f"-> {out.resolve()}")
-    rows = evaluate_policies(out, args.policy or ["shortest", "planner"], scenes, args.episodes, args.seed,
+    rows = evaluate_policies(out, args.policy or ["shortest", "planner"], list(scenes), args.episodes, args.seed,
                              args.detector, args.cache_dir, args.lam, args.workers, steer_on=args.steer_on,
-                             progress=not args.quiet)
+                             progress=not args.quiet, scene_params={k: v for k, v in scenes.items() if v})
     print(format_rows(rows))
     print(f"routes: {out / 'routes.png'}")
     return 0
@@ -133,6 +130,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--envs", type=int, default=4, help="environments stepped together (default 4)")
     g.add_argument("--lam", type=float, default=50.0, help="weight of expected drift in the reward (default 50)")
     g.add_argument("--seed", type=int, default=0)
+    add_mesh_options(g)
     g.set_defaults(func=_cmd_train)
     g = psub.add_parser("evaluate", parents=[common], help="seeded full-pipeline episodes: success, route, ATE, length")
     g.add_argument("--policy", action="append",
@@ -147,4 +145,5 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="pose the policies steer on (default: the fused estimate); ATE is measured either way")
     g.add_argument("--seed", type=int, default=0)
     g.add_argument("--out", help="output folder (default: l3e_out/policy-eval-<time>)")
+    add_mesh_options(g)
     g.set_defaults(func=_cmd_evaluate)

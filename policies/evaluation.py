@@ -36,7 +36,7 @@ class Episode:
     scene: str
     seed: int
     success: bool
-    rich_route: bool  # kept out of the degenerate corridor
+    rich_route: bool | None  # kept out of the degenerate corridor; None where the scene marks none
     final_ate: float  # m, fused estimate against ground truth at the end
     mean_ate: float  # m, RMS over the episode
     path_length: float  # m, ground truth
@@ -44,14 +44,16 @@ class Episode:
     trajectory: list  # ground-truth (x, y) every 5 steps
 
 
-def avoided_corridor(trajectory: np.ndarray, scene) -> bool:
+def avoided_corridor(trajectory: np.ndarray, scene) -> bool | None:
     """Whether a path kept out of the scene's degenerate 'corridor' region (the fork's smooth
     corridor); for scenes without one, whether it kept closer to the 'rich' route than to the
-    'short' one (mean point-to-polyline distance)."""
+    'short' one (mean point-to-polyline distance); None for a scene with neither (a user's mesh)."""
     if "corridor" in scene.regions:
         x0, y0, x1, y1 = scene.regions["corridor"]
         xy = trajectory[:, :2]
         return not bool(((xy[:, 0] > x0) & (xy[:, 0] < x1) & (xy[:, 1] > y0) & (xy[:, 1] < y1)).any())
+    if not {"rich", "short"} <= set(scene.routes):
+        return None
 
     def mean_distance(route: np.ndarray) -> float:
         return float(np.linalg.norm(trajectory[:, None, :2] - route[None, :, :2], axis=2).min(axis=1).mean())
@@ -59,10 +61,12 @@ def avoided_corridor(trajectory: np.ndarray, scene) -> bool:
     return mean_distance(scene.routes["rich"]) < mean_distance(scene.routes["short"])
 
 
-def make_controller(policy: str, scene: str, detector: str, cache_dir: str | Path | None, lam: float):
+def make_controller(policy: str, scene: str, detector: str, cache_dir: str | Path | None, lam: float,
+                    scene_params: dict | None = None):
     """A function (T_w_b estimate, step index) -> normalised twist, for one scene."""
     if policy in ("shortest", "planner"):
-        ctx = scene_context(scene, detector if policy == "planner" else None, cache_dir, build=False)
+        ctx = scene_context(scene, detector if policy == "planner" else None, cache_dir, build=False,
+                            scene_params=scene_params)
         plan = Planner(ctx.space, ctx.locmap, lam=lam if policy == "planner" else 0.0).plan(ctx.scene.start[:2],
                                                                                              ctx.scene.goal)
         follower = RouteFollower(route_of(plan, ctx.space))
@@ -71,7 +75,8 @@ def make_controller(policy: str, scene: str, detector: str, cache_dir: str | Pat
         from .ppo import PPOPolicy
 
         model = PPOPolicy(policy.partition(":")[2])
-        ctx = scene_context(scene, model.meta.get("detector", detector), cache_dir, build=False)
+        ctx = scene_context(scene, model.meta.get("detector", detector), cache_dir, build=False,
+                            scene_params=scene_params)
         view = PolicyView(ctx.space, ctx.locmap, ctx.scene.goal, float(model.meta["fast_env"]["lam"]))
         held = {"action": np.zeros(3, dtype=np.float32)}
 
@@ -88,12 +93,14 @@ STEER_ON = ("estimate", "truth")
 
 
 def run_episode(policy: str, scene: str, seed: int, detector: str = "learned", cache_dir: str | Path | None = None,
-                lam: float = 50.0, backend: str = "graph", steer_on: str = "estimate") -> Episode:
+                lam: float = 50.0, backend: str = "graph", steer_on: str = "estimate",
+                scene_params: dict | None = None) -> Episode:
     import torch
 
     torch.set_num_threads(1)
-    controller: Callable = make_controller(policy, scene, detector, cache_dir, lam)
-    env = NavigationEnv(scene=scene, fusion={"enabled": True, "detector": detector, "backend": backend})
+    controller: Callable = make_controller(policy, scene, detector, cache_dir, lam, scene_params)
+    env = NavigationEnv(scene=scene, scene_params=scene_params or {},
+                        fusion={"enabled": True, "detector": detector, "backend": backend})
     try:
         _, info = env.reset(seed=seed)
         trail, length, terminated, truncated = [info["T_w_b"][:2, 3]], 0.0, False, False
@@ -121,9 +128,10 @@ def summarize(episodes: list[Episode]) -> list[dict[str, Any]]:
     rows = []
     for name in dict.fromkeys(e.policy for e in episodes):
         group = [e for e in episodes if e.policy == name]
+        marked = [e.rich_route for e in group if e.rich_route is not None]
         rows.append({"policy": name, "episodes": len(group),
                      "success": float(np.mean([e.success for e in group])),
-                     "rich_route": float(np.mean([e.rich_route for e in group])),
+                     "rich_route": float(np.mean(marked)) if marked else None,
                      "final_ate": float(np.mean([e.final_ate for e in group])),
                      "mean_ate": float(np.mean([e.mean_ate for e in group])),
                      "path_length": float(np.mean([e.path_length for e in group]))})
@@ -135,7 +143,8 @@ def format_rows(rows: list[dict[str, Any]]) -> str:
            f"{'mean ATE':>9s} {'path [m]':>9s}"
     lines = [head, "-" * len(head)]
     for r in rows:
-        lines.append(f"{r['policy'][:28]:28s} {r['episodes']:8d} {r['success']:8.0%} {r['rich_route']:10.0%} "
+        rich = "n/a" if r["rich_route"] is None else f"{r['rich_route']:.0%}"
+        lines.append(f"{r['policy'][:28]:28s} {r['episodes']:8d} {r['success']:8.0%} {rich:>10s} "
                      f"{r['final_ate']:10.2f} {r['mean_ate']:9.2f} {r['path_length']:9.1f}")
     return "\n".join(lines)
 
@@ -143,8 +152,9 @@ def format_rows(rows: list[dict[str, Any]]) -> str:
 def evaluate_policies(out: str | Path, policies: list[str], scenes: list[str], episodes: int = 50, seed: int = 0,
                       detector: str = "learned", cache_dir: str | Path | None = None, lam: float = 50.0,
                       workers: int = 1, backend: str = "graph", steer_on: str = "estimate",
-                      progress: bool = True) -> list[dict[str, Any]]:
+                      progress: bool = True, scene_params: dict[str, dict] | None = None) -> list[dict[str, Any]]:
     """Episode i of every policy runs on scenes[i % len(scenes)] with environment seed seed + i.
+    `scene_params`: make_scene's arguments by scene name (a mesh's up axis, scale and route).
     Writes episodes.jsonl, summary.json, summary.txt and routes.png into `out`."""
     from .plots import plot_paths
 
@@ -154,14 +164,17 @@ def evaluate_policies(out: str | Path, policies: list[str], scenes: list[str], e
     out.mkdir(parents=True, exist_ok=True)
     map_detectors = {_ppo_detector(p, detector) if p.startswith("ppo:") else detector
                      for p in policies if p != "shortest"}
+    params = scene_params or {}
     for name in dict.fromkeys(scenes):  # maps must exist: build them here, once, not in every worker
         for d in sorted(map_detectors):
-            scene_context(name, d, cache_dir, progress=progress)
-    jobs = [(p, scenes[i % len(scenes)], seed + i, detector, cache_dir, lam, backend, steer_on)
-            for i in range(episodes) for p in policies]
+            scene_context(name, d, cache_dir, progress=progress, scene_params=params.get(name))
+    jobs = [(p, scenes[i % len(scenes)], seed + i, detector, cache_dir, lam, backend, steer_on,
+             params.get(scenes[i % len(scenes)])) for i in range(episodes) for p in policies]
     # episodes are appended as they finish; a killed evaluation resumes where it stopped, with the
     # settings it started with
     settings = {"detector": detector, "lam": lam, "backend": backend, "steer_on": steer_on}
+    if params:  # left out without a mesh, so that folders written before meshes were taken resume
+        settings["scene_params"] = params
     settings_file = out / "settings.json"
     if settings_file.exists() and json.loads(settings_file.read_text()) != settings:
         raise ValueError(f"{out} holds episodes run with {settings_file.read_text()}; use another folder "
@@ -202,7 +215,7 @@ def evaluate_policies(out: str | Path, policies: list[str], scenes: list[str], e
                                                   "seconds": round(time.perf_counter() - t0, 1)}, indent=2))
     (out / "summary.txt").write_text(format_rows(rows) + "\n")
     first = scenes[0]
-    ctx = scene_context(first, None, cache_dir)
+    ctx = scene_context(first, None, cache_dir, scene_params=params.get(first))
     plot_paths(out / "routes.png", ctx.scene, {p: [np.array(e.trajectory) for e in results if e.policy == p and
                                                    e.scene == first] for p in policies}, ctx.space,
                title=f"{first}: routes taken (episodes on this variant)")
