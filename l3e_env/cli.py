@@ -168,7 +168,8 @@ def _cmd_dataset_stats(args: argparse.Namespace) -> int:
 def _cmd_ate(args: argparse.Namespace) -> int:
     from .experiment import format_table, run_experiment
 
-    params = scene_params(args)
+    # a recording holds its scene's route, axes and scale: a mesh given with it is where the mesh moved to
+    params = {} if args.recording and not mesh_options_given(args) else scene_params(args)
     out = Path(args.out or f"l3e_out/ate-{Path(args.scene).stem}-{time.strftime('%Y%m%d-%H%M%S')}")
     print(f"writing the experiment into {out.resolve()}")
     rows = run_experiment(out, args.scene, args.detector or ["none", "eigen:30", "eigen:110", "oracle"],

@@ -12,7 +12,6 @@ not depend on the number of workers or on which shards a killed run had finished
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import json
 import re
 import time
@@ -26,7 +25,7 @@ from typing import Any, BinaryIO, Callable, Iterator
 import numpy as np
 from tqdm import tqdm
 
-from scenes import DATASET_SCENES, check_scene_name, is_mesh_path, make_scene
+from scenes import DATASET_SCENES, check_scene_name, file_sha256, is_mesh_path, make_scene
 
 from .config import LidarConfig, from_dict
 from .files import write_atomic
@@ -168,15 +167,10 @@ def _settings(config: DatasetConfig) -> dict[str, Any]:
     settings = json.loads(json.dumps(dataclasses.asdict(config)))
     if not config.scene_params:
         del settings["scene_params"]  # so that datasets made before meshes were taken still resume
-    meshes = {name: _file_digest(name) for name in config.scenes if is_mesh_path(name)}
+    meshes = {name: file_sha256(name) for name in config.scenes if is_mesh_path(name)}
     if meshes:
         settings["mesh_sha256"] = meshes
     return settings
-
-
-def _file_digest(path: str) -> str:
-    with open(path, "rb") as fh:
-        return hashlib.file_digest(fh, "sha256").hexdigest()
 
 
 def _versions() -> dict[str, str]:

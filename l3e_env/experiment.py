@@ -19,7 +19,7 @@ import small_gicp
 from tqdm import tqdm
 
 from fusion import FusionConfig, MetricError, ate, ate_aligned, check_backend, make_fusion, rpe
-from scenes import Scene, canonical_scene_name, is_mesh_path, make_scene
+from scenes import Scene, SceneError, canonical_scene_name, file_sha256, is_mesh_path, make_scene
 
 from .config import EnvConfig, LidarConfig, OdometryConfig
 from .detectors import Detector, make_detector, safe_predict
@@ -50,11 +50,12 @@ class Recording:
     samples: list[np.ndarray] = field(default_factory=list)
     # make_scene's keyword arguments (a mesh scene's up axis, scale and route), to rebuild the scene
     scene_params: dict = field(default_factory=dict)
+    mesh_sha256: str = ""  # a mesh scene's file, to tell it from an edited or replaced one
 
     def save(self, path: str | Path) -> None:
         np.savez_compressed(
             path, scene=self.scene, sensor=self.sensor, seed=self.seed, T_b_s=self.T_b_s,
-            scene_params=json.dumps(self.scene_params),
+            scene_params=json.dumps(self.scene_params), mesh_sha256=self.mesh_sha256,
             ground_truth=self.ground_truth, odometry=self.odometry, **_ragged("points", self.scans),
             **_ragged("samples", self.samples),
         )
@@ -64,8 +65,25 @@ class Recording:
         with np.load(path) as z:
             samples = _unragged(z, "samples") if "samples_offsets" in z.files else []
             params = json.loads(str(z["scene_params"])) if "scene_params" in z.files else {}
+            digest = str(z["mesh_sha256"]) if "mesh_sha256" in z.files else ""
             return cls(str(z["scene"]), str(z["sensor"]), int(z["seed"]), z["T_b_s"], z["ground_truth"], z["odometry"],
-                       _unragged(z, "points"), samples, params)
+                       _unragged(z, "points"), samples, params, digest)
+
+    def scene_file(self, moved_to: str | None = None) -> str:
+        """The scene to rebuild: its name, or for a mesh its recorded path, or `moved_to` where the
+        mesh has moved since; SceneError if the mesh is missing or not the recorded one."""
+        if not is_mesh_path(self.scene):
+            return self.scene
+        path = self.scene
+        if not Path(path).is_file():
+            if moved_to is None or not is_mesh_path(moved_to):
+                raise SceneError(f"the recording's mesh {path} is not there: give its new path as the scene "
+                                 "(l3e ate --recording R --scene NEW_PATH)")
+            path = moved_to
+        if self.mesh_sha256 and file_sha256(path) != self.mesh_sha256:
+            raise SceneError(f"{path} is not the mesh this recording was made in (its SHA-256 differs): the "
+                             "recorded scans would not match its geometry")
+        return path
 
     def detector_input(self, k: int) -> np.ndarray:
         return self.samples[k] if self.samples else self.scans[k]
@@ -117,7 +135,7 @@ def record_run(scene: str = "mine", sensor: str = "vlp16", seed: int = 0, progre
     # a mesh scene is rebuilt from its file, a procedural one from its canonical name ('tunnel' -> 'tunnel-0')
     name = canonical_scene_name(scene) if is_mesh_path(scene) else env.scene.name
     rec = Recording(name, sensor, seed, env.robot.T_b_s, np.array(gt), np.array(odom), scans, samples,
-                    dict(scene_params or {}))
+                    dict(scene_params or {}), file_sha256(scene) if is_mesh_path(scene) else "")
     env.close()
     return rec
 
@@ -214,10 +232,12 @@ def run_experiment(out_dir: str | Path, scene: str, detectors: list[str], sensor
                    recording: str | Path | None = None, progress: bool = True, backend: str = "graph",
                    scene_params: dict | None = None) -> list[dict]:
     """The `l3e ate` command as a function: returns the table rows and writes everything to out_dir.
-    `scene_params` go to make_scene (a mesh scene's up axis, scale and route)."""
+    `scene_params` go to make_scene (a mesh scene's up axis, scale and route). With a `recording`,
+    its own scene is used; `scene` matters only as the new path of a recorded mesh that has moved."""
     out = Path(out_dir)
     rec = Recording.load(recording) if recording else None
-    scene_obj = make_scene(rec.scene, **rec.scene_params) if rec else make_scene(scene, **(scene_params or {}))
+    scene_obj = (make_scene(rec.scene_file(moved_to=scene), **rec.scene_params) if rec
+                 else make_scene(scene, **(scene_params or {})))
     lidar = Lidar(EmbreeCaster(scene_obj.mesh), LidarConfig(model=rec.sensor if rec else sensor))
     dets = [make_detector(spec, lidar, seed) for spec in detectors]  # a bad spec fails before the drive
     out.mkdir(parents=True, exist_ok=True)

@@ -1,6 +1,7 @@
 """Import user meshes (OBJ, STL, PLY, GLB) as scenes, validated."""
 from __future__ import annotations
 
+import hashlib
 import io
 from pathlib import Path
 
@@ -18,6 +19,13 @@ FORMATS = (".obj", ".stl", ".ply", ".glb", ".gltf", ".off")
 def is_mesh_path(name: str | Path) -> bool:
     """Whether a scene name is a mesh file to load (by its suffix) rather than a procedural family."""
     return str(name).lower().endswith(FORMATS)
+
+
+def file_sha256(path: str | Path) -> str:
+    """The SHA-256 of a file's bytes: what datasets and recordings keep to tell an edited or
+    replaced mesh from the one they were made with."""
+    with open(path, "rb") as fh:
+        return hashlib.file_digest(fh, "sha256").hexdigest()
 
 
 def load_mesh(path: str | Path, up_axis: str = "z", scale: float = 1.0) -> trimesh.Trimesh:

@@ -45,7 +45,7 @@ def test_ate_from_a_recording_writes_results_and_figures(walls_run, tmp_path):
     assert json.loads((tmp_path / "out" / "results.json").read_text())["scene"] == "primitives-1"
 
 
-def test_a_users_mesh_and_route_are_driven_and_replayed(cad_corridor, tmp_path):
+def test_a_users_mesh_and_route_are_driven_and_replayed(cad_corridor, tmp_path, capsys):
     """A corridor exported as a CAD tool would (y up, millimetres) with its route in the same units."""
     from l3e_env.cli import main
 
@@ -60,6 +60,16 @@ def test_a_users_mesh_and_route_are_driven_and_replayed(cad_corridor, tmp_path):
     again = run_experiment(tmp_path / "again", "ignored", ["eigen:30"], recording=out / "recording.npz",
                            progress=False)  # rebuilt from the recording's mesh path and parameters
     assert again[1]["ate_m"] == first[1]["ate_m"]
+    # the mesh moved: the recording names its old path, and takes the new one as the scene
+    moved = mesh.rename(tmp_path / "moved.obj")
+    replay = ["ate", "--recording", str(out / "recording.npz"), "--detector", "eigen:30", "--quiet"]
+    assert main([*replay, "--out", str(tmp_path / "a")]) == 2
+    assert "give its new path as the scene" in capsys.readouterr().err
+    assert main([*replay, "--scene", str(moved), "--out", str(tmp_path / "b")]) == 0
+    assert json.loads((tmp_path / "b" / "results.json").read_text())["rows"][1]["ate_m"] == first[1]["ate_m"]
+    moved.write_text(moved.read_text() + "# edited\n")  # another mesh at that path
+    assert main([*replay, "--scene", str(moved), "--out", str(tmp_path / "c")]) == 2
+    assert "not the mesh this recording was made in" in capsys.readouterr().err
 
 
 def test_detector_specs_and_errors():
