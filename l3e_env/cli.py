@@ -218,13 +218,9 @@ def _asdict(cfg) -> dict:
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
+    from .classifier import DEFAULT_CHECKPOINT
     from .evaluation import evaluate
 
-    from .classifier import DEFAULT_CHECKPOINT
-
-    if not args.dataset and not args.other:
-        raise ValueError("give --dataset (the training data, scored by split), --other (any dataset, scored whole), "
-                         "or both")
     out = Path(args.out or f"l3e_out/evaluate-{time.strftime('%Y%m%d-%H%M%S')}")
     results = evaluate(args.checkpoint or [DEFAULT_CHECKPOINT], args.dataset, out, others=args.other,
                        progress=not args.quiet, symmetric=args.symmetric, eigen=args.eigen, int8=not args.float32,

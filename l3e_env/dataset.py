@@ -28,7 +28,7 @@ from tqdm import tqdm
 from scenes import DATASET_SCENES, check_scene_name, file_sha256, is_mesh_path, make_scene
 
 from .config import LidarConfig, from_dict
-from .files import write_atomic
+from .files import settings_changed, write_atomic
 from .labels import AXES, LabelConfig, SamplingError, label_parent, sample_parent_pose
 from .lidar import Lidar, get_pattern
 from .raycast import EmbreeCaster
@@ -216,7 +216,8 @@ def _open_folder(out: Path, config: DatasetConfig) -> dict[str, Any]:
     if manifest_path.exists():
         manifest = json.loads(manifest_path.read_text())
         if manifest.get("settings") != settings:
-            raise DatasetError(f"{out} holds a dataset made with other settings; choose another folder")
+            raise DatasetError(f"{out} holds a dataset made with other settings "
+                               f"({settings_changed(manifest.get('settings') or {}, settings)}); choose another folder")
         return manifest
     (out / "shards").mkdir(parents=True, exist_ok=True)
     manifest = {"format_version": FORMAT_VERSION, "settings": settings, "versions": _versions(), "complete": False,

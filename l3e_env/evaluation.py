@@ -65,7 +65,8 @@ def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Pat
     of unlike difficulty hides which one a model fails on. Without `dataset` only `others` are
     scored: how a model does on a user's own scenes needs no training data."""
     if not dataset and not others:
-        raise ValueError("nothing to score: give the training dataset(s), other datasets, or both")
+        raise ValueError("nothing to score: give the training dataset(s) (--dataset, scored by split), other "
+                         "datasets (--other, scored whole), or both")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     data = open_datasets(dataset) if dataset else None

@@ -20,6 +20,7 @@ import numpy as np
 from tqdm import tqdm
 
 from l3e_env.envs import NavigationEnv
+from l3e_env.files import settings_changed
 from l3e_env.follower import RouteFollower
 from l3e_env.transforms import yaw_of
 
@@ -176,9 +177,10 @@ def evaluate_policies(out: str | Path, policies: list[str], scenes: list[str], e
     if params:  # left out without a mesh, so that folders written before meshes were taken resume
         settings["scene_params"] = params
     settings_file = out / "settings.json"
-    if settings_file.exists() and json.loads(settings_file.read_text()) != settings:
-        raise ValueError(f"{out} holds episodes run with {settings_file.read_text()}; use another folder "
-                         f"for {settings}")
+    before = json.loads(settings_file.read_text()) if settings_file.exists() else settings
+    if before != settings:
+        raise ValueError(f"{out} holds episodes run with other settings ({settings_changed(before, settings)}); "
+                         "use another folder")
     settings_file.write_text(json.dumps(settings))
     log = out / "episodes.jsonl"
     done = {}

@@ -113,7 +113,7 @@ def test_same_seed_same_dataset_whatever_the_workers_and_after_a_resume(tmp_path
 
 def test_resuming_with_other_settings_or_reading_unfinished_data_is_refused(tmp_path):
     generate(tmp_path / "d", small_config(), workers=1, progress=False)
-    with pytest.raises(DatasetError, match="other settings"):
+    with pytest.raises(DatasetError, match="other settings \\(seed 0, now 5\\)"):
         generate(tmp_path / "d", small_config(seed=5), workers=1, progress=False)
     (tmp_path / "e").mkdir()
     with pytest.raises(DatasetError, match="not a dataset"):
@@ -163,11 +163,11 @@ def test_a_users_mesh_is_labelled_resumed_by_its_own_bytes_and_scored(cad_corrid
     np.savetxt(tmp_path / "other.csv", [[1000.0, 0, 0], [6000, 0, 0]])
     assert main(["dataset", "generate", "--out", str(out), "--scenes", f"{mesh},office-0", "--route",
                  str(tmp_path / "other.csv"), *args]) == 2
-    assert "other settings" in capsys.readouterr().err
+    assert "other settings (scene_params)" in capsys.readouterr().err
     mesh.write_text(mesh.read_text() + "# edited\n")
     assert main(["dataset", "generate", "--out", str(out), "--scenes", f"{mesh},office-0", "--route", str(route),
                  *args]) == 2
-    assert "other settings" in capsys.readouterr().err
+    assert "other settings (mesh_sha256)" in capsys.readouterr().err
     # a mesh needs its route, one mesh a dataset, mesh options a mesh; all refused before the folder
     for scenes, extra, message in [(str(mesh), [], "give its route"),
                                    (f"{mesh},{mesh}", ["--route", str(route)], "one mesh file per dataset"),

@@ -326,7 +326,7 @@ def test_a_users_mesh_is_driven_by_the_policies(cad_corridor, tmp_path, capsys):
     assert summary.splitlines()[2].split()[3] == "n/a"
     np.savetxt(tmp_path / "other.csv", [[1000.0, 0, 0], [6000, 0, 0]])
     assert main([*args, "--route", str(tmp_path / "other.csv")]) == 2  # the folder's episodes had another route
-    assert "holds episodes run with" in capsys.readouterr().err
+    assert "holds episodes run with other settings (scene_params)" in capsys.readouterr().err
 
 
 def test_fork_variants_differ():
