@@ -37,6 +37,7 @@ from .classifier import (
     up_vector,
 )
 from .config import dump_yaml, plain, to_dict
+from .files import settings_changed
 from .constraints import FEATURES, fit_stacker
 from .dataset import DatasetUnion, LabelDataset, error_ratios, open_datasets
 from .scores import axis_scores, best_thresholds, mean_scores
@@ -236,8 +237,11 @@ def train(dataset: str | Path | list[str | Path], out_dir: str | Path, cfg: Trai
     last = out / "last.pt"
     state = load_checkpoint(last) if last.exists() else None
     if state is not None:
-        if _resumable(state["training"]) != _resumable(meta["training"]) or state["dataset"] != meta["dataset"]:
-            raise TrainingError(f"{out} holds a run with other settings or another dataset; choose another folder")
+        before = {**_resumable(state["training"]), "dataset": state["dataset"]}
+        now = {**_resumable(meta["training"]), "dataset": meta["dataset"]}
+        if before != now:
+            raise TrainingError(f"{out} holds a run with other settings ({settings_changed(before, now)}); "
+                                "choose another folder")
         model = model_from_checkpoint(state, str(last))
     else:
         model = _initial_model(cfg)

@@ -350,7 +350,7 @@ def test_a_killed_run_resumes_to_the_same_model(tiny_dataset, tmp_path):
     cfg.epochs = 1
     train(tiny_dataset, tmp_path / "cut", cfg, progress=False)
     cfg.epochs = 2  # the 'kill' came after epoch 1; the same command with the full epoch count resumes
-    with pytest.raises(TrainingError, match="other settings"):
+    with pytest.raises(TrainingError, match=r"other settings \(seed 0, now 3\)"):
         train(tiny_dataset, tmp_path / "cut", _train_cfg(seed=3), progress=False)
     resumed = train(tiny_dataset, tmp_path / "cut", _train_cfg(), progress=False)
     assert {k: v for k, v in resumed.items() if k != "seconds"} == {k: v for k, v in whole.items() if k != "seconds"}
