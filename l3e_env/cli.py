@@ -170,7 +170,8 @@ def _cmd_ate(args: argparse.Namespace) -> int:
 
     # a recording holds its scene's route, axes and scale: a mesh given with it is where the mesh moved to
     params = {} if args.recording and not mesh_options_given(args) else scene_params(args)
-    out = Path(args.out or f"l3e_out/ate-{Path(args.scene).stem}-{time.strftime('%Y%m%d-%H%M%S')}")
+    stem = "replay" if args.recording else Path(args.scene).stem  # a replay's scene is the recording's
+    out = Path(args.out or f"l3e_out/ate-{stem}-{time.strftime('%Y%m%d-%H%M%S')}")
     print(f"writing the experiment into {out.resolve()}")
     rows = run_experiment(out, args.scene, args.detector or ["none", "eigen:30", "eigen:110", "oracle"],
                           sensor=args.sensor, seed=args.seed, recording=args.recording, progress=not args.quiet,
