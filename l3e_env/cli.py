@@ -151,6 +151,8 @@ def _cmd_dataset_generate(args: argparse.Namespace) -> int:
                         progress=not args.quiet)
     print(f"{manifest['count']} labelled parents, {len(manifest['failures'])} failed "
           f"({manifest['generation_seconds_last_run']} s this run)")
+    for failure in manifest["failures"][:3]:
+        print(f"  failed: {failure['scene']} parent {failure['parent']}: {failure['reason']}")
     print(format_statistics(manifest["statistics"]))
     return 0
 

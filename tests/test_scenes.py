@@ -88,6 +88,9 @@ def test_a_route_file_is_read_in_the_mesh_files_axes_and_units(tmp_path):
     scene = scene_from_mesh(tmp_path / "hall.obj", up_axis="y", scale=0.001, sampling_paths=[route])
     np.testing.assert_allclose(scene.start, [1, 0.5, 0])  # at the route's first point, facing along it
     np.testing.assert_allclose(scene.goal, [4, 2.5])
+    with pytest.raises(SceneError, match=r"route point \(1000.0, 500.0\) m lies outside the mesh's extent"):
+        scene_from_mesh(tmp_path / "hall.obj", up_axis="y", scale=0.001,  # the route read without its scale
+                        sampling_paths=[load_route(tmp_path / "route.csv", up_axis="y")])
     for text, message in [("1 2 3\n", "two or more"), ("1 2 3 4\n5 6 7 8\n", "two or more"),
                           ("0 0 0\nnan 1 0\n", "NaN"), ("v 0 0 0\nv 1 0 0\n", "not a table")]:
         (tmp_path / "bad.txt").write_text(text)
