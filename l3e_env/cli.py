@@ -44,8 +44,10 @@ def float_list(text: str) -> tuple[float, ...]:
 def add_mesh_options(parser: argparse.ArgumentParser) -> None:
     """--route, --up-axis and --scale: what it takes to drive a scene given as a mesh file."""
     g = parser.add_argument_group("a scene given as a mesh file (OBJ, STL, PLY, GLB, glTF, OFF)")
-    g.add_argument("--route", help="text file of waypoints on the floor, one 'x y z' per line, in the mesh's "
-                                   "axes and units (needed to drive a mesh)")
+    g.add_argument("--route", action="append",
+                   help="text file of waypoints on the floor, one 'x y z' per line, in the mesh's axes and units "
+                        "(needed to drive a mesh); repeat for more paths: the first is the one driven, and labels "
+                        "are sampled along all of them (the galleries of a mine)")
     g.add_argument("--up-axis", dest="up_axis", choices=["x", "y", "z"], help="the mesh's up axis (default z)")
     g.add_argument("--scale", type=float, help="metres per mesh unit (default 1; 0.001 for millimetres)")
 
@@ -70,8 +72,8 @@ def scene_params(args: argparse.Namespace, scene: str | None = None) -> dict:
     if args.route is None:
         raise ValueError(f"to drive or label the mesh {scene}, give its route: --route FILE (waypoints on its floor)")
     up_axis, scale = args.up_axis or "z", 1.0 if args.scale is None else args.scale
-    route = load_route(args.route, up_axis, scale)
-    return {"up_axis": up_axis, "scale": scale, "sampling_paths": [route.tolist()]}
+    routes = [load_route(path, up_axis, scale) for path in args.route]
+    return {"up_axis": up_axis, "scale": scale, "sampling_paths": [route.tolist() for route in routes]}
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:

@@ -3,7 +3,7 @@ import sys
 
 import pytest
 
-from l3e_env.cli import build_parser, main
+from l3e_env.cli import build_parser, main, scene_params
 
 
 def test_help_lists_the_subcommands():
@@ -50,6 +50,13 @@ def test_mesh_options_apply_to_mesh_scenes_only(tmp_path, capsys):
     assert main(["demo", "--scene", str(tmp_path / "hall.obj"), "--out", str(tmp_path / "b")]) == 2
     assert "give its route: --route FILE" in capsys.readouterr().err
     assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+    # more routes: the first is driven, all are paths to sample labels along
+    (tmp_path / "r1.txt").write_text("0.1 0.1\n0.5 0.1\n")
+    (tmp_path / "r2.txt").write_text("0.1 0.2\n0.1 0.6\n")
+    args = build_parser().parse_args(["ate", "--scene", str(tmp_path / "hall.obj"), "--route", str(tmp_path / "r1.txt"),
+                                      "--route", str(tmp_path / "r2.txt")])
+    paths = scene_params(args)["sampling_paths"]
+    assert [p[-1][:2] for p in paths] == [[0.5, 0.1], [0.1, 0.6]]
 
 
 def test_sweep_thresholds_must_be_numbers(capsys):
