@@ -14,8 +14,11 @@ from l3e_env.cli import add_mesh_options, mesh_options_given, scene_names, scene
 
 def _scenes_with_params(args: argparse.Namespace, default: tuple[str, ...] = ("fork",)) -> dict[str, dict]:
     """Each scene (--scene, else `default`) with make_scene's keyword arguments; the mesh options
-    describe one mesh scene."""
-    names = [s for group in args.scene or [list(default)] for s in group]
+    describe one mesh scene, named by its absolute path so that an evaluation folder knows it from
+    any working folder."""
+    from scenes import canonical_scene_name
+
+    names = [canonical_scene_name(s) for group in args.scene or [list(default)] for s in group]
     if len(names) > 1 and mesh_options_given(args):
         raise ValueError("--route, --up-axis and --scale describe one mesh: give it as the only --scene")
     return {name: scene_params(args, name) for name in names}

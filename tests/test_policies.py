@@ -309,19 +309,21 @@ def test_a_users_mesh_is_mapped_and_planned(tmp_path, capsys):
     assert "describe one mesh" in capsys.readouterr().err
 
 
-def test_a_users_mesh_is_driven_by_the_policies(cad_corridor, tmp_path, capsys):
+def test_a_users_mesh_is_driven_by_the_policies(cad_corridor, tmp_path, capsys, monkeypatch):
     """`l3e policy evaluate` in a y-up millimetre corridor: the episodes, the map and the resumption
     use the mesh's route, axes and scale; its scene marks no corridor, so 'rich route' is n/a."""
     from l3e_env.cli import main
 
     mesh, route = cad_corridor
-    args = ["policy", "evaluate", "--scene", str(mesh), "--up-axis", "y", "--scale", "0.001", "--episodes", "1",
+    monkeypatch.chdir(mesh.parent)  # the mesh given by a relative path
+    args = ["policy", "evaluate", "--scene", mesh.name, "--up-axis", "y", "--scale", "0.001", "--episodes", "1",
             "--detector", "eigen:30", "--cache-dir", str(tmp_path / "cache"), "--out", str(tmp_path / "ev"), "--quiet"]
     assert main([*args, "--route", str(route)]) == 0
     (episode,) = [json.loads(line) for line in (tmp_path / "ev" / "episodes.jsonl").read_text().splitlines()
                   if json.loads(line)["policy"] == "shortest"]
     assert episode["success"] and episode["rich_route"] is None and 6.0 < episode["path_length"] < 9.0
     assert episode["trajectory"][-1][0] > 7.0  # driven along the corridor, in metres
+    assert episode["scene"] == str(mesh.resolve())  # named for good, as datasets and recordings name it
     summary = (tmp_path / "ev" / "summary.txt").read_text()
     assert summary.splitlines()[2].split()[3] == "n/a"
     np.savetxt(tmp_path / "other.csv", [[1000.0, 0, 0], [6000, 0, 0]])
