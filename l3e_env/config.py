@@ -127,3 +127,13 @@ def plain(x: Any) -> Any:
     if isinstance(x, (list, tuple)):
         return [plain(v) for v in x]
     return x
+
+
+def settings_changed(before: dict[str, Any], now: dict[str, Any]) -> str:
+    """The top-level settings that differ, named for an error message: the old and new values of
+    the short ones, the names only of long ones (a mesh's route is a long list)."""
+    def shown(key: str) -> str:
+        old, new = repr(before.get(key)), repr(now.get(key))
+        return key if len(old) + len(new) > 80 else f"{key} {old}, now {new}"
+
+    return ", ".join(shown(k) for k in sorted(before.keys() | now.keys()) if before.get(k) != now.get(k))

@@ -27,8 +27,8 @@ from tqdm import tqdm
 
 from scenes import DATASET_SCENES, check_scene_name, file_sha256, is_mesh_path, make_scene
 
-from .config import LidarConfig, from_dict
-from .files import settings_changed, write_atomic
+from .config import LidarConfig, from_dict, settings_changed
+from .files import write_atomic
 from .labels import AXES, LabelConfig, SamplingError, label_parent, sample_parent_pose
 from .lidar import Lidar, get_pattern
 from .raycast import EmbreeCaster

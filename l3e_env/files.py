@@ -1,10 +1,9 @@
-"""Atomic file writes: a reader, or a resumed job, never sees half a file; and what differs
-between the settings a folder was made with and a run that would resume it."""
+"""Atomic file writes: a reader, or a resumed job, never sees half a file."""
 from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Any, BinaryIO, Callable
+from typing import BinaryIO, Callable
 
 
 def write_atomic(path: str | Path, write: Callable[[BinaryIO], None]) -> None:
@@ -22,12 +21,3 @@ def write_atomic(path: str | Path, write: Callable[[BinaryIO], None]) -> None:
         tmp.unlink(missing_ok=True)
         raise
 
-
-def settings_changed(before: dict[str, Any], now: dict[str, Any]) -> str:
-    """The top-level settings that differ, named for an error message: the old and new values of
-    the short ones, the names only of long ones (a mesh's route is a long list)."""
-    def shown(key: str) -> str:
-        old, new = repr(before.get(key)), repr(now.get(key))
-        return key if len(old) + len(new) > 80 else f"{key} {old}, now {new}"
-
-    return ", ".join(shown(k) for k in sorted(before.keys() | now.keys()) if before.get(k) != now.get(k))

@@ -36,10 +36,9 @@ from .classifier import (
     up_tensor,
     up_vector,
 )
-from .config import dump_yaml, plain, to_dict
+from .config import dump_yaml, plain, settings_changed, to_dict
 from .constraints import FEATURES, fit_stacker
 from .dataset import DatasetUnion, LabelDataset, error_ratios, open_datasets
-from .files import settings_changed
 from .scores import axis_scores, best_thresholds, mean_scores
 
 

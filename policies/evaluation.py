@@ -19,8 +19,8 @@ from typing import Any, Callable
 import numpy as np
 from tqdm import tqdm
 
+from l3e_env.config import settings_changed
 from l3e_env.envs import NavigationEnv
-from l3e_env.files import settings_changed
 from l3e_env.follower import RouteFollower
 from l3e_env.transforms import yaw_of
 

@@ -90,13 +90,13 @@ def scene_from_mesh(
     driven along a route."""
     mesh = load_mesh(path, up_axis, scale)
     paths = [resample_polyline(np.asarray(p, dtype=np.float64), 1.0) for p in (sampling_paths or [])]
-    lo, hi = mesh.bounds[0, :2] - 0.5, mesh.bounds[1, :2] + 0.5
+    (x0, y0), (x1, y1) = mesh.bounds[:, :2]
     for p in paths:  # a route in other units or axes than the mesh: say so here, not as "no ground" later
-        outside = p[((p[:, :2] < lo) | (p[:, :2] > hi)).any(axis=1)]
+        outside = p[(p[:, 0] < x0 - 0.5) | (p[:, 0] > x1 + 0.5) | (p[:, 1] < y0 - 0.5) | (p[:, 1] > y1 + 0.5)]
         if len(outside):
             raise SceneError(f"{path}: route point ({outside[0, 0]:.1f}, {outside[0, 1]:.1f}) m lies outside the "
-                             f"mesh's extent (x {lo[0] + 0.5:.1f} to {hi[0] - 0.5:.1f}, y {lo[1] + 0.5:.1f} to "
-                             f"{hi[1] - 0.5:.1f} m): are the route's units and axes those of the mesh file?")
+                             f"mesh's extent (x {x0:.1f} to {x1:.1f}, y {y0:.1f} to {y1:.1f} m): are the route's "
+                             "units and axes those of the mesh file?")
     if start is None and paths:
         (x0, y0, _), (x1, y1, _) = paths[0][:2]
         start = (x0, y0, float(np.arctan2(y1 - y0, x1 - x0)))
