@@ -229,7 +229,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     out = Path(args.out or f"l3e_out/evaluate-{time.strftime('%Y%m%d-%H%M%S')}")
     results = evaluate(args.checkpoint or [DEFAULT_CHECKPOINT], args.dataset, out, others=args.other,
                        progress=not args.quiet, symmetric=args.symmetric, eigen=args.eigen, int8=not args.float32,
-                       by_family=args.by_family)
+                       by_family=args.by_family, scan_mc=args.scan_mc, workers=args.workers)
     print(results["table"])
     print(f"written: {out / 'table.txt'}, {out / 'results.json'}, {out / 'pr_curves.png'}")
     return 0
@@ -308,7 +308,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("ate", help="drive a route once, fuse with each detector, compare ATE")
     p.add_argument("--scene", type=scene_name, default="mine")
     p.add_argument("--detector", action="append",
-                   help="none | eigen:<tau> | oracle[:M] | learned[:checkpoint]; repeat for several")
+                   help="none | eigen:<tau> | oracle[:M] | scanmc[:M] | learned[:checkpoint]; repeat for several")
     p.add_argument("--backend", choices=["graph", "ekf"], default="graph", help="iSAM2 smoother or filterpy EKF")
     p.add_argument("--sensor", type=sensor_name, default="vlp16", help="vlp16 or os0-128")
     p.add_argument("--seed", type=int, default=0)
@@ -354,6 +354,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--eigen", type=float, action="append", metavar="TAU",
                    help="also score the eigenvalue detector at this threshold (Hessian of each scan onto itself); "
                         "repeat for several")
+    p.add_argument("--scan-mc", type=int, default=0, dest="scan_mc", metavar="M",
+                   help="also score the scan's own Monte-Carlo estimate with M children (no training; about "
+                        "M x 50 ms a scan), on every split but the training one")
+    p.add_argument("--workers", type=int, default=1, help="processes for --scan-mc (default 1)")
     p.add_argument("--out", help="output folder (default: l3e_out/evaluate-<time>)")
     p.add_argument("--symmetric", action="store_true",
                    help="average each scan's probabilities over its eight mirror/swap views (8x slower)")

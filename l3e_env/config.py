@@ -61,7 +61,7 @@ class OdometryConfig:
 @dataclass
 class LoopFusionConfig:
     """Fusion inside the environment loop (off by default: it costs ICP and a detector per step).
-    detector: none | eigen:<tau> | oracle[:M] | learned[:checkpoint]; backend: graph | ekf;
+    detector: none | eigen:<tau> | oracle[:M] | scanmc[:M] | learned[:checkpoint]; backend: graph | ekf;
     mode: mask | full | drop (see fusion.FusionConfig)."""
 
     enabled: bool = False

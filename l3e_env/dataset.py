@@ -424,12 +424,16 @@ class DatasetUnion:
         return np.concatenate([p.poses for p in self.parts])
 
 
-def error_ratios(data: LabelDataset | DatasetUnion) -> np.ndarray:
-    """(N, 6) mean registration errors over each row's own label thresholds (the parts of a union
-    may differ): above 1 is a positive label."""
+def row_thresholds(data: LabelDataset | DatasetUnion) -> np.ndarray:
+    """(N, 6) each row's own label thresholds (the parts of a union may differ)."""
     parts = data.parts if isinstance(data, DatasetUnion) else [data]
-    thresholds = np.concatenate([np.tile(p.label_config.threshold_vector(), (len(p), 1)) for p in parts])
-    return data.errors / thresholds
+    return np.concatenate([np.tile(p.label_config.threshold_vector(), (len(p), 1)) for p in parts])
+
+
+def error_ratios(data: LabelDataset | DatasetUnion) -> np.ndarray:
+    """(N, 6) mean registration errors over each row's own label thresholds: above 1 is a
+    positive label."""
+    return data.errors / row_thresholds(data)
 
 
 def open_datasets(folders: str | Path | list[str | Path]) -> LabelDataset | DatasetUnion:

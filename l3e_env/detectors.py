@@ -1,4 +1,5 @@
-"""Localizability detectors behind one interface: none, eigenvalue (Zhang et al.), oracle.
+"""Localizability detectors behind one interface: none, eigenvalue (Zhang et al.), oracle,
+the scan's own Monte-Carlo estimate, learned.
 
 Every detector maps one scan (and, where it needs it, the registration of that scan against
 the previous one, or the true pose) to six probabilities of non-localizability and a mask,
@@ -12,9 +13,11 @@ from typing import Protocol
 
 import numpy as np
 
+from .config import LidarConfig
 from .labels import LabelConfig, label_parent
 from .lidar import Lidar
 from .registration import RegistrationConfig, RegistrationError, RegistrationResult, eigen_mask
+from .scan_mc import ScanMCConfig, ScanPatternError, scan_errors
 
 
 @dataclass
@@ -86,6 +89,32 @@ class OracleDetector:
         return self._last
 
 
+class ScanMCDetector:
+    """The Monte-Carlo labels estimated from the scan alone (scan_mc.py): no scene, no true pose
+    and no training, at the cost of M registrations a scan. `probabilities` are r / (1 + r) of the
+    ratio r of each estimated error to its label threshold (0.5 at the threshold), not calibrated
+    probabilities."""
+
+    def __init__(self, lidar: LidarConfig, children: int = 20, seed: int = 0,
+                 registration: RegistrationConfig | None = None, labels: LabelConfig | None = None):
+        self.lidar, self.seed = lidar, seed
+        self.config = ScanMCConfig(children=children)
+        self.registration = registration or RegistrationConfig()
+        self.labels = labels or LabelConfig()
+        self.name = f"scanmc:{children}"
+        self._calls = 0
+
+    def predict(self, points, registration=None, T_w_s=None) -> Prediction:
+        rng = np.random.default_rng([self.seed, self._calls])
+        self._calls += 1
+        try:
+            errors = scan_errors(points, self.lidar, self.registration, self.labels, self.config, rng)
+        except (RegistrationError, ScanPatternError):
+            return UNKNOWN
+        ratio = errors / self.labels.threshold_vector()
+        return Prediction(ratio / (1 + ratio), ratio > 1)
+
+
 class LearnedDetector:
     """The trained classifier (by default the checkpoint shipped with the package). A scan it
     cannot judge (empty, fewer than 50 points, NaN) gives the UNKNOWN prediction: nothing is
@@ -128,7 +157,7 @@ def learned_spec(spec: str) -> tuple[str | None, bool] | None:
 
 
 def make_detector(spec: str, lidar: Lidar | None = None, seed: int = 0) -> Detector:
-    """'none', 'eigen:<tau>', 'oracle', 'oracle:<M>', 'learned' (the shipped model) or
+    """'none', 'eigen:<tau>', 'oracle', 'oracle:<M>', 'scanmc', 'scanmc:<M>', 'learned' (the shipped model) or
     'learned:<checkpoint path>'; 'learned-sym[:<checkpoint path>]' averages over the eight mirror/swap
     views of each scan."""
     kind, _, arg = spec.partition(":")
@@ -144,8 +173,14 @@ def make_detector(spec: str, lidar: Lidar | None = None, seed: int = 0) -> Detec
         if lidar is None:
             raise ValueError("the oracle detector needs the scene's LiDAR")
         return OracleDetector(lidar, children=int(arg) if arg else 20, seed=seed)
+    if kind == "scanmc":
+        if arg and not (arg.isdigit() and int(arg) >= 1):
+            raise ValueError(f"detector '{spec}': give the number of children as scanmc:<M>, M >= 1, e.g. scanmc:20")
+        return ScanMCDetector(lidar.config if lidar is not None else LidarConfig(),
+                              children=int(arg) if arg else ScanMCConfig.children, seed=seed)
     if (learned := learned_spec(spec)) is not None:
         checkpoint, symmetric = learned
         return LearnedDetector(checkpoint, lidar_model=lidar.config.model if lidar is not None else None,
                                symmetric=symmetric)
-    raise ValueError(f"unknown detector '{spec}' (none, eigen:<tau>, oracle[:M], learned[-sym][:checkpoint])")
+    raise ValueError(f"unknown detector '{spec}' (none, eigen:<tau>, oracle[:M], scanmc[:M], "
+                     "learned[-sym][:checkpoint])")

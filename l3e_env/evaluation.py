@@ -14,9 +14,10 @@ from scenes import TEST_SCENES, scene_family
 
 from .classifier import Classifier
 from .config import from_dict
-from .dataset import DatasetUnion, LabelDataset, open_datasets
+from .dataset import DatasetUnion, LabelDataset, open_datasets, row_thresholds
 from .labels import AXES
 from .registration import RegistrationConfig, RegistrationError, eigen_mask, scan_hessian
+from .scan_mc import ScanMCConfig, dataset_scan_errors
 from .scores import axis_scores, best_thresholds, format_table, mean_interval, mean_scores, pr_curve
 from .training import predict_dataset, split_indices
 
@@ -51,7 +52,8 @@ def split_rows(data: LabelDataset | DatasetUnion, training: dict[str, Any]) -> d
 
 def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Path] | None, out_dir: str | Path,
              others: list[str | Path] | None = None, progress: bool = True, symmetric: bool = False,
-             eigen: list[float] | None = None, int8: bool = True, by_family: bool = False) -> dict[str, Any]:
+             eigen: list[float] | None = None, int8: bool = True, by_family: bool = False,
+             scan_mc: int = 0, workers: int = 1) -> dict[str, Any]:
     """Score each checkpoint on its own train/validation split and on the test families of the
     dataset, and on every scan of each of `others` (a dataset of another sensor, or of scene
     families the model never saw: column 'all of <folder>'); writes table.txt, results.json and
@@ -63,7 +65,10 @@ def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Pat
     `by_family`: each scene family of the test split and of an `others` dataset, where it holds
     several, also gets a column of its own ('mine of test', 'yard of rooms48'): a mean over families
     of unlike difficulty hides which one a model fails on. Without `dataset` only `others` are
-    scored: how a model does on a user's own scenes needs no training data."""
+    scored: how a model does on a user's own scenes needs no training data. `scan_mc`: children of
+    the scan's own Monte-Carlo estimate (scan_mc.py), scored on the first checkpoint's splits but
+    its training split (M registrations a scan, over `workers` processes); the estimates are
+    saved in scan_mc.npz."""
     if not dataset and not others:
         raise ValueError("nothing to score: give the training dataset(s) (--dataset, scored by split), other "
                          "datasets (--other, scored whole), or both")
@@ -98,7 +103,9 @@ def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Pat
                 **(fields if column == split else {}), "mean": mean_scores(scores),
                 "mean_95_interval": intervals[name, column], **{k: np.asarray(v).tolist() for k, v in scores.items()}}
 
-    first_splits: dict[str, tuple[LabelDataset | DatasetUnion, np.ndarray]] = {}
+    # the detectors without a checkpoint (eigen, scanmc) are scored on the first checkpoint's splits, or the others
+    first_splits: dict[str, tuple[LabelDataset | DatasetUnion, np.ndarray]] = {} if checkpoints else {
+        column: (d, np.arange(len(d))) for column, d in extra.items()}
     for path in map(Path, checkpoints):
         clf = Classifier.load(path, symmetric=symmetric, int8=int8)
         name = model_name(clf, path, set(table))
@@ -129,6 +136,21 @@ def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Pat
             predicted = np.zeros((len(rows), 6), bool)
             predicted[known] = [eigen_mask(H, tau)[1] for H in hessians[split][known]]
             score(name, split, ds, rows, predicted, unregistrable=int((~known).sum()))
+    if scan_mc:
+        estimates = {}
+        name = f"scanmc:{scan_mc}"
+        table[name], results["models"][name] = {}, {"children": scan_mc, "splits": {}}
+        for split, (ds, rows) in first_splits.items():
+            if split == "train":
+                continue
+            if progress:
+                print(f"{name}: {split} ({len(rows)} scans)")
+            estimates[split] = dataset_scan_errors(dataset_folders(ds), rows, ScanMCConfig(children=scan_mc),
+                                                   workers=workers, progress=progress)
+            known = np.isfinite(estimates[split]).all(axis=1)
+            predicted = np.where(known[:, None], estimates[split] > row_thresholds(ds)[rows], False)
+            score(name, split, ds, rows, predicted, unjudged=int((~known).sum()))
+        np.savez(out / "scan_mc.npz", **{split.replace(" ", "_"): e for split, e in estimates.items()})
     text = format_table(table, intervals=intervals) + format_f1_operating_points(results["models"])
     if symmetric:
         text = "probabilities averaged over the eight mirror/swap views of each scan\n" + text
@@ -138,6 +160,10 @@ def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Pat
                    out / "pr_curves.png")
     results["table"] = text
     return results
+
+
+def dataset_folders(data: LabelDataset | DatasetUnion) -> list[str]:
+    return [str(p.folder) for p in (data.parts if isinstance(data, DatasetUnion) else [data])]
 
 
 def dataset_hessians(data: LabelDataset | DatasetUnion, rows: np.ndarray, progress: bool = False) -> np.ndarray:

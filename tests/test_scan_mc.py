@@ -1,0 +1,100 @@
+"""The scan's own Monte-Carlo estimate: its range-image mesh, and errors that follow the geometry."""
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+from l3e_env.config import LidarConfig
+from l3e_env.dataset import LabelDataset, row_thresholds
+from l3e_env.detectors import make_detector
+from l3e_env.labels import LabelConfig
+from l3e_env.lidar import Lidar
+from l3e_env.raycast import EmbreeCaster
+from l3e_env.registration import RegistrationConfig, RegistrationError
+from l3e_env.scan_mc import (ScanMCConfig, ScanPatternError, beams_and_columns, dataset_scan_errors,
+                             range_image_mesh, scan_errors)
+from l3e_env.scores import axis_scores
+
+SENSOR = np.eye(4)
+SENSOR[2, 3] = 1.0
+
+
+def _box(extents, centre=(0.0, 0.0, 1.5)) -> trimesh.Trimesh:
+    """A closed box seen from inside (Embree hits faces from either side)."""
+    return trimesh.creation.box(extents).apply_translation(centre)
+
+
+def _scan(mesh: trimesh.Trimesh, rng=None, pose=SENSOR):
+    return Lidar(EmbreeCaster(mesh, threads=1), LidarConfig()).scan(pose, rng)
+
+
+def test_beams_and_columns_are_recovered_from_bare_noisy_points(rng):
+    scan = _scan(_box([12, 9, 3]), rng)
+    beam, column = beams_and_columns(scan.points.astype(np.float64), scan.pattern)
+    assert np.array_equal(beam, scan.beam) and np.array_equal(column, scan.column)
+    with pytest.raises(ScanPatternError, match="off the nearest beam of vlp16"):
+        beams_and_columns(rng.normal(size=(500, 3)) * 5, scan.pattern)
+
+
+def test_the_range_image_mesh_gives_back_the_scan_and_bridges_no_depth_jump():
+    room = _box([12, 9, 3])
+    pillar = _box([0.4, 0.4, 3], centre=(2.0, 0.0, 1.5))
+    scene = trimesh.util.concatenate([room, pillar])
+    scan = _scan(scene)  # no noise: the mesh's vertices lie on the true surfaces
+    mesh = range_image_mesh(scan.points, scan.pattern, max_range_ratio=1.5)
+    again = _scan(mesh, pose=np.eye(4))  # the mesh is in the sensor frame
+    both = np.intersect1d(scan.beam.astype(int) * 1800 + scan.column, again.beam.astype(int) * 1800 + again.column)
+    assert len(both) > 0.95 * len(scan)  # nearly every ray hits its own mesh (the outer beams graze its edges)
+    r0 = dict(zip(scan.beam.astype(int) * 1800 + scan.column, np.linalg.norm(scan.points, axis=1)))
+    r1 = dict(zip(again.beam.astype(int) * 1800 + again.column, np.linalg.norm(again.points, axis=1)))
+    errors = np.abs([r0[k] - r1[k] for k in both])
+    assert np.median(errors) < 1e-3 and np.percentile(errors, 99) < 0.05
+    ranges = np.linalg.norm(mesh.vertices, axis=1)[mesh.faces]
+    assert (ranges.max(axis=1) < 1.5 * ranges.min(axis=1)).all()  # the pillar's edges are not joined to the wall
+    assert ranges.min() < 2.5 and ranges.max() > 4.0  # but pillar and wall are both there
+
+
+def test_a_long_corridor_is_free_along_its_axis_and_a_room_is_not(rng):
+    corridor, room = _box([200, 4, 3]), _box([10, 7, 3])
+    config = ScanMCConfig(children=6)
+    along = scan_errors(_scan(corridor, rng).points, LidarConfig(), RegistrationConfig(), LabelConfig(), config, rng)
+    held = scan_errors(_scan(room, rng).points, LidarConfig(), RegistrationConfig(), LabelConfig(), config, rng)
+    thresholds = LabelConfig().threshold_vector()
+    assert along[0] > 2 * thresholds[0] and along[1] < thresholds[1] and along[5] < thresholds[5]
+    assert (held < thresholds).all()
+    scaled = scan_errors(_scan(room, np.random.default_rng(1)).points, LidarConfig(), RegistrationConfig(),
+                         LabelConfig(), ScanMCConfig(children=6, calibration=(2.0,) * 6), np.random.default_rng(2))
+    plain = scan_errors(_scan(room, np.random.default_rng(1)).points, LidarConfig(), RegistrationConfig(),
+                        LabelConfig(), ScanMCConfig(children=6), np.random.default_rng(2))
+    assert scaled == pytest.approx(2 * plain)
+
+
+def test_the_detector_flags_the_corridor_and_answers_unknown_to_a_bad_scan(rng):
+    detector = make_detector("scanmc:6")
+    assert detector.name == "scanmc:6"
+    pred = detector.predict(_scan(_box([200, 4, 3]), rng).points)
+    assert pred.known and pred.mask[0] and not pred.mask[1] and pred.probabilities[0] > 0.5
+    for bad in (np.zeros((0, 3)), np.full((3000, 3), np.nan), rng.normal(size=(3000, 3)) * 5):
+        assert not detector.predict(bad).known
+    with pytest.raises(RegistrationError, match="NaN"):
+        scan_errors(np.full((3000, 3), np.nan), LidarConfig(), RegistrationConfig(), LabelConfig(), ScanMCConfig(),
+                    rng)
+    for spec in ("scanmc:0", "scanmc:x"):
+        with pytest.raises(ValueError, match="number of children"):
+            make_detector(spec)
+
+
+def test_evaluate_scores_the_scan_estimate_the_same_with_any_number_of_workers(tiny_dataset, tmp_path):
+    from l3e_env.evaluation import evaluate
+
+    res = evaluate([], None, tmp_path / "eval", others=[tiny_dataset], progress=False, scan_mc=3, workers=2)
+    column = f"all of {Path(tiny_dataset).name}"
+    scored = res["models"]["scanmc:3"]["splits"][column]
+    data = LabelDataset(tiny_dataset)
+    direct = dataset_scan_errors([str(tiny_dataset)], np.arange(len(data)), ScanMCConfig(children=3), workers=1)
+    saved = np.load(tmp_path / "eval" / "scan_mc.npz")[column.replace(" ", "_")]
+    assert np.isfinite(direct).all() and np.array_equal(saved, direct)
+    expected = axis_scores(data.labels, direct > row_thresholds(data))
+    assert scored["count"] == len(data) and scored["accuracy"] == pytest.approx(expected["accuracy"].tolist())
+    assert "scanmc:3" in res["table"]
