@@ -110,8 +110,9 @@ class MapJudge:
       learned-sym[:checkpoint] averages it over the eight mirror/swap views of each scan;
     - eigen:<tau>: Zhang's test on the Hessian of registering a scan taken `step` metres further
       ahead onto the pose's scan (what the fusion loop sees between consecutive scans);
-    - oracle[:M]: Monte-Carlo ICP labels with M children at the pose (slow; ground truth).
-    Eigen and oracle give 0/1 masks as probabilities, with thresholds 0.5."""
+    - oracle[:M]: Monte-Carlo ICP labels with M children at the pose (slow; ground truth);
+    - scanmc[:M]: the same estimated from the scan at the pose alone (l3e_env.scan_mc; slow).
+    Eigen and oracle give 0/1 masks as probabilities; all three have thresholds 0.5."""
 
     def __init__(self, spec: str, lidar: Lidar, seed: int = 0, step: float = 0.1):
         self.spec, self.lidar, self.seed, self.step = spec, lidar, seed, step
@@ -123,12 +124,15 @@ class MapJudge:
             self.classifier.check_settings(lidar.config.model)
             self.thresholds = self.classifier.thresholds.copy()
             self.identity = f"{kind}-{file_digest(checkpoint or DEFAULT_CHECKPOINT)}"
-        elif kind in ("eigen", "oracle"):
+        elif kind in ("eigen", "oracle", "scanmc"):
             self.detector = make_detector(spec, lidar, seed)
             self.thresholds = np.full(6, 0.5)
             self.identity = self.detector.name.replace(":", "")
+            if kind == "scanmc":  # a new calibration is another map
+                self.identity += "-" + settings_digest(to_dict(self.detector.config))
         else:
-            raise ValueError(f"map detector '{spec}': use learned[-sym][:checkpoint], eigen:<tau> or oracle[:M]")
+            raise ValueError(f"map detector '{spec}': use learned[-sym][:checkpoint], eigen:<tau>, oracle[:M] or "
+                             "scanmc[:M]")
 
     def __call__(self, poses: list[np.ndarray], rngs: list[np.random.Generator]) -> np.ndarray:
         out = np.full((len(poses), 6), np.nan)
@@ -146,6 +150,11 @@ class MapJudge:
         for i, (T, rng) in enumerate(zip(poses, rngs)):
             if self.kind == "oracle":
                 pred = self.detector.predict(np.zeros((0, 3)), None, T)
+            elif self.kind == "scanmc":
+                pred = self.detector.predict(self.lidar.scan(T, rng).points)
+                if pred.known:
+                    out[i] = pred.probabilities
+                continue
             else:
                 ahead = T @ planar_pose(self.step, 0.0, 0.0, 0.0)
                 try:

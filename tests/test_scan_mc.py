@@ -66,7 +66,7 @@ def test_a_long_corridor_is_free_along_its_axis_and_a_room_is_not(rng):
     scaled = scan_errors(_scan(room, np.random.default_rng(1)).points, LidarConfig(), RegistrationConfig(),
                          LabelConfig(), ScanMCConfig(children=6, calibration=(2.0,) * 6), np.random.default_rng(2))
     plain = scan_errors(_scan(room, np.random.default_rng(1)).points, LidarConfig(), RegistrationConfig(),
-                        LabelConfig(), ScanMCConfig(children=6), np.random.default_rng(2))
+                        LabelConfig(), ScanMCConfig(children=6, calibration=(1.0,) * 6), np.random.default_rng(2))
     assert scaled == pytest.approx(2 * plain)
 
 
@@ -98,3 +98,17 @@ def test_evaluate_scores_the_scan_estimate_the_same_with_any_number_of_workers(t
     expected = axis_scores(data.labels, direct > row_thresholds(data))
     assert scored["count"] == len(data) and scored["accuracy"] == pytest.approx(expected["accuracy"].tolist())
     assert "scanmc:3" in res["table"]
+
+
+def test_a_map_judge_reads_the_scan_estimate_at_each_pose(rng):
+    from policies.locmap import MapJudge
+
+    lidar = Lidar(EmbreeCaster(_box([200, 4, 3]), threads=1), LidarConfig())
+    judge = MapJudge("scanmc:4", lidar)
+    other = MapJudge("scanmc:6", lidar)
+    assert judge.identity.startswith("scanmc4-") and other.identity.startswith("scanmc6-")
+    along, across = SENSOR.copy(), SENSOR.copy()
+    across[:2, :2] = [[0, -1], [1, 0]]  # turned 90 deg: the corridor's axis is the sensor's y
+    probs = judge([along, across], [np.random.default_rng(1), np.random.default_rng(2)])
+    assert ((probs > 0) & (probs < 1)).all()
+    assert probs[0, 0] > 0.5 > probs[0, 1] and probs[1, 1] > 0.5 > probs[1, 0]
