@@ -31,7 +31,7 @@ class ScanMCConfig:
     max_range_ratio: float = 1.5  # two returns whose ranges differ more are not joined (a depth jump)
     # Estimated errors are multiplied by these: 1 / the median of estimate over label on 240 scans
     # of the training scenes with 20 children (`benchmarks/scan_mc_calibration.py`).
-    calibration: tuple[float, ...] = (1.23, 1.24, 1.20, 1.17, 1.21, 1.12)
+    calibration: tuple[float, ...] = (1.23, 1.23, 1.21, 1.17, 1.20, 1.11)
 
 
 class ScanPatternError(ValueError):
