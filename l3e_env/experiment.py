@@ -234,6 +234,9 @@ def run_experiment(out_dir: str | Path, scene: str, detectors: list[str], sensor
     """The `l3e ate` command as a function: returns the table rows and writes everything to out_dir.
     `scene_params` go to make_scene (a mesh scene's up axis, scale and route). With a `recording`,
     its own scene is used; `scene` matters only as the new path of a recorded mesh that has moved."""
+    if thinned := [spec for spec in detectors if spec.partition(":")[0] == "scanmc"]:
+        raise ValueError(f"detector {thinned[0]} meshes every return of a scan, and a recording keeps thinned "
+                         "scans: use it in the environment loop, a policy map or l3e evaluate --scan-mc")
     out = Path(out_dir)
     rec = Recording.load(recording) if recording else None
     scene_obj = (make_scene(rec.scene_file(moved_to=scene), **rec.scene_params) if rec

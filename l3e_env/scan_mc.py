@@ -66,6 +66,10 @@ def range_image_mesh(points: np.ndarray, pattern: BeamPattern, max_range_ratio: 
     shape = (pattern.n_beams, pattern.n_azimuth)
     vertex = np.full(shape, -1, dtype=np.int64)
     vertex[beam, column] = np.arange(len(points))
+    beside = (np.roll(vertex, -1, axis=1)[beam, column] >= 0).mean() if len(points) else 0.0
+    if beside < 0.5:  # a full revolution has a return in the next column beside nearly every return
+        raise ScanPatternError(f"only {beside:.0%} of the scan's returns have one beside them: the scan is thinned "
+                               "or sampled, and the estimate needs every return of a revolution")
     ranges = np.zeros(shape)
     ranges[beam, column] = np.linalg.norm(points, axis=1)
     order = np.argsort(pattern.elevations_deg)  # rows from the lowest beam up, so that rows k, k+1 neighbour
