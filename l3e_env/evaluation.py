@@ -72,6 +72,9 @@ def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Pat
     if not dataset and not others:
         raise ValueError("nothing to score: give the training dataset(s) (--dataset, scored by split), other "
                          "datasets (--other, scored whole), or both")
+    if scan_mc < 0 or workers < 1:
+        raise ValueError(f"the scan estimate needs 0 (none) or more children and at least one worker, got "
+                         f"{scan_mc} and {workers}")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     data = open_datasets(dataset) if dataset else None

@@ -93,6 +93,8 @@ def scan_errors(points: np.ndarray, lidar: LidarConfig, registration: Registrati
     """(6,) estimated mean registration errors of the scan (metres, radians), as labels.py
     computes them in the full scene, times the calibration. Raises RegistrationError where the
     scan itself cannot be registered, or more than half of the children cannot."""
+    if config.children < 1:
+        raise ValueError(f"the scan estimate needs at least one child, got {config.children}")
     points = np.asarray(points, dtype=np.float64)
     target = PreparedTarget(points, registration)  # checks shape, NaN and size first
     pattern = get_pattern(lidar.model)

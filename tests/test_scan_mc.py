@@ -98,6 +98,12 @@ def test_evaluate_scores_the_scan_estimate_the_same_with_any_number_of_workers(t
     expected = axis_scores(data.labels, direct > row_thresholds(data))
     assert scored["count"] == len(data) and scored["accuracy"] == pytest.approx(expected["accuracy"].tolist())
     assert "scanmc:3" in res["table"]
+    for bad in ({"scan_mc": -1}, {"scan_mc": 3, "workers": 0}):
+        with pytest.raises(ValueError, match="scan estimate needs"):
+            evaluate([], None, tmp_path / "bad", others=[tiny_dataset], progress=False, **bad)
+    with pytest.raises(ValueError, match="at least one child"):
+        scan_errors(data.scan(0), LidarConfig(), RegistrationConfig(), LabelConfig(), ScanMCConfig(children=0),
+                    np.random.default_rng(0))
 
 
 def test_a_map_judge_reads_the_scan_estimate_at_each_pose(rng):
