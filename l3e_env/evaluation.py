@@ -72,6 +72,9 @@ def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Pat
     if not dataset and not others:
         raise ValueError("nothing to score: give the training dataset(s) (--dataset, scored by split), other "
                          "datasets (--other, scored whole), or both")
+    if dataset and not checkpoints:
+        raise ValueError("a dataset is split by a checkpoint's training and validation scenes: give a checkpoint, "
+                         "or score the dataset whole as an other")
     if scan_mc < 0 or workers < 1:
         raise ValueError(f"the scan estimate needs 0 (none) or more children and at least one worker, got "
                          f"{scan_mc} and {workers}")

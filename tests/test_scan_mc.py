@@ -98,6 +98,8 @@ def test_evaluate_scores_the_scan_estimate_the_same_with_any_number_of_workers(t
     expected = axis_scores(data.labels, direct > row_thresholds(data))
     assert scored["count"] == len(data) and scored["accuracy"] == pytest.approx(expected["accuracy"].tolist())
     assert "scanmc:3" in res["table"]
+    with pytest.raises(ValueError, match="give a checkpoint"):
+        evaluate([], tiny_dataset, tmp_path / "no-checkpoint", progress=False, scan_mc=3)
     for bad in ({"scan_mc": -1}, {"scan_mc": 3, "workers": 0}):
         with pytest.raises(ValueError, match="scan estimate needs"):
             evaluate([], None, tmp_path / "bad", others=[tiny_dataset], progress=False, **bad)
