@@ -356,6 +356,11 @@ class LabelDataset:
         return self.folder.name
 
     @property
+    def parts(self) -> list[LabelDataset]:
+        """The datasets read as this one: itself (a DatasetUnion has several)."""
+        return [self]
+
+    @property
     def labels(self) -> np.ndarray:
         return np.asarray(self.arrays["labels"])
 
@@ -426,8 +431,7 @@ class DatasetUnion:
 
 def row_thresholds(data: LabelDataset | DatasetUnion) -> np.ndarray:
     """(N, 6) each row's own label thresholds (the parts of a union may differ)."""
-    parts = data.parts if isinstance(data, DatasetUnion) else [data]
-    return np.concatenate([np.tile(p.label_config.threshold_vector(), (len(p), 1)) for p in parts])
+    return np.concatenate([np.tile(p.label_config.threshold_vector(), (len(p), 1)) for p in data.parts])
 
 
 def error_ratios(data: LabelDataset | DatasetUnion) -> np.ndarray:

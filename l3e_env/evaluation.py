@@ -151,8 +151,8 @@ def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Pat
                 continue
             if progress:
                 print(f"{name}: {split} ({len(rows)} scans)")
-            estimates[split] = dataset_scan_errors(dataset_folders(ds), rows, ScanMCConfig(children=scan_mc),
-                                                   workers=workers, progress=progress)
+            estimates[split] = dataset_scan_errors([str(p.folder) for p in ds.parts], rows,
+                                                   ScanMCConfig(children=scan_mc), workers=workers, progress=progress)
             known = np.isfinite(estimates[split]).all(axis=1)
             predicted = np.where(known[:, None], estimates[split] > row_thresholds(ds)[rows], False)
             score(name, split, ds, rows, predicted, unjudged=int((~known).sum()))
@@ -166,10 +166,6 @@ def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Pat
                    out / "pr_curves.png")
     results["table"] = text
     return results
-
-
-def dataset_folders(data: LabelDataset | DatasetUnion) -> list[str]:
-    return [str(p.folder) for p in (data.parts if isinstance(data, DatasetUnion) else [data])]
 
 
 def dataset_hessians(data: LabelDataset | DatasetUnion, rows: np.ndarray, progress: bool = False) -> np.ndarray:

@@ -127,8 +127,7 @@ def _dataset_part(folders: list[str], rows: np.ndarray, config: ScanMCConfig, se
     settings = data.manifest["settings"]
     lidar, registration = from_dict(LidarConfig, settings["lidar"]), from_dict(RegistrationConfig,
                                                                                settings["registration"])
-    labels = from_dict(LabelConfig, settings["labels"][0] if isinstance(settings["labels"], list)
-                       else settings["labels"])  # the parts of a union share the child sigmas and error frame
+    labels = data.parts[0].label_config  # the parts of a union share the child sigmas and error frame
     out = np.full((len(rows), 6), np.nan)
     for k, row in enumerate(rows):
         try:  # seeded by the row: the same estimate whatever the number of workers
@@ -144,25 +143,19 @@ def dataset_scan_errors(folders: list[str], rows: np.ndarray, config: ScanMCConf
     """(len(rows), 6) estimates for rows of the dataset(s) `folders` (NaN for a scan that cannot
     be judged), over `workers` processes in chunks of a few scans, with a progress bar."""
     from concurrent.futures import ProcessPoolExecutor
+    from contextlib import nullcontext
+    from itertools import repeat
 
     from tqdm import tqdm
 
     rows = np.asarray(rows, dtype=np.int64)
     chunks = [rows[i:i + 4] for i in range(0, len(rows), 4)]
+    jobs = (repeat(list(folders)), chunks, repeat(config), repeat(seed))
     out = np.full((len(rows), 6), np.nan)
-    bar = tqdm(total=len(rows), desc=f"scan Monte-Carlo ({config.children} children)", disable=not progress,
-               leave=False)
-    if workers <= 1:
-        parts = (_dataset_part(folders, c, config, seed) for c in chunks)
-        for k, part in enumerate(parts):
+    with (ProcessPoolExecutor(workers) if workers > 1 else nullcontext()) as pool, \
+            tqdm(total=len(rows), desc=f"scan Monte-Carlo ({config.children} children)", disable=not progress,
+                 leave=False) as bar:
+        for k, part in enumerate(pool.map(_dataset_part, *jobs) if pool else map(_dataset_part, *jobs)):
             out[4 * k:4 * k + len(part)] = part
             bar.update(len(part))
-    else:
-        with ProcessPoolExecutor(workers) as pool:
-            futures = [pool.submit(_dataset_part, folders, c, config, seed) for c in chunks]
-            for k, future in enumerate(futures):
-                part = future.result()
-                out[4 * k:4 * k + len(part)] = part
-                bar.update(len(part))
-    bar.close()
     return out
