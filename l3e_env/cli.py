@@ -355,8 +355,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="also score the eigenvalue detector at this threshold (Hessian of each scan onto itself); "
                         "repeat for several")
     p.add_argument("--scan-mc", type=int, default=0, dest="scan_mc", metavar="M",
-                   help="also score the scan's own Monte-Carlo estimate with M children (no training; about "
-                        "M x 50 ms a scan), on every split but the training one")
+                   help="also score the scan's own Monte-Carlo estimate with up to M children (no training; "
+                        "about 50 ms a child, and a scan stops drawing once its axes are settled), on every split "
+                        "but the training one")
     p.add_argument("--workers", type=int, default=1, help="processes for --scan-mc (default 1)")
     p.add_argument("--out", help="output folder (default: l3e_out/evaluate-<time>)")
     p.add_argument("--symmetric", action="store_true",

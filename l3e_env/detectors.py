@@ -91,9 +91,9 @@ class OracleDetector:
 
 class ScanMCDetector:
     """The Monte-Carlo labels estimated from the scan alone (scan_mc.py): no scene, no true pose
-    and no training, at the cost of M registrations a scan. `probabilities` are r / (1 + r) of the
-    ratio r of each estimated error to its label threshold (0.5 at the threshold), not calibrated
-    probabilities."""
+    and no training, at the cost of up to M registrations a scan. `probabilities` are r / (1 + r)
+    of the ratio r of each estimated error to its label threshold (0.5 at the threshold), not
+    calibrated probabilities."""
 
     def __init__(self, lidar: LidarConfig, children: int = 20, seed: int = 0,
                  registration: RegistrationConfig | None = None, labels: LabelConfig | None = None):
@@ -108,7 +108,7 @@ class ScanMCDetector:
         rng = np.random.default_rng([self.seed, self._calls])
         self._calls += 1
         try:
-            errors = scan_errors(points, self.lidar, self.registration, self.labels, self.config, rng)
+            errors = scan_errors(points, self.lidar, self.registration, self.labels, self.config, rng).errors
         except (RegistrationError, ScanPatternError):
             return UNKNOWN
         ratio = errors / self.labels.threshold_vector()

@@ -67,7 +67,7 @@ def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Pat
     of unlike difficulty hides which one a model fails on. Without `dataset` only `others` are
     scored: how a model does on a user's own scenes needs no training data. `scan_mc`: children of
     the scan's own Monte-Carlo estimate (scan_mc.py), scored on the first checkpoint's splits but
-    its training split (M registrations a scan, over `workers` processes); the estimates are
+    its training split (up to M registrations a scan, over `workers` processes); the estimates are
     saved in scan_mc.npz."""
     if not dataset and not others:
         raise ValueError("nothing to score: give the training dataset(s) (--dataset, scored by split), other "
@@ -143,7 +143,7 @@ def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Pat
             predicted[known] = [eigen_mask(H, tau)[1] for H in hessians[split][known]]
             score(name, split, ds, rows, predicted, unregistrable=int((~known).sum()))
     if scan_mc:
-        estimates = {}
+        estimates, drawn = {}, {}
         name = f"scanmc:{scan_mc}"
         table[name], results["models"][name] = {}, {"children": scan_mc, "splits": {}}
         for split, (ds, rows) in first_splits.items():
@@ -151,13 +151,19 @@ def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Pat
                 continue
             if progress:
                 print(f"{name}: {split} ({len(rows)} scans)")
-            estimates[split] = dataset_scan_errors([str(p.folder) for p in ds.parts], rows,
-                                                   ScanMCConfig(children=scan_mc), workers=workers, progress=progress)
+            estimates[split], drawn[split] = dataset_scan_errors([str(p.folder) for p in ds.parts], rows,
+                                                                 ScanMCConfig(children=scan_mc), workers=workers,
+                                                                 progress=progress)
             known = np.isfinite(estimates[split]).all(axis=1)
             predicted = np.where(known[:, None], estimates[split] > row_thresholds(ds)[rows], False)
-            score(name, split, ds, rows, predicted, unjudged=int((~known).sum()))
-        np.savez(out / "scan_mc.npz", **{split.replace(" ", "_"): e for split, e in estimates.items()})
+            score(name, split, ds, rows, predicted, unjudged=int((~known).sum()),
+                  mean_children=float(drawn[split][known].mean()) if known.any() else 0.0)
+        np.savez(out / "scan_mc.npz", **{split.replace(" ", "_"): e for split, e in estimates.items()},
+                 **{f"children_{split.replace(' ', '_')}": n for split, n in drawn.items()})
     text = format_table(table, intervals=intervals) + format_f1_operating_points(results["models"])
+    if scan_mc:
+        text += f"\nscanmc:{scan_mc} children drawn a scan (mean): " + ", ".join(
+            f"{split} {n[n > 0].mean():.1f}" for split, n in drawn.items() if (n > 0).any()) + "\n"
     if symmetric:
         text = "probabilities averaged over the eight mirror/swap views of each scan\n" + text
     (out / "table.txt").write_text(text + "\n")

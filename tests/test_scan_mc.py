@@ -58,16 +58,32 @@ def test_the_range_image_mesh_gives_back_the_scan_and_bridges_no_depth_jump():
 def test_a_long_corridor_is_free_along_its_axis_and_a_room_is_not(rng):
     corridor, room = _box([200, 4, 3]), _box([10, 7, 3])
     config = ScanMCConfig(children=6)
-    along = scan_errors(_scan(corridor, rng).points, LidarConfig(), RegistrationConfig(), LabelConfig(), config, rng)
-    held = scan_errors(_scan(room, rng).points, LidarConfig(), RegistrationConfig(), LabelConfig(), config, rng)
+    along = scan_errors(_scan(corridor, rng).points, LidarConfig(), RegistrationConfig(), LabelConfig(), config,
+                        rng).errors
+    held = scan_errors(_scan(room, rng).points, LidarConfig(), RegistrationConfig(), LabelConfig(), config, rng).errors
     thresholds = LabelConfig().threshold_vector()
     assert along[0] > 2 * thresholds[0] and along[1] < thresholds[1] and along[5] < thresholds[5]
     assert (held < thresholds).all()
     scaled = scan_errors(_scan(room, np.random.default_rng(1)).points, LidarConfig(), RegistrationConfig(),
-                         LabelConfig(), ScanMCConfig(children=6, calibration=(2.0,) * 6), np.random.default_rng(2))
+                         LabelConfig(), ScanMCConfig(children=6, calibration=(2.0,) * 6, settle=0),
+                         np.random.default_rng(2)).errors
     plain = scan_errors(_scan(room, np.random.default_rng(1)).points, LidarConfig(), RegistrationConfig(),
-                        LabelConfig(), ScanMCConfig(children=6, calibration=(1.0,) * 6), np.random.default_rng(2))
+                        LabelConfig(), ScanMCConfig(children=6, calibration=(1.0,) * 6, settle=0),
+                        np.random.default_rng(2)).errors
     assert scaled == pytest.approx(2 * plain)
+
+
+def test_children_stop_once_every_axis_is_settled_and_are_the_same_draws(rng):
+    points = _scan(_box([10, 7, 3]), rng).points  # a room: every axis far under its threshold
+    args = (points, LidarConfig(), RegistrationConfig(), LabelConfig())
+    settled = scan_errors(*args, ScanMCConfig(children=32, first=4), np.random.default_rng(3))
+    assert settled.children in (4, 8)
+    every = scan_errors(*args, ScanMCConfig(children=16, first=4, settle=100.0), np.random.default_rng(3))
+    assert every.children == 16
+    prefix = scan_errors(*args, ScanMCConfig(children=settled.children, first=1, settle=0), np.random.default_rng(3))
+    assert np.array_equal(prefix.errors, settled.errors) and prefix.children == settled.children
+    with pytest.raises(ValueError, match="at least one child"):
+        scan_errors(*args, ScanMCConfig(first=0), rng)
 
 
 def test_the_detector_flags_the_corridor_and_answers_unknown_to_a_bad_scan(rng):
@@ -92,7 +108,7 @@ def test_evaluate_scores_the_scan_estimate_the_same_with_any_number_of_workers(t
     column = f"all of {Path(tiny_dataset).name}"
     scored = res["models"]["scanmc:3"]["splits"][column]
     data = LabelDataset(tiny_dataset)
-    direct = dataset_scan_errors([str(tiny_dataset)], np.arange(len(data)), ScanMCConfig(children=3), workers=1)
+    direct, _ = dataset_scan_errors([str(tiny_dataset)], np.arange(len(data)), ScanMCConfig(children=3), workers=1)
     saved = np.load(tmp_path / "eval" / "scan_mc.npz")[column.replace(" ", "_")]
     assert np.isfinite(direct).all() and np.array_equal(saved, direct)
     expected = axis_scores(data.labels, direct > row_thresholds(data))
