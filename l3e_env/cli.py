@@ -195,9 +195,14 @@ def _cmd_train(args: argparse.Namespace) -> int:
                  if v is not None}
     model = _asdict(cfg.model)
     if args.init:  # fine-tuning keeps the model settings of the checkpoint it starts from
-        from .classifier import load_checkpoint
+        from .classifier import ModelConfig, load_checkpoint
+        from .training import network_config
 
-        model, overrides["init"] = load_checkpoint(args.init)["model"], args.init
+        start = from_dict(ModelConfig, load_checkpoint(args.init)["model"])
+        model, overrides["init"] = _asdict(network_config(start)), args.init
+        if start.constraints:
+            print(f"{args.init} has a constraint layer: its network is fine-tuned without it; fit the layer "
+                  "again afterwards (l3e fit-constraints)")
     if args.architecture:
         model["architecture"] = args.architecture
     if args.gravity:

@@ -199,11 +199,22 @@ def _initial_model(cfg: TrainConfig) -> LocalizabilityNet:
     torch.manual_seed(cfg.seed)
     if cfg.init is None:
         return LocalizabilityNet(cfg.model)
-    model = model_from_checkpoint(load_checkpoint(cfg.init), cfg.init)
-    if plain(to_dict(model.config)) != plain(to_dict(cfg.model)):
-        raise TrainingError(f"--init {cfg.init}: its model settings {plain(to_dict(model.config))} differ from "
+    start = model_from_checkpoint(load_checkpoint(cfg.init), cfg.init)
+    network = network_config(start.config)
+    if plain(to_dict(network)) != plain(to_dict(cfg.model)):
+        raise TrainingError(f"--init {cfg.init}: its model settings {plain(to_dict(network))} differ from "
                             f"this run's {plain(to_dict(cfg.model))}")
+    if network == start.config:
+        return start
+    model = LocalizabilityNet(network)  # a checkpoint with a constraint layer: its network, without the layer
+    model.load_state_dict({k: v for k, v in start.state_dict().items() if not k.startswith("stacker.")})
     return model
+
+
+def network_config(config: ModelConfig) -> ModelConfig:
+    """A model's settings without its constraint layer: what training starts from, since the
+    layer is fitted after the network (fit_constraints)."""
+    return replace(config, constraints=False, constraint_levels=ModelConfig.constraint_levels)
 
 
 def _resumable(training: dict[str, Any]) -> dict[str, Any]:

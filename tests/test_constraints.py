@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from l3e_env.classifier import Classifier, LocalizabilityNet, ModelConfig, model_probabilities
+from l3e_env.classifier import (Classifier, LocalizabilityNet, ModelConfig, load_checkpoint,
+                                model_from_checkpoint, model_probabilities)
 from l3e_env.constraints import (
     AxisStacker,
     fit_stacker,
@@ -188,3 +189,10 @@ def test_fit_constraints_fits_on_training_scenes_and_keeps_the_network(tiny_data
         fit_constraints(tmp_path / "run" / "model.pt", tiny_dataset, tmp_path / "bad.pt", levels=(5,), progress=False)
     with pytest.raises(TrainingError, match="fit-constraints"):  # the layer is never trained with the network
         train(tiny_dataset, tmp_path / "bad", dataclasses.replace(cfg, model=fitted.model.config), progress=False)
+    # but a checkpoint with the layer is fine-tuned from: its network, the layer left to be fitted again
+    tuned = train(tiny_dataset, tmp_path / "tuned", dataclasses.replace(cfg, init=str(out), learning_rate=0.0),
+                  progress=False)
+    weights, start = (dict(model_from_checkpoint(load_checkpoint(p)).named_parameters())
+                      for p in (tmp_path / "tuned" / "model.pt", tmp_path / "run" / "model.pt"))
+    assert not any(k.startswith("stacker.") for k in weights) and "best_epoch" in tuned
+    assert weights.keys() == start.keys() and all(torch.equal(w, weights[k]) for k, w in start.items())
