@@ -95,7 +95,7 @@ class ScanMCDetector:
     of the ratio r of each estimated error to its label threshold (0.5 at the threshold), not
     calibrated probabilities."""
 
-    def __init__(self, lidar: LidarConfig, children: int = 20, seed: int = 0,
+    def __init__(self, lidar: LidarConfig, children: int = ScanMCConfig.children, seed: int = 0,
                  registration: RegistrationConfig | None = None, labels: LabelConfig | None = None):
         self.lidar, self.seed = lidar, seed
         self.config = ScanMCConfig(children=children)
@@ -175,7 +175,7 @@ def make_detector(spec: str, lidar: Lidar | None = None, seed: int = 0) -> Detec
         return OracleDetector(lidar, children=int(arg) if arg else 20, seed=seed)
     if kind == "scanmc":
         if arg and not (arg.isdigit() and int(arg) >= 1):
-            raise ValueError(f"detector '{spec}': give the number of children as scanmc:<M>, M >= 1, e.g. scanmc:20")
+            raise ValueError(f"detector '{spec}': give the number of children as scanmc:<M>, M >= 1, e.g. scanmc:60")
         return ScanMCDetector(lidar.config if lidar is not None else LidarConfig(),
                               children=int(arg) if arg else ScanMCConfig.children, seed=seed)
     if (learned := learned_spec(spec)) is not None:
