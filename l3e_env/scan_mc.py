@@ -116,6 +116,9 @@ def scan_errors(points: np.ndarray, lidar: LidarConfig, registration: Registrati
     if config.children < 1 or config.first < 1:
         raise ValueError(f"the scan estimate needs at least one child, got children={config.children} "
                          f"first={config.first}")
+    if not config.settle >= 0 or len(config.spread) != 6 or len(config.calibration) != 6:
+        raise ValueError(f"scan estimate settings: settle must be >= 0 (got {config.settle}), spread and calibration "
+                         f"six numbers each (got {len(config.spread)} and {len(config.calibration)})")
     points = np.asarray(points, dtype=np.float64)
     target = PreparedTarget(points, registration)  # checks shape, NaN and size first
     pattern = get_pattern(lidar.model)

@@ -84,6 +84,8 @@ def test_children_stop_once_every_axis_is_settled_and_are_the_same_draws(rng):
     assert np.array_equal(prefix.errors, settled.errors) and prefix.children == settled.children
     with pytest.raises(ValueError, match="at least one child"):
         scan_errors(*args, ScanMCConfig(first=0), rng)
+    with pytest.raises(ValueError, match="settle must be >= 0"):
+        scan_errors(*args, ScanMCConfig(settle=-1.0), rng)
 
 
 def test_the_detector_flags_the_corridor_and_answers_unknown_to_a_bad_scan(rng):
