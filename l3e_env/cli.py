@@ -240,6 +240,31 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_judge(args: argparse.Namespace) -> int:
+    import json
+
+    import numpy as np
+
+    from .config import LidarConfig
+    from .judge import format_judgement, judge_scans, score_legend
+    from .labels import AXES
+
+    specs = args.detector or ["learned", "eigen:30", "scanmc"]
+    judgements = judge_scans(args.scans, specs, LidarConfig(model=args.sensor), seed=args.seed)
+    for j in judgements:
+        print(format_judgement(j))
+    print("scores ('*' flagged):\n" + score_legend(specs))
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps([
+            {"path": j.path, "points": j.points, "dropped": j.dropped, "sensor": args.sensor,
+             "detectors": {name: {"known": p.known, "scores": np.asarray(p.probabilities).tolist(),
+                                  "not_localizable": [a for a, m in zip(AXES, p.mask) if m]}
+                           for name, p in j.predictions.items()}} for j in judgements], indent=1) + "\n")
+        print(f"written: {args.json}")
+    return 0
+
+
 def _cmd_calibrate(args: argparse.Namespace) -> int:
     from .training import calibrate_symmetric
 
@@ -371,6 +396,18 @@ def build_parser() -> argparse.ArgumentParser:
                    help="run the ResUNet's convolutions in float32 instead of int8 (as deployed)")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_cmd_evaluate)
+    p = sub.add_parser("judge", help="judge your own scan files: along which axes would scan-to-scan registration "
+                                     "fail there")
+    p.add_argument("scans", nargs="+", metavar="SCAN",
+                   help="scan files in the sensor's frame: .npy .npz .bin (KITTI) .ply .pcd .xyz .txt .csv")
+    p.add_argument("--detector", action="append",
+                   help="learned[-sym][:checkpoint] | eigen:<tau> | scanmc[:M] | none; repeat for several "
+                        "(default: learned, eigen:30 and scanmc)")
+    p.add_argument("--sensor", default="vlp16",
+                   help="the LiDAR that took the scans: vlp16 or os0-128 (scanmc needs its beams; default vlp16)")
+    p.add_argument("--seed", type=int, default=0, help="seed of scanmc's children")
+    p.add_argument("--json", help="also write the scores here")
+    p.set_defaults(func=_cmd_judge)
     p = sub.add_parser("calibrate", help="add symmetric-inference thresholds to a checkpoint, from its validation "
                                          "scenes")
     p.add_argument("--checkpoint", required=True, help="model.pt to complete (rewritten unless --out is given)")

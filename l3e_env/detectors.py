@@ -156,10 +156,13 @@ def learned_spec(spec: str) -> tuple[str | None, bool] | None:
     return (arg or None, kind == "learned-sym") if kind in ("learned", "learned-sym") else None
 
 
-def make_detector(spec: str, lidar: Lidar | None = None, seed: int = 0) -> Detector:
+def make_detector(spec: str, lidar: Lidar | None = None, seed: int = 0,
+                  sensor: LidarConfig | None = None) -> Detector:
     """'none', 'eigen:<tau>', 'oracle', 'oracle:<M>', 'scanmc', 'scanmc:<M>', 'learned' (the shipped model) or
     'learned:<checkpoint path>'; 'learned-sym[:<checkpoint path>]' averages over the eight mirror/swap
-    views of each scan."""
+    views of each scan. `sensor`: the LiDAR's settings where there is no scene LiDAR (scans read
+    from files): scanmc needs its beams, and the learned detector warns if it differs from training."""
+    sensor = lidar.config if lidar is not None else sensor
     kind, _, arg = spec.partition(":")
     if kind == "none":
         return NoDetector()
@@ -176,11 +179,11 @@ def make_detector(spec: str, lidar: Lidar | None = None, seed: int = 0) -> Detec
     if kind == "scanmc":
         if arg and not (arg.isdigit() and int(arg) >= 1):
             raise ValueError(f"detector '{spec}': give the number of children as scanmc:<M>, M >= 1, e.g. scanmc:60")
-        return ScanMCDetector(lidar.config if lidar is not None else LidarConfig(),
-                              children=int(arg) if arg else ScanMCConfig.children, seed=seed)
+        return ScanMCDetector(sensor or LidarConfig(), children=int(arg) if arg else ScanMCConfig.children,
+                              seed=seed)
     if (learned := learned_spec(spec)) is not None:
         checkpoint, symmetric = learned
-        return LearnedDetector(checkpoint, lidar_model=lidar.config.model if lidar is not None else None,
+        return LearnedDetector(checkpoint, lidar_model=sensor.model if sensor is not None else None,
                                symmetric=symmetric)
     raise ValueError(f"unknown detector '{spec}' (none, eigen:<tau>, oracle[:M], scanmc[:M], "
                      "learned[-sym][:checkpoint])")

@@ -1,0 +1,179 @@
+"""One's own scans, read from files and judged by the detectors: along which axes scan-to-scan
+registration would fail there (`l3e judge`). A scan is in its sensor's frame, as the driver
+writes it; points that are NaN, infinite or at the origin (no return, as organised clouds keep
+them) are dropped and counted."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .config import LidarConfig
+from .detectors import UNKNOWN, Detector, Prediction, make_detector
+from .labels import AXES
+from .lidar import get_pattern
+from .registration import RegistrationConfig, RegistrationError, RegistrationResult, scan_hessian
+
+FORMATS = {".npy": "numpy (N, >=3)", ".npz": "numpy archive ('points' or its only array)",
+           ".bin": "KITTI float32 x y z intensity", ".ply": "PLY", ".pcd": "PCD (ascii or binary)",
+           ".xyz": "text x y z ...", ".txt": "text x y z ...", ".csv": "comma-separated x,y,z,..."}
+# what each detector's score means, printed under the table
+SCORES = {"learned": "probability that the axis is not localizable (flagged above the model's threshold)",
+          "eigen": "share of the axis in the Hessian's degenerate subspace (flagged above 0.5)",
+          "scanmc": "r / (1 + r), r = estimated registration error over the label threshold (flagged above 0.5)",
+          "none": "nothing is flagged"}
+
+
+class ScanFileError(ValueError):
+    """A scan file that cannot be read as points."""
+
+
+@dataclass
+class Judgement:
+    path: str
+    points: int  # points judged
+    dropped: int  # NaN, infinite or at the origin
+    predictions: dict[str, Prediction]
+
+
+def _read_pcd(path: Path) -> np.ndarray:
+    """PCD's header names the fields; x, y, z are read from ascii or binary data. Hand-written:
+    the libraries that read PCD (open3d, pypcd) are large or unmaintained."""
+    raw = path.read_bytes()
+    header: dict[str, list[str]] = {}
+    offset = 0
+    while "DATA" not in header:
+        end = raw.find(b"\n", offset)
+        if end < 0:
+            raise ScanFileError(f"{path}: the PCD header has no DATA line")
+        words = raw[offset:end].decode("ascii", "replace").split()
+        offset = end + 1
+        if words and not words[0].startswith("#"):
+            header[words[0].upper()] = words[1:]
+    fields = header.get("FIELDS", [])
+    if not {"x", "y", "z"} <= set(fields):
+        raise ScanFileError(f"{path}: the PCD has fields {fields}, not x, y and z")
+    sizes = [int(s) for s in header.get("SIZE", [])]
+    types, counts = header.get("TYPE", []), [int(c) for c in header.get("COUNT", ["1"] * len(fields))]
+    n = int(header["POINTS"][0]) if "POINTS" in header else int(header.get("WIDTH", ["0"])[0]) * int(
+        header.get("HEIGHT", ["1"])[0])
+    kind = header["DATA"][0].lower()
+    if kind == "ascii":
+        table = np.loadtxt(raw[offset:].decode("ascii").splitlines(), ndmin=2)
+        columns = np.cumsum([0] + counts)
+        return np.stack([table[:, columns[fields.index(a)]] for a in "xyz"], axis=1)
+    if kind != "binary":
+        raise ScanFileError(f"{path}: PCD data '{kind}' is not read; save it as ascii or binary")
+    codes = {("F", 4): "<f4", ("F", 8): "<f8", ("I", 1): "<i1", ("I", 2): "<i2", ("I", 4): "<i4", ("I", 8): "<i8",
+             ("U", 1): "<u1", ("U", 2): "<u2", ("U", 4): "<u4", ("U", 8): "<u8"}
+    try:
+        dtype = np.dtype([(f, codes[t, s], (c,)) for f, t, s, c in zip(fields, types, sizes, counts)])
+    except KeyError as exc:
+        raise ScanFileError(f"{path}: PCD field type {exc} is not read") from exc
+    if len(raw) - offset < n * dtype.itemsize:
+        raise ScanFileError(f"{path}: the PCD is cut short ({len(raw) - offset} bytes of data for {n} points)")
+    data = np.frombuffer(raw, dtype=dtype, count=n, offset=offset)
+    return np.stack([data[a][:, 0] for a in "xyz"], axis=1)
+
+
+def read_scan(path: str | Path) -> np.ndarray:
+    """(N, 3) float64 points of a scan file, as written (NaN kept: `judge_scans` drops them)."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in FORMATS:
+        raise ScanFileError(f"{path}: unknown scan format '{suffix}'; read: "
+                            + ", ".join(f"{k} ({v})" for k, v in FORMATS.items()))
+    if not path.is_file():
+        raise ScanFileError(f"{path}: no such file")
+    try:
+        if suffix == ".npy":
+            points = np.load(path, allow_pickle=False)
+        elif suffix == ".npz":
+            with np.load(path, allow_pickle=False) as archive:
+                names = list(archive.keys())
+                if "points" not in names and len(names) != 1:
+                    raise ScanFileError(f"{path}: holds {names}; name the points array 'points'")
+                points = archive["points" if "points" in names else names[0]]
+        elif suffix == ".bin":
+            flat = np.fromfile(path, dtype=np.float32)
+            if len(flat) % 4:
+                raise ScanFileError(f"{path}: {len(flat)} floats, not x y z intensity quadruples (KITTI .bin)")
+            points = flat.reshape(-1, 4)
+        elif suffix == ".ply":
+            import trimesh
+
+            points = np.asarray(trimesh.load(path, process=False).vertices)
+        elif suffix == ".pcd":
+            points = _read_pcd(path)
+        else:
+            points = np.loadtxt(path, delimiter="," if suffix == ".csv" else None, ndmin=2)
+    except ScanFileError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - whatever the reader raises, name the file and the problem
+        raise ScanFileError(f"{path}: cannot be read as {FORMATS[suffix]}: {exc}") from exc
+    points = np.asarray(points)
+    if points.ndim != 2 or points.shape[1] < 3:
+        raise ScanFileError(f"{path}: points of shape {points.shape}, not (N, 3) or more columns")
+    return points[:, :3].astype(np.float64)
+
+
+def judge_points(points: np.ndarray, detectors: list[Detector],
+                 registration: RegistrationConfig | None = None) -> dict[str, Prediction]:
+    """Each detector's prediction for one scan (UNKNOWN where it cannot judge it). The eigenvalue
+    test reads the Hessian of the scan registered onto itself, as `l3e evaluate` scores it."""
+    registration = registration or RegistrationConfig()
+    try:
+        H = scan_hessian(points, registration)
+        onto_itself = RegistrationResult(np.eye(4), H, True, 0, len(points), len(points), 0.0)
+    except RegistrationError:
+        onto_itself = None
+    out = {}
+    for detector in detectors:
+        if detector.name.startswith("eigen") and onto_itself is None:
+            out[detector.name] = UNKNOWN
+        else:
+            out[detector.name] = detector.predict(points, onto_itself, None)
+    return out
+
+
+def judge_scans(paths: list[str | Path], specs: list[str], sensor: LidarConfig | None = None,
+                seed: int = 0) -> list[Judgement]:
+    """Read each scan file, drop its points without a return, and judge it with each detector
+    ('learned[...]', 'eigen:<tau>', 'scanmc[:M]', 'none'; the oracle needs a scene)."""
+    sensor = sensor or LidarConfig()
+    get_pattern(sensor.model)  # an unknown sensor is named before any file is read
+    if any(spec.partition(":")[0] == "oracle" for spec in specs):
+        raise ValueError("the oracle detector needs the scene, not a scan: give learned, eigen:<tau>, scanmc[:M] "
+                         "or none")
+    detectors = [make_detector(spec, seed=seed, sensor=sensor) for spec in specs]
+    judgements = []
+    for path in paths:
+        points = read_scan(path)
+        kept = np.isfinite(points).all(axis=1) & (np.abs(points).sum(axis=1) > 0)
+        judgements.append(Judgement(str(path), int(kept.sum()), int((~kept).sum()),
+                                    judge_points(points[kept], detectors)))
+    return judgements
+
+
+def format_judgement(j: Judgement) -> str:
+    """A table of each detector's per-axis score, flagged axes marked '*', and a summary line."""
+    names = list(j.predictions)
+    lines = [f"{j.path}: {j.points} points" + (f" ({j.dropped} without a return dropped)" if j.dropped else ""),
+             f"  {'axis':6s}" + "".join(f"{n:>16s}" for n in names)]
+    for a, axis in enumerate(AXES):
+        cells = [f"{p.probabilities[a]:15.2f}{'*' if p.mask[a] else ' '}" if p.known else f"{'unknown':>16s}"
+                 for p in j.predictions.values()]
+        lines.append(f"  {axis:6s}" + "".join(cells))
+    for n in names:
+        p = j.predictions[n]
+        said = ("cannot judge this scan (too few points, or not a full revolution of the sensor)" if not p.known else
+                "not localizable along " + ", ".join(a for a, m in zip(AXES, p.mask) if m) if p.mask.any() else
+                "localizable along every axis")
+        lines.append(f"  {n}: {said}")
+    return "\n".join(lines)
+
+
+def score_legend(specs: list[str]) -> str:
+    kinds = dict.fromkeys(spec.partition(":")[0].removesuffix("-sym") for spec in specs)
+    return "\n".join(f"  {k}: {SCORES[k]}" for k in kinds if k in SCORES)

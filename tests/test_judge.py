@@ -1,0 +1,98 @@
+"""`l3e judge`: scan files of every format read alike, and judged by the detectors."""
+import json
+
+import numpy as np
+import pytest
+import trimesh
+
+from l3e_env.cli import main
+from l3e_env.config import LidarConfig
+from l3e_env.judge import ScanFileError, format_judgement, judge_scans, read_scan
+from l3e_env.lidar import Lidar
+from l3e_env.raycast import EmbreeCaster
+
+
+def _corridor_scan(rng) -> np.ndarray:
+    """A VLP-16 scan in a 200 m corridor, 1 m above its floor: free along x only."""
+    corridor = trimesh.creation.box([200, 4, 3]).apply_translation([0, 0, 0.5])
+    return Lidar(EmbreeCaster(corridor, threads=1), LidarConfig()).scan(np.eye(4), rng).points.astype(np.float64)
+
+
+def _write_pcd(path, points: np.ndarray, binary: bool) -> None:
+    header = (f"# .PCD v0.7\nVERSION 0.7\nFIELDS x y z intensity\nSIZE 4 4 4 4\nTYPE F F F F\nCOUNT 1 1 1 1\n"
+              f"WIDTH {len(points)}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {len(points)}\n"
+              f"DATA {'binary' if binary else 'ascii'}\n")
+    table = np.c_[points, np.arange(len(points))].astype(np.float32)
+    with open(path, "wb") as f:
+        f.write(header.encode())
+        if binary:
+            f.write(table.tobytes())
+        else:
+            np.savetxt(f, table, fmt="%.6f")
+
+
+def test_every_format_reads_the_same_points(tmp_path, rng):
+    points = rng.normal(size=(300, 3)) * 5
+    np.save(tmp_path / "a.npy", np.c_[points, np.ones(300)])
+    np.savez(tmp_path / "b.npz", points=points, other=np.zeros(3))
+    np.c_[points, np.ones(300)].astype(np.float32).tofile(tmp_path / "c.bin")
+    trimesh.PointCloud(points).export(tmp_path / "d.ply")
+    _write_pcd(tmp_path / "e.pcd", points, binary=True)
+    _write_pcd(tmp_path / "f.pcd", points, binary=False)
+    np.savetxt(tmp_path / "g.xyz", points)
+    np.savetxt(tmp_path / "h.csv", points, delimiter=",")
+    for name in ("a.npy", "b.npz", "c.bin", "d.ply", "e.pcd", "f.pcd", "g.xyz", "h.csv"):
+        read = read_scan(tmp_path / name)
+        assert read.shape == (300, 3), name
+        np.testing.assert_allclose(read, points, atol=1e-4, err_msg=name)  # float32 formats to 1e-4
+
+
+def test_a_broken_or_unknown_scan_file_is_named(tmp_path):
+    (tmp_path / "broken.npy").write_bytes(b"not numpy at all")
+    np.save(tmp_path / "flat.npy", np.zeros((10, 2)))
+    np.savez(tmp_path / "two.npz", a=np.zeros((3, 3)), b=np.zeros((3, 3)))
+    np.zeros(7, np.float32).tofile(tmp_path / "odd.bin")
+    (tmp_path / "cut.pcd").write_bytes(b"FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nPOINTS 100\nDATA binary\n"
+                                       + b"\0" * 40)
+    (tmp_path / "packed.pcd").write_bytes(b"FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nPOINTS 1\nDATA binary_compressed\n")
+    cases = {"broken.npy": "cannot be read as numpy", "flat.npy": r"shape \(10, 2\)", "two.npz": "name the points",
+             "odd.bin": "KITTI", "cut.pcd": "cut short", "packed.pcd": "ascii or binary",
+             "scan.las": "unknown scan format", "missing.npy": "no such file"}
+    for name, message in cases.items():
+        with pytest.raises(ScanFileError, match=message) as info:
+            read_scan(tmp_path / name)
+        assert name in str(info.value)
+
+
+def test_a_corridor_scan_is_judged_free_along_its_axis_and_no_return_points_are_dropped(tmp_path, rng):
+    points = _corridor_scan(rng)
+    with_gaps = np.r_[points, np.full((5, 3), np.nan), np.zeros((3, 3))]  # an organised cloud's empty returns
+    _write_pcd(tmp_path / "corridor.pcd", with_gaps, binary=True)
+    np.save(tmp_path / "empty.npy", np.zeros((0, 3)))
+    first, empty = judge_scans([tmp_path / "corridor.pcd", tmp_path / "empty.npy"],
+                               ["eigen:30", "scanmc:8", "learned", "none"])
+    assert first.points == len(points) and first.dropped == 8
+    scanmc, eigen = first.predictions["scanmc:8"], first.predictions["eigen:30"]
+    assert scanmc.known and scanmc.mask.tolist() == [True, False, False, False, False, False]
+    assert eigen.known and eigen.mask[0] and not eigen.mask[1]
+    assert first.predictions["learned"].known and not first.predictions["none"].mask.any()
+    assert empty.points == 0 and not any(p.known for n, p in empty.predictions.items() if n != "none")
+    text = format_judgement(first)
+    assert "scanmc:8: not localizable along x" in text and "corridor.pcd: " in text
+    assert "cannot judge this scan" in format_judgement(empty)
+    with pytest.raises(ValueError, match="needs the scene"):
+        judge_scans([tmp_path / "corridor.pcd"], ["oracle"])
+    with pytest.raises(ValueError, match="unknown LiDAR model"):
+        judge_scans([tmp_path / "corridor.pcd"], ["none"], LidarConfig(model="hdl64"))
+
+
+def test_the_judge_command_prints_and_writes_the_scores(tmp_path, rng, capsys):
+    np.save(tmp_path / "corridor.npy", _corridor_scan(rng))
+    out = tmp_path / "scores" / "judged.json"
+    assert main(["judge", str(tmp_path / "corridor.npy"), "--detector", "eigen:30", "--json", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "eigen:30: not localizable along x" in printed and "share of the axis" in printed
+    saved = json.loads(out.read_text())
+    assert saved[0]["detectors"]["eigen:30"]["not_localizable"][0] == "x" and saved[0]["sensor"] == "vlp16"
+    assert main(["judge", str(tmp_path / "nothing.pcd")]) == 2
+    assert "no such file" in capsys.readouterr().err
