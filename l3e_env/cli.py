@@ -243,26 +243,23 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 def _cmd_judge(args: argparse.Namespace) -> int:
     import json
 
-    import numpy as np
-
     from .config import LidarConfig
-    from .judge import format_judgement, judge_scans, score_legend
-    from .labels import AXES
+    from .judge import format_judgement, judge_scans, judgement_record, score_legend
 
     specs = args.detector or ["learned", "eigen:30", "scanmc"]
-    judgements = judge_scans(args.scans, specs, LidarConfig(model=args.sensor), seed=args.seed)
-    for j in judgements:
-        print(format_judgement(j))
+    judgements = []  # printed as each scan is judged; an unreadable file is named and the next one read
+    for j in judge_scans(args.scans, specs, LidarConfig(model=args.sensor), seed=args.seed):
+        judgements.append(j)
+        print(format_judgement(j), file=sys.stderr if j.error else sys.stdout, flush=True)
     print("scores ('*' flagged):\n" + score_legend(specs))
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps([
-            {"path": j.path, "points": j.points, "dropped": j.dropped, "sensor": args.sensor,
-             "detectors": {name: {"known": p.known, "scores": np.asarray(p.probabilities).tolist(),
-                                  "not_localizable": [a for a, m in zip(AXES, p.mask) if m]}
-                           for name, p in j.predictions.items()}} for j in judgements], indent=1) + "\n")
+        Path(args.json).write_text(json.dumps([judgement_record(j, args.sensor) for j in judgements], indent=1) + "\n")
         print(f"written: {args.json}")
-    return 0
+    failed = sum(j.error is not None for j in judgements)
+    if failed:
+        print(f"l3e judge: {failed} of {len(judgements)} files could not be read", file=sys.stderr)
+    return 2 if failed else 0
 
 
 def _cmd_calibrate(args: argparse.Namespace) -> int:

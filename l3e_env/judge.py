@@ -4,13 +4,14 @@ writes it; points that are NaN, infinite or at the origin (no return, as organis
 them) are dropped and counted."""
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from .config import LidarConfig
-from .detectors import UNKNOWN, Detector, Prediction, make_detector
+from .detectors import Detector, Prediction, make_detector
 from .labels import AXES
 from .lidar import get_pattern
 from .registration import RegistrationConfig, RegistrationError, RegistrationResult, scan_hessian
@@ -35,6 +36,7 @@ class Judgement:
     points: int  # points judged
     dropped: int  # NaN, infinite or at the origin
     predictions: dict[str, Prediction]
+    error: str | None = None  # the file could not be read: why (nothing judged)
 
 
 def _read_pcd(path: Path) -> np.ndarray:
@@ -128,36 +130,34 @@ def judge_points(points: np.ndarray, detectors: list[Detector],
         onto_itself = RegistrationResult(np.eye(4), H, True, 0, len(points), len(points), 0.0)
     except RegistrationError:
         onto_itself = None
-    out = {}
-    for detector in detectors:
-        if detector.name.startswith("eigen") and onto_itself is None:
-            out[detector.name] = UNKNOWN
-        else:
-            out[detector.name] = detector.predict(points, onto_itself, None)
-    return out
+    return {d.name: d.predict(points, onto_itself, None) for d in detectors}  # eigen: UNKNOWN without it
 
 
 def judge_scans(paths: list[str | Path], specs: list[str], sensor: LidarConfig | None = None,
-                seed: int = 0) -> list[Judgement]:
+                seed: int = 0) -> Iterator[Judgement]:
     """Read each scan file, drop its points without a return, and judge it with each detector
-    ('learned[...]', 'eigen:<tau>', 'scanmc[:M]', 'none'; the oracle needs a scene)."""
+    ('learned[...]', 'eigen:<tau>', 'scanmc[:M]', 'none'; the oracle needs a scene), one file at a
+    time. A file that cannot be read gives a Judgement with its `error`, and the next one is read."""
     sensor = sensor or LidarConfig()
     get_pattern(sensor.model)  # an unknown sensor is named before any file is read
     if any(spec.partition(":")[0] == "oracle" for spec in specs):
         raise ValueError("the oracle detector needs the scene, not a scan: give learned, eigen:<tau>, scanmc[:M] "
                          "or none")
     detectors = [make_detector(spec, seed=seed, sensor=sensor) for spec in specs]
-    judgements = []
     for path in paths:
-        points = read_scan(path)
+        try:
+            points = read_scan(path)
+        except ScanFileError as exc:
+            yield Judgement(str(path), 0, 0, {}, error=str(exc))
+            continue
         kept = np.isfinite(points).all(axis=1) & (np.abs(points).sum(axis=1) > 0)
-        judgements.append(Judgement(str(path), int(kept.sum()), int((~kept).sum()),
-                                    judge_points(points[kept], detectors)))
-    return judgements
+        yield Judgement(str(path), int(kept.sum()), int((~kept).sum()), judge_points(points[kept], detectors))
 
 
 def format_judgement(j: Judgement) -> str:
     """A table of each detector's per-axis score, flagged axes marked '*', and a summary line."""
+    if j.error:
+        return f"{j.error}: not judged"
     names = list(j.predictions)
     lines = [f"{j.path}: {j.points} points" + (f" ({j.dropped} without a return dropped)" if j.dropped else ""),
              f"  {'axis':6s}" + "".join(f"{n:>16s}" for n in names)]
@@ -172,6 +172,17 @@ def format_judgement(j: Judgement) -> str:
                 "localizable along every axis")
         lines.append(f"  {n}: {said}")
     return "\n".join(lines)
+
+
+def judgement_record(j: Judgement, sensor: str) -> dict:
+    """The judgement as JSON-ready data (NaN scores of a scan a detector cannot judge as null)."""
+    if j.error:
+        return {"path": j.path, "error": j.error}
+    return {"path": j.path, "points": j.points, "dropped": j.dropped, "sensor": sensor,
+            "detectors": {name: {"known": p.known,
+                                 "scores": [float(v) if np.isfinite(v) else None for v in p.probabilities],
+                                 "not_localizable": [a for a, m in zip(AXES, p.mask) if m]}
+                          for name, p in j.predictions.items()}}
 
 
 def score_legend(specs: list[str]) -> str:

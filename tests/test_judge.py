@@ -70,7 +70,7 @@ def test_a_corridor_scan_is_judged_free_along_its_axis_and_no_return_points_are_
     _write_pcd(tmp_path / "corridor.pcd", with_gaps, binary=True)
     np.save(tmp_path / "empty.npy", np.zeros((0, 3)))
     first, empty = judge_scans([tmp_path / "corridor.pcd", tmp_path / "empty.npy"],
-                               ["eigen:30", "scanmc:8", "learned", "none"])
+                               ["eigen:30", "scanmc:8", "learned", "none"])  # a generator: unpacked
     assert first.points == len(points) and first.dropped == 8
     scanmc, eigen = first.predictions["scanmc:8"], first.predictions["eigen:30"]
     assert scanmc.known and scanmc.mask.tolist() == [True, False, False, False, False, False]
@@ -81,9 +81,9 @@ def test_a_corridor_scan_is_judged_free_along_its_axis_and_no_return_points_are_
     assert "scanmc:8: not localizable along x" in text and "corridor.pcd: " in text
     assert "cannot judge this scan" in format_judgement(empty)
     with pytest.raises(ValueError, match="needs the scene"):
-        judge_scans([tmp_path / "corridor.pcd"], ["oracle"])
+        list(judge_scans([tmp_path / "corridor.pcd"], ["oracle"]))
     with pytest.raises(ValueError, match="unknown LiDAR model"):
-        judge_scans([tmp_path / "corridor.pcd"], ["none"], LidarConfig(model="hdl64"))
+        list(judge_scans([tmp_path / "corridor.pcd"], ["none"], LidarConfig(model="hdl64")))
 
 
 def test_the_judge_command_prints_and_writes_the_scores(tmp_path, rng, capsys):
@@ -94,5 +94,15 @@ def test_the_judge_command_prints_and_writes_the_scores(tmp_path, rng, capsys):
     assert "eigen:30: not localizable along x" in printed and "share of the axis" in printed
     saved = json.loads(out.read_text())
     assert saved[0]["detectors"]["eigen:30"]["not_localizable"][0] == "x" and saved[0]["sensor"] == "vlp16"
-    assert main(["judge", str(tmp_path / "nothing.pcd")]) == 2
-    assert "no such file" in capsys.readouterr().err
+    np.save(tmp_path / "few.npy", _corridor_scan(rng)[:20])
+    assert main(["judge", str(tmp_path / "few.npy"), "--detector", "eigen:30", "--json", str(out)]) == 0
+    assert json.loads(out.read_text())[0]["detectors"]["eigen:30"] == {"known": False, "scores": [None] * 6,
+                                                                       "not_localizable": []}
+    # a file that cannot be read is named, and the ones after it are still judged and saved
+    assert main(["judge", str(tmp_path / "nothing.pcd"), str(tmp_path / "corridor.npy"), "--detector", "none",
+                 "--json", str(out)]) == 2
+    captured = capsys.readouterr()
+    assert "nothing.pcd: no such file" in captured.err and "1 of 2 files could not be read" in captured.err
+    assert "none: localizable along every axis" in captured.out
+    saved = json.loads(out.read_text())
+    assert "no such file" in saved[0]["error"] and saved[1]["detectors"]["none"]["known"]
