@@ -360,6 +360,10 @@ class LabelDataset:
         """The datasets read as this one: itself (a DatasetUnion has several)."""
         return [self]
 
+    def locate(self, i: int) -> tuple[LabelDataset, int]:
+        """The dataset holding row i, and the row there: itself (a DatasetUnion has several)."""
+        return self, i
+
     @property
     def labels(self) -> np.ndarray:
         return np.asarray(self.arrays["labels"])
@@ -412,9 +416,14 @@ class DatasetUnion:
     def __len__(self) -> int:
         return int(self._starts[-1])
 
-    def scan(self, i: int) -> np.ndarray:
+    def locate(self, i: int) -> tuple[LabelDataset, int]:
+        """The part holding row i, and the row there."""
         k = int(np.searchsorted(self._starts, i, side="right")) - 1
-        return self.parts[k].scan(i - int(self._starts[k]))
+        return self.parts[k], i - int(self._starts[k])
+
+    def scan(self, i: int) -> np.ndarray:
+        part, row = self.locate(i)
+        return part.scan(row)
 
     @cached_property  # read many times per epoch; the parts do not change once opened
     def labels(self) -> np.ndarray:

@@ -162,8 +162,9 @@ def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Pat
                  **{f"children_{split.replace(' ', '_')}": n for split, n in drawn.items()})
     text = format_table(table, intervals=intervals) + format_f1_operating_points(results["models"])
     if scan_mc:
+        scored = results["models"][f"scanmc:{scan_mc}"]["splits"]
         text += f"\nscanmc:{scan_mc} children drawn a scan (mean): " + ", ".join(
-            f"{split} {n[n > 0].mean():.1f}" for split, n in drawn.items() if (n > 0).any()) + "\n"
+            f"{split} {scored[split]['mean_children']:.1f}" for split in drawn if scored[split]["mean_children"]) + "\n"
     if symmetric:
         text = "probabilities averaged over the eight mirror/swap views of each scan\n" + text
     (out / "table.txt").write_text(text + "\n")

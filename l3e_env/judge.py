@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from .config import LidarConfig
-from .detectors import Detector, Prediction, make_detector
+from .detectors import Detector, EigenvalueDetector, Prediction, make_detector
 from .labels import AXES
 from .lidar import get_pattern
 from .registration import RegistrationConfig, RegistrationError, RegistrationResult, scan_hessian
@@ -124,25 +124,24 @@ def judge_points(points: np.ndarray, detectors: list[Detector],
                  registration: RegistrationConfig | None = None) -> dict[str, Prediction]:
     """Each detector's prediction for one scan (UNKNOWN where it cannot judge it). The eigenvalue
     test reads the Hessian of the scan registered onto itself, as `l3e evaluate` scores it."""
-    registration = registration or RegistrationConfig()
-    try:
-        H = scan_hessian(points, registration)
-        onto_itself = RegistrationResult(np.eye(4), H, True, 0, len(points), len(points), 0.0)
-    except RegistrationError:
-        onto_itself = None
-    return {d.name: d.predict(points, onto_itself, None) for d in detectors}  # eigen: UNKNOWN without it
+    onto_itself = None  # eigen answers UNKNOWN without it; the others do not read it
+    if any(isinstance(d, EigenvalueDetector) for d in detectors):
+        try:
+            H = scan_hessian(points, registration or RegistrationConfig())
+            onto_itself = RegistrationResult(np.eye(4), H, True, 0, len(points), len(points), 0.0)
+        except RegistrationError:
+            pass
+    return {d.name: d.predict(points, onto_itself, None) for d in detectors}
 
 
 def judge_scans(paths: list[str | Path], specs: list[str], sensor: LidarConfig | None = None,
                 seed: int = 0) -> Iterator[Judgement]:
     """Read each scan file, drop its points without a return, and judge it with each detector
-    ('learned[...]', 'eigen:<tau>', 'scanmc[:M]', 'none'; the oracle needs a scene), one file at a
-    time. A file that cannot be read gives a Judgement with its `error`, and the next one is read."""
+    ('learned[...]', 'eigen:<tau>', 'scanmc[:M]', 'none'; make_detector refuses the oracle,
+    which needs a scene), one file at a time. A file that cannot be read gives a Judgement with
+    its `error`, and the next one is read."""
     sensor = sensor or LidarConfig()
     get_pattern(sensor.model)  # an unknown sensor is named before any file is read
-    if any(spec.partition(":")[0] == "oracle" for spec in specs):
-        raise ValueError("the oracle detector needs the scene, not a scan: give learned, eigen:<tau>, scanmc[:M] "
-                         "or none")
     detectors = [make_detector(spec, seed=seed, sensor=sensor) for spec in specs]
     for path in paths:
         try:

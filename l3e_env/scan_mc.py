@@ -162,12 +162,11 @@ def _dataset_part(folders: list[str], rows: np.ndarray, config: ScanMCConfig,
     settings = data.manifest["settings"]
     lidar, registration = from_dict(LidarConfig, settings["lidar"]), from_dict(RegistrationConfig,
                                                                                settings["registration"])
-    part_of = np.repeat(np.arange(len(data.parts)), [len(p) for p in data.parts])
     out, drawn = np.full((len(rows), 6), np.nan), np.zeros(len(rows), dtype=np.int64)
     for k, row in enumerate(rows):
+        part, at = data.locate(int(row))
         try:  # seeded by the row: the same estimate whatever the number of workers
-            out[k], drawn[k] = scan_errors(data.scan(int(row)), lidar, registration,
-                                           data.parts[part_of[row]].label_config, config,
+            out[k], drawn[k] = scan_errors(part.scan(at), lidar, registration, part.label_config, config,
                                            np.random.default_rng([seed, int(row)]))
         except (RegistrationError, ScanPatternError):
             pass
