@@ -75,16 +75,19 @@ class OracleDetector:
         self.name = f"oracle:{children}"
         self._calls, self._last = 0, UNKNOWN
 
+    def judge(self, T_w_s: np.ndarray, rng: np.random.Generator) -> Prediction:
+        """The labels at one pose, from `rng`'s children (a map seeds each pose by itself)."""
+        try:
+            res = label_parent(self.lidar, T_w_s, rng, self.labels, self.registration)
+        except RegistrationError:
+            return UNKNOWN
+        return Prediction(res.labels.astype(np.float64), res.labels.astype(bool))
+
     def predict(self, points, registration=None, T_w_s=None) -> Prediction:
         if T_w_s is None:
             raise ValueError("the oracle detector needs the true sensor pose")
         if self._calls % self.stride == 0:
-            rng = np.random.default_rng([self.seed, self._calls])
-            try:
-                res = label_parent(self.lidar, T_w_s, rng, self.labels, self.registration)
-                self._last = Prediction(res.labels.astype(np.float64), res.labels.astype(bool))
-            except RegistrationError:
-                self._last = UNKNOWN
+            self._last = self.judge(T_w_s, np.random.default_rng([self.seed, self._calls]))
         self._calls += 1
         return self._last
 
@@ -107,6 +110,10 @@ class ScanMCDetector:
     def predict(self, points, registration=None, T_w_s=None) -> Prediction:
         rng = np.random.default_rng([self.seed, self._calls])
         self._calls += 1
+        return self.judge(points, rng)
+
+    def judge(self, points: np.ndarray, rng: np.random.Generator) -> Prediction:
+        """One scan judged with `rng`'s children (a map seeds each pose by itself)."""
         try:
             errors = scan_errors(points, self.lidar, self.registration, self.labels, self.config, rng).errors
         except (RegistrationError, ScanPatternError):

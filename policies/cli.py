@@ -34,7 +34,7 @@ def _cmd_map(args: argparse.Namespace) -> int:
     for name, params in scenes.items():
         t0 = time.perf_counter()
         ctx = scene_context(name, args.detector, args.cache_dir, sensor=args.sensor, resolution=args.resolution,
-                            progress=not args.quiet, scene_params=params)
+                            progress=not args.quiet, scene_params=params, workers=args.workers)
         figure = out / f"{ctx.scene.name}-{args.detector.replace(':', '')}.png"
         plot_locmap(figure, ctx.scene, ctx.locmap, ctx.space)
         share = " ".join(f"{a} {100 * v:.0f}%" for a, v in zip("x y z roll pitch yaw".split(),
@@ -54,7 +54,7 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     for name, params in scenes.items():
         ctx = scene_context(name, args.detector, args.cache_dir, sensor=args.sensor, progress=not args.quiet,
-                            scene_params=params)
+                            scene_params=params, workers=args.workers)
         start = np.array(args.start, dtype=float) if args.start else ctx.scene.start[:2]
         goal = np.array(args.goal, dtype=float) if args.goal else ctx.scene.goal
         plans = {"shortest": Planner(ctx.space, ctx.locmap, lam=0.0).plan(start, goal),
@@ -114,6 +114,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--detector", default="learned", help="learned[:checkpoint] | eigen:<tau> | oracle[:M] | scanmc[:M]")
     g.add_argument("--resolution", type=float, default=2.0, help="metres between mapped positions (default 2)")
     g.add_argument("--out", help="folder for the plots (default: l3e_out/maps)")
+    g.add_argument("--workers", type=int, default=1, help="processes that build a map not yet cached")
     add_mesh_options(g)
     g.set_defaults(func=_cmd_map)
     g = psub.add_parser("plan", parents=[common], help="shortest path and localizability-aware plan, with a plot")
@@ -123,6 +124,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--start", type=float, nargs=2, metavar=("X", "Y"), help="default: the scene's start")
     g.add_argument("--goal", type=float, nargs=2, metavar=("X", "Y"), help="default: the scene's goal")
     g.add_argument("--out", help="folder for the plots (default: l3e_out/plans)")
+    g.add_argument("--workers", type=int, default=1, help="processes that build a map not yet cached")
     add_mesh_options(g)
     g.set_defaults(func=_cmd_plan)
     g = psub.add_parser("train", parents=[common], help="train a PPO navigation policy on fork variants (resumable)")

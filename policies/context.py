@@ -42,13 +42,14 @@ def free_space(scene: Scene, cache_dir: str | Path | None = None, resolution: fl
 
 def scene_context(name: str, detector: str | None = "learned", cache_dir: str | Path | None = None,
                   build: bool = True, sensor: str = "vlp16", resolution: float = MAP_RESOLUTION,
-                  progress: bool = False, scene_params: dict | None = None) -> SceneContext:
-    """Scene, free space and (unless detector is None) its localizability map; `scene_params` go to
-    make_scene (a mesh scene's up axis, scale and route)."""
+                  progress: bool = False, scene_params: dict | None = None, workers: int = 1) -> SceneContext:
+    """Scene, free space and (unless detector is None) its localizability map, built by `workers`
+    processes where it is not cached; `scene_params` go to make_scene (a mesh scene's up axis,
+    scale and route)."""
     scene = make_scene(name, **(scene_params or {}))
     space = free_space(scene, cache_dir, progress=progress)
     locmap = None
     if detector is not None:
         locmap = get_map(scene, space, detector, cache_dir, build=build, resolution=resolution,
-                         lidar=LidarConfig(model=sensor), progress=progress)
+                         lidar=LidarConfig(model=sensor), progress=progress, workers=workers)
     return SceneContext(scene, space, locmap)

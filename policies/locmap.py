@@ -5,11 +5,15 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+from contextlib import nullcontext
+from multiprocessing import get_context
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
+import trimesh
 from scipy.spatial import cKDTree
 from tqdm import tqdm
 
@@ -18,7 +22,7 @@ from l3e_env.config import LidarConfig, RobotConfig, plain, to_dict
 from l3e_env.detectors import learned_spec, make_detector
 from l3e_env.files import write_atomic
 from l3e_env.lidar import Lidar
-from l3e_env.raycast import make_caster
+from l3e_env.raycast import EmbreeCaster, make_caster
 from l3e_env.registration import RegistrationConfig, RegistrationError, register
 from l3e_env.transforms import planar_pose
 from scenes import Scene
@@ -128,8 +132,9 @@ class MapJudge:
             self.detector = make_detector(spec, lidar, seed)
             self.thresholds = np.full(6, 0.5)
             self.identity = self.detector.name.replace(":", "")
-            if kind == "scanmc":  # a new calibration is another map
-                self.identity += "-" + settings_digest(to_dict(self.detector.config))
+            if kind != "eigen":  # new labels, a new calibration or another seeding is another map
+                config = self.detector.labels if kind == "oracle" else self.detector.config
+                self.identity += "-" + settings_digest({"config": to_dict(config), "children": "seeded by pose"})
         else:
             raise ValueError(f"map detector '{spec}': use learned[-sym][:checkpoint], eigen:<tau>, oracle[:M] or "
                              "scanmc[:M]")
@@ -148,10 +153,11 @@ class MapJudge:
                         pass
                 return out
         for i, (T, rng) in enumerate(zip(poses, rngs)):
+            # the children come from the pose's own rng, so a map does not depend on the order of its poses
             if self.kind == "oracle":
-                pred = self.detector.predict(np.zeros((0, 3)), None, T)
+                pred = self.detector.judge(T, rng)
             elif self.kind == "scanmc":
-                pred = self.detector.predict(self.lidar.scan(T, rng).points)
+                pred = self.detector.judge(self.lidar.scan(T, rng).points, rng)
                 if pred.known:
                     out[i] = pred.probabilities
                 continue
@@ -204,13 +210,28 @@ def map_positions(free: FreeSpace, resolution: float) -> np.ndarray:
     return on
 
 
+_worker_judge: MapJudge | None = None  # a map worker's own judge, made once per process
+
+
+def _start_map_worker(spec: str, mesh: trimesh.Trimesh, lidar: LidarConfig, seed: int, step: float) -> None:
+    global _worker_judge
+    torch.set_num_threads(1)  # the workers share the cores
+    _worker_judge = MapJudge(spec, Lidar(EmbreeCaster(mesh, threads=1), lidar), seed, step)
+
+
+def _judge_in_worker(job: tuple[list[np.ndarray], list[list[int]]]) -> np.ndarray:
+    poses, seeds = job
+    return _worker_judge(poses, [np.random.default_rng(s) for s in seeds])
+
+
 def build_map(scene: Scene, free: FreeSpace, judge: MapJudge, resolution: float = 1.0, yaw_bins: int = 4,
               robot: RobotConfig | None = None, seed: int = 0, batch: int = 8,
-              progress: bool = False) -> LocalizabilityMap:
-    """Judge every (position, yaw) with the body level on the floor."""
+              progress: bool = False, workers: int = 1) -> LocalizabilityMap:
+    """Judge every (position, yaw) with the body level on the floor; `workers` processes judge
+    batches of poses side by side (each pose has its own seed, so the map is the same)."""
     robot = robot or RobotConfig()
-    if yaw_bins < 1:
-        raise ValueError(f"yaw_bins must be at least 1, got {yaw_bins}")
+    if yaw_bins < 1 or workers < 1:
+        raise ValueError(f"yaw_bins and workers must be at least 1, got {yaw_bins} and {workers}")
     settings = map_settings(scene, free, resolution, yaw_bins, judge, robot, seed)
     cells = map_positions(free, resolution)
     positions = free.center(cells)
@@ -218,12 +239,18 @@ def build_map(scene: Scene, free: FreeSpace, judge: MapJudge, resolution: float 
     T_b_s = planar_pose(*robot.lidar_offset, 0.0)
     poses = [(n, k) for n in range(len(cells)) for k in range(yaw_bins)]
     probabilities = np.full((len(cells), yaw_bins, 6), np.nan)
-    for start in tqdm(range(0, len(poses), batch), desc=f"{judge.spec} map of {scene.name}", unit="batch",
-                      disable=not progress):
-        chunk = poses[start:start + batch]
-        sensor_poses = [planar_pose(*positions[n], free.ground[tuple(cells[n])] + robot.standing_height, yaws[k])
-                        @ T_b_s for n, k in chunk]
-        p = judge(sensor_poses, [np.random.default_rng([seed, n, k]) for n, k in chunk])
+    chunks = [poses[start:start + batch] for start in range(0, len(poses), batch)]
+    jobs = [([planar_pose(*positions[n], free.ground[tuple(cells[n])] + robot.standing_height, yaws[k]) @ T_b_s
+              for n, k in chunk], [[seed, n, k] for n, k in chunk]) for chunk in chunks]
+    parallel = workers > 1 and len(jobs) > 1
+    with (get_context("spawn").Pool(workers, _start_map_worker, (judge.spec, scene.mesh, judge.lidar.config,
+                                                                 judge.seed, judge.step)) if parallel
+          else nullcontext()) as pool:
+        judged = (pool.imap(_judge_in_worker, jobs) if parallel else
+                  (judge(sensor_poses, [np.random.default_rng(s) for s in seeds]) for sensor_poses, seeds in jobs))
+        judged = list(tqdm(judged, total=len(jobs), desc=f"{judge.spec} map of {scene.name}", unit="batch",
+                           disable=not progress))
+    for chunk, p in zip(chunks, judged):
         for (n, k), row in zip(chunk, p):
             probabilities[n, k] = row
     return LocalizabilityMap(scene.name, positions, yaws, probabilities, judge.thresholds.copy(), settings)
@@ -235,8 +262,10 @@ def scene_lidar(scene: Scene, lidar: LidarConfig | None = None) -> Lidar:
 
 def get_map(scene: Scene, free: FreeSpace, detector: str = "learned", cache_dir: str | Path | None = None,
             build: bool = True, resolution: float = 1.0, yaw_bins: int = 4, lidar: LidarConfig | None = None,
-            robot: RobotConfig | None = None, seed: int = 0, progress: bool = False) -> LocalizabilityMap:
-    """The cached map for these settings; built and cached when missing if `build`, else MapCacheError."""
+            robot: RobotConfig | None = None, seed: int = 0, progress: bool = False,
+            workers: int = 1) -> LocalizabilityMap:
+    """The cached map for these settings; built (by `workers` processes) and cached when missing if
+    `build`, else MapCacheError."""
     robot = robot or RobotConfig()
     judge = MapJudge(detector, scene_lidar(scene, lidar), seed)
     settings = map_settings(scene, free, resolution, yaw_bins, judge, robot, seed)
@@ -249,6 +278,6 @@ def get_map(scene: Scene, free: FreeSpace, detector: str = "learned", cache_dir:
     if not build:
         raise MapCacheError(f"no {detector} localizability map of scene '{scene.name}' cached for these settings "
                             f"({path}); make it with `l3e policy map --scene {scene.name} --detector {detector}`")
-    result = build_map(scene, free, judge, resolution, yaw_bins, robot, seed, progress=progress)
+    result = build_map(scene, free, judge, resolution, yaw_bins, robot, seed, progress=progress, workers=workers)
     result.save(path)
     return result

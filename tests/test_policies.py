@@ -12,7 +12,7 @@ from l3e_env.registration import RegistrationConfig
 from policies.context import SceneContext, free_space
 from policies.fastenv import MapNavigationEnv
 from policies.freespace import FreeSpace, FreeSpaceError, build_free_space, reachable_from
-from policies.locmap import LocalizabilityMap, MapCacheError, get_map
+from policies.locmap import LocalizabilityMap, MapCacheError, MapJudge, build_map, get_map, scene_lidar
 from policies.observation import PolicyView
 from policies.planner import Planner, PlanningError, drift_rates
 from scenes import make_scene
@@ -144,6 +144,17 @@ def test_eigen_map_is_cached_and_a_missing_cache_is_named(small_fork):
     assert built.masked[rich, 0, 0].mean() < 0.5
     with pytest.raises(ValueError, match="map detector"):
         get_map(scene, space, "none", cache, resolution=4.0)
+
+
+def test_a_map_built_by_two_workers_is_the_same(small_fork):
+    scene, space, _ = small_fork
+    judge = MapJudge("eigen:30", scene_lidar(scene))
+    alone = build_map(scene, space, judge, resolution=4.0, batch=4)
+    shared = build_map(scene, space, judge, resolution=4.0, batch=4, workers=2)
+    assert np.isfinite(alone.probabilities).any()
+    assert np.array_equal(alone.probabilities, shared.probabilities, equal_nan=True)
+    with pytest.raises(ValueError, match="workers must be at least 1"):
+        build_map(scene, space, judge, resolution=4.0, workers=0)
 
 
 def test_learned_map_gives_probabilities(small_fork):

@@ -126,7 +126,7 @@ def test_evaluate_scores_the_scan_estimate_the_same_with_any_number_of_workers(t
                     np.random.default_rng(0))
 
 
-def test_a_map_judge_reads_the_scan_estimate_at_each_pose(rng):
+def test_map_judges_of_the_estimate_and_the_oracle_read_each_pose_by_itself(rng):
     from policies.locmap import MapJudge
 
     lidar = Lidar(EmbreeCaster(_box([200, 4, 3]), threads=1), LidarConfig())
@@ -138,6 +138,13 @@ def test_a_map_judge_reads_the_scan_estimate_at_each_pose(rng):
     probs = judge([along, across], [np.random.default_rng(1), np.random.default_rng(2)])
     assert ((probs > 0) & (probs < 1)).all()
     assert probs[0, 0] > 0.5 > probs[0, 1] and probs[1, 1] > 0.5 > probs[1, 0]
+    # a pose's children come from its own seed, not from the order of the poses
+    again = judge([across, along], [np.random.default_rng(2), np.random.default_rng(1)])
+    assert np.array_equal(again, probs[::-1])
+    # the oracle judges every pose (the fusion's oracle holds its labels over 5 steps; a map must not)
+    oracle = MapJudge("oracle:4", lidar)
+    masks = oracle([along, across, along, across], [np.random.default_rng(i) for i in range(4)])
+    assert masks[:, :2].tolist() == [[1, 0], [0, 1], [1, 0], [0, 1]]
 
 
 def test_a_thinned_scan_is_refused_by_name(rng):
