@@ -179,7 +179,7 @@ def _cmd_ate(args: argparse.Namespace) -> int:
     print(f"writing the experiment into {out.resolve()}")
     rows = run_experiment(out, args.scene, args.detector or ["none", "eigen:30", "eigen:110", "oracle"],
                           sensor=args.sensor, seed=args.seed, recording=args.recording, progress=not args.quiet,
-                          backend=args.backend, scene_params=params)
+                          backend=args.backend, scene_params=params, workers=args.workers)
     print(format_table(rows))
     return 0
 
@@ -341,6 +341,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--recording", help="evaluate a saved recording.npz instead of driving again")
     p.add_argument("--out", help="output folder (default: l3e_out/ate-<scene>-<time>)")
+    p.add_argument("--workers", type=int, default=1,
+                   help="processes that judge the route with scanmc before the fusion (default 1)")
     p.add_argument("--quiet", action="store_true")
     add_mesh_options(p)
     p.set_defaults(func=_cmd_ate)

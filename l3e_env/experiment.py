@@ -12,6 +12,7 @@ import json
 import re
 import time
 from dataclasses import dataclass, field
+from multiprocessing import get_context
 from pathlib import Path
 
 import numpy as np
@@ -22,7 +23,7 @@ from fusion import FusionConfig, MetricError, ate, ate_aligned, check_backend, m
 from scenes import Scene, SceneError, canonical_scene_name, file_sha256, is_mesh_path, make_scene
 
 from .config import EnvConfig, LidarConfig, OdometryConfig
-from .detectors import UNKNOWN, Detector, Prediction, make_detector, safe_predict
+from .detectors import UNKNOWN, Detector, Prediction, ScanMCDetector, make_detector, safe_predict
 from .envs.navigation import NavigationEnv
 from .follower import RouteFollower
 from .labels import AXES
@@ -90,30 +91,59 @@ class Recording:
 
 
 class RecastScans:
-    """A detector that meshes every return of a revolution (scanmc), in a replay. A recording keeps
-    thinned scans, so the scan is cast again from the scene at the recorded true sensor pose: the
-    same scene, sensor and pose, another draw of the range noise and dropout. It is judged every
-    `stride` steps and held between, as the oracle is, since a judgement costs up to M
-    registrations (about 2 s at M = 60)."""
+    """The scan estimate (scanmc), in a replay. It meshes every return of a revolution, and a
+    recording keeps thinned scans, so the scan is cast again from the scene at the recorded true
+    sensor pose: the same scene, sensor and pose, another draw of the range noise and dropout. It
+    is judged every `stride` steps and held between, as the oracle is, since a judgement costs up
+    to M registrations (about 2 s at M = 60). Each judged step draws its scan and children from its
+    own seed, so `judge_ahead` can judge a whole route in several processes first."""
 
-    def __init__(self, detector: Detector, lidar: Lidar, stride: int = 5, seed: int = 0):
+    def __init__(self, detector: ScanMCDetector, lidar: Lidar, stride: int = 5, seed: int = 0):
         if stride < 1:
             raise ValueError(f"a detector is judged every stride >= 1 steps, got {stride}")
         self.detector, self.lidar, self.stride, self.seed = detector, lidar, stride, seed
         self.name = detector.name
-        self._calls, self._last = 0, UNKNOWN
+        self._calls, self._last, self._ahead = 0, UNKNOWN, {}
+
+    def judge_step(self, step: int, T_w_s: np.ndarray) -> Prediction:
+        scan = self.lidar.scan(T_w_s, np.random.default_rng([self.seed, 2, step]))
+        return self.detector.judge(scan.points, np.random.default_rng([self.seed, 3, step]))
+
+    def judge_ahead(self, poses: list[np.ndarray], scene: Scene, workers: int, progress: bool = True) -> None:
+        """Judge the steps that `predict` will be asked for, T_w_s of call k being poses[k]."""
+        steps = list(range(0, len(poses), self.stride))
+        jobs = [(k, poses[k]) for k in steps]
+        with get_context("spawn").Pool(workers, _start_recast_worker, (self, scene.mesh)) as pool:
+            judged = list(tqdm(pool.imap(_recast_in_worker, jobs), total=len(jobs), disable=not progress,
+                               desc=f"judging with {self.name} ({workers} workers)", unit="scan"))
+        self._ahead = dict(zip(steps, judged))
+
+    def __getstate__(self) -> dict:  # a worker gets the settings, and casts against its own scene
+        return {**self.__dict__, "lidar": self.lidar.config, "_ahead": {}}
 
     def predict(self, points: np.ndarray, registration=None, T_w_s: np.ndarray | None = None) -> Prediction:
         if T_w_s is None:
             raise ValueError(f"{self.name} in a replay casts the scan again at the true sensor pose: give T_w_s")
         try:
             if self._calls % self.stride == 0:
-                scan = self.lidar.scan(T_w_s, np.random.default_rng([self.seed, 2, self._calls]))
                 self._last = UNKNOWN  # a judgement that raises is not held over the next steps
-                self._last = self.detector.predict(scan.points, registration, T_w_s)
+                self._last = self._ahead.pop(self._calls, None) or self.judge_step(self._calls, T_w_s)
             return self._last
         finally:
             self._calls += 1
+
+
+_recast: RecastScans | None = None  # a worker's own copy, with a LiDAR on its own copy of the scene
+
+
+def _start_recast_worker(recast: RecastScans, mesh) -> None:
+    global _recast
+    recast.lidar = Lidar(EmbreeCaster(mesh, threads=1), recast.lidar)
+    _recast = recast
+
+
+def _recast_in_worker(job: tuple[int, np.ndarray]) -> Prediction:
+    return _recast.judge_step(*job)
 
 
 def _ragged(name: str, arrays: list[np.ndarray]) -> dict[str, np.ndarray]:
@@ -257,10 +287,13 @@ def _scored(name: str, traj: np.ndarray, gt: np.ndarray, masks: np.ndarray, prob
 
 def run_experiment(out_dir: str | Path, scene: str, detectors: list[str], sensor: str = "vlp16", seed: int = 0,
                    recording: str | Path | None = None, progress: bool = True, backend: str = "graph",
-                   scene_params: dict | None = None) -> list[dict]:
+                   scene_params: dict | None = None, workers: int = 1) -> list[dict]:
     """The `l3e ate` command as a function: returns the table rows and writes everything to out_dir.
     `scene_params` go to make_scene (a mesh scene's up axis, scale and route). With a `recording`,
-    its own scene is used; `scene` matters only as the new path of a recorded mesh that has moved."""
+    its own scene is used; `scene` matters only as the new path of a recorded mesh that has moved.
+    `workers` processes judge the route with scanmc before the fusion (the same judgements as one)."""
+    if workers < 1:
+        raise ValueError(f"workers must be at least 1, got {workers}")
     out = Path(out_dir)
     rec = Recording.load(recording) if recording else None
     scene_obj = (make_scene(rec.scene_file(moved_to=scene), **rec.scene_params) if rec
@@ -276,6 +309,9 @@ def run_experiment(out_dir: str | Path, scene: str, detectors: list[str], sensor
     t0 = time.perf_counter()
     regs = register_sequence(rec, RegistrationConfig(), progress)
     icp_seconds = time.perf_counter() - t0
+    for det in dets:
+        if isinstance(det, RecastScans) and workers > 1:  # call k of the fusion is at the pose of scan k + 1
+            det.judge_ahead([T @ rec.T_b_s for T in rec.ground_truth[1:]], scene_obj, workers, progress)
     results = [odometry_only(rec)] + evaluate(rec, dets, regs, progress=progress, backend=backend)
     rows = [r.row() for r in results]
     failed = sum(r is None or not r.converged for r in regs)

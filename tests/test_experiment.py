@@ -2,10 +2,9 @@ import json
 
 import numpy as np
 import pytest
-import trimesh
 
 from l3e_env.config import LidarConfig
-from l3e_env.detectors import EigenvalueDetector, NoDetector, Prediction, make_detector
+from l3e_env.detectors import EigenvalueDetector, NoDetector, make_detector
 from l3e_env.experiment import (
     RecastScans, Recording, evaluate, file_stem, format_table, record_run, register_sequence, run_experiment,
 )
@@ -13,6 +12,7 @@ from l3e_env.labels import AXES
 from l3e_env.lidar import Lidar
 from l3e_env.raycast import EmbreeCaster
 from l3e_env.registration import RegistrationConfig
+from scenes import make_scene
 
 
 @pytest.fixture(scope="module")
@@ -53,35 +53,44 @@ def test_ate_from_a_recording_writes_results_and_figures(walls_run, tmp_path):
 def test_scanmc_in_a_replay_judges_scans_cast_again_at_the_true_poses(walls_run, tmp_path):
     rec, _ = walls_run  # two parallel walls: x (along them) is degenerate, nothing else
     rec.save(tmp_path / "rec.npz")
-    run_experiment(tmp_path / "out", "ignored", ["scanmc:10"], recording=tmp_path / "rec.npz", progress=False)
+    run_experiment(tmp_path / "out", "ignored", ["scanmc:4"], recording=tmp_path / "rec.npz", progress=False,
+                   workers=2)
     (row,) = [r for r in json.loads((tmp_path / "out" / "results.json").read_text())["rows"]
-              if r["detector"] == "scanmc:10"]
+              if r["detector"] == "scanmc:4"]
     assert row["unknown_steps"] == row["detector_errors"] == 0  # the recording's thinned scans would all be unknown
     assert row["flagged_x"] > 0.8 and max(row[f"flagged_{a}"] for a in AXES[1:]) < 0.2
 
 
-def test_a_recast_detector_is_judged_every_stride_steps_and_a_failure_is_not_held():
-    class Counting:
-        name, calls = "counting", []
+def test_a_recast_detector_judges_every_stride_steps_alike_in_workers_and_holds_no_failure(walls_run):
+    rec, _ = walls_run
+    scene = make_scene(rec.scene)
+    lidar = Lidar(EmbreeCaster(scene.mesh), LidarConfig())
+    poses = [T @ rec.T_b_s for T in rec.ground_truth[1:13]]
 
-        def predict(self, points, registration=None, T_w_s=None):
-            self.calls.append(len(points))
-            if len(self.calls) == 2:
-                raise RuntimeError("a detector bug")
-            return Prediction(np.ones(6), np.ones(6, bool))
+    def replay(recast):
+        return [recast.predict(rec.scans[0], None, T) for T in poses]
 
-    lidar = Lidar(EmbreeCaster(trimesh.creation.box([10, 10, 4])), LidarConfig())
-    recast = RecastScans(Counting(), lidar, stride=3)
-    known = []
-    for _ in range(9):
-        try:
-            known.append(recast.predict(np.zeros((5, 3)), None, np.eye(4)).known)
-        except RuntimeError:
-            known.append(None)
-    assert len(Counting.calls) == 3 and min(Counting.calls) > 1000  # steps 0, 3, 6, on full scans
-    assert known == [True] * 3 + [None, False, False] + [True] * 3
+    alone = replay(RecastScans(make_detector("scanmc:3", lidar), lidar, stride=4))
+    ahead = RecastScans(make_detector("scanmc:3", lidar), lidar, stride=4)
+    ahead.judge_ahead(poses, scene, workers=2, progress=False)
+    assert ahead._ahead.keys() == {0, 4, 8}
+    shared = replay(ahead)
+    assert all(p.known for p in alone) and not ahead._ahead  # every judgement taken from the workers
+    assert all(np.array_equal(a.probabilities, b.probabilities) for a, b in zip(alone, shared))
+    assert [p.probabilities.tolist() for p in alone[:4]] == [alone[0].probabilities.tolist()] * 4  # held
+
+    class Failing:
+        name = "failing"
+
+        def judge(self, points, rng):
+            raise RuntimeError("a detector bug")
+
+    failing = RecastScans(Failing(), lidar, stride=4)
+    with pytest.raises(RuntimeError):
+        failing.predict(rec.scans[0], None, poses[0])
+    assert not failing.predict(rec.scans[0], None, poses[1]).known  # not held as a judgement
     with pytest.raises(ValueError, match="true sensor pose"):
-        recast.predict(np.zeros((5, 3)))
+        failing.predict(rec.scans[0])
 
 
 def test_a_users_mesh_and_route_are_driven_and_replayed(cad_corridor, tmp_path, capsys):
