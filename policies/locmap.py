@@ -6,8 +6,8 @@ import hashlib
 import json
 import os
 from contextlib import nullcontext
-from multiprocessing import get_context
 from dataclasses import dataclass, field
+from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
 
