@@ -248,7 +248,7 @@ def _cmd_judge(args: argparse.Namespace) -> int:
 
     specs = args.detector or ["learned", "eigen:30", "scanmc"]
     judgements = []  # printed as each scan is judged; an unreadable file is named and the next one read
-    for j in judge_scans(args.scans, specs, LidarConfig(model=args.sensor), seed=args.seed):
+    for j in judge_scans(args.scans, specs, LidarConfig(model=args.sensor), seed=args.seed, workers=args.workers):
         judgements.append(j)
         print(format_judgement(j), file=sys.stderr if j.error else sys.stdout, flush=True)
     print("scores ('*' flagged):\n" + score_legend(specs))
@@ -405,6 +405,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--sensor", default="vlp16",
                    help="the LiDAR that took the scans: vlp16 or os0-128 (scanmc needs its beams; default vlp16)")
     p.add_argument("--seed", type=int, default=0, help="seed of scanmc's children")
+    p.add_argument("--workers", type=int, default=1, help="files judged side by side in processes (default 1)")
     p.add_argument("--json", help="also write the scores here")
     p.set_defaults(func=_cmd_judge)
     p = sub.add_parser("calibrate", help="add symmetric-inference thresholds to a checkpoint, from its validation "

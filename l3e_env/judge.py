@@ -6,12 +6,13 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from dataclasses import dataclass
+from multiprocessing import get_context
 from pathlib import Path
 
 import numpy as np
 
 from .config import LidarConfig
-from .detectors import Detector, EigenvalueDetector, Prediction, make_detector
+from .detectors import Detector, EigenvalueDetector, Prediction, ScanMCDetector, make_detector
 from .labels import AXES
 from .lidar import get_pattern
 from .registration import RegistrationConfig, RegistrationError, RegistrationResult, scan_hessian
@@ -120,10 +121,11 @@ def read_scan(path: str | Path) -> np.ndarray:
     return points[:, :3].astype(np.float64)
 
 
-def judge_points(points: np.ndarray, detectors: list[Detector],
-                 registration: RegistrationConfig | None = None) -> dict[str, Prediction]:
+def judge_points(points: np.ndarray, detectors: list[Detector], registration: RegistrationConfig | None = None,
+                 rng: np.random.Generator | None = None) -> dict[str, Prediction]:
     """Each detector's prediction for one scan (UNKNOWN where it cannot judge it). The eigenvalue
-    test reads the Hessian of the scan registered onto itself, as `l3e evaluate` scores it."""
+    test reads the Hessian of the scan registered onto itself, as `l3e evaluate` scores it; scanmc
+    draws its children from `rng` where given."""
     onto_itself = None  # eigen answers UNKNOWN without it; the others do not read it
     if any(isinstance(d, EigenvalueDetector) for d in detectors):
         try:
@@ -131,26 +133,55 @@ def judge_points(points: np.ndarray, detectors: list[Detector],
             onto_itself = RegistrationResult(np.eye(4), H, True, 0, len(points), len(points), 0.0)
         except RegistrationError:
             pass
-    return {d.name: d.predict(points, onto_itself, None) for d in detectors}
+    return {d.name: d.judge(points, rng) if rng is not None and isinstance(d, ScanMCDetector)
+            else d.predict(points, onto_itself, None) for d in detectors}
+
+
+def _judge_file(index: int, path: str | Path, detectors: list[Detector], seed: int) -> Judgement:
+    """The file read and judged; scanmc's children are seeded by the file's place in the list, so
+    that a file is judged alike alone or in a worker."""
+    try:
+        points = read_scan(path)
+    except ScanFileError as exc:
+        return Judgement(str(path), 0, 0, {}, error=str(exc))
+    kept = np.isfinite(points).all(axis=1) & (np.abs(points).sum(axis=1) > 0)
+    return Judgement(str(path), int(kept.sum()), int((~kept).sum()),
+                     judge_points(points[kept], detectors, rng=np.random.default_rng([seed, index])))
+
+
+_worker: tuple[list[Detector], int] | None = None  # a judging worker's own detectors and seed
+
+
+def _start_judge_worker(specs: list[str], sensor: LidarConfig, seed: int) -> None:
+    global _worker
+    import torch
+
+    torch.set_num_threads(1)  # the workers share the cores
+    _worker = [make_detector(spec, seed=seed, sensor=sensor) for spec in specs], seed
+
+
+def _judge_in_worker(job: tuple[int, str]) -> Judgement:
+    return _judge_file(*job, *_worker)
 
 
 def judge_scans(paths: list[str | Path], specs: list[str], sensor: LidarConfig | None = None,
-                seed: int = 0) -> Iterator[Judgement]:
+                seed: int = 0, workers: int = 1) -> Iterator[Judgement]:
     """Read each scan file, drop its points without a return, and judge it with each detector
     ('learned[...]', 'eigen:<tau>', 'scanmc[:M]', 'none'; make_detector refuses the oracle,
-    which needs a scene), one file at a time. A file that cannot be read gives a Judgement with
-    its `error`, and the next one is read."""
+    which needs a scene), in the order given, `workers` files at a time. A file that cannot be
+    read gives a Judgement with its `error`, and the next one is read."""
     sensor = sensor or LidarConfig()
     get_pattern(sensor.model)  # an unknown sensor is named before any file is read
-    detectors = [make_detector(spec, seed=seed, sensor=sensor) for spec in specs]
-    for path in paths:
-        try:
-            points = read_scan(path)
-        except ScanFileError as exc:
-            yield Judgement(str(path), 0, 0, {}, error=str(exc))
-            continue
-        kept = np.isfinite(points).all(axis=1) & (np.abs(points).sum(axis=1) > 0)
-        yield Judgement(str(path), int(kept.sum()), int((~kept).sum()), judge_points(points[kept], detectors))
+    if workers < 1:
+        raise ValueError(f"workers must be at least 1, got {workers}")
+    detectors = [make_detector(spec, seed=seed, sensor=sensor) for spec in specs]  # a bad spec fails here
+    jobs = [(i, str(path)) for i, path in enumerate(paths)]
+    if workers > 1 and len(jobs) > 1:
+        with get_context("spawn").Pool(workers, _start_judge_worker, (specs, sensor, seed)) as pool:
+            yield from pool.imap(_judge_in_worker, jobs)
+    else:
+        for i, path in jobs:
+            yield _judge_file(i, path, detectors, seed)
 
 
 def format_judgement(j: Judgement) -> str:

@@ -106,3 +106,20 @@ def test_the_judge_command_prints_and_writes_the_scores(tmp_path, rng, capsys):
     assert "none: localizable along every axis" in captured.out
     saved = json.loads(out.read_text())
     assert "no such file" in saved[0]["error"] and saved[1]["detectors"]["none"]["known"]
+
+
+def test_files_judged_by_two_workers_are_judged_alike_and_in_order(tmp_path, rng):
+    np.save(tmp_path / "a.npy", _corridor_scan(rng))
+    (tmp_path / "b.npy").write_bytes(b"broken")
+    np.save(tmp_path / "c.npy", _corridor_scan(rng))
+    paths = [tmp_path / n for n in ("a.npy", "b.npy", "c.npy")]
+    alone = list(judge_scans(paths, ["scanmc:4", "eigen:30"]))
+    shared = list(judge_scans(paths, ["scanmc:4", "eigen:30"], workers=2))
+    assert [j.path for j in shared] == [str(p) for p in paths] and "b.npy" in shared[1].error
+    for a, b in zip(alone, shared):
+        assert a.predictions.keys() == b.predictions.keys()
+        for name in a.predictions:
+            assert np.array_equal(a.predictions[name].probabilities, b.predictions[name].probabilities)
+    assert shared[0].predictions["scanmc:4"].mask.tolist() == [True] + [False] * 5
+    with pytest.raises(ValueError, match="workers must be at least 1"):
+        list(judge_scans(paths, ["none"], workers=0))
