@@ -1,5 +1,6 @@
-"""Localizability maps: the learned detector evaluated over a grid of level body poses (x, y,
-yaw bins) covering a scene's free space, cached on disk by scene, sensor, model and grid."""
+"""Localizability maps: a detector (learned, eigen, oracle or scanmc) evaluated over a grid of
+level body poses (x, y, yaw bins) covering a scene's free space, cached on disk by scene, sensor,
+detector and grid."""
 from __future__ import annotations
 
 import hashlib
