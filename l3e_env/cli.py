@@ -117,15 +117,58 @@ def _cmd_envs(args: argparse.Namespace) -> int:
     return 0
 
 
+MESH_KEYS = {"mesh", "route", "up_axis", "scale"}
+
+
+def meshes_file(path: str | Path) -> dict[str, dict]:
+    """The meshes a YAML file lists, each as {mesh: FILE, route: FILE or [FILE, ...], up_axis: z,
+    scale: 1} with paths relative to the file's folder: absolute mesh path -> make_scene's
+    arguments. ValueError naming the entry where one is malformed."""
+    import yaml
+
+    from scenes import canonical_scene_name, is_mesh_path, load_route
+
+    path = Path(path)
+    try:
+        entries = yaml.safe_load(path.read_text())
+    except (OSError, yaml.YAMLError) as exc:
+        raise ValueError(f"{path}: cannot read the list of meshes ({exc})") from exc
+    if not isinstance(entries, list) or not entries or not all(isinstance(e, dict) for e in entries):
+        raise ValueError(f"{path}: give a list of meshes, each as 'mesh: FILE' and 'route: FILE' (up_axis, scale "
+                         "optional)")
+    meshes: dict[str, dict] = {}
+    for i, entry in enumerate(entries, 1):
+        where = f"{path}, mesh {i}"
+        if unknown := set(entry) - MESH_KEYS:
+            raise ValueError(f"{where}: unknown keys {sorted(unknown)} (known: {sorted(MESH_KEYS)})")
+        if "mesh" not in entry or "route" not in entry or not is_mesh_path(str(entry["mesh"])):
+            raise ValueError(f"{where}: give 'mesh' (a mesh file) and 'route' (its waypoint file or files)")
+        up_axis, scale = str(entry.get("up_axis", "z")), float(entry.get("scale", 1.0))
+        routes = entry["route"] if isinstance(entry["route"], list) else [entry["route"]]
+        name = canonical_scene_name(str(path.parent / str(entry["mesh"])))
+        if name in meshes:
+            raise ValueError(f"{where}: {name} is listed twice (give one mesh its routes as a list)")
+        meshes[name] = {"up_axis": up_axis, "scale": scale, "sampling_paths": [
+            load_route(path.parent / str(r), up_axis, scale).tolist() for r in routes]}
+    return meshes
+
+
 def dataset_scenes(args: argparse.Namespace) -> tuple[list[str] | None, dict[str, dict]]:
     """--scenes with a mesh file's path made absolute (a dataset names its scenes for good), and
-    the mesh's make_scene arguments from the mesh options; ValueError where they do not apply."""
+    each mesh's make_scene arguments from the mesh options or the --meshes file; ValueError where
+    they do not apply."""
     from scenes import canonical_scene_name, is_mesh_path
 
     meshes = [s for s in args.scenes or [] if is_mesh_path(s)]
+    if args.meshes:
+        if meshes or mesh_options_given(args):
+            raise ValueError("--meshes lists the meshes with their routes, axes and scales: give no mesh in --scenes "
+                             "and no --route, --up-axis or --scale beside it")
+        listed = meshes_file(args.meshes)
+        return [*(args.scenes or []), *listed], listed
     if len(meshes) > 1:
-        raise ValueError(f"one mesh file per dataset, as --route gives one route; got {', '.join(meshes)} "
-                         "(make a dataset of each and pass them all to train or evaluate)")
+        raise ValueError(f"one mesh file in --scenes, as --route gives one mesh's route; got {', '.join(meshes)} "
+                         "(list several meshes with their routes in a --meshes file)")
     if not meshes:
         scene_params(args, (args.scenes or ["the preset's scenes"])[0])  # refuses stray mesh options
         return args.scenes, {}
@@ -319,6 +362,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "(level, heading along or across the paths)")
     g.add_argument("--scenes", type=scene_names,
                    help="comma-separated scene names (overrides the preset); one may be a mesh file, with --route")
+    g.add_argument("--meshes", help="YAML list of mesh scenes: mesh, route (a file or a list), up_axis, scale; paths "
+                                    "relative to the YAML's folder (joins --scenes, or replaces the preset's scenes)")
     g.add_argument("--parents", type=int, help="parents per scene")
     g.add_argument("--children", type=int, help="M, children per parent (paper: 200)")
     g.add_argument("--sensor", type=sensor_name, help="vlp16 or os0-128")

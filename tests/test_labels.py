@@ -3,6 +3,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import trimesh
 
 from scenes import SceneError
 from l3e_env.dataset import DatasetError, LabelDataset, config_for, generate, label_statistics
@@ -170,10 +171,47 @@ def test_a_users_mesh_is_labelled_resumed_by_its_own_bytes_and_scored(cad_corrid
     assert "other settings (mesh_sha256)" in capsys.readouterr().err
     # a mesh needs its route, one mesh a dataset, mesh options a mesh; all refused before the folder
     for scenes, extra, message in [(str(mesh), [], "give its route"),
-                                   (f"{mesh},{mesh}", ["--route", str(route)], "one mesh file per dataset"),
+                                   (f"{mesh},{mesh}", ["--route", str(route)], "one mesh file in --scenes"),
                                    ("office-0", ["--route", str(route)], "only for a scene given as a mesh")]:
         assert main(["dataset", "generate", "--out", str(tmp_path / "no"), "--scenes", scenes, *extra]) == 2
         assert message in capsys.readouterr().err
+    assert not (tmp_path / "no").exists()
+
+
+def test_several_meshes_are_labelled_from_a_list_with_their_own_routes_axes_and_scales(cad_corridor, tmp_path,
+                                                                                        capsys):
+    from l3e_env.cli import main
+
+    mesh, route = cad_corridor  # y up, millimetres
+    folder = tmp_path / "meshes"
+    folder.mkdir()
+    z_up = trimesh.load(mesh, force="mesh")
+    z_up.vertices = z_up.vertices @ np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]]).T / 1000  # z up, metres
+    z_up.export(folder / "plain.stl")
+    np.savetxt(folder / "plain.txt", [[1.0, 0], [8, 0]])
+    listing = folder / "list.yaml"
+    listing.write_text(f"- mesh: {mesh}\n  route: [{route}]\n  up_axis: y\n  scale: 0.001\n"
+                       "- mesh: plain.stl\n  route: plain.txt\n")  # relative to the list's folder
+    out = tmp_path / "d"
+    assert main(["dataset", "generate", "--out", str(out), "--meshes", str(listing), "--parents", "2",
+                 "--children", "5", "--workers", "1", "--quiet"]) == 0
+    data = LabelDataset(out)
+    assert data.manifest["scenes"] == [str(mesh.resolve()), str((folder / "plain.stl").resolve())]
+    scene = np.asarray(data.arrays["scene"])
+    for i in (0, 1):  # each sampled along its own route, on its own floor, in metres
+        ground = data.poses[scene == i][:, :3, 3]
+        assert len(ground) == 2 and (ground[:, 0] > 0.5).all() and (ground[:, 0] < 8.5).all()
+        assert (np.abs(ground[:, 1]) < 1.7).all() and (np.abs(ground[:, 2] - 0.85) < 1.2).all()
+    # a malformed list is named, and refused before the folder
+    for text, message in [("mesh: a.obj", "give a list of meshes"), ("- mesh: plain.stl", "give 'mesh'"),
+                          ("- mesh: plain.stl\n  route: plain.txt\n  units: mm", "unknown keys"),
+                          ("- mesh: plain.stl\n  route: missing.txt", "route file not found")]:
+        listing.write_text(text)
+        assert main(["dataset", "generate", "--out", str(tmp_path / "no"), "--meshes", str(listing)]) == 2
+        assert message in capsys.readouterr().err
+    assert main(["dataset", "generate", "--out", str(tmp_path / "no"), "--meshes", str(listing), "--route",
+                 str(route)]) == 2
+    assert "give no mesh in --scenes" in capsys.readouterr().err
     assert not (tmp_path / "no").exists()
 
 
