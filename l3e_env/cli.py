@@ -41,9 +41,13 @@ def float_list(text: str) -> tuple[float, ...]:
         raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got '{text}'") from None
 
 
-def add_mesh_options(parser: argparse.ArgumentParser) -> None:
-    """--route, --up-axis and --scale: what it takes to drive a scene given as a mesh file."""
+def add_mesh_options(parser: argparse.ArgumentParser, several: bool = False) -> None:
+    """--route, --up-axis and --scale: what it takes to drive a scene given as a mesh file; with
+    `several`, also --meshes, a YAML list of meshes with their own."""
     g = parser.add_argument_group("a scene given as a mesh file (OBJ, STL, PLY, GLB, glTF, OFF)")
+    if several:
+        g.add_argument("--meshes", help="YAML list of mesh scenes: mesh, route (a file or a list), up_axis, scale; "
+                                        "paths relative to the YAML's folder (they join the scenes given)")
     g.add_argument("--route", action="append",
                    help="text file of waypoints on the floor, one 'x y z' per line, in the mesh's axes and units "
                         "(needed to drive a mesh); repeat for more paths: the first is the one driven, and labels "
@@ -120,14 +124,18 @@ def _cmd_envs(args: argparse.Namespace) -> int:
 MESH_KEYS = {"mesh", "route", "up_axis", "scale"}
 
 
-def meshes_file(path: str | Path) -> dict[str, dict]:
+def meshes_file(path: str | Path, scenes: list[str], options: list[str]) -> dict[str, dict]:
     """The meshes a YAML file lists, each as {mesh: FILE, route: FILE or [FILE, ...], up_axis: z,
     scale: 1} with paths relative to the file's folder: absolute mesh path -> make_scene's
-    arguments. ValueError naming the entry where one is malformed."""
+    arguments. ValueError naming the entry where one is malformed, or where a mesh or mesh
+    options (`options`, as spelt) are also given beside the file."""
     import yaml
 
     from scenes import canonical_scene_name, is_mesh_path, load_route
 
+    if any(is_mesh_path(s) for s in scenes) or options:
+        raise ValueError("--meshes lists the meshes with their routes, axes and scales: give no other mesh scene and "
+                         "no --route, --up-axis or --scale beside it")
     path = Path(path)
     try:
         entries = yaml.safe_load(path.read_text())
@@ -161,10 +169,7 @@ def dataset_scenes(args: argparse.Namespace) -> tuple[list[str] | None, dict[str
 
     meshes = [s for s in args.scenes or [] if is_mesh_path(s)]
     if args.meshes:
-        if meshes or mesh_options_given(args):
-            raise ValueError("--meshes lists the meshes with their routes, axes and scales: give no mesh in --scenes "
-                             "and no --route, --up-axis or --scale beside it")
-        listed = meshes_file(args.meshes)
+        listed = meshes_file(args.meshes, args.scenes or [], mesh_options_given(args))
         return [*(args.scenes or []), *listed], listed
     if len(meshes) > 1:
         raise ValueError(f"one mesh file in --scenes, as --route gives one mesh's route; got {', '.join(meshes)} "
@@ -362,8 +367,6 @@ def build_parser() -> argparse.ArgumentParser:
                         "(level, heading along or across the paths)")
     g.add_argument("--scenes", type=scene_names,
                    help="comma-separated scene names (overrides the preset); one may be a mesh file, with --route")
-    g.add_argument("--meshes", help="YAML list of mesh scenes: mesh, route (a file or a list), up_axis, scale; paths "
-                                    "relative to the YAML's folder (joins --scenes, or replaces the preset's scenes)")
     g.add_argument("--parents", type=int, help="parents per scene")
     g.add_argument("--children", type=int, help="M, children per parent (paper: 200)")
     g.add_argument("--sensor", type=sensor_name, help="vlp16 or os0-128")
@@ -372,7 +375,7 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--backend", choices=["local", "ray"], default="local")
     g.add_argument("--address", help="Ray cluster address (default: start a local Ray instance)")
     g.add_argument("--quiet", action="store_true")
-    add_mesh_options(g)
+    add_mesh_options(g, several=True)
     g.set_defaults(func=_cmd_dataset_generate)
     g = dsub.add_parser("stats", help="label statistics of a dataset")
     g.add_argument("folder")

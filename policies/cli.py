@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from l3e_env.cli import add_mesh_options, mesh_options_given, scene_names, scene_params, sensor_name
+from l3e_env.cli import add_mesh_options, mesh_options_given, meshes_file, scene_names, scene_params, sensor_name
 
 
 def _scenes_with_params(args: argparse.Namespace, default: tuple[str, ...] = ("fork",)) -> dict[str, dict]:
@@ -18,9 +18,14 @@ def _scenes_with_params(args: argparse.Namespace, default: tuple[str, ...] = ("f
     any working folder."""
     from scenes import canonical_scene_name
 
+    if args.meshes:  # the listed meshes, after the scenes given (no default variants then)
+        names = [canonical_scene_name(s) for group in args.scene or [] for s in group]
+        listed = meshes_file(args.meshes, names, mesh_options_given(args))
+        return {**{name: {} for name in names}, **listed}
     names = [canonical_scene_name(s) for group in args.scene or [list(default)] for s in group]
     if len(names) > 1 and mesh_options_given(args):
-        raise ValueError("--route, --up-axis and --scale describe one mesh: give it as the only --scene")
+        raise ValueError("--route, --up-axis and --scale describe one mesh: give it as the only --scene, or list "
+                         "several meshes in a --meshes file")
     return {name: scene_params(args, name) for name in names}
 
 
@@ -115,7 +120,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--resolution", type=float, default=2.0, help="metres between mapped positions (default 2)")
     g.add_argument("--out", help="folder for the plots (default: l3e_out/maps)")
     g.add_argument("--workers", type=int, default=1, help="processes that build a map not yet cached")
-    add_mesh_options(g)
+    add_mesh_options(g, several=True)
     g.set_defaults(func=_cmd_map)
     g = psub.add_parser("plan", parents=[common], help="shortest path and localizability-aware plan, with a plot")
     g.add_argument("--scene", type=scene_names, action="append", help="scene names (default: fork)")
@@ -125,7 +130,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--goal", type=float, nargs=2, metavar=("X", "Y"), help="default: the scene's goal")
     g.add_argument("--out", help="folder for the plots (default: l3e_out/plans)")
     g.add_argument("--workers", type=int, default=1, help="processes that build a map not yet cached")
-    add_mesh_options(g)
+    add_mesh_options(g, several=True)
     g.set_defaults(func=_cmd_plan)
     g = psub.add_parser("train", parents=[common], help="train a PPO navigation policy on fork variants (resumable)")
     g.add_argument("--out", required=True, help="run folder (an unfinished run there is resumed)")
@@ -135,7 +140,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--envs", type=int, default=4, help="environments stepped together (default 4)")
     g.add_argument("--lam", type=float, default=50.0, help="weight of expected drift in the reward (default 50)")
     g.add_argument("--seed", type=int, default=0)
-    add_mesh_options(g)
+    add_mesh_options(g, several=True)
     g.set_defaults(func=_cmd_train)
     g = psub.add_parser("evaluate", parents=[common], help="seeded full-pipeline episodes: success, route, ATE, length")
     g.add_argument("--policy", action="append",
@@ -150,5 +155,5 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="pose the policies steer on (default: the fused estimate); ATE is measured either way")
     g.add_argument("--seed", type=int, default=0)
     g.add_argument("--out", help="output folder (default: l3e_out/policy-eval-<time>)")
-    add_mesh_options(g)
+    add_mesh_options(g, several=True)
     g.set_defaults(func=_cmd_evaluate)

@@ -211,7 +211,7 @@ def test_several_meshes_are_labelled_from_a_list_with_their_own_routes_axes_and_
         assert message in capsys.readouterr().err
     assert main(["dataset", "generate", "--out", str(tmp_path / "no"), "--meshes", str(listing), "--route",
                  str(route)]) == 2
-    assert "give no mesh in --scenes" in capsys.readouterr().err
+    assert "give no other mesh scene" in capsys.readouterr().err
     assert not (tmp_path / "no").exists()
 
 

@@ -318,6 +318,18 @@ def test_a_users_mesh_is_mapped_and_planned(tmp_path, capsys):
     assert "corridor shortest" in capsys.readouterr().out
     assert main(["policy", "map", *mesh_args, "--scene", "fork-0"]) == 2
     assert "describe one mesh" in capsys.readouterr().err
+    # several meshes from a list, each with its own route: the same corridor, and a copy of it
+    (tmp_path / "copy").mkdir()
+    (tmp_path / "copy" / "tube.stl").write_bytes((tmp_path / "corridor.stl").read_bytes())
+    (tmp_path / "list.yaml").write_text("- mesh: corridor.stl\n  route: route.txt\n"
+                                        "- mesh: copy/tube.stl\n  route: [route.txt]\n")
+    listed = ["--meshes", str(tmp_path / "list.yaml"), "--resolution", "4", *mesh_args[4:]]
+    assert main(["policy", "map", *listed]) == 0
+    printed = [line for line in capsys.readouterr().out.splitlines() if "masked:" in line]
+    assert [line.split(":")[0] for line in printed] == ["corridor", "tube"]
+    assert all(line.split("masked:")[1].split()[:4] == ["x", "50%", "y", "50%"] for line in printed)
+    assert main(["policy", "map", *listed, "--route", str(tmp_path / "route.txt")]) == 2
+    assert "give no other mesh scene" in capsys.readouterr().err
 
 
 def test_a_users_mesh_is_driven_by_the_policies(cad_corridor, tmp_path, capsys, monkeypatch):
