@@ -151,12 +151,14 @@ def meshes_file(path: str | Path, scenes: list[str], options: list[str]) -> dict
             raise ValueError(f"{where}: unknown keys {sorted(unknown)} (known: {sorted(MESH_KEYS)})")
         if "mesh" not in entry or "route" not in entry or not is_mesh_path(str(entry["mesh"])):
             raise ValueError(f"{where}: give 'mesh' (a mesh file) and 'route' (its waypoint file or files)")
-        up_axis, scale = str(entry.get("up_axis", "z")), float(entry.get("scale", 1.0))
+        up_axis, scale = str(entry.get("up_axis", "z")), entry.get("scale", 1.0)
+        if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not scale > 0:
+            raise ValueError(f"{where}: scale is metres per mesh unit, a positive number; got {scale!r}")
         routes = entry["route"] if isinstance(entry["route"], list) else [entry["route"]]
         name = canonical_scene_name(str(path.parent / str(entry["mesh"])))
         if name in meshes:
             raise ValueError(f"{where}: {name} is listed twice (give one mesh its routes as a list)")
-        meshes[name] = {"up_axis": up_axis, "scale": scale, "sampling_paths": [
+        meshes[name] = {"up_axis": up_axis, "scale": float(scale), "sampling_paths": [
             load_route(path.parent / str(r), up_axis, scale).tolist() for r in routes]}
     return meshes
 

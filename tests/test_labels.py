@@ -205,6 +205,7 @@ def test_several_meshes_are_labelled_from_a_list_with_their_own_routes_axes_and_
     # a malformed list is named, and refused before the folder
     for text, message in [("mesh: a.obj", "give a list of meshes"), ("- mesh: plain.stl", "give 'mesh'"),
                           ("- mesh: plain.stl\n  route: plain.txt\n  units: mm", "unknown keys"),
+                          ("- mesh: plain.stl\n  route: plain.txt\n  scale: mm", "mesh 1: scale is metres"),
                           ("- mesh: plain.stl\n  route: missing.txt", "route file not found")]:
         listing.write_text(text)
         assert main(["dataset", "generate", "--out", str(tmp_path / "no"), "--meshes", str(listing)]) == 2
