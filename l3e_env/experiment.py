@@ -12,7 +12,6 @@ import json
 import re
 import time
 from dataclasses import dataclass, field
-from multiprocessing import get_context
 from pathlib import Path
 
 import numpy as np
@@ -32,6 +31,7 @@ from .odometry import odometry_sigmas
 from .raycast import EmbreeCaster
 from .registration import PreparedTarget, RegistrationConfig, RegistrationError, register
 from .transforms import inverse
+from .workers import ordered_map
 
 STORE_VOXEL = 0.2  # stored scans for ICP are thinned (ICP downsamples to 0.3 m anyway)
 CLASSIFIER_POINTS = 4000  # the classifier's input size (ModelConfig.points)
@@ -113,9 +113,9 @@ class RecastScans:
         """Judge the steps that `predict` will be asked for, T_w_s of call k being poses[k]."""
         steps = list(range(0, len(poses), self.stride))
         jobs = [(k, poses[k]) for k in steps]
-        with get_context("spawn").Pool(workers, _start_recast_worker, (self, scene.mesh)) as pool:
-            judged = list(tqdm(pool.imap(_recast_in_worker, jobs), total=len(jobs), disable=not progress,
-                               desc=f"judging with {self.name} ({workers} workers)", unit="scan"))
+        judged = list(tqdm(ordered_map(_judge_recast_step, jobs, self, _recast_on, (self, scene.mesh), workers),
+                           total=len(jobs), disable=not progress,
+                           desc=f"judging with {self.name} ({workers} workers)", unit="scan"))
         self._ahead = dict(zip(steps, judged))
 
     def __getstate__(self) -> dict:  # a worker gets the settings, and casts against its own scene
@@ -133,17 +133,14 @@ class RecastScans:
             self._calls += 1
 
 
-_recast: RecastScans | None = None  # a worker's own copy, with a LiDAR on its own copy of the scene
-
-
-def _start_recast_worker(recast: RecastScans, mesh) -> None:
-    global _recast
+def _recast_on(recast: RecastScans, mesh) -> RecastScans:
+    """A worker's own copy, with a LiDAR on its own copy of the scene."""
     recast.lidar = Lidar(EmbreeCaster(mesh, threads=1), recast.lidar)
-    _recast = recast
+    return recast
 
 
-def _recast_in_worker(job: tuple[int, np.ndarray]) -> Prediction:
-    return _recast.judge_step(*job)
+def _judge_recast_step(recast: RecastScans, job: tuple[int, np.ndarray]) -> Prediction:
+    return recast.judge_step(*job)
 
 
 def _ragged(name: str, arrays: list[np.ndarray]) -> dict[str, np.ndarray]:

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from dataclasses import dataclass
-from multiprocessing import get_context
 from pathlib import Path
 
 import numpy as np
@@ -16,6 +15,7 @@ from .detectors import Detector, EigenvalueDetector, Prediction, ScanMCDetector,
 from .labels import AXES
 from .lidar import get_pattern
 from .registration import RegistrationConfig, RegistrationError, RegistrationResult, scan_hessian
+from .workers import ordered_map
 
 FORMATS = {".npy": "numpy (N, >=3)", ".npz": "numpy archive ('points' or its only array)",
            ".bin": "KITTI float32 x y z intensity", ".ply": "PLY", ".pcd": "PCD (ascii or binary)",
@@ -149,19 +149,13 @@ def _judge_file(index: int, path: str | Path, detectors: list[Detector], seed: i
                      judge_points(points[kept], detectors, rng=np.random.default_rng([seed, index])))
 
 
-_worker: tuple[list[Detector], int] | None = None  # a judging worker's own detectors and seed
+def _judges(specs: list[str], sensor: LidarConfig, seed: int) -> tuple[list[Detector], int]:
+    """A judging worker's own detectors, and the seed."""
+    return [make_detector(spec, seed=seed, sensor=sensor) for spec in specs], seed
 
 
-def _start_judge_worker(specs: list[str], sensor: LidarConfig, seed: int) -> None:
-    global _worker
-    import torch
-
-    torch.set_num_threads(1)  # the workers share the cores
-    _worker = [make_detector(spec, seed=seed, sensor=sensor) for spec in specs], seed
-
-
-def _judge_in_worker(job: tuple[int, str]) -> Judgement:
-    return _judge_file(*job, *_worker)
+def _judge_job(judges: tuple[list[Detector], int], job: tuple[int, str]) -> Judgement:
+    return _judge_file(*job, *judges)
 
 
 def judge_scans(paths: list[str | Path], specs: list[str], sensor: LidarConfig | None = None,
@@ -176,12 +170,7 @@ def judge_scans(paths: list[str | Path], specs: list[str], sensor: LidarConfig |
         raise ValueError(f"workers must be at least 1, got {workers}")
     detectors = [make_detector(spec, seed=seed, sensor=sensor) for spec in specs]  # a bad spec fails here
     jobs = [(i, str(path)) for i, path in enumerate(paths)]
-    if workers > 1 and len(jobs) > 1:
-        with get_context("spawn").Pool(workers, _start_judge_worker, (specs, sensor, seed)) as pool:
-            yield from pool.imap(_judge_in_worker, jobs)
-    else:
-        for i, path in jobs:
-            yield _judge_file(i, path, detectors, seed)
+    yield from ordered_map(_judge_job, jobs, (detectors, seed), _judges, (specs, sensor, seed), workers)
 
 
 def format_judgement(j: Judgement) -> str:

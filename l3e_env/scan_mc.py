@@ -17,7 +17,7 @@ gets exactly the estimate of M children.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 import trimesh
@@ -28,6 +28,7 @@ from .lidar import BeamPattern, Lidar, get_pattern
 from .raycast import EmbreeCaster
 from .registration import PreparedTarget, RegistrationConfig, RegistrationError, prepare_source, register
 from .transforms import pose_to_matrix
+from .workers import ordered_map
 
 
 @dataclass
@@ -151,23 +152,34 @@ def scan_errors(points: np.ndarray, lidar: LidarConfig, registration: Registrati
         stage = min(2 * drawn, config.children)
 
 
-def _dataset_part(folders: list[str], rows: np.ndarray, config: ScanMCConfig,
-                  seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """Estimates and children drawn of some rows, in a worker that opens the dataset itself
-    (memory maps)."""
+class _DatasetScans(NamedTuple):
+    """What a worker estimates rows with: the dataset(s) opened by itself (memory maps) and their
+    sensor and registration."""
+    data: Any
+    lidar: LidarConfig
+    registration: RegistrationConfig
+    config: ScanMCConfig
+    seed: int
+
+
+def _open_scans(folders: list[str], config: ScanMCConfig, seed: int) -> _DatasetScans:
     from .config import from_dict
     from .dataset import open_datasets
 
     data = open_datasets(folders)
     settings = data.manifest["settings"]
-    lidar, registration = from_dict(LidarConfig, settings["lidar"]), from_dict(RegistrationConfig,
-                                                                               settings["registration"])
+    return _DatasetScans(data, from_dict(LidarConfig, settings["lidar"]),
+                         from_dict(RegistrationConfig, settings["registration"]), config, seed)
+
+
+def _estimate_rows(scans: _DatasetScans, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Estimates and children drawn of some rows."""
     out, drawn = np.full((len(rows), 6), np.nan), np.zeros(len(rows), dtype=np.int64)
     for k, row in enumerate(rows):
-        part, at = data.locate(int(row))
+        part, at = scans.data.locate(int(row))
         try:  # seeded by the row: the same estimate whatever the number of workers
-            out[k], drawn[k] = scan_errors(part.scan(at), lidar, registration, part.label_config, config,
-                                           np.random.default_rng([seed, int(row)]))
+            out[k], drawn[k] = scan_errors(part.scan(at), scans.lidar, scans.registration, part.label_config,
+                                           scans.config, np.random.default_rng([scans.seed, int(row)]))
         except (RegistrationError, ScanPatternError):
             pass
     return out, drawn
@@ -178,20 +190,17 @@ def dataset_scan_errors(folders: list[str], rows: np.ndarray, config: ScanMCConf
     """(len(rows), 6) estimates for rows of the dataset(s) `folders` (NaN for a scan that cannot
     be judged) and the children drawn for each (0 there), over `workers` processes in chunks of
     a few scans, with a progress bar."""
-    from concurrent.futures import ProcessPoolExecutor
-    from contextlib import nullcontext
-    from itertools import repeat
-
     from tqdm import tqdm
 
     rows = np.asarray(rows, dtype=np.int64)
     chunks = [rows[i:i + 4] for i in range(0, len(rows), 4)]
-    jobs = (repeat(list(folders)), chunks, repeat(config), repeat(seed))
+    folders = list(folders)
     out, drawn = np.full((len(rows), 6), np.nan), np.zeros(len(rows), dtype=np.int64)
-    with (ProcessPoolExecutor(workers) if workers > 1 else nullcontext()) as pool, \
-            tqdm(total=len(rows), desc=f"scan Monte-Carlo (up to {config.children} children)", disable=not progress,
-                 leave=False) as bar:
-        for k, (part, children) in enumerate(pool.map(_dataset_part, *jobs) if pool else map(_dataset_part, *jobs)):
+    with tqdm(total=len(rows), desc=f"scan Monte-Carlo (up to {config.children} children)", disable=not progress,
+              leave=False) as bar:
+        local = _open_scans(folders, config, seed) if workers == 1 else None
+        parts = ordered_map(_estimate_rows, chunks, local, _open_scans, (folders, config, seed), workers)
+        for k, (part, children) in enumerate(parts):
             out[4 * k:4 * k + len(part)], drawn[4 * k:4 * k + len(part)] = part, children
             bar.update(len(part))
             bar.set_postfix(children=f"{drawn[:4 * k + len(part)].mean():.0f}")

@@ -6,14 +6,11 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-from contextlib import nullcontext
 from dataclasses import dataclass, field
-from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch
 import trimesh
 from scipy.spatial import cKDTree
 from tqdm import tqdm
@@ -26,6 +23,7 @@ from l3e_env.lidar import Lidar
 from l3e_env.raycast import EmbreeCaster, make_caster
 from l3e_env.registration import RegistrationConfig, RegistrationError, register
 from l3e_env.transforms import planar_pose
+from l3e_env.workers import ordered_map
 from scenes import Scene
 
 from .freespace import FreeSpace
@@ -211,18 +209,14 @@ def map_positions(free: FreeSpace, resolution: float) -> np.ndarray:
     return on
 
 
-_worker_judge: MapJudge | None = None  # a map worker's own judge, made once per process
+def _map_judge(spec: str, mesh: trimesh.Trimesh, lidar: LidarConfig, seed: int, step: float) -> MapJudge:
+    """A map worker's own judge, with a LiDAR on its own copy of the scene."""
+    return MapJudge(spec, Lidar(EmbreeCaster(mesh, threads=1), lidar), seed, step)
 
 
-def _start_map_worker(spec: str, mesh: trimesh.Trimesh, lidar: LidarConfig, seed: int, step: float) -> None:
-    global _worker_judge
-    torch.set_num_threads(1)  # the workers share the cores
-    _worker_judge = MapJudge(spec, Lidar(EmbreeCaster(mesh, threads=1), lidar), seed, step)
-
-
-def _judge_in_worker(job: tuple[list[np.ndarray], list[list[int]]]) -> np.ndarray:
+def _judge_batch(judge: MapJudge, job: tuple[list[np.ndarray], list[list[int]]]) -> np.ndarray:
     poses, seeds = job
-    return _worker_judge(poses, [np.random.default_rng(s) for s in seeds])
+    return judge(poses, [np.random.default_rng(s) for s in seeds])
 
 
 def build_map(scene: Scene, free: FreeSpace, judge: MapJudge, resolution: float = 1.0, yaw_bins: int = 4,
@@ -243,14 +237,10 @@ def build_map(scene: Scene, free: FreeSpace, judge: MapJudge, resolution: float 
     chunks = [poses[start:start + batch] for start in range(0, len(poses), batch)]
     jobs = [([planar_pose(*positions[n], free.ground[tuple(cells[n])] + robot.standing_height, yaws[k]) @ T_b_s
               for n, k in chunk], [[seed, n, k] for n, k in chunk]) for chunk in chunks]
-    parallel = workers > 1 and len(jobs) > 1
-    with (get_context("spawn").Pool(workers, _start_map_worker, (judge.spec, scene.mesh, judge.lidar.config,
-                                                                 judge.seed, judge.step)) if parallel
-          else nullcontext()) as pool:
-        judged = (pool.imap(_judge_in_worker, jobs) if parallel else
-                  (judge(sensor_poses, [np.random.default_rng(s) for s in seeds]) for sensor_poses, seeds in jobs))
-        judged = list(tqdm(judged, total=len(jobs), desc=f"{judge.spec} map of {scene.name}", unit="batch",
-                           disable=not progress))
+    judged = ordered_map(_judge_batch, jobs, judge, _map_judge,
+                         (judge.spec, scene.mesh, judge.lidar.config, judge.seed, judge.step), workers)
+    judged = list(tqdm(judged, total=len(jobs), desc=f"{judge.spec} map of {scene.name}", unit="batch",
+                       disable=not progress))
     for chunk, p in zip(chunks, judged):
         for (n, k), row in zip(chunk, p):
             probabilities[n, k] = row

@@ -1,0 +1,43 @@
+"""Ordered work in spawned processes. The slow judges (maps, the scan estimate in a replay,
+`l3e judge`) each build one heavy object (a detector, a LiDAR on its own copy of a scene) that
+cannot cross a process boundary; every worker builds its own once from picklable settings, and
+the results come back in the order of the jobs, so a run gives the same output with any number
+of workers."""
+from __future__ import annotations
+
+from multiprocessing import get_context
+from typing import Any, Callable, Iterable, Iterator, TypeVar
+
+Job = TypeVar("Job")
+Result = TypeVar("Result")
+
+_worker: tuple[Callable[[Any, Any], Any], Any] | None = None  # this worker's (work, object)
+
+
+def _start(work: Callable[[Any, Any], Any], build: Callable[..., Any], args: tuple) -> None:
+    global _worker
+    import torch
+
+    torch.set_num_threads(1)  # the workers share the cores
+    _worker = work, build(*args)
+
+
+def _run(job: Any) -> Any:
+    work, obj = _worker
+    return work(obj, job)
+
+
+def ordered_map(work: Callable[[Any, Job], Result], jobs: Iterable[Job], local: Any, build: Callable[..., Any],
+                args: tuple, workers: int = 1) -> Iterator[Result]:
+    """work(obj, job) for each job, in order. With one worker (or one job) `obj` is the caller's
+    `local`; with more, each of `workers` spawned processes uses its own `build(*args)`. `work`
+    and `build` must be module-level functions, `args` picklable."""
+    if workers < 1:
+        raise ValueError(f"workers must be at least 1, got {workers}")
+    jobs = list(jobs)
+    if workers == 1 or len(jobs) < 2:
+        for job in jobs:
+            yield work(local, job)
+        return
+    with get_context("spawn").Pool(min(workers, len(jobs)), _start, (work, build, args)) as pool:
+        yield from pool.imap(_run, jobs)
