@@ -295,21 +295,39 @@ def _cmd_judge(args: argparse.Namespace) -> int:
 
     from .config import LidarConfig
     from .judge import format_judgement, judge_scans, judgement_record, score_legend
+    from .rosbag import BagError, read_bag
 
+    if bool(args.scans) == bool(args.bag):
+        print("l3e judge: give scan files or --bag, not both and not neither", file=sys.stderr)
+        return 2
+    if not args.bag and (args.topic or args.every != 1 or args.start is not None or args.end is not None):
+        print("l3e judge: --topic, --every, --start and --end read a bag: give --bag", file=sys.stderr)
+        return 2
+    try:
+        scans = read_bag(args.bag, args.topic, args.every, args.start, args.end) if args.bag else args.scans
+    except BagError as exc:
+        print(f"l3e judge: {exc}", file=sys.stderr)
+        return 2
     specs = args.detector or ["learned", "eigen:30", "scanmc"]
-    judgements = []  # printed as each scan is judged; an unreadable file is named and the next one read
-    for j in judge_scans(args.scans, specs, LidarConfig(model=args.sensor), seed=args.seed, workers=args.workers):
+    judgements = []  # printed as each scan is judged; an unreadable scan is named and the next one read
+    for j in judge_scans(scans, specs, LidarConfig(model=args.sensor), seed=args.seed, workers=args.workers):
         judgements.append(j)
-        print(format_judgement(j), file=sys.stderr if j.error else sys.stdout, flush=True)
+        stamp = "" if j.stamp is None else f"[t = {j.stamp:.3f} s] "
+        print(stamp + format_judgement(j), file=sys.stderr if j.error else sys.stdout, flush=True)
     print("scores ('*' flagged):\n" + score_legend(specs))
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps([judgement_record(j, args.sensor) for j in judgements], indent=1) + "\n")
         print(f"written: {args.json}")
+    if args.plot and any(j.predictions for j in judgements):
+        from .judge_plots import plot_timeline
+
+        plot_timeline(judgements, args.plot)
+        print(f"written: {args.plot}")
     failed = sum(j.error is not None for j in judgements)
-    if failed:
-        print(f"l3e judge: {failed} of {len(judgements)} files could not be read", file=sys.stderr)
-    return 2 if failed else 0
+    if failed or not judgements:
+        print(f"l3e judge: {failed} of {len(judgements)} scans could not be read", file=sys.stderr)
+    return 2 if failed or not judgements else 0
 
 
 def _cmd_calibrate(args: argparse.Namespace) -> int:
@@ -445,18 +463,25 @@ def build_parser() -> argparse.ArgumentParser:
                    help="run the ResUNet's convolutions in float32 instead of int8 (as deployed)")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_cmd_evaluate)
-    p = sub.add_parser("judge", help="judge your own scan files: along which axes would scan-to-scan registration "
-                                     "fail there")
-    p.add_argument("scans", nargs="+", metavar="SCAN",
+    p = sub.add_parser("judge", help="judge your own scans (files or a ROS bag): along which axes would "
+                                     "scan-to-scan registration fail there")
+    p.add_argument("scans", nargs="*", metavar="SCAN",
                    help="scan files in the sensor's frame: .npy .npz .bin (KITTI) .ply .pcd .xyz .txt .csv")
+    g = p.add_argument_group("a ROS bag instead of files (needs pip install 'l3e[bag]')")
+    g.add_argument("--bag", help="a ROS 1 .bag file or a ROS 2 bag folder (sqlite3 or mcap)")
+    g.add_argument("--topic", help="its sensor_msgs/PointCloud2 topic (default: the only one)")
+    g.add_argument("--every", type=int, default=1, help="judge every N-th scan (default 1: all)")
+    g.add_argument("--start", type=float, help="seconds after the bag's start to begin at")
+    g.add_argument("--end", type=float, help="seconds after the bag's start to stop at")
     p.add_argument("--detector", action="append",
                    help="learned[-sym][:checkpoint] | eigen:<tau> | scanmc[:M] | none; repeat for several "
                         "(default: learned, eigen:30 and scanmc)")
     p.add_argument("--sensor", default="vlp16",
                    help="the LiDAR that took the scans: vlp16 or os0-128 (scanmc needs its beams; default vlp16)")
     p.add_argument("--seed", type=int, default=0, help="seed of scanmc's children")
-    p.add_argument("--workers", type=int, default=1, help="files judged side by side in processes (default 1)")
+    p.add_argument("--workers", type=int, default=1, help="scans judged side by side in processes (default 1)")
     p.add_argument("--json", help="also write the scores here")
+    p.add_argument("--plot", help="also draw the flagged axes scan by scan (over time for a bag) into this image")
     p.set_defaults(func=_cmd_judge)
     p = sub.add_parser("calibrate", help="add symmetric-inference thresholds to a checkpoint, from its validation "
                                          "scenes")

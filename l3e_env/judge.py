@@ -1,10 +1,10 @@
-"""One's own scans, read from files and judged by the detectors: along which axes scan-to-scan
-registration would fail there (`l3e judge`). A scan is in its sensor's frame, as the driver
+"""One's own scans, read from files or a ROS bag and judged by the detectors: along which axes
+scan-to-scan registration would fail there (`l3e judge`). A scan is in its sensor's frame, as the driver
 writes it; points that are NaN, infinite or at the origin (no return, as organised clouds keep
 them) are dropped and counted."""
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -15,6 +15,7 @@ from .detectors import Detector, EigenvalueDetector, Prediction, ScanMCDetector,
 from .labels import AXES
 from .lidar import get_pattern
 from .registration import RegistrationConfig, RegistrationError, RegistrationResult, scan_hessian
+from .rosbag import BagScan
 from .workers import ordered_map
 
 FORMATS = {".npy": "numpy (N, >=3)", ".npz": "numpy archive ('points' or its only array)",
@@ -38,6 +39,7 @@ class Judgement:
     dropped: int  # NaN, infinite or at the origin
     predictions: dict[str, Prediction]
     error: str | None = None  # the file could not be read: why (nothing judged)
+    stamp: float | None = None  # seconds, for a scan read from a bag
 
 
 def _read_pcd(path: Path) -> np.ndarray:
@@ -137,16 +139,22 @@ def judge_points(points: np.ndarray, detectors: list[Detector], registration: Re
             else d.predict(points, onto_itself, None) for d in detectors}
 
 
-def _judge_file(index: int, path: str | Path, detectors: list[Detector], seed: int) -> Judgement:
-    """The file read and judged; scanmc's children are seeded by the file's place in the list, so
-    that a file is judged alike alone or in a worker."""
-    try:
-        points = read_scan(path)
-    except ScanFileError as exc:
-        return Judgement(str(path), 0, 0, {}, error=str(exc))
+def _judge_source(index: int, source: str | Path | BagScan, detectors: list[Detector], seed: int) -> Judgement:
+    """A scan file read, or a bag's scan, and judged; scanmc's children are seeded by the scan's
+    place in the list, so that a scan is judged alike alone or in a worker."""
+    if isinstance(source, BagScan):
+        name, stamp, points, error = source.name, source.stamp, source.points, source.error
+    else:
+        name, stamp, error = str(source), None, None
+        try:
+            points = read_scan(source)
+        except ScanFileError as exc:
+            error = str(exc)
+    if error is not None:
+        return Judgement(name, 0, 0, {}, error=error, stamp=stamp)
     kept = np.isfinite(points).all(axis=1) & (np.abs(points).sum(axis=1) > 0)
-    return Judgement(str(path), int(kept.sum()), int((~kept).sum()),
-                     judge_points(points[kept], detectors, rng=np.random.default_rng([seed, index])))
+    return Judgement(name, int(kept.sum()), int((~kept).sum()),
+                     judge_points(points[kept], detectors, rng=np.random.default_rng([seed, index])), stamp=stamp)
 
 
 def _judges(specs: list[str], sensor: LidarConfig, seed: int) -> tuple[list[Detector], int]:
@@ -154,22 +162,23 @@ def _judges(specs: list[str], sensor: LidarConfig, seed: int) -> tuple[list[Dete
     return [make_detector(spec, seed=seed, sensor=sensor) for spec in specs], seed
 
 
-def _judge_job(judges: tuple[list[Detector], int], job: tuple[int, str]) -> Judgement:
-    return _judge_file(*job, *judges)
+def _judge_job(judges: tuple[list[Detector], int], job: tuple[int, str | BagScan]) -> Judgement:
+    return _judge_source(*job, *judges)
 
 
-def judge_scans(paths: list[str | Path], specs: list[str], sensor: LidarConfig | None = None,
+def judge_scans(scans: Iterable[str | Path | BagScan], specs: list[str], sensor: LidarConfig | None = None,
                 seed: int = 0, workers: int = 1) -> Iterator[Judgement]:
-    """Read each scan file, drop its points without a return, and judge it with each detector
+    """Judge each scan, a file to read or a bag's scan (`read_bag`), with each detector
     ('learned[...]', 'eigen:<tau>', 'scanmc[:M]', 'none'; make_detector refuses the oracle,
-    which needs a scene), in the order given, `workers` files at a time. A file that cannot be
-    read gives a Judgement with its `error`, and the next one is read."""
+    which needs a scene), after dropping its points without a return, in the order given,
+    `workers` scans at a time. A scan that cannot be read gives a Judgement with its `error`,
+    and the next one is read."""
     sensor = sensor or LidarConfig()
     get_pattern(sensor.model)  # an unknown sensor is named before any file is read
     if workers < 1:
         raise ValueError(f"workers must be at least 1, got {workers}")
     detectors = [make_detector(spec, seed=seed, sensor=sensor) for spec in specs]  # a bad spec fails here
-    jobs = [(i, str(path)) for i, path in enumerate(paths)]
+    jobs = ((i, scan if isinstance(scan, BagScan) else str(scan)) for i, scan in enumerate(scans))
     yield from ordered_map(_judge_job, jobs, (detectors, seed), _judges, (specs, sensor, seed), workers)
 
 
@@ -195,9 +204,10 @@ def format_judgement(j: Judgement) -> str:
 
 def judgement_record(j: Judgement, sensor: str) -> dict:
     """The judgement as JSON-ready data (NaN scores of a scan a detector cannot judge as null)."""
+    where = {"path": j.path} | ({} if j.stamp is None else {"stamp": j.stamp})
     if j.error:
-        return {"path": j.path, "error": j.error}
-    return {"path": j.path, "points": j.points, "dropped": j.dropped, "sensor": sensor,
+        return where | {"error": j.error}
+    return where | {"points": j.points, "dropped": j.dropped, "sensor": sensor,
             "detectors": {name: {"known": p.known,
                                  "scores": [float(v) if np.isfinite(v) else None for v in p.probabilities],
                                  "not_localizable": [a for a, m in zip(AXES, p.mask) if m]}

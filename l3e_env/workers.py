@@ -5,8 +5,10 @@ the results come back in the order of the jobs, so a run gives the same output w
 of workers."""
 from __future__ import annotations
 
+from collections import deque
+from itertools import chain, islice
 from multiprocessing import get_context
-from typing import Any, Callable, Iterable, Iterator, TypeVar
+from typing import Any, Callable, Iterable, Iterator, Sized, TypeVar
 
 Job = TypeVar("Job")
 Result = TypeVar("Result")
@@ -31,13 +33,23 @@ def ordered_map(work: Callable[[Any, Job], Result], jobs: Iterable[Job], local: 
                 args: tuple, workers: int = 1) -> Iterator[Result]:
     """work(obj, job) for each job, in order. With one worker (or one job) `obj` is the caller's
     `local`; with more, each of `workers` spawned processes uses its own `build(*args)`. `work`
-    and `build` must be module-level functions, `args` picklable."""
+    and `build` must be module-level functions, `args` picklable. Jobs are drawn from `jobs` as
+    workers free up (a few ahead), so a long stream (a bag's scans) is never held whole."""
     if workers < 1:
         raise ValueError(f"workers must be at least 1, got {workers}")
-    jobs = list(jobs)
-    if workers == 1 or len(jobs) < 2:
-        for job in jobs:
+    if isinstance(jobs, Sized):
+        workers = min(workers, max(1, len(jobs)))
+    jobs = iter(jobs)
+    head = list(islice(jobs, 2))
+    if workers == 1 or len(head) < 2:
+        for job in chain(head, jobs):
             yield work(local, job)
         return
-    with get_context("spawn").Pool(min(workers, len(jobs)), _start, (work, build, args)) as pool:
-        yield from pool.imap(_run, jobs)
+    with get_context("spawn").Pool(workers, _start, (work, build, args)) as pool:
+        pending: deque = deque()
+        for job in chain(head, jobs):
+            pending.append(pool.apply_async(_run, (job,)))
+            if len(pending) >= 2 * workers:
+                yield pending.popleft().get()
+        while pending:
+            yield pending.popleft().get()

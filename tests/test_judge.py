@@ -102,7 +102,7 @@ def test_the_judge_command_prints_and_writes_the_scores(tmp_path, rng, capsys):
     assert main(["judge", str(tmp_path / "nothing.pcd"), str(tmp_path / "corridor.npy"), "--detector", "none",
                  "--json", str(out)]) == 2
     captured = capsys.readouterr()
-    assert "nothing.pcd: no such file" in captured.err and "1 of 2 files could not be read" in captured.err
+    assert "nothing.pcd: no such file" in captured.err and "1 of 2 scans could not be read" in captured.err
     assert "none: localizable along every axis" in captured.out
     saved = json.loads(out.read_text())
     assert "no such file" in saved[0]["error"] and saved[1]["detectors"]["none"]["known"]

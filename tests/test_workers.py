@@ -15,6 +15,8 @@ def test_workers_give_the_serial_results_in_order():
     # the workers build their own object: a local one that differs shows which path ran
     assert list(ordered_map(operator.mul, jobs, 5, int, ("3",), workers=2)) == serial
     assert list(ordered_map(operator.mul, [4], 5, int, ("3",), workers=2)) == [20]  # one job stays local
+    # a stream (a bag's scans) is drawn as the workers free up, in the same order
+    assert list(ordered_map(operator.mul, (j for j in jobs), 5, int, ("3",), workers=2)) == serial
 
 
 def test_one_worker_runs_in_the_caller_and_zero_is_refused():

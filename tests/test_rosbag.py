@@ -1,0 +1,147 @@
+"""`l3e judge --bag`: LiDAR scans read from ROS 1 and ROS 2 bags, judged as the same scans in files."""
+import json
+
+import numpy as np
+import pytest
+import trimesh
+from rosbags.rosbag1 import Writer as Writer1
+from rosbags.rosbag2 import Writer as Writer2
+from rosbags.typesys import Stores, get_typestore
+
+from l3e_env.cli import main
+from l3e_env.config import LidarConfig
+from l3e_env.judge import judge_scans
+from l3e_env.judge_plots import flag_matrix
+from l3e_env.lidar import Lidar
+from l3e_env.raycast import EmbreeCaster
+from l3e_env.rosbag import BagError, cloud_points, read_bag
+
+ROS1, ROS2 = get_typestore(Stores.ROS1_NOETIC), get_typestore(Stores.ROS2_HUMBLE)
+CLOUD = "sensor_msgs/msg/PointCloud2"
+
+
+def _cloud(store, points: np.ndarray, stamp: float, *, dtype="<f4", height=1, pad=0, fields="xyz"):
+    """A PointCloud2 of `points` with an intensity field after x, y, z, `pad` bytes after each row."""
+    types = store.types
+    size = np.dtype(dtype).itemsize
+    codes = {"<f4": 7, ">f4": 7, "<f8": 8, ">f8": 8}
+    layout = np.dtype({"names": list(fields) + ["intensity"], "formats": [dtype] * (len(fields) + 1),
+                       "offsets": [i * size for i in range(len(fields) + 1)], "itemsize": (len(fields) + 2) * size})
+    table = np.zeros(len(points), dtype=layout)
+    for i, name in enumerate(fields):
+        table[name] = points[:, i]
+    width = len(points) // height
+    rows = np.zeros((height, width * layout.itemsize + pad), np.uint8)
+    rows[:, :width * layout.itemsize] = table.view(np.uint8).reshape(height, -1)
+    time = types["builtin_interfaces/msg/Time"](sec=int(stamp), nanosec=int(round(stamp % 1 * 1e9)))
+    header = types["std_msgs/msg/Header"](**({"seq": 0} if store is ROS1 else {}), stamp=time, frame_id="lidar")
+    return types[CLOUD](
+        header=header, height=height, width=width, is_bigendian=dtype.startswith(">"), is_dense=False,
+        fields=[types["sensor_msgs/msg/PointField"](name=n, offset=i * size, datatype=codes[dtype], count=1)
+                for i, n in enumerate(list(fields) + ["intensity"])],
+        point_step=layout.itemsize, row_step=rows.shape[1], data=rows.ravel())
+
+
+def _corridor_scans(rng, n: int) -> list[np.ndarray]:
+    """VLP-16 scans in a 200 m corridor: free along x only."""
+    corridor = trimesh.creation.box([200, 4, 3]).apply_translation([0, 0, 0.5])
+    lidar = Lidar(EmbreeCaster(corridor, threads=1), LidarConfig())
+    return [lidar.scan(np.eye(4), rng).points.astype(np.float32).astype(np.float64) for _ in range(n)]
+
+
+def _write_bag(path, scans: list[np.ndarray], ros2: bool = False, broken: int | None = None,
+               second_cloud: bool = False) -> None:
+    """`scans` on /velodyne_points at 10 Hz from t = 100 s (the scan at `broken` has no z field),
+    and a string topic beside them."""
+    store = ROS2 if ros2 else ROS1
+    serialize = store.serialize_cdr if ros2 else store.serialize_ros1
+    with (Writer2(path, version=9) if ros2 else Writer1(path)) as writer:
+        clouds = writer.add_connection("/velodyne_points", CLOUD, typestore=store)
+        notes = writer.add_connection("/notes", "std_msgs/msg/String", typestore=store)
+        other = writer.add_connection("/front/points", CLOUD, typestore=store) if second_cloud else None
+        for k, points in enumerate(scans):
+            t = 100.0 + 0.1 * k
+            msg = _cloud(store, points, t, fields="xy" if k == broken else "xyz")
+            writer.write(clouds, int(t * 1e9), serialize(msg, CLOUD))
+            writer.write(notes, int(t * 1e9) + 1, serialize(store.types["std_msgs/msg/String"](data="hi"),
+                                                               "std_msgs/msg/String"))
+            if other is not None:
+                writer.write(other, int(t * 1e9) + 2, serialize(msg, CLOUD))
+
+
+def test_cloud_points_unpacks_every_layout(rng):
+    points = rng.normal(size=(60, 3)) * 10
+    for kwargs in ({}, {"dtype": "<f8"}, {"dtype": ">f4"}, {"dtype": ">f8", "height": 3, "pad": 7}):
+        read = cloud_points(_cloud(ROS1, points, 1.0, **kwargs))
+        np.testing.assert_allclose(read, points, rtol=1e-6, err_msg=str(kwargs))
+    with pytest.raises(BagError, match="not x, y and z"):
+        cloud_points(_cloud(ROS1, points, 1.0, fields="xy"))
+    cut = _cloud(ROS1, points, 1.0)
+    cut.data = cut.data[:100]
+    with pytest.raises(BagError, match="100 bytes of data"):
+        cloud_points(cut)
+
+
+@pytest.mark.parametrize("ros2", [False, True], ids=["ros1", "ros2"])
+def test_a_bag_is_read_and_judged_as_the_same_scans_in_files(tmp_path, rng, ros2):
+    scans = _corridor_scans(rng, 5)
+    bag = tmp_path / ("run" if ros2 else "run.bag")
+    _write_bag(bag, scans, ros2=ros2, broken=2)
+    read = list(read_bag(bag, every=2))
+    assert [s.name.split("#")[1] for s in read] == ["0", "2", "4"]
+    assert [s.stamp for s in read] == pytest.approx([100.0, 100.2, 100.4])
+    assert read[1].points is None and "not x, y and z" in read[1].error
+    np.testing.assert_array_equal(read[2].points, scans[4])
+    window = list(read_bag(bag, "/velodyne_points", start=0.15, end=0.35))
+    assert [s.stamp for s in window] == pytest.approx([100.2, 100.3])
+
+    files = []
+    for k in (0, 2, 4):
+        files.append(tmp_path / f"scan{k}.npy")
+        np.save(files[-1], scans[k])
+    from_bag = list(judge_scans(read_bag(bag, every=2), ["scanmc:4", "eigen:30"]))
+    from_files = list(judge_scans(files, ["scanmc:4", "eigen:30"]))
+    assert "not x, y and z" in from_bag[1].error and from_bag[1].stamp == pytest.approx(100.2)
+    for b, f in ((from_bag[0], from_files[0]), (from_bag[2], from_files[2])):
+        assert b.points == f.points
+        for name in f.predictions:
+            assert np.array_equal(b.predictions[name].probabilities, f.predictions[name].probabilities)
+    assert from_bag[0].predictions["scanmc:4"].mask.tolist() == [True] + [False] * 5
+    flags = flag_matrix(from_bag, "scanmc:4")
+    assert flags[0, 0] == 1 and flags[1:, 0].sum() == 0 and np.isnan(flags[:, 1]).all()
+
+
+def test_a_bag_or_topic_that_cannot_be_read_is_named(tmp_path, rng):
+    with pytest.raises(BagError, match="no such bag"):
+        read_bag(tmp_path / "missing.bag")
+    (tmp_path / "junk.bag").write_bytes(b"not a bag")
+    with pytest.raises(BagError, match="junk.bag: cannot be read as a ROS bag"):
+        read_bag(tmp_path / "junk.bag")
+    scans = _corridor_scans(rng, 1)
+    _write_bag(tmp_path / "two.bag", scans, second_cloud=True)
+    with pytest.raises(BagError, match=r"2 PointCloud2 topics \(/front/points, /velodyne_points\); name one"):
+        read_bag(tmp_path / "two.bag")
+    with pytest.raises(BagError, match="no topic '/lidar'; its PointCloud2 topics: /front/points, /velodyne"):
+        read_bag(tmp_path / "two.bag", "/lidar")
+    with pytest.raises(BagError, match="'/notes' carries std_msgs/msg/String, not sensor_msgs/msg/PointCloud2"):
+        read_bag(tmp_path / "two.bag", "/notes")
+    with pytest.raises(BagError, match="every must be at least 1"):
+        read_bag(tmp_path / "two.bag", every=0)
+
+
+def test_judge_cli_reads_a_bag_and_writes_scores_and_a_timeline(tmp_path, rng, capsys):
+    bag = tmp_path / "run.bag"
+    _write_bag(bag, _corridor_scans(rng, 3), broken=1)
+    out, plot = tmp_path / "judged.json", tmp_path / "timeline.png"
+    assert main(["judge", "--bag", str(bag), "--detector", "eigen:30", "--json", str(out), "--plot", str(plot)]) == 2
+    captured = capsys.readouterr()
+    assert "[t = 100.100 s] run.bag /velodyne_points #1: cannot be read" in captured.err
+    assert "1 of 3 scans could not be read" in captured.err and "[t = 100.200 s]" in captured.out
+    saved = json.loads(out.read_text())
+    assert [round(r["stamp"], 3) for r in saved] == [100.0, 100.1, 100.2] and "error" in saved[1]
+    assert saved[0]["detectors"]["eigen:30"]["known"]
+    assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert main(["judge"]) == 2 and main(["judge", "a.npy", "--bag", str(bag)]) == 2
+    assert main(["judge", "a.npy", "--topic", "/points"]) == 2
+    assert main(["judge", "--bag", str(tmp_path / "missing.bag")]) == 2
+    assert "not both and not neither" in capsys.readouterr().err
