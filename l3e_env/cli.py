@@ -234,6 +234,25 @@ def _cmd_ate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_record(args: argparse.Namespace) -> int:
+    from .experiment import record_run
+    from .rosbag import BagError, BagRecorder
+
+    params = scene_params(args)
+    try:
+        bag = BagRecorder(args.out, ros2=args.ros2)
+    except BagError as exc:
+        print(f"l3e record: {exc}", file=sys.stderr)
+        return 2
+    rec = record_run(args.scene, args.sensor, args.seed, progress=not args.quiet, scene_params=params, on_step=bag)
+    print(f"written: {bag.close()} ({bag.steps} scans)")
+    if args.recording:
+        Path(args.recording).parent.mkdir(parents=True, exist_ok=True)
+        rec.save(args.recording)
+        print(f"written: {args.recording} (l3e ate --recording {args.recording} fuses this same drive)")
+    return 0
+
+
 def _cmd_train(args: argparse.Namespace) -> int:
     from .config import from_dict, load_yaml
     from .training import TrainConfig, train
@@ -414,6 +433,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true")
     add_mesh_options(p)
     p.set_defaults(func=_cmd_ate)
+    p = sub.add_parser("record", help="drive a route once and write it as a ROS bag: full scans, leg odometry, "
+                                      "ground truth (needs pip install 'l3e[bag]')")
+    p.add_argument("--out", required=True, help="the bag: a .bag file (ROS 1), or a folder with --ros2")
+    p.add_argument("--ros2", action="store_true", help="write a ROS 2 bag (sqlite3) instead of ROS 1")
+    p.add_argument("--scene", type=scene_name, default="mine")
+    p.add_argument("--sensor", type=sensor_name, default="vlp16", help="vlp16 or os0-128")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--recording", help="also save the drive as a recording.npz for l3e ate --recording")
+    p.add_argument("--quiet", action="store_true")
+    add_mesh_options(p)
+    p.set_defaults(func=_cmd_record)
     p = sub.add_parser("train", help="train the localizability classifier on a labelled dataset (resumable)")
     p.add_argument("--dataset", required=True, action="append",
                    help="dataset folder made by 'l3e dataset generate'; repeat to train on several as one")

@@ -13,6 +13,7 @@ import re
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import small_gicp
@@ -26,7 +27,7 @@ from .detectors import UNKNOWN, Detector, Prediction, ScanMCDetector, make_detec
 from .envs.navigation import NavigationEnv
 from .follower import RouteFollower
 from .labels import AXES
-from .lidar import Lidar
+from .lidar import Lidar, Scan
 from .odometry import odometry_sigmas
 from .raycast import EmbreeCaster
 from .registration import PreparedTarget, RegistrationConfig, RegistrationError, register
@@ -155,8 +156,11 @@ def _unragged(z, name: str) -> list[np.ndarray]:
 
 
 def record_run(scene: str = "mine", sensor: str = "vlp16", seed: int = 0, progress: bool = True,
-               scene_params: dict | None = None, scene_object: Scene | None = None) -> Recording:
-    """Drive the scene's route once; `scene_object`, if given, is that scene already built."""
+               scene_params: dict | None = None, scene_object: Scene | None = None,
+               on_step: Callable[[Scan, dict], None] | None = None) -> Recording:
+    """Drive the scene's route once; `scene_object`, if given, is that scene already built.
+    `on_step(scan, info)` sees every full scan with the step's info (T_w_b, odom_T_w_b) and the
+    sensor's mounting T_b_s, the start's included, before the recording thins it (a bag writer)."""
     env = NavigationEnv(EnvConfig(scene=scene, lidar=LidarConfig(model=sensor), scene_params=scene_params or {}),
                         scene_object=scene_object)
     obs, info = env.reset(seed=seed)
@@ -174,6 +178,8 @@ def record_run(scene: str = "mine", sensor: str = "vlp16", seed: int = 0, progre
         return points.astype(np.float32)
 
     gt, odom, scans, samples = [info["T_w_b"]], [], [thin(env.scan.points)], [sample(env.scan.points)]
+    if on_step is not None:
+        on_step(env.scan, {**info, "T_b_s": env.robot.T_b_s})
     bar = tqdm(total=env.max_steps, desc=f"recording {env.scene.name}", unit="step", disable=not progress)
     done = False
     while not done:
@@ -184,6 +190,8 @@ def record_run(scene: str = "mine", sensor: str = "vlp16", seed: int = 0, progre
         odom.append(inverse(prev_odom) @ info["odom_T_w_b"])
         scans.append(thin(env.scan.points))
         samples.append(sample(env.scan.points))
+        if on_step is not None:
+            on_step(env.scan, {**info, "T_b_s": env.robot.T_b_s})
         bar.update()
     bar.close()
     # a mesh scene is rebuilt from its file, a procedural one from its canonical name ('tunnel' -> 'tunnel-0')

@@ -1,11 +1,15 @@
-"""LiDAR scans read from a recorded ROS bag (ROS 1 `.bag`, or a ROS 2 folder of sqlite3 or mcap
-storage): the sensor_msgs/PointCloud2 messages of one topic, as (N, 3) points in the sensor's
-frame, one scan a message. Reading uses `rosbags` (pure Python, no ROS installation), an optional
-dependency: `pip install 'l3e[bag]'`."""
+"""ROS bags in and out, through `rosbags` (pure Python, no ROS installation; an optional
+dependency: `pip install 'l3e[bag]'`). In: the sensor_msgs/PointCloud2 scans of one topic of a
+recorded bag (ROS 1 `.bag`, or a ROS 2 folder of sqlite3 or mcap storage), as (N, 3) points in the
+sensor's frame, to be judged. Out: a simulated drive as a bag (`BagRecorder`), full scans with
+their beam rings, leg odometry, ground truth and the sensor's mounting, for one's own LiDAR
+odometry or SLAM to run on the same scenes."""
 from __future__ import annotations
 
 from collections.abc import Iterator
 from dataclasses import dataclass
+import os
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -116,3 +120,133 @@ def _scans(reader, connections: list, prefix: str, every: int, lo: int | None, h
                 yield BagScan(name, stamp, None, f"{name}: cannot be read as a point cloud: {exc}")
     finally:
         reader.close()
+
+
+class BagRecorder:
+    """Writes each step of a drive (`record_run(on_step=...)`) into a bag at `path`, at the
+    drive's 10 Hz from `start` seconds:
+    - `/points` sensor_msgs/PointCloud2 in frame `lidar`: x, y, z (float32) and ring (uint16, the
+      beam's index in the pattern: for the built-in ones the lowest first, as Velodyne's driver
+      numbers them), one revolution a message;
+    - `/odom` nav_msgs/Odometry, frame `odom` to `base_link`: the leg odometry's dead reckoning
+      (`odom` is the world frame at the start);
+    - `/ground_truth` geometry_msgs/PoseStamped of `base_link` in frame `world`;
+    - `/tf` odom to base_link each step, `/tf_static` base_link to lidar once.
+    The bag is written in a folder beside `path` and moved there when `close` is called, so a
+    killed drive leaves no half bag under that name (the next one removes the folder). ROS 2
+    (`ros2=True`) writes a sqlite3 bag folder."""
+
+    def __init__(self, path: str | Path, ros2: bool = False, dt: float = 0.1, start: float = 1.0):
+        try:
+            from rosbags.rosbag1 import Writer as Writer1
+            from rosbags.rosbag2 import Writer as Writer2
+            from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+        except ImportError as exc:
+            raise BagError("writing ROS bags needs the rosbags package: pip install 'l3e[bag]'") from exc
+        self.path, self.ros2, self.dt, self.start = Path(path), ros2, dt, start
+        if self.path.exists():
+            raise BagError(f"{self.path} exists; remove it or choose another name")
+        if not ros2 and self.path.suffix != ".bag":
+            raise BagError(f"{self.path}: a ROS 1 bag's name ends in .bag (or write a ROS 2 bag folder)")
+        # written in a folder beside it under its own name (a ROS 2 bag names its database after it)
+        self.folder = self.path.with_name(self.path.name + ".partial")
+        _remove(self.folder)  # the leftover of a killed drive
+        self.folder.mkdir(parents=True)
+        self.partial = self.folder / self.path.name
+        self.store = get_typestore(Stores.ROS2_HUMBLE if ros2 else Stores.ROS1_NOETIC)
+        if "tf2_msgs/msg/TFMessage" not in self.store.types:  # rosbags' Noetic store leaves tf2_msgs out
+            self.store.register(get_types_from_msg("geometry_msgs/TransformStamped[] transforms",
+                                                   "tf2_msgs/msg/TFMessage"))
+        self.serialize = self.store.serialize_cdr if ros2 else self.store.serialize_ros1
+        self.writer = Writer2(self.partial, version=9) if ros2 else Writer1(self.partial)
+        self.writer.open()
+        self.steps = 0
+        self.topics = {}
+        for topic, msgtype in (("/points", POINTCLOUD2), ("/odom", "nav_msgs/msg/Odometry"),
+                               ("/ground_truth", "geometry_msgs/msg/PoseStamped"), ("/tf", "tf2_msgs/msg/TFMessage"),
+                               ("/tf_static", "tf2_msgs/msg/TFMessage")):
+            extra = {"latching": 1} if topic == "/tf_static" and not ros2 else {}
+            self.topics[topic] = self.writer.add_connection(topic, msgtype, typestore=self.store, **extra)
+
+    def _header(self, stamp: float, frame: str):
+        t = self.store.types
+        time = t["builtin_interfaces/msg/Time"](sec=int(stamp), nanosec=int(round(stamp % 1 * 1e9)) % 1_000_000_000)
+        return t["std_msgs/msg/Header"](**({} if self.ros2 else {"seq": self.steps}), stamp=time, frame_id=frame)
+
+    def _transform(self, stamp: float, parent: str, child: str, T: np.ndarray):
+        t = self.store.types
+        x, y, z, w = _quaternion(T)
+        return t["geometry_msgs/msg/TransformStamped"](
+            header=self._header(stamp, parent), child_frame_id=child,
+            transform=t["geometry_msgs/msg/Transform"](translation=t["geometry_msgs/msg/Vector3"](*T[:3, 3]),
+                                                       rotation=t["geometry_msgs/msg/Quaternion"](x, y, z, w)))
+
+    def _pose(self, T: np.ndarray):
+        t = self.store.types
+        x, y, z, w = _quaternion(T)
+        return t["geometry_msgs/msg/Pose"](position=t["geometry_msgs/msg/Point"](*T[:3, 3]),
+                                           orientation=t["geometry_msgs/msg/Quaternion"](x, y, z, w))
+
+    def _write(self, topic: str, stamp: float, msg) -> None:
+        connection = self.topics[topic]
+        self.writer.write(connection, int(round(stamp * 1e9)), self.serialize(msg, connection.msgtype))
+
+    def __call__(self, scan, info: dict) -> None:
+        """One step: `scan` (a lidar.Scan) with info's T_w_b, odom_T_w_b and T_b_s."""
+        t = self.store.types
+        stamp = self.start + self.steps * self.dt
+        if self.steps == 0:
+            self._write("/tf_static", stamp, t["tf2_msgs/msg/TFMessage"](
+                transforms=[self._transform(stamp, "base_link", "lidar", np.asarray(info["T_b_s"], np.float64))]))
+        self._write("/points", stamp, _cloud_message(t, self._header(stamp, "lidar"), scan.points,
+                                                     scan.beam.astype(np.uint16)))
+        odom = np.asarray(info["odom_T_w_b"], dtype=np.float64)
+        zeros = np.zeros(36)
+        self._write("/odom", stamp, t["nav_msgs/msg/Odometry"](
+            header=self._header(stamp, "odom"), child_frame_id="base_link",
+            pose=t["geometry_msgs/msg/PoseWithCovariance"](pose=self._pose(odom), covariance=zeros),
+            twist=t["geometry_msgs/msg/TwistWithCovariance"](
+                twist=t["geometry_msgs/msg/Twist"](linear=t["geometry_msgs/msg/Vector3"](0.0, 0.0, 0.0),
+                                                   angular=t["geometry_msgs/msg/Vector3"](0.0, 0.0, 0.0)),
+                covariance=zeros)))
+        self._write("/tf", stamp, t["tf2_msgs/msg/TFMessage"](
+            transforms=[self._transform(stamp, "odom", "base_link", odom)]))
+        self._write("/ground_truth", stamp, t["geometry_msgs/msg/PoseStamped"](
+            header=self._header(stamp, "world"), pose=self._pose(np.asarray(info["T_w_b"], dtype=np.float64))))
+        self.steps += 1
+
+    def close(self) -> Path:
+        """Finish the bag and move it to its name."""
+        self.writer.close()
+        os.replace(self.partial, self.path)
+        self.folder.rmdir()
+        return self.path
+
+
+def _remove(path: Path) -> None:
+    if path.is_dir():
+        shutil.rmtree(path)
+    elif path.exists():
+        path.unlink()
+
+
+def _quaternion(T: np.ndarray) -> tuple[float, float, float, float]:
+    from scipy.spatial.transform import Rotation
+
+    return tuple(float(v) for v in Rotation.from_matrix(T[:3, :3]).as_quat())  # x, y, z, w
+
+
+def _cloud_message(types, header, points: np.ndarray, ring: np.ndarray):
+    """x, y, z float32 and ring uint16 in 16-byte points, as a VLP-16 driver lays them out."""
+    layout = np.dtype({"names": ["x", "y", "z", "ring"], "formats": ["<f4", "<f4", "<f4", "<u2"],
+                       "offsets": [0, 4, 8, 12], "itemsize": 16})
+    table = np.zeros(len(points), dtype=layout)
+    for i, a in enumerate("xyz"):
+        table[a] = points[:, i]
+    table["ring"] = ring
+    field = types["sensor_msgs/msg/PointField"]
+    return types[POINTCLOUD2](
+        header=header, height=1, width=len(points), is_bigendian=False, is_dense=True, point_step=16,
+        row_step=16 * len(points), data=table.view(np.uint8).copy(),
+        fields=[field(name="x", offset=0, datatype=7, count=1), field(name="y", offset=4, datatype=7, count=1),
+                field(name="z", offset=8, datatype=7, count=1), field(name="ring", offset=12, datatype=4, count=1)])

@@ -4,6 +4,7 @@ import json
 import numpy as np
 import pytest
 import trimesh
+from rosbags.highlevel import AnyReader
 from rosbags.rosbag1 import Writer as Writer1
 from rosbags.rosbag2 import Writer as Writer2
 from rosbags.typesys import Stores, get_typestore
@@ -14,7 +15,8 @@ from l3e_env.judge import judge_scans
 from l3e_env.judge_plots import flag_matrix
 from l3e_env.lidar import Lidar
 from l3e_env.raycast import EmbreeCaster
-from l3e_env.rosbag import BagError, cloud_points, read_bag
+from l3e_env.rosbag import BagError, BagRecorder, cloud_points, read_bag
+from l3e_env.transforms import planar_pose
 
 ROS1, ROS2 = get_typestore(Stores.ROS1_NOETIC), get_typestore(Stores.ROS2_HUMBLE)
 CLOUD = "sensor_msgs/msg/PointCloud2"
@@ -145,3 +147,79 @@ def test_judge_cli_reads_a_bag_and_writes_scores_and_a_timeline(tmp_path, rng, c
     assert main(["judge", "a.npy", "--topic", "/points"]) == 2
     assert main(["judge", "--bag", str(tmp_path / "missing.bag")]) == 2
     assert "not both and not neither" in capsys.readouterr().err
+
+
+def _messages(bag, topic: str) -> list:
+    with AnyReader([bag]) as reader:
+        chosen = [c for c in reader.connections if c.topic == topic]
+        return [reader.deserialize(raw, c.msgtype) for c, _, raw in reader.messages(chosen)]
+
+
+@pytest.mark.parametrize("ros2", [False, True], ids=["ros1", "ros2"])
+def test_a_drive_written_as_a_bag_reads_back_as_the_same_scans_and_poses(tmp_path, rng, ros2):
+    corridor = trimesh.creation.box([200, 4, 3]).apply_translation([0, 0, 0.5])
+    lidar = Lidar(EmbreeCaster(corridor, threads=1), LidarConfig())
+    T_b_s = planar_pose(0.1, 0.0, 0.3, 0.0)
+    truth = [planar_pose(0.5 * k, 0.2, 0.0, 0.1 * k) for k in range(3)]
+    odom = [T @ planar_pose(0.01 * k, 0.0, 0.0, 0.0) for k, T in enumerate(truth)]
+    scans = [lidar.scan(T @ T_b_s, rng) for T in truth]
+    bag = tmp_path / ("drive" if ros2 else "drive.bag")
+    writer = BagRecorder(bag, ros2=ros2)
+    for scan, T, T_odom in zip(scans, truth, odom):
+        writer(scan, {"T_w_b": T, "odom_T_w_b": T_odom, "T_b_s": T_b_s})
+    assert not bag.exists()  # not there until closed: a killed drive leaves no half bag under its name
+    assert writer.close() == bag and not (tmp_path / f"{bag.name}.partial").exists()
+
+    read = list(read_bag(bag))
+    assert [s.stamp for s in read] == pytest.approx([1.0, 1.1, 1.2])
+    for got, scan in zip(read, scans):
+        np.testing.assert_array_equal(got.points, scan.points.astype(np.float32))
+    clouds = _messages(bag, "/points")
+    assert [f.name for f in clouds[0].fields] == ["x", "y", "z", "ring"] and clouds[0].header.frame_id == "lidar"
+    ring = clouds[1].data.view(np.dtype({"names": ["ring"], "formats": ["<u2"], "offsets": [12], "itemsize": 16}))
+    np.testing.assert_array_equal(ring["ring"], scans[1].beam)
+    truth_read = [(m.pose.position.x, m.pose.position.y, m.pose.orientation.z) for m in _messages(bag, "/ground_truth")]
+    np.testing.assert_allclose(truth_read, [(0.5 * k, 0.2, np.sin(0.05 * k)) for k in range(3)], atol=1e-12)
+    odom_read = [(m.pose.pose.position.x, m.child_frame_id) for m in _messages(bag, "/odom")]
+    assert odom_read == [(pytest.approx(0.5 * k + 0.01 * k * np.cos(0.1 * k)), "base_link") for k in range(3)]
+    (mount,) = _messages(bag, "/tf_static")
+    t = mount.transforms[0]
+    assert (t.header.frame_id, t.child_frame_id) == ("base_link", "lidar")
+    assert (t.transform.translation.x, t.transform.translation.z) == pytest.approx((0.1, 0.3))
+    assert len(_messages(bag, "/tf")) == 3
+
+
+def test_a_bag_recorder_refuses_to_overwrite_and_clears_a_killed_drive(tmp_path, rng):
+    (tmp_path / "old.bag").write_bytes(b"keep me")
+    with pytest.raises(BagError, match="old.bag exists"):
+        BagRecorder(tmp_path / "old.bag")
+    assert (tmp_path / "old.bag").read_bytes() == b"keep me"
+    with pytest.raises(BagError, match="ends in .bag"):
+        BagRecorder(tmp_path / "run.db")
+    killed = BagRecorder(tmp_path / "run.bag")
+    killed(_corridor_scan_object(rng), {"T_w_b": np.eye(4), "odom_T_w_b": np.eye(4), "T_b_s": np.eye(4)})
+    del killed  # never closed
+    again = BagRecorder(tmp_path / "run.bag")
+    again(_corridor_scan_object(rng), {"T_w_b": np.eye(4), "odom_T_w_b": np.eye(4), "T_b_s": np.eye(4)})
+    again.close()
+    assert len(list(read_bag(tmp_path / "run.bag"))) == 1
+
+
+def _corridor_scan_object(rng):
+    corridor = trimesh.creation.box([200, 4, 3]).apply_translation([0, 0, 0.5])
+    return Lidar(EmbreeCaster(corridor, threads=1), LidarConfig()).scan(np.eye(4), rng)
+
+
+@pytest.mark.slow
+def test_record_cli_writes_a_drive_that_judge_reads_back(tmp_path, capsys):
+    bag, rec = tmp_path / "walls.bag", tmp_path / "walls.npz"
+    assert main(["record", "--scene", "primitives-1", "--out", str(bag), "--recording", str(rec), "--quiet"]) == 0
+    from l3e_env.experiment import Recording
+
+    recording = Recording.load(rec)
+    scans = list(read_bag(bag, every=200))
+    assert len(scans) == len(range(0, len(recording.ground_truth), 200))
+    assert main(["judge", "--bag", str(bag), "--every", "200", "--detector", "eigen:30"]) == 0
+    assert capsys.readouterr().out.count("eigen:30: not localizable along x") == len(scans)  # between two walls
+    assert main(["record", "--scene", "primitives-1", "--out", str(bag), "--quiet"]) == 2
+    assert "walls.bag exists" in capsys.readouterr().err
