@@ -1,7 +1,7 @@
 """One's own scans, read from files or a ROS bag and judged by the detectors: along which axes
-scan-to-scan registration would fail there (`l3e judge`). A scan is in its sensor's frame, as the driver
-writes it; points that are NaN, infinite or at the origin (no return, as organised clouds keep
-them) are dropped and counted."""
+scan-to-scan registration would fail there (`l3e judge`). A scan is in its sensor's frame, as
+the driver writes it; points that are NaN, infinite or at the origin (no return, as organised
+clouds keep them) are dropped and counted."""
 from __future__ import annotations
 
 from collections.abc import Iterable, Iterator
