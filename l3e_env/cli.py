@@ -344,7 +344,9 @@ def _cmd_judge(args: argparse.Namespace) -> int:
         plot_timeline(judgements, args.plot)
         print(f"written: {args.plot}")
     failed = sum(j.error is not None for j in judgements)
-    if failed or not judgements:
+    if not judgements:
+        print("l3e judge: no scan in the bag between --start and --end", file=sys.stderr)
+    elif failed:
         print(f"l3e judge: {failed} of {len(judgements)} scans could not be read", file=sys.stderr)
     return 2 if failed or not judgements else 0
 
