@@ -25,7 +25,7 @@ class BagError(ValueError):
 
 @dataclass
 class BagScan:
-    name: str  # "<bag> <topic> #<message index>"
+    name: str  # "<bag> <topic> #<k>": the k-th message of the topic from `start` (0 at the bag's start)
     stamp: float  # seconds: the message header's stamp, else the time the bag received it
     points: np.ndarray | None  # (N, 3) float64, NaN kept (the judge drops them); None where `error`
     error: str | None = None  # the message could not be read as points: why
