@@ -198,8 +198,7 @@ def dataset_scan_errors(folders: list[str], rows: np.ndarray, config: ScanMCConf
     out, drawn = np.full((len(rows), 6), np.nan), np.zeros(len(rows), dtype=np.int64)
     with tqdm(total=len(rows), desc=f"scan Monte-Carlo (up to {config.children} children)", disable=not progress,
               leave=False) as bar:
-        local = _open_scans(folders, config, seed) if workers == 1 else None
-        parts = ordered_map(_estimate_rows, chunks, local, _open_scans, (folders, config, seed), workers)
+        parts = ordered_map(_estimate_rows, chunks, None, _open_scans, (folders, config, seed), workers)
         for k, (part, children) in enumerate(parts):
             out[4 * k:4 * k + len(part)], drawn[4 * k:4 * k + len(part)] = part, children
             bar.update(len(part))

@@ -32,7 +32,8 @@ def _run(job: Any) -> Any:
 def ordered_map(work: Callable[[Any, Job], Result], jobs: Iterable[Job], local: Any, build: Callable[..., Any],
                 args: tuple, workers: int = 1) -> Iterator[Result]:
     """work(obj, job) for each job, in order. With one worker (or one job) `obj` is the caller's
-    `local`; with more, each of `workers` spawned processes uses its own `build(*args)`. `work`
+    `local`, or `build(*args)` made here when `local` is None (a caller that does not hold one);
+    with more, each of `workers` spawned processes uses its own `build(*args)`. `work`
     and `build` must be module-level functions, `args` picklable. Jobs are drawn from `jobs` as
     workers free up (a few ahead), so a long stream (a bag's scans) is never held whole."""
     if workers < 1:
@@ -42,6 +43,8 @@ def ordered_map(work: Callable[[Any, Job], Result], jobs: Iterable[Job], local: 
     jobs = iter(jobs)
     head = list(islice(jobs, 2))
     if workers == 1 or len(head) < 2:
+        if local is None and head:
+            local = build(*args)
         for job in chain(head, jobs):
             yield work(local, job)
         return

@@ -44,10 +44,14 @@ def _cloud(store, points: np.ndarray, stamp: float, *, dtype="<f4", height=1, pa
         point_step=layout.itemsize, row_step=rows.shape[1], data=rows.ravel())
 
 
-def _corridor_scans(rng, n: int) -> list[np.ndarray]:
-    """VLP-16 scans in a 200 m corridor: free along x only."""
+def _corridor_lidar() -> Lidar:
+    """A VLP-16 in a 200 m corridor: free along x only."""
     corridor = trimesh.creation.box([200, 4, 3]).apply_translation([0, 0, 0.5])
-    lidar = Lidar(EmbreeCaster(corridor, threads=1), LidarConfig())
+    return Lidar(EmbreeCaster(corridor, threads=1), LidarConfig())
+
+
+def _corridor_scans(rng, n: int) -> list[np.ndarray]:
+    lidar = _corridor_lidar()
     return [lidar.scan(np.eye(4), rng).points.astype(np.float32).astype(np.float64) for _ in range(n)]
 
 
@@ -161,8 +165,7 @@ def _messages(bag, topic: str) -> list:
 
 @pytest.mark.parametrize("ros2", [False, True], ids=["ros1", "ros2"])
 def test_a_drive_written_as_a_bag_reads_back_as_the_same_scans_and_poses(tmp_path, rng, ros2):
-    corridor = trimesh.creation.box([200, 4, 3]).apply_translation([0, 0, 0.5])
-    lidar = Lidar(EmbreeCaster(corridor, threads=1), LidarConfig())
+    lidar = _corridor_lidar()
     T_b_s = planar_pose(0.1, 0.0, 0.3, 0.0)
     truth = [planar_pose(0.5 * k, 0.2, 0.0, 0.1 * k) for k in range(3)]
     odom = [T @ planar_pose(0.01 * k, 0.0, 0.0, 0.0) for k, T in enumerate(truth)]
@@ -201,17 +204,12 @@ def test_a_bag_recorder_refuses_to_overwrite_and_clears_a_killed_drive(tmp_path,
     with pytest.raises(BagError, match="ends in .bag"):
         BagRecorder(tmp_path / "run.db")
     killed = BagRecorder(tmp_path / "run.bag")
-    killed(_corridor_scan_object(rng), {"T_w_b": np.eye(4), "odom_T_w_b": np.eye(4), "T_b_s": np.eye(4)})
+    killed(_corridor_lidar().scan(np.eye(4), rng), {"T_w_b": np.eye(4), "odom_T_w_b": np.eye(4), "T_b_s": np.eye(4)})
     del killed  # never closed
     again = BagRecorder(tmp_path / "run.bag")
-    again(_corridor_scan_object(rng), {"T_w_b": np.eye(4), "odom_T_w_b": np.eye(4), "T_b_s": np.eye(4)})
+    again(_corridor_lidar().scan(np.eye(4), rng), {"T_w_b": np.eye(4), "odom_T_w_b": np.eye(4), "T_b_s": np.eye(4)})
     again.close()
     assert len(list(read_bag(tmp_path / "run.bag"))) == 1
-
-
-def _corridor_scan_object(rng):
-    corridor = trimesh.creation.box([200, 4, 3]).apply_translation([0, 0, 0.5])
-    return Lidar(EmbreeCaster(corridor, threads=1), LidarConfig()).scan(np.eye(4), rng)
 
 
 @pytest.mark.slow

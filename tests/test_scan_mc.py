@@ -116,6 +116,8 @@ def test_evaluate_scores_the_scan_estimate_the_same_with_any_number_of_workers(t
     expected = axis_scores(data.labels, direct > row_thresholds(data))
     assert scored["count"] == len(data) and scored["accuracy"] == pytest.approx(expected["accuracy"].tolist())
     assert "scanmc:3" in res["table"]
+    few, _ = dataset_scan_errors([str(tiny_dataset)], np.arange(3), ScanMCConfig(children=3), workers=2)
+    assert np.array_equal(few, direct[:3])  # one chunk with two workers asked: judged here
     with pytest.raises(ValueError, match="give a checkpoint"):
         evaluate([], tiny_dataset, tmp_path / "no-checkpoint", progress=False, scan_mc=3)
     for bad in ({"scan_mc": -1}, {"scan_mc": 3, "workers": 0}):

@@ -15,6 +15,7 @@ def test_workers_give_the_serial_results_in_order():
     # the workers build their own object: a local one that differs shows which path ran
     assert list(ordered_map(operator.mul, jobs, 5, int, ("3",), workers=2)) == serial
     assert list(ordered_map(operator.mul, [4], 5, int, ("3",), workers=2)) == [20]  # one job stays local
+    assert list(ordered_map(operator.mul, [4], None, int, ("3",), workers=2)) == [12]  # built here when none is held
     # a stream (a bag's scans) is drawn as the workers free up, in the same order
     assert list(ordered_map(operator.mul, (j for j in jobs), 5, int, ("3",), workers=2)) == serial
 
