@@ -23,8 +23,12 @@ def scene_names(text: str) -> list[str]:
     return [scene_name(name.strip()) for name in text.split(",")]
 
 
+SENSOR_HELP = "vlp16, os0-128 or a beam pattern file (.yaml/.json, or an Ouster metadata .json)"
+
+
 def sensor_name(text: str) -> str:
-    """argparse type: a registered LiDAR model (vlp16, os0-128 or one added with register_pattern)."""
+    """argparse type: a registered LiDAR model (vlp16, os0-128 or one added with register_pattern),
+    or a beam pattern file."""
     from .lidar import get_pattern
 
     try:
@@ -314,6 +318,7 @@ def _cmd_judge(args: argparse.Namespace) -> int:
 
     from .config import LidarConfig
     from .judge import format_judgement, judge_scans, judgement_record, score_legend
+    from .patterns import PatternError
     from .rosbag import BagError, read_bag
 
     if bool(args.scans) == bool(args.bag):
@@ -328,15 +333,26 @@ def _cmd_judge(args: argparse.Namespace) -> int:
         print(f"l3e judge: {exc}", file=sys.stderr)
         return 2
     specs = args.detector or ["learned", "eigen:30", "scanmc"]
+    sensor = [args.sensor]
+
+    def recognised(pattern, how: str) -> None:
+        sensor[0] = pattern.name
+        print(f"sensor: {how} (give --sensor to choose it)", flush=True)
+
     judgements = []  # printed as each scan is judged; an unreadable scan is named and the next one read
-    for j in judge_scans(scans, specs, LidarConfig(model=args.sensor), seed=args.seed, workers=args.workers):
-        judgements.append(j)
-        stamp = "" if j.stamp is None else f"[t = {j.stamp:.3f} s] "
-        print(stamp + format_judgement(j), file=sys.stderr if j.error else sys.stdout, flush=True)
+    try:
+        for j in judge_scans(scans, specs, LidarConfig(model=args.sensor) if args.sensor else None, seed=args.seed,
+                             workers=args.workers, on_sensor=recognised):
+            judgements.append(j)
+            stamp = "" if j.stamp is None else f"[t = {j.stamp:.3f} s] "
+            print(stamp + format_judgement(j), file=sys.stderr if j.error else sys.stdout, flush=True)
+    except PatternError as exc:
+        print(f"l3e judge: {exc}", file=sys.stderr)
+        return 2
     print("scores ('*' flagged):\n" + score_legend(specs))
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps([judgement_record(j, args.sensor) for j in judgements], indent=1) + "\n")
+        Path(args.json).write_text(json.dumps([judgement_record(j, sensor[0]) for j in judgements], indent=1) + "\n")
         print(f"written: {args.json}")
     if args.plot and any(j.predictions for j in judgements):
         from .judge_plots import plot_timeline
@@ -390,7 +406,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("demo", help="drive the mine route and save a top view and scan pictures")
     p.add_argument("--out", help="output folder (default: l3e_out/demo-<time>)")
     p.add_argument("--scene", type=scene_name, default="mine", help="scene name (default: mine)")
-    p.add_argument("--sensor", type=sensor_name, default="vlp16", help="vlp16 or os0-128")
+    p.add_argument("--sensor", type=sensor_name, default="vlp16", help=SENSOR_HELP)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--checkpoint", help="classifier checkpoint (default: the shipped model)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -410,7 +426,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="comma-separated scene names (overrides the preset); one may be a mesh file, with --route")
     g.add_argument("--parents", type=int, help="parents per scene")
     g.add_argument("--children", type=int, help="M, children per parent (paper: 200)")
-    g.add_argument("--sensor", type=sensor_name, help="vlp16 or os0-128")
+    g.add_argument("--sensor", type=sensor_name, help=SENSOR_HELP)
     g.add_argument("--seed", type=int)
     g.add_argument("--workers", type=int, default=2)
     g.add_argument("--backend", choices=["local", "ray"], default="local")
@@ -426,7 +442,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--detector", action="append",
                    help="none | eigen:<tau> | oracle[:M] | scanmc[:M] | learned[:checkpoint]; repeat for several")
     p.add_argument("--backend", choices=["graph", "ekf"], default="graph", help="iSAM2 smoother or filterpy EKF")
-    p.add_argument("--sensor", type=sensor_name, default="vlp16", help="vlp16 or os0-128")
+    p.add_argument("--sensor", type=sensor_name, default="vlp16", help=SENSOR_HELP)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--recording", help="evaluate a saved recording.npz instead of driving again")
     p.add_argument("--out", help="output folder (default: l3e_out/ate-<scene>-<time>)")
@@ -440,7 +456,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="the bag: a .bag file (ROS 1), or a folder with --ros2")
     p.add_argument("--ros2", action="store_true", help="write a ROS 2 bag (sqlite3) instead of ROS 1")
     p.add_argument("--scene", type=scene_name, default="mine")
-    p.add_argument("--sensor", type=sensor_name, default="vlp16", help="vlp16 or os0-128")
+    p.add_argument("--sensor", type=sensor_name, default="vlp16", help=SENSOR_HELP)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--recording", help="also save the drive as a recording.npz for l3e ate --recording")
     p.add_argument("--quiet", action="store_true")
@@ -508,8 +524,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--detector", action="append",
                    help="learned[-sym][:checkpoint] | eigen:<tau> | scanmc[:M] | none; repeat for several "
                         "(default: learned, eigen:30 and scanmc)")
-    p.add_argument("--sensor", default="vlp16",
-                   help="the LiDAR that took the scans: vlp16 or os0-128 (scanmc needs its beams; default vlp16)")
+    p.add_argument("--sensor", type=sensor_name,
+                   help="the LiDAR that took the scans, for scanmc's beams: vlp16, os0-128 or a beam pattern file "
+                        "(.yaml/.json, or an Ouster metadata .json); default: recognised from the first scan")
     p.add_argument("--seed", type=int, default=0, help="seed of scanmc's children")
     p.add_argument("--workers", type=int, default=1, help="scans judged side by side in processes (default 1)")
     p.add_argument("--json", help="also write the scores here")

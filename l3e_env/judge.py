@@ -4,8 +4,9 @@ the driver writes it; points that are NaN, infinite or at the origin (no return,
 clouds keep them) are dropped and counted."""
 from __future__ import annotations
 
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
+from itertools import chain
 from pathlib import Path
 
 import numpy as np
@@ -13,7 +14,7 @@ import numpy as np
 from .config import LidarConfig
 from .detectors import Detector, EigenvalueDetector, Prediction, ScanMCDetector, make_detector
 from .labels import AXES
-from .lidar import get_pattern
+from .patterns import BeamPattern, PatternError, fit_pattern, get_pattern, register_pattern
 from .registration import RegistrationConfig, RegistrationError, RegistrationResult, scan_hessian
 from .rosbag import BagScan
 from .workers import ordered_map
@@ -157,8 +158,12 @@ def _judge_source(index: int, source: str | Path | BagScan, detectors: list[Dete
                      judge_points(points[kept], detectors, rng=np.random.default_rng([seed, index])), stamp=stamp)
 
 
-def _judges(specs: list[str], sensor: LidarConfig, seed: int) -> tuple[list[Detector], int]:
-    """A judging worker's own detectors, and the seed."""
+def _judges(specs: list[str], sensor: LidarConfig, seed: int,
+            pattern: BeamPattern | None) -> tuple[list[Detector], int]:
+    """A judging worker's own detectors, and the seed; a pattern recognised from the scans is
+    registered here first, as a spawned worker does not inherit it."""
+    if pattern is not None:
+        register_pattern(pattern)
     return [make_detector(spec, seed=seed, sensor=sensor) for spec in specs], seed
 
 
@@ -166,20 +171,59 @@ def _judge_job(judges: tuple[list[Detector], int], job: tuple[int, str | BagScan
     return _judge_source(*job, *judges)
 
 
+def recognise_sensor(scans: Iterator[str | Path | BagScan]) -> tuple[Iterator[str | Path | BagScan], BeamPattern, str]:
+    """The beam pattern of the first scan that can be read (`fit_pattern`, with the bag's ring
+    field where it has one), how it was found, and the scans again from the first."""
+    seen: list[str | Path | BagScan] = []
+    for scan in scans:
+        seen.append(scan)
+        if isinstance(scan, BagScan):
+            name, points, rings = scan.name, scan.points, scan.rings
+        else:
+            name, rings = str(scan), None
+            try:
+                points = read_scan(scan)
+            except ScanFileError:
+                points = None
+        if points is None:
+            continue
+        try:
+            pattern, how = fit_pattern(points, rings)
+        except PatternError as exc:
+            raise PatternError(f"{name}: the sensor cannot be recognised from this scan: {exc}; give it with "
+                               "--sensor (a name or a beam pattern file)") from exc
+        return chain(seen, scans), pattern, how
+    raise PatternError("no scan could be read to recognise the sensor from")
+
+
+def needs_sensor(specs: list[str]) -> bool:
+    """Whether a detector simulates the sensor's beams (scanmc does; the others read points only)."""
+    return any(spec.partition(":")[0] == "scanmc" for spec in specs)
+
+
 def judge_scans(scans: Iterable[str | Path | BagScan], specs: list[str], sensor: LidarConfig | None = None,
-                seed: int = 0, workers: int = 1) -> Iterator[Judgement]:
+                seed: int = 0, workers: int = 1,
+                on_sensor: Callable[[BeamPattern, str], None] | None = None) -> Iterator[Judgement]:
     """Judge each scan, a file to read or a bag's scan (`read_bag`), with each detector
     ('learned[...]', 'eigen:<tau>', 'scanmc[:M]', 'none'; make_detector refuses the oracle,
     which needs a scene), after dropping its points without a return, in the order given,
-    `workers` scans at a time. A scan that cannot be read gives a Judgement with its `error`,
-    and the next one is read."""
-    sensor = sensor or LidarConfig()
-    get_pattern(sensor.model)  # an unknown sensor is named before any file is read
+    `workers` scans at a time. Without `sensor`, a detector that needs one gets the pattern
+    recognised from the first scan, reported to `on_sensor`. A scan that cannot be read gives a
+    Judgement with its `error`, and the next one is read."""
     if workers < 1:
         raise ValueError(f"workers must be at least 1, got {workers}")
+    pattern = None
+    if sensor is not None:
+        pattern = get_pattern(sensor.model)  # an unknown sensor is named before any file is read
+    elif needs_sensor(specs):
+        scans, pattern, how = recognise_sensor(iter(scans))
+        register_pattern(pattern)
+        if on_sensor is not None:
+            on_sensor(pattern, how)
+    sensor = sensor or LidarConfig(model=pattern.name if pattern else LidarConfig().model)
     detectors = [make_detector(spec, seed=seed, sensor=sensor) for spec in specs]  # a bad spec fails here
     jobs = ((i, scan if isinstance(scan, BagScan) else str(scan)) for i, scan in enumerate(scans))
-    yield from ordered_map(_judge_job, jobs, (detectors, seed), _judges, (specs, sensor, seed), workers)
+    yield from ordered_map(_judge_job, jobs, (detectors, seed), _judges, (specs, sensor, seed, pattern), workers)
 
 
 def format_judgement(j: Judgement) -> str:
@@ -202,7 +246,7 @@ def format_judgement(j: Judgement) -> str:
     return "\n".join(lines)
 
 
-def judgement_record(j: Judgement, sensor: str) -> dict:
+def judgement_record(j: Judgement, sensor: str | None) -> dict:
     """The judgement as JSON-ready data (NaN scores of a scan a detector cannot judge as null)."""
     where = {"path": j.path} | ({} if j.stamp is None else {"stamp": j.stamp})
     if j.error:

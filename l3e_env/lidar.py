@@ -6,51 +6,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from .config import LidarConfig
+from .patterns import PATTERNS, BeamPattern, get_pattern, register_pattern
 from .raycast import RayCaster
 
-
-@dataclass(frozen=True)
-class BeamPattern:
-    """Elevation angles (deg) of the beams and azimuth steps per revolution."""
-
-    name: str
-    elevations_deg: tuple[float, ...]
-    n_azimuth: int
-    max_range: float
-    min_range: float
-    image_width: int  # default width of the range image in observations
-
-    @property
-    def n_beams(self) -> int:
-        return len(self.elevations_deg)
-
-    def directions(self) -> np.ndarray:
-        """Unit ray directions (B*A, 3) in the sensor frame, beam-major."""
-        el = np.deg2rad(np.asarray(self.elevations_deg))[:, None]
-        az = (2 * np.pi * np.arange(self.n_azimuth) / self.n_azimuth)[None, :]
-        d = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el) * np.ones_like(az)], axis=-1)
-        return d.reshape(-1, 3).astype(np.float32)
-
-
-PATTERNS: dict[str, BeamPattern] = {
-    # Velodyne VLP-16: 16 beams over +-15 deg, 0.2 deg azimuth at 10 Hz, 100 m.
-    "vlp16": BeamPattern("vlp16", tuple(np.linspace(-15, 15, 16)), 1800, 100.0, 0.5, 360),
-    # Ouster OS0-128: 128 beams over +-45 deg, 1024 columns at 10 Hz, 50 m (datasheet, 80 % targets).
-    "os0-128": BeamPattern("os0-128", tuple(np.linspace(-45, 45, 128)), 1024, 50.0, 0.3, 256),
-}
-
-
-def register_pattern(pattern: BeamPattern) -> None:
-    """Add a user-defined beam pattern, usable by name in LidarConfig.model."""
-    if pattern.n_beams < 1 or pattern.n_azimuth < 1 or not pattern.max_range > pattern.min_range >= 0:
-        raise ValueError(f"invalid beam pattern {pattern}")
-    PATTERNS[pattern.name] = pattern
-
-
-def get_pattern(name: str) -> BeamPattern:
-    if name not in PATTERNS:
-        raise ValueError(f"unknown LiDAR model '{name}'; known: {sorted(PATTERNS)}")
-    return PATTERNS[name]
+__all__ = ["PATTERNS", "BeamPattern", "Lidar", "Scan", "get_pattern", "register_pattern"]
 
 
 @dataclass
@@ -90,6 +49,7 @@ class Lidar:
         self.max_range = self.config.max_range or self.pattern.max_range
         self.min_range = self.pattern.min_range if self.config.min_range is None else self.config.min_range
         self._dirs = self.pattern.directions()
+        self._origins = self.pattern.origins()  # None: every ray leaves the sensor's origin
         idx = np.arange(len(self._dirs))
         beam, column = np.divmod(idx, self.pattern.n_azimuth)
         self._beam, self._column = beam.astype(np.int16), column.astype(np.int16)
@@ -100,7 +60,8 @@ class Lidar:
         if T_w_s.shape != (4, 4) or not np.isfinite(T_w_s).all():
             raise ValueError("sensor pose must be a finite 4x4 matrix")
         dirs_w = self._dirs @ T_w_s[:3, :3].T.astype(np.float32)
-        r = self.caster.cast(T_w_s[:3, 3], dirs_w, self.max_range)
+        origin = T_w_s[:3, 3] if self._origins is None else self._origins @ T_w_s[:3, :3].T + T_w_s[:3, 3]
+        r = self.caster.cast(origin, dirs_w, self.max_range)
         keep = np.isfinite(r)
         if rng is not None and self.config.dropout > 0:
             keep &= rng.random(r.shape, dtype=np.float32) >= self.config.dropout
@@ -113,4 +74,6 @@ class Lidar:
             idx, r = idx[inside], r[inside]
         points = np.take(self._dirs, idx, axis=0)  # np.take: about 2x faster than fancy indexing here
         points *= r[:, None]
+        if self._origins is not None:
+            points += np.take(self._origins, idx, axis=0)
         return Scan(points, np.take(self._beam, idx), np.take(self._column, idx), self.pattern)

@@ -17,7 +17,8 @@ PYBULLET_MAX_RAYS = 16000
 
 class RayCaster(Protocol):
     def cast(self, origin: np.ndarray, directions: np.ndarray, max_range: float) -> np.ndarray:
-        """Distances (float32, N) along unit `directions` from `origin` (world frame); inf = miss."""
+        """Distances (float32, N) along unit `directions` from `origin` (world frame), one point (3,)
+        or one per ray (N, 3); inf = miss."""
         ...
 
 
@@ -87,12 +88,12 @@ class PyBulletCaster:
         return cls(client)
 
     def cast(self, origin: np.ndarray, directions: np.ndarray, max_range: float) -> np.ndarray:
-        origin = np.asarray(origin, dtype=np.float64)
         dirs = np.asarray(directions, dtype=np.float64)
+        origins = np.broadcast_to(np.asarray(origin, dtype=np.float64), dirs.shape)
         out = np.full(len(dirs), np.inf, dtype=np.float32)
         for lo in range(0, len(dirs), PYBULLET_MAX_RAYS):
             chunk = dirs[lo : lo + PYBULLET_MAX_RAYS]
-            starts = np.broadcast_to(origin, chunk.shape).copy()
+            starts = origins[lo : lo + PYBULLET_MAX_RAYS].copy()
             hits = pb.rayTestBatch(
                 starts, starts + chunk * max_range, numThreads=self.threads,
                 collisionFilterMask=self.mask, physicsClientId=self.client,

@@ -29,20 +29,19 @@ class BagScan:
     stamp: float  # seconds: the message header's stamp, else the time the bag received it
     points: np.ndarray | None  # (N, 3) float64, NaN kept (the judge drops them); None where `error`
     error: str | None = None  # the message could not be read as points: why
+    rings: np.ndarray | None = None  # (N,) the beam of each point, where the cloud has a ring field
 
 
-def cloud_points(msg) -> np.ndarray:
-    """x, y, z of a PointCloud2 (any field layout, either byte order, padded rows) as (N, 3)
-    float64. Hand-written: rosbags deserialises the message but does not unpack its fields."""
+def _cloud_fields(msg, names: list[str]) -> dict[str, np.ndarray]:
+    """The named fields of a PointCloud2 (any field layout, either byte order, padded rows), one
+    flat array each. Hand-written: rosbags deserialises the message but does not unpack its fields."""
     fields = {f.name: f for f in msg.fields}
-    if not {"x", "y", "z"} <= fields.keys():
-        raise BagError(f"the cloud has fields {sorted(fields)}, not x, y and z")
     order = ">" if msg.is_bigendian else "<"
     try:
-        formats = [order + _DATATYPES[fields[a].datatype] for a in "xyz"]
+        formats = [order + _DATATYPES[fields[a].datatype] for a in names]
     except KeyError as exc:
         raise BagError(f"PointField datatype {exc} is not a number type") from exc
-    offsets = [int(fields[a].offset) for a in "xyz"]
+    offsets = [int(fields[a].offset) for a in names]
     height, width, point_step, row_step = int(msg.height), int(msg.width), int(msg.point_step), int(msg.row_step)
     if any(o + np.dtype(f).itemsize > point_step for o, f in zip(offsets, formats)):
         raise BagError(f"a field lies past the point step of {point_step} bytes")
@@ -52,9 +51,25 @@ def cloud_points(msg) -> np.ndarray:
     if len(data) < height * row_step:
         raise BagError(f"{len(data)} bytes of data for {height} rows of {row_step} bytes")
     rows = np.ascontiguousarray(data[:height * row_step].reshape(height, row_step)[:, :width * point_step])
-    cloud = rows.view(np.dtype({"names": list("xyz"), "formats": formats, "offsets": offsets,
+    cloud = rows.view(np.dtype({"names": names, "formats": formats, "offsets": offsets,
                                 "itemsize": point_step})).reshape(-1)
-    return np.stack([cloud[a].astype(np.float64) for a in "xyz"], axis=1)
+    return {a: cloud[a] for a in names}
+
+
+def cloud_points(msg) -> np.ndarray:
+    """x, y, z of a PointCloud2 as (N, 3) float64."""
+    if not {"x", "y", "z"} <= {f.name for f in msg.fields}:
+        raise BagError(f"the cloud has fields {sorted(f.name for f in msg.fields)}, not x, y and z")
+    xyz = _cloud_fields(msg, ["x", "y", "z"])
+    return np.stack([xyz[a].astype(np.float64) for a in "xyz"], axis=1)
+
+
+def cloud_rings(msg) -> np.ndarray | None:
+    """The beam of each point from the cloud's `ring` field (Velodyne and Ouster drivers write
+    one), or None where it has none."""
+    if "ring" not in {f.name for f in msg.fields}:
+        return None
+    return _cloud_fields(msg, ["ring"])["ring"].astype(np.int64)
 
 
 def _reader(path: Path):
@@ -115,7 +130,7 @@ def _scans(reader, connections: list, prefix: str, every: int, lo: int | None, h
                 msg = reader.deserialize(raw, connection.msgtype)
                 header = msg.header.stamp
                 stamp = header.sec + header.nanosec * 1e-9 if header.sec or header.nanosec else stamp
-                yield BagScan(name, stamp, cloud_points(msg))
+                yield BagScan(name, stamp, cloud_points(msg), rings=cloud_rings(msg))
             except Exception as exc:  # noqa: BLE001 - one bad message is named, the next is read
                 yield BagScan(name, stamp, None, f"{name}: cannot be read as a point cloud: {exc}")
     finally:

@@ -24,7 +24,8 @@ import trimesh
 
 from .config import LidarConfig
 from .labels import LabelConfig, registration_error
-from .lidar import BeamPattern, Lidar, get_pattern
+from .lidar import Lidar
+from .patterns import BEAM_TOLERANCE, BeamPattern, get_pattern
 from .raycast import EmbreeCaster
 from .registration import PreparedTarget, RegistrationConfig, RegistrationError, prepare_source, register
 from .transforms import pose_to_matrix
@@ -64,17 +65,13 @@ def beams_and_columns(points: np.ndarray, pattern: BeamPattern) -> tuple[np.ndar
     r = np.linalg.norm(points, axis=1)
     if not (r > 0).all():
         raise ScanPatternError("the scan holds a point at the sensor's origin")
-    elevation = np.degrees(np.arcsin(np.clip(points[:, 2] / r, -1.0, 1.0)))
-    beams = np.asarray(pattern.elevations_deg)
-    beam = np.abs(elevation[:, None] - beams[None]).argmin(axis=1)
-    spacing = np.min(np.diff(np.sort(beams))) if len(beams) > 1 else 1.0
-    off = np.abs(elevation - beams[beam]).max(initial=0.0)
-    if off > 0.25 * spacing:
-        raise ScanPatternError(f"a point lies {off:.2f} deg off the nearest beam of {pattern.name} (beams "
-                               f"{spacing:.2f} deg apart): give a scan of that sensor, in its own frame")
-    step = 2 * np.pi / pattern.n_azimuth
-    column = np.round((np.arctan2(points[:, 1], points[:, 0]) % (2 * np.pi)) / step).astype(np.int64)
-    return beam, column % pattern.n_azimuth
+    beam, column, off = pattern.locate(points)
+    spacing = pattern.spacing_deg()
+    if off.max(initial=0.0) > BEAM_TOLERANCE * spacing:
+        raise ScanPatternError(f"a point lies {off.max():.2f} deg off the nearest beam of {pattern.name} (beams "
+                               f"{spacing:.2f} deg apart): give a scan of that sensor, in its own frame, or leave "
+                               "the sensor to be recognised from the scan")
+    return beam, column
 
 
 def range_image_mesh(points: np.ndarray, pattern: BeamPattern, max_range_ratio: float = 1.5) -> trimesh.Trimesh:

@@ -15,7 +15,7 @@ from l3e_env.judge import judge_scans
 from l3e_env.judge_plots import flag_matrix
 from l3e_env.lidar import Lidar
 from l3e_env.raycast import EmbreeCaster
-from l3e_env.rosbag import BagError, BagRecorder, cloud_points, read_bag
+from l3e_env.rosbag import BagError, BagRecorder, cloud_points, cloud_rings, read_bag
 from l3e_env.transforms import planar_pose
 
 ROS1, ROS2 = get_typestore(Stores.ROS1_NOETIC), get_typestore(Stores.ROS2_HUMBLE)
@@ -181,10 +181,13 @@ def test_a_drive_written_as_a_bag_reads_back_as_the_same_scans_and_poses(tmp_pat
     assert [s.stamp for s in read] == pytest.approx([1.0, 1.1, 1.2])
     for got, scan in zip(read, scans):
         np.testing.assert_array_equal(got.points, scan.points.astype(np.float32))
+        np.testing.assert_array_equal(got.rings, scan.beam)  # the ring field read back
     clouds = _messages(bag, "/points")
     assert [f.name for f in clouds[0].fields] == ["x", "y", "z", "ring"] and clouds[0].header.frame_id == "lidar"
     ring = clouds[1].data.view(np.dtype({"names": ["ring"], "formats": ["<u2"], "offsets": [12], "itemsize": 16}))
     np.testing.assert_array_equal(ring["ring"], scans[1].beam)
+    np.testing.assert_array_equal(cloud_rings(clouds[1]), scans[1].beam)
+    assert cloud_rings(_cloud(ROS1, scans[0].points, 1.0)) is None  # a cloud without a ring field
     truth_read = [(m.pose.position.x, m.pose.position.y, m.pose.orientation.z) for m in _messages(bag, "/ground_truth")]
     np.testing.assert_allclose(truth_read, [(0.5 * k, 0.2, np.sin(0.05 * k)) for k in range(3)], atol=1e-12)
     odom_read = [(m.pose.pose.position.x, m.child_frame_id) for m in _messages(bag, "/odom")]

@@ -1,0 +1,263 @@
+"""Beam patterns of spinning LiDARs: the built-in ones, user files (own YAML/JSON, or an Ouster
+sensor's metadata JSON), and a pattern recognised or fitted from a scan's own points, so that a
+recorded scan of another sensor can be read back onto its beams and columns."""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+
+class PatternError(ValueError):
+    """A beam pattern file or a scan that cannot give a beam pattern."""
+
+
+@dataclass(frozen=True)
+class BeamPattern:
+    """Elevation angles (deg) of the beams and azimuth steps per revolution. Ouster-style sensors
+    also shift each beam's azimuth by a constant (`azimuth_offsets_deg`) and fire from a point
+    `beam_origin_offset` metres out from the axis, in the column's direction."""
+
+    name: str
+    elevations_deg: tuple[float, ...]
+    n_azimuth: int
+    max_range: float
+    min_range: float
+    image_width: int  # default width of the range image in observations
+    azimuth_offsets_deg: tuple[float, ...] = ()  # per beam; empty: none
+    beam_origin_offset: float = 0.0
+
+    @property
+    def n_beams(self) -> int:
+        return len(self.elevations_deg)
+
+    def _column_azimuths(self) -> np.ndarray:
+        return 2 * np.pi * np.arange(self.n_azimuth) / self.n_azimuth
+
+    def _beam_azimuth_offsets(self) -> np.ndarray:
+        return np.deg2rad(np.asarray(self.azimuth_offsets_deg or (0.0,) * self.n_beams))
+
+    def directions(self) -> np.ndarray:
+        """Unit ray directions (B*A, 3) in the sensor frame, beam-major."""
+        el = np.deg2rad(np.asarray(self.elevations_deg))[:, None]
+        az = self._column_azimuths()[None, :] + self._beam_azimuth_offsets()[:, None]
+        d = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el) * np.ones_like(az)], axis=-1)
+        return d.reshape(-1, 3).astype(np.float32)
+
+    def origins(self) -> np.ndarray | None:
+        """Where each ray starts (B*A, 3) in the sensor frame, beam-major; None: all at the origin."""
+        if not self.beam_origin_offset:
+            return None
+        az = self._column_azimuths()
+        ring = self.beam_origin_offset * np.stack([np.cos(az), np.sin(az), np.zeros_like(az)], axis=1)
+        return np.tile(ring, (self.n_beams, 1)).astype(np.float32)
+
+    def spacing_deg(self) -> float:
+        """The smallest angle between two beams."""
+        beams = np.sort(np.asarray(self.elevations_deg))
+        return float(np.diff(beams).min()) if len(beams) > 1 else 1.0
+
+    def locate(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The beam and column of each point (N, 3) in the sensor frame, and how far (deg) its
+        elevation lies from that beam's: range noise moves a return along its ray only."""
+        points = np.asarray(points, dtype=np.float64)
+        horizontal = np.hypot(points[:, 0], points[:, 1])
+        azimuth = np.arctan2(points[:, 1], points[:, 0])
+        if self.beam_origin_offset:  # the ray's own horizontal run starts at the beam's origin
+            horizontal = horizontal - self.beam_origin_offset
+        elevation = np.degrees(np.arctan2(points[:, 2], horizontal))
+        beams = np.asarray(self.elevations_deg)
+        beam = np.abs(elevation[:, None] - beams[None]).argmin(axis=1) if len(points) else np.zeros(0, np.int64)
+        step = 2 * np.pi / self.n_azimuth
+        azimuth = azimuth - self._beam_azimuth_offsets()[beam]
+        column = np.round((azimuth % (2 * np.pi)) / step).astype(np.int64) % self.n_azimuth
+        return beam, column, np.abs(elevation - beams[beam])
+
+
+PATTERNS: dict[str, BeamPattern] = {
+    # Velodyne VLP-16: 16 beams over +-15 deg, 0.2 deg azimuth at 10 Hz, 100 m.
+    "vlp16": BeamPattern("vlp16", tuple(np.linspace(-15, 15, 16)), 1800, 100.0, 0.5, 360),
+    # Ouster OS0-128: 128 beams over +-45 deg, 1024 columns at 10 Hz, 50 m (datasheet, 80 % targets).
+    "os0-128": BeamPattern("os0-128", tuple(np.linspace(-45, 45, 128)), 1024, 50.0, 0.3, 256),
+}
+PATTERN_FILES = (".yaml", ".yml", ".json")
+BEAM_TOLERANCE = 0.25  # a return lies on a beam within this share of the beams' spacing
+
+
+def check_pattern(pattern: BeamPattern) -> None:
+    """Raise PatternError naming what makes `pattern` unusable."""
+    problem = None
+    if pattern.n_beams < 1 or pattern.n_azimuth < 1 or not pattern.max_range > pattern.min_range >= 0:
+        problem = (f"needs beams, columns and max_range > min_range >= 0 (got {pattern.n_beams} beams, "
+                   f"{pattern.n_azimuth} columns, range {pattern.min_range}-{pattern.max_range} m)")
+    elif not np.isfinite(pattern.elevations_deg).all() or not np.isfinite(pattern.azimuth_offsets_deg).all():
+        problem = "holds an angle that is not a finite number"
+    elif pattern.azimuth_offsets_deg and len(pattern.azimuth_offsets_deg) != pattern.n_beams:
+        problem = f"has {len(pattern.azimuth_offsets_deg)} azimuth offsets for {pattern.n_beams} beams"
+    elif pattern.image_width < 1 or pattern.n_azimuth % pattern.image_width:
+        problem = f"has image_width {pattern.image_width}, which does not divide its {pattern.n_azimuth} columns"
+    if problem:
+        raise PatternError(f"beam pattern {pattern.name} {problem}")
+
+
+def register_pattern(pattern: BeamPattern) -> None:
+    """Add a user-defined beam pattern, usable by name in LidarConfig.model."""
+    check_pattern(pattern)
+    PATTERNS[pattern.name] = pattern
+
+
+def get_pattern(name: str) -> BeamPattern:
+    """A registered pattern, or one read from a pattern file whose path is `name` (kept under that
+    name, so that a worker process given the same name reads the same file)."""
+    if name not in PATTERNS and name.lower().endswith(PATTERN_FILES):
+        register_pattern(load_pattern(name))
+    if name not in PATTERNS:
+        raise ValueError(f"unknown LiDAR model '{name}'; known: {sorted(PATTERNS)}, or a pattern file "
+                         f"({', '.join(PATTERN_FILES)})")
+    return PATTERNS[name]
+
+
+def _image_width(n_azimuth: int) -> int:
+    """The widest divisor of the column count up to 360: the observations' range-image width."""
+    return max(w for w in range(1, min(n_azimuth, 360) + 1) if n_azimuth % w == 0)
+
+
+# Ouster product lines: range (m) at 80 % reflectivity and the least range, from the datasheets.
+_OUSTER_RANGES = {"OS-0": (50.0, 0.3), "OS-1": (120.0, 0.5), "OS-2": (240.0, 0.8), "OS-DOME": (45.0, 0.3)}
+
+
+def _find(tree: dict, key: str):
+    """A key's value anywhere in nested dicts (Ouster moved its metadata keys between firmwares)."""
+    if key in tree:
+        return tree[key]
+    for value in tree.values():
+        if isinstance(value, dict) and (found := _find(value, key)) is not None:
+            return found
+    return None
+
+
+def _ouster_pattern(name: str, meta: dict) -> BeamPattern:
+    altitudes = _find(meta, "beam_altitude_angles")
+    azimuths = _find(meta, "beam_azimuth_angles") or [0.0] * len(altitudes)
+    columns = _find(meta, "columns_per_frame")
+    if columns is None and isinstance(mode := _find(meta, "lidar_mode"), str):
+        columns = int(mode.split("x")[0])
+    if not columns:
+        raise PatternError(f"{name}: Ouster metadata without columns_per_frame or lidar_mode")
+    product = str(_find(meta, "prod_line") or "").upper()
+    far, near = next((r for p, r in _OUSTER_RANGES.items() if product.startswith(p)), (100.0, 0.3))
+    # Ouster counts azimuth clockwise from the encoder angle: a beam's offset is the negative
+    origin_mm = float(_find(meta, "lidar_origin_to_beam_origin_mm") or 0.0)
+    return BeamPattern(name, tuple(float(a) for a in altitudes), int(columns), far, near, _image_width(int(columns)),
+                       tuple(-float(a) for a in azimuths), origin_mm / 1e3)
+
+
+def _own_pattern(name: str, spec: dict) -> BeamPattern:
+    elevations = spec["elevations_deg"]
+    if isinstance(elevations, dict):  # evenly spaced: {from, to, beams}
+        elevations = np.linspace(float(elevations["from"]), float(elevations["to"]), int(elevations["beams"]))
+    columns = int(spec["columns"])
+    return BeamPattern(name, tuple(float(e) for e in elevations), columns, float(spec["max_range"]),
+                       float(spec.get("min_range", 0.0)), int(spec.get("image_width", _image_width(columns))),
+                       tuple(float(a) for a in spec.get("azimuth_offsets_deg", ())),
+                       float(spec.get("beam_origin_offset", 0.0)))
+
+
+def load_pattern(path: str | Path) -> BeamPattern:
+    """A beam pattern file, named by its path: this project's own keys (`elevations_deg` as a list or
+    {from, to, beams}, `columns`, `max_range`, optional `min_range`, `azimuth_offsets_deg`,
+    `beam_origin_offset` in metres, `image_width`), or an Ouster sensor's metadata JSON."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise PatternError(f"{path}: cannot read the beam pattern file ({exc.strerror})") from exc
+    try:
+        spec = json.loads(text) if path.suffix.lower() == ".json" else yaml.safe_load(text)
+    except (json.JSONDecodeError, yaml.YAMLError) as exc:
+        raise PatternError(f"{path}: not a readable {path.suffix[1:].upper()} file: {exc}") from exc
+    if not isinstance(spec, dict):
+        raise PatternError(f"{path}: a beam pattern file holds a mapping of keys, not {type(spec).__name__}")
+    try:
+        make = _ouster_pattern if _find(spec, "beam_altitude_angles") else _own_pattern
+        pattern = make(str(path), spec)
+    except PatternError:
+        raise
+    except KeyError as exc:
+        raise PatternError(f"{path}: the beam pattern lacks {exc}; it needs elevations_deg, columns and max_range, "
+                           "or is an Ouster metadata file with beam_altitude_angles") from exc
+    except (TypeError, ValueError) as exc:
+        raise PatternError(f"{path}: a beam pattern value is not a number: {exc}") from exc
+    check_pattern(pattern)
+    return pattern
+
+
+def _columns(points: np.ndarray, beam: np.ndarray) -> int:
+    """Columns per revolution: 360 deg over the typical azimuth step between one beam's returns."""
+    azimuth = np.arctan2(points[:, 1], points[:, 0])
+    order = np.lexsort((azimuth, beam))
+    step = np.diff(azimuth[order])
+    step = step[(np.diff(beam[order]) == 0) & (step > 1e-5)]
+    if len(step) < 10:
+        raise PatternError("the scan has too few returns beside each other on a beam to tell its columns")
+    return int(round(2 * np.pi / float(np.median(step))))
+
+
+def _beams_of(elevation: np.ndarray, rings: np.ndarray | None) -> np.ndarray:
+    """Each beam's elevation: the median of a ring's returns, else clusters of equal elevations."""
+    if rings is not None:
+        return np.array([np.median(elevation[rings == r]) for r in np.unique(rings)])
+    ordered = np.sort(elevation)
+    cut = np.flatnonzero(np.diff(ordered) > 0.05) + 1  # returns of one beam share its elevation
+    return np.array([np.median(c) for c in np.split(ordered, cut)])
+
+
+def fit_pattern(points: np.ndarray, rings: np.ndarray | None = None) -> tuple[BeamPattern, str]:
+    """The beam pattern of one full revolution (N, 3) in its sensor's frame, and how it was found:
+    the registered pattern with the fewest beams that every return lies on, with a return on its
+    lowest or highest beam (its column count taken from the scan where that differs, as a VLP-16
+    spinning at 20 Hz), else one fitted to the scan,
+    a beam per ring (`rings`, the cloud's ring field) or per cluster of equal elevations."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    usable = np.isfinite(points).all(axis=1) & (np.linalg.norm(points, axis=1) > 0)
+    if rings is not None:
+        rings = np.asarray(rings).reshape(-1)
+        if len(rings) != len(points):
+            raise PatternError(f"{len(rings)} ring numbers for {len(points)} points")
+        rings = rings[usable]
+    points = points[usable]
+    if len(points) < 100:
+        raise PatternError(f"{len(points)} finite returns are too few to tell the sensor's beams")
+    for known in sorted(PATTERNS.values(), key=lambda p: p.n_beams):
+        beam, _, off = known.locate(points)
+        ends = {int(np.argmin(known.elevations_deg)), int(np.argmax(known.elevations_deg))}
+        # a scan of another sensor with beams on this one's grid (an OS1-64 on the OS0-128's) leaves
+        # both end beams empty; a scan of this sensor reaches the ground or the roof with one of them
+        if off.max() > BEAM_TOLERANCE * known.spacing_deg() or not ends & set(np.unique(beam).tolist()):
+            continue
+        columns = _columns(points, beam)
+        if abs(columns - known.n_azimuth) <= 0.02 * known.n_azimuth:
+            return known, f"{known.name}: every return lies on one of its beams"
+        fitted = replace(known, name=f"{known.name}@{columns}", n_azimuth=columns, image_width=_image_width(columns))
+        return fitted, f"{known.name}'s beams at {columns} columns a revolution"
+    r = np.linalg.norm(points, axis=1)
+    elevation = np.degrees(np.arcsin(np.clip(points[:, 2] / r, -1.0, 1.0)))
+    beams = np.sort(_beams_of(elevation, rings))
+    if len(beams) > 512:
+        raise PatternError(f"the returns lie at {len(beams)} elevations, not on a few beams: give one revolution of "
+                           "a spinning LiDAR in its own frame, not a map or a deskewed cloud")
+    fitted = BeamPattern("fitted", tuple(float(b) for b in beams), 1, float(np.ceil(r.max())),
+                         float(np.floor(10 * r.min()) / 10), 1)
+    beam, _, off = fitted.locate(points)
+    if off.max() > BEAM_TOLERANCE * fitted.spacing_deg():
+        raise PatternError(f"a return lies {off.max():.2f} deg off its beam (beams {fitted.spacing_deg():.2f} deg "
+                           "apart): give the sensor's beam pattern as a file (for an Ouster, its metadata JSON)")
+    columns = _columns(points, beam)
+    fitted = replace(fitted, name=f"fitted-{len(beams)}x{columns}", n_azimuth=columns,
+                     image_width=_image_width(columns))
+    check_pattern(fitted)
+    how = f"fitted to the scan: {len(beams)} beams over {beams[0]:.1f} to {beams[-1]:.1f} deg, {columns} columns"
+    return fitted, how + (" (beams from the ring field)" if rings is not None else "")

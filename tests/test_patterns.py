@@ -1,0 +1,161 @@
+"""Beam patterns: Ouster-style offsets simulated and read back, pattern files, and the sensor
+recognised from a scan's own points, as `l3e judge` does for scans of another LiDAR."""
+import json
+import re
+
+import numpy as np
+import pytest
+import trimesh
+
+from l3e_env.cli import main
+from l3e_env.config import LidarConfig
+from l3e_env.judge import judge_scans
+from l3e_env.lidar import Lidar
+from l3e_env.patterns import PATTERNS, BeamPattern, PatternError, fit_pattern, get_pattern, load_pattern
+from l3e_env.raycast import EmbreeCaster, PyBulletCaster
+from l3e_env.transforms import pose_to_matrix
+
+# a 64-beam Ouster-like sensor: beams on the OS0-128's grid spacing, staggered azimuths, beams
+# leaving 27 mm out from the axis
+OUSTER_LIKE = BeamPattern("ouster-like", tuple(np.linspace(-22.5, 22.5, 64)), 512, 60.0, 0.3, 256,
+                          tuple(np.tile([-4.2, -1.4, 1.4, 4.2], 16)), 0.027)
+POSE = pose_to_matrix(np.array([40.0, 0.3, 0.85, 0.05, -0.03, 0.1]))
+
+
+def _scan(mesh, pattern: BeamPattern, pose=POSE, rng=None, caster=EmbreeCaster):
+    """A scan of `pattern`, registered only while it is cast."""
+    PATTERNS[pattern.name] = pattern
+    try:
+        return Lidar(caster(mesh), LidarConfig(model=pattern.name)).scan(pose, rng)
+    finally:
+        del PATTERNS[pattern.name]
+
+
+def test_offset_beams_are_cast_from_their_own_origins_and_read_back_onto_their_beams():
+    room = trimesh.creation.box(extents=(10.0, 6.0, 4.0))
+    for caster in (EmbreeCaster, PyBulletCaster.for_mesh):
+        scan = _scan(room, OUSTER_LIKE, np.eye(4), caster=caster)
+        p = np.abs(scan.points.astype(np.float64))
+        assert np.isclose(p[:, 0], 5, atol=1e-3).sum() > 1000
+        assert (np.isclose(p, [5, 3, 2], atol=1e-3).any(axis=1)).all()  # on the box's faces
+        # the return of beam b, column c lies on the ray from 27 mm out along column c's azimuth
+        az = 2 * np.pi * scan.column / OUSTER_LIKE.n_azimuth
+        ray = scan.points - 0.027 * np.c_[np.cos(az), np.sin(az), np.zeros_like(az)]
+        el = np.degrees(np.arctan2(ray[:, 2], np.hypot(ray[:, 0], ray[:, 1])))
+        np.testing.assert_allclose(el, np.asarray(OUSTER_LIKE.elevations_deg)[scan.beam], atol=1e-3)
+        beam, column, off = OUSTER_LIKE.locate(scan.points)
+        assert (beam == scan.beam).all() and (column == scan.column).all() and off.max() < 1e-3
+    # without the offsets the same points would not read back: the beam origin is 27 mm out
+    bare = BeamPattern("bare", OUSTER_LIKE.elevations_deg, 512, 60.0, 0.3, 256)
+    assert bare.locate(scan.points)[2].max() > 0.25 * bare.spacing_deg()
+
+
+@pytest.mark.parametrize("model", ["vlp16", "os0-128"])
+def test_a_scan_of_a_built_in_sensor_is_recognised_as_it(mine, model):
+    scan = Lidar(EmbreeCaster(mine.mesh), LidarConfig(model=model)).scan(POSE, np.random.default_rng(0))
+    for rings in (None, scan.beam):
+        pattern, how = fit_pattern(scan.points, rings)
+        assert pattern is PATTERNS[model] and how.startswith(model)
+    # every other column: the same beams at half the columns (a VLP-16 spinning at 20 Hz)
+    half = scan.column % 2 == 0
+    pattern, how = fit_pattern(scan.points[half])
+    assert pattern.name == f"{model}@{PATTERNS[model].n_azimuth // 2}"
+    assert pattern.elevations_deg == PATTERNS[model].elevations_deg
+
+
+def test_another_sensor_is_fitted_from_its_scan_not_taken_for_one_whose_beam_grid_it_shares(mine):
+    """The Ouster-like beams lie within a quarter spacing of the OS0-128's, but both of that
+    sensor's end beams (+-45 deg) would have returns in the mine: it is fitted instead."""
+    scan = _scan(mine.mesh, OUSTER_LIKE, rng=np.random.default_rng(1))
+    for rings in (None, scan.beam):
+        pattern, how = fit_pattern(scan.points, rings)
+        assert pattern.name == "fitted-64x512" and re.search(r"64 beams over -22\.\d to 22\.\d deg", how), how
+        assert ("ring field" in how) == (rings is not None)
+        # seen from the axis, not the beam's origin 27 mm out, a beam's returns on the floor 2 m
+        # away lie up to 0.3 deg nearer the horizon
+        np.testing.assert_allclose(pattern.elevations_deg, OUSTER_LIKE.elevations_deg, atol=0.3)
+        beam, _, _ = pattern.locate(scan.points)
+        assert (beam == scan.beam).all()
+
+
+def test_clouds_that_are_not_one_revolution_are_refused(rng):
+    with pytest.raises(PatternError, match="too few"):
+        fit_pattern(np.full((500, 3), np.nan))
+    with pytest.raises(PatternError, match="not on a few beams"):
+        fit_pattern(rng.normal(size=(5000, 3)) * 10)
+    with pytest.raises(PatternError, match="3 ring numbers for 200 points"):
+        fit_pattern(rng.normal(size=(200, 3)), np.arange(3))
+
+
+def test_pattern_files_in_the_projects_own_keys_and_as_ouster_metadata(tmp_path):
+    own = tmp_path / "xt32.yaml"
+    own.write_text("elevations_deg: {from: -16, to: 15, beams: 32}\ncolumns: 2000\nmax_range: 120\nmin_range: 0.05\n")
+    pattern = load_pattern(own)
+    assert pattern.name == str(own) and pattern.n_beams == 32 and pattern.elevations_deg[-1] == 15.0
+    assert pattern.n_azimuth == 2000 and pattern.image_width == 250 and pattern.beam_origin_offset == 0
+    listed = tmp_path / "listed.json"
+    listed.write_text(json.dumps({"elevations_deg": [-10, 0, 10], "columns": 360, "max_range": 30,
+                                  "azimuth_offsets_deg": [1, 0, -1], "beam_origin_offset": 0.01}))
+    assert load_pattern(listed).azimuth_offsets_deg == (1.0, 0.0, -1.0)
+    altitudes, azimuths = list(np.linspace(21.1, -21.1, 64)), [3.1, 0.9, -1.2, -3.3] * 16
+    legacy = {"prod_line": "OS-1-64", "lidar_mode": "2048x10", "beam_altitude_angles": altitudes,
+              "beam_azimuth_angles": azimuths, "lidar_origin_to_beam_origin_mm": 15.806}
+    nested = {"sensor_info": {"prod_line": "OS-1-64"}, "config_params": {"lidar_mode": "1024x10"},
+              "lidar_data_format": {"columns_per_frame": 2048},
+              "beam_intrinsics": {"beam_altitude_angles": altitudes, "beam_azimuth_angles": azimuths,
+                                  "lidar_origin_to_beam_origin_mm": 15.806}}
+    for i, meta in enumerate((legacy, nested)):
+        path = tmp_path / f"os1-{i}.json"
+        path.write_text(json.dumps(meta))
+        os1 = get_pattern(str(path))  # registered under its path, for worker processes to read alike
+        assert PATTERNS[str(path)] is os1 and os1.n_beams == 64 and os1.n_azimuth == 2048
+        assert os1.max_range == 120.0 and os1.beam_origin_offset == pytest.approx(0.015806)
+        assert os1.azimuth_offsets_deg[:2] == (-3.1, -0.9)  # Ouster's azimuths turn the other way
+        del PATTERNS[str(path)]
+
+
+@pytest.mark.parametrize("text,problem", [
+    ("columns: 10\nmax_range: 5\n", "lacks 'elevations_deg'"),
+    ("elevations_deg: [0, 1]\ncolumns: ten\nmax_range: 5\n", "not a number"),
+    ("elevations_deg: [0, 1]\ncolumns: 10\nmax_range: 5\nazimuth_offsets_deg: [1]\n", "1 azimuth offsets for 2 beams"),
+    ("elevations_deg: [0, 1]\ncolumns: 10\nmax_range: 5\nimage_width: 3\n", "does not divide its 10 columns"),
+    ("elevations_deg: [0, 1]\ncolumns: 10\nmax_range: 0\n", "max_range > min_range"),
+    ("- 1\n- 2\n", "mapping of keys, not list"),
+    ("elevations_deg: [0, 1\n", "not a readable YAML file"),
+])
+def test_a_broken_pattern_file_is_refused_naming_the_problem(tmp_path, text, problem):
+    path = tmp_path / "sensor.yaml"
+    path.write_text(text)
+    with pytest.raises(PatternError, match=problem.replace("(", r"\(").replace("[", r"\[")):
+        load_pattern(path)
+    with pytest.raises(PatternError, match="cannot read"):
+        load_pattern(tmp_path / "missing.yaml")
+
+
+def test_judge_recognises_the_sensor_or_takes_a_pattern_file_for_scanmc(tmp_path, mine, capsys):
+    scan = _scan(mine.mesh, OUSTER_LIKE, rng=np.random.default_rng(2))
+    np.save(tmp_path / "scan.npy", scan.points)
+    seen = []
+    [auto] = judge_scans([tmp_path / "scan.npy"], ["scanmc:4"], on_sensor=lambda p, how: seen.append(p.name))
+    assert seen == ["fitted-64x512"] and auto.predictions["scanmc:4"].known
+    # the sensor's own file gives its exact beams: the same children see the same scan mesh but for
+    # the staggered azimuths and beam origins, so the scores agree closely, not exactly
+    spec = tmp_path / "ouster.yaml"
+    spec.write_text(f"elevations_deg: {[float(e) for e in OUSTER_LIKE.elevations_deg]}\ncolumns: 512\nmax_range: 60\n"
+                    f"min_range: 0.3\nazimuth_offsets_deg: {[float(a) for a in OUSTER_LIKE.azimuth_offsets_deg]}\n"
+                    "beam_origin_offset: 0.027\n")
+    [given] = judge_scans([tmp_path / "scan.npy"], ["scanmc:4"], LidarConfig(model=str(spec)), workers=2)
+    a, b = auto.predictions["scanmc:4"].probabilities, given.predictions["scanmc:4"].probabilities
+    assert given.predictions["scanmc:4"].known and np.abs(a - b).max() < 0.15
+    out = tmp_path / "j.json"
+    assert main(["judge", str(tmp_path / "scan.npy"), "--detector", "scanmc:4", "--json", str(out)]) == 0
+    # fitted again, or found among the patterns already fitted in this process
+    assert re.search(r"sensor: (fitted to the scan: 64 beams|fitted-64x512: every return)", capsys.readouterr().out)
+    assert json.loads(out.read_text())[0]["sensor"] == "fitted-64x512"
+    # a cloud that is no sensor's revolution is refused before anything is judged
+    np.save(tmp_path / "blob.npy", np.random.default_rng(3).normal(size=(4000, 3)))
+    assert main(["judge", str(tmp_path / "blob.npy"), "--detector", "scanmc:4"]) == 2
+    assert "the sensor cannot be recognised from this scan" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["judge", str(tmp_path / "scan.npy"), "--detector", "scanmc:4", "--sensor", "nope.yaml"])
+    assert "nope.yaml: cannot read the beam pattern file" in capsys.readouterr().err
