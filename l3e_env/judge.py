@@ -190,8 +190,8 @@ def recognise_sensor(scans: Iterator[str | Path | BagScan]) -> tuple[Iterator[st
         try:
             pattern, how = fit_pattern(points, rings)
         except PatternError as exc:
-            raise PatternError(f"{name}: the sensor cannot be recognised from this scan: {exc}; give it with "
-                               "--sensor (a name or a beam pattern file)") from exc
+            raise PatternError(f"{name}: the sensor cannot be recognised from this scan: {exc}; give its beam "
+                               "pattern with --sensor (a name, a pattern file or an Ouster's metadata JSON)") from exc
         return chain(seen, scans), pattern, how
     raise PatternError("no scan could be read to recognise the sensor from")
 

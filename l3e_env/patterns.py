@@ -206,6 +206,26 @@ def _columns(points: np.ndarray, beam: np.ndarray) -> int:
     return int(round(2 * np.pi / float(np.median(step))))
 
 
+def _elevations(points: np.ndarray, origin: float) -> np.ndarray:
+    """Each return's elevation (deg) seen from a beam origin `origin` metres out from the axis."""
+    return np.degrees(np.arctan2(points[:, 2], np.hypot(points[:, 0], points[:, 1]) - origin))
+
+
+def _beam_origin(points: np.ndarray, rings: np.ndarray) -> float:
+    """How far out from the axis the beams leave (an Ouster's lidar_origin_to_beam_origin, up to
+    50 mm): the distance at which each ring's returns share one elevation most closely."""
+    ring = np.unique(rings, return_inverse=True)[1]
+
+    def spread(origin: float) -> float:
+        elevation = _elevations(points, origin)
+        hi, lo = np.full(ring.max() + 1, -np.inf), np.full(ring.max() + 1, np.inf)
+        np.maximum.at(hi, ring, elevation)
+        np.minimum.at(lo, ring, elevation)
+        return float((hi - lo).max())
+
+    return float(min(np.arange(0.0, 0.0505, 0.0005), key=spread))
+
+
 def _beams_of(elevation: np.ndarray, rings: np.ndarray | None) -> np.ndarray:
     """Each beam's elevation: the median of a ring's returns, else clusters of equal elevations."""
     if rings is not None:
@@ -219,8 +239,8 @@ def fit_pattern(points: np.ndarray, rings: np.ndarray | None = None) -> tuple[Be
     """The beam pattern of one full revolution (N, 3) in its sensor's frame, and how it was found:
     the registered pattern with the fewest beams that every return lies on, with a return on its
     lowest or highest beam (its column count taken from the scan where that differs, as a VLP-16
-    spinning at 20 Hz), else one fitted to the scan,
-    a beam per ring (`rings`, the cloud's ring field) or per cluster of equal elevations."""
+    spinning at 20 Hz), else one fitted to the scan: a beam per ring (`rings`, the cloud's ring
+    field; the beams' origin offset fitted too) or per cluster of equal elevations."""
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     usable = np.isfinite(points).all(axis=1) & (np.linalg.norm(points, axis=1) > 0)
     if rings is not None:
@@ -243,21 +263,25 @@ def fit_pattern(points: np.ndarray, rings: np.ndarray | None = None) -> tuple[Be
             return known, f"{known.name}: every return lies on one of its beams"
         fitted = replace(known, name=f"{known.name}@{columns}", n_azimuth=columns, image_width=_image_width(columns))
         return fitted, f"{known.name}'s beams at {columns} columns a revolution"
-    r = np.linalg.norm(points, axis=1)
-    elevation = np.degrees(np.arcsin(np.clip(points[:, 2] / r, -1.0, 1.0)))
+    origin = _beam_origin(points, rings) if rings is not None else 0.0
+    elevation = _elevations(points, origin)
     beams = np.sort(_beams_of(elevation, rings))
     if len(beams) > 512:
         raise PatternError(f"the returns lie at {len(beams)} elevations, not on a few beams: give one revolution of "
                            "a spinning LiDAR in its own frame, not a map or a deskewed cloud")
+    r = np.linalg.norm(points, axis=1)
     fitted = BeamPattern("fitted", tuple(float(b) for b in beams), 1, float(np.ceil(r.max())),
-                         float(np.floor(10 * r.min()) / 10), 1)
+                         float(np.floor(10 * r.min()) / 10), 1, beam_origin_offset=origin)
     beam, _, off = fitted.locate(points)
     if off.max() > BEAM_TOLERANCE * fitted.spacing_deg():
         raise PatternError(f"a return lies {off.max():.2f} deg off its beam (beams {fitted.spacing_deg():.2f} deg "
-                           "apart): give the sensor's beam pattern as a file (for an Ouster, its metadata JSON)")
+                           "apart)" + ("" if rings is not None else ", and the cloud has no ring field to sort "
+                                       "the returns by beam"))
     columns = _columns(points, beam)
     fitted = replace(fitted, name=f"fitted-{len(beams)}x{columns}", n_azimuth=columns,
                      image_width=_image_width(columns))
     check_pattern(fitted)
     how = f"fitted to the scan: {len(beams)} beams over {beams[0]:.1f} to {beams[-1]:.1f} deg, {columns} columns"
+    if origin:
+        how += f", beams leaving {1e3 * origin:.1f} mm out from the axis"
     return fitted, how + (" (beams from the ring field)" if rings is not None else "")

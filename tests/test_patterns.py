@@ -13,6 +13,7 @@ from l3e_env.judge import judge_scans
 from l3e_env.lidar import Lidar
 from l3e_env.patterns import PATTERNS, BeamPattern, PatternError, fit_pattern, get_pattern, load_pattern
 from l3e_env.raycast import EmbreeCaster, PyBulletCaster
+from l3e_env.scan_mc import range_image_mesh
 from l3e_env.transforms import pose_to_matrix
 
 # a 64-beam Ouster-like sensor: beams on the OS0-128's grid spacing, staggered azimuths, beams
@@ -71,9 +72,14 @@ def test_another_sensor_is_fitted_from_its_scan_not_taken_for_one_whose_beam_gri
         pattern, how = fit_pattern(scan.points, rings)
         assert pattern.name == "fitted-64x512" and re.search(r"64 beams over -22\.\d to 22\.\d deg", how), how
         assert ("ring field" in how) == (rings is not None)
-        # seen from the axis, not the beam's origin 27 mm out, a beam's returns on the floor 2 m
-        # away lie up to 0.3 deg nearer the horizon
-        np.testing.assert_allclose(pattern.elevations_deg, OUSTER_LIKE.elevations_deg, atol=0.3)
+        if rings is None:
+            # seen from the axis, not the beam's origin 27 mm out, a beam's returns on the floor 2 m
+            # away lie up to 0.3 deg nearer the horizon
+            assert pattern.beam_origin_offset == 0
+            np.testing.assert_allclose(pattern.elevations_deg, OUSTER_LIKE.elevations_deg, atol=0.3)
+        else:  # the ring field tells which returns share a beam, and so where the beams leave from
+            assert pattern.beam_origin_offset == pytest.approx(0.027, abs=5e-4) and "27.0 mm" in how
+            np.testing.assert_allclose(pattern.elevations_deg, OUSTER_LIKE.elevations_deg, atol=0.02)
         beam, _, _ = pattern.locate(scan.points)
         assert (beam == scan.beam).all()
 
@@ -159,3 +165,14 @@ def test_judge_recognises_the_sensor_or_takes_a_pattern_file_for_scanmc(tmp_path
     with pytest.raises(SystemExit):
         main(["judge", str(tmp_path / "scan.npy"), "--detector", "scanmc:4", "--sensor", "nope.yaml"])
     assert "nope.yaml: cannot read the beam pattern file" in capsys.readouterr().err
+
+
+def test_a_staggered_scan_is_meshed_by_the_returns_own_azimuths():
+    """Beams 2.8 deg apart in azimuth at one encoder column are not joined: the mesh's triangles
+    span at most a column and a diagonal of the returns' own azimuths."""
+    scan = _scan(trimesh.creation.box(extents=(10.0, 6.0, 4.0)), OUSTER_LIKE, np.eye(4))
+    mesh = range_image_mesh(scan.points, OUSTER_LIKE)
+    assert len(mesh.faces) > len(scan) // 2
+    azimuth = np.arctan2(scan.points[:, 1], scan.points[:, 0])[mesh.faces]
+    across = np.abs(np.angle(np.exp(1j * (azimuth - azimuth[:, :1])))).max(axis=1)
+    assert across.max() < 1.5 * 2 * np.pi / OUSTER_LIKE.n_azimuth
