@@ -14,6 +14,10 @@ from pathlib import Path
 
 import numpy as np
 
+from .config import OdometryConfig
+from .odometry import DeadReckoningCovariance
+from .transforms import inverse, matrix_to_pose
+
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 # sensor_msgs/PointField datatypes
 _DATATYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
@@ -144,14 +148,17 @@ class BagRecorder:
       beam's index in the pattern: for the built-in ones the lowest first, as Velodyne's driver
       numbers them), one revolution a message;
     - `/odom` nav_msgs/Odometry, frame `odom` to `base_link`: the leg odometry's dead reckoning
-      (`odom` is the world frame at the start);
+      (`odom` is the world frame at the start), its twist over the last step, and the covariances
+      that `odometry`'s noise model gives both (`DeadReckoningCovariance`; the default is the
+      simulation's own);
     - `/ground_truth` geometry_msgs/PoseStamped of `base_link` in frame `world`;
     - `/tf` odom to base_link each step, `/tf_static` base_link to lidar once.
     The bag is written in a folder beside `path` and moved there when `close` is called, so a
     killed drive leaves no half bag under that name (the next one removes the folder). ROS 2
     (`ros2=True`) writes a sqlite3 bag folder."""
 
-    def __init__(self, path: str | Path, ros2: bool = False, dt: float = 0.1, start: float = 1.0):
+    def __init__(self, path: str | Path, ros2: bool = False, dt: float = 0.1, start: float = 1.0,
+                 odometry: OdometryConfig | None = None):
         try:
             from rosbags.rosbag1 import Writer as Writer1
             from rosbags.rosbag2 import Writer as Writer2
@@ -176,6 +183,7 @@ class BagRecorder:
         self.writer = Writer2(self.partial, version=9) if ros2 else Writer1(self.partial)
         self.writer.open()
         self.steps = 0
+        self.covariance, self.last_odom = DeadReckoningCovariance(odometry), None
         self.topics = {}
         for topic, msgtype in (("/points", POINTCLOUD2), ("/odom", "nav_msgs/msg/Odometry"),
                                ("/ground_truth", "geometry_msgs/msg/PoseStamped"), ("/tf", "tf2_msgs/msg/TFMessage"),
@@ -216,14 +224,17 @@ class BagRecorder:
         self._write("/points", stamp, _cloud_message(t, self._header(stamp, "lidar"), scan.points,
                                                      scan.beam.astype(np.uint16)))
         odom = np.asarray(info["odom_T_w_b"], dtype=np.float64)
-        zeros = np.zeros(36)
+        increment = np.eye(4) if self.last_odom is None else inverse(self.last_odom) @ odom
+        self.last_odom = odom
+        pose_covariance, twist_covariance = self.covariance.step(increment, odom, self.dt)
+        velocity = matrix_to_pose(increment) / self.dt  # over the step just taken, in the body frame
+        vector = t["geometry_msgs/msg/Vector3"]
         self._write("/odom", stamp, t["nav_msgs/msg/Odometry"](
             header=self._header(stamp, "odom"), child_frame_id="base_link",
-            pose=t["geometry_msgs/msg/PoseWithCovariance"](pose=self._pose(odom), covariance=zeros),
+            pose=t["geometry_msgs/msg/PoseWithCovariance"](pose=self._pose(odom), covariance=pose_covariance.ravel()),
             twist=t["geometry_msgs/msg/TwistWithCovariance"](
-                twist=t["geometry_msgs/msg/Twist"](linear=t["geometry_msgs/msg/Vector3"](0.0, 0.0, 0.0),
-                                                   angular=t["geometry_msgs/msg/Vector3"](0.0, 0.0, 0.0)),
-                covariance=zeros)))
+                twist=t["geometry_msgs/msg/Twist"](linear=vector(*velocity[:3]), angular=vector(*velocity[3:])),
+                covariance=twist_covariance.ravel())))
         self._write("/tf", stamp, t["tf2_msgs/msg/TFMessage"](
             transforms=[self._transform(stamp, "odom", "base_link", odom)]))
         self._write("/ground_truth", stamp, t["geometry_msgs/msg/PoseStamped"](

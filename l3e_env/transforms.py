@@ -39,3 +39,14 @@ def yaw_of(T: np.ndarray) -> float:
 
 def wrap_angle(a: np.ndarray | float) -> np.ndarray | float:
     return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
+
+
+def adjoint(T: np.ndarray) -> np.ndarray:
+    """6x6 adjoint of a pose for tangent vectors ordered (translation, rotation): a perturbation in
+    the frame T moves into its parent's. Hand-written: GTSAM's AdjointMap orders rotation first."""
+    R, t = T[:3, :3], T[:3, 3]
+    skew = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
+    A = np.zeros((6, 6))
+    A[:3, :3] = A[3:, 3:] = R
+    A[:3, 3:] = skew @ R
+    return A

@@ -190,8 +190,17 @@ def test_a_drive_written_as_a_bag_reads_back_as_the_same_scans_and_poses(tmp_pat
     assert cloud_rings(_cloud(ROS1, scans[0].points, 1.0)) is None  # a cloud without a ring field
     truth_read = [(m.pose.position.x, m.pose.position.y, m.pose.orientation.z) for m in _messages(bag, "/ground_truth")]
     np.testing.assert_allclose(truth_read, [(0.5 * k, 0.2, np.sin(0.05 * k)) for k in range(3)], atol=1e-12)
-    odom_read = [(m.pose.pose.position.x, m.child_frame_id) for m in _messages(bag, "/odom")]
+    odom_msgs = _messages(bag, "/odom")
+    odom_read = [(m.pose.pose.position.x, m.child_frame_id) for m in odom_msgs]
     assert odom_read == [(pytest.approx(0.5 * k + 0.01 * k * np.cos(0.1 * k)), "base_link") for k in range(3)]
+    # the twist over the last step in the body frame, with the covariances of the odometry's noise model
+    step = np.linalg.inv(odom[1]) @ odom[2]
+    assert odom_msgs[2].twist.twist.linear.x == pytest.approx(step[0, 3] / 0.1)
+    assert odom_msgs[2].twist.twist.angular.z == pytest.approx(0.1 / 0.1)
+    covariance = [m.pose.covariance.reshape(6, 6) for m in odom_msgs]
+    assert not covariance[0].any()  # the start is where odom is defined
+    assert 0 < covariance[1][0, 0] < covariance[2][0, 0] and np.allclose(covariance[2], covariance[2].T)
+    assert (np.diag(odom_msgs[1].twist.covariance.reshape(6, 6)) > 0).all()
     (mount,) = _messages(bag, "/tf_static")
     t = mount.transforms[0]
     assert (t.header.frame_id, t.child_frame_id) == ("base_link", "lidar")

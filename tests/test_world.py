@@ -3,7 +3,7 @@ import pytest
 import trimesh
 
 from l3e_env.config import OdometryConfig
-from l3e_env.odometry import LegOdometry
+from l3e_env.odometry import DeadReckoningCovariance, LegOdometry
 from l3e_env.robot import Robot, SpawnError
 from l3e_env.transforms import inverse, matrix_to_pose, planar_pose, pose_to_matrix
 from l3e_env.world import World
@@ -80,6 +80,29 @@ def test_leg_odometry_is_exact_at_rest_and_drifts_in_motion():
     b = LegOdometry(OdometryConfig(), np.random.default_rng(7)).measure(np.eye(4), step)
     np.testing.assert_array_equal(a, b)
     assert not np.allclose(a, pose_to_matrix([0.1, 0, 0, 0, 0, 0.05]))
+
+
+def test_dead_reckoning_covariance_matches_the_spread_of_simulated_walks():
+    """20 m along an arc: the propagated covariance (scale and biases carried along) gives each
+    axis's spread over 200 simulated walks within 20 %."""
+    step = planar_pose(0.1, 0.0, 0.0, 0.01)
+    covariance, truth = DeadReckoningCovariance(), np.eye(4)
+    for _ in range(200):
+        truth = truth @ step
+        P, twist = covariance.step(step, truth, 0.1)
+    ends = []
+    for run in range(200):
+        odometry, T_odom, T_true = LegOdometry(rng=np.random.default_rng(run)), np.eye(4), np.eye(4)
+        for _ in range(200):
+            T_odom, T_true = T_odom @ odometry.measure(T_true, T_true @ step), T_true @ step
+        # the error as the covariance states it: position in the odometry frame, rotation about its axes
+        rotation = T_odom[:3, :3] @ T_true[:3, :3].T
+        ends.append(np.r_[T_odom[:3, 3] - T_true[:3, 3], matrix_to_pose(np.block([[rotation, np.zeros((3, 1))],
+                                                                                  [np.zeros((1, 3)), 1.0]]))[3:]])
+    spread = np.std(ends, axis=0)
+    np.testing.assert_allclose(np.sqrt(np.diag(P)), spread, rtol=0.2)
+    assert np.allclose(P, P.T) and np.linalg.eigvalsh(P).min() > 0
+    assert twist.shape == (6, 6) and (np.diag(twist) > 0).all()
 
 
 def test_transforms_round_trip():
