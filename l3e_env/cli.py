@@ -240,11 +240,16 @@ def _cmd_ate(args: argparse.Namespace) -> int:
 
 def _cmd_record(args: argparse.Namespace) -> int:
     from .experiment import record_run
+    from .imu import ImuConfig
     from .rosbag import BagError, BagRecorder
 
     params = scene_params(args)
+    if not args.imu_rate >= 0:
+        print(f"l3e record: --imu-rate must be 0 (no IMU) or more, got {args.imu_rate}", file=sys.stderr)
+        return 2
     try:
-        bag = BagRecorder(args.out, ros2=args.ros2)
+        bag = BagRecorder(args.out, ros2=args.ros2, imu=ImuConfig(rate=args.imu_rate) if args.imu_rate else None,
+                          seed=args.seed)
     except BagError as exc:
         print(f"l3e record: {exc}", file=sys.stderr)
         return 2
@@ -459,6 +464,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--sensor", type=sensor_name, default="vlp16", help=SENSOR_HELP)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--recording", help="also save the drive as a recording.npz for l3e ate --recording")
+    p.add_argument("--imu-rate", type=float, default=200.0, help="rate of /imu in Hz (default 200; 0: no IMU)")
     p.add_argument("--quiet", action="store_true")
     add_mesh_options(p)
     p.set_defaults(func=_cmd_record)

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from .config import OdometryConfig
+from .imu import ImuConfig, imu_samples
 from .odometry import DeadReckoningCovariance
 from .transforms import inverse, matrix_to_pose
 
@@ -152,13 +153,15 @@ class BagRecorder:
       that `odometry`'s noise model gives both (`DeadReckoningCovariance`; the default is the
       simulation's own);
     - `/ground_truth` geometry_msgs/PoseStamped of `base_link` in frame `world`;
-    - `/tf` odom to base_link each step, `/tf_static` base_link to lidar once.
+    - `/tf` odom to base_link each step, `/tf_static` base_link to lidar once;
+    - `/imu` sensor_msgs/Imu in frame `base_link` at `imu.rate` (None: no IMU), read off splines
+      through the true poses with `imu`'s noise and biases, seeded by `seed`; written on `close`.
     The bag is written in a folder beside `path` and moved there when `close` is called, so a
     killed drive leaves no half bag under that name (the next one removes the folder). ROS 2
     (`ros2=True`) writes a sqlite3 bag folder."""
 
     def __init__(self, path: str | Path, ros2: bool = False, dt: float = 0.1, start: float = 1.0,
-                 odometry: OdometryConfig | None = None):
+                 odometry: OdometryConfig | None = None, imu: ImuConfig | None = ImuConfig(), seed: int = 0):
         try:
             from rosbags.rosbag1 import Writer as Writer1
             from rosbags.rosbag2 import Writer as Writer2
@@ -184,17 +187,19 @@ class BagRecorder:
         self.writer.open()
         self.steps = 0
         self.covariance, self.last_odom = DeadReckoningCovariance(odometry), None
+        self.imu, self.seed, self.truth = imu, seed, []
         self.topics = {}
         for topic, msgtype in (("/points", POINTCLOUD2), ("/odom", "nav_msgs/msg/Odometry"),
                                ("/ground_truth", "geometry_msgs/msg/PoseStamped"), ("/tf", "tf2_msgs/msg/TFMessage"),
-                               ("/tf_static", "tf2_msgs/msg/TFMessage")):
+                               ("/tf_static", "tf2_msgs/msg/TFMessage"), ("/imu", "sensor_msgs/msg/Imu")):
             extra = {"latching": 1} if topic == "/tf_static" and not ros2 else {}
             self.topics[topic] = self.writer.add_connection(topic, msgtype, typestore=self.store, **extra)
 
-    def _header(self, stamp: float, frame: str):
+    def _header(self, stamp: float, frame: str, seq: int | None = None):
         t = self.store.types
         time = t["builtin_interfaces/msg/Time"](sec=int(stamp), nanosec=int(round(stamp % 1 * 1e9)) % 1_000_000_000)
-        return t["std_msgs/msg/Header"](**({} if self.ros2 else {"seq": self.steps}), stamp=time, frame_id=frame)
+        seq = self.steps if seq is None else seq
+        return t["std_msgs/msg/Header"](**({} if self.ros2 else {"seq": seq}), stamp=time, frame_id=frame)
 
     def _transform(self, stamp: float, parent: str, child: str, T: np.ndarray):
         t = self.store.types
@@ -237,12 +242,34 @@ class BagRecorder:
                 covariance=twist_covariance.ravel())))
         self._write("/tf", stamp, t["tf2_msgs/msg/TFMessage"](
             transforms=[self._transform(stamp, "odom", "base_link", odom)]))
+        self.truth.append(np.asarray(info["T_w_b"], dtype=np.float64))
         self._write("/ground_truth", stamp, t["geometry_msgs/msg/PoseStamped"](
-            header=self._header(stamp, "world"), pose=self._pose(np.asarray(info["T_w_b"], dtype=np.float64))))
+            header=self._header(stamp, "world"), pose=self._pose(self.truth[-1])))
         self.steps += 1
 
+    def _write_imu(self) -> None:
+        """`/imu` over the whole drive, once its poses are known: the splines through them need
+        the poses after each sample as well as before."""
+        if self.imu is None or len(self.truth) < 2:
+            return
+        t = self.store.types
+        stamps = self.start + self.dt * np.arange(len(self.truth))
+        imu = imu_samples(stamps, self.truth, self.imu, np.random.default_rng(self.seed))
+        gyro_sigma, accel_sigma = self.imu.sigmas()
+        unknown = np.zeros(9)
+        unknown[0] = -1.0  # REP 145: no orientation estimate
+        vector = t["geometry_msgs/msg/Vector3"]
+        for k, (stamp, w, a) in enumerate(zip(imu.stamps, imu.gyro, imu.accel)):
+            self._write("/imu", float(stamp), t["sensor_msgs/msg/Imu"](
+                header=self._header(float(stamp), "base_link", k),
+                orientation=t["geometry_msgs/msg/Quaternion"](0.0, 0.0, 0.0, 1.0),
+                orientation_covariance=unknown, angular_velocity=vector(*w),
+                angular_velocity_covariance=np.diag([gyro_sigma**2] * 3).ravel(),
+                linear_acceleration=vector(*a), linear_acceleration_covariance=np.diag([accel_sigma**2] * 3).ravel()))
+
     def close(self) -> Path:
-        """Finish the bag and move it to its name."""
+        """Finish the bag (writing `/imu`) and move it to its name."""
+        self._write_imu()
         self.writer.close()
         os.replace(self.partial, self.path)
         self.folder.rmdir()

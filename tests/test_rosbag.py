@@ -12,6 +12,7 @@ from rosbags.typesys import Stores, get_typestore
 from l3e_env.cli import main
 from l3e_env.config import LidarConfig
 from l3e_env.judge import judge_scans
+from l3e_env.imu import ImuConfig
 from l3e_env.judge_plots import flag_matrix
 from l3e_env.lidar import Lidar
 from l3e_env.raycast import EmbreeCaster
@@ -206,6 +207,11 @@ def test_a_drive_written_as_a_bag_reads_back_as_the_same_scans_and_poses(tmp_pat
     assert (t.header.frame_id, t.child_frame_id) == ("base_link", "lidar")
     assert (t.transform.translation.x, t.transform.translation.z) == pytest.approx((0.1, 0.3))
     assert len(_messages(bag, "/tf")) == 3
+    imu = _messages(bag, "/imu")  # 200 Hz over the drive's 0.2 s, turning at 1 rad/s
+    assert len(imu) == 41 and imu[0].header.frame_id == "base_link" and imu[0].orientation_covariance[0] == -1
+    assert np.mean([m.angular_velocity.z for m in imu]) == pytest.approx(1.0, abs=0.01)
+    assert np.mean([m.linear_acceleration.z for m in imu]) == pytest.approx(9.81, abs=0.05)
+    assert imu[0].angular_velocity_covariance[0] == pytest.approx(ImuConfig().sigmas()[0] ** 2)
 
 
 def test_a_bag_recorder_refuses_to_overwrite_and_clears_a_killed_drive(tmp_path, rng):
@@ -237,3 +243,7 @@ def test_record_cli_writes_a_drive_that_judge_reads_back(tmp_path, capsys):
     assert capsys.readouterr().out.count("eigen:30: not localizable along x") == len(scans)  # between two walls
     assert main(["record", "--scene", "primitives-1", "--out", str(bag), "--quiet"]) == 2
     assert "walls.bag exists" in capsys.readouterr().err
+    assert main(["record", "--out", str(tmp_path / "other.bag"), "--imu-rate", "-1", "--quiet"]) == 2
+    assert "--imu-rate must be 0 (no IMU) or more" in capsys.readouterr().err
+    imu = _messages(bag, "/imu")
+    assert len(imu) == 20 * (len(recording.ground_truth) - 1) + 1  # 200 Hz between the first and last 10 Hz pose

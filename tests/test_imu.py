@@ -1,0 +1,67 @@
+"""The IMU read off the drive's poses: true to the motion, integrable back to the poses, noisy as configured."""
+import numpy as np
+import pytest
+from scipy.interpolate import CubicSpline
+from scipy.spatial.transform import Rotation
+
+from l3e_env.imu import GRAVITY, ImuConfig, imu_samples
+from l3e_env.transforms import pose_to_matrix
+
+
+def _circle(t: np.ndarray, radius: float = 5.0, rate: float = 0.2) -> list[np.ndarray]:
+    """Walking a circle anticlockwise, facing along it, at `rate` rad/s, on a floor that rises gently."""
+    return [pose_to_matrix([radius * np.sin(rate * s), radius * (1 - np.cos(rate * s)), 0.5 + 0.02 * s,
+                            0.0, 0.0, rate * s]) for s in t]
+
+
+def test_a_circle_reads_its_turn_rate_and_centripetal_acceleration_plus_gravity():
+    stamps = np.arange(0.0, 10.01, 0.1)
+    imu = imu_samples(stamps, _circle(stamps))
+    assert imu.stamps[0] == 0.0 and imu.stamps[-1] == pytest.approx(10.0) and len(imu.stamps) == 2001
+    middle = (imu.stamps > 1.0) & (imu.stamps < 9.0)  # away from the splines' free ends
+    np.testing.assert_allclose(imu.gyro[middle], np.tile([0.0, 0.0, 0.2], (middle.sum(), 1)), atol=1e-4)
+    # the centre lies to the left (+y in the body frame): v^2 / r = 1^2 / 5
+    np.testing.assert_allclose(imu.accel[middle], np.tile([0.0, 0.2, GRAVITY], (middle.sum(), 1)), atol=2e-3)
+
+
+def test_integrating_the_noise_free_imu_returns_to_the_poses():
+    """Strapdown integration from the first pose and the spline's own start velocity stays
+    within a centimetre of a 10 s drive that turns, climbs and pitches."""
+    stamps = np.arange(0.0, 10.01, 0.1)
+    poses = [pose_to_matrix([3 * np.sin(0.3 * s), s + 0.5 * np.sin(s), 0.3 * np.sin(0.5 * s),
+                             0.05 * np.sin(s), 0.08 * np.sin(0.7 * s), 0.4 * s]) for s in stamps]
+    imu = imu_samples(stamps, poses, ImuConfig(rate=400.0))
+    dt = 1.0 / 400.0
+    R, p = poses[0][:3, :3].copy(), poses[0][:3, 3].copy()
+    v = CubicSpline(stamps, np.array(poses)[:, :3, 3])(0.0, 1)
+    errors = []
+    for k in range(len(imu.stamps) - 1):
+        # midpoint rule on the rotation; the acceleration averaged over the sample interval
+        w = 0.5 * (imu.gyro[k] + imu.gyro[k + 1])
+        R_next = R @ Rotation.from_rotvec(w * dt).as_matrix()
+        a = 0.5 * (R @ imu.accel[k] + R_next @ imu.accel[k + 1]) - np.array([0.0, 0.0, GRAVITY])
+        p, v, R = p + v * dt + 0.5 * a * dt**2, v + a * dt, R_next
+        if (k + 1) % 40 == 0:  # at each pose's time
+            errors.append(np.linalg.norm(p - poses[(k + 1) // 40][:3, 3]))
+    assert len(errors) == 100 and max(errors) < 0.01
+
+
+def test_noise_and_biases_are_as_configured_at_rest(rng):
+    stamps = np.arange(0.0, 20.01, 0.1)
+    still = [pose_to_matrix([1.0, 2.0, 0.5, 0.0, 0.0, 0.3])] * len(stamps)
+    config = ImuConfig(gyro_bias_walk=0.0, accel_bias_walk=0.0)
+    imu = imu_samples(stamps, still, config, rng)
+    gyro_sigma, accel_sigma = config.sigmas()
+    np.testing.assert_allclose(imu.gyro.std(axis=0), gyro_sigma, rtol=0.05)
+    np.testing.assert_allclose(imu.accel.std(axis=0), accel_sigma, rtol=0.05)
+    np.testing.assert_allclose(imu.accel.mean(axis=0), [0.0, 0.0, GRAVITY], atol=5 * accel_sigma / np.sqrt(len(stamps)))
+    drifting = imu_samples(stamps, still, ImuConfig(gyro_noise=0.0, accel_noise=0.0, gyro_bias_walk=1e-3), rng)
+    # a random walk: its spread after 20 s is the walk's density times sqrt(20 s)
+    assert 0.2 * 1e-3 * np.sqrt(20) < np.abs(drifting.gyro[-1]).max() < 5 * 1e-3 * np.sqrt(20)
+
+
+def test_too_few_poses_or_unordered_times_are_refused():
+    with pytest.raises(ValueError, match="at least two poses"):
+        imu_samples(np.array([0.0]), [np.eye(4)])
+    with pytest.raises(ValueError, match="increasing times"):
+        imu_samples(np.array([0.0, 0.0]), [np.eye(4), np.eye(4)])
