@@ -323,7 +323,6 @@ def _cmd_judge(args: argparse.Namespace) -> int:
 
     from .config import LidarConfig
     from .judge import format_judgement, judge_scans, judgement_record, score_legend
-    from .patterns import PatternError
     from .rosbag import BagError, read_bag
 
     if bool(args.scans) == bool(args.bag):
@@ -341,19 +340,20 @@ def _cmd_judge(args: argparse.Namespace) -> int:
     sensor = [args.sensor]
 
     def recognised(pattern, how: str) -> None:
-        sensor[0] = pattern.name
-        print(f"sensor: {how} (give --sensor to choose it)", flush=True)
+        if pattern is None:
+            sensor[0] = LidarConfig().model
+            print(f"sensor: {how}; scanmc takes it as a {LidarConfig().model} and answers unknown for scans of "
+                  "another (give --sensor: a name, a pattern file or an Ouster's metadata JSON)", flush=True)
+        else:
+            sensor[0] = pattern.name
+            print(f"sensor: {how} (give --sensor to choose it)", flush=True)
 
     judgements = []  # printed as each scan is judged; an unreadable scan is named and the next one read
-    try:
-        for j in judge_scans(scans, specs, LidarConfig(model=args.sensor) if args.sensor else None, seed=args.seed,
-                             workers=args.workers, on_sensor=recognised):
-            judgements.append(j)
-            stamp = "" if j.stamp is None else f"[t = {j.stamp:.3f} s] "
-            print(stamp + format_judgement(j), file=sys.stderr if j.error else sys.stdout, flush=True)
-    except PatternError as exc:
-        print(f"l3e judge: {exc}", file=sys.stderr)
-        return 2
+    for j in judge_scans(scans, specs, LidarConfig(model=args.sensor) if args.sensor else None, seed=args.seed,
+                         workers=args.workers, on_sensor=recognised):
+        judgements.append(j)
+        stamp = "" if j.stamp is None else f"[t = {j.stamp:.3f} s] "
+        print(stamp + format_judgement(j), file=sys.stderr if j.error else sys.stdout, flush=True)
     print("scores ('*' flagged):\n" + score_legend(specs))
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)

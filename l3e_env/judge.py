@@ -171,9 +171,11 @@ def _judge_job(judges: tuple[list[Detector], int], job: tuple[int, str | BagScan
     return _judge_source(*job, *judges)
 
 
-def recognise_sensor(scans: Iterator[str | Path | BagScan]) -> tuple[Iterator[str | Path | BagScan], BeamPattern, str]:
+def recognise_sensor(scans: Iterator[str | Path | BagScan]) -> tuple[Iterator[str | Path | BagScan],
+                                                                     BeamPattern | None, str]:
     """The beam pattern of the first scan that can be read (`fit_pattern`, with the bag's ring
-    field where it has one), how it was found, and the scans again from the first."""
+    field where it has one), or None where it fits none; what was found, or why not; and the
+    scans again from the first."""
     seen: list[str | Path | BagScan] = []
     for scan in scans:
         seen.append(scan)
@@ -190,10 +192,9 @@ def recognise_sensor(scans: Iterator[str | Path | BagScan]) -> tuple[Iterator[st
         try:
             pattern, how = fit_pattern(points, rings)
         except PatternError as exc:
-            raise PatternError(f"{name}: the sensor cannot be recognised from this scan: {exc}; give its beam "
-                               "pattern with --sensor (a name, a pattern file or an Ouster's metadata JSON)") from exc
+            return chain(seen, scans), None, f"not recognised from {name}: {exc}"
         return chain(seen, scans), pattern, how
-    raise PatternError("no scan could be read to recognise the sensor from")
+    return iter(seen), None, "no scan could be read to recognise it from"
 
 
 def needs_sensor(specs: list[str]) -> bool:
@@ -208,7 +209,8 @@ def judge_scans(scans: Iterable[str | Path | BagScan], specs: list[str], sensor:
     ('learned[...]', 'eigen:<tau>', 'scanmc[:M]', 'none'; make_detector refuses the oracle,
     which needs a scene), after dropping its points without a return, in the order given,
     `workers` scans at a time. Without `sensor`, a detector that needs one gets the pattern
-    recognised from the first scan, reported to `on_sensor`. A scan that cannot be read gives a
+    recognised from the first scan (the default where none fits), reported to `on_sensor`
+    with what was found or why not. A scan that cannot be read gives a
     Judgement with its `error`, and the next one is read."""
     if workers < 1:
         raise ValueError(f"workers must be at least 1, got {workers}")
@@ -217,9 +219,11 @@ def judge_scans(scans: Iterable[str | Path | BagScan], specs: list[str], sensor:
         pattern = get_pattern(sensor.model)  # an unknown sensor is named before any file is read
     elif needs_sensor(specs):
         scans, pattern, how = recognise_sensor(iter(scans))
-        register_pattern(pattern)
+        if pattern is not None:
+            register_pattern(pattern)
         if on_sensor is not None:
             on_sensor(pattern, how)
+    # a sensor not recognised is taken as the default; scanmc answers unknown for scans not of it
     sensor = sensor or LidarConfig(model=pattern.name if pattern else LidarConfig().model)
     detectors = [make_detector(spec, seed=seed, sensor=sensor) for spec in specs]  # a bad spec fails here
     jobs = ((i, scan if isinstance(scan, BagScan) else str(scan)) for i, scan in enumerate(scans))

@@ -203,7 +203,12 @@ def _columns(points: np.ndarray, beam: np.ndarray) -> int:
     step = step[(np.diff(beam[order]) == 0) & (step > 1e-5)]
     if len(step) < 10:
         raise PatternError("the scan has too few returns beside each other on a beam to tell its columns")
-    return int(round(2 * np.pi / float(np.median(step))))
+    typical = float(np.median(step))
+    regular = float(np.mean(np.abs(step / typical - 1) < 0.1))
+    if regular < 0.5:  # a full revolution's returns follow each other one column apart, mostly
+        raise PatternError(f"only {regular:.0%} of the steps between a beam's returns are its typical step: the scan "
+                           "is thinned or sampled, not every return of a revolution")
+    return int(round(2 * np.pi / typical))
 
 
 def _elevations(points: np.ndarray, origin: float) -> np.ndarray:

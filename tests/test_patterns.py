@@ -84,7 +84,11 @@ def test_another_sensor_is_fitted_from_its_scan_not_taken_for_one_whose_beam_gri
         assert (beam == scan.beam).all()
 
 
-def test_clouds_that_are_not_one_revolution_are_refused(rng):
+def test_clouds_that_are_not_one_revolution_are_refused(rng, mine):
+    scan = Lidar(EmbreeCaster(mine.mesh), LidarConfig()).scan(POSE, rng)
+    sampled = scan.points[rng.choice(len(scan), 4000, replace=False)]  # as a classifier's input is
+    with pytest.raises(PatternError, match="thinned or sampled"):
+        fit_pattern(sampled)
     with pytest.raises(PatternError, match="too few"):
         fit_pattern(np.full((500, 3), np.nan))
     with pytest.raises(PatternError, match="not on a few beams"):
@@ -158,10 +162,12 @@ def test_judge_recognises_the_sensor_or_takes_a_pattern_file_for_scanmc(tmp_path
     # fitted again, or found among the patterns already fitted in this process
     assert re.search(r"sensor: (fitted to the scan: 64 beams|fitted-64x512: every return)", capsys.readouterr().out)
     assert json.loads(out.read_text())[0]["sensor"] == "fitted-64x512"
-    # a cloud that is no sensor's revolution is refused before anything is judged
-    np.save(tmp_path / "blob.npy", np.random.default_rng(3).normal(size=(4000, 3)))
-    assert main(["judge", str(tmp_path / "blob.npy"), "--detector", "scanmc:4"]) == 2
-    assert "the sensor cannot be recognised from this scan" in capsys.readouterr().err
+    # a cloud that is no sensor's revolution: said so, and scanmc answers unknown, not a guess
+    np.save(tmp_path / "blob.npy", np.random.default_rng(3).normal(size=(4000, 3)) * 5)
+    assert main(["judge", str(tmp_path / "blob.npy"), "--detector", "scanmc:4", "--detector", "eigen:30"]) == 0
+    printed = capsys.readouterr().out
+    assert "sensor: not recognised from" in printed and "not on a few beams" in printed
+    assert "scanmc:4: cannot judge this scan" in printed and "eigen:30: " in printed
     with pytest.raises(SystemExit):
         main(["judge", str(tmp_path / "scan.npy"), "--detector", "scanmc:4", "--sensor", "nope.yaml"])
     assert "nope.yaml: cannot read the beam pattern file" in capsys.readouterr().err
