@@ -318,6 +318,34 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_sensor(args: argparse.Namespace) -> int:
+    from .judge import ScanFileError, read_scan, recognise_sensor
+    from .patterns import PATTERN_FILES, PATTERNS, describe_pattern, get_pattern, save_pattern
+    from .rosbag import BagError, read_bag
+
+    if bool(args.source) == bool(args.bag):
+        print("l3e sensor: give a sensor (name or pattern file), a scan file or --bag, one of them", file=sys.stderr)
+        return 2
+    if args.source and (args.source in PATTERNS or args.source.lower().endswith(PATTERN_FILES)):
+        pattern, how = get_pattern(args.source), "as given"
+    else:
+        try:
+            if not args.bag:
+                read_scan(args.source)  # a file that cannot be read is named here
+            scans = read_bag(args.bag, args.topic) if args.bag else iter([args.source])
+        except (BagError, ScanFileError) as exc:
+            print(f"l3e sensor: {exc}", file=sys.stderr)
+            return 2
+        _, pattern, how = recognise_sensor(scans)
+        if pattern is None:
+            print(f"l3e sensor: {how}", file=sys.stderr)
+            return 2
+    print(describe_pattern(pattern) + f"\n  ({how})")
+    if args.out:
+        print(f"written: {save_pattern(pattern, args.out)} (give it as --sensor)")
+    return 0
+
+
 def _cmd_judge(args: argparse.Namespace) -> int:
     import json
 
@@ -538,6 +566,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", help="also write the scores here")
     p.add_argument("--plot", help="also draw the flagged axes scan by scan (over time for a bag) into this image")
     p.set_defaults(func=_cmd_judge)
+    p = sub.add_parser("sensor", help="show a LiDAR's beam pattern, or recognise it from a scan or a bag and "
+                                      "save it as a pattern file for --sensor")
+    p.add_argument("source", nargs="?", help="a sensor name, a pattern file, or a scan file to recognise it from")
+    p.add_argument("--bag", help="recognise it from the first readable scan of this ROS bag")
+    p.add_argument("--topic", help="the bag's PointCloud2 topic (default: the only one)")
+    p.add_argument("--out", help="write the pattern here (.yaml or .json)")
+    p.set_defaults(func=_cmd_sensor)
     p = sub.add_parser("calibrate", help="add symmetric-inference thresholds to a checkpoint, from its validation "
                                          "scenes")
     p.add_argument("--checkpoint", required=True, help="model.pt to complete (rewritten unless --out is given)")

@@ -290,3 +290,36 @@ def fit_pattern(points: np.ndarray, rings: np.ndarray | None = None) -> tuple[Be
     if origin:
         how += f", beams leaving {1e3 * origin:.1f} mm out from the axis"
     return fitted, how + (" (beams from the ring field)" if rings is not None else "")
+
+
+def describe_pattern(pattern: BeamPattern) -> str:
+    """A pattern in a few lines, as `l3e sensor` prints it."""
+    beams = np.sort(pattern.elevations_deg)
+    lines = [f"{pattern.name}: {pattern.n_beams} beams over {beams[0]:.2f} to {beams[-1]:.2f} deg "
+             f"(closest {pattern.spacing_deg():.3f} deg apart), {pattern.n_azimuth} columns a revolution, "
+             f"{pattern.min_range:g}-{pattern.max_range:g} m"]
+    if pattern.azimuth_offsets_deg:
+        lines.append(f"  beams staggered in azimuth by {min(pattern.azimuth_offsets_deg):.2f} to "
+                     f"{max(pattern.azimuth_offsets_deg):.2f} deg")
+    if pattern.beam_origin_offset:
+        lines.append(f"  beams leave {1e3 * pattern.beam_origin_offset:.1f} mm out from the axis")
+    return "\n".join(lines)
+
+
+def save_pattern(pattern: BeamPattern, path: str | Path) -> Path:
+    """Write `pattern` as a pattern file of this project's keys (YAML, or JSON by the suffix), to be
+    given as `--sensor` again: a pattern fitted to a real scan, then simulated in one's own mesh."""
+    path = Path(path)
+    if not path.name.lower().endswith(PATTERN_FILES):
+        raise PatternError(f"{path}: a beam pattern file ends in {', '.join(PATTERN_FILES)}")
+    spec = {"elevations_deg": [round(float(e), 6) for e in pattern.elevations_deg], "columns": int(pattern.n_azimuth),
+            "max_range": float(pattern.max_range), "min_range": float(pattern.min_range),
+            "image_width": int(pattern.image_width)}
+    if pattern.azimuth_offsets_deg:
+        spec["azimuth_offsets_deg"] = [round(float(a), 6) for a in pattern.azimuth_offsets_deg]
+    if pattern.beam_origin_offset:
+        spec["beam_origin_offset"] = round(float(pattern.beam_origin_offset), 6)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    text = json.dumps(spec, indent=1) if path.suffix.lower() == ".json" else yaml.safe_dump(spec, sort_keys=False)
+    path.write_text(f"# beam pattern {pattern.name}\n" + text if path.suffix.lower() != ".json" else text + "\n")
+    return path

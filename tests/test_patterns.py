@@ -11,7 +11,8 @@ from l3e_env.cli import main
 from l3e_env.config import LidarConfig
 from l3e_env.judge import judge_scans
 from l3e_env.lidar import Lidar
-from l3e_env.patterns import PATTERNS, BeamPattern, PatternError, fit_pattern, get_pattern, load_pattern
+from l3e_env.patterns import (PATTERNS, BeamPattern, PatternError, fit_pattern, get_pattern, load_pattern,
+                              save_pattern)
 from l3e_env.raycast import EmbreeCaster, PyBulletCaster
 from l3e_env.scan_mc import range_image_mesh
 from l3e_env.transforms import pose_to_matrix
@@ -182,3 +183,26 @@ def test_a_staggered_scan_is_meshed_by_the_returns_own_azimuths():
     azimuth = np.arctan2(scan.points[:, 1], scan.points[:, 0])[mesh.faces]
     across = np.abs(np.angle(np.exp(1j * (azimuth - azimuth[:, :1])))).max(axis=1)
     assert across.max() < 1.5 * 2 * np.pi / OUSTER_LIKE.n_azimuth
+
+
+def test_a_recognised_sensor_is_saved_as_a_pattern_file_and_read_back(tmp_path, mine, capsys):
+    """`l3e sensor SCAN --out F` writes the pattern found, to be given as --sensor F."""
+    np.save(tmp_path / "scan.npy", _scan(mine.mesh, OUSTER_LIKE, rng=np.random.default_rng(4)).points)
+    assert main(["sensor", str(tmp_path / "scan.npy"), "--out", str(tmp_path / "fitted.yaml")]) == 0
+    assert re.search(r"64 beams over -22\.\d\d to 22\.\d\d deg", capsys.readouterr().out)
+    fitted = load_pattern(tmp_path / "fitted.yaml")
+    assert fitted.n_beams == 64 and fitted.n_azimuth == 512
+    for suffix in ("yaml", "json"):
+        back = load_pattern(save_pattern(OUSTER_LIKE, tmp_path / f"ouster.{suffix}"))
+        np.testing.assert_allclose(back.elevations_deg, OUSTER_LIKE.elevations_deg, atol=1e-6)
+        assert back.azimuth_offsets_deg == OUSTER_LIKE.azimuth_offsets_deg
+        assert (back.n_azimuth, back.image_width, back.beam_origin_offset, back.max_range, back.min_range) == (
+            512, 256, 0.027, 60.0, 0.3)
+    assert main(["sensor", str(tmp_path / "ouster.yaml")]) == 0
+    printed = capsys.readouterr().out
+    assert "staggered in azimuth by -4.20 to 4.20 deg" in printed and "27.0 mm out from the axis" in printed
+    with pytest.raises(PatternError, match="ends in"):
+        save_pattern(OUSTER_LIKE, tmp_path / "ouster.txt")
+    assert main(["sensor"]) == 2 and "one of them" in capsys.readouterr().err
+    np.save(tmp_path / "blob.npy", np.random.default_rng(5).normal(size=(3000, 3)) * 5)
+    assert main(["sensor", str(tmp_path / "blob.npy")]) == 2 and "not on a few beams" in capsys.readouterr().err
