@@ -191,7 +191,8 @@ class BagRecorder:
         self.topics = {}
         for topic, msgtype in (("/points", POINTCLOUD2), ("/odom", "nav_msgs/msg/Odometry"),
                                ("/ground_truth", "geometry_msgs/msg/PoseStamped"), ("/tf", "tf2_msgs/msg/TFMessage"),
-                               ("/tf_static", "tf2_msgs/msg/TFMessage"), ("/imu", "sensor_msgs/msg/Imu")):
+                               ("/tf_static", "tf2_msgs/msg/TFMessage"),
+                               *((("/imu", "sensor_msgs/msg/Imu"),) if imu is not None else ())):
             extra = {"latching": 1} if topic == "/tf_static" and not ros2 else {}
             self.topics[topic] = self.writer.add_connection(topic, msgtype, typestore=self.store, **extra)
 

@@ -224,10 +224,12 @@ def test_a_bag_recorder_refuses_to_overwrite_and_clears_a_killed_drive(tmp_path,
     killed = BagRecorder(tmp_path / "run.bag")
     killed(_corridor_lidar().scan(np.eye(4), rng), {"T_w_b": np.eye(4), "odom_T_w_b": np.eye(4), "T_b_s": np.eye(4)})
     del killed  # never closed
-    again = BagRecorder(tmp_path / "run.bag")
+    again = BagRecorder(tmp_path / "run.bag", imu=None)
     again(_corridor_lidar().scan(np.eye(4), rng), {"T_w_b": np.eye(4), "odom_T_w_b": np.eye(4), "T_b_s": np.eye(4)})
     again.close()
     assert len(list(read_bag(tmp_path / "run.bag"))) == 1
+    with AnyReader([tmp_path / "run.bag"]) as reader:  # without an IMU, no empty /imu topic either
+        assert "/imu" not in {c.topic for c in reader.connections}
 
 
 @pytest.mark.slow
