@@ -206,3 +206,24 @@ def test_a_recognised_sensor_is_saved_as_a_pattern_file_and_read_back(tmp_path, 
     assert main(["sensor"]) == 2 and "one of them" in capsys.readouterr().err
     np.save(tmp_path / "blob.npy", np.random.default_rng(5).normal(size=(3000, 3)) * 5)
     assert main(["sensor", str(tmp_path / "blob.npy")]) == 2 and "not on a few beams" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_a_drive_recorded_with_a_pattern_file_is_judged_with_its_sensor_recognised(tmp_path, capsys):
+    """`l3e record --sensor FILE` casts the staggered, offset beams and writes their rings; `l3e
+    judge --bag` without --sensor recognises 64 beams and their origin offset from the ring field."""
+    spec = tmp_path / "ouster.yaml"
+    save_pattern(OUSTER_LIKE, spec)
+    bag = tmp_path / "walls.bag"
+    assert main(["record", "--scene", "primitives-1", "--sensor", str(spec), "--out", str(bag), "--imu-rate", "0",
+                 "--quiet"]) == 0
+    capsys.readouterr()
+    PATTERNS.pop(str(spec))  # judged as in a process of its own, which has not read the file
+    assert main(["judge", "--bag", str(bag), "--every", "300", "--detector", "scanmc:4", "--json",
+                 str(tmp_path / "j.json")]) == 0
+    printed = capsys.readouterr().out
+    found = re.search(r"sensor: fitted to the scan: 64 beams over -22\.5 to 22\.5 deg, 512 columns, beams leaving "
+                      r"(\d+\.\d) mm out from the axis \(beams from the ring field\)", printed)
+    assert found and abs(float(found.group(1)) - 27.0) <= 0.5, printed[:400]
+    judged = json.loads((tmp_path / "j.json").read_text())
+    assert len(judged) == 2 and all(j["detectors"]["scanmc:4"]["known"] for j in judged)
