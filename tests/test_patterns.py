@@ -24,6 +24,15 @@ OUSTER_LIKE = BeamPattern("ouster-like", tuple(np.linspace(-22.5, 22.5, 64)), 51
 POSE = pose_to_matrix(np.array([40.0, 0.3, 0.85, 0.05, -0.03, 0.1]))
 
 
+@pytest.fixture(autouse=True)
+def _registered_patterns_restored():
+    """Patterns fitted or read in one test are not known to the next (as in separate runs)."""
+    before = dict(PATTERNS)
+    yield
+    PATTERNS.clear()
+    PATTERNS.update(before)
+
+
 def _scan(mesh, pattern: BeamPattern, pose=POSE, rng=None, caster=EmbreeCaster):
     """A scan of `pattern`, registered only while it is cast."""
     PATTERNS[pattern.name] = pattern
