@@ -320,6 +320,8 @@ def save_pattern(pattern: BeamPattern, path: str | Path) -> Path:
     if pattern.beam_origin_offset:
         spec["beam_origin_offset"] = round(float(pattern.beam_origin_offset), 6)
     path.parent.mkdir(parents=True, exist_ok=True)
-    text = json.dumps(spec, indent=1) if path.suffix.lower() == ".json" else yaml.safe_dump(spec, sort_keys=False)
-    path.write_text(f"# beam pattern {pattern.name}\n" + text if path.suffix.lower() != ".json" else text + "\n")
+    if path.suffix.lower() == ".json":
+        path.write_text(json.dumps(spec, indent=1) + "\n")
+    else:
+        path.write_text(f"# beam pattern {pattern.name}\n" + yaml.safe_dump(spec, sort_keys=False))
     return path

@@ -61,12 +61,20 @@ def _cloud_fields(msg, names: list[str]) -> dict[str, np.ndarray]:
     return {a: cloud[a] for a in names}
 
 
+def _cloud_arrays(msg, with_rings: bool) -> tuple[np.ndarray, np.ndarray | None]:
+    """x, y, z as (N, 3) float64, and the ring field where asked for and present, in one unpacking."""
+    names = {f.name for f in msg.fields}
+    if not {"x", "y", "z"} <= names:
+        raise BagError(f"the cloud has fields {sorted(names)}, not x, y and z")
+    ring = with_rings and "ring" in names
+    fields = _cloud_fields(msg, ["x", "y", "z"] + (["ring"] if ring else []))
+    points = np.stack([fields[a].astype(np.float64) for a in "xyz"], axis=1)
+    return points, fields["ring"].astype(np.int64) if ring else None
+
+
 def cloud_points(msg) -> np.ndarray:
     """x, y, z of a PointCloud2 as (N, 3) float64."""
-    if not {"x", "y", "z"} <= {f.name for f in msg.fields}:
-        raise BagError(f"the cloud has fields {sorted(f.name for f in msg.fields)}, not x, y and z")
-    xyz = _cloud_fields(msg, ["x", "y", "z"])
-    return np.stack([xyz[a].astype(np.float64) for a in "xyz"], axis=1)
+    return _cloud_arrays(msg, with_rings=False)[0]
 
 
 def cloud_rings(msg) -> np.ndarray | None:
@@ -135,7 +143,8 @@ def _scans(reader, connections: list, prefix: str, every: int, lo: int | None, h
                 msg = reader.deserialize(raw, connection.msgtype)
                 header = msg.header.stamp
                 stamp = header.sec + header.nanosec * 1e-9 if header.sec or header.nanosec else stamp
-                yield BagScan(name, stamp, cloud_points(msg), rings=cloud_rings(msg))
+                points, rings = _cloud_arrays(msg, with_rings=True)
+                yield BagScan(name, stamp, points, rings=rings)
             except Exception as exc:  # noqa: BLE001 - one bad message is named, the next is read
                 yield BagScan(name, stamp, None, f"{name}: cannot be read as a point cloud: {exc}")
     finally:
