@@ -69,6 +69,7 @@ def main() -> None:
                                  config, np.random.default_rng(2)).errors
             print(f"{'':6s} {name:24s}" + "".join(f"{e:8.3f}" for e in errors))
         print(f"{'':6s} (recognised: {how})")
+        PATTERNS.pop(fitted.name)  # each pose's scan is recognised afresh
 
 
 if __name__ == "__main__":

@@ -216,19 +216,53 @@ def _elevations(points: np.ndarray, origin: float) -> np.ndarray:
     return np.degrees(np.arctan2(points[:, 2], np.hypot(points[:, 0], points[:, 1]) - origin))
 
 
-def _beam_origin(points: np.ndarray, rings: np.ndarray) -> float:
+def _beam_origin(points: np.ndarray) -> float:
     """How far out from the axis the beams leave (an Ouster's lidar_origin_to_beam_origin, up to
-    50 mm): the distance at which each ring's returns share one elevation most closely."""
-    ring = np.unique(rings, return_inverse=True)[1]
+    50 mm): the distance from which the returns' elevations bunch most tightly onto their beams.
+    Range noise moves a return along its ray only, so seen from the right origin a beam's returns
+    share one elevation; seen from the axis the near ones spread by up to a few tenths of a degree.
+    Tightness is the mean log gap between neighbouring elevations, which needs no beam numbers."""
+    horizontal = np.hypot(points[:, 0], points[:, 1])
+    near = points[horizontal < 10.0] if (horizontal < 10.0).sum() >= 1000 else points  # far ones barely move
+    near = near[:: max(1, len(near) // 40000)]  # enough to bunch, and quick to sort 120 times
 
-    def spread(origin: float) -> float:
-        elevation = _elevations(points, origin)
-        hi, lo = np.full(ring.max() + 1, -np.inf), np.full(ring.max() + 1, np.inf)
-        np.maximum.at(hi, ring, elevation)
-        np.minimum.at(lo, ring, elevation)
-        return float((hi - lo).max())
+    def looseness(origin: float) -> float:
+        return float(np.mean(np.log(np.diff(np.sort(_elevations(near, origin))) + 1e-5)))
 
-    return float(min(np.arange(0.0, 0.0505, 0.0005), key=spread))
+    coarse = min(np.arange(0.0, 0.0505, 0.001), key=looseness)
+    fine = np.arange(max(coarse - 0.001, 0.0), coarse + 0.00105, 0.0001)
+    return round(float(min(fine, key=looseness)), 4)
+
+
+def _azimuth_offsets(points: np.ndarray, beam: np.ndarray, n_beams: int, columns: int) -> tuple[float, ...]:
+    """Each beam's azimuth offset (deg) from the column grid, within half a column: the returns of a
+    beam share one phase against the columns (an Ouster's staggered beams, or a grid that does not
+    start on the x axis). Offsets that differ by whole columns cast the same rays, so the phase is
+    all that a revolution's scan can tell and all that its simulation needs. A beam that leaves from
+    off the axis shifts the azimuth of a return at horizontal distance h by its offset times
+    (origin / h), so each beam's phase is fitted as a + b / h and `a` kept. Empty when the phases
+    are not shared (returns not on an encoder's grid) or all zero."""
+    step = 360.0 / columns
+    azimuth = np.degrees(np.arctan2(points[:, 1], points[:, 0]))
+    count = np.bincount(beam, minlength=n_beams).astype(float)
+    if (count < 3).any():
+        return ()
+    turn = np.exp(2j * np.pi * azimuth / step)
+    centre = np.angle(np.bincount(beam, turn.real, n_beams) + 1j * np.bincount(beam, turn.imag, n_beams))
+    centre *= step / (2 * np.pi)
+    phase = (azimuth - centre[beam] + step / 2) % step - step / 2  # about each beam's rough phase
+    x = 1.0 / np.hypot(points[:, 0], points[:, 1])
+    sx, sxx = np.bincount(beam, x, n_beams), np.bincount(beam, x * x, n_beams)
+    sp, sxp = np.bincount(beam, phase, n_beams), np.bincount(beam, x * phase, n_beams)
+    det = count * sxx - sx**2
+    flat = det <= 1e-12 * count * sxx  # all returns at one distance: the mean phase
+    slope = np.where(flat, 0.0, (count * sxp - sx * sp) / np.where(flat, 1.0, det))
+    intercept = (sp - slope * sx) / count
+    residual = phase - intercept[beam] - slope[beam] * x
+    if np.sqrt(np.mean(residual**2)) > 0.1 * step:
+        return ()
+    offsets = (centre + intercept + step / 2) % step - step / 2
+    return () if np.abs(offsets).max() < 1e-3 else tuple(round(float(o), 5) for o in offsets)
 
 
 def _beams_of(elevation: np.ndarray, rings: np.ndarray | None) -> np.ndarray:
@@ -268,7 +302,7 @@ def fit_pattern(points: np.ndarray, rings: np.ndarray | None = None) -> tuple[Be
             return known, f"{known.name}: every return lies on one of its beams"
         fitted = replace(known, name=f"{known.name}@{columns}", n_azimuth=columns, image_width=_image_width(columns))
         return fitted, f"{known.name}'s beams at {columns} columns a revolution"
-    origin = _beam_origin(points, rings) if rings is not None else 0.0
+    origin = _beam_origin(points)
     elevation = _elevations(points, origin)
     beams = np.sort(_beams_of(elevation, rings))
     if len(beams) > 512:
@@ -284,12 +318,21 @@ def fit_pattern(points: np.ndarray, rings: np.ndarray | None = None) -> tuple[Be
                                        "the returns by beam"))
     columns = _columns(points, beam)
     fitted = replace(fitted, name=f"fitted-{len(beams)}x{columns}", n_azimuth=columns,
-                     image_width=_image_width(columns))
+                     image_width=_image_width(columns),
+                     azimuth_offsets_deg=_azimuth_offsets(points, beam, len(beams), columns))
     check_pattern(fitted)
     how = f"fitted to the scan: {len(beams)} beams over {beams[0]:.1f} to {beams[-1]:.1f} deg, {columns} columns"
+    if fitted.azimuth_offsets_deg:
+        how += ", " + _offset_words(fitted.azimuth_offsets_deg)
     if origin:
         how += f", beams leaving {1e3 * origin:.1f} mm out from the axis"
     return fitted, how + (" (beams from the ring field)" if rings is not None else "")
+
+
+def _offset_words(offsets: tuple[float, ...]) -> str:
+    if max(offsets) - min(offsets) < 0.005:
+        return f"columns {offsets[0]:+.2f} deg from the x axis"
+    return f"beams staggered in azimuth by {min(offsets):.2f} to {max(offsets):.2f} deg"
 
 
 def describe_pattern(pattern: BeamPattern) -> str:
@@ -299,8 +342,7 @@ def describe_pattern(pattern: BeamPattern) -> str:
              f"(closest {pattern.spacing_deg():.3f} deg apart), {pattern.n_azimuth} columns a revolution, "
              f"{pattern.min_range:g}-{pattern.max_range:g} m"]
     if pattern.azimuth_offsets_deg:
-        lines.append(f"  beams staggered in azimuth by {min(pattern.azimuth_offsets_deg):.2f} to "
-                     f"{max(pattern.azimuth_offsets_deg):.2f} deg")
+        lines.append("  " + _offset_words(pattern.azimuth_offsets_deg))
     if pattern.beam_origin_offset:
         lines.append(f"  beams leave {1e3 * pattern.beam_origin_offset:.1f} mm out from the axis")
     return "\n".join(lines)

@@ -74,24 +74,48 @@ def test_a_scan_of_a_built_in_sensor_is_recognised_as_it(mine, model):
     assert pattern.elevations_deg == PATTERNS[model].elevations_deg
 
 
+def _phase_error(fitted: BeamPattern, true: BeamPattern) -> float:
+    """The largest difference (deg) between fitted and true beam azimuth offsets, modulo a column."""
+    step = 360.0 / true.n_azimuth
+    got, want = (np.asarray(p.azimuth_offsets_deg or (0.0,) * p.n_beams) for p in (fitted, true))
+    return float(np.abs((got - want + step / 2) % step - step / 2).max())
+
+
 def test_another_sensor_is_fitted_from_its_scan_not_taken_for_one_whose_beam_grid_it_shares(mine):
     """The Ouster-like beams lie within a quarter spacing of the OS0-128's, but both of that
-    sensor's end beams (+-45 deg) would have returns in the mine: it is fitted instead."""
+    sensor's end beams (+-45 deg) would have returns in the mine: it is fitted instead, with the
+    origin its beams leave from and their stagger, with or without the ring field."""
     scan = _scan(mine.mesh, OUSTER_LIKE, rng=np.random.default_rng(1))
     for rings in (None, scan.beam):
         pattern, how = fit_pattern(scan.points, rings)
         assert pattern.name == "fitted-64x512" and re.search(r"64 beams over -22\.\d to 22\.\d deg", how), how
         assert ("ring field" in how) == (rings is not None)
-        if rings is None:
-            # seen from the axis, not the beam's origin 27 mm out, a beam's returns on the floor 2 m
-            # away lie up to 0.3 deg nearer the horizon
-            assert pattern.beam_origin_offset == 0
-            np.testing.assert_allclose(pattern.elevations_deg, OUSTER_LIKE.elevations_deg, atol=0.3)
-        else:  # the ring field tells which returns share a beam, and so where the beams leave from
-            assert pattern.beam_origin_offset == pytest.approx(0.027, abs=5e-4) and "27.0 mm" in how
-            np.testing.assert_allclose(pattern.elevations_deg, OUSTER_LIKE.elevations_deg, atol=0.02)
+        # seen from the axis, not the beam's origin 27 mm out, a beam's returns on the floor 2 m away
+        # would lie up to 0.3 deg nearer the horizon: the origin is where they bunch onto their beams
+        assert pattern.beam_origin_offset == pytest.approx(0.027, abs=3e-4) and "27.0 mm" in how
+        np.testing.assert_allclose(pattern.elevations_deg, OUSTER_LIKE.elevations_deg, atol=0.005)
+        # -4.2, -1.4, 1.4 and 4.2 deg are +0.019, +0.006, -0.006 and -0.019 deg off the 0.703 deg columns
+        assert _phase_error(pattern, OUSTER_LIKE) < 0.002 and "staggered in azimuth by -0.02 to 0.02 deg" in how
         beam, _, _ = pattern.locate(scan.points)
         assert (beam == scan.beam).all()
+
+
+def test_an_ouster_cloud_without_a_ring_field_and_a_grid_off_the_x_axis_are_fitted(mine):
+    """A 128-beam Ouster's cloud without its ring field: beams 15.2 mm out, staggered by +-1.4 and
+    +-4.2 deg, fitted as from the metadata; a 32-beam sensor whose columns start 0.07 deg round."""
+    ouster = BeamPattern("ouster", tuple(np.linspace(-45, 45, 128)), 1024, 50.0, 0.3, 256,
+                         tuple(np.tile([4.23, 1.41, -1.41, -4.23], 32)), 0.0152)
+    pattern, how = fit_pattern(_scan(mine.mesh, ouster, rng=np.random.default_rng(2)).points)
+    assert pattern.name == "fitted-128x1024" and "15.2 mm" in how, how
+    np.testing.assert_allclose(pattern.elevations_deg, ouster.elevations_deg, atol=0.005)
+    assert _phase_error(pattern, ouster) < 0.002
+    grid = BeamPattern("grid", tuple(np.linspace(-16, 15, 32)), 1800, 100.0, 0.3, 360, (0.07,) * 32)
+    scan = _scan(mine.mesh, grid, rng=np.random.default_rng(3))
+    pattern, how = fit_pattern(scan.points)
+    assert pattern.beam_origin_offset == 0 and "mm out" not in how
+    assert _phase_error(pattern, grid) < 1e-3 and "columns +0.07 deg from the x axis" in how
+    beam, column, _ = pattern.locate(scan.points)
+    assert (beam == scan.beam).all() and (column == scan.column).all()
 
 
 def test_clouds_that_are_not_one_revolution_are_refused(rng, mine):
@@ -231,7 +255,8 @@ def test_a_drive_recorded_with_a_pattern_file_is_judged_with_its_sensor_recognis
     assert main(["judge", "--bag", str(bag), "--every", "300", "--detector", "scanmc:4", "--json",
                  str(tmp_path / "j.json")]) == 0
     printed = capsys.readouterr().out
-    found = re.search(r"sensor: fitted to the scan: 64 beams over -22\.5 to 22\.5 deg, 512 columns, beams leaving "
+    found = re.search(r"sensor: fitted to the scan: 64 beams over -22\.5 to 22\.5 deg, 512 columns, beams staggered in "
+                      r"azimuth by -0\.02 to 0\.02 deg, beams leaving "
                       r"(\d+\.\d) mm out from the axis \(beams from the ring field\)", printed)
     assert found and abs(float(found.group(1)) - 27.0) <= 0.5, printed[:400]
     judged = json.loads((tmp_path / "j.json").read_text())
