@@ -560,7 +560,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "(default: learned, eigen:30 and scanmc)")
     p.add_argument("--sensor", type=sensor_name,
                    help="the LiDAR that took the scans, for scanmc's beams: vlp16, os0-128 or a beam pattern file "
-                        "(.yaml/.json, or an Ouster metadata .json); default: recognised from the first scan")
+                        "(.yaml/.json, or an Ouster metadata .json); default: recognised from the scans")
     p.add_argument("--seed", type=int, default=0, help="seed of scanmc's children")
     p.add_argument("--workers", type=int, default=1, help="scans judged side by side in processes (default 1)")
     p.add_argument("--json", help="also write the scores here")
@@ -569,7 +569,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("sensor", help="show a LiDAR's beam pattern, or recognise it from a scan or a bag and "
                                       "save it as a pattern file for --sensor")
     p.add_argument("source", nargs="?", help="a sensor name, a pattern file, or a scan file to recognise it from")
-    p.add_argument("--bag", help="recognise it from the first readable scan of this ROS bag")
+    p.add_argument("--bag", help="recognise it from this ROS bag's first scans")
     p.add_argument("--topic", help="the bag's PointCloud2 topic (default: the only one)")
     p.add_argument("--out", help="write the pattern here (.yaml or .json)")
     p.set_defaults(func=_cmd_sensor)

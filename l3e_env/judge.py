@@ -171,12 +171,16 @@ def _judge_job(judges: tuple[list[Detector], int], job: tuple[int, str | BagScan
     return _judge_source(*job, *judges)
 
 
+RECOGNITION_TRIES = 5  # readable scans tried: a bag's first revolution may be cut short
+
+
 def recognise_sensor(scans: Iterator[str | Path | BagScan]) -> tuple[Iterator[str | Path | BagScan],
                                                                      BeamPattern | None, str]:
-    """The beam pattern of the first scan that can be read (`fit_pattern`, with the bag's ring
-    field where it has one), or None where it fits none; what was found, or why not; and the
-    scans again from the first."""
+    """The beam pattern of the first of the first few readable scans that gives one (`fit_pattern`,
+    with the bag's ring field where it has one), or None where none does; what was found, or why
+    not; and the scans again from the first."""
     seen: list[str | Path | BagScan] = []
+    refused: list[str] = []
     for scan in scans:
         seen.append(scan)
         if isinstance(scan, BagScan):
@@ -192,8 +196,19 @@ def recognise_sensor(scans: Iterator[str | Path | BagScan]) -> tuple[Iterator[st
         try:
             pattern, how = fit_pattern(points, rings)
         except PatternError as exc:
-            return chain(seen, scans), None, f"not recognised from {name}: {exc}"
+            refused.append(f"{name}: {exc}")
+            if len(refused) < RECOGNITION_TRIES:
+                continue
+            break
+        if refused:
+            before = "the scan" if len(refused) == 1 else f"the {len(refused)} scans"
+            how += f" (from {name}; not from {before} before it: {refused[0]})"
         return chain(seen, scans), pattern, how
+    if len(refused) > 1:
+        return chain(seen, scans), None, (f"not recognised from any of the first {len(refused)} readable scans; "
+                                          f"the first, {refused[0]}")
+    if refused:
+        return chain(seen, scans), None, f"not recognised from {refused[0]}"
     return iter(seen), None, "no scan could be read to recognise it from"
 
 
@@ -209,7 +224,7 @@ def judge_scans(scans: Iterable[str | Path | BagScan], specs: list[str], sensor:
     ('learned[...]', 'eigen:<tau>', 'scanmc[:M]', 'none'; make_detector refuses the oracle,
     which needs a scene), after dropping its points without a return, in the order given,
     `workers` scans at a time. Without `sensor`, a detector that needs one gets the pattern
-    recognised from the first scan (the default where none fits), reported to `on_sensor`
+    recognised from the first scans (the default where none fits), reported to `on_sensor`
     with what was found or why not. A scan that cannot be read gives a
     Judgement with its `error`, and the next one is read."""
     if workers < 1:

@@ -9,7 +9,7 @@ import trimesh
 
 from l3e_env.cli import main
 from l3e_env.config import LidarConfig
-from l3e_env.judge import judge_scans
+from l3e_env.judge import judge_scans, recognise_sensor
 from l3e_env.lidar import Lidar
 from l3e_env.patterns import (PATTERNS, BeamPattern, PatternError, fit_pattern, get_pattern, load_pattern,
                               save_pattern)
@@ -205,6 +205,22 @@ def test_judge_recognises_the_sensor_or_takes_a_pattern_file_for_scanmc(tmp_path
     with pytest.raises(SystemExit):
         main(["judge", str(tmp_path / "scan.npy"), "--detector", "scanmc:4", "--sensor", "nope.yaml"])
     assert "nope.yaml: cannot read the beam pattern file" in capsys.readouterr().err
+
+
+def test_a_first_scan_cut_short_is_passed_over_for_the_next_that_gives_the_sensor(tmp_path, mine):
+    """A bag's first revolution may be cut short (a sampled cloud here): the sensor is recognised
+    from the next readable scan, says which, and every scan is still judged in order."""
+    scan = Lidar(EmbreeCaster(mine.mesh), LidarConfig(model="os0-128")).scan(POSE, np.random.default_rng(6))
+    np.save(tmp_path / "a.npy", scan.points[np.random.default_rng(7).choice(len(scan), 5000, replace=False)])
+    np.save(tmp_path / "b.npy", scan.points)
+    files = [tmp_path / "a.npy", tmp_path / "b.npy"]
+    _, pattern, how = recognise_sensor(iter(files))
+    assert pattern is PATTERNS["os0-128"] and "from " + str(files[1]) in how and "thinned or sampled" in how, how
+    judged = list(judge_scans(files, ["scanmc:4"], on_sensor=lambda p, h: None))
+    assert [j.path for j in judged] == [str(f) for f in files]
+    assert [j.predictions["scanmc:4"].known for j in judged] == [False, True]
+    _, pattern, how = recognise_sensor(iter([files[0]] * 6))
+    assert pattern is None and how.startswith("not recognised from any of the first 5 readable scans"), how
 
 
 def test_a_staggered_scan_is_meshed_by_the_returns_own_azimuths():
