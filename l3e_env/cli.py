@@ -349,9 +349,11 @@ def _cmd_sensor(args: argparse.Namespace) -> int:
 def _cmd_judge(args: argparse.Namespace) -> int:
     import json
 
+    import numpy as np
+
     from .config import LidarConfig
     from .judge import format_judgement, judge_scans, judgement_record, score_legend
-    from .rosbag import BagError, read_bag
+    from .rosbag import BagError, read_bag, read_path
 
     if bool(args.scans) == bool(args.bag):
         print("l3e judge: give scan files or --bag, not both and not neither", file=sys.stderr)
@@ -359,8 +361,12 @@ def _cmd_judge(args: argparse.Namespace) -> int:
     if not args.bag and (args.topic or args.every != 1 or args.start is not None or args.end is not None):
         print("l3e judge: --topic, --every, --start and --end read a bag: give --bag", file=sys.stderr)
         return 2
+    if not args.bag and (args.path_plot or args.pose_topic):
+        print("l3e judge: --path-plot and --pose-topic read the path from a bag: give --bag", file=sys.stderr)
+        return 2
     try:
         scans = read_bag(args.bag, args.topic, args.every, args.start, args.end) if args.bag else args.scans
+        route = read_path(args.bag, args.pose_topic) if args.bag and (args.path_plot or args.pose_topic) else None
     except BagError as exc:
         print(f"l3e judge: {exc}", file=sys.stderr)
         return 2
@@ -383,15 +389,32 @@ def _cmd_judge(args: argparse.Namespace) -> int:
         stamp = "" if j.stamp is None else f"[t = {j.stamp:.3f} s] "
         print(stamp + format_judgement(j), file=sys.stderr if j.error else sys.stdout, flush=True)
     print("scores ('*' flagged):\n" + score_legend(specs))
+    where = None if route is None else route.at(np.array([j.stamp for j in judgements], dtype=np.float64))
     if args.json:
+        records = [judgement_record(j, sensor[0]) for j in judgements]
+        for record, position in zip(records, [] if where is None else where):
+            record["position"] = [float(v) for v in position] if np.isfinite(position).all() else None
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps([judgement_record(j, sensor[0]) for j in judgements], indent=1) + "\n")
+        Path(args.json).write_text(json.dumps(records, indent=1) + "\n")
         print(f"written: {args.json}")
     if args.plot and any(j.predictions for j in judgements):
         from .judge_plots import plot_timeline
 
         plot_timeline(judgements, args.plot)
         print(f"written: {args.plot}")
+    if args.path_plot and any(j.predictions for j in judgements):
+        from .judge_plots import plot_path
+
+        off = int((~np.isfinite(where).all(axis=1)).sum())
+        if off:
+            print(f"l3e judge: {off} scans lie outside the time of {route.topic}'s poses and are left off the map",
+                  file=sys.stderr)
+        try:
+            plot_path(judgements, where, route.positions, args.path_plot, f"{Path(args.bag).name} on {route.topic}")
+            print(f"written: {args.path_plot}")
+        except ValueError as exc:
+            print(f"l3e judge: {exc}", file=sys.stderr)
+            return 2
     failed = sum(j.error is not None for j in judgements)
     if not judgements:
         print("l3e judge: no scan in the bag between --start and --end", file=sys.stderr)
@@ -555,6 +578,10 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--every", type=int, default=1, help="judge every N-th scan (default 1: all)")
     g.add_argument("--start", type=float, help="seconds after the bag's start to begin at")
     g.add_argument("--end", type=float, help="seconds after the bag's start to stop at")
+    g.add_argument("--path-plot", help="also draw the judged scans on a map of the bag's path into this image")
+    g.add_argument("--pose-topic", help="the path's topic: nav_msgs/Odometry, geometry_msgs/PoseStamped or "
+                                        "PoseWithCovarianceStamped (default: the only Odometry topic); it also "
+                                        "writes each scan's position into --json")
     p.add_argument("--detector", action="append",
                    help="learned[-sym][:checkpoint] | eigen:<tau> | scanmc[:M] | none; repeat for several "
                         "(default: learned, eigen:30 and scanmc)")

@@ -151,6 +151,72 @@ def _scans(reader, connections: list, prefix: str, every: int, lo: int | None, h
         reader.close()
 
 
+POSE_TYPES = {  # message type: its position, read off a deserialised message
+    "nav_msgs/msg/Odometry": lambda m: m.pose.pose.position,
+    "geometry_msgs/msg/PoseWithCovarianceStamped": lambda m: m.pose.pose.position,
+    "geometry_msgs/msg/PoseStamped": lambda m: m.pose.position,
+}
+
+
+@dataclass
+class BagPath:
+    topic: str
+    stamps: np.ndarray  # (K,) seconds, increasing
+    positions: np.ndarray  # (K, 3) in the topic's frame
+
+    def at(self, stamps: np.ndarray) -> np.ndarray:
+        """Positions (N, 3) at `stamps`, linear between poses; NaN outside the path's time."""
+        stamps = np.asarray(stamps, dtype=np.float64)
+        out = np.stack([np.interp(stamps, self.stamps, self.positions[:, k]) for k in range(3)], axis=1)
+        out[(stamps < self.stamps[0]) | (stamps > self.stamps[-1])] = np.nan
+        return out
+
+
+def read_path(path: str | Path, topic: str | None = None) -> BagPath:
+    """Where the robot went: the positions of a pose topic (nav_msgs/Odometry, geometry_msgs/
+    PoseStamped or PoseWithCovarianceStamped; default: the bag's only Odometry topic, else its only
+    pose topic), at their header stamps, to place the judged scans on a map."""
+    path = Path(path)
+    reader = _reader(path)
+    try:
+        reader.open()
+    except Exception as exc:  # noqa: BLE001 - rosbags raises several kinds; name the bag and the problem
+        raise BagError(f"{path}: cannot be read as a ROS bag: {exc}") from exc
+    try:
+        kinds = {c.topic: c.msgtype for c in reader.connections}
+        poses = sorted(t for t, m in kinds.items() if m in POSE_TYPES)
+        if topic is None:
+            odometry = [t for t in poses if kinds[t] == "nav_msgs/msg/Odometry"]
+            chosen = odometry if len(odometry) == 1 else poses
+            if len(chosen) != 1:
+                raise BagError(f"{path}: {'no' if not poses else len(poses)} pose topics"
+                               + (f" ({', '.join(poses)}); name one with --pose-topic" if poses else
+                                  " (nav_msgs/Odometry, geometry_msgs/PoseStamped or PoseWithCovarianceStamped)"))
+            topic = chosen[0]
+        if topic not in kinds:
+            raise BagError(f"{path}: no topic '{topic}'; its pose topics: {', '.join(poses) or 'none'}")
+        if kinds[topic] not in POSE_TYPES:
+            raise BagError(f"{path}: '{topic}' carries {kinds[topic]}, not a pose; its pose topics: "
+                           f"{', '.join(poses) or 'none'}")
+        position = POSE_TYPES[kinds[topic]]
+        stamps, positions = [], []
+        for connection, received, raw in reader.messages([c for c in reader.connections if c.topic == topic]):
+            try:
+                msg = reader.deserialize(raw, connection.msgtype)
+            except Exception as exc:  # noqa: BLE001 - a path with a hole would misplace scans silently
+                raise BagError(f"{path}: a '{topic}' message at {received * 1e-9:.3f} s cannot be read: {exc}") from exc
+            header = msg.header.stamp
+            stamps.append(header.sec + header.nanosec * 1e-9 if header.sec or header.nanosec else received * 1e-9)
+            p = position(msg)
+            positions.append((p.x, p.y, p.z))
+    finally:
+        reader.close()
+    if len(stamps) < 2:
+        raise BagError(f"{path}: '{topic}' holds {len(stamps)} poses; a path needs two or more")
+    order = np.argsort(stamps, kind="stable")
+    return BagPath(topic, np.asarray(stamps)[order], np.asarray(positions, dtype=np.float64)[order])
+
+
 class BagRecorder:
     """Writes each step of a drive (`record_run(on_step=...)`) into a bag at `path`, at the
     drive's 10 Hz from `start` seconds:

@@ -16,7 +16,7 @@ from l3e_env.imu import ImuConfig
 from l3e_env.judge_plots import flag_matrix
 from l3e_env.lidar import Lidar
 from l3e_env.raycast import EmbreeCaster
-from l3e_env.rosbag import BagError, BagRecorder, cloud_points, cloud_rings, read_bag
+from l3e_env.rosbag import BagError, BagRecorder, cloud_points, cloud_rings, read_bag, read_path
 from l3e_env.transforms import planar_pose
 
 ROS1, ROS2 = get_typestore(Stores.ROS1_NOETIC), get_typestore(Stores.ROS2_HUMBLE)
@@ -212,6 +212,43 @@ def test_a_drive_written_as_a_bag_reads_back_as_the_same_scans_and_poses(tmp_pat
     assert np.mean([m.angular_velocity.z for m in imu]) == pytest.approx(1.0, abs=0.01)
     assert np.mean([m.linear_acceleration.z for m in imu]) == pytest.approx(9.81, abs=0.05)
     assert imu[0].angular_velocity_covariance[0] == pytest.approx(ImuConfig().sigmas()[0] ** 2)
+
+
+def test_judge_places_a_bags_scans_on_its_path_and_draws_the_map(tmp_path, rng, capsys):
+    """`--path-plot`: each scan's position on the bag's odometry (or a pose topic named), in the
+    JSON and on a map; a bag or topic without poses is refused before anything is judged."""
+    lidar = _corridor_lidar()
+    truth = [planar_pose(1.0 * k, 0.1 * k, 0.0, 0.05) for k in range(5)]
+    odom = [T @ planar_pose(0.02 * k, 0.0, 0.0, 0.0) for k, T in enumerate(truth)]
+    bag = tmp_path / "drive.bag"
+    writer = BagRecorder(bag, imu=None)
+    for T, T_odom in zip(truth, odom):
+        writer(lidar.scan(T, rng), {"T_w_b": T, "odom_T_w_b": T_odom, "T_b_s": np.eye(4)})
+    writer.close()
+    out, plot = tmp_path / "j.json", tmp_path / "map.png"
+    assert main(["judge", "--bag", str(bag), "--every", "2", "--detector", "eigen:30", "--json", str(out),
+                 "--path-plot", str(plot)]) == 0
+    assert "written: " + str(plot) in capsys.readouterr().out and plot.read_bytes()[:4] == b"\x89PNG"
+    saved = json.loads(out.read_text())
+    np.testing.assert_allclose([r["position"] for r in saved], [odom[k][:3, 3] for k in (0, 2, 4)], atol=1e-9)
+    assert main(["judge", "--bag", str(bag), "--every", "2", "--detector", "none", "--json", str(out),
+                 "--pose-topic", "/ground_truth"]) == 0
+    np.testing.assert_allclose([r["position"] for r in json.loads(out.read_text())],
+                               [truth[k][:3, 3] for k in (0, 2, 4)], atol=1e-9)
+    path = read_path(bag)
+    assert path.topic == "/odom" and len(path.stamps) == 5
+    halfway = path.at(np.array([1.05, 0.5, 1.45]))  # between the first two poses, before and after the path
+    np.testing.assert_allclose(halfway[0], (odom[0][:3, 3] + odom[1][:3, 3]) / 2, atol=1e-9)
+    assert np.isnan(halfway[1:]).all()
+    capsys.readouterr()
+    assert main(["judge", "--bag", str(bag), "--path-plot", str(plot), "--pose-topic", "/points"]) == 2
+    assert "'/points' carries sensor_msgs/msg/PointCloud2, not a pose" in capsys.readouterr().err
+    bare = tmp_path / "bare.bag"
+    _write_bag(bare, _corridor_scans(rng, 2))
+    assert main(["judge", "--bag", str(bare), "--path-plot", str(plot)]) == 2
+    assert "bare.bag: no pose topics (nav_msgs/Odometry" in capsys.readouterr().err
+    assert main(["judge", "a.npy", "--path-plot", str(plot)]) == 2
+    assert "read the path from a bag: give --bag" in capsys.readouterr().err
 
 
 def test_a_bag_recorder_refuses_to_overwrite_and_clears_a_killed_drive(tmp_path, rng):
