@@ -248,8 +248,8 @@ def _cmd_record(args: argparse.Namespace) -> int:
         print(f"l3e record: --imu-rate must be 0 (no IMU) or more, got {args.imu_rate}", file=sys.stderr)
         return 2
     try:
-        bag = BagRecorder(args.out, ros2=args.ros2, imu=ImuConfig(rate=args.imu_rate) if args.imu_rate else None,
-                          seed=args.seed)
+        imu = ImuConfig(rate=args.imu_rate, orientation=args.imu_orientation) if args.imu_rate else None
+        bag = BagRecorder(args.out, ros2=args.ros2, imu=imu, seed=args.seed)
     except BagError as exc:
         print(f"l3e record: {exc}", file=sys.stderr)
         return 2
@@ -516,6 +516,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--recording", help="also save the drive as a recording.npz for l3e ate --recording")
     p.add_argument("--imu-rate", type=float, default=200.0, help="rate of /imu in Hz (default 200; 0: no IMU)")
+    p.add_argument("--imu-orientation", action=argparse.BooleanOptionalAction, default=True,
+                   help="write a nine-axis unit's orientation in /imu (default), or none as a six-axis unit")
     p.add_argument("--quiet", action="store_true")
     add_mesh_options(p)
     p.set_defaults(func=_cmd_record)

@@ -230,7 +230,8 @@ class BagRecorder:
     - `/ground_truth` geometry_msgs/PoseStamped of `base_link` in frame `world`;
     - `/tf` odom to base_link each step, `/tf_static` base_link to lidar once;
     - `/imu` sensor_msgs/Imu in frame `base_link` at `imu.rate` (None: no IMU), read off splines
-      through the true poses with `imu`'s noise and biases, seeded by `seed`; written on `close`.
+      through the true poses with `imu`'s noise and biases, seeded by `seed`, and the orientation
+      of a nine-axis unit in the world frame where `imu.orientation`; written on `close`.
     The bag is written in a folder beside `path` and moved there when `close` is called, so a
     killed drive leaves no half bag under that name (the next one removes the folder). ROS 2
     (`ros2=True`) writes a sqlite3 bag folder."""
@@ -332,14 +333,17 @@ class BagRecorder:
         stamps = self.start + self.dt * np.arange(len(self.truth))
         imu = imu_samples(stamps, self.truth, self.imu, np.random.default_rng(self.seed))
         gyro_sigma, accel_sigma = self.imu.sigmas()
-        unknown = np.zeros(9)
-        unknown[0] = -1.0  # REP 145: no orientation estimate
+        if imu.orientation is None:
+            quaternions, covariance = np.tile([0.0, 0.0, 0.0, 1.0], (len(imu.stamps), 1)), np.zeros(9)
+            covariance[0] = -1.0  # REP 145: no orientation estimate
+        else:
+            quaternions, covariance = imu.orientation, np.diag(self.imu.orientation_sigmas() ** 2).ravel()
         vector = t["geometry_msgs/msg/Vector3"]
-        for k, (stamp, w, a) in enumerate(zip(imu.stamps, imu.gyro, imu.accel)):
+        for k, (stamp, w, a, q) in enumerate(zip(imu.stamps, imu.gyro, imu.accel, quaternions)):
             self._write("/imu", float(stamp), t["sensor_msgs/msg/Imu"](
                 header=self._header(float(stamp), "base_link", k),
-                orientation=t["geometry_msgs/msg/Quaternion"](0.0, 0.0, 0.0, 1.0),
-                orientation_covariance=unknown, angular_velocity=vector(*w),
+                orientation=t["geometry_msgs/msg/Quaternion"](*(float(v) for v in q)),
+                orientation_covariance=covariance, angular_velocity=vector(*w),
                 angular_velocity_covariance=np.diag([gyro_sigma**2] * 3).ravel(),
                 linear_acceleration=vector(*a), linear_acceleration_covariance=np.diag([accel_sigma**2] * 3).ravel()))
 

@@ -60,6 +60,28 @@ def test_noise_and_biases_are_as_configured_at_rest(rng):
     assert 0.2 * 1e-3 * np.sqrt(20) < np.abs(drifting.gyro[-1]).max() < 5 * 1e-3 * np.sqrt(20)
 
 
+def test_the_orientation_is_the_body_s_own_off_by_errors_that_wander_and_return(rng):
+    """Noise-free: the pose's rotation at each pose's time. Noisy: tilt and heading errors with the
+    configured spreads in the body frame, correlated over about `orientation_time`, not drifting."""
+    stamps = np.arange(0.0, 10.01, 0.1)
+    poses = _circle(stamps)
+    imu = imu_samples(stamps, poses)
+    at_poses = Rotation.from_quat(imu.orientation[::20])  # 200 Hz: every 20th sample is at a pose
+    truth = Rotation.from_matrix(np.array(poses)[:, :3, :3])
+    assert len(at_poses) == len(truth) and (at_poses.inv() * truth).magnitude().max() < 1e-9
+    assert imu_samples(stamps, poses, ImuConfig(orientation=False)).orientation is None
+    long = np.arange(0.0, 3000.0, 1.0)
+    still = [pose_to_matrix([0.0, 0.0, 0.5, 0.0, 0.0, 1.0])] * len(long)
+    config = ImuConfig(rate=20.0, orientation_time=10.0)
+    error = (Rotation.from_matrix(still[0][:3, :3]).inv() * Rotation.from_quat(
+        imu_samples(long, still, config, rng).orientation)).as_rotvec()
+    np.testing.assert_allclose(error.std(axis=0), config.orientation_sigmas(), rtol=0.2)
+    heading = error[:, 2]
+    lag = int(10.0 * config.rate)  # one correlation time apart: e^-1 of the spread shared
+    assert np.corrcoef(heading[:-lag], heading[lag:])[0, 1] == pytest.approx(np.exp(-1), abs=0.12)
+    assert abs(np.corrcoef(heading[:-20 * lag], heading[20 * lag:])[0, 1]) < 0.15
+
+
 def test_too_few_poses_or_unordered_times_are_refused():
     with pytest.raises(ValueError, match="at least two poses"):
         imu_samples(np.array([0.0]), [np.eye(4)])

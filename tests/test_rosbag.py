@@ -8,6 +8,7 @@ from rosbags.highlevel import AnyReader
 from rosbags.rosbag1 import Writer as Writer1
 from rosbags.rosbag2 import Writer as Writer2
 from rosbags.typesys import Stores, get_typestore
+from scipy.spatial.transform import Rotation
 
 from l3e_env.cli import main
 from l3e_env.config import LidarConfig
@@ -208,7 +209,12 @@ def test_a_drive_written_as_a_bag_reads_back_as_the_same_scans_and_poses(tmp_pat
     assert (t.transform.translation.x, t.transform.translation.z) == pytest.approx((0.1, 0.3))
     assert len(_messages(bag, "/tf")) == 3
     imu = _messages(bag, "/imu")  # 200 Hz over the drive's 0.2 s, turning at 1 rad/s
-    assert len(imu) == 41 and imu[0].header.frame_id == "base_link" and imu[0].orientation_covariance[0] == -1
+    assert len(imu) == 41 and imu[0].header.frame_id == "base_link"
+    # a nine-axis unit's orientation, in the world frame, within its stated spread of the truth
+    quaternion = [getattr(imu[20].orientation, a) for a in "xyzw"]
+    heading = Rotation.from_quat(quaternion).as_euler("xyz")[2]
+    sigma = np.sqrt(imu[20].orientation_covariance[8])
+    assert sigma == pytest.approx(np.deg2rad(ImuConfig().heading_sigma_deg)) and abs(heading - 0.1) < 4 * sigma
     assert np.mean([m.angular_velocity.z for m in imu]) == pytest.approx(1.0, abs=0.01)
     assert np.mean([m.linear_acceleration.z for m in imu]) == pytest.approx(9.81, abs=0.05)
     assert imu[0].angular_velocity_covariance[0] == pytest.approx(ImuConfig().sigmas()[0] ** 2)
@@ -267,6 +273,13 @@ def test_a_bag_recorder_refuses_to_overwrite_and_clears_a_killed_drive(tmp_path,
     assert len(list(read_bag(tmp_path / "run.bag"))) == 1
     with AnyReader([tmp_path / "run.bag"]) as reader:  # without an IMU, no empty /imu topic either
         assert "/imu" not in {c.topic for c in reader.connections}
+    six = tmp_path / "six.bag"
+    writer = BagRecorder(six, imu=ImuConfig(orientation=False))
+    for x in (0.0, 0.5):
+        writer(_corridor_lidar().scan(np.eye(4), rng), {"T_w_b": planar_pose(x, 0, 0, 0),
+                                                        "odom_T_w_b": planar_pose(x, 0, 0, 0), "T_b_s": np.eye(4)})
+    writer.close()
+    assert all(m.orientation_covariance[0] == -1 for m in _messages(six, "/imu"))  # REP 145: none
 
 
 @pytest.mark.slow
@@ -286,3 +299,4 @@ def test_record_cli_writes_a_drive_that_judge_reads_back(tmp_path, capsys):
     assert "--imu-rate must be 0 (no IMU) or more" in capsys.readouterr().err
     imu = _messages(bag, "/imu")
     assert len(imu) == 20 * (len(recording.ground_truth) - 1) + 1  # 200 Hz between the first and last 10 Hz pose
+    assert imu[0].orientation_covariance[0] > 0  # a nine-axis unit's orientation by default
