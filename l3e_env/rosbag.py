@@ -85,7 +85,8 @@ def cloud_rings(msg) -> np.ndarray | None:
     return _cloud_fields(msg, ["ring"])["ring"].astype(np.int64)
 
 
-def _reader(path: Path):
+def _open(path: Path):
+    """The bag at `path`, opened for reading (the caller closes it)."""
     try:
         from rosbags.highlevel import AnyReader
         from rosbags.typesys import Stores, get_typestore
@@ -94,7 +95,12 @@ def _reader(path: Path):
     if not path.exists():
         raise BagError(f"{path}: no such bag")
     # a ROS 2 bag written without its message definitions is read with the current ones
-    return AnyReader([path], default_typestore=get_typestore(Stores.LATEST))
+    reader = AnyReader([path], default_typestore=get_typestore(Stores.LATEST))
+    try:
+        reader.open()
+    except Exception as exc:  # noqa: BLE001 - rosbags raises several kinds; name the bag and the problem
+        raise BagError(f"{path}: cannot be read as a ROS bag: {exc}") from exc
+    return reader
 
 
 def read_bag(path: str | Path, topic: str | None = None, every: int = 1, start: float | None = None,
@@ -106,11 +112,7 @@ def read_bag(path: str | Path, topic: str | None = None, every: int = 1, start: 
     if every < 1:
         raise BagError(f"every must be at least 1, got {every}")
     path = Path(path)
-    reader = _reader(path)
-    try:
-        reader.open()
-    except Exception as exc:  # noqa: BLE001 - rosbags raises several kinds; name the bag and the problem
-        raise BagError(f"{path}: cannot be read as a ROS bag: {exc}") from exc
+    reader = _open(path)
     try:
         clouds = sorted({c.topic for c in reader.connections if c.msgtype == POINTCLOUD2})
         if topic is None:
@@ -177,11 +179,7 @@ def read_path(path: str | Path, topic: str | None = None) -> BagPath:
     PoseStamped or PoseWithCovarianceStamped; default: the bag's only Odometry topic, else its only
     pose topic), at their header stamps, to place the judged scans on a map."""
     path = Path(path)
-    reader = _reader(path)
-    try:
-        reader.open()
-    except Exception as exc:  # noqa: BLE001 - rosbags raises several kinds; name the bag and the problem
-        raise BagError(f"{path}: cannot be read as a ROS bag: {exc}") from exc
+    reader = _open(path)
     try:
         kinds = {c.topic: c.msgtype for c in reader.connections}
         poses = sorted(t for t, m in kinds.items() if m in POSE_TYPES)
