@@ -1,7 +1,8 @@
 """Fit the scan Monte-Carlo estimate's calibration (ScanMCConfig.calibration) on training scenes.
 
 Run: python benchmarks/scan_mc_calibration.py --dataset data/l3e48 --dataset data/level
-     [--scans 240] [--children 20] [--workers 2] [--seed 0] [--out estimates.npz]
+     [--scans 240] [--children 20] [--workers 2] [--seed 0] [--shadow-deg 0] [--beyond-deg 0]
+     [--out estimates.npz]
 
 The estimate (l3e_env/scan_mc.py) meshes a scan's range image and registers children ray-cast
 against that mesh. Surfaces the scan did not see are missing from it, so the estimate runs low.
@@ -31,6 +32,11 @@ def main() -> None:
     parser.add_argument("--children", type=int, default=20)
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--shadow-deg", type=float, default=0.0,
+                        help="continue the background behind depth jumps this far (ScanMCConfig.shadow_deg)")
+    parser.add_argument("--beyond-deg", type=float, default=0.0,
+                        help="continue the edge beams' surfaces this far past the field of view "
+                             "(ScanMCConfig.beyond_deg)")
     parser.add_argument("--out", help="save rows, estimates and label errors here (.npz)")
     args = parser.parse_args()
     data = open_datasets(args.dataset)
@@ -38,7 +44,8 @@ def main() -> None:
     rows = np.sort(np.random.default_rng(args.seed).permutation(rows)[:args.scans])
     t0 = time.perf_counter()
     # every scan gets all its children: stopping early is judged against calibrated thresholds
-    config = ScanMCConfig(children=args.children, calibration=(1.0,) * 6, settle=0.0)
+    config = ScanMCConfig(children=args.children, calibration=(1.0,) * 6, settle=0.0, shadow_deg=args.shadow_deg,
+                          beyond_deg=args.beyond_deg)
     estimates, _ = dataset_scan_errors(args.dataset, rows, config, seed=args.seed, workers=args.workers, progress=True)
     seconds = time.perf_counter() - t0
     known = np.isfinite(estimates).all(axis=1)

@@ -45,6 +45,8 @@ class ScanMCConfig:
     # measured on 768 validation and test scans; it shrinks as 1 / sqrt(children).
     spread: tuple[float, ...] = (0.45, 0.45, 0.3, 0.3, 0.3, 0.65)
     max_range_ratio: float = 1.5  # two returns whose ranges differ more are not joined (a depth jump)
+    shadow_deg: float = 0.0  # the background continued behind the foreground this far (0: not at all)
+    beyond_deg: float = 0.0  # the edge beams' surfaces continued this far past the field of view
     # Estimated errors are multiplied by these: 1 / the median of estimate over label on 240 scans
     # of the training scenes with 20 children (`benchmarks/scan_mc_calibration.py`).
     calibration: tuple[float, ...] = (1.23, 1.23, 1.21, 1.17, 1.20, 1.11)
@@ -74,10 +76,16 @@ def beams_and_columns(points: np.ndarray, pattern: BeamPattern) -> tuple[np.ndar
     return beam, column
 
 
-def range_image_mesh(points: np.ndarray, pattern: BeamPattern, max_range_ratio: float = 1.5) -> trimesh.Trimesh:
+def range_image_mesh(points: np.ndarray, pattern: BeamPattern, max_range_ratio: float = 1.5,
+                     shadow_deg: float = 0.0, beyond_deg: float = 0.0) -> trimesh.Trimesh:
     """The scan's points as vertices, each 2 x 2 block of neighbouring beams and columns (columns
     wrap around) as two triangles where all three returns exist and their ranges differ by less
-    than `max_range_ratio`."""
+    than `max_range_ratio`. With `shadow_deg`, a surface behind each return beside a depth jump,
+    at the farthest range within that many degrees of azimuth and a beam: a child that moves sees
+    into the foreground's shadow, as it would in the scene, where the scan alone has no surface.
+    With `beyond_deg`, the surfaces at the lowest and highest beams are continued that far beyond
+    them, their range growing by the ratio between the last two beams' (a child pitched or rolled
+    sees past the scan's field of view)."""
     points = np.asarray(points, dtype=np.float64)
     # neighbours by the returns' own azimuths: the beams of a staggered sensor (an Ouster's) fire
     # degrees apart at one encoder column, and joining those would fold the mesh (scanmc then
@@ -96,16 +104,62 @@ def range_image_mesh(points: np.ndarray, pattern: BeamPattern, max_range_ratio: 
     vertex, ranges = vertex[order], ranges[order]
 
     def corner(grid: np.ndarray, down: int, right: int) -> np.ndarray:
-        return np.roll(grid, -right, axis=1)[down:down + pattern.n_beams - 1]
+        return np.roll(grid, -right, axis=1)[down:down + len(grid) - 1]
 
-    faces = []
-    for tri in (((0, 0), (0, 1), (1, 0)), ((0, 1), (1, 1), (1, 0))):
-        ids = [corner(vertex, d, r) for d, r in tri]
-        rs = [corner(ranges, d, r) for d, r in tri]
-        hi, lo = np.maximum.reduce(rs), np.minimum.reduce(rs)
-        ok = (ids[0] >= 0) & (ids[1] >= 0) & (ids[2] >= 0) & (hi < max_range_ratio * lo)
-        faces.append(np.stack([i[ok] for i in ids], axis=1))
-    return trimesh.Trimesh(points, np.concatenate(faces), process=False)
+    def joined(vertex: np.ndarray, ranges: np.ndarray, keep: np.ndarray | None = None) -> np.ndarray:
+        faces = []
+        for tri in (((0, 0), (0, 1), (1, 0)), ((0, 1), (1, 1), (1, 0))):
+            ids = [corner(vertex, d, r) for d, r in tri]
+            rs = [corner(ranges, d, r) for d, r in tri]
+            hi, lo = np.maximum.reduce(rs), np.minimum.reduce(rs)
+            ok = (ids[0] >= 0) & (ids[1] >= 0) & (ids[2] >= 0) & (hi < max_range_ratio * lo)
+            if keep is not None:  # only faces that reach behind the foreground
+                ok &= np.logical_or.reduce([corner(keep, d, r) for d, r in tri])
+            faces.append(np.stack([i[ok] for i in ids], axis=1))
+        return np.concatenate(faces)
+
+    vertices, faces = [points], [joined(vertex, ranges)]
+    if shadow_deg > 0:
+        from scipy.ndimage import maximum_filter
+
+        # the farthest surface within shadow_deg of azimuth and a beam of each return, taken to go on
+        # behind it where it lies beyond a depth jump
+        width = 2 * int(round(shadow_deg / (360.0 / pattern.n_azimuth))) + 1
+        far = maximum_filter(ranges, size=(3, width), mode=("nearest", "wrap"))
+        behind = (vertex >= 0) & (far >= max_range_ratio * ranges)  # foreground returns beside a far surface
+        layer = vertex.copy()
+        layer[behind] = sum(map(len, vertices)) + np.arange(behind.sum())
+        vertices.append(points[vertex[behind]] * (far[behind] / ranges[behind])[:, None])
+        faces.append(joined(layer, np.where(behind, far, ranges), behind))
+    elevations = np.sort(pattern.elevations_deg)
+    rows = int(np.ceil(beyond_deg / np.diff(elevations).min())) if beyond_deg > 0 and len(elevations) > 2 else 0
+    for edge, inner in ((0, 1), (-1, -2)) if rows else ():
+        # the edge beam's surface continued outwards, one beam spacing a row, its range growing by
+        # the ratio between the edge beam's and the next beam's
+        ids, ratio = vertex[edge], ranges[edge] / np.where(ranges[inner] > 0, ranges[inner], np.inf)
+        ok = (ids >= 0) & (ratio > 1 / max_range_ratio) & (ratio < max_range_ratio)
+        last = points[np.where(ok, ids, 0)]
+        azimuth = np.arctan2(last[:, 1], last[:, 0])
+        step = np.deg2rad(elevations[edge] - elevations[inner])
+        elevation = np.arctan2(last[:, 2], np.hypot(last[:, 0], last[:, 1]))
+        grid, grid_ranges = [vertex[edge]], [ranges[edge]]
+        for k in range(1, rows + 1):
+            r = ranges[edge] * ratio**k
+            el = elevation + k * step
+            ray = np.stack([np.cos(el) * np.cos(azimuth), np.cos(el) * np.sin(azimuth), np.sin(el)], axis=1)
+            new = ray * r[:, None]
+            index = np.full(len(ids), -1, dtype=np.int64)
+            index[ok] = sum(map(len, vertices)) + np.arange(ok.sum())
+            vertices.append(new[ok])
+            grid.append(index)
+            grid_ranges.append(np.where(ok, r, 0.0))
+        stack, stack_ranges = np.stack(grid), np.stack(grid_ranges)
+        if edge == 0:  # rows run from the lowest up
+            stack, stack_ranges = stack[::-1], stack_ranges[::-1]
+        fresh = np.ones_like(stack, dtype=bool)
+        fresh[-1 if edge == 0 else 0] = False
+        faces.append(joined(stack, stack_ranges, fresh))
+    return trimesh.Trimesh(np.concatenate(vertices), np.concatenate(faces), process=False)
 
 
 def scan_errors(points: np.ndarray, lidar: LidarConfig, registration: RegistrationConfig, labels: LabelConfig,
@@ -123,7 +177,7 @@ def scan_errors(points: np.ndarray, lidar: LidarConfig, registration: Registrati
     points = np.asarray(points, dtype=np.float64)
     target = PreparedTarget(points, registration)  # checks shape, NaN and size first
     pattern = get_pattern(lidar.model)
-    mesh = range_image_mesh(points, pattern, config.max_range_ratio)
+    mesh = range_image_mesh(points, pattern, config.max_range_ratio, config.shadow_deg, config.beyond_deg)
     if len(mesh.faces) == 0:
         raise RegistrationError("no two neighbouring returns of the scan could be joined into a surface")
     sensor = Lidar(EmbreeCaster(mesh, threads=1), lidar)

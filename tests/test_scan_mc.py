@@ -15,6 +15,7 @@ from l3e_env.registration import RegistrationConfig, RegistrationError
 from l3e_env.scan_mc import (ScanMCConfig, ScanPatternError, beams_and_columns, dataset_scan_errors,
                              range_image_mesh, scan_errors)
 from l3e_env.scores import axis_scores
+from l3e_env.transforms import pose_to_matrix
 
 SENSOR = np.eye(4)
 SENSOR[2, 3] = 1.0
@@ -53,6 +54,41 @@ def test_the_range_image_mesh_gives_back_the_scan_and_bridges_no_depth_jump():
     ranges = np.linalg.norm(mesh.vertices, axis=1)[mesh.faces]
     assert (ranges.max(axis=1) < 1.5 * ranges.min(axis=1)).all()  # the pillar's edges are not joined to the wall
     assert ranges.min() < 2.5 and ranges.max() > 4.0  # but pillar and wall are both there
+
+
+def _child_ranges(mesh: trimesh.Trimesh, scene: trimesh.Trimesh, child: np.ndarray, where=None):
+    """The ranges of the child's returns in the true scene (those `where` picks, by their points in
+    the parent's frame) and of the same rays in its scan of the mesh (NaN: no return)."""
+    truth, seen = _scan(scene, pose=SENSOR @ child), _scan(mesh, pose=child)
+    ranges = dict(zip(seen.beam.astype(int) * 1800 + seen.column, np.linalg.norm(seen.points, axis=1)))
+    keys, r = truth.beam.astype(int) * 1800 + truth.column, np.linalg.norm(truth.points, axis=1)
+    pick = np.ones(len(truth), bool) if where is None else where(truth.points.astype(np.float64) + child[:3, 3])
+    return r[pick], np.array([ranges.get(k, np.nan) for k in keys[pick]])
+
+
+def test_the_mesh_goes_on_behind_depth_jumps_and_past_the_field_of_view():
+    """A child that moves sideways sees the wall behind a pillar, which the scan could not; one
+    pitched 5 deg sees floor and walls above and below the scan's beams. The filled mesh gives
+    those returns where the scan's own mesh has none, and keeps every face of it."""
+    scene = trimesh.util.concatenate([_box([12, 9, 3]), _box([0.4, 1.0, 3], centre=(2.0, 0.0, 1.5))])
+    scan = _scan(scene)
+    plain = range_image_mesh(scan.points, scan.pattern)
+    filled = range_image_mesh(scan.points, scan.pattern, shadow_deg=3.0, beyond_deg=4.0)
+    np.testing.assert_array_equal(filled.faces[:len(plain.faces)], plain.faces)
+    sideways = pose_to_matrix(np.array([0.0, 0.3, 0.0, 0.0, 0.0, 0.0]))
+
+    def shadowed(p: np.ndarray) -> np.ndarray:  # the far wall, behind the pillar from the scan's pose
+        return (p[:, 0] > 5.5) & (np.abs(np.arctan2(p[:, 1], p[:, 0])) < np.arctan2(0.5, 1.8))
+
+    true, seen = _child_ranges(plain, scene, sideways, shadowed)
+    assert len(true) > 200 and np.isnan(seen).all()
+    true, seen = _child_ranges(filled, scene, sideways, shadowed)
+    # about half of them now return, at or a little beyond the wall: the farthest surface nearby
+    assert np.isfinite(seen).mean() > 0.4 and 0.99 < np.nanmin(seen / true) and np.nanmax(seen / true) < 1.05
+    pitched = pose_to_matrix(np.array([0.0, 0.0, 0.0, 0.0, np.deg2rad(5.0), 0.0]))
+    for mesh, low, high in ((plain, 0.8, 0.86), (filled, 0.9, 1.0)):
+        true, seen = _child_ranges(mesh, scene, pitched)
+        assert low < np.mean(np.abs(seen - true) < 0.1) < high  # NaN (no return) counts as a miss
 
 
 def test_a_long_corridor_is_free_along_its_axis_and_a_room_is_not(rng):
