@@ -1,7 +1,7 @@
 """Fit the scan Monte-Carlo estimate's calibration (ScanMCConfig.calibration) on training scenes.
 
 Run: python benchmarks/scan_mc_calibration.py --dataset data/l3e48 --dataset data/level
-     [--scans 240] [--children 20] [--workers 2] [--seed 0] [--shadow-deg 0] [--beyond-deg 0]
+     [--scans 240] [--children 20] [--workers 2] [--seed 0] [--shadow-deg 3] [--beyond-deg 4]
      [--out estimates.npz]
 
 The estimate (l3e_env/scan_mc.py) meshes a scan's range image and registers children ray-cast
@@ -32,9 +32,9 @@ def main() -> None:
     parser.add_argument("--children", type=int, default=20)
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--shadow-deg", type=float, default=0.0,
+    parser.add_argument("--shadow-deg", type=float, default=ScanMCConfig.shadow_deg,
                         help="continue the background behind depth jumps this far (ScanMCConfig.shadow_deg)")
-    parser.add_argument("--beyond-deg", type=float, default=0.0,
+    parser.add_argument("--beyond-deg", type=float, default=ScanMCConfig.beyond_deg,
                         help="continue the edge beams' surfaces this far past the field of view "
                              "(ScanMCConfig.beyond_deg)")
     parser.add_argument("--out", help="save rows, estimates and label errors here (.npz)")
