@@ -21,6 +21,22 @@ def flag_matrix(judgements: list[Judgement], detector: str) -> np.ndarray:
     return out
 
 
+def _detectors(judgements: list[Judgement]) -> list[str]:
+    """The detectors that judged any scan, in the order first seen."""
+    names = list(dict.fromkeys(n for j in judgements for n in j.predictions))
+    if not names:
+        raise ValueError("no scan was judged: nothing to plot")
+    return names
+
+
+def _save(fig, path: str | Path, dpi: int) -> None:
+    import matplotlib.pyplot as plt
+
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+
+
 def plot_timeline(judgements: list[Judgement], path: str | Path) -> None:
     """Rows of axes against time (seconds since the first scan, for a bag) or the scan's place."""
     import matplotlib
@@ -28,9 +44,7 @@ def plot_timeline(judgements: list[Judgement], path: str | Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    names = list(dict.fromkeys(n for j in judgements for n in j.predictions))
-    if not names:
-        raise ValueError("no scan was judged: nothing to plot")
+    names = _detectors(judgements)
     stamps = [j.stamp for j in judgements]
     timed = all(s is not None for s in stamps)
     x = np.asarray(stamps, dtype=np.float64) - stamps[0] if timed else np.arange(len(judgements), dtype=np.float64)
@@ -46,9 +60,7 @@ def plot_timeline(judgements: list[Judgement], path: str | Path) -> None:
         ax.set_title(f"{name}: red = not localizable, grey = not judged", fontsize=9, loc="left")
     axes[-1, 0].set_xlabel("seconds since the first scan" if timed else "scan")
     fig.tight_layout()
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    _save(fig, path, 120)
 
 
 def plot_path(judgements: list[Judgement], where: np.ndarray, route: np.ndarray, path: str | Path,
@@ -61,9 +73,7 @@ def plot_path(judgements: list[Judgement], where: np.ndarray, route: np.ndarray,
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    names = list(dict.fromkeys(n for j in judgements for n in j.predictions))
-    if not names:
-        raise ValueError("no scan was judged: nothing to plot")
+    names = _detectors(judgements)
     placed = np.isfinite(where).all(axis=1)
     if not placed.any():
         raise ValueError("no judged scan lies within the path's time: nothing to place on the map")
@@ -92,6 +102,4 @@ def plot_path(judgements: list[Judgement], where: np.ndarray, route: np.ndarray,
     fig.suptitle((title + ": " if title else "") + "red = not localizable along the axis, dark = localizable, "
                  "line = the path (m)", fontsize=9)
     fig.tight_layout()
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    _save(fig, path, 110)

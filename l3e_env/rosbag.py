@@ -103,6 +103,12 @@ def _open(path: Path):
     return reader
 
 
+def _stamp(msg, received: int) -> float:
+    """Seconds: the message header's stamp, else (a zero stamp) when the bag received it."""
+    header = msg.header.stamp
+    return header.sec + header.nanosec * 1e-9 if header.sec or header.nanosec else received * 1e-9
+
+
 def read_bag(path: str | Path, topic: str | None = None, every: int = 1, start: float | None = None,
              end: float | None = None) -> Iterator[BagScan]:
     """The scans of `topic` (the bag's only PointCloud2 topic if None), every `every`-th message,
@@ -143,8 +149,7 @@ def _scans(reader, connections: list, prefix: str, every: int, lo: int | None, h
             name, stamp = f"{prefix} #{k}", received * 1e-9
             try:
                 msg = reader.deserialize(raw, connection.msgtype)
-                header = msg.header.stamp
-                stamp = header.sec + header.nanosec * 1e-9 if header.sec or header.nanosec else stamp
+                stamp = _stamp(msg, received)
                 points, rings = _cloud_arrays(msg, with_rings=True)
                 yield BagScan(name, stamp, points, rings=rings)
             except Exception as exc:  # noqa: BLE001 - one bad message is named, the next is read
@@ -203,8 +208,7 @@ def read_path(path: str | Path, topic: str | None = None) -> BagPath:
                 msg = reader.deserialize(raw, connection.msgtype)
             except Exception as exc:  # noqa: BLE001 - a path with a hole would misplace scans silently
                 raise BagError(f"{path}: a '{topic}' message at {received * 1e-9:.3f} s cannot be read: {exc}") from exc
-            header = msg.header.stamp
-            stamps.append(header.sec + header.nanosec * 1e-9 if header.sec or header.nanosec else received * 1e-9)
+            stamps.append(_stamp(msg, received))
             p = position(msg)
             positions.append((p.x, p.y, p.z))
     finally:

@@ -138,7 +138,7 @@ def range_image_mesh(points: np.ndarray, pattern: BeamPattern, max_range_ratio: 
         vertices.append(points[vertex[behind]] * (far[behind] / ranges[behind])[:, None])
         faces.append(joined(layer, np.where(behind, far, ranges), behind))
     elevations = np.sort(pattern.elevations_deg)
-    rows = int(np.ceil(beyond_deg / np.diff(elevations).min())) if beyond_deg > 0 and len(elevations) > 2 else 0
+    rows = int(np.ceil(beyond_deg / pattern.spacing_deg())) if beyond_deg > 0 and len(elevations) > 2 else 0
     for edge, inner in ((0, 1), (-1, -2)) if rows else ():
         # the edge beam's surface continued outwards, one beam spacing a row, its range growing by
         # the ratio between the edge beam's and the next beam's
