@@ -238,9 +238,18 @@ def _cmd_ate(args: argparse.Namespace) -> int:
     return 0
 
 
+def record_imu(args: argparse.Namespace):
+    """The ImuConfig that `l3e record`'s options ask for; None where --imu-rate is 0."""
+    from .imu import ImuConfig
+
+    if not args.imu_rate:
+        return None
+    return ImuConfig(rate=args.imu_rate, orientation=args.imu_orientation,
+                     footfall_accel=ImuConfig.footfall_accel if args.imu_footfalls else 0.0)
+
+
 def _cmd_record(args: argparse.Namespace) -> int:
     from .experiment import record_run
-    from .imu import ImuConfig
     from .rosbag import BagError, BagRecorder
 
     params = scene_params(args)
@@ -248,8 +257,7 @@ def _cmd_record(args: argparse.Namespace) -> int:
         print(f"l3e record: --imu-rate must be 0 (no IMU) or more, got {args.imu_rate}", file=sys.stderr)
         return 2
     try:
-        imu = ImuConfig(rate=args.imu_rate, orientation=args.imu_orientation) if args.imu_rate else None
-        bag = BagRecorder(args.out, ros2=args.ros2, imu=imu, seed=args.seed)
+        bag = BagRecorder(args.out, ros2=args.ros2, imu=record_imu(args), seed=args.seed)
     except BagError as exc:
         print(f"l3e record: {exc}", file=sys.stderr)
         return 2
@@ -518,6 +526,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--imu-rate", type=float, default=200.0, help="rate of /imu in Hz (default 200; 0: no IMU)")
     p.add_argument("--imu-orientation", action=argparse.BooleanOptionalAction, default=True,
                    help="write a nine-axis unit's orientation in /imu (default), or none as a six-axis unit")
+    p.add_argument("--imu-footfalls", action=argparse.BooleanOptionalAction, default=True,
+                   help="jolt /imu at each footfall while walking, as a legged robot's body rings (default), or not")
     p.add_argument("--quiet", action="store_true")
     add_mesh_options(p)
     p.set_defaults(func=_cmd_record)

@@ -1,7 +1,8 @@
 """An IMU on the robot's base, read off a smooth trajectory through the drive's poses, so that a
 recorded drive also feeds LiDAR-inertial odometry (FAST-LIO, LIO-SAM), which needs one; with the
 orientation of a nine-axis unit (LIO-SAM reads it), whose roll and pitch hold to gravity and
-whose heading wanders with the magnetometer's disturbances."""
+whose heading wanders with the magnetometer's disturbances, and with the jolts of a walking
+robot's footfalls, which the stand-in's smooth drive does not have."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -28,6 +29,11 @@ class ImuConfig:
     tilt_sigma_deg: float = 0.3  # its roll and pitch error
     heading_sigma_deg: float = 2.0  # its heading error
     orientation_time: float = 30.0  # s, how long an orientation error lasts (first-order Gauss-Markov)
+    footfall_rate: float = 3.0  # Hz, footfalls (a trot's diagonal pairs) while the body moves
+    footfall_accel: float = 3.0  # m/s^2, peak vertical jolt of a footfall (0: no footfalls)
+    footfall_gyro: float = 0.3  # rad/s, peak roll and pitch rate of a footfall
+    jolt_frequency: float = 20.0  # Hz, the body's ring after an impact
+    jolt_time: float = 0.03  # s, how fast it dies away
 
     def sigmas(self) -> tuple[float, float]:
         """The per-sample standard deviations of the gyro and the accelerometer."""
@@ -72,13 +78,58 @@ def imu_samples(stamps: np.ndarray, poses: list[np.ndarray], config: ImuConfig |
             + rng.normal(0.0, gyro_sigma, gyro.shape)
         accel = accel + np.cumsum(rng.normal(0.0, config.accel_bias_walk * step, accel.shape), axis=0) \
             + rng.normal(0.0, accel_sigma, accel.shape)
-    if not config.orientation:
-        return ImuSamples(t, gyro, accel)
-    attitude = rotation(t)
-    if rng is not None:
-        attitude = attitude * Rotation.from_rotvec(_gauss_markov(len(t), 1.0 / config.rate, config.orientation_time,
-                                                                 config.orientation_sigmas(), rng))
-    return ImuSamples(t, gyro, accel, attitude.as_quat())
+    attitude = None
+    if config.orientation:
+        attitude = rotation(t)
+        if rng is not None:
+            attitude = (attitude * Rotation.from_rotvec(_gauss_markov(
+                len(t), 1.0 / config.rate, config.orientation_time, config.orientation_sigmas(), rng))).as_quat()
+        else:
+            attitude = attitude.as_quat()
+    if rng is not None and config.footfall_accel > 0:  # drawn last: the other draws stay as they were
+        walking = (np.linalg.norm(position(t, 1)[:, :2], axis=1) > WALKING_SPEED) | (np.abs(gyro[:, 2]) > WALKING_TURN)
+        jolt_gyro, jolt_accel = footfall_jolts(walking, config, rng)
+        gyro, accel = gyro + jolt_gyro, accel + jolt_accel
+    return ImuSamples(t, gyro, accel, attitude)
+
+
+WALKING_SPEED = 0.05  # m/s: slower, and not turning, the robot stands and its feet stay put
+WALKING_TURN = 0.1  # rad/s
+JOLT_LENGTH = 12  # jolt times: a jolt is cut off there
+
+
+def footfall_jolts(walking: np.ndarray, config: ImuConfig, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """(gyro, accel) added by footfalls, in the body frame, at the IMU's samples: while `walking`,
+    a footfall every 1 / footfall_rate s, each a ring of the body that starts at rest and dies
+    away, so it leaves no velocity, position or angle behind (what integrating odometry needs).
+
+    A jolt moves the body by a s exp(-s / T) sin(w s) after the impact (s the time since it): the
+    rate and the acceleration are its first and second differences between samples, so that
+    summing the samples, as an integrator does, returns exactly to rest. Vertical jolts all push
+    up, by 0.7-1.3 of `footfall_accel`; the diagonal pairs alternate, so sideways sway (0.3 of it)
+    and roll change sign from footfall to footfall; fore-aft (0.3) and pitch take a random sign."""
+    dt = 1.0 / config.rate
+    phase = np.cumsum(walking * config.footfall_rate * dt)
+    falls = np.flatnonzero(np.diff(np.floor(phase), prepend=0.0) > 0)
+    s = np.arange(0.0, JOLT_LENGTH * config.jolt_time + 2.0 * dt, dt)
+    shape = np.concatenate([[0.0], s * np.exp(-s / config.jolt_time) * np.sin(2.0 * np.pi * config.jolt_frequency * s),
+                            [0.0, 0.0]])  # cut off at rest: what is left at 12 T, a 1e-5 of the jolt, is dropped
+    rate_kernel = np.diff(shape)[1:] / dt  # the impact at a sample moves the body from the next one on
+    accel_kernel = np.diff(shape, 2) / dt**2
+    rate_peak, accel_peak = np.abs(rate_kernel).max(), np.abs(accel_kernel).max()
+    alternate = np.where(np.arange(len(falls)) % 2 == 0, 1.0, -1.0)
+    size = rng.uniform(0.7, 1.3, len(falls))[:, None]
+    sign = rng.choice([-1.0, 1.0], (len(falls), 2))
+    ones = np.ones(len(falls))
+    n = len(walking)
+    jolt_gyro, jolt_accel = np.zeros((n, 3)), np.zeros((n, 3))
+    jolt_accel[falls] = size * (config.footfall_accel / accel_peak) * np.stack([0.3 * sign[:, 0], 0.3 * alternate,
+                                                                                ones], 1)
+    jolt_gyro[falls] = size * (config.footfall_gyro / rate_peak) * np.stack([alternate, sign[:, 1], 0.0 * ones], 1)
+    for k in range(3):  # each footfall's impulse spread into its jolt
+        jolt_accel[:, k] = np.convolve(jolt_accel[:, k], accel_kernel)[:n]
+        jolt_gyro[:, k] = np.convolve(jolt_gyro[:, k], rate_kernel)[:n]
+    return jolt_gyro, jolt_accel
 
 
 def _gauss_markov(n: int, dt: float, time: float, sigmas: np.ndarray, rng: np.random.Generator) -> np.ndarray:

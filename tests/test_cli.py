@@ -75,3 +75,14 @@ def test_demo_drives_the_mine_and_writes_pictures(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "flagged non-localizable by the learned detector" in out and "tunnel" in out
     assert all((tmp_path / n).stat().st_size > 10_000 for n in names if n.endswith(".png"))
+
+
+def test_record_options_give_the_imu_asked_for():
+    from l3e_env.cli import record_imu
+
+    default = record_imu(build_parser().parse_args(["record", "--out", "a.bag"]))
+    assert default.footfall_accel > 0 and default.orientation and default.rate == 200.0
+    quiet = record_imu(build_parser().parse_args(["record", "--out", "a.bag", "--no-imu-footfalls",
+                                                  "--no-imu-orientation", "--imu-rate", "100"]))
+    assert quiet.footfall_accel == 0.0 and not quiet.orientation and quiet.rate == 100.0
+    assert record_imu(build_parser().parse_args(["record", "--out", "a.bag", "--imu-rate", "0"])) is None

@@ -87,3 +87,46 @@ def test_too_few_poses_or_unordered_times_are_refused():
         imu_samples(np.array([0.0]), [np.eye(4)])
     with pytest.raises(ValueError, match="increasing times"):
         imu_samples(np.array([0.0, 0.0]), [np.eye(4), np.eye(4)])
+
+
+def _walk_then_stand(stamps: np.ndarray, speed: float = 1.0, stop: float = 9.0) -> list[np.ndarray]:
+    """Walking straight along x at `speed` until `stop`, then standing."""
+    return [pose_to_matrix([speed * min(s, stop), 0.0, 0.5, 0.0, 0.0, 0.0]) for s in stamps]
+
+
+def test_footfalls_jolt_the_walking_body_and_leave_no_velocity_behind():
+    stamps = np.arange(0.0, 10.01, 0.1)
+    poses = _walk_then_stand(stamps)
+    still = ImuConfig(footfall_accel=0.0)
+    smooth = imu_samples(stamps, poses, still, np.random.default_rng(3))
+    walking = imu_samples(stamps, poses, ImuConfig(), np.random.default_rng(3))
+    jolt, turn = walking.accel - smooth.accel, walking.gyro - smooth.gyro
+    np.testing.assert_allclose(walking.orientation, smooth.orientation)  # drawn after everything else
+    config, dt = ImuConfig(), 1.0 / ImuConfig().rate
+    assert 0.7 * config.footfall_accel <= np.abs(jolt[:, 2]).max() <= 1.3 * config.footfall_accel
+    assert np.abs(jolt[:, :2]).max() <= 0.3 * 1.3 * config.footfall_accel
+    assert 0.7 * config.footfall_gyro <= np.abs(turn[:, :2]).max() <= 1.3 * config.footfall_gyro
+    assert np.abs(turn[:, 2]).max() == 0.0
+    standing = walking.stamps > 9.6  # the last jolt has died away: the body is exactly as without them
+    np.testing.assert_allclose(jolt[standing], 0.0, atol=1e-12)
+    velocity = np.cumsum(jolt, axis=0) * dt  # what integrating the samples makes of them
+    assert np.abs(velocity[standing]).max() < 1e-9  # no velocity left
+    assert np.abs(np.cumsum(velocity, axis=0)[standing] * dt).max() < 1e-9  # nor displacement
+    assert np.abs(np.cumsum(turn, axis=0)[standing] * dt).max() < 1e-9  # nor angle
+    assert np.abs(np.cumsum(velocity, axis=0) * dt).max() < 1e-3  # a jolt moves the body by under a millimetre
+    spectrum = np.abs(np.fft.rfft(jolt[:, 2]))
+    assert abs(np.fft.rfftfreq(len(jolt), dt)[spectrum.argmax()] - config.jolt_frequency) < 3.0
+
+
+def test_one_footfall_every_third_of_a_second_while_walking_and_none_at_rest():
+    stamps = np.arange(0.0, 10.01, 0.1)
+    short = ImuConfig(jolt_time=0.005, gyro_noise=0.0, accel_noise=0.0, gyro_bias_walk=0.0, accel_bias_walk=0.0)
+    vertical = imu_samples(stamps, _walk_then_stand(stamps), short, np.random.default_rng(4)).accel[:, 2] - GRAVITY
+    high = np.abs(vertical) > 0.5 * 0.7 * short.footfall_accel
+    onsets = np.flatnonzero(high[1:] & ~np.convolve(high, np.ones(20), "full")[:len(high) - 1].astype(bool))
+    assert len(onsets) == 27  # 9 s of walking at 3 Hz
+    assert np.allclose(np.diff(onsets) / short.rate, 1.0 / short.footfall_rate, atol=0.011)
+    at_rest = [pose_to_matrix([1.0, 2.0, 0.5, 0.0, 0.0, 0.3])] * len(stamps)
+    np.testing.assert_array_equal(imu_samples(stamps, at_rest, ImuConfig(), np.random.default_rng(5)).accel,
+                                  imu_samples(stamps, at_rest, ImuConfig(footfall_accel=0.0),
+                                              np.random.default_rng(5)).accel)

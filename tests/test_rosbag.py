@@ -300,3 +300,5 @@ def test_record_cli_writes_a_drive_that_judge_reads_back(tmp_path, capsys):
     imu = _messages(bag, "/imu")
     assert len(imu) == 20 * (len(recording.ground_truth) - 1) + 1  # 200 Hz between the first and last 10 Hz pose
     assert imu[0].orientation_covariance[0] > 0  # a nine-axis unit's orientation by default
+    vertical = np.array([m.linear_acceleration.z for m in imu])
+    assert np.abs(vertical - 9.81).max() > 0.7 * ImuConfig().footfall_accel  # footfalls jolt it by default
