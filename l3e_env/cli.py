@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from importlib.metadata import entry_points
@@ -235,6 +236,9 @@ def _cmd_ate(args: argparse.Namespace) -> int:
                           sensor=args.sensor, seed=args.seed, recording=args.recording, progress=not args.quiet,
                           backend=args.backend, scene_params=params, workers=args.workers)
     print(format_table(rows))
+    if json.loads((out / "results.json").read_text()).get("swept"):
+        print("the recording's scans are swept over the robot's motion; they were registered as they are "
+              "(the fusion does not deskew them)")
     return 0
 
 
@@ -261,7 +265,8 @@ def _cmd_record(args: argparse.Namespace) -> int:
     except BagError as exc:
         print(f"l3e record: {exc}", file=sys.stderr)
         return 2
-    rec = record_run(args.scene, args.sensor, args.seed, progress=not args.quiet, scene_params=params, on_step=bag)
+    rec = record_run(args.scene, args.sensor, args.seed, progress=not args.quiet, scene_params=params, on_step=bag,
+                     sweep=args.sweep)
     print(f"written: {bag.close()} ({bag.steps} scans)")
     if args.recording:
         Path(args.recording).parent.mkdir(parents=True, exist_ok=True)
@@ -526,6 +531,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--imu-rate", type=float, default=200.0, help="rate of /imu in Hz (default 200; 0: no IMU)")
     p.add_argument("--imu-orientation", action=argparse.BooleanOptionalAction, default=True,
                    help="write a nine-axis unit's orientation in /imu (default), or none as a six-axis unit")
+    p.add_argument("--sweep", action=argparse.BooleanOptionalAction, default=True,
+                   help="sweep each revolution over the step's motion and write each point's time, as a spinning "
+                        "sensor on a moving robot does (default), or take each revolution at one pose")
     p.add_argument("--imu-footfalls", action=argparse.BooleanOptionalAction, default=True,
                    help="jolt /imu at each footfall while walking, as a legged robot's body rings (default), or not")
     p.add_argument("--quiet", action="store_true")

@@ -25,6 +25,9 @@ class LidarConfig:
     dropout: float = 0.0  # probability that a return is lost
     min_range: float | None = None  # None: the pattern's own
     max_range: float | None = None  # None: the pattern's own
+    # cast each column from the pose at its firing time while the robot moves (a spinning sensor's
+    # motion distortion, with each point's time in Scan.times); False: the revolution at one pose
+    sweep: bool = False
 
 
 @dataclass

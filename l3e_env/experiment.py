@@ -53,11 +53,12 @@ class Recording:
     # make_scene's keyword arguments (a mesh scene's up axis, scale and route), to rebuild the scene
     scene_params: dict = field(default_factory=dict)
     mesh_sha256: str = ""  # a mesh scene's file, to tell it from an edited or replaced one
+    sweep: bool = False  # scans swept over the robot's motion (LidarConfig.sweep), registered as they are
 
     def save(self, path: str | Path) -> None:
         np.savez_compressed(
             path, scene=self.scene, sensor=self.sensor, seed=self.seed, T_b_s=self.T_b_s,
-            scene_params=json.dumps(self.scene_params), mesh_sha256=self.mesh_sha256,
+            scene_params=json.dumps(self.scene_params), mesh_sha256=self.mesh_sha256, sweep=self.sweep,
             ground_truth=self.ground_truth, odometry=self.odometry, **_ragged("points", self.scans),
             **_ragged("samples", self.samples),
         )
@@ -68,8 +69,9 @@ class Recording:
             samples = _unragged(z, "samples") if "samples_offsets" in z.files else []
             params = json.loads(str(z["scene_params"])) if "scene_params" in z.files else {}
             digest = str(z["mesh_sha256"]) if "mesh_sha256" in z.files else ""
+            swept = bool(z["sweep"]) if "sweep" in z.files else False
             return cls(str(z["scene"]), str(z["sensor"]), int(z["seed"]), z["T_b_s"], z["ground_truth"], z["odometry"],
-                       _unragged(z, "points"), samples, params, digest)
+                       _unragged(z, "points"), samples, params, digest, swept)
 
     def scene_file(self, moved_to: str | None = None) -> str:
         """The scene to rebuild: its name, or for a mesh its recorded path, or `moved_to` where the
@@ -157,12 +159,13 @@ def _unragged(z, name: str) -> list[np.ndarray]:
 
 def record_run(scene: str = "mine", sensor: str = "vlp16", seed: int = 0, progress: bool = True,
                scene_params: dict | None = None, scene_object: Scene | None = None,
-               on_step: Callable[[Scan, dict], None] | None = None) -> Recording:
+               on_step: Callable[[Scan, dict], None] | None = None, sweep: bool = False) -> Recording:
     """Drive the scene's route once; `scene_object`, if given, is that scene already built.
     `on_step(scan, info)` sees every full scan with the step's info (T_w_b, odom_T_w_b) and the
-    sensor's mounting T_b_s, the start's included, before the recording thins it (a bag writer)."""
-    env = NavigationEnv(EnvConfig(scene=scene, lidar=LidarConfig(model=sensor), scene_params=scene_params or {}),
-                        scene_object=scene_object)
+    sensor's mounting T_b_s, the start's included, before the recording thins it (a bag writer).
+    `sweep`: each step's scan is swept over the step's motion (LidarConfig.sweep)."""
+    env = NavigationEnv(EnvConfig(scene=scene, lidar=LidarConfig(model=sensor, sweep=sweep),
+                                  scene_params=scene_params or {}), scene_object=scene_object)
     obs, info = env.reset(seed=seed)
     follow = RouteFollower(env.route)
 
@@ -197,7 +200,7 @@ def record_run(scene: str = "mine", sensor: str = "vlp16", seed: int = 0, progre
     # a mesh scene is rebuilt from its file, a procedural one from its canonical name ('tunnel' -> 'tunnel-0')
     name = canonical_scene_name(scene) if is_mesh_path(scene) else env.scene.name
     rec = Recording(name, sensor, seed, env.robot.T_b_s, np.array(gt), np.array(odom), scans, samples,
-                    dict(scene_params or {}), file_sha256(scene) if is_mesh_path(scene) else "")
+                    dict(scene_params or {}), file_sha256(scene) if is_mesh_path(scene) else "", sweep)
     env.close()
     return rec
 
@@ -326,7 +329,8 @@ def run_experiment(out_dir: str | Path, scene: str, detectors: list[str], sensor
     results = [odometry_only(rec)] + fused
     rows = [r.row() for r in results]
     failed = sum(r is None or not r.converged for r in regs)
-    summary = {"scene": rec.scene, "sensor": rec.sensor, "backend": backend, "steps": len(rec.odometry),
+    summary = {"scene": rec.scene, "sensor": rec.sensor, "swept": rec.sweep, "backend": backend,
+               "steps": len(rec.odometry),
                "icp_seconds": round(icp_seconds, 1),
                "icp_failed_or_not_converged": failed, "rows": rows}
     (out / "results.json").write_text(json.dumps(summary, indent=1))

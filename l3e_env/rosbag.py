@@ -305,8 +305,12 @@ class BagRecorder:
         if self.steps == 0:
             self._write("/tf_static", stamp, t["tf2_msgs/msg/TFMessage"](
                 transforms=[self._transform(stamp, "base_link", "lidar", np.asarray(info["T_b_s"], np.float64))]))
-        self._write("/points", stamp, _cloud_message(t, self._header(stamp, "lidar"), scan.points,
-                                                     scan.beam.astype(np.uint16)))
+        # a swept revolution is stamped when it began, its points' times counted from there (as the
+        # Velodyne and Ouster drivers write them, and as LIO-SAM and FAST-LIO read them)
+        began = stamp if scan.times is None else stamp - self.dt
+        self._write("/points", began, _cloud_message(t, self._header(began, "lidar"), scan.points,
+                                                     scan.beam.astype(np.uint16), scan.times,
+                                                     ouster=scan.pattern.name.lower().startswith("os")))
         odom = np.asarray(info["odom_T_w_b"], dtype=np.float64)
         increment = np.eye(4) if self.last_odom is None else inverse(self.last_odom) @ odom
         self.last_odom = odom
@@ -371,17 +375,26 @@ def _quaternion(T: np.ndarray) -> tuple[float, float, float, float]:
     return tuple(float(v) for v in Rotation.from_matrix(T[:3, :3]).as_quat())  # x, y, z, w
 
 
-def _cloud_message(types, header, points: np.ndarray, ring: np.ndarray):
-    """x, y, z float32 and ring uint16 in 16-byte points, as a VLP-16 driver lays them out."""
-    layout = np.dtype({"names": ["x", "y", "z", "ring"], "formats": ["<f4", "<f4", "<f4", "<u2"],
-                       "offsets": [0, 4, 8, 12], "itemsize": 16})
-    table = np.zeros(len(points), dtype=layout)
+def _cloud_message(types, header, points: np.ndarray, ring: np.ndarray, times: np.ndarray | None = None,
+                   ouster: bool = False):
+    """x, y, z float32 and ring uint16 in 16-byte points, as a VLP-16 driver lays them out; with
+    `times`, each point's time since the stamp as the drivers write it: Velodyne's `time` (float32
+    seconds) in 20-byte points, or where `ouster`, Ouster's `t` (uint32 nanoseconds)."""
+    names, formats = ["x", "y", "z", "ring"], ["<f4", "<f4", "<f4", "<u2"]
+    offsets, datatypes = [0, 4, 8, 12], [7, 7, 7, 4]  # FLOAT32 and UINT16 (UINT32 is 6)
+    if times is not None:
+        names, formats = names + ["t" if ouster else "time"], formats + ["<u4" if ouster else "<f4"]
+        offsets, datatypes = offsets + [16], datatypes + [6 if ouster else 7]
+    step = 16 if times is None else 20
+    table = np.zeros(len(points), dtype=np.dtype({"names": names, "formats": formats, "offsets": offsets,
+                                                  "itemsize": step}))
     for i, a in enumerate("xyz"):
         table[a] = points[:, i]
     table["ring"] = ring
+    if times is not None:
+        table[names[-1]] = np.round(times.astype(np.float64) * 1e9) if ouster else times
     field = types["sensor_msgs/msg/PointField"]
     return types[POINTCLOUD2](
-        header=header, height=1, width=len(points), is_bigendian=False, is_dense=True, point_step=16,
-        row_step=16 * len(points), data=table.view(np.uint8).copy(),
-        fields=[field(name="x", offset=0, datatype=7, count=1), field(name="y", offset=4, datatype=7, count=1),
-                field(name="z", offset=8, datatype=7, count=1), field(name="ring", offset=12, datatype=4, count=1)])
+        header=header, height=1, width=len(points), is_bigendian=False, is_dense=True, point_step=step,
+        row_step=step * len(points), data=table.view(np.uint8).copy(),
+        fields=[field(name=n, offset=o, datatype=d, count=1) for n, o, d in zip(names, offsets, datatypes)])

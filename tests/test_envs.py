@@ -129,3 +129,24 @@ def test_a_failing_detector_is_counted_and_the_episode_goes_on():
         _, _, _, _, info = env.step(np.zeros(3))
     assert info["fusion_counts"]["detector_errors"] == 5 and np.isfinite(info["fused_T_w_b"]).all()
     env.close()
+
+
+def test_a_swept_lidar_turns_each_revolution_with_the_step():
+    """lidar={"sweep": True}: the scan after a step is cast over the step's motion, each point from
+    where the sensor was when it fired; the one after reset over a revolution standing still."""
+    env = gym.make("l3e/Tunnel-v0", lidar={"sweep": True, "range_noise_std": 0.0}).unwrapped
+    env.reset(seed=0)
+    at_rest = env.scan
+    assert at_rest.times is not None and at_rest.times.max() < env.config.robot.dt
+    before = env.robot.T_w_s
+    env.step(np.array([1.0, 0.0, 1.0], dtype=np.float32))  # forward at 1 m/s, turning at 1 rad/s
+    swept = env.scan
+    still = env.lidar.scan(env.robot.T_w_s)  # the same pose's revolution without the motion
+    assert swept.times is not None and len(swept) > 0.9 * len(still)
+    common, i, j = np.intersect1d(swept.beam.astype(np.int64) * 10000 + swept.column,
+                                  still.beam.astype(np.int64) * 10000 + still.column, return_indices=True)
+    moved = np.linalg.norm(swept.points[i] - still.points[j], axis=1)
+    early = swept.times[i] < 0.02  # fired near the step's start, where the pose was furthest from the end's
+    assert np.median(moved[early]) > 0.05 and np.median(moved[swept.times[i] > 0.098]) < 0.01
+    assert not np.array_equal(before, env.robot.T_w_s)
+    assert gym.make("l3e/Tunnel-v0").unwrapped.lidar.scan(np.eye(4)).times is None

@@ -50,6 +50,21 @@ def test_ate_from_a_recording_writes_results_and_figures(walls_run, tmp_path):
     assert json.loads((tmp_path / "out" / "results.json").read_text())["scene"] == "primitives-1"
 
 
+def test_a_swept_recording_says_so_when_replayed(walls_run, tmp_path, capsys):
+    from dataclasses import replace
+
+    from l3e_env.cli import main
+
+    rec, _ = walls_run
+    assert not rec.sweep
+    replace(rec, sweep=True).save(tmp_path / "swept.npz")
+    assert Recording.load(tmp_path / "swept.npz").sweep
+    assert main(["ate", "--recording", str(tmp_path / "swept.npz"), "--detector", "none", "--quiet",
+                 "--out", str(tmp_path / "out")]) == 0
+    assert json.loads((tmp_path / "out" / "results.json").read_text())["swept"]
+    assert "swept over the robot's motion; they were registered as they are" in capsys.readouterr().out
+
+
 def test_scanmc_in_a_replay_judges_scans_cast_again_at_the_true_poses(walls_run, tmp_path):
     rec, _ = walls_run  # two parallel walls: x (along them) is degenerate, nothing else
     rec.save(tmp_path / "rec.npz")

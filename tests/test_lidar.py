@@ -101,3 +101,49 @@ def test_user_defined_pattern_and_bad_inputs(office):
         get_pattern("hdl-64")
     with pytest.raises(ValueError, match="finite 4x4"):
         Lidar(EmbreeCaster(office.mesh)).scan(np.full((4, 4), np.nan))
+
+
+def _deskewed(scan, start: np.ndarray, end: np.ndarray, period: float) -> np.ndarray:
+    """Each point of a swept scan in the world frame, by the pose at its own time."""
+    from scipy.spatial.transform import Rotation
+
+    share = scan.times.astype(np.float64) / period
+    turn = Rotation.from_matrix(start[:3, :3].T @ end[:3, :3]).as_rotvec()
+    at = Rotation.from_matrix(start[:3, :3]) * Rotation.from_rotvec(share[:, None] * turn)
+    return at.apply(scan.points.astype(np.float64)) + start[:3, 3] + share[:, None] * (end[:3, 3] - start[:3, 3])
+
+
+def _off_the_box(world: np.ndarray) -> np.ndarray:
+    """How far each point of the 10 x 6 x 4 m room lies from its nearest wall, floor or ceiling."""
+    return np.abs(np.abs(world) - [5.0, 3.0, 2.0]).min(axis=1)
+
+
+def test_a_revolution_at_rest_fires_clockwise_from_behind():
+    room = trimesh.creation.box(extents=(10.0, 6.0, 4.0))
+    lidar = Lidar(EmbreeCaster(room), exact())
+    still = lidar.scan(np.eye(4), start=np.eye(4), period=0.1)
+    np.testing.assert_array_equal(still.points, lidar.scan(np.eye(4)).points)  # at rest, nothing moves
+    assert lidar.scan(np.eye(4)).times is None and still.times.dtype == np.float32
+    assert still.times.min() >= 0.0 and still.times.max() < 0.1
+    ring = still.beam == 7
+    # from behind (180 deg) through the left (90), the front (0) and the right (-90 deg: column 1350)
+    for column, share in ((900, 0.0), (450, 0.25), (0, 0.5), (1350, 0.75)):
+        assert still.times[ring & (still.column == column)][0] == pytest.approx(0.1 * share, abs=1e-6)
+
+
+@pytest.mark.parametrize("model", ["vlp16", "os0-128"])
+def test_a_swept_revolution_lies_on_the_walls_once_each_point_is_put_where_it_was_taken(model):
+    """Walking 0.1 m and turning 0.1 rad over the revolution: each point is in the sensor frame of
+    its own firing time, so the poses at the points' times put every one on the room's surfaces,
+    while the pose at the revolution's end puts some of them centimetres off."""
+    room = trimesh.creation.box(extents=(10.0, 6.0, 4.0))
+    lidar = Lidar(EmbreeCaster(room), exact(model))
+    start = pose_to_matrix([0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+    end = pose_to_matrix([0.1, 0.02, 0.0, 0.0, 0.02, 0.1])
+    swept = lidar.scan(end, start=start, period=0.1)
+    assert len(swept) > 20000
+    assert _off_the_box(_deskewed(swept, start, end, 0.1)).max() < 2e-3
+    at_end = swept.points.astype(np.float64) @ end[:3, :3].T + end[:3, 3]
+    assert _off_the_box(at_end).max() > 0.2  # a 0.1 rad turn moves a wall 5 m away by up to 0.5 m
+    with pytest.raises(ValueError, match="positive time"):
+        lidar.scan(end, start=start, period=0.0)

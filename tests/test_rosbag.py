@@ -282,6 +282,37 @@ def test_a_bag_recorder_refuses_to_overwrite_and_clears_a_killed_drive(tmp_path,
     assert all(m.orientation_covariance[0] == -1 for m in _messages(six, "/imu"))  # REP 145: none
 
 
+@pytest.mark.parametrize("model,field", [("vlp16", "time"), ("os0-128", "t")])
+def test_swept_scans_are_stamped_when_they_began_with_each_point_s_time(tmp_path, rng, model, field):
+    """As the drivers write them: the stamp at the revolution's start and each point's time since
+    then, Velodyne's `time` in float32 seconds, Ouster's `t` in uint32 nanoseconds."""
+    corridor = trimesh.creation.box([200, 4, 3]).apply_translation([0, 0, 0.5])
+    lidar = Lidar(EmbreeCaster(corridor, threads=1), LidarConfig(model=model))
+    truth = [planar_pose(0.1 * k, 0.0, 0.0, 0.05 * k) for k in range(3)]
+    scans = [lidar.scan(truth[0], rng)] + [lidar.scan(T, rng, start=before) for before, T in zip(truth, truth[1:])]
+    scans[0] = lidar.scan(truth[0], rng, start=truth[0])  # the revolution before the start, standing
+    bag = tmp_path / "swept.bag"
+    writer = BagRecorder(bag, imu=None)
+    for scan, T in zip(scans, truth):
+        writer(scan, {"T_w_b": T, "odom_T_w_b": T, "T_b_s": np.eye(4)})
+    writer.close()
+    clouds = _messages(bag, "/points")
+    stamps = [c.header.stamp.sec + 1e-9 * c.header.stamp.nanosec for c in clouds]
+    assert stamps == pytest.approx([0.9, 1.0, 1.1])  # each a step before its pose
+    assert [f.name for f in clouds[1].fields] == ["x", "y", "z", "ring", field] and clouds[1].point_step == 20
+    kind = "<f4" if field == "time" else "<u4"
+    times = clouds[2].data.view(np.dtype({"names": [field], "formats": [kind], "offsets": [16], "itemsize": 20}))
+    expected = scans[2].times if field == "time" else np.round(scans[2].times.astype(np.float64) * 1e9)
+    np.testing.assert_array_equal(times[field], expected)
+    assert 0 <= times[field].min() and times[field].max() <= (0.1 if field == "time" else 1e8)
+    np.testing.assert_array_equal(next(iter(read_bag(bag, topic="/points"))).points, scans[0].points)
+    at_rest = BagRecorder(tmp_path / "still.bag", imu=None)  # a revolution at one pose: no times, its own stamp
+    at_rest(lidar.scan(truth[0], rng), {"T_w_b": truth[0], "odom_T_w_b": truth[0], "T_b_s": np.eye(4)})
+    at_rest.close()
+    (still,) = _messages(tmp_path / "still.bag", "/points")
+    assert [f.name for f in still.fields] == ["x", "y", "z", "ring"] and still.header.stamp.sec == 1
+
+
 @pytest.mark.slow
 def test_record_cli_writes_a_drive_that_judge_reads_back(tmp_path, capsys):
     bag, rec = tmp_path / "walls.bag", tmp_path / "walls.npz"
@@ -300,5 +331,9 @@ def test_record_cli_writes_a_drive_that_judge_reads_back(tmp_path, capsys):
     imu = _messages(bag, "/imu")
     assert len(imu) == 20 * (len(recording.ground_truth) - 1) + 1  # 200 Hz between the first and last 10 Hz pose
     assert imu[0].orientation_covariance[0] > 0  # a nine-axis unit's orientation by default
+    with AnyReader([bag]) as reader:  # swept by default: stamped a revolution before the first pose
+        connection, _, raw = next(reader.messages([c for c in reader.connections if c.topic == "/points"]))
+        first = reader.deserialize(raw, connection.msgtype)
+    assert first.fields[-1].name == "time" and first.header.stamp.nanosec == pytest.approx(9e8, abs=1e3)
     vertical = np.array([m.linear_acceleration.z for m in imu])
     assert np.abs(vertical - 9.81).max() > 0.7 * ImuConfig().footfall_accel  # footfalls jolt it by default

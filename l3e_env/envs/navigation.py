@@ -95,7 +95,9 @@ class NavigationEnv(gym.Env):
         self.odom_T_w_b = self.robot.T_w_b.copy()
         self.steps = 0
         self.trail = [self.robot.T_w_b[:3, 3].copy()]
-        self._scan = self.lidar.scan(self.robot.T_w_s, self.np_random)
+        # swept: the revolution before the start, standing still
+        start = self.robot.T_w_s if self.config.lidar.sweep else None
+        self._scan = self.lidar.scan(self.robot.T_w_s, self.np_random, start=start, period=self.config.robot.dt)
         self._distance = self._goal_distance()
         if self.fusion is not None:
             self._fusion_info = self.fusion.reset(self.robot.T_w_b, self._scan.points)
@@ -112,7 +114,9 @@ class NavigationEnv(gym.Env):
         T_cur, blocked = self.robot.step(action * np.asarray(self.config.robot.max_twist))
         increment = self.odometry.measure(T_prev, T_cur)
         self.odom_T_w_b = self.odom_T_w_b @ increment
-        self._scan = self.lidar.scan(self.robot.T_w_s, self.np_random)
+        # a swept revolution turns with the step: from the pose before it to the pose after it
+        start = T_prev @ self.robot.T_b_s if self.config.lidar.sweep else None
+        self._scan = self.lidar.scan(self.robot.T_w_s, self.np_random, start=start, period=self.config.robot.dt)
         if self.fusion is not None:
             self._fusion_info = self.fusion.step(increment, self._scan.points, T_cur)
         self.steps += 1
