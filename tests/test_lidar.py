@@ -1,3 +1,5 @@
+import dataclasses
+
 import numpy as np
 import pytest
 import trimesh
@@ -131,11 +133,15 @@ def test_a_revolution_at_rest_fires_clockwise_from_behind():
         assert still.times[ring & (still.column == column)][0] == pytest.approx(0.1 * share, abs=1e-6)
 
 
-@pytest.mark.parametrize("model", ["vlp16", "os0-128"])
+@pytest.mark.parametrize("model", ["vlp16", "os0-128", "os-staggered"])
 def test_a_swept_revolution_lies_on_the_walls_once_each_point_is_put_where_it_was_taken(model):
     """Walking 0.1 m and turning 0.1 rad over the revolution: each point is in the sensor frame of
     its own firing time, so the poses at the points' times put every one on the room's surfaces,
-    while the pose at the revolution's end puts some of them centimetres off."""
+    while the pose at the revolution's end puts some of them centimetres off. `os-staggered`: an
+    OS0-128 whose beams fire 27 mm out from the axis, staggered in azimuth."""
+    if model == "os-staggered":
+        register_pattern(dataclasses.replace(get_pattern("os0-128"), name=model, beam_origin_offset=0.027,
+                                             azimuth_offsets_deg=tuple(np.tile([-4.2, -1.4, 1.4, 4.2], 32))))
     room = trimesh.creation.box(extents=(10.0, 6.0, 4.0))
     lidar = Lidar(EmbreeCaster(room), exact(model))
     start = pose_to_matrix([0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
