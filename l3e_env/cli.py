@@ -225,16 +225,34 @@ def _cmd_dataset_stats(args: argparse.Namespace) -> int:
 
 
 def _cmd_ate(args: argparse.Namespace) -> int:
-    from .experiment import format_table, run_experiment
+    from .experiment import format_seed_table, format_table, run_experiment, summarize_seeds
+    from .experiment_plots import plot_seeds
 
     # a recording holds its scene's route, axes and scale: a mesh given with it is where the mesh moved to
     params = {} if args.recording and not mesh_options_given(args) else scene_params(args)
     stem = "replay" if args.recording else Path(args.scene).stem  # a replay's scene is the recording's
     out = Path(args.out or f"l3e_out/ate-{stem}-{time.strftime('%Y%m%d-%H%M%S')}")
+    if args.seeds < 1 or (args.seeds > 1 and args.recording):
+        print("l3e ate: --seeds is 1 or more drives, and a recording is one drive", file=sys.stderr)
+        return 2
     print(f"writing the experiment into {out.resolve()}")
-    rows = run_experiment(out, args.scene, args.detector or ["none", "eigen:30", "eigen:110", "oracle"],
-                          sensor=args.sensor, seed=args.seed, recording=args.recording, progress=not args.quiet,
-                          backend=args.backend, scene_params=params, workers=args.workers)
+    detectors = args.detector or ["none", "eigen:30", "eigen:110", "oracle"]
+    if args.seeds > 1:
+        runs = {}
+        for seed in range(args.seed, args.seed + args.seeds):
+            print(f"drive {seed - args.seed + 1} of {args.seeds} (seed {seed})")
+            runs[seed] = run_experiment(out / f"seed-{seed}", args.scene, detectors, sensor=args.sensor, seed=seed,
+                                        progress=not args.quiet, backend=args.backend, scene_params=params,
+                                        workers=args.workers)
+            print(format_table(runs[seed]))
+        summary = summarize_seeds(runs)
+        (out / "seeds.json").write_text(json.dumps(summary, indent=1))
+        plot_seeds(out / "seeds.png", summary)
+        print(format_seed_table(summary))
+        print(f"written: {out / 'seeds.json'}, {out / 'seeds.png'}")
+        return 0
+    rows = run_experiment(out, args.scene, detectors, sensor=args.sensor, seed=args.seed, recording=args.recording,
+                          progress=not args.quiet, backend=args.backend, scene_params=params, workers=args.workers)
     print(format_table(rows))
     if json.loads((out / "results.json").read_text()).get("swept"):
         print("the recording's scans are swept over the robot's motion; they were registered as they are "
@@ -513,6 +531,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--backend", choices=["graph", "ekf"], default="graph", help="iSAM2 smoother or filterpy EKF")
     p.add_argument("--sensor", type=sensor_name, default="vlp16", help=SENSOR_HELP)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seeds", type=int, default=1,
+                   help="drive N times, seeds --seed ... --seed + N - 1, and summarise each detector's ATE over them")
     p.add_argument("--recording", help="evaluate a saved recording.npz instead of driving again")
     p.add_argument("--out", help="output folder (default: l3e_out/ate-<scene>-<time>)")
     p.add_argument("--workers", type=int, default=1,

@@ -348,6 +348,40 @@ def file_stem(detector_name: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", detector_name).strip("_")
 
 
+def summarize_seeds(runs: dict[int, list[dict]]) -> list[dict]:
+    """Per detector, over drives of several seeds: ATE and aligned ATE as mean, standard deviation
+    and range, and the ATE against odometry alone on the same drive, which cancels most of one
+    drive's luck (the odometry's noise decides much of the drift of every detector)."""
+    seeds = sorted(runs)
+    names = [r["detector"] for r in runs[seeds[0]]]
+    if any([r["detector"] for r in runs[k]] != names for k in seeds):
+        raise ValueError("every seed's drive must be fused with the same detectors")
+    summary = []
+    for i, name in enumerate(names):
+        ate = np.array([runs[k][i]["ate_m"] for k in seeds])
+        aligned = np.array([runs[k][i]["ate_aligned_m"] for k in seeds], dtype=float)
+        ratio = ate / np.array([runs[k][0]["ate_m"] for k in seeds])  # row 0: odometry only
+        summary.append({"detector": name, "seeds": seeds, "ate_m": ate.tolist(),
+                        "ate_mean_m": round(float(ate.mean()), 3), "ate_std_m": round(float(ate.std(ddof=1)), 3),
+                        "ate_min_m": float(ate.min()), "ate_max_m": float(ate.max()),
+                        "ate_aligned_mean_m": round(float(np.nanmean(aligned)), 3),
+                        "ate_over_odometry_mean": round(float(ratio.mean()), 3),
+                        "ate_over_odometry_std": round(float(ratio.std(ddof=1)), 3)})
+    return summary
+
+
+def format_seed_table(summary: list[dict]) -> str:
+    head = (f"{'detector':14s} {'ATE m mean':>10s} {'std':>6s} {'min':>7s} {'max':>7s} {'aligned':>8s}  "
+            f"{'ATE / odometry':>14s}")
+    lines = [f"over {len(summary[0]['seeds'])} drives (seeds {summary[0]['seeds'][0]}-{summary[0]['seeds'][-1]})",
+             head, "-" * len(head)]
+    for r in summary:
+        lines.append(f"{r['detector']:14s} {r['ate_mean_m']:10.3f} {r['ate_std_m']:6.3f} {r['ate_min_m']:7.3f} "
+                     f"{r['ate_max_m']:7.3f} {r['ate_aligned_mean_m']:8.3f}  "
+                     f"{r['ate_over_odometry_mean']:7.3f} +-{r['ate_over_odometry_std']:.3f}")
+    return "\n".join(lines)
+
+
 def format_table(rows: list[dict]) -> str:
     head = (f"{'detector':14s} {'ATE m':>7s} {'aligned':>8s} {'RPE m':>7s} {'RPE deg':>8s}  "
             f"flagged x/y/z/roll/pitch/yaw      {'s':>6s}")

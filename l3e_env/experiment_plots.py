@@ -58,3 +58,23 @@ def plot_map(stem: Path, rec, trajectory: np.ndarray, every: int = 10) -> None:
     fig.tight_layout()
     fig.savefig(str(stem) + ".png", dpi=110)
     plt.close(fig)
+
+
+def plot_seeds(path: Path, summary: list[dict]) -> None:
+    """Each detector's ATE on every drive, one line a drive: a detector that is better on every
+    drive is seen to be, whatever the spread between drives."""
+    fig, ax = plt.subplots(figsize=(1.6 + 1.1 * len(summary), 4.2))
+    names = [r["detector"] for r in summary]
+    ate = np.array([r["ate_m"] for r in summary])  # (detectors, seeds)
+    for k, seed in enumerate(summary[0]["seeds"]):
+        ax.plot(range(len(names)), ate[:, k], "o-", color=plt.cm.viridis(k / max(1, ate.shape[1] - 1)),
+                alpha=0.7, label=f"seed {seed}")
+    ax.set_xticks(range(len(names)), names, rotation=30, ha="right")
+    ax.set_ylabel("ATE (m)")
+    ax.set_yscale("log")
+    ax.set_title(f"ATE over {ate.shape[1]} drives")
+    ax.legend(fontsize=7, ncol=2)
+    ax.grid(True, which="both", alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)

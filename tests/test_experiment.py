@@ -6,7 +6,8 @@ import pytest
 from l3e_env.config import LidarConfig
 from l3e_env.detectors import EigenvalueDetector, NoDetector, make_detector
 from l3e_env.experiment import (
-    RecastScans, Recording, evaluate, file_stem, format_table, record_run, register_sequence, run_experiment,
+    RecastScans, Recording, evaluate, file_stem, format_seed_table, format_table, record_run, register_sequence,
+    run_experiment, summarize_seeds,
 )
 from l3e_env.labels import AXES
 from l3e_env.lidar import Lidar
@@ -175,3 +176,44 @@ def test_detector_names_become_flat_file_names():
     assert file_stem("eigen:110") == "eigen_110"
     assert file_stem("learned:runs/a b/model.pt") == "learned_runs_a_b_model.pt"
     assert "/" not in file_stem("learned:/abs/path/model.pt")
+
+
+def _row(name: str, ate: float) -> dict:
+    return {"detector": name, "ate_m": ate, "ate_aligned_m": ate / 2}
+
+
+def test_several_drives_summarised_per_detector_and_against_odometry_on_the_same_drive():
+    runs = {3: [_row("odometry only", 2.0), _row("learned", 1.0)],
+            4: [_row("odometry only", 4.0), _row("learned", 3.0)],
+            5: [_row("odometry only", 3.0), _row("learned", 1.5)]}
+    odometry, learned = summarize_seeds(runs)
+    assert learned["seeds"] == [3, 4, 5] and learned["ate_m"] == [1.0, 3.0, 1.5]
+    assert learned["ate_mean_m"] == pytest.approx(11 / 6, abs=1e-3)
+    assert learned["ate_std_m"] == pytest.approx(np.std([1.0, 3.0, 1.5], ddof=1), abs=1e-3)
+    assert (learned["ate_min_m"], learned["ate_max_m"]) == (1.0, 3.0)
+    assert learned["ate_over_odometry_mean"] == pytest.approx(np.mean([0.5, 0.75, 0.5]), abs=1e-3)
+    assert odometry["ate_over_odometry_mean"] == 1.0 and odometry["ate_over_odometry_std"] == 0.0
+    assert learned["ate_aligned_mean_m"] == pytest.approx(11 / 12, abs=1e-3)
+    assert "over 3 drives (seeds 3-5)" in format_seed_table([odometry, learned])
+    runs[5] = [_row("odometry only", 3.0), _row("eigen:30", 1.5)]
+    with pytest.raises(ValueError, match="same detectors"):
+        summarize_seeds(runs)
+
+
+@pytest.mark.slow
+def test_ate_over_several_seeds_drives_each_and_writes_the_summary(tmp_path, capsys):
+    from l3e_env.cli import main
+
+    out = tmp_path / "ate"
+    assert main(["ate", "--scene", "primitives-1", "--detector", "none", "--detector", "eigen:30", "--seed", "7",
+                 "--seeds", "2", "--quiet", "--out", str(out)]) == 0
+    summary = json.loads((out / "seeds.json").read_text())
+    assert [r["detector"] for r in summary] == ["odometry only", "none", "eigen:30"]
+    first = json.loads((out / "seed-7" / "results.json").read_text())["rows"]
+    second = json.loads((out / "seed-8" / "results.json").read_text())["rows"]
+    assert summary[2]["ate_m"] == [first[2]["ate_m"], second[2]["ate_m"]] and first[2]["ate_m"] != second[2]["ate_m"]
+    assert (out / "seeds.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert "over 2 drives (seeds 7-8)" in capsys.readouterr().out
+    assert main(["ate", "--recording", "r.npz", "--seeds", "2"]) == 2
+    assert "a recording is one drive" in capsys.readouterr().err
+
