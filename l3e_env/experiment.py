@@ -330,8 +330,7 @@ def run_experiment(out_dir: str | Path, scene: str, detectors: list[str], sensor
     rows = [r.row() for r in results]
     failed = sum(r is None or not r.converged for r in regs)
     summary = {"scene": rec.scene, "sensor": rec.sensor, "swept": rec.sweep, "backend": backend,
-               "steps": len(rec.odometry),
-               "icp_seconds": round(icp_seconds, 1),
+               "steps": len(rec.odometry), "icp_seconds": round(icp_seconds, 1),
                "icp_failed_or_not_converged": failed, "rows": rows}
     (out / "results.json").write_text(json.dumps(summary, indent=1))
     from .experiment_plots import plot_map, plot_timeline, plot_trajectories
@@ -356,6 +355,8 @@ def summarize_seeds(runs: dict[int, list[dict]]) -> list[dict]:
     names = [r["detector"] for r in runs[seeds[0]]]
     if any([r["detector"] for r in runs[k]] != names for k in seeds):
         raise ValueError("every seed's drive must be fused with the same detectors")
+    if names[0] != "odometry only":
+        raise ValueError("each drive's rows start with odometry only, as run_experiment returns them")
     summary = []
     for i, name in enumerate(names):
         ate = np.array([runs[k][i]["ate_m"] for k in seeds])

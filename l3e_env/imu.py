@@ -80,12 +80,11 @@ def imu_samples(stamps: np.ndarray, poses: list[np.ndarray], config: ImuConfig |
             + rng.normal(0.0, accel_sigma, accel.shape)
     attitude = None
     if config.orientation:
-        attitude = rotation(t)
+        body = rotation(t)
         if rng is not None:
-            attitude = (attitude * Rotation.from_rotvec(_gauss_markov(
-                len(t), 1.0 / config.rate, config.orientation_time, config.orientation_sigmas(), rng))).as_quat()
-        else:
-            attitude = attitude.as_quat()
+            body = body * Rotation.from_rotvec(_gauss_markov(len(t), 1.0 / config.rate, config.orientation_time,
+                                                             config.orientation_sigmas(), rng))
+        attitude = body.as_quat()
     if rng is not None and config.footfall_accel > 0:  # drawn last: the other draws stay as they were
         walking = (np.linalg.norm(position(t, 1)[:, :2], axis=1) > WALKING_SPEED) | (np.abs(gyro[:, 2]) > WALKING_TURN)
         jolt_gyro, jolt_accel = footfall_jolts(walking, config, rng)
@@ -120,12 +119,12 @@ def footfall_jolts(walking: np.ndarray, config: ImuConfig, rng: np.random.Genera
     alternate = np.where(np.arange(len(falls)) % 2 == 0, 1.0, -1.0)
     size = rng.uniform(0.7, 1.3, len(falls))[:, None]
     sign = rng.choice([-1.0, 1.0], (len(falls), 2))
-    ones = np.ones(len(falls))
+    ones, zeros = np.ones(len(falls)), np.zeros(len(falls))
     n = len(walking)
     jolt_gyro, jolt_accel = np.zeros((n, 3)), np.zeros((n, 3))
     jolt_accel[falls] = size * (config.footfall_accel / accel_peak) * np.stack([0.3 * sign[:, 0], 0.3 * alternate,
                                                                                 ones], 1)
-    jolt_gyro[falls] = size * (config.footfall_gyro / rate_peak) * np.stack([alternate, sign[:, 1], 0.0 * ones], 1)
+    jolt_gyro[falls] = size * (config.footfall_gyro / rate_peak) * np.stack([alternate, sign[:, 1], zeros], 1)
     for k in range(3):  # each footfall's impulse spread into its jolt
         jolt_accel[:, k] = np.convolve(jolt_accel[:, k], accel_kernel)[:n]
         jolt_gyro[:, k] = np.convolve(jolt_gyro[:, k], rate_kernel)[:n]
