@@ -310,7 +310,7 @@ class BagRecorder:
         began = stamp if scan.times is None else stamp - self.dt
         self._write("/points", began, _cloud_message(t, self._header(began, "lidar"), scan.points,
                                                      scan.beam.astype(np.uint16), scan.times,
-                                                     ouster=scan.pattern.name.lower().startswith("os")))
+                                                     ouster=scan.pattern.name.lower().startswith(("os", "ouster"))))
         odom = np.asarray(info["odom_T_w_b"], dtype=np.float64)
         increment = np.eye(4) if self.last_odom is None else inverse(self.last_odom) @ odom
         self.last_odom = odom
