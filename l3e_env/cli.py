@@ -255,8 +255,8 @@ def _cmd_ate(args: argparse.Namespace) -> int:
                           progress=not args.quiet, backend=args.backend, scene_params=params, workers=args.workers)
     print(format_table(rows))
     if json.loads((out / "results.json").read_text()).get("swept"):
-        print("the recording's scans are swept over the robot's motion; they were registered as they are "
-              "(the fusion does not deskew them)")
+        print("the recording's scans are swept over the robot's motion; each was deskewed with the leg "
+              "odometry's motion over its step before it was judged and registered")
     return 0
 
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 import json
 import re
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable
 
@@ -27,7 +27,7 @@ from .detectors import UNKNOWN, Detector, Prediction, ScanMCDetector, make_detec
 from .envs.navigation import NavigationEnv
 from .follower import RouteFollower
 from .labels import AXES
-from .lidar import Lidar, Scan
+from .lidar import Lidar, Scan, deskew
 from .odometry import odometry_sigmas
 from .raycast import EmbreeCaster
 from .registration import PreparedTarget, RegistrationConfig, RegistrationError, register
@@ -53,7 +53,7 @@ class Recording:
     # make_scene's keyword arguments (a mesh scene's up axis, scale and route), to rebuild the scene
     scene_params: dict = field(default_factory=dict)
     mesh_sha256: str = ""  # a mesh scene's file, to tell it from an edited or replaced one
-    sweep: bool = False  # scans swept over the robot's motion (LidarConfig.sweep), registered as they are
+    sweep: bool = False  # scans swept over the robot's motion (LidarConfig.sweep), deskewed before they are fused
 
     def save(self, path: str | Path) -> None:
         np.savez_compressed(
@@ -230,6 +230,16 @@ class DetectorResult:
                 "fallback_steps": self.fallback_steps, "detector_errors": self.detector_errors}
 
 
+def deskewed(rec: Recording) -> Recording:
+    """A swept recording's scans and samples put into the sensor frame at each revolution's end, by
+    the leg odometry's motion over the step (the first revolution was taken standing still)."""
+    if not rec.sweep:
+        return rec
+    motions = [np.eye(4)] + [inverse(rec.T_b_s) @ step @ rec.T_b_s for step in rec.odometry]
+    return replace(rec, scans=[deskew(s, m) for s, m in zip(rec.scans, motions)],
+                   samples=[deskew(s, m) for s, m in zip(rec.samples, motions)])
+
+
 def register_sequence(rec: Recording, config: RegistrationConfig, progress: bool = True) -> list:
     """Scan k registered to scan k-1 from identity; None where registration is impossible."""
     results, target = [], None
@@ -314,6 +324,7 @@ def run_experiment(out_dir: str | Path, scene: str, detectors: list[str], sensor
     if rec is None:
         rec = record_run(scene, sensor, seed, progress, scene_params, scene_object=scene_obj)
         rec.save(out / "recording.npz")
+    swept, rec = rec.sweep, deskewed(rec)
     t0 = time.perf_counter()
     regs = register_sequence(rec, RegistrationConfig(), progress)
     icp_seconds = time.perf_counter() - t0
@@ -329,7 +340,7 @@ def run_experiment(out_dir: str | Path, scene: str, detectors: list[str], sensor
     results = [odometry_only(rec)] + fused
     rows = [r.row() for r in results]
     failed = sum(r is None or not r.converged for r in regs)
-    summary = {"scene": rec.scene, "sensor": rec.sensor, "swept": rec.sweep, "backend": backend,
+    summary = {"scene": rec.scene, "sensor": rec.sensor, "swept": swept, "backend": backend,
                "steps": len(rec.odometry), "icp_seconds": round(icp_seconds, 1),
                "icp_failed_or_not_converged": failed, "rows": rows}
     (out / "results.json").write_text(json.dumps(summary, indent=1))

@@ -153,3 +153,19 @@ def test_a_swept_revolution_lies_on_the_walls_once_each_point_is_put_where_it_wa
     assert _off_the_box(at_end).max() > 0.2  # a 0.1 rad turn moves a point on a wall 4 m away by 0.4 m
     with pytest.raises(ValueError, match="positive time"):
         lidar.scan(end, start=start, period=0.0)
+
+
+def test_a_swept_revolution_deskewed_with_its_motion_lies_on_the_walls_seen_from_its_end():
+    """deskew puts every point into the sensor frame at the revolution's end, from its own
+    azimuth and the sensor's motion over the revolution, as LiDAR odometry does."""
+    from l3e_env.lidar import deskew, firing_share
+
+    room = trimesh.creation.box(extents=(10.0, 6.0, 4.0))
+    lidar = Lidar(EmbreeCaster(room), exact())
+    start, end = pose_to_matrix([0.0, 0.0, 0.0, 0.0, 0.0, 0.0]), pose_to_matrix([0.1, 0.02, 0.0, 0.0, 0.02, 0.1])
+    swept = lidar.scan(end, start=start, period=0.1)
+    np.testing.assert_allclose(firing_share(swept.points) * 0.1, swept.times, atol=1e-6)
+    straight = deskew(swept.points, np.linalg.inv(start) @ end)
+    assert straight.dtype == np.float32
+    assert _off_the_box(straight.astype(np.float64) @ end[:3, :3].T + end[:3, 3]).max() < 2e-3
+    np.testing.assert_allclose(deskew(swept.points, np.eye(4)), swept.points, atol=1e-6)  # at rest: as it was

@@ -11,7 +11,7 @@ from scenes import Scene, make_scene
 from scenes.geometry import polyline_length
 
 from ..config import EnvConfig, from_dict
-from ..lidar import Lidar, Scan
+from ..lidar import Lidar, Scan, deskew
 from ..odometry import LegOdometry
 from ..raycast import make_caster
 from ..render import TopDownRenderer
@@ -117,8 +117,10 @@ class NavigationEnv(gym.Env):
         # a swept revolution turns with the step: from the pose before it to the pose after it
         start = T_prev @ self.robot.T_b_s if self.config.lidar.sweep else None
         self._scan = self.lidar.scan(self.robot.T_w_s, self.np_random, start=start, period=self.config.robot.dt)
-        if self.fusion is not None:
-            self._fusion_info = self.fusion.step(increment, self._scan.points, T_cur)
+        if self.fusion is not None:  # deskewed with the odometry's motion, as LiDAR odometry does
+            points = self._scan.points if start is None else deskew(
+                self._scan.points, inverse(self.robot.T_b_s) @ increment @ self.robot.T_b_s)
+            self._fusion_info = self.fusion.step(increment, points, T_cur)
         self.steps += 1
         self.trail.append(T_cur[:3, 3].copy())
         distance = self._goal_distance()
