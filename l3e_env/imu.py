@@ -68,7 +68,7 @@ def imu_samples(stamps: np.ndarray, poses: list[np.ndarray], config: ImuConfig |
     position = CubicSpline(stamps, poses[:, :3, 3])
     rotation = RotationSpline(stamps, Rotation.from_matrix(poses[:, :3, :3]))
     t = np.arange(stamps[0], stamps[-1] + 0.5 / config.rate, 1.0 / config.rate)
-    t = t[t <= stamps[-1]]
+    t = t[t <= stamps[-1] + 1e-9]  # the last pose's own sample, whatever the rounding of the steps
     gyro = rotation(t, 1)  # scipy gives the rate in the rotating (body) frame
     accel = rotation(t).inv().apply(position(t, 2) + np.array([0.0, 0.0, GRAVITY]))
     if rng is not None:

@@ -233,7 +233,8 @@ class BagRecorder:
     - `/tf` odom to base_link each step, `/tf_static` base_link to lidar once;
     - `/imu` sensor_msgs/Imu in frame `base_link` at `imu.rate` (None: no IMU), read off splines
       through the true poses with `imu`'s noise and biases, seeded by `seed`, and the orientation
-      of a nine-axis unit in the world frame where `imu.orientation`; written on `close`.
+      of a nine-axis unit in the world frame where `imu.orientation`; written on `close`, from the
+      first scan's stamp on (a swept first revolution began a step before the first pose).
     The bag is written in a folder beside `path` and moved there when `close` is called, so a
     killed drive leaves no half bag under that name (the next one removes the folder). ROS 2
     (`ros2=True`) writes a sqlite3 bag folder."""
@@ -265,7 +266,7 @@ class BagRecorder:
         self.writer.open()
         self.steps = 0
         self.covariance, self.last_odom = DeadReckoningCovariance(odometry), None
-        self.imu, self.seed, self.truth = imu, seed, []
+        self.imu, self.seed, self.truth, self.swept = imu, seed, [], False
         self.topics = {}
         for topic, msgtype in (("/points", POINTCLOUD2), ("/odom", "nav_msgs/msg/Odometry"),
                                ("/ground_truth", "geometry_msgs/msg/PoseStamped"), ("/tf", "tf2_msgs/msg/TFMessage"),
@@ -308,6 +309,8 @@ class BagRecorder:
         # a swept revolution is stamped when it began, its points' times counted from there (as the
         # Velodyne and Ouster drivers write them, and as LIO-SAM and FAST-LIO read them)
         began = stamp if scan.times is None else stamp - self.dt
+        if self.steps == 0:
+            self.swept = scan.times is not None
         self._write("/points", began, _cloud_message(t, self._header(began, "lidar"), scan.points,
                                                      scan.beam.astype(np.uint16), scan.times,
                                                      ouster=scan.pattern.name.lower().startswith(("os", "ouster"))))
@@ -336,8 +339,11 @@ class BagRecorder:
         if self.imu is None or len(self.truth) < 2:
             return
         t = self.store.types
-        stamps = self.start + self.dt * np.arange(len(self.truth))
-        imu = imu_samples(stamps, self.truth, self.imu, np.random.default_rng(self.seed))
+        poses, first = self.truth, self.start
+        if self.swept:  # the first revolution began a step before the first pose, the robot standing
+            poses, first = [self.truth[0]] + self.truth, self.start - self.dt
+        stamps = first + self.dt * np.arange(len(poses))
+        imu = imu_samples(stamps, poses, self.imu, np.random.default_rng(self.seed))
         gyro_sigma, accel_sigma = self.imu.sigmas()
         if imu.orientation is None:
             quaternions, covariance = np.tile([0.0, 0.0, 0.0, 1.0], (len(imu.stamps), 1)), np.zeros(9)

@@ -292,13 +292,15 @@ def test_swept_scans_are_stamped_when_they_began_with_each_point_s_time(tmp_path
     scans = [lidar.scan(truth[0], rng)] + [lidar.scan(T, rng, start=before) for before, T in zip(truth, truth[1:])]
     scans[0] = lidar.scan(truth[0], rng, start=truth[0])  # the revolution before the start, standing
     bag = tmp_path / "swept.bag"
-    writer = BagRecorder(bag, imu=None)
+    writer = BagRecorder(bag, imu=ImuConfig(rate=100.0))
     for scan, T in zip(scans, truth):
         writer(scan, {"T_w_b": T, "odom_T_w_b": T, "T_b_s": np.eye(4)})
     writer.close()
     clouds = _messages(bag, "/points")
     stamps = [c.header.stamp.sec + 1e-9 * c.header.stamp.nanosec for c in clouds]
     assert stamps == pytest.approx([0.9, 1.0, 1.1])  # each a step before its pose
+    imu = [m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec for m in _messages(bag, "/imu")]
+    assert imu[0] == pytest.approx(0.9) and imu[-1] == pytest.approx(1.2) and len(imu) == 31  # from the first scan
     assert [f.name for f in clouds[1].fields] == ["x", "y", "z", "ring", field] and clouds[1].point_step == 20
     kind = "<f4" if field == "time" else "<u4"
     times = clouds[2].data.view(np.dtype({"names": [field], "formats": [kind], "offsets": [16], "itemsize": 20}))
@@ -329,7 +331,7 @@ def test_record_cli_writes_a_drive_that_judge_reads_back(tmp_path, capsys):
     assert main(["record", "--out", str(tmp_path / "other.bag"), "--imu-rate", "-1", "--quiet"]) == 2
     assert "--imu-rate must be 0 (no IMU) or more" in capsys.readouterr().err
     imu = _messages(bag, "/imu")
-    assert len(imu) == 20 * (len(recording.ground_truth) - 1) + 1  # 200 Hz between the first and last 10 Hz pose
+    assert len(imu) == 20 * len(recording.ground_truth) + 1  # 200 Hz from the first swept scan to the last pose
     assert imu[0].orientation_covariance[0] > 0  # a nine-axis unit's orientation by default
     with AnyReader([bag]) as reader:  # swept by default: stamped a revolution before the first pose
         connection, _, raw = next(reader.messages([c for c in reader.connections if c.topic == "/points"]))
