@@ -27,7 +27,7 @@ from .detectors import UNKNOWN, Detector, Prediction, ScanMCDetector, make_detec
 from .envs.navigation import NavigationEnv
 from .follower import RouteFollower
 from .labels import AXES
-from .lidar import Lidar, Scan, deskew
+from .lidar import Lidar, Scan, deskew, get_pattern
 from .odometry import odometry_sigmas
 from .raycast import EmbreeCaster
 from .registration import PreparedTarget, RegistrationConfig, RegistrationError, register
@@ -235,9 +235,10 @@ def deskewed(rec: Recording) -> Recording:
     the leg odometry's motion over the step (the first revolution was taken standing still)."""
     if not rec.sweep:
         return rec
+    pattern = get_pattern(rec.sensor)
     motions = [np.eye(4)] + [inverse(rec.T_b_s) @ step @ rec.T_b_s for step in rec.odometry]
-    return replace(rec, scans=[deskew(s, m) for s, m in zip(rec.scans, motions)],
-                   samples=[deskew(s, m) for s, m in zip(rec.samples, motions)])
+    return replace(rec, scans=[deskew(s, m, pattern) for s, m in zip(rec.scans, motions)],
+                   samples=[deskew(s, m, pattern) for s, m in zip(rec.samples, motions)])
 
 
 def register_sequence(rec: Recording, config: RegistrationConfig, progress: bool = True) -> list:

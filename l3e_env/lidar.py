@@ -57,7 +57,7 @@ class Lidar:
         idx = np.arange(len(self._dirs))
         beam, column = np.divmod(idx, self.pattern.n_azimuth)
         self._beam, self._column = beam.astype(np.int16), column.astype(np.int16)
-        self._firing = firing_share(self._dirs)
+        self._firing = self.pattern.firing_share(self._dirs)
 
     def scan(self, T_w_s: np.ndarray, rng: np.random.Generator | None = None, start: np.ndarray | None = None,
              period: float = 0.1) -> Scan:
@@ -107,22 +107,13 @@ class Lidar:
         return dirs_w, origins
 
 
-def firing_share(points: np.ndarray) -> np.ndarray:
-    """The share of a revolution at which a ray in each direction fires: clockwise seen from above,
-    as a Velodyne spins, from straight behind (azimuth 180 deg) through the left, the front and the
-    right. Read off a point's own azimuth, which off-axis beam origins move by a few tenths of a
-    degree at most, within a millisecond of the revolution."""
-    azimuth = np.arctan2(points[:, 1].astype(np.float64), points[:, 0].astype(np.float64))
-    return np.mod(np.pi - azimuth, 2.0 * np.pi) / (2.0 * np.pi)
-
-
-def deskew(points: np.ndarray, motion: np.ndarray) -> np.ndarray:
+def deskew(points: np.ndarray, motion: np.ndarray, pattern: BeamPattern) -> np.ndarray:
     """The points of a swept revolution, each in the sensor frame of its firing time, in the sensor
     frame at the revolution's end; `motion` is the sensor's motion over the revolution (its end pose
     in its start frame), taken as steady within it, as LiDAR odometry deskews with a motion
-    estimate. float32 (N, 3)."""
+    estimate; `pattern` says when each azimuth fires. float32 (N, 3)."""
     motion = np.asarray(motion, dtype=np.float64)
-    share = firing_share(points)
+    share = pattern.firing_share(points)
     turn = Rotation.from_matrix(motion[:3, :3]).as_rotvec()
     at_start = _turned(np.asarray(points, dtype=np.float64), turn, share) + share[:, None] * motion[:3, 3]
     return ((at_start - motion[:3, 3]) @ motion[:3, :3]).astype(np.float32)

@@ -29,6 +29,8 @@ class BeamPattern:
     image_width: int  # default width of the range image in observations
     azimuth_offsets_deg: tuple[float, ...] = ()  # per beam; empty: none
     beam_origin_offset: float = 0.0
+    clockwise: bool = True  # the spin seen from above (a Velodyne's); False: counter-clockwise
+    scan_start_deg: float = 180.0  # the azimuth at which a revolution begins (straight behind)
 
     @property
     def n_beams(self) -> int:
@@ -54,6 +56,13 @@ class BeamPattern:
         az = self._column_azimuths()
         ring = self.beam_origin_offset * np.stack([np.cos(az), np.sin(az), np.zeros_like(az)], axis=1)
         return np.tile(ring, (self.n_beams, 1)).astype(np.float32)
+
+    def firing_share(self, points: np.ndarray) -> np.ndarray:
+        """The share of a revolution at which a ray through each point fires, from the point's own
+        azimuth (off-axis beam origins move it by a few tenths of a degree at most)."""
+        azimuth = np.arctan2(points[:, 1].astype(np.float64), points[:, 0].astype(np.float64))
+        turned = (np.deg2rad(self.scan_start_deg) - azimuth) * (1.0 if self.clockwise else -1.0)
+        return np.mod(turned, 2.0 * np.pi) / (2.0 * np.pi)
 
     def spacing_deg(self) -> float:
         """The smallest angle between two beams."""
@@ -97,6 +106,8 @@ def check_pattern(pattern: BeamPattern) -> None:
         problem = "holds an angle that is not a finite number"
     elif pattern.azimuth_offsets_deg and len(pattern.azimuth_offsets_deg) != pattern.n_beams:
         problem = f"has {len(pattern.azimuth_offsets_deg)} azimuth offsets for {pattern.n_beams} beams"
+    elif not np.isfinite(pattern.scan_start_deg):
+        problem = f"has a scan start of {pattern.scan_start_deg} deg"
     elif pattern.image_width < 1 or pattern.n_azimuth % pattern.image_width:
         problem = f"has image_width {pattern.image_width}, which does not divide its {pattern.n_azimuth} columns"
     if problem:
@@ -163,13 +174,24 @@ def _own_pattern(name: str, spec: dict) -> BeamPattern:
     return BeamPattern(name, tuple(float(e) for e in elevations), columns, float(spec["max_range"]),
                        float(spec.get("min_range", 0.0)), int(spec.get("image_width", _image_width(columns))),
                        tuple(float(a) for a in spec.get("azimuth_offsets_deg", ())),
-                       float(spec.get("beam_origin_offset", 0.0)))
+                       float(spec.get("beam_origin_offset", 0.0)), _spin(spec.get("spin", "clockwise")),
+                       float(spec.get("scan_start_deg", 180.0)))
+
+
+def _spin(text: str) -> bool:
+    """True for 'clockwise', False for 'counterclockwise' (seen from above)."""
+    spins = {"clockwise": True, "counterclockwise": False}
+    if text not in spins:
+        raise PatternError(f"spin is 'clockwise' or 'counterclockwise' (seen from above), not {text!r}")
+    return spins[text]
 
 
 def load_pattern(path: str | Path) -> BeamPattern:
     """A beam pattern file, named by its path: this project's own keys (`elevations_deg` as a list or
     {from, to, beams}, `columns`, `max_range`, optional `min_range`, `azimuth_offsets_deg`,
-    `beam_origin_offset` in metres, `image_width`), or an Ouster sensor's metadata JSON."""
+    `beam_origin_offset` in metres, `image_width`, `spin` clockwise or counterclockwise seen from
+    above and `scan_start_deg`, where a revolution begins: they time a swept revolution), or an
+    Ouster sensor's metadata JSON."""
     path = Path(path)
     try:
         text = path.read_text()
@@ -361,6 +383,10 @@ def save_pattern(pattern: BeamPattern, path: str | Path) -> Path:
         spec["azimuth_offsets_deg"] = [round(float(a), 6) for a in pattern.azimuth_offsets_deg]
     if pattern.beam_origin_offset:
         spec["beam_origin_offset"] = round(float(pattern.beam_origin_offset), 6)
+    if not pattern.clockwise:
+        spec["spin"] = "counterclockwise"
+    if pattern.scan_start_deg != 180.0:
+        spec["scan_start_deg"] = float(pattern.scan_start_deg)
     path.parent.mkdir(parents=True, exist_ok=True)
     if path.suffix.lower() == ".json":
         path.write_text(json.dumps(spec, indent=1) + "\n")

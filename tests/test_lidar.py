@@ -155,17 +155,26 @@ def test_a_swept_revolution_lies_on_the_walls_once_each_point_is_put_where_it_wa
         lidar.scan(end, start=start, period=0.0)
 
 
-def test_a_swept_revolution_deskewed_with_its_motion_lies_on_the_walls_seen_from_its_end():
+@pytest.mark.parametrize("clockwise,start_deg", [(True, 180.0), (False, 90.0)])
+def test_a_swept_revolution_deskewed_with_its_motion_lies_on_the_walls_seen_from_its_end(clockwise, start_deg):
     """deskew puts every point into the sensor frame at the revolution's end, from its own
-    azimuth and the sensor's motion over the revolution, as LiDAR odometry does."""
-    from l3e_env.lidar import deskew, firing_share
+    azimuth and the sensor's motion over the revolution, as LiDAR odometry does; the pattern says
+    which way the sensor spins and where a revolution begins."""
+    from l3e_env.lidar import deskew
 
+    pattern = dataclasses.replace(get_pattern("vlp16"), name=f"vlp16-{clockwise}-{start_deg}", clockwise=clockwise,
+                                  scan_start_deg=start_deg)
+    register_pattern(pattern)
     room = trimesh.creation.box(extents=(10.0, 6.0, 4.0))
-    lidar = Lidar(EmbreeCaster(room), exact())
+    lidar = Lidar(EmbreeCaster(room), exact(pattern.name))
     start, end = pose_to_matrix([0.0, 0.0, 0.0, 0.0, 0.0, 0.0]), pose_to_matrix([0.1, 0.02, 0.0, 0.0, 0.02, 0.1])
     swept = lidar.scan(end, start=start, period=0.1)
-    np.testing.assert_allclose(firing_share(swept.points) * 0.1, swept.times, atol=1e-6)
-    straight = deskew(swept.points, np.linalg.inv(start) @ end)
+    np.testing.assert_allclose(pattern.firing_share(swept.points) * 0.1, swept.times, atol=1e-6)
+    ring = swept.beam == 7  # column 450 looks left (90 deg), column 0 ahead
+    left, ahead = (swept.times[ring & (swept.column == c)][0] for c in (450, 0))
+    assert (left, ahead) == ((pytest.approx(0.025), pytest.approx(0.05)) if clockwise else
+                             (pytest.approx(0.0, abs=1e-6), pytest.approx(0.075)))
+    straight = deskew(swept.points, np.linalg.inv(start) @ end, pattern)
     assert straight.dtype == np.float32
     assert _off_the_box(straight.astype(np.float64) @ end[:3, :3].T + end[:3, 3]).max() < 2e-3
-    np.testing.assert_allclose(deskew(swept.points, np.eye(4)), swept.points, atol=1e-6)  # at rest: as it was
+    np.testing.assert_allclose(deskew(swept.points, np.eye(4), pattern), swept.points, atol=1e-6)  # at rest

@@ -1,5 +1,6 @@
 """Beam patterns: Ouster-style offsets simulated and read back, pattern files, and the sensor
 recognised from a scan's own points, as `l3e judge` does for scans of another LiDAR."""
+import dataclasses
 import json
 import re
 
@@ -164,6 +165,8 @@ def test_pattern_files_in_the_projects_own_keys_and_as_ouster_metadata(tmp_path)
     ("elevations_deg: [0, 1]\ncolumns: 10\nmax_range: 5\nazimuth_offsets_deg: [1]\n", "1 azimuth offsets for 2 beams"),
     ("elevations_deg: [0, 1]\ncolumns: 10\nmax_range: 5\nimage_width: 3\n", "does not divide its 10 columns"),
     ("elevations_deg: [0, 1]\ncolumns: 10\nmax_range: 0\n", "max_range > min_range"),
+    ("elevations_deg: [0, 1]\ncolumns: 10\nmax_range: 5\nspin: sideways\n", "spin is 'clockwise' or"),
+    ("elevations_deg: [0, 1]\ncolumns: 10\nmax_range: 5\nscan_start_deg: .nan\n", "scan start of nan deg"),
     ("- 1\n- 2\n", "mapping of keys, not list"),
     ("elevations_deg: [0, 1\n", "not a readable YAML file"),
 ])
@@ -247,6 +250,10 @@ def test_a_recognised_sensor_is_saved_as_a_pattern_file_and_read_back(tmp_path, 
         assert back.azimuth_offsets_deg == OUSTER_LIKE.azimuth_offsets_deg
         assert (back.n_azimuth, back.image_width, back.beam_origin_offset, back.max_range, back.min_range) == (
             512, 256, 0.027, 60.0, 0.3)
+        assert back.clockwise and back.scan_start_deg == 180.0  # a Velodyne's spin, from behind
+        spun = dataclasses.replace(OUSTER_LIKE, clockwise=False, scan_start_deg=90.0)
+        again = load_pattern(save_pattern(spun, tmp_path / f"spun.{suffix}"))
+        assert not again.clockwise and again.scan_start_deg == 90.0
     assert main(["sensor", str(tmp_path / "ouster.yaml")]) == 0
     printed = capsys.readouterr().out
     assert "staggered in azimuth by -4.20 to 4.20 deg" in printed and "27.0 mm out from the axis" in printed

@@ -119,7 +119,7 @@ class NavigationEnv(gym.Env):
         self._scan = self.lidar.scan(self.robot.T_w_s, self.np_random, start=start, period=self.config.robot.dt)
         if self.fusion is not None:  # deskewed with the odometry's motion, as LiDAR odometry does
             points = self._scan.points if start is None else deskew(
-                self._scan.points, inverse(self.robot.T_b_s) @ increment @ self.robot.T_b_s)
+                self._scan.points, inverse(self.robot.T_b_s) @ increment @ self.robot.T_b_s, self.lidar.pattern)
             self._fusion_info = self.fusion.step(increment, points, T_cur)
         self.steps += 1
         self.trail.append(T_cur[:3, 3].copy())
