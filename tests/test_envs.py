@@ -150,3 +150,23 @@ def test_a_swept_lidar_turns_each_revolution_with_the_step():
     assert np.median(moved[early]) > 0.05 and np.median(moved[swept.times[i] > 0.098]) < 0.01
     assert not np.array_equal(before, env.robot.T_w_s)
     assert gym.make("l3e/Tunnel-v0").unwrapped.lidar.scan(np.eye(4)).times is None
+
+
+def test_fusion_in_the_loop_deskews_a_swept_lidar_with_the_odometry():
+    env = NavigationEnv(dict(scene="tunnel", lidar=dict(sweep=True), fusion=dict(enabled=True, detector="eigen:110")))
+    _, info = env.reset(seed=0)
+    follow, fused = RouteFollower(env.route), []
+    step = env.fusion.step
+
+    def spy(increment, points, T):
+        fused.append(points)
+        return step(increment, points, T)
+
+    env.fusion.step = spy
+    for _ in range(30):
+        _, _, _, _, info = env.step(follow(info["T_w_b"]))
+    raw = env.scan.points
+    assert len(fused) == 30 and fused[-1].shape == raw.shape and not np.array_equal(fused[-1], raw)
+    assert 0.0 < np.abs(fused[-1] - raw).max() < 0.2  # a step's motion taken out, no more
+    assert 0 < info["running_ate"] < 0.5 and info["fusion_counts"]["detector_errors"] == 0
+    env.close()
