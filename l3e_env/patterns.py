@@ -31,6 +31,7 @@ class BeamPattern:
     beam_origin_offset: float = 0.0
     clockwise: bool = True  # the spin seen from above (a Velodyne's); False: counter-clockwise
     scan_start_deg: float = 180.0  # the azimuth at which a revolution begins (straight behind)
+    time_field: str = "time"  # each point's time in a bag, as the sensor's driver names it (TIME_FIELDS)
 
     @property
     def n_beams(self) -> int:
@@ -86,11 +87,17 @@ class BeamPattern:
         return beam, column, np.abs(elevation - beams[beam])
 
 
+# The per-point time field of a sensor's ROS driver, as LIO-SAM and FAST-LIO read it: Velodyne's
+# `time` (float32 seconds since the revolution began) or Ouster's `t` (uint32 nanoseconds).
+TIME_FIELDS = {"time": "float32 seconds", "t": "uint32 nanoseconds"}
+
 PATTERNS: dict[str, BeamPattern] = {
     # Velodyne VLP-16: 16 beams over +-15 deg, 0.2 deg azimuth at 10 Hz, 100 m.
     "vlp16": BeamPattern("vlp16", tuple(np.linspace(-15, 15, 16)), 1800, 100.0, 0.5, 360),
     # Ouster OS0-128: 128 beams over +-45 deg, 1024 columns at 10 Hz, 50 m (datasheet, 80 % targets).
-    "os0-128": BeamPattern("os0-128", tuple(np.linspace(-45, 45, 128)), 1024, 50.0, 0.3, 256),
+    # Its encoder angle runs 2 pi (1 - count / 90112) from the connector at the back (Ouster's
+    # software manual), so it spins clockwise seen from above from straight behind, as a Velodyne.
+    "os0-128": BeamPattern("os0-128", tuple(np.linspace(-45, 45, 128)), 1024, 50.0, 0.3, 256, time_field="t"),
 }
 PATTERN_FILES = (".yaml", ".yml", ".json")
 BEAM_TOLERANCE = 0.25  # a return lies on a beam within this share of the beams' spacing
@@ -108,6 +115,8 @@ def check_pattern(pattern: BeamPattern) -> None:
         problem = f"has {len(pattern.azimuth_offsets_deg)} azimuth offsets for {pattern.n_beams} beams"
     elif not np.isfinite(pattern.scan_start_deg):
         problem = f"has a scan start of {pattern.scan_start_deg} deg"
+    elif pattern.time_field not in TIME_FIELDS:
+        problem = f"has time_field {pattern.time_field!r}; it is one of {sorted(TIME_FIELDS)}"
     elif pattern.image_width < 1 or pattern.n_azimuth % pattern.image_width:
         problem = f"has image_width {pattern.image_width}, which does not divide its {pattern.n_azimuth} columns"
     if problem:
@@ -163,7 +172,7 @@ def _ouster_pattern(name: str, meta: dict) -> BeamPattern:
     # Ouster counts azimuth clockwise from the encoder angle: a beam's offset is the negative
     origin_mm = float(_find(meta, "lidar_origin_to_beam_origin_mm") or 0.0)
     return BeamPattern(name, tuple(float(a) for a in altitudes), int(columns), far, near, _image_width(int(columns)),
-                       tuple(-float(a) for a in azimuths), origin_mm / 1e3)
+                       tuple(-float(a) for a in azimuths), origin_mm / 1e3, time_field="t")
 
 
 def _own_pattern(name: str, spec: dict) -> BeamPattern:
@@ -175,7 +184,7 @@ def _own_pattern(name: str, spec: dict) -> BeamPattern:
                        float(spec.get("min_range", 0.0)), int(spec.get("image_width", _image_width(columns))),
                        tuple(float(a) for a in spec.get("azimuth_offsets_deg", ())),
                        float(spec.get("beam_origin_offset", 0.0)), _spin(spec.get("spin", "clockwise")),
-                       float(spec.get("scan_start_deg", 180.0)))
+                       float(spec.get("scan_start_deg", 180.0)), str(spec.get("time_field", "time")))
 
 
 def _spin(text: str) -> bool:
@@ -190,8 +199,9 @@ def load_pattern(path: str | Path) -> BeamPattern:
     """A beam pattern file, named by its path: this project's own keys (`elevations_deg` as a list or
     {from, to, beams}, `columns`, `max_range`, optional `min_range`, `azimuth_offsets_deg`,
     `beam_origin_offset` in metres, `image_width`, `spin` clockwise or counterclockwise seen from
-    above and `scan_start_deg`, where a revolution begins: they time a swept revolution), or an
-    Ouster sensor's metadata JSON."""
+    above and `scan_start_deg`, where a revolution begins: they time a swept revolution;
+    `time_field`, the per-point time a recorded bag carries: `time` as Velodyne's driver writes it,
+    `t` as Ouster's), or an Ouster sensor's metadata JSON."""
     path = Path(path)
     try:
         text = path.read_text()
@@ -387,6 +397,8 @@ def save_pattern(pattern: BeamPattern, path: str | Path) -> Path:
         spec["spin"] = "counterclockwise"
     if pattern.scan_start_deg != 180.0:
         spec["scan_start_deg"] = float(pattern.scan_start_deg)
+    if pattern.time_field != "time":
+        spec["time_field"] = pattern.time_field
     path.parent.mkdir(parents=True, exist_ok=True)
     if path.suffix.lower() == ".json":
         path.write_text(json.dumps(spec, indent=1) + "\n")

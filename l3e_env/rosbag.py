@@ -313,7 +313,7 @@ class BagRecorder:
             self.swept = scan.times is not None
         self._write("/points", began, _cloud_message(t, self._header(began, "lidar"), scan.points,
                                                      scan.beam.astype(np.uint16), scan.times,
-                                                     ouster=scan.pattern.name.lower().startswith(("os", "ouster"))))
+                                                     scan.pattern.time_field))
         odom = np.asarray(info["odom_T_w_b"], dtype=np.float64)
         increment = np.eye(4) if self.last_odom is None else inverse(self.last_odom) @ odom
         self.last_odom = odom
@@ -382,15 +382,16 @@ def _quaternion(T: np.ndarray) -> tuple[float, float, float, float]:
 
 
 def _cloud_message(types, header, points: np.ndarray, ring: np.ndarray, times: np.ndarray | None = None,
-                   ouster: bool = False):
+                   time_field: str = "time"):
     """x, y, z float32 and ring uint16 in 16-byte points, as a VLP-16 driver lays them out; with
-    `times`, each point's time since the stamp as the drivers write it: Velodyne's `time` (float32
-    seconds) in 20-byte points, or where `ouster`, Ouster's `t` (uint32 nanoseconds)."""
+    `times`, each point's time since the stamp in 20-byte points, as the sensor's driver writes it
+    (`time_field`): Velodyne's `time` (float32 seconds) or Ouster's `t` (uint32 nanoseconds)."""
+    nanoseconds = time_field == "t"
     names, formats = ["x", "y", "z", "ring"], ["<f4", "<f4", "<f4", "<u2"]
     offsets, datatypes = [0, 4, 8, 12], [7, 7, 7, 4]  # FLOAT32 and UINT16 (UINT32 is 6)
     if times is not None:
-        names, formats = names + ["t" if ouster else "time"], formats + ["<u4" if ouster else "<f4"]
-        offsets, datatypes = offsets + [16], datatypes + [6 if ouster else 7]
+        names, formats = names + [time_field], formats + ["<u4" if nanoseconds else "<f4"]
+        offsets, datatypes = offsets + [16], datatypes + [6 if nanoseconds else 7]
     step = 16 if times is None else 20
     table = np.zeros(len(points), dtype=np.dtype({"names": names, "formats": formats, "offsets": offsets,
                                                   "itemsize": step}))
@@ -398,7 +399,7 @@ def _cloud_message(types, header, points: np.ndarray, ring: np.ndarray, times: n
         table[a] = points[:, i]
     table["ring"] = ring
     if times is not None:
-        table[names[-1]] = np.round(times.astype(np.float64) * 1e9) if ouster else times
+        table[time_field] = np.round(times.astype(np.float64) * 1e9) if nanoseconds else times
     field = types["sensor_msgs/msg/PointField"]
     return types[POINTCLOUD2](
         header=header, height=1, width=len(points), is_bigendian=False, is_dense=True, point_step=step,

@@ -156,6 +156,7 @@ def test_pattern_files_in_the_projects_own_keys_and_as_ouster_metadata(tmp_path)
         assert PATTERNS[str(path)] is os1 and os1.n_beams == 64 and os1.n_azimuth == 2048
         assert os1.max_range == 120.0 and os1.beam_origin_offset == pytest.approx(0.015806)
         assert os1.azimuth_offsets_deg[:2] == (-3.1, -0.9)  # Ouster's azimuths turn the other way
+        assert os1.time_field == "t" and os1.clockwise  # a bag carries Ouster's own per-point time
         del PATTERNS[str(path)]
 
 
@@ -167,6 +168,7 @@ def test_pattern_files_in_the_projects_own_keys_and_as_ouster_metadata(tmp_path)
     ("elevations_deg: [0, 1]\ncolumns: 10\nmax_range: 0\n", "max_range > min_range"),
     ("elevations_deg: [0, 1]\ncolumns: 10\nmax_range: 5\nspin: sideways\n", "spin is 'clockwise' or"),
     ("elevations_deg: [0, 1]\ncolumns: 10\nmax_range: 5\nscan_start_deg: .nan\n", "scan start of nan deg"),
+    ("elevations_deg: [0, 1]\ncolumns: 10\nmax_range: 5\ntime_field: stamp\n", "time_field 'stamp'; it is one of"),
     ("- 1\n- 2\n", "mapping of keys, not list"),
     ("elevations_deg: [0, 1\n", "not a readable YAML file"),
 ])
@@ -251,9 +253,10 @@ def test_a_recognised_sensor_is_saved_as_a_pattern_file_and_read_back(tmp_path, 
         assert (back.n_azimuth, back.image_width, back.beam_origin_offset, back.max_range, back.min_range) == (
             512, 256, 0.027, 60.0, 0.3)
         assert back.clockwise and back.scan_start_deg == 180.0  # a Velodyne's spin, from behind
-        spun = dataclasses.replace(OUSTER_LIKE, clockwise=False, scan_start_deg=90.0)
+        assert back.time_field == "time"
+        spun = dataclasses.replace(OUSTER_LIKE, clockwise=False, scan_start_deg=90.0, time_field="t")
         again = load_pattern(save_pattern(spun, tmp_path / f"spun.{suffix}"))
-        assert not again.clockwise and again.scan_start_deg == 90.0
+        assert not again.clockwise and again.scan_start_deg == 90.0 and again.time_field == "t"
     assert main(["sensor", str(tmp_path / "ouster.yaml")]) == 0
     printed = capsys.readouterr().out
     assert "staggered in azimuth by -4.20 to 4.20 deg" in printed and "27.0 mm out from the axis" in printed

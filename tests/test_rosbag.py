@@ -1,4 +1,5 @@
 """`l3e judge --bag`: LiDAR scans read from ROS 1 and ROS 2 bags, judged as the same scans in files."""
+import dataclasses
 import json
 
 import numpy as np
@@ -16,6 +17,7 @@ from l3e_env.judge import judge_scans
 from l3e_env.imu import ImuConfig
 from l3e_env.judge_plots import flag_matrix
 from l3e_env.lidar import Lidar
+from l3e_env.patterns import PATTERNS
 from l3e_env.raycast import EmbreeCaster
 from l3e_env.rosbag import BagError, BagRecorder, cloud_points, cloud_rings, read_bag, read_path
 from l3e_env.transforms import planar_pose
@@ -282,10 +284,13 @@ def test_a_bag_recorder_refuses_to_overwrite_and_clears_a_killed_drive(tmp_path,
     assert all(m.orientation_covariance[0] == -1 for m in _messages(six, "/imu"))  # REP 145: none
 
 
-@pytest.mark.parametrize("model,field", [("vlp16", "time"), ("os0-128", "t")])
-def test_swept_scans_are_stamped_when_they_began_with_each_point_s_time(tmp_path, rng, model, field):
+@pytest.mark.parametrize("model,field", [("vlp16", "time"), ("os0-128", "t"), ("sensor-in-ns", "t")])
+def test_swept_scans_are_stamped_when_they_began_with_each_point_s_time(tmp_path, rng, monkeypatch, model, field):
     """As the drivers write them: the stamp at the revolution's start and each point's time since
-    then, Velodyne's `time` in float32 seconds, Ouster's `t` in uint32 nanoseconds."""
+    then, Velodyne's `time` in float32 seconds, Ouster's `t` in uint32 nanoseconds, as the
+    pattern's `time_field` says whatever its name."""
+    if model not in PATTERNS:
+        monkeypatch.setitem(PATTERNS, model, dataclasses.replace(PATTERNS["vlp16"], name=model, time_field=field))
     corridor = trimesh.creation.box([200, 4, 3]).apply_translation([0, 0, 0.5])
     lidar = Lidar(EmbreeCaster(corridor, threads=1), LidarConfig(model=model))
     truth = [planar_pose(0.1 * k, 0.0, 0.0, 0.05 * k) for k in range(3)]
