@@ -227,6 +227,7 @@ def _cmd_dataset_stats(args: argparse.Namespace) -> int:
 def _cmd_ate(args: argparse.Namespace) -> int:
     from .experiment import format_seed_table, format_table, run_experiment, summarize_seeds
     from .experiment_plots import plot_seeds
+    from .lidar import DESKEW_STEPS
 
     # a recording holds its scene's route, axes and scale: a mesh given with it is where the mesh moved to
     params = {} if args.recording and not mesh_options_given(args) else scene_params(args)
@@ -256,7 +257,7 @@ def _cmd_ate(args: argparse.Namespace) -> int:
     print(format_table(rows))
     if json.loads((out / "results.json").read_text()).get("swept"):
         print("the recording's scans are swept over the robot's motion; each was deskewed with the leg "
-              "odometry's motion over its step before it was judged and registered")
+              f"odometry's mean motion over its last {DESKEW_STEPS} steps before it was judged and registered")
     return 0
 
 

@@ -27,7 +27,7 @@ from .detectors import UNKNOWN, Detector, Prediction, ScanMCDetector, make_detec
 from .envs.navigation import NavigationEnv
 from .follower import RouteFollower
 from .labels import AXES
-from .lidar import Lidar, Scan, deskew, get_pattern
+from .lidar import Lidar, Scan, deskew, deskew_motion, get_pattern
 from .odometry import odometry_sigmas
 from .raycast import EmbreeCaster
 from .registration import PreparedTarget, RegistrationConfig, RegistrationError, register
@@ -232,11 +232,13 @@ class DetectorResult:
 
 def deskewed(rec: Recording) -> Recording:
     """A swept recording's scans and samples put into the sensor frame at each revolution's end, by
-    the leg odometry's motion over the step (the first revolution was taken standing still)."""
+    the leg odometry's motion over the last steps (`deskew_motion`; the first revolution was taken
+    standing still)."""
     if not rec.sweep:
         return rec
     pattern = get_pattern(rec.sensor)
-    motions = [np.eye(4)] + [inverse(rec.T_b_s) @ step @ rec.T_b_s for step in rec.odometry]
+    steps = [inverse(rec.T_b_s) @ step @ rec.T_b_s for step in rec.odometry]
+    motions = [np.eye(4)] + [deskew_motion(steps[: k + 1]) for k in range(len(steps))]
     return replace(rec, scans=[deskew(s, m, pattern) for s, m in zip(rec.scans, motions)],
                    samples=[deskew(s, m, pattern) for s, m in zip(rec.samples, motions)])
 

@@ -119,6 +119,24 @@ def deskew(points: np.ndarray, motion: np.ndarray, pattern: BeamPattern) -> np.n
     return ((at_start - motion[:3, 3]) @ motion[:3, :3]).astype(np.float32)
 
 
+DESKEW_STEPS = 2  # odometry steps averaged into the motion a revolution is deskewed with
+
+
+def deskew_motion(steps: list[np.ndarray]) -> np.ndarray:
+    """The sensor's motion to deskew a revolution with, from the odometry's last steps (sensor
+    frame, oldest first): the mean of the last DESKEW_STEPS, rotations averaged on SO(3). One
+    step's leg odometry carries its white noise whole, which doubled ICP's yaw error on a steady
+    walk; two steps halve the noise's variance and still follow a weaving walk's turns
+    (`benchmarks/deskew_step_error.py`)."""
+    recent = [np.asarray(m, dtype=np.float64) for m in steps[-DESKEW_STEPS:]]
+    if not recent:
+        return np.eye(4)
+    mean = np.eye(4)
+    mean[:3, :3] = Rotation.from_matrix(np.array([m[:3, :3] for m in recent])).mean().as_matrix()
+    mean[:3, 3] = np.mean([m[:3, 3] for m in recent], axis=0)
+    return mean
+
+
 def _turned(vectors: np.ndarray, turn: np.ndarray, share: np.ndarray) -> np.ndarray:
     """Each vector rotated by its `share` of the rotation vector `turn` (Rodrigues' formula: about
     6x faster than building a scipy Rotation per ray)."""

@@ -232,7 +232,10 @@ def test_a_swept_recording_is_deskewed_by_its_odometry_before_it_is_fused():
     room = trimesh.creation.box(extents=(10.0, 6.0, 4.0))
     lidar = Lidar(EmbreeCaster(room), LidarConfig(range_noise_std=0.0))
     T_b_s = pose_to_matrix([0.2, 0.0, 0.3, 0.0, 0.0, 0.0])
-    truth = [pose_to_matrix([0.1 * k, 0.02 * k, -0.5, 0.0, 0.0, 0.1 * k]) for k in range(4)]
+    step = pose_to_matrix([0.1, 0.02, 0.0, 0.0, 0.0, 0.1])  # steady: the mean of two steps is the step
+    truth = [pose_to_matrix([0.0, 0.0, -0.5, 0.0, 0.0, 0.0])]
+    for _ in range(3):
+        truth.append(truth[-1] @ step)
     scans = [lidar.scan(truth[0] @ T_b_s, start=truth[0] @ T_b_s).points]
     scans += [lidar.scan(T @ T_b_s, start=before @ T_b_s).points for before, T in zip(truth, truth[1:])]
     odometry = np.array([np.linalg.inv(a) @ b for a, b in zip(truth, truth[1:])])

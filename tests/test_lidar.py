@@ -178,3 +178,17 @@ def test_a_swept_revolution_deskewed_with_its_motion_lies_on_the_walls_seen_from
     assert straight.dtype == np.float32
     assert _off_the_box(straight.astype(np.float64) @ end[:3, :3].T + end[:3, 3]).max() < 2e-3
     np.testing.assert_allclose(deskew(swept.points, np.eye(4), pattern), swept.points, atol=1e-6)  # at rest
+
+
+def test_the_deskewing_motion_is_the_mean_of_the_odometry_s_last_steps():
+    """Rotations averaged on SO(3), translations arithmetically, over the last DESKEW_STEPS only."""
+    from l3e_env.lidar import DESKEW_STEPS, deskew_motion
+    from l3e_env.transforms import matrix_to_pose, pose_to_matrix
+
+    assert DESKEW_STEPS == 2
+    np.testing.assert_array_equal(deskew_motion([]), np.eye(4))
+    steps = [pose_to_matrix([5.0, 0, 0, 0, 0, 1.0]), pose_to_matrix([0.10, 0.02, 0, 0, 0, 0.1]),
+             pose_to_matrix([0.14, 0.0, 0.01, 0, 0.02, 0.3])]
+    mean = matrix_to_pose(deskew_motion(steps))  # the first step is too old to count
+    np.testing.assert_allclose(mean, [0.12, 0.01, 0.005, 0.0, 0.01, 0.2], atol=1e-3)
+    np.testing.assert_allclose(deskew_motion(steps[1:2]), steps[1], atol=1e-12)

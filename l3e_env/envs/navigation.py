@@ -11,7 +11,7 @@ from scenes import Scene, make_scene
 from scenes.geometry import polyline_length
 
 from ..config import EnvConfig, from_dict
-from ..lidar import Lidar, Scan, deskew
+from ..lidar import DESKEW_STEPS, Lidar, Scan, deskew, deskew_motion
 from ..odometry import LegOdometry
 from ..raycast import make_caster
 from ..render import TopDownRenderer
@@ -93,6 +93,7 @@ class NavigationEnv(gym.Env):
         self.robot.reset(x, y, yaw, z_ground=float(self.route[0, 2]))
         self.odometry.reset(self.np_random)
         self.odom_T_w_b = self.robot.T_w_b.copy()
+        self._sensor_steps: list[np.ndarray] = []  # the odometry's last steps in the sensor frame, to deskew with
         self.steps = 0
         self.trail = [self.robot.T_w_b[:3, 3].copy()]
         # swept: the revolution before the start, standing still
@@ -117,9 +118,11 @@ class NavigationEnv(gym.Env):
         # a swept revolution turns with the step: from the pose before it to the pose after it
         start = T_prev @ self.robot.T_b_s if self.config.lidar.sweep else None
         self._scan = self.lidar.scan(self.robot.T_w_s, self.np_random, start=start, period=self.config.robot.dt)
+        self._sensor_steps = (self._sensor_steps + [inverse(self.robot.T_b_s) @ increment @ self.robot.T_b_s])[
+            -DESKEW_STEPS:]
         if self.fusion is not None:  # deskewed with the odometry's motion, as LiDAR odometry does
             points = self._scan.points if start is None else deskew(
-                self._scan.points, inverse(self.robot.T_b_s) @ increment @ self.robot.T_b_s, self.lidar.pattern)
+                self._scan.points, deskew_motion(self._sensor_steps), self.lidar.pattern)
             self._fusion_info = self.fusion.step(increment, points, T_cur)
         self.steps += 1
         self.trail.append(T_cur[:3, 3].copy())
