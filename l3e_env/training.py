@@ -71,6 +71,11 @@ class TrainConfig:
     # so a scan whose error sits just at the threshold is taught 0.5 instead of a hard 0 or 1
     # (at k = 4, twice the threshold gives 0.94 and half of it 0.06)
     soft_labels: float = 0.0
+    # 0: every training scan weighs alike. eta > 0: group DRO (Sagawa et al., ICLR 2020) over the
+    # training scene families: each family's weight grows as exp(eta * its loss) step by step and
+    # the loss is the families' weighted mean, so the network cannot buy a low mean loss with
+    # cues that serve the common families and fail a rarer one, as they fail the unseen test ones
+    group_dro: float = 0.0
 
 
 class TrainingError(RuntimeError):
@@ -94,6 +99,37 @@ def training_targets(data: LabelDataset | DatasetUnion, softness: float) -> np.n
         return data.labels.astype(np.float32)
     ratio = np.maximum(error_ratios(data), 1e-9)
     return (1.0 / (1.0 + ratio ** -softness)).astype(np.float32)  # = sigmoid(k ln ratio)
+
+
+def scene_families(data: LabelDataset | DatasetUnion, rows: np.ndarray) -> tuple[np.ndarray, list[str]]:
+    """Each row's scene family (the scene's name without its seed: tunnel-3 is a tunnel; a mesh
+    scene is a family of its own) as an index, and the families' names."""
+    names = data.manifest["scenes"]
+    family = [n.rsplit("-", 1)[0] if n.rsplit("-", 1)[-1].isdigit() else n for n in names]
+    families = sorted(set(family[i] for i in np.unique(np.asarray(data.arrays["scene"])[rows])))
+    index = np.array([families.index(family[i]) for i in np.asarray(data.arrays["scene"])[rows]], dtype=np.int64)
+    return index, families
+
+
+class GroupWeights:
+    """Group DRO's weights over the training families: a step raises each family in the batch by
+    exp(eta * its mean loss), and the batch's loss is the families' mean under those weights."""
+
+    def __init__(self, families: list[str], eta: float, weights: list[float] | None = None):
+        self.families, self.eta = families, eta
+        self.q = torch.tensor(weights if weights is not None else [1.0 / len(families)] * len(families),
+                              dtype=torch.float64)
+
+    def loss(self, per_scan: torch.Tensor, group: torch.Tensor) -> torch.Tensor:
+        present = torch.unique(group)
+        means = torch.stack([per_scan[group == g].mean() for g in present])
+        self.q[present] *= torch.exp(self.eta * means.detach().double())
+        self.q /= self.q.sum()
+        weights = self.q[present].float()
+        return (weights * means).sum() / weights.sum()
+
+    def state(self) -> dict[str, float]:
+        return {f: float(w) for f, w in zip(self.families, self.q)}
 
 
 def balanced_pool(labels: np.ndarray, max_upsampling: float) -> np.ndarray:
@@ -186,6 +222,7 @@ def check_train_config(cfg: TrainConfig) -> None:
         ("samples_per_epoch", cfg.samples_per_epoch, cfg.samples_per_epoch >= 0, "0 (the whole pool) or more"),
         ("threads", cfg.threads, cfg.threads >= 1, "at least 1"),
         ("optimizer", cfg.optimizer, cfg.optimizer in ("sgd", "adamw"), "sgd or adamw"),
+        ("group_dro", cfg.group_dro, cfg.group_dro >= 0, "0 (off) or more"),
     ] if not ok]
     if problems:
         raise TrainingError("; ".join(problems))
@@ -267,6 +304,12 @@ def train(dataset: str | Path | list[str | Path], out_dir: str | Path, cfg: Trai
 
     pool = balanced_pool(labels[train_rows], cfg.max_upsampling) if cfg.balance else np.arange(len(train_rows))
     loss_fn = torch.nn.BCEWithLogitsLoss()
+    family, families = scene_families(data, train_rows)
+    row_family = dict(zip(train_rows.tolist(), family.tolist()))
+    groups = None
+    if cfg.group_dro > 0:
+        saved = state.get("group_weights") if state is not None else None
+        groups = GroupWeights(families, cfg.group_dro, list(saved.values()) if saved else None)
     for epoch in range(first_epoch, cfg.epochs):
         t0 = time.perf_counter()
         rng = np.random.default_rng([cfg.seed, epoch])
@@ -289,7 +332,13 @@ def train(dataset: str | Path | list[str | Path], out_dir: str | Path, cfg: Trai
                 targets.append(lab)
                 ups.append(up)
             up_batch = torch.tensor(np.array(ups), dtype=torch.float32) if up_all is not None else None
-            loss = loss_fn(model(batch, up_batch), torch.tensor(np.array(targets), dtype=torch.float32))
+            logits, truth = model(batch, up_batch), torch.tensor(np.array(targets), dtype=torch.float32)
+            if groups is None:
+                loss = loss_fn(logits, truth)
+            else:
+                per_scan = torch.nn.functional.binary_cross_entropy_with_logits(logits, truth, reduction="none").mean(1)
+                member = torch.tensor([row_family[int(i)] for i in order[start:start + cfg.batch_size]])
+                loss = groups.loss(per_scan, member)
             optimizer.zero_grad()
             loss.backward()
             optimizer.step()
@@ -298,6 +347,8 @@ def train(dataset: str | Path | list[str | Path], out_dir: str | Path, cfg: Trai
         scheduler.step()
         record = {"epoch": epoch + 1, "train_loss": float(np.mean(losses)), "lr": scheduler.get_last_lr()[0],
                   "seconds": round(time.perf_counter() - t0, 1)}
+        if groups is not None:
+            record["family_weights"] = {f: round(w, 4) for f, w in groups.state().items()}
         if len(val_rows):
             probs = predict_dataset(model, data, val_rows, seed=cfg.seed)
             y = labels[val_rows]
@@ -316,7 +367,8 @@ def train(dataset: str | Path | list[str | Path], out_dir: str | Path, cfg: Trai
             best = {"f1": record.get("val_f1", float("nan")), "epoch": epoch + 1}
             save_checkpoint(out / "best.pt", model, thresholds, meta, {"epoch": epoch, "scores": record})
         save_checkpoint(last, model, thresholds, meta, {
-            "epoch": epoch, "best": best, "optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict()})
+            "epoch": epoch, "best": best, "optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(),
+            "group_weights": groups.state() if groups is not None else None})
         if progress:
             val = f", val loss {record['val_loss']:.3f}, F1 {record['val_f1']:.3f}" if "val_f1" in record else ""
             print(f"epoch {epoch + 1}/{cfg.epochs}: train loss {record['train_loss']:.3f}{val} ({record['seconds']} s)")

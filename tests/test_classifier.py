@@ -344,18 +344,23 @@ def test_settings_no_run_can_use_are_refused_before_the_folder(tiny_dataset, tmp
     assert not (tmp_path / "run").exists()
 
 
-def test_a_killed_run_resumes_to_the_same_model(tiny_dataset, tmp_path):
-    whole = train(tiny_dataset, tmp_path / "whole", _train_cfg(), progress=False)
-    cfg = _train_cfg()
+@pytest.mark.parametrize("group_dro", [0.0, 0.5])
+def test_a_killed_run_resumes_to_the_same_model(tiny_dataset, tmp_path, group_dro):
+    whole = train(tiny_dataset, tmp_path / "whole", _train_cfg(group_dro=group_dro), progress=False)
+    cfg = _train_cfg(group_dro=group_dro)
     cfg.epochs = 1
     train(tiny_dataset, tmp_path / "cut", cfg, progress=False)
     cfg.epochs = 2  # the 'kill' came after epoch 1; the same command with the full epoch count resumes
     with pytest.raises(TrainingError, match=r"other settings \(seed 0, now 3\)"):
-        train(tiny_dataset, tmp_path / "cut", _train_cfg(seed=3), progress=False)
-    resumed = train(tiny_dataset, tmp_path / "cut", _train_cfg(), progress=False)
+        train(tiny_dataset, tmp_path / "cut", _train_cfg(seed=3, group_dro=group_dro), progress=False)
+    resumed = train(tiny_dataset, tmp_path / "cut", _train_cfg(group_dro=group_dro), progress=False)
     assert {k: v for k, v in resumed.items() if k != "seconds"} == {k: v for k, v in whole.items() if k != "seconds"}
     log = [json.loads(line) for line in (tmp_path / "cut" / "log.jsonl").read_text().splitlines()]
     assert [r["epoch"] for r in log] == [1, 2]
+    if group_dro:  # the families' weights go on from where the killed run left them
+        weights = [json.loads(line)["family_weights"] for line in (tmp_path / "whole" / "log.jsonl").open()]
+        assert [r["family_weights"] for r in log] == weights and set(weights[0]) == {"field", "tunnel"}
+        assert sum(weights[-1].values()) == pytest.approx(1.0, abs=1e-3) and weights[0] != weights[1]
     a = torch.load(tmp_path / "whole" / "last.pt", weights_only=True)["state_dict"]
     b = torch.load(tmp_path / "cut" / "last.pt", weights_only=True)["state_dict"]
     assert all(torch.equal(a[k], b[k]) for k in a)
@@ -490,3 +495,24 @@ def test_soft_targets_follow_the_error_to_threshold_ratio(tiny_dataset, tmp_path
     assert Classifier.load(tmp_path / "soft" / "model.pt").meta["training"]["soft_labels"] == 4.0
     # a run folder written before soft targets existed resumes as a hard-label run
     assert _resumable({"seed": 0}) == _resumable({"seed": 0, "soft_labels": 0.0}) != _resumable({"soft_labels": 4.0})
+
+
+def test_group_dro_weighs_the_family_with_the_higher_loss_up():
+    from l3e_env.training import GroupWeights, scene_families
+
+    class Rows:  # a dataset's scene table, as scene_families reads it
+        manifest = {"scenes": ["tunnel-0", "tunnel-3", "office-1", "/meshes/my-mine.obj"]}
+        arrays = {"scene": np.array([0, 1, 2, 3, 0, 2])}
+
+    index, families = scene_families(Rows(), np.array([0, 1, 2, 3, 4]))
+    assert families == ["/meshes/my-mine.obj", "office", "tunnel"] and index.tolist() == [2, 2, 1, 0, 2]
+    groups = GroupWeights(["office", "tunnel"], eta=1.0)
+    per_scan = torch.tensor([1.0, 1.0, 0.1, 0.1], requires_grad=True)
+    loss = groups.loss(per_scan, torch.tensor([0, 0, 1, 1]))
+    q = groups.state()
+    assert q["office"] > q["tunnel"] and sum(q.values()) == pytest.approx(1.0)
+    assert loss.item() > 0.55  # above the plain mean: the harder family counts more
+    loss.backward()
+    assert per_scan.grad[0] > per_scan.grad[2] > 0
+    groups.loss(torch.tensor([0.5, 0.5]), torch.tensor([1, 1]))  # a family alone in a batch: only its weight moves
+    assert groups.state()["tunnel"] > q["tunnel"]
