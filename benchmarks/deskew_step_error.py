@@ -14,8 +14,9 @@ compared with the true step:
 - deskewed with the true motion (the best any deskewing can do).
 
 Swept scans register to the motion between the middles of the two revolutions, so on a steady
-path their error is small and, while the motion changes, large but telescoping: the middles are
-half a revolution behind the ends at every step alike, and the sum of the steps barely moves.
+path their error is small and, while the motion changes, large but cancelling from step to step:
+the middles are half a revolution behind the ends at every step alike, so the summed yaw is off
+by about the half revolution's turn at the path's ends, not by the sum of the steps' errors.
 
 Run: python benchmarks/deskew_step_error.py [--steps 300]
 """
@@ -71,7 +72,7 @@ def main() -> None:
         static = [lidar.scan(T, rng).points for T in poses]
         swept = [lidar.scan(poses[0], rng, start=poses[0]).points]  # the first revolution standing
         swept += [lidar.scan(after, rng, start=before).points for before, after in zip(poses, poses[1:])]
-        averaged = [deskew_motion(odo[: k + 1]) for k in range(len(odo))]
+        averaged = [deskew_motion(odo[max(0, k + 1 - DESKEW_STEPS): k + 1]) for k in range(len(odo))]
         cases = {"static": static, "swept, as they are": swept}
         for name, motions in (("deskewed, the step's odometry", odo),
                               (f"deskewed, odometry of {DESKEW_STEPS} steps", averaged),

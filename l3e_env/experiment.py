@@ -27,7 +27,7 @@ from .detectors import UNKNOWN, Detector, Prediction, ScanMCDetector, make_detec
 from .envs.navigation import NavigationEnv
 from .follower import RouteFollower
 from .labels import AXES
-from .lidar import Lidar, Scan, deskew, deskew_motion, get_pattern
+from .lidar import DESKEW_STEPS, Lidar, Scan, deskew, deskew_motion, get_pattern
 from .odometry import odometry_sigmas
 from .raycast import EmbreeCaster
 from .registration import PreparedTarget, RegistrationConfig, RegistrationError, register
@@ -238,7 +238,7 @@ def deskewed(rec: Recording) -> Recording:
         return rec
     pattern = get_pattern(rec.sensor)
     steps = [inverse(rec.T_b_s) @ step @ rec.T_b_s for step in rec.odometry]
-    motions = [np.eye(4)] + [deskew_motion(steps[: k + 1]) for k in range(len(steps))]
+    motions = [np.eye(4)] + [deskew_motion(steps[max(0, k + 1 - DESKEW_STEPS): k + 1]) for k in range(len(steps))]
     return replace(rec, scans=[deskew(s, m, pattern) for s, m in zip(rec.scans, motions)],
                    samples=[deskew(s, m, pattern) for s, m in zip(rec.samples, motions)])
 

@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from scenes import TRAIN_SCENES, VALIDATION_SCENES, canonical_scene_name
+from scenes import TRAIN_SCENES, VALIDATION_SCENES, canonical_scene_name, scene_family
 
 from .classifier import (
     SWAP_LABELS,
@@ -102,13 +102,12 @@ def training_targets(data: LabelDataset | DatasetUnion, softness: float) -> np.n
 
 
 def scene_families(data: LabelDataset | DatasetUnion, rows: np.ndarray) -> tuple[np.ndarray, list[str]]:
-    """Each row's scene family (the scene's name without its seed: tunnel-3 is a tunnel; a mesh
-    scene is a family of its own) as an index, and the families' names."""
+    """Each row's scene family (`scene_family`: tunnel-3 is a tunnel) as an index, and the
+    families' names."""
     names = data.manifest["scenes"]
-    family = [n.rsplit("-", 1)[0] if n.rsplit("-", 1)[-1].isdigit() else n for n in names]
-    families = sorted(set(family[i] for i in np.unique(np.asarray(data.arrays["scene"])[rows])))
-    index = np.array([families.index(family[i]) for i in np.asarray(data.arrays["scene"])[rows]], dtype=np.int64)
-    return index, families
+    of_row = [scene_family(names[i]) for i in np.asarray(data.arrays["scene"])[rows]]
+    families = sorted(set(of_row))
+    return np.array([families.index(f) for f in of_row], dtype=np.int64), families
 
 
 class GroupWeights:
