@@ -377,6 +377,9 @@ def describe_pattern(pattern: BeamPattern) -> str:
         lines.append("  " + _offset_words(pattern.azimuth_offsets_deg))
     if pattern.beam_origin_offset:
         lines.append(f"  beams leave {1e3 * pattern.beam_origin_offset:.1f} mm out from the axis")
+    lines.append(f"  spins {'clockwise' if pattern.clockwise else 'counterclockwise'} seen from above from "
+                 f"{pattern.scan_start_deg:g} deg; a recorded bag's point time: {pattern.time_field} "
+                 f"({TIME_FIELDS[pattern.time_field]})")
     return "\n".join(lines)
 
 

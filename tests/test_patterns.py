@@ -260,6 +260,7 @@ def test_a_recognised_sensor_is_saved_as_a_pattern_file_and_read_back(tmp_path, 
     assert main(["sensor", str(tmp_path / "ouster.yaml")]) == 0
     printed = capsys.readouterr().out
     assert "staggered in azimuth by -4.20 to 4.20 deg" in printed and "27.0 mm out from the axis" in printed
+    assert "spins clockwise seen from above from 180 deg; a recorded bag's point time: time (float32" in printed
     with pytest.raises(PatternError, match="ends in"):
         save_pattern(OUSTER_LIKE, tmp_path / "ouster.txt")
     assert main(["sensor"]) == 2 and "one of them" in capsys.readouterr().err
