@@ -87,9 +87,10 @@ class BeamPattern:
         return beam, column, np.abs(elevation - beams[beam])
 
 
-# The per-point time field of a sensor's ROS driver, as LIO-SAM and FAST-LIO read it: Velodyne's
-# `time` (float32 seconds since the revolution began) or Ouster's `t` (uint32 nanoseconds).
-TIME_FIELDS = {"time": "float32 seconds", "t": "uint32 nanoseconds"}
+# The per-point time field of a sensor's ROS driver, as LIO-SAM and FAST-LIO read it, since the
+# revolution began: its words, numpy format and units a second. Velodyne's `time` is float32
+# seconds, Ouster's `t` uint32 nanoseconds.
+TIME_FIELDS = {"time": ("float32 seconds", "<f4", 1.0), "t": ("uint32 nanoseconds", "<u4", 1e9)}
 
 PATTERNS: dict[str, BeamPattern] = {
     # Velodyne VLP-16: 16 beams over +-15 deg, 0.2 deg azimuth at 10 Hz, 100 m.
@@ -379,7 +380,7 @@ def describe_pattern(pattern: BeamPattern) -> str:
         lines.append(f"  beams leave {1e3 * pattern.beam_origin_offset:.1f} mm out from the axis")
     lines.append(f"  spins {'clockwise' if pattern.clockwise else 'counterclockwise'} seen from above from "
                  f"{pattern.scan_start_deg:g} deg; a recorded bag's point time: {pattern.time_field} "
-                 f"({TIME_FIELDS[pattern.time_field]})")
+                 f"({TIME_FIELDS[pattern.time_field][0]})")
     return "\n".join(lines)
 
 

@@ -17,11 +17,13 @@ import numpy as np
 from .config import OdometryConfig
 from .imu import ImuConfig, imu_samples
 from .odometry import DeadReckoningCovariance
+from .patterns import TIME_FIELDS
 from .transforms import inverse, matrix_to_pose
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 # sensor_msgs/PointField datatypes
 _DATATYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
+_FIELD_TYPES = {f"<{kind}": code for code, kind in _DATATYPES.items()}  # the other way, for writing
 
 
 class BagError(ValueError):
@@ -385,13 +387,11 @@ def _cloud_message(types, header, points: np.ndarray, ring: np.ndarray, times: n
                    time_field: str = "time"):
     """x, y, z float32 and ring uint16 in 16-byte points, as a VLP-16 driver lays them out; with
     `times`, each point's time since the stamp in 20-byte points, as the sensor's driver writes it
-    (`time_field`): Velodyne's `time` (float32 seconds) or Ouster's `t` (uint32 nanoseconds)."""
-    nanoseconds = time_field == "t"
-    names, formats = ["x", "y", "z", "ring"], ["<f4", "<f4", "<f4", "<u2"]
-    offsets, datatypes = [0, 4, 8, 12], [7, 7, 7, 4]  # FLOAT32 and UINT16 (UINT32 is 6)
+    (`time_field`, one of patterns.TIME_FIELDS: Velodyne's `time`, Ouster's `t`)."""
+    names, formats, offsets = ["x", "y", "z", "ring"], ["<f4", "<f4", "<f4", "<u2"], [0, 4, 8, 12]
     if times is not None:
-        names, formats = names + [time_field], formats + ["<u4" if nanoseconds else "<f4"]
-        offsets, datatypes = offsets + [16], datatypes + [6 if nanoseconds else 7]
+        _, time_format, per_second = TIME_FIELDS[time_field]
+        names, formats, offsets = names + [time_field], formats + [time_format], offsets + [16]
     step = 16 if times is None else 20
     table = np.zeros(len(points), dtype=np.dtype({"names": names, "formats": formats, "offsets": offsets,
                                                   "itemsize": step}))
@@ -399,9 +399,9 @@ def _cloud_message(types, header, points: np.ndarray, ring: np.ndarray, times: n
         table[a] = points[:, i]
     table["ring"] = ring
     if times is not None:
-        table[time_field] = np.round(times.astype(np.float64) * 1e9) if nanoseconds else times
+        table[time_field] = np.round(times.astype(np.float64) * per_second) if per_second != 1.0 else times
     field = types["sensor_msgs/msg/PointField"]
     return types[POINTCLOUD2](
         header=header, height=1, width=len(points), is_bigendian=False, is_dense=True, point_step=step,
         row_step=step * len(points), data=table.view(np.uint8).copy(),
-        fields=[field(name=n, offset=o, datatype=d, count=1) for n, o, d in zip(names, offsets, datatypes)])
+        fields=[field(name=n, offset=o, datatype=_FIELD_TYPES[f], count=1) for n, o, f in zip(names, offsets, formats)])

@@ -303,10 +303,10 @@ def train(dataset: str | Path | list[str | Path], out_dir: str | Path, cfg: Trai
 
     pool = balanced_pool(labels[train_rows], cfg.max_upsampling) if cfg.balance else np.arange(len(train_rows))
     loss_fn = torch.nn.BCEWithLogitsLoss()
-    family, families = scene_families(data, train_rows)
-    row_family = dict(zip(train_rows.tolist(), family.tolist()))
-    groups = None
+    groups, row_family = None, {}
     if cfg.group_dro > 0:
+        family, families = scene_families(data, train_rows)
+        row_family = dict(zip(train_rows.tolist(), family.tolist()))
         saved = state.get("group_weights") if state is not None else None
         groups = GroupWeights(families, cfg.group_dro, list(saved.values()) if saved else None)
     for epoch in range(first_epoch, cfg.epochs):

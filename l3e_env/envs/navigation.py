@@ -118,11 +118,12 @@ class NavigationEnv(gym.Env):
         # a swept revolution turns with the step: from the pose before it to the pose after it
         start = T_prev @ self.robot.T_b_s if self.config.lidar.sweep else None
         self._scan = self.lidar.scan(self.robot.T_w_s, self.np_random, start=start, period=self.config.robot.dt)
-        self._sensor_steps = (self._sensor_steps + [inverse(self.robot.T_b_s) @ increment @ self.robot.T_b_s])[
-            -DESKEW_STEPS:]
-        if self.fusion is not None:  # deskewed with the odometry's motion, as LiDAR odometry does
-            points = self._scan.points if start is None else deskew(
-                self._scan.points, deskew_motion(self._sensor_steps), self.lidar.pattern)
+        if self.fusion is not None:
+            points = self._scan.points
+            if start is not None:  # deskewed with the odometry's motion, as LiDAR odometry does
+                step_s = inverse(self.robot.T_b_s) @ increment @ self.robot.T_b_s
+                self._sensor_steps = (self._sensor_steps + [step_s])[-DESKEW_STEPS:]
+                points = deskew(points, deskew_motion(self._sensor_steps), self.lidar.pattern)
             self._fusion_info = self.fusion.step(increment, points, T_cur)
         self.steps += 1
         self.trail.append(T_cur[:3, 3].copy())
