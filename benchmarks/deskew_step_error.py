@@ -9,8 +9,9 @@ compared with the true step:
 - static: each revolution taken at one pose (the labels' and datasets' scans);
 - swept, as they are: each ray cast from the pose at its firing time, not deskewed;
 - deskewed with the step's leg odometry;
-- deskewed with the odometry averaged over the last steps (`lidar.deskew_motion`, what `l3e ate`
-  and the environment's fusion do);
+- deskewed with the odometry averaged over the last steps (`lidar.deskew_motion`);
+- deskewed with the gyro's rotation over the step and that averaged odometry's translation (what
+  `l3e ate` and the environment's fusion do by default, as LiDAR-inertial odometry does);
 - deskewed with the true motion (the best any deskewing can do).
 
 Swept scans register to the motion between the middles of the two revolutions, so on a steady
@@ -27,6 +28,7 @@ import time
 
 import numpy as np
 
+from l3e_env.imu import StepGyro
 from l3e_env.lidar import DESKEW_STEPS, Lidar, deskew, deskew_motion
 from l3e_env.odometry import LegOdometry
 from l3e_env.raycast import make_caster
@@ -73,9 +75,13 @@ def main() -> None:
         swept = [lidar.scan(poses[0], rng, start=poses[0]).points]  # the first revolution standing
         swept += [lidar.scan(after, rng, start=before).points for before, after in zip(poses, poses[1:])]
         averaged = [deskew_motion(odo[max(0, k + 1 - DESKEW_STEPS): k + 1]) for k in range(len(odo))]
+        gyro = StepGyro(rng=np.random.default_rng(2))  # the sensor's own rotation: no mounting to turn it by
+        inertial = [deskew_motion(odo[max(0, k + 1 - DESKEW_STEPS): k + 1], gyro.measure(a[:3, :3], b[:3, :3], DT))
+                    for k, (a, b) in enumerate(zip(poses, poses[1:]))]
         cases = {"static": static, "swept, as they are": swept}
         for name, motions in (("deskewed, the step's odometry", odo),
                               (f"deskewed, odometry of {DESKEW_STEPS} steps", averaged),
+                              ("deskewed, gyro and odometry", inertial),
                               ("deskewed, the true motion", truth)):
             cases[name] = swept[:1] + [deskew(s, m, lidar.pattern) for s, m in zip(swept[1:], motions)]
         print(f"\n{'weaving' if weaving else 'steady'} path, {args.steps} steps: mean |ICP step - true step|")

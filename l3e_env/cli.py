@@ -253,11 +253,14 @@ def _cmd_ate(args: argparse.Namespace) -> int:
         print(f"written: {out / 'seeds.json'}, {out / 'seeds.png'}")
         return 0
     rows = run_experiment(out, args.scene, detectors, sensor=args.sensor, seed=args.seed, recording=args.recording,
-                          progress=not args.quiet, backend=args.backend, scene_params=params, workers=args.workers)
+                          progress=not args.quiet, backend=args.backend, scene_params=params, workers=args.workers,
+                          deskew=args.deskew)
     print(format_table(rows))
     if json.loads((out / "results.json").read_text()).get("swept"):
+        turn = "the gyro's rotation over it" if args.deskew == "gyro" else "the odometry's rotation"
         print("the recording's scans are swept over the robot's motion; each was deskewed with the leg "
-              f"odometry's mean motion over its last {DESKEW_STEPS} steps before it was judged and registered")
+              f"odometry's mean motion over its last {DESKEW_STEPS} steps, with {turn}, before it was judged "
+              "and registered")
     return 0
 
 
@@ -536,6 +539,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seeds", type=int, default=1,
                    help="drive N times, seeds --seed ... --seed + N - 1, and summarise each detector's ATE over them")
     p.add_argument("--recording", help="evaluate a saved recording.npz instead of driving again")
+    p.add_argument("--deskew", choices=["gyro", "odometry"], default="gyro",
+                   help="a swept recording's scans are deskewed with the leg odometry's motion, turned by the "
+                        "gyro's rotation (default) or the odometry's own")
     p.add_argument("--out", help="output folder (default: l3e_out/ate-<scene>-<time>)")
     p.add_argument("--workers", type=int, default=1,
                    help="processes that judge the route with scanmc before the fusion (default 1)")

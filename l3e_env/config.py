@@ -65,12 +65,14 @@ class OdometryConfig:
 class LoopFusionConfig:
     """Fusion inside the environment loop (off by default: it costs ICP and a detector per step).
     detector: none | eigen:<tau> | oracle[:M] | scanmc[:M] | learned[:checkpoint]; backend: graph | ekf;
-    mode: mask | full | drop (see fusion.FusionConfig)."""
+    mode: mask | full | drop (see fusion.FusionConfig); deskew: gyro | odometry, where a swept
+    revolution's deskewing takes its rotation from (its translation is the leg odometry's)."""
 
     enabled: bool = False
     detector: str = "learned"
     backend: str = "graph"
     mode: str = "mask"
+    deskew: str = "gyro"
 
 
 @dataclass

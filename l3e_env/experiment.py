@@ -22,12 +22,13 @@ from tqdm import tqdm
 from fusion import FusionConfig, MetricError, ate, ate_aligned, check_backend, make_fusion, rpe
 from scenes import Scene, SceneError, canonical_scene_name, file_sha256, is_mesh_path, make_scene
 
-from .config import EnvConfig, LidarConfig, OdometryConfig
+from .config import EnvConfig, LidarConfig, OdometryConfig, RobotConfig
 from .detectors import UNKNOWN, Detector, Prediction, ScanMCDetector, make_detector, safe_predict
 from .envs.navigation import NavigationEnv
 from .follower import RouteFollower
+from .imu import StepGyro
 from .labels import AXES
-from .lidar import DESKEW_STEPS, Lidar, Scan, deskew, deskew_motion, get_pattern
+from .lidar import DESKEW_SOURCES, DESKEW_STEPS, Lidar, Scan, deskew, deskew_motion, get_pattern
 from .odometry import odometry_sigmas
 from .raycast import EmbreeCaster
 from .registration import PreparedTarget, RegistrationConfig, RegistrationError, register
@@ -230,15 +231,22 @@ class DetectorResult:
                 "fallback_steps": self.fallback_steps, "detector_errors": self.detector_errors}
 
 
-def deskewed(rec: Recording) -> Recording:
+def deskewed(rec: Recording, source: str = "gyro") -> Recording:
     """A swept recording's scans and samples put into the sensor frame at each revolution's end, by
     the leg odometry's motion over the last steps (`deskew_motion`; the first revolution was taken
-    standing still)."""
+    standing still), its rotation the gyro's where `source` is "gyro": a StepGyro along the drive's
+    true poses, drawing from the recording's own seed."""
+    if source not in DESKEW_SOURCES:
+        raise ValueError(f"deskewing source must be one of {DESKEW_SOURCES}, got {source!r}")
     if not rec.sweep:
         return rec
     pattern = get_pattern(rec.sensor)
-    steps = [inverse(rec.T_b_s) @ step @ rec.T_b_s for step in rec.odometry]
-    motions = [np.eye(4)] + [deskew_motion(steps[max(0, k + 1 - DESKEW_STEPS): k + 1]) for k in range(len(steps))]
+    gyro = StepGyro(rng=np.random.default_rng([rec.seed, 4])) if source == "gyro" else None
+    motions = [np.eye(4)]
+    for k, (before, after) in enumerate(zip(rec.ground_truth, rec.ground_truth[1:])):
+        turn = None if gyro is None else gyro.measure(before[:3, :3], after[:3, :3], RobotConfig.dt)
+        body = deskew_motion(list(rec.odometry[max(0, k + 1 - DESKEW_STEPS): k + 1]), turn)
+        motions.append(inverse(rec.T_b_s) @ body @ rec.T_b_s)  # the sensor's motion, lever arm included
     return replace(rec, scans=[deskew(s, m, pattern) for s, m in zip(rec.scans, motions)],
                    samples=[deskew(s, m, pattern) for s, m in zip(rec.samples, motions)])
 
@@ -308,13 +316,16 @@ def _scored(name: str, traj: np.ndarray, gt: np.ndarray, masks: np.ndarray, prob
 
 def run_experiment(out_dir: str | Path, scene: str, detectors: list[str], sensor: str = "vlp16", seed: int = 0,
                    recording: str | Path | None = None, progress: bool = True, backend: str = "graph",
-                   scene_params: dict | None = None, workers: int = 1) -> list[dict]:
+                   scene_params: dict | None = None, workers: int = 1, deskew: str = "gyro") -> list[dict]:
     """The `l3e ate` command as a function: returns the table rows and writes everything to out_dir.
     `scene_params` go to make_scene (a mesh scene's up axis, scale and route). With a `recording`,
     its own scene is used; `scene` matters only as the new path of a recorded mesh that has moved.
-    `workers` processes judge the route with scanmc before the fusion (the same judgements as one)."""
+    `workers` processes judge the route with scanmc before the fusion (the same judgements as one).
+    `deskew`: where a swept recording's deskewing takes its rotation from ("gyro" or "odometry")."""
     if workers < 1:
         raise ValueError(f"workers must be at least 1, got {workers}")
+    if deskew not in DESKEW_SOURCES:
+        raise ValueError(f"deskew must be one of {DESKEW_SOURCES}, got {deskew!r}")
     out = Path(out_dir)
     rec = Recording.load(recording) if recording else None
     scene_obj = (make_scene(rec.scene_file(moved_to=scene), **rec.scene_params) if rec
@@ -327,7 +338,7 @@ def run_experiment(out_dir: str | Path, scene: str, detectors: list[str], sensor
     if rec is None:
         rec = record_run(scene, sensor, seed, progress, scene_params, scene_object=scene_obj)
         rec.save(out / "recording.npz")
-    swept, rec = rec.sweep, deskewed(rec)
+    swept, rec = rec.sweep, deskewed(rec, deskew)
     t0 = time.perf_counter()
     regs = register_sequence(rec, RegistrationConfig(), progress)
     icp_seconds = time.perf_counter() - t0
@@ -343,7 +354,8 @@ def run_experiment(out_dir: str | Path, scene: str, detectors: list[str], sensor
     results = [odometry_only(rec)] + fused
     rows = [r.row() for r in results]
     failed = sum(r is None or not r.converged for r in regs)
-    summary = {"scene": rec.scene, "sensor": rec.sensor, "swept": swept, "backend": backend,
+    summary = {"scene": rec.scene, "sensor": rec.sensor, "swept": swept,
+               "deskew": deskew if swept else None, "backend": backend,
                "steps": len(rec.odometry), "icp_seconds": round(icp_seconds, 1),
                "icp_failed_or_not_converged": failed, "rows": rows}
     (out / "results.json").write_text(json.dumps(summary, indent=1))

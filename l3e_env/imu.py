@@ -92,6 +92,30 @@ def imu_samples(stamps: np.ndarray, poses: list[np.ndarray], config: ImuConfig |
     return ImuSamples(t, gyro, accel, attitude)
 
 
+class StepGyro:
+    """The rotation a gyro integrates over one step, in the body frame, as IMU preintegration gives
+    it: the true rotation, turned by the bias and the white noise of the samples within the step.
+    LiDAR-inertial odometry deskews a revolution's rotation with it. Footfall jolts are left out:
+    the simulated revolution does not shake with them either. The bias starts at zero (a gyro is
+    calibrated standing still) and wanders as `ImuConfig.gyro_bias_walk` says."""
+
+    def __init__(self, config: ImuConfig | None = None, rng: np.random.Generator | None = None):
+        self.config = config or ImuConfig()
+        self.reset(rng or np.random.default_rng(0))
+
+    def reset(self, rng: np.random.Generator) -> None:
+        self.rng, self.bias = rng, np.zeros(3)
+
+    def measure(self, R_w_prev: np.ndarray, R_w_cur: np.ndarray, dt: float) -> np.ndarray:
+        """The integrated rotation from the body's orientation `R_w_prev` to `R_w_cur` over `dt` s
+        (3x3, in the body frame at the step's start)."""
+        c = self.config
+        self.bias = self.bias + self.rng.normal(0.0, c.gyro_bias_walk * np.sqrt(dt), 3)
+        error = self.bias * dt + self.rng.normal(0.0, c.gyro_noise * np.sqrt(dt), 3)  # white rate noise, integrated
+        true = np.asarray(R_w_prev, dtype=np.float64).T @ np.asarray(R_w_cur, dtype=np.float64)
+        return true @ Rotation.from_rotvec(error).as_matrix()
+
+
 WALKING_SPEED = 0.05  # m/s: slower, and not turning, the robot stands and its feet stay put
 WALKING_TURN = 0.1  # rad/s
 JOLT_LENGTH = 12  # jolt times: a jolt is cut off there

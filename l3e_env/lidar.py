@@ -120,20 +120,24 @@ def deskew(points: np.ndarray, motion: np.ndarray, pattern: BeamPattern) -> np.n
 
 
 DESKEW_STEPS = 2  # odometry steps averaged into the motion a revolution is deskewed with
+DESKEW_SOURCES = ("gyro", "odometry")  # where a deskewing's rotation comes from; its translation is the odometry's
 
 
-def deskew_motion(steps: list[np.ndarray]) -> np.ndarray:
-    """The sensor's motion to deskew a revolution with, from the odometry's last steps (sensor
-    frame, oldest first): the mean of the last DESKEW_STEPS, rotations averaged on SO(3). One
+def deskew_motion(steps: list[np.ndarray], gyro: np.ndarray | None = None) -> np.ndarray:
+    """The motion to deskew a revolution with, from the odometry's last steps (oldest first; the
+    result is in their frame): the mean of the last DESKEW_STEPS, rotations averaged on SO(3). One
     step's leg odometry carries its white noise whole, which doubled ICP's yaw error on a steady
     walk; two steps halve the noise's variance and still follow a weaving walk's turns
-    (`benchmarks/deskew_step_error.py`)."""
+    (`benchmarks/deskew_step_error.py`). `gyro`, the gyro's rotation over the revolution (3x3, in
+    the steps' frame), replaces the odometry's rotation, as LiDAR-inertial odometry deskews: it is
+    the revolution's own turn, near exact, where the legs' turn is noisy and lags a weaving walk."""
     recent = [np.asarray(m, dtype=np.float64) for m in steps[-DESKEW_STEPS:]]
-    if not recent:
-        return np.eye(4)
     mean = np.eye(4)
-    mean[:3, :3] = Rotation.from_matrix(np.array([m[:3, :3] for m in recent])).mean().as_matrix()
-    mean[:3, 3] = np.mean([m[:3, 3] for m in recent], axis=0)
+    if recent:
+        mean[:3, :3] = Rotation.from_matrix(np.array([m[:3, :3] for m in recent])).mean().as_matrix()
+        mean[:3, 3] = np.mean([m[:3, 3] for m in recent], axis=0)
+    if gyro is not None:
+        mean[:3, :3] = gyro
     return mean
 
 

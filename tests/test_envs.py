@@ -152,21 +152,35 @@ def test_a_swept_lidar_turns_each_revolution_with_the_step():
     assert gym.make("l3e/Tunnel-v0").unwrapped.lidar.scan(np.eye(4)).times is None
 
 
-def test_fusion_in_the_loop_deskews_a_swept_lidar_with_the_odometry():
-    env = NavigationEnv(dict(scene="tunnel", lidar=dict(sweep=True), fusion=dict(enabled=True, detector="eigen:110")))
-    _, info = env.reset(seed=0)
-    follow, fused = RouteFollower(env.route), []
-    step = env.fusion.step
+@pytest.mark.parametrize("source", ["gyro", "odometry"])
+def test_fusion_in_the_loop_deskews_a_swept_lidar_with_the_odometry_and_gyro(source):
+    """The gyro draws from a stream of its own: the drive, its scans and its odometry are the same
+    whichever deskews, and only the fused points differ."""
+    def drive(deskew: str):
+        env = NavigationEnv(dict(scene="tunnel", lidar=dict(sweep=True),
+                                 fusion=dict(enabled=True, detector="eigen:110", deskew=deskew)))
+        _, info = env.reset(seed=0)
+        follow, fused = RouteFollower(env.route), []
+        step = env.fusion.step
 
-    def spy(increment, points, T):
-        fused.append(points)
-        return step(increment, points, T)
+        def spy(increment, points, T):
+            fused.append(points)
+            return step(increment, points, T)
 
-    env.fusion.step = spy
-    for _ in range(30):
-        _, _, _, _, info = env.step(follow(info["T_w_b"]))
-    raw = env.scan.points
+        env.fusion.step = spy
+        for _ in range(30):
+            _, _, _, _, info = env.step(follow(info["T_w_b"]))
+        env.close()
+        return env.scan.points, fused, info
+
+    raw, fused, info = drive(source)
     assert len(fused) == 30 and fused[-1].shape == raw.shape and not np.array_equal(fused[-1], raw)
     assert 0.0 < np.abs(fused[-1] - raw).max() < 0.2  # a step's motion taken out, no more
     assert 0 < info["running_ate"] < 0.5 and info["fusion_counts"]["detector_errors"] == 0
-    env.close()
+    if source == "gyro":
+        other_raw, other_fused, other_info = drive("odometry")
+        np.testing.assert_array_equal(other_raw, raw)
+        np.testing.assert_array_equal(other_info["odom_T_w_b"], info["odom_T_w_b"])
+        assert not np.array_equal(other_fused[-1], fused[-1])
+        with pytest.raises(ValueError, match="fusion.deskew must be one of"):
+            NavigationEnv(dict(scene="tunnel", fusion=dict(deskew="imu")))

@@ -62,8 +62,16 @@ def test_a_swept_recording_says_so_when_replayed(walls_run, tmp_path, capsys):
     assert Recording.load(tmp_path / "swept.npz").sweep
     assert main(["ate", "--recording", str(tmp_path / "swept.npz"), "--detector", "none", "--quiet",
                  "--out", str(tmp_path / "out")]) == 0
-    assert json.loads((tmp_path / "out" / "results.json").read_text())["swept"]
-    assert "swept over the robot's motion; each was deskewed" in capsys.readouterr().out
+    summary = json.loads((tmp_path / "out" / "results.json").read_text())
+    assert summary["swept"] and summary["deskew"] == "gyro"
+    out = capsys.readouterr().out
+    assert "swept over the robot's motion; each was deskewed" in out and "the gyro's rotation" in out
+    assert main(["ate", "--recording", str(tmp_path / "swept.npz"), "--detector", "none", "--quiet",
+                 "--deskew", "odometry", "--out", str(tmp_path / "legs")]) == 0
+    assert json.loads((tmp_path / "legs" / "results.json").read_text())["deskew"] == "odometry"
+    assert "with the odometry's rotation" in capsys.readouterr().out
+    with pytest.raises(ValueError, match="deskew must be one of"):
+        run_experiment(tmp_path / "bad", "mine", ["none"], recording=tmp_path / "swept.npz", deskew="imu")
 
 
 def test_scanmc_in_a_replay_judges_scans_cast_again_at_the_true_poses(walls_run, tmp_path):
@@ -219,9 +227,11 @@ def test_ate_over_several_seeds_drives_each_and_writes_the_summary(tmp_path, cap
 
 
 
-def test_a_swept_recording_is_deskewed_by_its_odometry_before_it_is_fused():
-    """The sensor sits 0.3 m above and 0.2 m ahead of the body, which walks and turns: with exact
-    odometry, every deskewed point lies on the room's walls seen from its revolution's end."""
+def test_a_swept_recording_is_deskewed_by_its_odometry_and_gyro_before_it_is_fused():
+    """The sensor sits 0.3 m above and 0.2 m ahead of the body, which walks and turns. The legs
+    measure the step's translation exactly but its turn 50% high: deskewed with the gyro's turn,
+    every point lies on the room's walls seen from its revolution's end; with the odometry's, the
+    far walls are off."""
     from dataclasses import replace
 
     import trimesh
@@ -238,14 +248,22 @@ def test_a_swept_recording_is_deskewed_by_its_odometry_before_it_is_fused():
         truth.append(truth[-1] @ step)
     scans = [lidar.scan(truth[0] @ T_b_s, start=truth[0] @ T_b_s).points]
     scans += [lidar.scan(T @ T_b_s, start=before @ T_b_s).points for before, T in zip(truth, truth[1:])]
-    odometry = np.array([np.linalg.inv(a) @ b for a, b in zip(truth, truth[1:])])
+    odometry = np.array([pose_to_matrix([0.1, 0.02, 0.0, 0.0, 0.0, 0.15]) for _ in range(3)])
     rec = Recording("box", "vlp16", 0, T_b_s, np.array(truth), odometry, scans, scans, sweep=True)
+
+    def off_the_walls(recording: Recording) -> list[float]:
+        worst = []
+        for T, points in zip(truth, recording.scans):
+            world = points.astype(np.float64) @ (T @ T_b_s)[:3, :3].T + (T @ T_b_s)[:3, 3]
+            worst.append(np.abs(np.abs(world) - [5.0, 3.0, 2.0]).min(axis=1).max())
+        return worst
+
     straight = deskewed(rec)
-    for T, raw, points in zip(truth, rec.scans, straight.scans):
-        world = points.astype(np.float64) @ (T @ T_b_s)[:3, :3].T + (T @ T_b_s)[:3, 3]
-        off = np.abs(np.abs(world) - [5.0, 3.0, 2.0]).min(axis=1)
-        assert off.max() < 2e-3
+    assert max(off_the_walls(straight)) < 2e-3
+    assert min(off_the_walls(deskewed(rec, "odometry"))[1:]) > 0.05  # the legs' turn is 0.05 rad too much
     assert np.abs(straight.scans[2] - rec.scans[2]).max() > 0.1  # the motion was taken out
     np.testing.assert_array_equal(straight.samples[2], straight.scans[2])  # the samples alike
+    with pytest.raises(ValueError, match="deskewing source"):
+        deskewed(rec, "lidar")
     still = replace(rec, sweep=False)
     assert deskewed(still) is still  # a recording taken at one pose a revolution is fused as it is

@@ -4,7 +4,7 @@ import pytest
 from scipy.interpolate import CubicSpline
 from scipy.spatial.transform import Rotation
 
-from l3e_env.imu import GRAVITY, ImuConfig, imu_samples
+from l3e_env.imu import GRAVITY, ImuConfig, StepGyro, imu_samples
 from l3e_env.transforms import pose_to_matrix
 
 
@@ -130,3 +130,23 @@ def test_one_footfall_every_third_of_a_second_while_walking_and_none_at_rest():
     np.testing.assert_array_equal(imu_samples(stamps, at_rest, ImuConfig(), np.random.default_rng(5)).accel,
                                   imu_samples(stamps, at_rest, ImuConfig(footfall_accel=0.0),
                                               np.random.default_rng(5)).accel)
+
+
+def test_the_step_gyro_reads_the_step_s_turn_off_by_its_integrated_noise_and_bias():
+    """Over 0.1 s steps the white rate noise integrates to gyro_noise sqrt(dt) per axis; the bias
+    starts at zero and wanders; without noise the reading is the true turn, in the body frame."""
+    before = pose_to_matrix([0, 0, 0, 0.1, -0.2, 1.0])[:3, :3]
+    after = pose_to_matrix([0, 0, 0, 0.12, -0.19, 1.3])[:3, :3]
+    exact = StepGyro(ImuConfig(gyro_noise=0.0, gyro_bias_walk=0.0))
+    np.testing.assert_allclose(exact.measure(before, after, 0.1), before.T @ after, atol=1e-12)
+    config = ImuConfig(gyro_bias_walk=0.0)
+    gyro = StepGyro(config, np.random.default_rng(3))
+    errors = np.array([Rotation.from_matrix(gyro.measure(before, before, 0.1)).as_rotvec() for _ in range(4000)])
+    np.testing.assert_allclose(errors.std(axis=0), config.gyro_noise * np.sqrt(0.1), rtol=0.06)
+    assert np.abs(errors.mean(axis=0)).max() < 0.1 * config.gyro_noise
+    drifting = StepGyro(ImuConfig(gyro_noise=0.0, gyro_bias_walk=1e-3), np.random.default_rng(4))
+    for _ in range(1000):  # 100 s
+        drifting.measure(before, before, 0.1)
+    assert 1e-4 < np.linalg.norm(drifting.bias) < 1e-1  # about 1e-3 sqrt(100) a axis
+    drifting.reset(np.random.default_rng(4))
+    assert not drifting.bias.any()

@@ -181,7 +181,8 @@ def test_a_swept_revolution_deskewed_with_its_motion_lies_on_the_walls_seen_from
 
 
 def test_the_deskewing_motion_is_the_mean_of_the_odometry_s_last_steps():
-    """Rotations averaged on SO(3), translations arithmetically, over the last DESKEW_STEPS only."""
+    """Rotations averaged on SO(3), translations arithmetically, over the last DESKEW_STEPS only;
+    a gyro's rotation replaces the odometry's."""
     from l3e_env.lidar import DESKEW_STEPS, deskew_motion
     from l3e_env.transforms import matrix_to_pose, pose_to_matrix
 
@@ -192,3 +193,7 @@ def test_the_deskewing_motion_is_the_mean_of_the_odometry_s_last_steps():
     mean = matrix_to_pose(deskew_motion(steps))  # the first step is too old to count
     np.testing.assert_allclose(mean, [0.12, 0.01, 0.005, 0.0, 0.01, 0.2], atol=1e-3)
     np.testing.assert_allclose(deskew_motion(steps[1:2]), steps[1], atol=1e-12)
+    gyro = pose_to_matrix([0, 0, 0, 0.01, 0.0, 0.25])[:3, :3]
+    inertial = matrix_to_pose(deskew_motion(steps, gyro))  # the gyro's turn, the odometry's translation
+    np.testing.assert_allclose(inertial, [0.12, 0.01, 0.005, 0.01, 0.0, 0.25], atol=1e-3)
+    np.testing.assert_allclose(deskew_motion([], gyro)[:3, :3], gyro)

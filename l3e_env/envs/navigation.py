@@ -11,7 +11,8 @@ from scenes import Scene, make_scene
 from scenes.geometry import polyline_length
 
 from ..config import EnvConfig, from_dict
-from ..lidar import DESKEW_STEPS, Lidar, Scan, deskew, deskew_motion
+from ..imu import StepGyro
+from ..lidar import DESKEW_SOURCES, DESKEW_STEPS, Lidar, Scan, deskew, deskew_motion
 from ..odometry import LegOdometry
 from ..raycast import make_caster
 from ..render import TopDownRenderer
@@ -80,6 +81,9 @@ class NavigationEnv(gym.Env):
         self.max_steps = config.max_episode_steps or int(np.ceil(3 * route_length / (speed * config.robot.dt)))
         self._renderer: TopDownRenderer | None = None
         self.fusion = None
+        if config.fusion.deskew not in DESKEW_SOURCES:
+            raise ValueError(f"fusion.deskew must be one of {DESKEW_SOURCES}, got {config.fusion.deskew!r}")
+        self.gyro = StepGyro() if config.fusion.deskew == "gyro" else None
         if config.fusion.enabled:
             from ..online import OnlineFusion  # ICP, detector and GTSAM only when asked for
 
@@ -92,8 +96,10 @@ class NavigationEnv(gym.Env):
         x, y, yaw = self.scene.start
         self.robot.reset(x, y, yaw, z_ground=float(self.route[0, 2]))
         self.odometry.reset(self.np_random)
+        if self.gyro is not None:  # a stream of its own: the odometry's and the LiDAR's draws stay as they were
+            self.gyro.reset(self.np_random.spawn(1)[0])
         self.odom_T_w_b = self.robot.T_w_b.copy()
-        self._sensor_steps: list[np.ndarray] = []  # the odometry's last steps in the sensor frame, to deskew with
+        self._odometry_steps: list[np.ndarray] = []  # the odometry's last steps, to deskew with
         self.steps = 0
         self.trail = [self.robot.T_w_b[:3, 3].copy()]
         # swept: the revolution before the start, standing still
@@ -120,10 +126,12 @@ class NavigationEnv(gym.Env):
         self._scan = self.lidar.scan(self.robot.T_w_s, self.np_random, start=start, period=self.config.robot.dt)
         if self.fusion is not None:
             points = self._scan.points
-            if start is not None:  # deskewed with the odometry's motion, as LiDAR odometry does
-                step_s = inverse(self.robot.T_b_s) @ increment @ self.robot.T_b_s
-                self._sensor_steps = (self._sensor_steps + [step_s])[-DESKEW_STEPS:]
-                points = deskew(points, deskew_motion(self._sensor_steps), self.lidar.pattern)
+            if start is not None:  # deskewed with the gyro's turn and the odometry's motion, as LiDAR odometry does
+                self._odometry_steps = (self._odometry_steps + [increment])[-DESKEW_STEPS:]
+                turn = None if self.gyro is None else \
+                    self.gyro.measure(T_prev[:3, :3], T_cur[:3, :3], self.config.robot.dt)
+                motion = inverse(self.robot.T_b_s) @ deskew_motion(self._odometry_steps, turn) @ self.robot.T_b_s
+                points = deskew(points, motion, self.lidar.pattern)
             self._fusion_info = self.fusion.step(increment, points, T_cur)
         self.steps += 1
         self.trail.append(T_cur[:3, 3].copy())
