@@ -305,7 +305,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
     overrides = {k: v for k, v in {"epochs": args.epochs, "seed": args.seed, "optimizer": args.optimizer,
                                    "learning_rate": args.lr, "samples_per_epoch": args.samples_per_epoch,
                                    "threads": args.threads, "soft_labels": args.soft_labels,
-                                   "group_dro": args.group_dro}.items()
+                                   "group_dro": args.group_dro, "scale_augment": args.scale_augment}.items()
                  if v is not None}
     model = _asdict(cfg.model)
     if args.init:  # fine-tuning keeps the model settings of the checkpoint it starts from
@@ -589,6 +589,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="k > 0: targets sigmoid(k ln(error / threshold)) instead of 0/1 labels")
     p.add_argument("--group-dro", type=float, dest="group_dro",
                    help="eta > 0: weigh the training scene families by group DRO with this step size")
+    p.add_argument("--scale-augment", type=float, dest="scale_augment",
+                   help="f > 1: scale each training scan by a factor drawn log-uniformly from [1/f, f]")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_cmd_train)
     p = sub.add_parser("evaluate", help="Table III: per-axis scores on train, validation and test, PR curves")

@@ -76,6 +76,10 @@ class TrainConfig:
     # the loss is the families' weighted mean, so the network cannot buy a low mean loss with
     # cues that serve the common families and fail a rarer one, as they fail the unseen test ones
     group_dro: float = 0.0
+    # 1: no scaling. f > 1: each training scan is also scaled by a factor drawn log-uniformly from
+    # [1/f, f], labels kept: a corridor stays degenerate along its axis at any width, so the
+    # network is taught shapes rather than the training scenes' sizes
+    scale_augment: float = 1.0
 
 
 class TrainingError(RuntimeError):
@@ -158,6 +162,14 @@ def augment(points: np.ndarray, labels: np.ndarray, rng: np.random.Generator,
     return view(points), labels[SWAP_LABELS] if swap else labels, None if up is None else view(up)
 
 
+def scaled(points: np.ndarray, factor: float, rng: np.random.Generator) -> np.ndarray:
+    """The scan scaled by a factor drawn log-uniformly from [1/factor, factor]; as it is (and
+    nothing drawn) at factor 1, so runs without scaling keep their draws."""
+    if factor <= 1.0:
+        return points
+    return points * np.float32(np.exp(rng.uniform(-1.0, 1.0) * np.log(factor)))
+
+
 def _dataset_batches(model: LocalizabilityNet, data: LabelDataset | DatasetUnion, rows: np.ndarray, seed: int,
                      batch_size: int, progress: bool):
     """(start, model inputs, up vectors or None) per batch of `rows`; the point sampling of scan i
@@ -222,6 +234,7 @@ def check_train_config(cfg: TrainConfig) -> None:
         ("threads", cfg.threads, cfg.threads >= 1, "at least 1"),
         ("optimizer", cfg.optimizer, cfg.optimizer in ("sgd", "adamw"), "sgd or adamw"),
         ("group_dro", cfg.group_dro, cfg.group_dro >= 0, "0 (off) or more"),
+        ("scale_augment", cfg.scale_augment, cfg.scale_augment >= 1, "1 (off) or more"),
     ] if not ok]
     if problems:
         raise TrainingError("; ".join(problems))
@@ -327,6 +340,7 @@ def train(dataset: str | Path | list[str | Path], out_dir: str | Path, cfg: Trai
                 pts, lab, up = data.scan(int(i)), targets_all[i], up_all[i] if up_all is not None else None
                 if cfg.augment:
                     pts, lab, up = augment(pts, lab, rng, up)
+                pts = scaled(pts, cfg.scale_augment, rng)
                 batch.append(model_input(pts, cfg.model, rng))
                 targets.append(lab)
                 ups.append(up)

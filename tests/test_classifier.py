@@ -19,7 +19,7 @@ from l3e_env.scores import auroc, axis_scores, best_thresholds, mean_interval, m
 from l3e_env.sparse import GatherConv, int8_products_work, int8_residual_block, voxelize
 from l3e_env.training import (
     SWAP_LABELS, TrainConfig, TrainingError, augment, balanced_pool, calibrate_symmetric, predict_dataset,
-    split_indices, train, _resumable, training_targets,
+    scaled, split_indices, train, _resumable, training_targets,
 )
 from l3e_env.transforms import pose_to_matrix
 
@@ -341,19 +341,35 @@ def _train_cfg(**kw):
 def test_settings_no_run_can_use_are_refused_before_the_folder(tiny_dataset, tmp_path):
     with pytest.raises(TrainingError, match="epochs must be at least 1, got 0; optimizer must be sgd or adamw"):
         train(tiny_dataset, tmp_path / "run", _train_cfg(epochs=0, optimizer="adam"), progress=False)
+    with pytest.raises(TrainingError, match="scale_augment must be 1 \\(off\\) or more, got 0.8"):
+        train(tiny_dataset, tmp_path / "run", _train_cfg(scale_augment=0.8), progress=False)
     assert not (tmp_path / "run").exists()
 
 
-@pytest.mark.parametrize("group_dro", [0.0, 0.5])
-def test_a_killed_run_resumes_to_the_same_model(tiny_dataset, tmp_path, group_dro):
-    whole = train(tiny_dataset, tmp_path / "whole", _train_cfg(group_dro=group_dro), progress=False)
-    cfg = _train_cfg(group_dro=group_dro)
+def test_scale_augmentation_draws_factors_log_uniformly_within_its_range(rng):
+    pts = rng.normal(size=(50, 3)).astype(np.float32)
+    factors = np.array([(scaled(pts, 1.3, rng) / pts).mean() for _ in range(2000)])
+    assert factors.min() >= 1 / 1.3 - 1e-6 and factors.max() <= 1.3 + 1e-6
+    logs = np.log(factors)  # uniform on [-ln 1.3, ln 1.3]: as many shrunk as grown, the ends reached
+    assert abs(np.median(logs)) < 0.02 and logs.min() < -0.24 and logs.max() > 0.24
+    assert scaled(pts, 1.3, rng).dtype == np.float32
+    state = rng.bit_generator.state
+    assert scaled(pts, 1.0, rng) is pts and rng.bit_generator.state == state  # off: nothing drawn
+
+
+@pytest.mark.parametrize("group_dro,scale", [(0.0, 1.0), (0.5, 1.3)])
+def test_a_killed_run_resumes_to_the_same_model(tiny_dataset, tmp_path, group_dro, scale):
+    whole = train(tiny_dataset, tmp_path / "whole", _train_cfg(group_dro=group_dro, scale_augment=scale),
+                  progress=False)
+    cfg = _train_cfg(group_dro=group_dro, scale_augment=scale)
     cfg.epochs = 1
     train(tiny_dataset, tmp_path / "cut", cfg, progress=False)
     cfg.epochs = 2  # the 'kill' came after epoch 1; the same command with the full epoch count resumes
     with pytest.raises(TrainingError, match=r"other settings \(seed 0, now 3\)"):
-        train(tiny_dataset, tmp_path / "cut", _train_cfg(seed=3, group_dro=group_dro), progress=False)
-    resumed = train(tiny_dataset, tmp_path / "cut", _train_cfg(group_dro=group_dro), progress=False)
+        train(tiny_dataset, tmp_path / "cut", _train_cfg(seed=3, group_dro=group_dro, scale_augment=scale),
+              progress=False)
+    resumed = train(tiny_dataset, tmp_path / "cut", _train_cfg(group_dro=group_dro, scale_augment=scale),
+                    progress=False)
     assert {k: v for k, v in resumed.items() if k != "seconds"} == {k: v for k, v in whole.items() if k != "seconds"}
     log = [json.loads(line) for line in (tmp_path / "cut" / "log.jsonl").read_text().splitlines()]
     assert [r["epoch"] for r in log] == [1, 2]
