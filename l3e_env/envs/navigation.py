@@ -83,7 +83,8 @@ class NavigationEnv(gym.Env):
         self.fusion = None
         if config.fusion.deskew not in DESKEW_SOURCES:
             raise ValueError(f"fusion.deskew must be one of {DESKEW_SOURCES}, got {config.fusion.deskew!r}")
-        self.gyro = StepGyro() if config.fusion.deskew == "gyro" else None
+        swept_fusion = config.fusion.enabled and config.lidar.sweep
+        self.gyro = StepGyro() if swept_fusion and config.fusion.deskew == "gyro" else None  # deskews only there
         if config.fusion.enabled:
             from ..online import OnlineFusion  # ICP, detector and GTSAM only when asked for
 
