@@ -74,10 +74,11 @@ def main() -> None:
         static = [lidar.scan(T, rng).points for T in poses]
         swept = [lidar.scan(poses[0], rng, start=poses[0]).points]  # the first revolution standing
         swept += [lidar.scan(after, rng, start=before).points for before, after in zip(poses, poses[1:])]
-        averaged = [deskew_motion(odo[max(0, k + 1 - DESKEW_STEPS): k + 1]) for k in range(len(odo))]
+        recent = [odo[max(0, k + 1 - DESKEW_STEPS): k + 1] for k in range(len(odo))]  # each step's last steps
+        averaged = [deskew_motion(steps) for steps in recent]
         gyro = StepGyro(rng=np.random.default_rng(2))  # the sensor's own rotation: no mounting to turn it by
-        inertial = [deskew_motion(odo[max(0, k + 1 - DESKEW_STEPS): k + 1], gyro.measure(a[:3, :3], b[:3, :3], DT))
-                    for k, (a, b) in enumerate(zip(poses, poses[1:]))]
+        inertial = [deskew_motion(steps, gyro.measure(a[:3, :3], b[:3, :3], DT))
+                    for steps, a, b in zip(recent, poses, poses[1:])]
         cases = {"static": static, "swept, as they are": swept}
         for name, motions in (("deskewed, the step's odometry", odo),
                               (f"deskewed, odometry of {DESKEW_STEPS} steps", averaged),
