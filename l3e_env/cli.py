@@ -236,6 +236,11 @@ def _cmd_ate(args: argparse.Namespace) -> int:
     if args.seeds < 1 or (args.seeds > 1 and args.recording):
         print("l3e ate: --seeds is 1 or more drives, and a recording is one drive", file=sys.stderr)
         return 2
+    if args.separate_noise and args.recording:
+        print("l3e ate: a recording keeps the noise it was driven with; --separate-noise is for "
+              "`l3e record` or a new drive", file=sys.stderr)
+        return 2
+    streams = "separate" if args.separate_noise else "shared"
     print(f"writing the experiment into {out.resolve()}")
     detectors = args.detector or ["none", "eigen:30", "eigen:110", "oracle"]
     if args.seeds > 1:
@@ -244,7 +249,7 @@ def _cmd_ate(args: argparse.Namespace) -> int:
             print(f"drive {seed - args.seed + 1} of {args.seeds} (seed {seed})")
             runs[seed] = run_experiment(out / f"seed-{seed}", args.scene, detectors, sensor=args.sensor, seed=seed,
                                         progress=not args.quiet, backend=args.backend, scene_params=params,
-                                        workers=args.workers)
+                                        workers=args.workers, noise_streams=streams)
             print(format_table(runs[seed]))
         summary = summarize_seeds(runs)
         (out / "seeds.json").write_text(json.dumps(summary, indent=1))
@@ -254,7 +259,7 @@ def _cmd_ate(args: argparse.Namespace) -> int:
         return 0
     rows = run_experiment(out, args.scene, detectors, sensor=args.sensor, seed=args.seed, recording=args.recording,
                           progress=not args.quiet, backend=args.backend, scene_params=params, workers=args.workers,
-                          deskew=args.deskew)
+                          deskew=args.deskew, noise_streams=streams)
     print(format_table(rows))
     if json.loads((out / "results.json").read_text()).get("swept"):
         turn = "the gyro's rotation over it" if args.deskew == "gyro" else "the odometry's rotation"
@@ -288,7 +293,7 @@ def _cmd_record(args: argparse.Namespace) -> int:
         print(f"l3e record: {exc}", file=sys.stderr)
         return 2
     rec = record_run(args.scene, args.sensor, args.seed, progress=not args.quiet, scene_params=params, on_step=bag,
-                     sweep=args.sweep)
+                     sweep=args.sweep, noise_streams="separate" if args.separate_noise else "shared")
     print(f"written: {bag.close()} ({bag.steps} scans)")
     if args.recording:
         Path(args.recording).parent.mkdir(parents=True, exist_ok=True)
@@ -542,6 +547,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--deskew", choices=["gyro", "odometry"], default="gyro",
                    help="a swept recording's scans are deskewed with the leg odometry's motion, turned by the "
                         "gyro's rotation (default) or the odometry's own")
+    p.add_argument("--separate-noise", action="store_true",
+                   help="draw the odometry's and the LiDAR's noise from streams of their own, so that a drive with "
+                        "another --sensor or sweep setting has the same odometry noise (default: one stream, "
+                        "the drives the README's figures were measured on)")
     p.add_argument("--out", help="output folder (default: l3e_out/ate-<scene>-<time>)")
     p.add_argument("--workers", type=int, default=1,
                    help="processes that judge the route with scanmc before the fusion (default 1)")
@@ -556,6 +565,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--sensor", type=sensor_name, default="vlp16", help=SENSOR_HELP)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--recording", help="also save the drive as a recording.npz for l3e ate --recording")
+    p.add_argument("--separate-noise", action="store_true",
+                   help="draw the odometry's and the LiDAR's noise from streams of their own, so that a drive with "
+                        "another --sensor or sweep setting has the same odometry noise (default: one stream, "
+                        "the drives the README's figures were measured on)")
     p.add_argument("--imu-rate", type=float, default=200.0, help="rate of /imu in Hz (default 200; 0: no IMU)")
     p.add_argument("--imu-orientation", action=argparse.BooleanOptionalAction, default=True,
                    help="write a nine-axis unit's orientation in /imu (default), or none as a six-axis unit")

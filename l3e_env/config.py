@@ -93,6 +93,14 @@ class EnvConfig:
     collision_penalty: float = 0.1
     goal_reward: float = 10.0
     fusion: LoopFusionConfig = field(default_factory=LoopFusionConfig)
+    # shared: the leg odometry and the LiDAR draw their noise in turn from the one generator of
+    # reset(seed) (the drives that the README's figures were measured on). separate: each draws
+    # from a stream of its own spawned from that seed, so a drive with another sensor, beam pattern
+    # or sweep setting keeps the same odometry noise, and two sensors can be compared on one drive.
+    noise_streams: str = "shared"
+
+
+NOISE_STREAMS = ("shared", "separate")
 
 
 def to_dict(cfg: Any) -> dict[str, Any]:

@@ -48,7 +48,24 @@ def test_ate_from_a_recording_writes_results_and_figures(walls_run, tmp_path):
     written = {p.name for p in (tmp_path / "out").iterdir()}
     assert {"results.json", "trajectories.png", "timeline.png", "map_eigen_30.png", "map_none.png"} <= written
     assert "recording.npz" not in written
-    assert json.loads((tmp_path / "out" / "results.json").read_text())["scene"] == "primitives-1"
+    summary = json.loads((tmp_path / "out" / "results.json").read_text())
+    assert summary["scene"] == "primitives-1" and summary["noise_streams"] == "shared"
+
+
+def test_a_recordings_noise_streams_are_kept_and_a_replay_cannot_change_them(walls_run, tmp_path, capsys):
+    from dataclasses import replace
+
+    from l3e_env.cli import main
+
+    rec, _ = walls_run
+    replace(rec, noise_streams="separate").save(tmp_path / "separate.npz")
+    assert Recording.load(tmp_path / "separate.npz").noise_streams == "separate"
+    run_experiment(tmp_path / "out", "mine", ["none"], recording=tmp_path / "separate.npz", progress=False)
+    assert json.loads((tmp_path / "out" / "results.json").read_text())["noise_streams"] == "separate"
+    assert main(["ate", "--recording", str(tmp_path / "separate.npz"), "--separate-noise", "--quiet"]) == 2
+    assert "a recording keeps the noise it was driven with" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="noise_streams must be one of"):
+        run_experiment(tmp_path / "bad", "mine", ["none"], noise_streams="split")
 
 
 def test_a_swept_recording_says_so_when_replayed(walls_run, tmp_path, capsys):

@@ -10,7 +10,7 @@ from gymnasium import spaces
 from scenes import Scene, make_scene
 from scenes.geometry import polyline_length
 
-from ..config import EnvConfig, from_dict
+from ..config import NOISE_STREAMS, EnvConfig, from_dict
 from ..imu import StepGyro
 from ..lidar import DESKEW_SOURCES, DESKEW_STEPS, Lidar, Scan, deskew, deskew_motion
 from ..odometry import LegOdometry
@@ -81,6 +81,8 @@ class NavigationEnv(gym.Env):
         self.max_steps = config.max_episode_steps or int(np.ceil(3 * route_length / (speed * config.robot.dt)))
         self._renderer: TopDownRenderer | None = None
         self.fusion = None
+        if config.noise_streams not in NOISE_STREAMS:
+            raise ValueError(f"noise_streams must be one of {NOISE_STREAMS}, got {config.noise_streams!r}")
         if config.fusion.deskew not in DESKEW_SOURCES:
             raise ValueError(f"fusion.deskew must be one of {DESKEW_SOURCES}, got {config.fusion.deskew!r}")
         swept_fusion = config.fusion.enabled and config.lidar.sweep
@@ -96,7 +98,11 @@ class NavigationEnv(gym.Env):
         super().reset(seed=seed)
         x, y, yaw = self.scene.start
         self.robot.reset(x, y, yaw, z_ground=float(self.route[0, 2]))
-        self.odometry.reset(self.np_random)
+        if self.config.noise_streams == "separate":
+            odometry_rng, self._lidar_rng = self.np_random.spawn(2)
+        else:
+            odometry_rng = self._lidar_rng = self.np_random
+        self.odometry.reset(odometry_rng)
         if self.gyro is not None:  # a stream of its own: the odometry's and the LiDAR's draws stay as they were
             self.gyro.reset(self.np_random.spawn(1)[0])
         self.odom_T_w_b = self.robot.T_w_b.copy()
@@ -105,7 +111,7 @@ class NavigationEnv(gym.Env):
         self.trail = [self.robot.T_w_b[:3, 3].copy()]
         # swept: the revolution before the start, standing still
         start = self.robot.T_w_s if self.config.lidar.sweep else None
-        self._scan = self.lidar.scan(self.robot.T_w_s, self.np_random, start=start, period=self.config.robot.dt)
+        self._scan = self.lidar.scan(self.robot.T_w_s, self._lidar_rng, start=start, period=self.config.robot.dt)
         self._distance = self._goal_distance()
         if self.fusion is not None:
             self._fusion_info = self.fusion.reset(self.robot.T_w_b, self._scan.points)
@@ -124,7 +130,7 @@ class NavigationEnv(gym.Env):
         self.odom_T_w_b = self.odom_T_w_b @ increment
         # a swept revolution turns with the step: from the pose before it to the pose after it
         start = T_prev @ self.robot.T_b_s if self.config.lidar.sweep else None
-        self._scan = self.lidar.scan(self.robot.T_w_s, self.np_random, start=start, period=self.config.robot.dt)
+        self._scan = self.lidar.scan(self.robot.T_w_s, self._lidar_rng, start=start, period=self.config.robot.dt)
         if self.fusion is not None:
             points = self._scan.points
             if start is not None:  # deskewed with the gyro's turn and the odometry's motion, as LiDAR odometry does
