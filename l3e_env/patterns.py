@@ -19,7 +19,10 @@ class PatternError(ValueError):
 class BeamPattern:
     """Elevation angles (deg) of the beams and azimuth steps per revolution. Ouster-style sensors
     also shift each beam's azimuth by a constant (`azimuth_offsets_deg`) and fire from a point
-    `beam_origin_offset` metres out from the axis, in the column's direction."""
+    `beam_origin_offset` metres out from the axis, in the column's direction. A Velodyne's beams
+    leave from points `beam_vertical_offsets` metres from the axis across the beam, upwards in its
+    vertical plane (its calibration's `vert_offset_correction`, which its driver adds to each
+    return), so near returns lie off their beam's elevation as seen from the axis."""
 
     name: str
     elevations_deg: tuple[float, ...]
@@ -32,6 +35,7 @@ class BeamPattern:
     clockwise: bool = True  # the spin seen from above (a Velodyne's); False: counter-clockwise
     scan_start_deg: float = 180.0  # the azimuth at which a revolution begins (straight behind)
     time_field: str = "time"  # each point's time in a bag, as the sensor's driver names it (TIME_FIELDS)
+    beam_vertical_offsets: tuple[float, ...] = ()  # per beam, metres; empty: none
 
     @property
     def n_beams(self) -> int:
@@ -52,11 +56,17 @@ class BeamPattern:
 
     def origins(self) -> np.ndarray | None:
         """Where each ray starts (B*A, 3) in the sensor frame, beam-major; None: all at the origin."""
-        if not self.beam_origin_offset:
+        if not self.beam_origin_offset and not self.beam_vertical_offsets:
             return None
-        az = self._column_azimuths()
-        ring = self.beam_origin_offset * np.stack([np.cos(az), np.sin(az), np.zeros_like(az)], axis=1)
-        return np.tile(ring, (self.n_beams, 1)).astype(np.float32)
+        el = np.deg2rad(np.asarray(self.elevations_deg))[:, None]
+        az = self._column_azimuths()[None, :] + self._beam_azimuth_offsets()[:, None]
+        out = self.beam_origin_offset - self._vertical_offsets()[:, None] * np.sin(el)  # horizontal part
+        up = self._vertical_offsets()[:, None] * np.cos(el) * np.ones_like(az)
+        origins = np.stack([out * np.cos(az), out * np.sin(az), up], axis=-1)
+        return origins.reshape(-1, 3).astype(np.float32)
+
+    def _vertical_offsets(self) -> np.ndarray:
+        return np.asarray(self.beam_vertical_offsets or (0.0,) * self.n_beams, dtype=np.float64)
 
     def firing_share(self, points: np.ndarray) -> np.ndarray:
         """The share of a revolution at which a ray through each point fires, from the point's own
@@ -81,6 +91,13 @@ class BeamPattern:
         elevation = np.degrees(np.arctan2(points[:, 2], horizontal))
         beams = np.asarray(self.elevations_deg)
         beam = np.abs(elevation[:, None] - beams[None]).argmin(axis=1) if len(points) else np.zeros(0, np.int64)
+        if self.beam_vertical_offsets and len(points):
+            # seen from its beam's own origin; the beam first found is off by at most one near the sensor
+            for _ in range(2):
+                el = np.deg2rad(beams[beam])
+                dz = self._vertical_offsets()[beam]
+                elevation = np.degrees(np.arctan2(points[:, 2] - dz * np.cos(el), horizontal + dz * np.sin(el)))
+                beam = np.abs(elevation[:, None] - beams[None]).argmin(axis=1)
         step = 2 * np.pi / self.n_azimuth
         azimuth = azimuth - self._beam_azimuth_offsets()[beam]
         column = np.round((azimuth % (2 * np.pi)) / step).astype(np.int64) % self.n_azimuth
@@ -93,8 +110,12 @@ class BeamPattern:
 TIME_FIELDS = {"time": ("float32 seconds", "<f4", 1.0), "t": ("uint32 nanoseconds", "<u4", 1e9)}
 
 PATTERNS: dict[str, BeamPattern] = {
-    # Velodyne VLP-16: 16 beams over +-15 deg, 0.2 deg azimuth at 10 Hz, 100 m.
-    "vlp16": BeamPattern("vlp16", tuple(np.linspace(-15, 15, 16)), 1800, 100.0, 0.5, 360),
+    # Velodyne VLP-16: 16 beams over +-15 deg, 0.2 deg azimuth at 10 Hz, 100 m. Its beams leave from
+    # 11.2 mm above the axis (the lowest, -15 deg) to 11.2 mm below it (the highest), as its
+    # calibration (the ROS driver's VLP16db.yaml, vert_offset_correction) has them.
+    "vlp16": BeamPattern("vlp16", tuple(np.linspace(-15, 15, 16)), 1800, 100.0, 0.5, 360,
+                         beam_vertical_offsets=(0.0112, 0.0097, 0.0081, 0.0066, 0.0051, 0.0037, 0.0022, 0.0007, -0.0007,
+                                                -0.0022, -0.0037, -0.0051, -0.0066, -0.0081, -0.0097, -0.0112)),
     # Ouster OS0-128: 128 beams over +-45 deg, 1024 columns at 10 Hz, 50 m (datasheet, 80 % targets).
     # Its encoder angle runs 2 pi (1 - count / 90112) from the connector at the back (Ouster's
     # software manual), so it spins clockwise seen from above from straight behind, as a Velodyne.
@@ -114,6 +135,10 @@ def check_pattern(pattern: BeamPattern) -> None:
         problem = "holds an angle that is not a finite number"
     elif pattern.azimuth_offsets_deg and len(pattern.azimuth_offsets_deg) != pattern.n_beams:
         problem = f"has {len(pattern.azimuth_offsets_deg)} azimuth offsets for {pattern.n_beams} beams"
+    elif pattern.beam_vertical_offsets and len(pattern.beam_vertical_offsets) != pattern.n_beams:
+        problem = f"has {len(pattern.beam_vertical_offsets)} vertical offsets for {pattern.n_beams} beams"
+    elif not np.isfinite(pattern.beam_vertical_offsets).all() or not np.isfinite(pattern.beam_origin_offset):
+        problem = "holds a beam origin offset that is not a finite number"
     elif not np.isfinite(pattern.scan_start_deg):
         problem = f"has a scan start of {pattern.scan_start_deg} deg"
     elif pattern.time_field not in TIME_FIELDS:
@@ -185,7 +210,8 @@ def _own_pattern(name: str, spec: dict) -> BeamPattern:
                        float(spec.get("min_range", 0.0)), int(spec.get("image_width", _image_width(columns))),
                        tuple(float(a) for a in spec.get("azimuth_offsets_deg", ())),
                        float(spec.get("beam_origin_offset", 0.0)), _spin(spec.get("spin", "clockwise")),
-                       float(spec.get("scan_start_deg", 180.0)), str(spec.get("time_field", "time")))
+                       float(spec.get("scan_start_deg", 180.0)), str(spec.get("time_field", "time")),
+                       tuple(float(z) for z in spec.get("beam_vertical_offsets", ())))
 
 
 def _spin(text: str) -> bool:
@@ -199,7 +225,8 @@ def _spin(text: str) -> bool:
 def load_pattern(path: str | Path) -> BeamPattern:
     """A beam pattern file, named by its path: this project's own keys (`elevations_deg` as a list or
     {from, to, beams}, `columns`, `max_range`, optional `min_range`, `azimuth_offsets_deg`,
-    `beam_origin_offset` in metres, `image_width`, `spin` clockwise or counterclockwise seen from
+    `beam_origin_offset` in metres, `beam_vertical_offsets` (metres, one a beam, as a Velodyne's
+    calibration has them), `image_width`, `spin` clockwise or counterclockwise seen from
     above and `scan_start_deg`, where a revolution begins: they time a swept revolution;
     `time_field`, the per-point time a recorded bag carries: `time` as Velodyne's driver writes it,
     `t` as Ouster's), or an Ouster sensor's metadata JSON."""
@@ -378,6 +405,9 @@ def describe_pattern(pattern: BeamPattern) -> str:
         lines.append("  " + _offset_words(pattern.azimuth_offsets_deg))
     if pattern.beam_origin_offset:
         lines.append(f"  beams leave {1e3 * pattern.beam_origin_offset:.1f} mm out from the axis")
+    if pattern.beam_vertical_offsets:
+        lines.append(f"  beams leave {1e3 * min(pattern.beam_vertical_offsets):+.1f} to "
+                     f"{1e3 * max(pattern.beam_vertical_offsets):+.1f} mm from the axis, across the beam")
     lines.append(f"  spins {'clockwise' if pattern.clockwise else 'counterclockwise'} seen from above from "
                  f"{pattern.scan_start_deg:g} deg; a recorded bag's point time: {pattern.time_field} "
                  f"({TIME_FIELDS[pattern.time_field][0]})")
@@ -397,6 +427,8 @@ def save_pattern(pattern: BeamPattern, path: str | Path) -> Path:
         spec["azimuth_offsets_deg"] = [round(float(a), 6) for a in pattern.azimuth_offsets_deg]
     if pattern.beam_origin_offset:
         spec["beam_origin_offset"] = round(float(pattern.beam_origin_offset), 6)
+    if pattern.beam_vertical_offsets:
+        spec["beam_vertical_offsets"] = [round(float(z), 6) for z in pattern.beam_vertical_offsets]
     if not pattern.clockwise:
         spec["spin"] = "counterclockwise"
     if pattern.scan_start_deg != 180.0:

@@ -12,8 +12,8 @@ from l3e_env.cli import main
 from l3e_env.config import LidarConfig
 from l3e_env.judge import judge_scans, recognise_sensor
 from l3e_env.lidar import Lidar
-from l3e_env.patterns import (PATTERNS, BeamPattern, PatternError, fit_pattern, get_pattern, load_pattern,
-                              save_pattern)
+from l3e_env.patterns import (PATTERNS, BeamPattern, PatternError, describe_pattern, fit_pattern, get_pattern,
+                              load_pattern, save_pattern)
 from l3e_env.raycast import EmbreeCaster, PyBulletCaster
 from l3e_env.scan_mc import range_image_mesh
 from l3e_env.transforms import pose_to_matrix
@@ -60,6 +60,39 @@ def test_offset_beams_are_cast_from_their_own_origins_and_read_back_onto_their_b
     # without the offsets the same points would not read back: the beam origin is 27 mm out
     bare = BeamPattern("bare", OUSTER_LIKE.elevations_deg, 512, 60.0, 0.3, 256)
     assert bare.locate(scan.points)[2].max() > 0.25 * bare.spacing_deg()
+
+
+def _driver_points(distance: np.ndarray, pattern: BeamPattern, offsets_m: list[float]) -> np.ndarray:
+    """A Velodyne cloud as its ROS driver computes it from the calibration's vert_offset_correction:
+    horizontal run d cos(el) - dz sin(el), height d sin(el) + dz cos(el)."""
+    el = np.deg2rad(np.asarray(pattern.elevations_deg))[:, None]
+    az = 2 * np.pi * np.arange(pattern.n_azimuth)[None, :] / pattern.n_azimuth
+    dz = np.asarray(offsets_m)[:, None]
+    run = distance * np.cos(el) - dz * np.sin(el)
+    return np.stack([run * np.cos(az), run * np.sin(az), distance * np.sin(el) + dz * np.cos(el)], -1).reshape(-1, 3)
+
+
+def test_a_vlp16s_beams_leave_from_its_calibrations_vertical_offsets():
+    """The driver's VLP16db.yaml puts the -15 deg beam 11.2 mm above the axis and the +15 deg one
+    11.2 mm below. A cloud whose near returns (a leg at 0.8 m) lie off their beams as seen from the
+    axis is still recognised as a VLP-16 and read back onto its beams, and the simulated sensor
+    casts every ray from where the driver says its beam leaves."""
+    vlp16 = PATTERNS["vlp16"]
+    offsets = [11.2, 9.7, 8.1, 6.6, 5.1, 3.7, 2.2, 0.7, -0.7, -2.2, -3.7, -5.1, -6.6, -8.1, -9.7, -11.2]
+    distance = np.full((16, 1800), 6.0)
+    distance[:, :25] = 0.8
+    points = _driver_points(distance, vlp16, [z / 1e3 for z in offsets])
+    pattern, how = fit_pattern(points)
+    assert pattern is vlp16 and how.startswith("vlp16")
+    beam, column, off = vlp16.locate(points)
+    assert (beam == np.repeat(np.arange(16), 1800)).all() and (column == np.tile(np.arange(1800), 16)).all()
+    assert off.max() < 1e-4
+    np.testing.assert_allclose(vlp16.origins() + 6.0 * vlp16.directions(), _driver_points(
+        np.full((16, 1800), 6.0), vlp16, [z / 1e3 for z in offsets]), atol=1e-5)
+    # from the axis, the leg's returns on the outer beams lie 0.8 deg off: more than the quarter spacing
+    bare = dataclasses.replace(vlp16, name="vlp16-bare", beam_vertical_offsets=())
+    assert bare.locate(points)[2].max() > 0.25 * bare.spacing_deg()
+    assert "-11.2 to +11.2 mm from the axis, across the beam" in describe_pattern(vlp16)
 
 
 @pytest.mark.parametrize("model", ["vlp16", "os0-128"])
@@ -142,6 +175,12 @@ def test_pattern_files_in_the_projects_own_keys_and_as_ouster_metadata(tmp_path)
     listed.write_text(json.dumps({"elevations_deg": [-10, 0, 10], "columns": 360, "max_range": 30,
                                   "azimuth_offsets_deg": [1, 0, -1], "beam_origin_offset": 0.01}))
     assert load_pattern(listed).azimuth_offsets_deg == (1.0, 0.0, -1.0)
+    velodyne = tmp_path / "velodyne.yaml"
+    velodyne.write_text("elevations_deg: [-10, 0, 10]\ncolumns: 360\nmax_range: 30\n"
+                        "beam_vertical_offsets: [0.01, 0, -0.01]\n")
+    assert load_pattern(velodyne).beam_vertical_offsets == (0.01, 0.0, -0.01)
+    assert load_pattern(save_pattern(PATTERNS["vlp16"], tmp_path / "vlp16.yaml")).beam_vertical_offsets == \
+        PATTERNS["vlp16"].beam_vertical_offsets
     altitudes, azimuths = list(np.linspace(21.1, -21.1, 64)), [3.1, 0.9, -1.2, -3.3] * 16
     legacy = {"prod_line": "OS-1-64", "lidar_mode": "2048x10", "beam_altitude_angles": altitudes,
               "beam_azimuth_angles": azimuths, "lidar_origin_to_beam_origin_mm": 15.806}
@@ -165,6 +204,10 @@ def test_pattern_files_in_the_projects_own_keys_and_as_ouster_metadata(tmp_path)
     ("elevations_deg: [0, 1]\ncolumns: ten\nmax_range: 5\n", "not a number"),
     ("elevations_deg: [0, 1]\ncolumns: 10\nmax_range: 5\nazimuth_offsets_deg: [1]\n", "1 azimuth offsets for 2 beams"),
     ("elevations_deg: [0, 1]\ncolumns: 10\nmax_range: 5\nimage_width: 3\n", "does not divide its 10 columns"),
+    ("elevations_deg: [0, 1]\ncolumns: 10\nmax_range: 5\nbeam_vertical_offsets: [0.01]\n",
+     "1 vertical offsets for 2 beams"),
+    ("elevations_deg: [0, 1]\ncolumns: 10\nmax_range: 5\nbeam_vertical_offsets: [0.01, .nan]\n",
+     "beam origin offset that is not a finite number"),
     ("elevations_deg: [0, 1]\ncolumns: 10\nmax_range: 0\n", "max_range > min_range"),
     ("elevations_deg: [0, 1]\ncolumns: 10\nmax_range: 5\nspin: sideways\n", "spin is 'clockwise' or"),
     ("elevations_deg: [0, 1]\ncolumns: 10\nmax_range: 5\nscan_start_deg: .nan\n", "scan start of nan deg"),
