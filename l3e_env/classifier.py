@@ -432,7 +432,8 @@ class Classifier:
     def check_settings(self, lidar_model: str | None = None, registration: dict | None = None) -> None:
         """Warn when the scans or the registration differ from those the labels were made with."""
         trained = self.meta.get("lidar", {}).get("model")
-        if lidar_model is not None and trained is not None and lidar_model != trained:
+        # the calibrated VLP-16 is the same sensor: its beams leave at most 11 mm off the axis
+        if lidar_model is not None and trained is not None and lidar_model.removesuffix("-calibrated") != trained:
             warnings.warn(f"the classifier was trained on {trained} scans and now sees {lidar_model} scans",
                           stacklevel=2)
         in_use = json.loads(json.dumps(registration)) if registration is not None else None

@@ -110,17 +110,22 @@ class BeamPattern:
 TIME_FIELDS = {"time": ("float32 seconds", "<f4", 1.0), "t": ("uint32 nanoseconds", "<u4", 1e9)}
 
 PATTERNS: dict[str, BeamPattern] = {
-    # Velodyne VLP-16: 16 beams over +-15 deg, 0.2 deg azimuth at 10 Hz, 100 m. Its beams leave from
-    # 11.2 mm above the axis (the lowest, -15 deg) to 11.2 mm below it (the highest), as its
-    # calibration (the ROS driver's VLP16db.yaml, vert_offset_correction) has them.
-    "vlp16": BeamPattern("vlp16", tuple(np.linspace(-15, 15, 16)), 1800, 100.0, 0.5, 360,
-                         beam_vertical_offsets=(0.0112, 0.0097, 0.0081, 0.0066, 0.0051, 0.0037, 0.0022, 0.0007, -0.0007,
-                                                -0.0022, -0.0037, -0.0051, -0.0066, -0.0081, -0.0097, -0.0112)),
+    # Velodyne VLP-16: 16 beams over +-15 deg, 0.2 deg azimuth at 10 Hz, 100 m, every beam from the axis.
+    "vlp16": BeamPattern("vlp16", tuple(np.linspace(-15, 15, 16)), 1800, 100.0, 0.5, 360),
     # Ouster OS0-128: 128 beams over +-45 deg, 1024 columns at 10 Hz, 50 m (datasheet, 80 % targets).
     # Its encoder angle runs 2 pi (1 - count / 90112) from the connector at the back (Ouster's
     # software manual), so it spins clockwise seen from above from straight behind, as a Velodyne.
     "os0-128": BeamPattern("os0-128", tuple(np.linspace(-45, 45, 128)), 1024, 50.0, 0.3, 256, time_field="t"),
 }
+# The VLP-16 as its calibration has it (the ROS driver's VLP16db.yaml, vert_offset_correction, which
+# the driver adds to every return): its beams leave from 11.2 mm above the axis (the lowest, -15 deg)
+# to 11.2 mm below it (the highest). The simulation's `vlp16` stays on the axis, as every figure of
+# the README was measured with it (its scans differ by at most 11 mm); a real VLP-16's cloud is
+# recognised as whichever of the two its near returns lie on.
+PATTERNS["vlp16-calibrated"] = replace(
+    PATTERNS["vlp16"], name="vlp16-calibrated",
+    beam_vertical_offsets=(0.0112, 0.0097, 0.0081, 0.0066, 0.0051, 0.0037, 0.0022, 0.0007,
+                           -0.0007, -0.0022, -0.0037, -0.0051, -0.0066, -0.0081, -0.0097, -0.0112))
 PATTERN_FILES = (".yaml", ".yml", ".json")
 BEAM_TOLERANCE = 0.25  # a return lies on a beam within this share of the beams' spacing
 
@@ -337,7 +342,8 @@ def _beams_of(elevation: np.ndarray, rings: np.ndarray | None) -> np.ndarray:
 def fit_pattern(points: np.ndarray, rings: np.ndarray | None = None) -> tuple[BeamPattern, str]:
     """The beam pattern of one full revolution (N, 3) in its sensor's frame, and how it was found:
     the registered pattern with the fewest beams that every return lies on, with a return on its
-    lowest or highest beam (its column count taken from the scan where that differs, as a VLP-16
+    lowest or highest beam (of two with the same beams, `vlp16` and `vlp16-calibrated`, the one
+    whose beams the returns lie closer to) (its column count taken from the scan where that differs, as a VLP-16
     spinning at 20 Hz), else one fitted to the scan: a beam per ring (`rings`, the cloud's ring
     field; the beams' origin offset fitted too) or per cluster of equal elevations."""
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
@@ -350,13 +356,16 @@ def fit_pattern(points: np.ndarray, rings: np.ndarray | None = None) -> tuple[Be
     points = points[usable]
     if len(points) < 100:
         raise PatternError(f"{len(points)} finite returns are too few to tell the sensor's beams")
-    for known in sorted(PATTERNS.values(), key=lambda p: p.n_beams):
+    fits = []
+    for known in PATTERNS.values():
         beam, _, off = known.locate(points)
         ends = {int(np.argmin(known.elevations_deg)), int(np.argmax(known.elevations_deg))}
         # a scan of another sensor with beams on this one's grid (an OS1-64 on the OS0-128's) leaves
         # both end beams empty; a scan of this sensor reaches the ground or the roof with one of them
-        if off.max() > BEAM_TOLERANCE * known.spacing_deg() or not ends & set(np.unique(beam).tolist()):
-            continue
+        if off.max() <= BEAM_TOLERANCE * known.spacing_deg() and ends & set(np.unique(beam).tolist()):
+            fits.append((known.n_beams, float(off.mean()), len(fits), known, beam))
+    if fits:  # the fewest beams; of the same beams (a VLP-16 with or without its offsets), the closest
+        _, _, _, known, beam = min(fits, key=lambda fit: fit[:3])
         columns = _columns(points, beam)
         if abs(columns - known.n_azimuth) <= 0.02 * known.n_azimuth:
             return known, f"{known.name}: every return lies on one of its beams"

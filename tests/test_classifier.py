@@ -200,6 +200,7 @@ def test_sensor_or_registration_mismatch_is_a_warning_and_a_match_is_silent(tmp_
         warnings.simplefilter("always")
         clf.check_settings("os0-128")
         clf.check_settings("vlp16")
+        clf.check_settings("vlp16-calibrated")  # the same sensor, its beams' origins calibrated
     assert [str(w.message) for w in caught] == ["the classifier was trained on vlp16 scans and now sees os0-128 scans"]
     clf.meta["registration"] = {"max_iterations": 15}
     with warnings.catch_warnings(record=True) as caught:

@@ -72,27 +72,31 @@ def _driver_points(distance: np.ndarray, pattern: BeamPattern, offsets_m: list[f
     return np.stack([run * np.cos(az), run * np.sin(az), distance * np.sin(el) + dz * np.cos(el)], -1).reshape(-1, 3)
 
 
-def test_a_vlp16s_beams_leave_from_its_calibrations_vertical_offsets():
+def test_a_vlp16s_cloud_is_recognised_with_or_without_its_calibrations_vertical_offsets():
     """The driver's VLP16db.yaml puts the -15 deg beam 11.2 mm above the axis and the +15 deg one
-    11.2 mm below. A cloud whose near returns (a leg at 0.8 m) lie off their beams as seen from the
-    axis is still recognised as a VLP-16 and read back onto its beams, and the simulated sensor
-    casts every ray from where the driver says its beam leaves."""
-    vlp16 = PATTERNS["vlp16"]
+    11.2 mm below, and adds that to every return. Near returns (a leg at 0.8 m) then lie 0.8 deg
+    off their beams as seen from the axis, yet the cloud is recognised as a VLP-16
+    (`vlp16-calibrated`), read back onto its beams, and cast again from where the driver says each
+    beam leaves; a cloud from the axis (the simulation's `vlp16`) stays `vlp16`."""
+    calibrated = PATTERNS["vlp16-calibrated"]
     offsets = [11.2, 9.7, 8.1, 6.6, 5.1, 3.7, 2.2, 0.7, -0.7, -2.2, -3.7, -5.1, -6.6, -8.1, -9.7, -11.2]
     distance = np.full((16, 1800), 6.0)
     distance[:, :25] = 0.8
-    points = _driver_points(distance, vlp16, [z / 1e3 for z in offsets])
+    points = _driver_points(distance, calibrated, [z / 1e3 for z in offsets])
     pattern, how = fit_pattern(points)
-    assert pattern is vlp16 and how.startswith("vlp16")
-    beam, column, off = vlp16.locate(points)
+    assert pattern is calibrated and how.startswith("vlp16-calibrated: every return")
+    beam, column, off = calibrated.locate(points)
     assert (beam == np.repeat(np.arange(16), 1800)).all() and (column == np.tile(np.arange(1800), 16)).all()
     assert off.max() < 1e-4
-    np.testing.assert_allclose(vlp16.origins() + 6.0 * vlp16.directions(), _driver_points(
-        np.full((16, 1800), 6.0), vlp16, [z / 1e3 for z in offsets]), atol=1e-5)
+    np.testing.assert_allclose(calibrated.origins() + 6.0 * calibrated.directions(), _driver_points(
+        np.full((16, 1800), 6.0), calibrated, [z / 1e3 for z in offsets]), atol=1e-5)
     # from the axis, the leg's returns on the outer beams lie 0.8 deg off: more than the quarter spacing
-    bare = dataclasses.replace(vlp16, name="vlp16-bare", beam_vertical_offsets=())
-    assert bare.locate(points)[2].max() > 0.25 * bare.spacing_deg()
-    assert "-11.2 to +11.2 mm from the axis, across the beam" in describe_pattern(vlp16)
+    assert PATTERNS["vlp16"].locate(points)[2].max() > 0.25 * PATTERNS["vlp16"].spacing_deg()
+    assert fit_pattern(_driver_points(distance, calibrated, [0.0] * 16))[0] is PATTERNS["vlp16"]
+    # with no near return both fit; the one whose beams the returns lie on is taken
+    assert fit_pattern(_driver_points(np.full((16, 1800), 6.0), calibrated, [z / 1e3 for z in offsets]))[0] \
+        is calibrated
+    assert "-11.2 to +11.2 mm from the axis, across the beam" in describe_pattern(calibrated)
 
 
 @pytest.mark.parametrize("model", ["vlp16", "os0-128"])
@@ -179,8 +183,9 @@ def test_pattern_files_in_the_projects_own_keys_and_as_ouster_metadata(tmp_path)
     velodyne.write_text("elevations_deg: [-10, 0, 10]\ncolumns: 360\nmax_range: 30\n"
                         "beam_vertical_offsets: [0.01, 0, -0.01]\n")
     assert load_pattern(velodyne).beam_vertical_offsets == (0.01, 0.0, -0.01)
-    assert load_pattern(save_pattern(PATTERNS["vlp16"], tmp_path / "vlp16.yaml")).beam_vertical_offsets == \
-        PATTERNS["vlp16"].beam_vertical_offsets
+    calibrated = PATTERNS["vlp16-calibrated"]
+    assert load_pattern(save_pattern(calibrated, tmp_path / "vlp16.yaml")).beam_vertical_offsets == \
+        calibrated.beam_vertical_offsets
     altitudes, azimuths = list(np.linspace(21.1, -21.1, 64)), [3.1, 0.9, -1.2, -3.3] * 16
     legacy = {"prod_line": "OS-1-64", "lidar_mode": "2048x10", "beam_altitude_angles": altitudes,
               "beam_azimuth_angles": azimuths, "lidar_origin_to_beam_origin_mm": 15.806}

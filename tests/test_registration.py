@@ -75,9 +75,7 @@ def test_a_single_scan_hessian_is_that_of_registering_the_scan_onto_itself():
     H = scan_hessian(tunnel)
     assert np.abs(H - register(tunnel, tunnel).hessian).max() < 1e-4 * np.abs(H).max()  # ICP stays at identity
     w, V = np.linalg.eigh(H)
-    # the weakest direction runs along the tunnel (x), whose eigenvalue only the range noise's tilted
-    # normals give (7-10 against 150-160 for the next, over three poses)
-    assert abs(V[0, 0]) > 0.95 and w[1] > 10 * w[0]
+    assert abs(V[0, 0]) > 0.95 and w[1] > 20 * w[0]  # the weakest direction runs along the tunnel (x)
     office, _, _ = scan_pair("office", [5, 0, 0.85, 0, 0, 0.3], [0, 0, 0, 0, 0, 0])
     assert np.linalg.eigvalsh(scan_hessian(office))[0] > 5 * w[0]
     with pytest.raises(RegistrationError, match="points"):
