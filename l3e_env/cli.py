@@ -24,7 +24,7 @@ def scene_names(text: str) -> list[str]:
     return [scene_name(name.strip()) for name in text.split(",")]
 
 
-SENSOR_HELP = "vlp16, os0-128 or a beam pattern file (.yaml/.json, or an Ouster metadata .json)"
+SENSOR_HELP = "vlp16, vlp16-calibrated, os0-128 or a beam pattern file (.yaml/.json, or an Ouster metadata .json)"
 
 
 def sensor_name(text: str) -> str:
