@@ -19,7 +19,7 @@ import torch
 from torch import nn
 
 from .config import from_dict, plain
-from .constraints import FEATURES, AxisStacker, scan_features
+from .constraints import FEATURES, SURFACE_FEATURES, AxisStacker, scan_features, surface_rows
 from .files import write_atomic
 from .sparse import (
     DownConv,
@@ -80,6 +80,9 @@ class ModelConfig:
     constraints: bool = False
     # the ResUNet levels whose Hessian features the layer reads (0: 0.2 m voxels, 1: 0.4 m)
     constraint_levels: tuple[int, ...] = (0,)
+    # each voxel also enters the ResUNet with its point-to-plane row [n, p x n] (normal facing the
+    # sensor) and whether its neighbourhood is planar: what each voxel constrains, in any scene
+    surface_rows: bool = False
 
 
 def _bn_relu(c: int) -> nn.Sequential:
@@ -113,8 +116,9 @@ class ResUNet(nn.Module):
     def __init__(self, cfg: ModelConfig):
         super().__init__()
         c = cfg.channels
-        self.voxel, self.scale = cfg.voxel, cfg.coordinate_scale
-        self.stem, self.stem_norm = SubmanifoldConv(7, c[0]), _bn_relu(c[0])
+        self.voxel, self.scale, self.surface_rows = cfg.voxel, cfg.coordinate_scale, cfg.surface_rows
+        self.stem = SubmanifoldConv(7 + (SURFACE_FEATURES if cfg.surface_rows else 0), c[0])
+        self.stem_norm = _bn_relu(c[0])
         self.stem_block = ResBlock(c[0], c[0])
         self.down = nn.ModuleList(DownConv(c[i], c[i + 1]) for i in range(len(c) - 1))
         self.down_norm = nn.ModuleList(_bn_relu(c[i + 1]) for i in range(len(c) - 1))
@@ -138,6 +142,9 @@ class ResUNet(nn.Module):
         # the voxel is in the scan (range and direction matter for the constraint it gives)
         inside = means / self.voxel - level.coords[:, 1:] - 0.5
         x = torch.cat([torch.ones(len(means), 1), inside, means / self.scale], dim=1)
+        if self.surface_rows:
+            rows = surface_rows(level, means)
+            x = torch.cat([x, rows[:, :3], rows[:, 3:6] / self.scale, rows[:, 6:]], dim=1)
         levels = [level]
         for _ in self.down:  # coarser levels first: their kernel maps give the finer ones (Level.neighbours)
             levels.append(levels[-1].coarser()[0])
@@ -196,6 +203,8 @@ class LocalizabilityNet(nn.Module):
         for a, b in zip(widths[:-1], widths[1:]):
             layers += [nn.Linear(a, b), nn.ReLU(inplace=True), nn.Dropout(cfg.dropout)]
         self.head = nn.Sequential(*layers, nn.Linear(widths[-1], 6))
+        if cfg.surface_rows and cfg.architecture != "resunet":
+            raise ValueError("surface rows are the ResUNet's voxels' own; a PointNet reads bare points")
         if cfg.constraints and cfg.architecture != "resunet":
             raise ValueError("the constraint layer reads the ResUNet's voxels; a PointNet has none")
         levels = cfg.constraint_levels

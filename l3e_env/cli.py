@@ -326,6 +326,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
         model["architecture"] = args.architecture
     if args.gravity:
         model["gravity"] = True
+    if args.surface_rows:
+        model["surface_rows"] = True
     if args.sampling:
         model["sampling"] = args.sampling
     if args.points:
@@ -589,6 +591,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--architecture", choices=["resunet", "pointnet"])
     p.add_argument("--gravity", action="store_true",
                    help="the model also reads the sensor's tilt (the world's up direction in the sensor frame)")
+    p.add_argument("--surface-rows", action="store_true", dest="surface_rows",
+                   help="each voxel also enters the network with its point-to-plane row [n, p x n] and whether "
+                        "it is planar (the ResUNet only)")
     p.add_argument("--sampling", choices=["points", "voxels"],
                    help="draw the input from the scan's points (default) or from one point per voxel")
     p.add_argument("--points", type=int, help="points (or voxels) the model reads from a scan (default 4000)")

@@ -93,48 +93,81 @@ def voxel_hessian(level: Level, means: torch.Tensor, batch_size: int) -> np.ndar
 
 
 @njit(cache=True, nogil=True)
+def _planar_row(neighbours: np.ndarray, means: np.ndarray, v: int, row: np.ndarray) -> bool:
+    """Write voxel v's point-to-plane row J_v = [n_v, p_v x n_v] into `row` (n_v turned to face the
+    sensor) and say whether the voxel is planar: the normal is that of the scatter of the mean
+    points of its 3x3x3 block (`neighbours`, len(means): empty), in float64 since the moments are
+    about the sensor and float32 would cancel the scatter of far voxels."""
+    n = len(means)
+    count = 0
+    sx = sy = sz = sxx = sxy = sxz = syy = syz = szz = 0.0
+    for u in neighbours:
+        if u < n:
+            x, y, z = means[u, 0], means[u, 1], means[u, 2]
+            count += 1
+            sx += x
+            sy += y
+            sz += z
+            sxx += x * x
+            sxy += x * y
+            sxz += x * z
+            syy += y * y
+            syz += y * z
+            szz += z * z
+    if count < MIN_NEIGHBOURS:
+        return False
+    mx, my, mz = sx / count, sy / count, sz / count
+    nx, ny, nz, smallest, middle = _closed_form_normal(sxx / count - mx * mx, sxy / count - mx * my,
+                                                       sxz / count - mx * mz, syy / count - my * my,
+                                                       syz / count - my * mz, szz / count - mz * mz)
+    if not smallest < PLANARITY * middle:
+        return False
+    px, py, pz = means[v, 0], means[v, 1], means[v, 2]
+    if nx * px + ny * py + nz * pz > 0:  # facing the sensor; J J^T does not care
+        nx, ny, nz = -nx, -ny, -nz
+    row[0], row[1], row[2] = nx, ny, nz
+    row[3], row[4], row[5] = py * nz - pz * ny, pz * nx - px * nz, px * ny - py * nx  # p x n
+    return True
+
+
+@njit(cache=True, nogil=True)
 def _add_planar_hessians(table: np.ndarray, means: np.ndarray, groups: np.ndarray, hessians: np.ndarray) -> None:
-    """hessians[groups[v]] += J_v^T J_v over the planar voxels v, each voxel with its (27,) row of
-    neighbours in `table` (len(means): empty) and its mean point; the normal is that of the scatter
-    of the block's mean points (float64: the moments are about the sensor, and float32 would cancel
-    the scatter of far voxels).
+    """hessians[groups[v]] += J_v^T J_v over the planar voxels v (`_planar_row`), each voxel with its
+    (27,) row of neighbours in `table`.
 
     A compiled loop, one voxel at a time: in numpy the same work is some sixty passes over a few
     thousand voxels, whose per-operation overhead cost several times the arithmetic
     (benchmarks/RESULTS.md)."""
-    n = len(means)
     row = np.empty(6)
-    for v in range(n):
-        count = 0
-        sx = sy = sz = sxx = sxy = sxz = syy = syz = szz = 0.0
-        for u in table[v]:
-            if u < n:
-                x, y, z = means[u, 0], means[u, 1], means[u, 2]
-                count += 1
-                sx += x
-                sy += y
-                sz += z
-                sxx += x * x
-                sxy += x * y
-                sxz += x * z
-                syy += y * y
-                syz += y * z
-                szz += z * z
-        if count < MIN_NEIGHBOURS:
+    for v in range(len(means)):
+        if not _planar_row(table[v], means, v, row):
             continue
-        mx, my, mz = sx / count, sy / count, sz / count
-        nx, ny, nz, smallest, middle = _closed_form_normal(sxx / count - mx * mx, sxy / count - mx * my,
-                                                           sxz / count - mx * mz, syy / count - my * my,
-                                                           syz / count - my * mz, szz / count - mz * mz)
-        if not smallest < PLANARITY * middle:
-            continue
-        px, py, pz = means[v, 0], means[v, 1], means[v, 2]
-        row[0], row[1], row[2] = nx, ny, nz
-        row[3], row[4], row[5] = py * nz - pz * ny, pz * nx - px * nz, px * ny - py * nx  # p x n
         hessian = hessians[groups[v]]
         for i in range(6):
             for j in range(6):
                 hessian[i, j] += row[i] * row[j]
+
+
+@njit(cache=True, nogil=True)
+def _planar_rows(table: np.ndarray, means: np.ndarray, rows: np.ndarray) -> None:
+    """rows[v] = (J_v, 1) for the planar voxels v; other rows are left as they are (zeros)."""
+    row = np.empty(6)
+    for v in range(len(means)):
+        if _planar_row(table[v], means, v, row):
+            rows[v, :6] = row
+            rows[v, 6] = 1.0
+
+
+SURFACE_FEATURES = 7  # a voxel's J = [n, p x n] and whether it is planar
+
+
+def surface_rows(level: Level, means: torch.Tensor) -> torch.Tensor:
+    """(V, 7) float32 per voxel: its point-to-plane row J = [n, p x n] (the normal facing the sensor)
+    and 1 where its 3x3x3 block is planar; zeros where it is not. The Hessian is the sum of J J^T;
+    a network fed J sees what each voxel constrains, in any scene."""
+    rows = np.zeros((len(means), SURFACE_FEATURES))
+    _planar_rows(level.neighbours().numpy(), means.numpy().astype(np.float64), rows)
+    return torch.from_numpy(rows.astype(np.float32))
 
 
 def coarser_means(level: Level, means: np.ndarray) -> tuple[Level, np.ndarray]:

@@ -14,6 +14,7 @@ from l3e_env.constraints import (
     hessian_features,
     scan_features,
     smallest_eigenvector,
+    surface_rows,
     voxel_hessian,
 )
 from l3e_env.dataset import LabelDataset
@@ -89,6 +90,30 @@ def test_voxel_hessian_matches_a_brute_force_sum_and_keeps_scans_apart(rng):
         expected = _brute_force_hessian(points.numpy().astype(np.float64), 0.2)
         assert np.allclose(both[k], expected, rtol=1e-4, atol=1e-3)
     assert expected[0, 0] < 0.02 * expected[1, 1]  # the corridor's walls hold (almost) nothing along x
+
+
+def test_surface_rows_face_the_sensor_and_sum_to_the_hessian(rng):
+    """The ResUNet's surface input: each planar voxel's row J = [n, p x n] with its normal turned to
+    the sensor, 1 in the last column; the Hessian is the sum of their outer products."""
+    room = _box_room(rng, 8.0, n=3000)
+    level, means, _ = voxelize([room], 0.2)
+    rows = surface_rows(level, means).numpy().astype(np.float64)
+    planar = rows[:, 6] == 1
+    assert rows.shape == (len(means), 7) and planar.mean() > 0.6 and not rows[~planar].any()
+    p, n = means.numpy().astype(np.float64)[planar], rows[planar, :3]
+    assert np.allclose(np.linalg.norm(n, axis=1), 1.0, atol=1e-6) and ((p * n).sum(1) < 0).all()
+    np.testing.assert_allclose(rows[planar, 3:6], np.cross(p, n), atol=1e-5)
+    J = rows[planar, :6]
+    np.testing.assert_allclose(J.T @ J, voxel_hessian(level, means, 1)[0], rtol=1e-5, atol=1e-3)
+    floor = np.abs(p[:, 2] + 1.0) < 0.05  # the floor 1 m below the sensor: its normal points up
+    up = np.abs(n[floor] - [0.0, 0.0, 1.0]).max(axis=1) < 0.05  # all but beside the walls' feet
+    assert floor.sum() > 50 and up.mean() > 0.8
+    net = LocalizabilityNet(dataclasses.replace(SMALL, surface_rows=True))
+    out = net([room, room * 1.5])
+    out.sum().backward()
+    assert out.shape == (2, 6) and net.backbone.stem.weight.grad[-7:].abs().sum() > 0  # the rows are read
+    with pytest.raises(ValueError, match="surface rows"):
+        LocalizabilityNet(dataclasses.replace(SMALL, architecture="pointnet", surface_rows=True))
 
 
 def test_the_coarser_levels_features_are_those_of_the_finer_voxels_means_on_the_coarser_grid(rng):
