@@ -25,6 +25,9 @@ def scene_names(text: str) -> list[str]:
 
 
 SENSOR_HELP = "vlp16, vlp16-calibrated, os0-128 or a beam pattern file (.yaml/.json, or an Ouster metadata .json)"
+NOISE_HELP = ("draw the odometry's and the LiDAR's noise from streams of their own, so that a drive with another "
+              "--sensor or sweep setting has the same odometry noise (default: one stream, the drives the README's "
+              "figures were measured on)")
 
 
 def sensor_name(text: str) -> str:
@@ -550,9 +553,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="a swept recording's scans are deskewed with the leg odometry's motion, turned by the "
                         "gyro's rotation (default) or the odometry's own")
     p.add_argument("--separate-noise", action="store_true",
-                   help="draw the odometry's and the LiDAR's noise from streams of their own, so that a drive with "
-                        "another --sensor or sweep setting has the same odometry noise (default: one stream, "
-                        "the drives the README's figures were measured on)")
+                   help=NOISE_HELP)
     p.add_argument("--out", help="output folder (default: l3e_out/ate-<scene>-<time>)")
     p.add_argument("--workers", type=int, default=1,
                    help="processes that judge the route with scanmc before the fusion (default 1)")
@@ -568,9 +569,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--recording", help="also save the drive as a recording.npz for l3e ate --recording")
     p.add_argument("--separate-noise", action="store_true",
-                   help="draw the odometry's and the LiDAR's noise from streams of their own, so that a drive with "
-                        "another --sensor or sweep setting has the same odometry noise (default: one stream, "
-                        "the drives the README's figures were measured on)")
+                   help=NOISE_HELP)
     p.add_argument("--imu-rate", type=float, default=200.0, help="rate of /imu in Hz (default 200; 0: no IMU)")
     p.add_argument("--imu-orientation", action=argparse.BooleanOptionalAction, default=True,
                    help="write a nine-axis unit's orientation in /imu (default), or none as a six-axis unit")
