@@ -28,7 +28,7 @@ from .envs.navigation import NavigationEnv
 from .follower import RouteFollower
 from .imu import StepGyro
 from .labels import AXES
-from .lidar import DESKEW_SOURCES, DESKEW_STEPS, Lidar, Scan, deskew, deskew_motion, get_pattern
+from .lidar import DESKEW_SOURCES, Lidar, Scan, deskew, deskew_motion, get_pattern
 from .odometry import odometry_sigmas
 from .raycast import EmbreeCaster
 from .registration import PreparedTarget, RegistrationConfig, RegistrationError, register
@@ -251,8 +251,7 @@ def deskewed(rec: Recording, source: str = "gyro") -> Recording:
     motions = [np.eye(4)]
     for k, (before, after) in enumerate(zip(rec.ground_truth, rec.ground_truth[1:])):
         turn = None if gyro is None else gyro.measure(before[:3, :3], after[:3, :3], RobotConfig.dt)
-        body = deskew_motion(list(rec.odometry[max(0, k + 1 - DESKEW_STEPS): k + 1]), turn)
-        motions.append(inverse(rec.T_b_s) @ body @ rec.T_b_s)  # the sensor's motion, lever arm included
+        motions.append(deskew_motion(rec.odometry[: k + 1], turn, mounting=rec.T_b_s))  # the last steps count
     return replace(rec, scans=[deskew(s, m, pattern) for s, m in zip(rec.scans, motions)],
                    samples=[deskew(s, m, pattern) for s, m in zip(rec.samples, motions)])
 

@@ -9,6 +9,7 @@ from scipy.spatial.transform import Rotation
 from .config import LidarConfig
 from .patterns import PATTERNS, BeamPattern, get_pattern, register_pattern
 from .raycast import RayCaster
+from .transforms import inverse
 
 __all__ = ["PATTERNS", "BeamPattern", "Lidar", "Scan", "get_pattern", "register_pattern"]
 
@@ -123,22 +124,29 @@ DESKEW_STEPS = 2  # odometry steps averaged into the motion a revolution is desk
 DESKEW_SOURCES = ("gyro", "odometry")  # where a deskewing's rotation comes from; its translation is the odometry's
 
 
-def deskew_motion(steps: list[np.ndarray], gyro: np.ndarray | None = None) -> np.ndarray:
+def deskew_motion(steps: list[np.ndarray], gyro: np.ndarray | None = None,
+                  mounting: np.ndarray | None = None) -> np.ndarray:
     """The motion to deskew a revolution with, from the odometry's last steps (oldest first; the
     result is in their frame): the mean of the last DESKEW_STEPS, rotations averaged on SO(3). One
     step's leg odometry carries its white noise whole, which doubled ICP's yaw error on a steady
     walk; two steps halve the noise's variance and still follow a weaving walk's turns
     (`benchmarks/deskew_step_error.py`). `gyro`, the gyro's rotation over the revolution (3x3, in
     the steps' frame), replaces the odometry's rotation, as LiDAR-inertial odometry deskews: it is
-    the revolution's own turn, near exact, where the legs' turn is noisy and lags a weaving walk."""
+    the revolution's own turn, near exact, where the legs' turn is noisy and lags a weaving walk.
+    `mounting` (the sensor in the steps' frame, T_b_s): the motion is then the sensor's, the body's
+    carried through the mounting, so the lever arm turns with the rotation."""
     recent = [np.asarray(m, dtype=np.float64) for m in steps[-DESKEW_STEPS:]]
     mean = np.eye(4)
     if recent:
-        mean[:3, :3] = Rotation.from_matrix(np.array([m[:3, :3] for m in recent])).mean().as_matrix()
         mean[:3, 3] = np.mean([m[:3, 3] for m in recent], axis=0)
     if gyro is not None:
         mean[:3, :3] = gyro
-    return mean
+    elif recent:
+        mean[:3, :3] = Rotation.from_matrix(np.array([m[:3, :3] for m in recent])).mean().as_matrix()
+    if mounting is None:
+        return mean
+    mounting = np.asarray(mounting, dtype=np.float64)
+    return inverse(mounting) @ mean @ mounting
 
 
 def _turned(vectors: np.ndarray, turn: np.ndarray, share: np.ndarray) -> np.ndarray:

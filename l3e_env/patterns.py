@@ -60,8 +60,9 @@ class BeamPattern:
             return None
         el = np.deg2rad(np.asarray(self.elevations_deg))[:, None]
         az = self._column_azimuths()[None, :] + self._beam_azimuth_offsets()[:, None]
-        out = self.beam_origin_offset - self._vertical_offsets()[:, None] * np.sin(el)  # horizontal part
-        up = self._vertical_offsets()[:, None] * np.cos(el) * np.ones_like(az)
+        offsets = self._vertical_offsets()[:, None]
+        out = self.beam_origin_offset - offsets * np.sin(el)  # horizontal part
+        up = offsets * np.cos(el) * np.ones_like(az)
         origins = np.stack([out * np.cos(az), out * np.sin(az), up], axis=-1)
         return origins.reshape(-1, 3).astype(np.float32)
 
@@ -93,9 +94,10 @@ class BeamPattern:
         beam = np.abs(elevation[:, None] - beams[None]).argmin(axis=1) if len(points) else np.zeros(0, np.int64)
         if self.beam_vertical_offsets and len(points):
             # seen from its beam's own origin; the beam first found is off by at most one near the sensor
+            offsets = self._vertical_offsets()
             for _ in range(2):
                 el = np.deg2rad(beams[beam])
-                dz = self._vertical_offsets()[beam]
+                dz = offsets[beam]
                 elevation = np.degrees(np.arctan2(points[:, 2] - dz * np.cos(el), horizontal + dz * np.sin(el)))
                 beam = np.abs(elevation[:, None] - beams[None]).argmin(axis=1)
         step = 2 * np.pi / self.n_azimuth
@@ -342,9 +344,9 @@ def _beams_of(elevation: np.ndarray, rings: np.ndarray | None) -> np.ndarray:
 def fit_pattern(points: np.ndarray, rings: np.ndarray | None = None) -> tuple[BeamPattern, str]:
     """The beam pattern of one full revolution (N, 3) in its sensor's frame, and how it was found:
     the registered pattern with the fewest beams that every return lies on, with a return on its
-    lowest or highest beam (of two with the same beams, `vlp16` and `vlp16-calibrated`, the one
-    whose beams the returns lie closer to) (its column count taken from the scan where that differs, as a VLP-16
-    spinning at 20 Hz), else one fitted to the scan: a beam per ring (`rings`, the cloud's ring
+    lowest or highest beam; of two with the same beams (`vlp16`, `vlp16-calibrated`), the one whose
+    beams the returns lie closer to; its column count taken from the scan where that differs (a
+    VLP-16 spinning at 20 Hz). Else one fitted to the scan: a beam per ring (`rings`, the cloud's ring
     field; the beams' origin offset fitted too) or per cluster of equal elevations."""
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     usable = np.isfinite(points).all(axis=1) & (np.linalg.norm(points, axis=1) > 0)

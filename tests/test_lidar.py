@@ -197,3 +197,6 @@ def test_the_deskewing_motion_is_the_mean_of_the_odometry_s_last_steps():
     inertial = matrix_to_pose(deskew_motion(steps, gyro))  # the gyro's turn, the odometry's translation
     np.testing.assert_allclose(inertial, [0.12, 0.01, 0.005, 0.01, 0.0, 0.25], atol=1e-3)
     np.testing.assert_allclose(deskew_motion([], gyro)[:3, :3], gyro)
+    mounting = pose_to_matrix([0.1, 0.0, 0.3, 0, 0, 0.2])  # the sensor's motion: the body's, carried through it
+    np.testing.assert_allclose(deskew_motion(steps, gyro, mounting=mounting),
+                               np.linalg.inv(mounting) @ deskew_motion(steps, gyro) @ mounting, atol=1e-12)

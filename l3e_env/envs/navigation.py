@@ -137,7 +137,7 @@ class NavigationEnv(gym.Env):
                 self._odometry_steps = (self._odometry_steps + [increment])[-DESKEW_STEPS:]
                 turn = None if self.gyro is None else \
                     self.gyro.measure(T_prev[:3, :3], T_cur[:3, :3], self.config.robot.dt)
-                motion = inverse(self.robot.T_b_s) @ deskew_motion(self._odometry_steps, turn) @ self.robot.T_b_s
+                motion = deskew_motion(self._odometry_steps, turn, mounting=self.robot.T_b_s)
                 points = deskew(points, motion, self.lidar.pattern)
             self._fusion_info = self.fusion.step(increment, points, T_cur)
         self.steps += 1
