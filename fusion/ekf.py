@@ -13,7 +13,7 @@ import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter
 
 from .graph import FusionConfig
-from .steps import StepReport, check_odometry_sigmas, resolve_step
+from .steps import StepReport, check_attitude, check_odometry_sigmas, resolve_step
 from .tangent import GTSAM_FROM_PROJECT, to_gtsam_order
 
 
@@ -65,6 +65,22 @@ class EKFFusion:
         R = np.diag(to_gtsam_order(np.asarray(self.config.icp_sigmas))[keep] ** 2)
         ekf.dim_z = int(keep.sum())
         ekf.update(z, lambda x: H, lambda x: H @ x, R=R)
+
+    def add_attitude(self, R_w_b: np.ndarray, sigmas: np.ndarray) -> np.ndarray:
+        """`FusionGraph.add_attitude` as a filter update of the newest pose: the residual
+        Log(R^-1 R_w_b) is the state's rotation error plus the measurement's, on the measured axes."""
+        R, precisions = check_attitude(R_w_b, sigmas)
+        keep = precisions > 0
+        if keep.any():
+            H = np.hstack([np.eye(3), np.zeros((3, 3))])[keep]
+            ekf = ExtendedKalmanFilter(dim_x=6, dim_z=int(keep.sum()))
+            ekf.x, ekf.P = np.zeros(6), self.P.copy()
+            z = gtsam.Rot3.Logmap(self.T.rotation().between(gtsam.Rot3(R)))[keep]
+            ekf.update(z, lambda x: H, lambda x: H @ x, R=np.diag(1.0 / precisions[keep]))
+            self.T = self.T.retract(ekf.x)
+            self.P = 0.5 * (ekf.P + ekf.P.T)
+            self.poses[-1] = self.T.matrix()
+        return self.T.matrix()
 
     def trajectory(self) -> np.ndarray:
         """The filtered poses (k+1, 4, 4)."""

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
-from .steps import MASK_MODES, StepReport, check_odometry_sigmas, resolve_step
+from .steps import MASK_MODES, StepReport, check_attitude, check_odometry_sigmas, resolve_step
 from .tangent import to_gtsam_order
 
 
@@ -103,6 +103,20 @@ class FusionGraph:
         self.k = j
         self.estimate = self.isam.calculateEstimatePose3(j)
         return self.estimate.matrix(), step.report()
+
+    def add_attitude(self, R_w_b: np.ndarray, sigmas: np.ndarray) -> np.ndarray:
+        """An absolute orientation of the newest pose, as an IMU gives it (roll and pitch from
+        gravity; the heading from a magnetometer, or inf where there is none): a prior on the
+        pose's rotation only, its translation left free. Returns the new estimate of that pose."""
+        R, precisions = check_attitude(R_w_b, sigmas)
+        T = self.estimate.matrix()
+        T[:3, :3] = R
+        noise = gtsam.noiseModel.Diagonal.Precisions(to_gtsam_order(np.concatenate([np.zeros(3), precisions])))
+        graph = gtsam.NonlinearFactorGraph()
+        graph.add(gtsam.PriorFactorPose3(self.k, _pose3(T), noise))
+        self._update(graph, gtsam.Values(), self.k)
+        self.estimate = self.isam.calculateEstimatePose3(self.k)
+        return self.estimate.matrix()
 
     def trajectory(self) -> np.ndarray:
         """All smoothed poses (k+1, 4, 4)."""

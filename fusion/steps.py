@@ -37,6 +37,21 @@ def check_odometry_sigmas(sigmas: np.ndarray | None) -> np.ndarray:
     return out
 
 
+def check_attitude(R_w_b: np.ndarray, sigmas: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """An absolute orientation (3x3 rotation) and its sigmas (3, rad, about the body's x, y and z;
+    inf where an axis is not measured, as the heading of an IMU without a trusted magnetometer),
+    checked, as (rotation, precisions): a NaN or a matrix that is not a rotation would be fused
+    as if it were one."""
+    R = np.asarray(R_w_b, dtype=np.float64)
+    s = np.asarray(sigmas, dtype=np.float64)
+    if R.shape != (3, 3) or not np.isfinite(R).all() or not np.allclose(R.T @ R, np.eye(3), atol=1e-6) \
+            or np.linalg.det(R) < 0:
+        raise ValueError(f"an attitude must be a finite 3x3 rotation matrix, got {R_w_b!r}")
+    if s.shape != (3,) or np.isnan(s).any() or not (s > 0).all():
+        raise ValueError(f"attitude sigmas must be 3 positive numbers (inf: not measured), got {sigmas!r}")
+    return R, 1.0 / s**2
+
+
 def resolve_step(mode: str, odom_T_prev_cur: np.ndarray | None, icp_T_prev_cur: np.ndarray | None,
                  non_localizable: np.ndarray | None) -> StepInputs:
     """Apply the mode (mask: drop the flagged axes; full: keep every axis; drop: drop the ICP

@@ -66,13 +66,16 @@ class LoopFusionConfig:
     """Fusion inside the environment loop (off by default: it costs ICP and a detector per step).
     detector: none | eigen:<tau> | oracle[:M] | scanmc[:M] | learned[:checkpoint]; backend: graph | ekf;
     mode: mask | full | drop (see fusion.FusionConfig); deskew: gyro | odometry, where a swept
-    revolution's deskewing takes its rotation from (its translation is the leg odometry's)."""
+    revolution's deskewing takes its rotation from (its translation is the leg odometry's);
+    attitude: none | tilt | full, the IMU's orientation fused once a second (tilt: roll and pitch,
+    which gravity holds; full: with the magnetometer's heading)."""
 
     enabled: bool = False
     detector: str = "learned"
     backend: str = "graph"
     mode: str = "mask"
     deskew: str = "gyro"
+    attitude: str = "none"
 
 
 @dataclass
@@ -101,6 +104,7 @@ class EnvConfig:
 
 
 NOISE_STREAMS = ("shared", "separate")
+ATTITUDE_MODES = ("none", "tilt", "full")  # the IMU's orientation in the fusion: none, roll and pitch, all three
 
 
 def to_dict(cfg: Any) -> dict[str, Any]:

@@ -26,7 +26,7 @@ from .config import NOISE_STREAMS, EnvConfig, LidarConfig, OdometryConfig, Robot
 from .detectors import UNKNOWN, Detector, Prediction, ScanMCDetector, make_detector, safe_predict
 from .envs.navigation import NavigationEnv
 from .follower import RouteFollower
-from .imu import StepGyro
+from .imu import ATTITUDE_EVERY, StepGyro, attitude_readings, attitude_sigmas
 from .labels import AXES
 from .lidar import DESKEW_SOURCES, Lidar, Scan, deskew, deskew_motion, get_pattern
 from .odometry import odometry_sigmas
@@ -273,13 +273,29 @@ def register_sequence(rec: Recording, config: RegistrationConfig, progress: bool
     return results
 
 
+class OdometryAttitude:
+    """The odometry fused with the IMU's attitude alone: every ICP axis masked, for the reference
+    row against which the detectors' rows show what the scans add to the IMU."""
+
+    name = "odometry + attitude"
+
+    def predict(self, points: np.ndarray, registration=None, T_w_s: np.ndarray | None = None) -> Prediction:
+        return Prediction(np.ones(6), np.ones(6, dtype=bool))
+
+
 def evaluate(rec: Recording, detectors: list[Detector], registrations: list, fusion: FusionConfig | None = None,
              odometry: OdometryConfig | None = None, progress: bool = True,
-             backend: str = "graph") -> list[DetectorResult]:
+             backend: str = "graph", attitude: str = "none") -> list[DetectorResult]:
+    """Fuse the recording's odometry and registrations with each detector's masks; with `attitude`
+    ("tilt" or "full", see `imu.attitude_sigmas`) the IMU's orientation joins every ATTITUDE_EVERY
+    steps, the same readings for every detector (drawn from the recording's seed)."""
     check_backend(backend)
     fusion, odometry = fusion or FusionConfig(), odometry or OdometryConfig()
     T_b_s, T_s_b = rec.T_b_s, inverse(rec.T_b_s)
     gt = rec.ground_truth
+    sigmas = attitude_sigmas(attitude)
+    readings = None if sigmas is None else attitude_readings(gt, RobotConfig.dt,
+                                                             rng=np.random.default_rng([rec.seed, 5]))
     out = []
     for det in detectors:
         t0 = time.perf_counter()
@@ -292,6 +308,8 @@ def evaluate(rec: Recording, detectors: list[Detector], registrations: list, fus
             icp = T_b_s @ reg.T_target_source @ T_s_b if reg is not None and reg.converged else None
             inc = rec.odometry[k]
             _, report = graph.add_step(inc, odometry_sigmas(inc, odometry), icp, pred.mask)
+            if readings is not None and (k + 1) % ATTITUDE_EVERY == 0:
+                graph.add_attitude(readings[k + 1], sigmas)
             fallbacks += report.fallback is not None
             masks.append(pred.mask)
             probs.append(pred.probabilities)
@@ -322,19 +340,22 @@ def _scored(name: str, traj: np.ndarray, gt: np.ndarray, masks: np.ndarray, prob
 def run_experiment(out_dir: str | Path, scene: str, detectors: list[str], sensor: str = "vlp16", seed: int = 0,
                    recording: str | Path | None = None, progress: bool = True, backend: str = "graph",
                    scene_params: dict | None = None, workers: int = 1, deskew: str = "gyro",
-                   noise_streams: str = "shared") -> list[dict]:
+                   noise_streams: str = "shared", attitude: str = "none") -> list[dict]:
     """The `l3e ate` command as a function: returns the table rows and writes everything to out_dir.
     `scene_params` go to make_scene (a mesh scene's up axis, scale and route). With a `recording`,
     its own scene is used; `scene` matters only as the new path of a recorded mesh that has moved.
     `workers` processes judge the route with scanmc before the fusion (the same judgements as one).
     `deskew`: where a swept recording's deskewing takes its rotation from ("gyro" or "odometry").
-    `noise_streams`: the drive's EnvConfig.noise_streams (a recording keeps its own)."""
+    `noise_streams`: the drive's EnvConfig.noise_streams (a recording keeps its own).
+    `attitude`: the IMU's orientation in the fusion ("none", "tilt" or "full"); with it, a row
+    "odometry + attitude" follows odometry alone."""
     if workers < 1:
         raise ValueError(f"workers must be at least 1, got {workers}")
     if deskew not in DESKEW_SOURCES:
         raise ValueError(f"deskew must be one of {DESKEW_SOURCES}, got {deskew!r}")
     if noise_streams not in NOISE_STREAMS:
         raise ValueError(f"noise_streams must be one of {NOISE_STREAMS}, got {noise_streams!r}")
+    attitude_sigmas(attitude)  # a bad mode fails before the drive
     out = Path(out_dir)
     rec = Recording.load(recording) if recording else None
     scene_obj = (make_scene(rec.scene_file(moved_to=scene), **rec.scene_params) if rec
@@ -358,7 +379,9 @@ def run_experiment(out_dir: str | Path, scene: str, detectors: list[str], sensor
             t0 = time.perf_counter()
             det.judge_ahead([T @ rec.T_b_s for T in rec.ground_truth[1:]], scene_obj, workers, progress)
             ahead[i] = time.perf_counter() - t0
-    fused = evaluate(rec, dets, regs, progress=progress, backend=backend)
+    if attitude != "none":
+        dets, ahead = [OdometryAttitude(), *dets], [0.0, *ahead]
+    fused = evaluate(rec, dets, regs, progress=progress, backend=backend, attitude=attitude)
     for result, seconds in zip(fused, ahead):
         result.seconds += seconds
     results = [odometry_only(rec)] + fused
@@ -366,7 +389,7 @@ def run_experiment(out_dir: str | Path, scene: str, detectors: list[str], sensor
     failed = sum(r is None or not r.converged for r in regs)
     summary = {"scene": rec.scene, "sensor": rec.sensor, "seed": rec.seed, "noise_streams": rec.noise_streams,
                "swept": swept,
-               "deskew": deskew if swept else None, "backend": backend,
+               "deskew": deskew if swept else None, "backend": backend, "attitude": attitude,
                "steps": len(rec.odometry), "icp_seconds": round(icp_seconds, 1),
                "icp_failed_or_not_converged": failed, "rows": rows}
     (out / "results.json").write_text(json.dumps(summary, indent=1))
@@ -409,24 +432,31 @@ def summarize_seeds(runs: dict[int, list[dict]]) -> list[dict]:
 
 
 def format_seed_table(summary: list[dict]) -> str:
-    head = (f"{'detector':14s} {'ATE m mean':>10s} {'std':>6s} {'min':>7s} {'max':>7s} {'aligned':>8s}  "
+    w = _name_width(summary)
+    head = (f"{'detector':{w}s} {'ATE m mean':>10s} {'std':>6s} {'min':>7s} {'max':>7s} {'aligned':>8s}  "
             f"{'ATE / odometry':>14s}")
     lines = [f"over {len(summary[0]['seeds'])} drives (seeds {summary[0]['seeds'][0]}-{summary[0]['seeds'][-1]})",
              head, "-" * len(head)]
     for r in summary:
-        lines.append(f"{r['detector']:14s} {r['ate_mean_m']:10.3f} {r['ate_std_m']:6.3f} {r['ate_min_m']:7.3f} "
+        lines.append(f"{r['detector']:{w}s} {r['ate_mean_m']:10.3f} {r['ate_std_m']:6.3f} {r['ate_min_m']:7.3f} "
                      f"{r['ate_max_m']:7.3f} {r['ate_aligned_mean_m']:8.3f}  "
                      f"{r['ate_over_odometry_mean']:7.3f} +-{r['ate_over_odometry_std']:.3f}")
     return "\n".join(lines)
 
 
+def _name_width(rows: list[dict]) -> int:
+    """The detector column's width: the longest name, at least 14 characters."""
+    return max([14, *(len(r["detector"]) for r in rows)])
+
+
 def format_table(rows: list[dict]) -> str:
-    head = (f"{'detector':14s} {'ATE m':>7s} {'aligned':>8s} {'RPE m':>7s} {'RPE deg':>8s}  "
+    w = _name_width(rows)
+    head = (f"{'detector':{w}s} {'ATE m':>7s} {'aligned':>8s} {'RPE m':>7s} {'RPE deg':>8s}  "
             f"flagged x/y/z/roll/pitch/yaw      {'s':>6s}")
     lines = [head, "-" * len(head)]
     for r in rows:
         flags = " ".join(f"{r[f'flagged_{a}']:.2f}" for a in AXES)
         al = "-" if r["ate_aligned_m"] is None else f"{r['ate_aligned_m']:.3f}"
-        lines.append(f"{r['detector']:14s} {r['ate_m']:7.3f} {al:>8s} {r['rpe_m']:7.4f} {r['rpe_deg']:8.3f}  "
+        lines.append(f"{r['detector']:{w}s} {r['ate_m']:7.3f} {al:>8s} {r['rpe_m']:7.4f} {r['rpe_deg']:8.3f}  "
                      f"{flags}  {r['seconds']:6.1f}")
     return "\n".join(lines)

@@ -12,6 +12,8 @@ from scipy.interpolate import CubicSpline
 from scipy.signal import lfilter
 from scipy.spatial.transform import Rotation, RotationSpline
 
+from .config import ATTITUDE_MODES
+
 GRAVITY = 9.81
 
 
@@ -153,6 +155,52 @@ def footfall_jolts(walking: np.ndarray, config: ImuConfig, rng: np.random.Genera
         jolt_accel[:, k] = np.convolve(jolt_accel[:, k], accel_kernel)[:n]
         jolt_gyro[:, k] = np.convolve(jolt_gyro[:, k], rate_kernel)[:n]
     return jolt_gyro, jolt_accel
+
+
+ATTITUDE_EVERY = 10  # steps between two attitude factors in the fusion (1 s at 10 Hz)
+
+
+def attitude_sigmas(mode: str, config: ImuConfig | None = None) -> np.ndarray | None:
+    """The sigmas (rad, about the body's x, y, z) with which the fusion takes the nine-axis unit's
+    orientation: "tilt" takes roll and pitch, which gravity holds, and leaves the heading out
+    (inf), as underground, where a magnetometer reads the rock and the machines; "full" takes
+    the magnetometer's heading too; "none" takes nothing (None)."""
+    if mode not in ATTITUDE_MODES:
+        raise ValueError(f"attitude must be one of {ATTITUDE_MODES}, got {mode!r}")
+    if mode == "none":
+        return None
+    sigmas = (config or ImuConfig()).orientation_sigmas()
+    return sigmas if mode == "full" else np.r_[sigmas[:2], np.inf]
+
+
+class StepAttitude:
+    """The nine-axis unit's orientation once a step: the body's rotation turned by the error that
+    `imu_samples` gives its orientation (a Gauss-Markov process per body axis, started in its
+    stationary spread), drawn at the step's rate. The fusion takes it as an absolute attitude."""
+
+    def __init__(self, config: ImuConfig | None = None, rng: np.random.Generator | None = None):
+        self.config = config or ImuConfig()
+        self.reset(rng or np.random.default_rng(0))
+
+    def reset(self, rng: np.random.Generator) -> None:
+        self.rng, self.error = rng, None
+
+    def measure(self, R_w_b: np.ndarray, dt: float) -> np.ndarray:
+        """The unit's orientation (3x3) of the body at `R_w_b`, `dt` s after the last reading."""
+        sigmas = self.config.orientation_sigmas()
+        if self.error is None:
+            self.error = self.rng.normal(0.0, 1.0, 3) * sigmas
+        else:
+            keep = np.exp(-dt / self.config.orientation_time)
+            self.error = keep * self.error + self.rng.normal(0.0, 1.0, 3) * sigmas * np.sqrt(1.0 - keep**2)
+        return np.asarray(R_w_b, dtype=np.float64) @ Rotation.from_rotvec(self.error).as_matrix()
+
+
+def attitude_readings(poses: np.ndarray, dt: float, config: ImuConfig | None = None,
+                      rng: np.random.Generator | None = None) -> np.ndarray:
+    """`StepAttitude`'s readings (N, 3, 3) at poses T_w_b taken every `dt` s."""
+    unit = StepAttitude(config, rng)
+    return np.array([unit.measure(T[:3, :3], dt) for T in np.asarray(poses, dtype=np.float64)])
 
 
 def _gauss_markov(n: int, dt: float, time: float, sigmas: np.ndarray, rng: np.random.Generator) -> np.ndarray:

@@ -14,6 +14,7 @@ from fusion import FusionConfig, check_backend, make_fusion
 
 from .config import LoopFusionConfig, OdometryConfig
 from .detectors import UNKNOWN, Detector, Prediction, make_detector, safe_predict
+from .imu import ATTITUDE_EVERY, attitude_sigmas
 from .lidar import Lidar
 from .odometry import odometry_sigmas
 from .registration import PreparedTarget, RegistrationConfig, RegistrationError, register
@@ -30,6 +31,7 @@ class OnlineFusion:
         self.registration = RegistrationConfig()
         self.fusion_config = FusionConfig(mode=config.mode)
         self.detector: Detector = make_detector(config.detector, lidar, seed)
+        self.attitude_sigmas = attitude_sigmas(config.attitude)
 
     def reset(self, T_w_b: np.ndarray, points: np.ndarray) -> dict[str, Any]:
         self.backend = make_fusion(self.config.backend, T_w_b, self.fusion_config)
@@ -44,7 +46,10 @@ class OnlineFusion:
         except RegistrationError:
             return None
 
-    def step(self, odom_increment: np.ndarray, points: np.ndarray, T_w_b_true: np.ndarray) -> dict[str, Any]:
+    def step(self, odom_increment: np.ndarray, points: np.ndarray, T_w_b_true: np.ndarray,
+             attitude: np.ndarray | None = None) -> dict[str, Any]:
+        """`attitude`: the IMU's orientation of the body (3x3), fused every ATTITUDE_EVERY steps
+        where `LoopFusionConfig.attitude` asks for it."""
         reg = None
         if self.target is not None:
             try:
@@ -59,6 +64,10 @@ class OnlineFusion:
         sigmas = odometry_sigmas(odom_increment, self.odometry)
         T, report = self.backend.add_step(odom_increment, sigmas, icp, pred.mask)
         self.counts["fallbacks"] += report.fallback is not None
+        if self.attitude_sigmas is not None and len(self.squared_errors) % ATTITUDE_EVERY == 0:
+            if attitude is None:
+                raise ValueError(f"fusion.attitude is {self.config.attitude!r}: every step needs the IMU's attitude")
+            T = self.backend.add_attitude(attitude, self.attitude_sigmas)
         self.target = self._target(points)
         self.squared_errors.append(float(np.sum((T[:3, 3] - T_w_b_true[:3, 3]) ** 2)))
         return self._info(T, pred)

@@ -68,6 +68,25 @@ def test_a_recordings_noise_streams_are_kept_and_a_replay_cannot_change_them(wal
         run_experiment(tmp_path / "bad", "mine", ["none"], noise_streams="split")
 
 
+def test_the_imu_attitude_joins_every_detector_alike_and_adds_its_own_reference_row(walls_run, tmp_path):
+    from l3e_env.cli import main
+
+    rec, regs = walls_run
+    plain, = evaluate(rec, [NoDetector()], regs, progress=False)
+    held, again = evaluate(rec, [NoDetector(), NoDetector()], regs, progress=False, attitude="full")
+    np.testing.assert_array_equal(held.trajectory, again.trajectory)  # the same readings for every detector
+    assert np.abs(held.trajectory - plain.trajectory).max() > 1e-6
+    rec.save(tmp_path / "rec.npz")
+    assert main(["ate", "--recording", str(tmp_path / "rec.npz"), "--detector", "none", "--attitude", "tilt",
+                 "--out", str(tmp_path / "out"), "--quiet"]) == 0
+    summary = json.loads((tmp_path / "out" / "results.json").read_text())
+    assert summary["attitude"] == "tilt"
+    assert [r["detector"] for r in summary["rows"]] == ["odometry only", "odometry + attitude", "none"]
+    with pytest.raises(ValueError, match="attitude must be one of"):
+        run_experiment(tmp_path / "bad", "mine", ["none"], attitude="compass")
+    assert not (tmp_path / "bad").exists()
+
+
 def test_a_swept_recording_says_so_when_replayed(walls_run, tmp_path, capsys):
     from dataclasses import replace
 

@@ -103,6 +103,42 @@ def test_an_unsolvable_graph_names_the_step():
         graph._update(factors, values, 1)
 
 
+def tilted_walk(backend, attitude_sigmas=None, steps=100):
+    """Odometry whose pitch and yaw drift 1 mrad a step; an IMU's attitude (the truth: level, no
+    turn) every 10 steps where `attitude_sigmas` is given. Returns the final roll, pitch, yaw."""
+    graph = BACKENDS[backend](np.eye(4))
+    drift = gtsam.Pose3(gtsam.Rot3.RzRyRx(0.0, 0.001, 0.001), np.array([0.1, 0.0, 0.0])).matrix()
+    for k in range(steps):
+        T, _ = graph.add_step(drift, np.array([0.01, 0.01, 0.01, 0.002, 0.002, 0.002]))
+        if attitude_sigmas is not None and (k + 1) % 10 == 0:
+            T = graph.add_attitude(np.eye(3), attitude_sigmas)
+    rot = gtsam.Rot3(T[:3, :3])
+    return np.array([rot.roll(), rot.pitch(), rot.yaw()]), graph
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_an_attitude_holds_the_measured_axes_and_leaves_the_heading_free_without_a_magnetometer(backend):
+    drifted, _ = tilted_walk(backend)
+    assert drifted[1] > 0.09 and drifted[2] > 0.09  # 100 steps of 1 mrad
+    tilt, graph = tilted_walk(backend, np.array([0.001, 0.001, np.inf]))
+    assert abs(tilt[0]) < 0.005 and abs(tilt[1]) < 0.005  # gravity holds roll and pitch
+    assert abs(tilt[2] - drifted[2]) < 0.005  # no heading measured: yaw drifts as before
+    full, _ = tilted_walk(backend, np.array([0.001, 0.001, 0.001]))
+    assert np.abs(full).max() < 0.005
+    for bad_rotation in (np.full((3, 3), np.nan), 2.0 * np.eye(3), np.diag([1.0, 1.0, -1.0])):
+        with pytest.raises(ValueError, match="rotation matrix"):
+            graph.add_attitude(bad_rotation, np.ones(3))
+    for bad_sigmas in (np.array([0.01, np.nan, 0.01]), np.zeros(3), np.ones(2)):
+        with pytest.raises(ValueError, match="attitude sigmas"):
+            graph.add_attitude(np.eye(3), bad_sigmas)
+
+
+def test_the_filter_matches_the_smoother_at_the_newest_pose_with_attitudes():
+    graph_tilt, _ = tilted_walk("graph", np.array([0.001, 0.001, np.inf]), steps=50)
+    ekf_tilt, _ = tilted_walk("ekf", np.array([0.001, 0.001, np.inf]), steps=50)
+    np.testing.assert_allclose(ekf_tilt, graph_tilt, atol=1e-3)
+
+
 def test_robust_kernels_build():
     for kernel in ("huber", "cauchy"):
         graph = FusionGraph(np.eye(4), FusionConfig(robust_kernel=kernel))

@@ -4,7 +4,7 @@ import pytest
 from scipy.interpolate import CubicSpline
 from scipy.spatial.transform import Rotation
 
-from l3e_env.imu import GRAVITY, ImuConfig, StepGyro, imu_samples
+from l3e_env.imu import GRAVITY, ImuConfig, StepGyro, attitude_readings, attitude_sigmas, imu_samples
 from l3e_env.transforms import pose_to_matrix
 
 
@@ -80,6 +80,24 @@ def test_the_orientation_is_the_body_s_own_off_by_errors_that_wander_and_return(
     lag = int(10.0 * config.rate)  # one correlation time apart: e^-1 of the spread shared
     assert np.corrcoef(heading[:-lag], heading[lag:])[0, 1] == pytest.approx(np.exp(-1), abs=0.12)
     assert abs(np.corrcoef(heading[:-20 * lag], heading[20 * lag:])[0, 1]) < 0.15
+
+
+def test_the_step_rate_attitude_is_the_body_s_own_off_by_the_orientation_s_errors(rng):
+    """What the fusion takes once a second: the pose's rotation turned by the same Gauss-Markov
+    error as `imu_samples` gives its orientation, in the body frame (a heading error turns about
+    the body's own z, whatever its tilt); tilt alone leaves the heading unmeasured."""
+    poses = np.array([pose_to_matrix([0.0, 0.0, 0.5, 0.2, -0.1, 1.0])] * 30000)
+    config = ImuConfig(orientation_time=10.0)
+    readings = attitude_readings(poses, 0.1, config, rng)
+    error = Rotation.from_matrix(np.swapaxes(poses[:, :3, :3], 1, 2) @ readings).as_rotvec()
+    np.testing.assert_allclose(error.std(axis=0), config.orientation_sigmas(), rtol=0.2)
+    assert np.corrcoef(error[:-100, 2], error[100:, 2])[0, 1] == pytest.approx(np.exp(-1), abs=0.12)
+    np.testing.assert_allclose(attitude_sigmas("full", config), config.orientation_sigmas())
+    tilt = attitude_sigmas("tilt", config)
+    assert np.isinf(tilt[2]) and (tilt[:2] == config.orientation_sigmas()[:2]).all()
+    assert attitude_sigmas("none") is None
+    with pytest.raises(ValueError, match="attitude must be one of"):
+        attitude_sigmas("gravity")
 
 
 def test_too_few_poses_or_unordered_times_are_refused():

@@ -11,7 +11,7 @@ from scenes import Scene, make_scene
 from scenes.geometry import polyline_length
 
 from ..config import NOISE_STREAMS, EnvConfig, from_dict
-from ..imu import StepGyro
+from ..imu import StepAttitude, StepGyro
 from ..lidar import DESKEW_SOURCES, DESKEW_STEPS, Lidar, Scan, deskew, deskew_motion
 from ..odometry import LegOdometry
 from ..raycast import make_caster
@@ -87,6 +87,7 @@ class NavigationEnv(gym.Env):
             raise ValueError(f"fusion.deskew must be one of {DESKEW_SOURCES}, got {config.fusion.deskew!r}")
         swept_fusion = config.fusion.enabled and config.lidar.sweep
         self.gyro = StepGyro() if swept_fusion and config.fusion.deskew == "gyro" else None  # deskews only there
+        self.attitude = StepAttitude() if config.fusion.enabled and config.fusion.attitude != "none" else None
         if config.fusion.enabled:
             from ..online import OnlineFusion  # ICP, detector and GTSAM only when asked for
 
@@ -103,8 +104,12 @@ class NavigationEnv(gym.Env):
         else:
             odometry_rng = self._lidar_rng = self.np_random
         self.odometry.reset(odometry_rng)
-        if self.gyro is not None:  # a stream of its own: the odometry's and the LiDAR's draws stay as they were
-            self.gyro.reset(self.np_random.spawn(1)[0])
+        # streams of their own: the odometry's and the LiDAR's draws stay as they were
+        gyro_rng, attitude_rng = self.np_random.spawn(2)
+        if self.gyro is not None:
+            self.gyro.reset(gyro_rng)
+        if self.attitude is not None:
+            self.attitude.reset(attitude_rng)
         self.odom_T_w_b = self.robot.T_w_b.copy()
         self._odometry_steps: list[np.ndarray] = []  # the odometry's last steps, to deskew with
         self.steps = 0
@@ -139,7 +144,8 @@ class NavigationEnv(gym.Env):
                     self.gyro.measure(T_prev[:3, :3], T_cur[:3, :3], self.config.robot.dt)
                 motion = deskew_motion(self._odometry_steps, turn, mounting=self.robot.T_b_s)
                 points = deskew(points, motion, self.lidar.pattern)
-            self._fusion_info = self.fusion.step(increment, points, T_cur)
+            attitude = None if self.attitude is None else self.attitude.measure(T_cur[:3, :3], self.config.robot.dt)
+            self._fusion_info = self.fusion.step(increment, points, T_cur, attitude)
         self.steps += 1
         self.trail.append(T_cur[:3, 3].copy())
         distance = self._goal_distance()
