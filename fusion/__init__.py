@@ -5,9 +5,9 @@ project's (x, y, z, roll, pitch, yaw); `fusion.tangent` is the one place that co
 GTSAM's rotation-first tangent order.
 """
 from .ekf import EKFFusion
-from .graph import FusionConfig, FusionError, FusionGraph
+from .graph import FusionError, FusionGraph
 from .metrics import MetricError, ate, ate_aligned, rpe, rpe_pairs, umeyama, write_tum
-from .steps import StepReport
+from .steps import ICP_COVARIANCES, FusionConfig, StepReport, icp_information
 from .tangent import to_gtsam_order, to_project_order
 
 BACKENDS = {"graph": FusionGraph, "ekf": EKFFusion}
@@ -24,7 +24,8 @@ def make_fusion(backend: str, T_w_0, config: FusionConfig | None = None) -> Fusi
     return BACKENDS[check_backend(backend)](T_w_0, config)
 
 
-__all__ = ["BACKENDS", "check_backend", "make_fusion", "EKFFusion", "FusionConfig", "FusionError", "FusionGraph",
+__all__ = ["BACKENDS", "ICP_COVARIANCES", "icp_information",
+           "check_backend", "make_fusion", "EKFFusion", "FusionConfig", "FusionError", "FusionGraph",
            "StepReport",
            "MetricError", "ate", "ate_aligned", "rpe", "rpe_pairs", "umeyama", "write_tum", "to_gtsam_order",
            "to_project_order"]

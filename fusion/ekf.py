@@ -12,8 +12,9 @@ import gtsam
 import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter
 
-from .graph import FusionConfig
-from .steps import StepReport, check_attitude, check_odometry_sigmas, resolve_step
+from .steps import (
+    FusionConfig, StepReport, check_attitude, check_config, check_odometry_sigmas, icp_information, resolve_step,
+)
 from .tangent import GTSAM_FROM_PROJECT, to_gtsam_order
 
 
@@ -21,8 +22,7 @@ class EKFFusion:
     """Drop-in for `FusionGraph`: `add_step` takes the same inputs and returns the same report."""
 
     def __init__(self, T_w_0: np.ndarray, config: FusionConfig | None = None):
-        self.config = config or FusionConfig()
-        resolve_step(self.config.mode, None, None, None)  # validates the mode
+        self.config = check_config(config or FusionConfig())
         if self.config.robust_kernel is not None:
             raise ValueError("the EKF backend has no robust kernel; use the graph backend for that")
         self.T = gtsam.Pose3(np.asarray(T_w_0, dtype=np.float64))
@@ -32,7 +32,8 @@ class EKFFusion:
 
     def add_step(self, odom_T_prev_cur: np.ndarray | None, odom_sigmas: np.ndarray | None,
                  icp_T_prev_cur: np.ndarray | None = None,
-                 non_localizable: np.ndarray | None = None) -> tuple[np.ndarray, StepReport]:
+                 non_localizable: np.ndarray | None = None,
+                 icp_hessian: np.ndarray | None = None) -> tuple[np.ndarray, StepReport]:
         step = resolve_step(self.config.mode, odom_T_prev_cur, icp_T_prev_cur, non_localizable)
         if step.has_odom:
             sigmas = check_odometry_sigmas(odom_sigmas)
@@ -48,7 +49,8 @@ class EKFFusion:
         ekf.x = np.zeros(12)
         ekf.P = np.block([[self.P, self.P @ F.T], [F @ self.P, F @ self.P @ F.T + Q]])
         if step.has_odom and step.has_icp:
-            self._partial_update(ekf, prev, pred, gtsam.Pose3(np.asarray(step.icp_T_prev_cur)), step.mask)
+            information = icp_information(self.config, icp_hessian, step.mask)
+            self._partial_update(ekf, prev, pred, gtsam.Pose3(np.asarray(step.icp_T_prev_cur)), step.mask, information)
         self.T = pred.retract(ekf.x[6:])  # the previous pose is marginalised: a filter does not revise the past
         self.P = 0.5 * (ekf.P[6:, 6:] + ekf.P[6:, 6:].T)
         self.k += 1
@@ -56,13 +58,16 @@ class EKFFusion:
         return self.T.matrix(), step.report()
 
     def _partial_update(self, ekf: ExtendedKalmanFilter, prev: gtsam.Pose3, pred: gtsam.Pose3, icp: gtsam.Pose3,
-                        mask_project: np.ndarray) -> None:
-        """ICP measures T_prev^-1 T_cur; residual Log(rel_pred^-1 icp) ~ d_cur - Ad(rel^-1) d_prev."""
+                        mask_project: np.ndarray, information_project: np.ndarray) -> None:
+        """ICP measures T_prev^-1 T_cur; residual Log(rel_pred^-1 icp) ~ d_cur - Ad(rel^-1) d_prev.
+        The localizable rows' covariance is the inverse of their block of the information (a
+        floor of 1e-9 keeps an unheld direction among them finite and all but ignored)."""
         rel = prev.between(pred)
         keep = ~np.asarray(mask_project, dtype=bool)[GTSAM_FROM_PROJECT]  # rows in GTSAM order
         H = np.hstack([-rel.inverse().AdjointMap(), np.eye(6)])[keep]
         z = gtsam.Pose3.Logmap(rel.between(icp))[keep]
-        R = np.diag(to_gtsam_order(np.asarray(self.config.icp_sigmas))[keep] ** 2)
+        block = to_gtsam_order(information_project)[np.ix_(keep, keep)]
+        R = np.linalg.inv(block + 1e-9 * np.eye(len(block)))
         ekf.dim_z = int(keep.sum())
         ekf.update(z, lambda x: H, lambda x: H @ x, R=R)
 

@@ -1,31 +1,18 @@
 """iSAM2 fusion of leg odometry with scan-to-scan ICP factors whose non-localizable axes are masked.
 
-A masked axis gets precision 0 in the ICP factor's diagonal noise model, so the factor says
-nothing along it and the odometry alone decides there. This is the L3E use of the mask.
+A masked axis gets zero information in the ICP factor's noise model (its rows and columns of the
+registration's Hessian, or of the fixed diagonal), so the factor says nothing along it and the
+odometry alone decides there. This is the L3E use of the mask.
 """
 from __future__ import annotations
-
-from dataclasses import dataclass
 
 import gtsam
 import numpy as np
 
-from .steps import MASK_MODES, StepReport, check_attitude, check_odometry_sigmas, resolve_step
+from .steps import (
+    FusionConfig, StepReport, check_attitude, check_config, check_odometry_sigmas, icp_information, resolve_step,
+)
 from .tangent import to_gtsam_order
-
-
-@dataclass
-class FusionConfig:
-    """mask: drop only the flagged axes; full: keep the whole ICP factor (no detector);
-    drop: drop the whole ICP factor when any axis is flagged. Sigmas in project order
-    (m, m, m, rad, rad, rad)."""
-
-    mode: str = "mask"
-    icp_sigmas: tuple[float, ...] = (0.005, 0.005, 0.005, 0.001, 0.001, 0.001)  # scan-to-scan at 10 Hz
-    prior_sigmas: tuple[float, ...] = (1e-3, 1e-3, 1e-3, 1e-4, 1e-4, 1e-4)
-    robust_kernel: str | None = None  # None | "huber" | "cauchy"
-    robust_threshold: float = 1.345
-    relinearize_threshold: float = 0.01
 
 
 class FusionError(RuntimeError):
@@ -40,9 +27,7 @@ class FusionGraph:
     """One Pose3 per scan; `add_step` adds odometry and (masked) ICP between-factors."""
 
     def __init__(self, T_w_0: np.ndarray, config: FusionConfig | None = None):
-        self.config = config or FusionConfig()
-        if self.config.mode not in MASK_MODES:
-            raise ValueError(f"fusion mode must be one of {MASK_MODES}, got '{self.config.mode}'")
+        self.config = check_config(config or FusionConfig())
         params = gtsam.ISAM2Params()
         params.setRelinearizeThreshold(self.config.relinearize_threshold)
         self.isam = gtsam.ISAM2(params)
@@ -62,8 +47,14 @@ class FusionGraph:
             raise FusionError(f"fusion step {k}: GTSAM could not solve the graph ({first}); this graph cannot take "
                               f"more steps") from exc
 
-    def _noise(self, precisions_project: np.ndarray) -> gtsam.noiseModel.Base:
-        base = gtsam.noiseModel.Diagonal.Precisions(to_gtsam_order(precisions_project))
+    def _noise(self, information_project: np.ndarray) -> gtsam.noiseModel.Base:
+        """Precisions (6) or an information matrix (6x6), project order; zeros say nothing."""
+        information = to_gtsam_order(information_project)
+        if information.ndim == 1 or not (information - np.diag(np.diag(information))).any():
+            base = gtsam.noiseModel.Diagonal.Precisions(information if information.ndim == 1 else np.diag(information))
+        else:  # a square root of the information; its zero eigenvalues (masked axes) say nothing
+            w, V = np.linalg.eigh(information)
+            base = gtsam.noiseModel.Gaussian.SqrtInformation(np.sqrt(np.clip(w, 0.0, None))[:, None] * V.T)
         kernel = self.config.robust_kernel
         if kernel is None:
             return base
@@ -76,8 +67,11 @@ class FusionGraph:
         odom_sigmas: np.ndarray | None,
         icp_T_prev_cur: np.ndarray | None = None,
         non_localizable: np.ndarray | None = None,
+        icp_hessian: np.ndarray | None = None,
     ) -> tuple[np.ndarray, StepReport]:
-        """Add pose k+1 with its factors; returns (estimate of pose k+1, report).
+        """Add pose k+1 with its factors; returns (estimate of pose k+1, report). `icp_hessian`:
+        the registration's point-to-plane Hessian in the body frame, project order (see
+        FusionConfig.icp_covariance).
 
         Missing odometry with every ICP axis masked leaves the new pose unconstrained: then the
         ICP factor is kept whole (documented fallback), and with no ICP either the pose is tied to
@@ -91,8 +85,8 @@ class FusionGraph:
             precision = 1.0 / np.maximum(check_odometry_sigmas(odom_sigmas), 1e-9) ** 2
             graph.add(gtsam.BetweenFactorPose3(i, j, _pose3(odom_T_prev_cur), self._noise(precision)))
         if has_icp:
-            precision = np.where(mask, 0.0, 1.0 / np.asarray(self.config.icp_sigmas) ** 2)
-            graph.add(gtsam.BetweenFactorPose3(i, j, _pose3(icp_T_prev_cur), self._noise(precision)))
+            information = icp_information(self.config, icp_hessian, mask)
+            graph.add(gtsam.BetweenFactorPose3(i, j, _pose3(icp_T_prev_cur), self._noise(information)))
         if not has_odom and not has_icp:
             weak = gtsam.noiseModel.Isotropic.Sigma(6, 1.0)
             graph.add(gtsam.BetweenFactorPose3(i, j, gtsam.Pose3(), weak))

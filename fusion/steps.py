@@ -6,6 +6,52 @@ from dataclasses import dataclass
 import numpy as np
 
 MASK_MODES = ("mask", "full", "drop")
+ICP_COVARIANCES = ("hessian", "fixed")
+
+
+@dataclass
+class FusionConfig:
+    """mask: drop only the flagged axes; full: keep the whole ICP factor (no detector);
+    drop: drop the whole ICP factor when any axis is flagged. Sigmas in project order
+    (m, m, m, rad, rad, rad).
+
+    icp_covariance "hessian": the ICP factor's information is the registration's point-to-plane
+    Hessian over `icp_residual_variance`, so that a weakly held axis weighs little even where no
+    axis is flagged, and a well held one more than the legs; the variance is fitted on training
+    drives by `benchmarks/icp_step_errors.py`. "fixed": the constant `icp_sigmas` (also where a
+    step comes without a finite Hessian)."""
+
+    mode: str = "mask"
+    icp_covariance: str = "hessian"
+    icp_residual_variance: float = 0.005  # m^2
+    icp_sigmas: tuple[float, ...] = (0.005, 0.005, 0.005, 0.001, 0.001, 0.001)  # scan-to-scan at 10 Hz
+    prior_sigmas: tuple[float, ...] = (1e-3, 1e-3, 1e-3, 1e-4, 1e-4, 1e-4)
+    robust_kernel: str | None = None  # None | "huber" | "cauchy"
+    robust_threshold: float = 1.345
+    relinearize_threshold: float = 0.01
+
+
+def check_config(config: FusionConfig) -> FusionConfig:
+    if config.mode not in MASK_MODES:
+        raise ValueError(f"fusion mode must be one of {MASK_MODES}, got '{config.mode}'")
+    if config.icp_covariance not in ICP_COVARIANCES:
+        raise ValueError(f"icp_covariance must be one of {ICP_COVARIANCES}, got '{config.icp_covariance}'")
+    if not (np.isfinite(config.icp_residual_variance) and config.icp_residual_variance > 0):
+        raise ValueError(f"icp_residual_variance must be a positive number, got {config.icp_residual_variance!r}")
+    return config
+
+
+def icp_information(config: FusionConfig, hessian: np.ndarray | None, mask: np.ndarray) -> np.ndarray:
+    """The ICP factor's 6x6 information in project order, its masked rows and columns zero: the
+    Hessian (project order, the body frame) over the residual variance, or diag(1 / icp_sigmas^2)."""
+    H = None if hessian is None else np.asarray(hessian, dtype=np.float64)
+    if config.icp_covariance == "hessian" and H is not None and H.shape == (6, 6) and np.isfinite(H).all():
+        information = 0.5 * (H + H.T) / config.icp_residual_variance
+    else:
+        information = np.diag(1.0 / np.asarray(config.icp_sigmas, dtype=np.float64) ** 2)
+    information[mask, :] = 0.0
+    information[:, mask] = 0.0
+    return information
 
 
 @dataclass

@@ -31,7 +31,7 @@ from .labels import AXES
 from .lidar import DESKEW_SOURCES, Lidar, Scan, deskew, deskew_motion, get_pattern
 from .odometry import odometry_sigmas
 from .raycast import EmbreeCaster
-from .registration import PreparedTarget, RegistrationConfig, RegistrationError, register
+from .registration import PreparedTarget, RegistrationConfig, RegistrationError, hessian_in_frame, register
 from .transforms import inverse
 from .workers import ordered_map
 
@@ -306,8 +306,9 @@ def evaluate(rec: Recording, detectors: list[Detector], registrations: list, fus
             unknown += not pred.known
             errors += failed
             icp = T_b_s @ reg.T_target_source @ T_s_b if reg is not None and reg.converged else None
+            hessian = hessian_in_frame(reg.hessian, T_b_s) if icp is not None else None
             inc = rec.odometry[k]
-            _, report = graph.add_step(inc, odometry_sigmas(inc, odometry), icp, pred.mask)
+            _, report = graph.add_step(inc, odometry_sigmas(inc, odometry), icp, pred.mask, hessian)
             if readings is not None and (k + 1) % ATTITUDE_EVERY == 0:
                 graph.add_attitude(readings[k + 1], sigmas)
             fallbacks += report.fallback is not None

@@ -17,7 +17,7 @@ from .detectors import UNKNOWN, Detector, Prediction, make_detector, safe_predic
 from .imu import ATTITUDE_EVERY, attitude_sigmas
 from .lidar import Lidar
 from .odometry import odometry_sigmas
-from .registration import PreparedTarget, RegistrationConfig, RegistrationError, register
+from .registration import PreparedTarget, RegistrationConfig, RegistrationError, hessian_in_frame, register
 from .transforms import inverse
 
 
@@ -62,7 +62,8 @@ class OnlineFusion:
         self.counts["detector_errors"] += failed
         self.counts["unknown"] += not pred.known
         sigmas = odometry_sigmas(odom_increment, self.odometry)
-        T, report = self.backend.add_step(odom_increment, sigmas, icp, pred.mask)
+        hessian = hessian_in_frame(reg.hessian, self.T_b_s) if icp is not None else None
+        T, report = self.backend.add_step(odom_increment, sigmas, icp, pred.mask, hessian)
         self.counts["fallbacks"] += report.fallback is not None
         if self.attitude_sigmas is not None and len(self.squared_errors) % ATTITUDE_EVERY == 0:
             if attitude is None:

@@ -10,6 +10,8 @@ from dataclasses import dataclass
 import numpy as np
 import small_gicp
 
+from .transforms import adjoint
+
 # small_gicp's tangent order is (rx, ry, rz, tx, ty, tz); the project's is (x, y, z, roll, pitch, yaw).
 TO_PROJECT_ORDER = np.array([3, 4, 5, 0, 1, 2])
 
@@ -147,6 +149,14 @@ def point_to_plane_hessian(source: np.ndarray, target: PreparedTarget, T: np.nda
     n_local = normals @ T[:3, :3]  # rows R^T n
     J = np.hstack([n_local, np.cross(source[keep], n_local)])
     return J.T @ J
+
+
+def hessian_in_frame(hessian: np.ndarray, T_b_s: np.ndarray) -> np.ndarray:
+    """A registration's Hessian (project order, scans in frame s) for the same step seen in frame b,
+    T_b_s the sensor's mounting: a perturbation d of T_target_source is Ad(T_b_s) d in b, so the
+    Hessian becomes Ad^-T H Ad^-1 (what the fusion's body-frame ICP factor weighs)."""
+    inverse_adjoint = np.linalg.inv(adjoint(T_b_s))
+    return inverse_adjoint.T @ np.asarray(hessian, dtype=np.float64) @ inverse_adjoint
 
 
 def scan_hessian(points: np.ndarray, config: RegistrationConfig | None = None) -> np.ndarray:

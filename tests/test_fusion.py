@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from fusion import (
-    BACKENDS, FusionConfig, FusionError, FusionGraph, MetricError, ate, ate_aligned, rpe, to_gtsam_order,
-    to_project_order, umeyama,
+    BACKENDS, FusionConfig, FusionError, FusionGraph, MetricError, ate, ate_aligned, icp_information, rpe,
+    to_gtsam_order, to_project_order, umeyama,
 )
 
 
@@ -32,9 +32,10 @@ def test_tangent_order_conversion_matches_gtsam_semantics():
         to_gtsam_order(np.zeros(5))
 
 
-def drive(mode, mask_x, steps=200, backend="graph"):
-    """A tunnel-like run: ICP sees no motion along x (it sticks), odometry over-reports x by 5 %."""
-    graph = BACKENDS[backend](np.eye(4), FusionConfig(mode=mode))
+def drive(mode, mask_x, steps=200, backend="graph", hessian=None, config=None):
+    """A tunnel-like run: ICP sees no motion along x (it sticks), odometry over-reports x by 5 %.
+    `hessian`: each ICP step's (project order); None: the fixed sigmas."""
+    graph = BACKENDS[backend](np.eye(4), config or FusionConfig(mode=mode))
     truth, est = [np.eye(4)], [np.eye(4)]
     odom_sigmas = np.array([0.05, 0.05, 0.05, 0.01, 0.01, 0.01])  # legs: less certain than ICP
     mask = np.array([mask_x, False, False, False, False, False])
@@ -43,7 +44,7 @@ def drive(mode, mask_x, steps=200, backend="graph"):
         truth.append(truth[-1] @ step)
         odom = pose(0.105, 0.0, 0.0, 0.002 + 0.001)
         icp = pose(0.0, 0.0, 0.0, 0.002)  # degenerate along x, right elsewhere
-        T, report = graph.add_step(odom, odom_sigmas, icp, mask)
+        T, report = graph.add_step(odom, odom_sigmas, icp, mask, hessian)
         est.append(T)
     return np.array(truth), np.array(est), graph, report
 
@@ -69,6 +70,45 @@ def test_the_filter_matches_the_smoother_at_the_newest_pose():
     _, graph_est, *_ = drive("mask", mask_x=True, steps=50)
     _, ekf_est, *_ = drive("mask", mask_x=True, steps=50, backend="ekf")
     np.testing.assert_allclose(ekf_est[:, :3, 3], graph_est[:, :3, 3], atol=4e-3)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def tunnel_hessian(weak_direction: np.ndarray) -> np.ndarray:
+    """A Hessian that holds every direction at 1e6 but `weak_direction` (unit, project order) at 1e-2."""
+    d = weak_direction / np.linalg.norm(weak_direction)
+    return 1e6 * np.eye(6) - (1e6 - 1e-2) * np.outer(d, d)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_the_registrations_hessian_weighs_each_axis_as_it_is_held_without_a_mask(backend):
+    """Unmasked, with the Hessian's information the slipping tunnel axis weighs nothing and the
+    odometry decides along it (5 % over), while full ICP with fixed sigmas stalls; a masked axis
+    is dropped from the Hessian's information as from the fixed one."""
+    hessian = tunnel_hessian(np.eye(6)[0])
+    truth, weighed, *_ = drive("mask", mask_x=False, backend=backend, hessian=hessian)
+    _, stalled, *_ = drive("mask", mask_x=False, backend=backend,
+                           config=FusionConfig(icp_covariance="fixed"), hessian=hessian)
+    assert abs(weighed[-1][0, 3] - 1.05 * truth[-1][0, 3]) < 0.3
+    assert stalled[-1][0, 3] < 0.5 * truth[-1][0, 3]
+    information = icp_information(FusionConfig(), np.full((6, 6), 3.0), np.array([1, 0, 0, 0, 0, 1], bool))
+    assert not information[[0, 5]].any() and not information[:, [0, 5]].any() and (information[1:5, 1:5] > 0).all()
+    np.testing.assert_allclose(icp_information(FusionConfig(), np.full((6, 6), np.nan), np.zeros(6, bool)),
+                               np.diag(1.0 / np.asarray(FusionConfig().icp_sigmas) ** 2))  # no Hessian: fixed
+    for bad in (FusionConfig(icp_covariance="adaptive"), FusionConfig(icp_residual_variance=0.0)):
+        with pytest.raises(ValueError, match="icp_covariance|icp_residual_variance"):
+            BACKENDS[backend](np.eye(4), bad)
+
+
+def test_the_filter_matches_the_smoother_with_a_hessian_that_couples_axes():
+    """y and yaw held together (an information matrix that is not diagonal), x slipping: the
+    smoother's square-root noise model and the filter's inverse of the kept block agree."""
+    hessian = tunnel_hessian(np.eye(6)[0])
+    hessian[1, 5] = hessian[5, 1] = 5e5
+    _, graph_est, *_ = drive("mask", mask_x=False, steps=50, hessian=hessian)
+    _, ekf_est, *_ = drive("mask", mask_x=False, steps=50, backend="ekf", hessian=hessian)
+    np.testing.assert_allclose(ekf_est[:, :3, 3], graph_est[:, :3, 3], atol=4e-3)
+    _, fixed_est, *_ = drive("mask", mask_x=False, steps=50, config=FusionConfig(icp_covariance="fixed"))
+    assert np.abs(graph_est[-1][:3, 3] - fixed_est[-1][:3, 3]).max() > 0.05
 
 
 @pytest.mark.parametrize("backend", BACKENDS)

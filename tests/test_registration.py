@@ -102,3 +102,28 @@ def test_icp_without_overlap_is_reported_not_converged():
     res = register(far, target)
     assert not res.converged
     assert isinstance(small_gicp.PointCloud(np.zeros((3, 3))), small_gicp.PointCloud)
+
+
+def test_a_hessian_moves_to_the_body_frame_with_the_mounting():
+    """A step's error d in the sensor frame is Ad(T_b_s) d in the body frame: the body-frame Hessian
+    gives the same quadratic cost, and the perturbed body step is the body step times exp(Ad d)."""
+    import gtsam
+
+    from fusion import to_gtsam_order
+    from l3e_env.registration import hessian_in_frame
+    from l3e_env.transforms import adjoint
+
+    rng = np.random.default_rng(0)
+    T_b_s = pose_to_matrix([0.3, -0.1, 0.85, 0.02, -0.05, 0.4])
+    J = rng.normal(size=(50, 6))
+    H = J.T @ J
+    d_s = 1e-4 * rng.normal(size=6)
+    d_b = adjoint(T_b_s) @ d_s
+    assert d_s @ H @ d_s == pytest.approx(d_b @ hessian_in_frame(H, T_b_s) @ d_b, rel=1e-9)
+
+    def exp(d):  # project order (translation, rotation) to GTSAM's
+        return gtsam.Pose3.Expmap(to_gtsam_order(d)).matrix()
+
+    step = pose_to_matrix([0.1, 0.01, 0.0, 0.0, 0.0, 0.02])
+    perturbed = T_b_s @ step @ exp(d_s) @ inverse(T_b_s)
+    np.testing.assert_allclose(perturbed, T_b_s @ step @ inverse(T_b_s) @ exp(d_b), atol=1e-9)
