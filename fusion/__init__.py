@@ -7,7 +7,7 @@ GTSAM's rotation-first tangent order.
 from .ekf import EKFFusion
 from .graph import FusionError, FusionGraph
 from .metrics import MetricError, ate, ate_aligned, rpe, rpe_pairs, umeyama, write_tum
-from .steps import ICP_COVARIANCES, FusionConfig, StepReport, icp_information
+from .steps import ICP_COVARIANCES, FusionConfig, StepReport, check_config, icp_information
 from .tangent import to_gtsam_order, to_project_order
 
 BACKENDS = {"graph": FusionGraph, "ekf": EKFFusion}
@@ -24,7 +24,7 @@ def make_fusion(backend: str, T_w_0, config: FusionConfig | None = None) -> Fusi
     return BACKENDS[check_backend(backend)](T_w_0, config)
 
 
-__all__ = ["BACKENDS", "ICP_COVARIANCES", "icp_information",
+__all__ = ["BACKENDS", "ICP_COVARIANCES", "check_config", "icp_information",
            "check_backend", "make_fusion", "EKFFusion", "FusionConfig", "FusionError", "FusionGraph",
            "StepReport",
            "MetricError", "ate", "ate_aligned", "rpe", "rpe_pairs", "umeyama", "write_tum", "to_gtsam_order",

@@ -51,7 +51,8 @@ class FusionGraph:
         """Precisions (6) or an information matrix (6x6), project order; zeros say nothing."""
         information = to_gtsam_order(information_project)
         if information.ndim == 1 or not (information - np.diag(np.diag(information))).any():
-            base = gtsam.noiseModel.Diagonal.Precisions(information if information.ndim == 1 else np.diag(information))
+            precisions = information if information.ndim == 1 else np.diag(information)
+            base = gtsam.noiseModel.Diagonal.Precisions(np.where(precisions > 0.0, precisions, 0.0))  # no -0.0
         else:  # a square root of the information; its zero eigenvalues (masked axes) say nothing
             w, V = np.linalg.eigh(information)
             base = gtsam.noiseModel.Gaussian.SqrtInformation(np.sqrt(np.clip(w, 0.0, None))[:, None] * V.T)

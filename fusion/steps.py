@@ -46,7 +46,8 @@ def icp_information(config: FusionConfig, hessian: np.ndarray | None, mask: np.n
     Hessian (project order, the body frame) over the residual variance, or diag(1 / icp_sigmas^2)."""
     H = None if hessian is None else np.asarray(hessian, dtype=np.float64)
     if config.icp_covariance == "hessian" and H is not None and H.shape == (6, 6) and np.isfinite(H).all():
-        information = 0.5 * (H + H.T) / config.icp_residual_variance
+        w, V = np.linalg.eigh(0.5 * (H + H.T))  # rounding can leave a free direction a little below zero
+        information = (V * np.maximum(w, 0.0)) @ V.T / config.icp_residual_variance
     else:
         information = np.diag(1.0 / np.asarray(config.icp_sigmas, dtype=np.float64) ** 2)
     information[mask, :] = 0.0

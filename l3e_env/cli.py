@@ -252,7 +252,8 @@ def _cmd_ate(args: argparse.Namespace) -> int:
             print(f"drive {seed - args.seed + 1} of {args.seeds} (seed {seed})")
             runs[seed] = run_experiment(out / f"seed-{seed}", args.scene, detectors, sensor=args.sensor, seed=seed,
                                         progress=not args.quiet, backend=args.backend, scene_params=params,
-                                        workers=args.workers, noise_streams=streams, attitude=args.attitude)
+                                        workers=args.workers, noise_streams=streams, attitude=args.attitude,
+                                        icp_covariance=args.icp_covariance)
             print(format_table(runs[seed]))
         summary = summarize_seeds(runs)
         (out / "seeds.json").write_text(json.dumps(summary, indent=1))
@@ -262,7 +263,8 @@ def _cmd_ate(args: argparse.Namespace) -> int:
         return 0
     rows = run_experiment(out, args.scene, detectors, sensor=args.sensor, seed=args.seed, recording=args.recording,
                           progress=not args.quiet, backend=args.backend, scene_params=params, workers=args.workers,
-                          deskew=args.deskew, noise_streams=streams, attitude=args.attitude)
+                          deskew=args.deskew, noise_streams=streams, attitude=args.attitude,
+                          icp_covariance=args.icp_covariance)
     print(format_table(rows))
     if json.loads((out / "results.json").read_text()).get("swept"):
         turn = "the gyro's rotation over it" if args.deskew == "gyro" else "the odometry's rotation"
@@ -560,6 +562,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="fuse the IMU's orientation once a second: tilt = roll and pitch, which gravity holds "
                         "(no heading: underground a magnetometer reads the rock), full = with the magnetometer's "
                         "heading; adds a row of the odometry fused with it alone (default: none)")
+    p.add_argument("--icp-covariance", choices=["hessian", "fixed"], default="hessian",
+                   help="the ICP factor's information: the registration's Hessian over a fitted residual variance "
+                        "(default), or the fixed per-axis sigmas that the figures before it were measured with")
     p.add_argument("--out", help="output folder (default: l3e_out/ate-<scene>-<time>)")
     p.add_argument("--workers", type=int, default=1,
                    help="processes that judge the route with scanmc before the fusion (default 1)")

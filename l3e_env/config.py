@@ -68,7 +68,8 @@ class LoopFusionConfig:
     mode: mask | full | drop (see fusion.FusionConfig); deskew: gyro | odometry, where a swept
     revolution's deskewing takes its rotation from (its translation is the leg odometry's);
     attitude: none | tilt | full, the IMU's orientation fused once a second (tilt: roll and pitch,
-    which gravity holds; full: with the magnetometer's heading)."""
+    which gravity holds; full: with the magnetometer's heading); icp_covariance: hessian | fixed
+    (see fusion.FusionConfig)."""
 
     enabled: bool = False
     detector: str = "learned"
@@ -76,6 +77,7 @@ class LoopFusionConfig:
     mode: str = "mask"
     deskew: str = "gyro"
     attitude: str = "none"
+    icp_covariance: str = "hessian"
 
 
 @dataclass

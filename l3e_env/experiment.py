@@ -19,7 +19,7 @@ import numpy as np
 import small_gicp
 from tqdm import tqdm
 
-from fusion import FusionConfig, MetricError, ate, ate_aligned, check_backend, make_fusion, rpe
+from fusion import FusionConfig, MetricError, ate, ate_aligned, check_backend, check_config, make_fusion, rpe
 from scenes import Scene, SceneError, canonical_scene_name, file_sha256, is_mesh_path, make_scene
 
 from .config import NOISE_STREAMS, EnvConfig, LidarConfig, OdometryConfig, RobotConfig
@@ -341,7 +341,8 @@ def _scored(name: str, traj: np.ndarray, gt: np.ndarray, masks: np.ndarray, prob
 def run_experiment(out_dir: str | Path, scene: str, detectors: list[str], sensor: str = "vlp16", seed: int = 0,
                    recording: str | Path | None = None, progress: bool = True, backend: str = "graph",
                    scene_params: dict | None = None, workers: int = 1, deskew: str = "gyro",
-                   noise_streams: str = "shared", attitude: str = "none") -> list[dict]:
+                   noise_streams: str = "shared", attitude: str = "none",
+                   icp_covariance: str = "hessian") -> list[dict]:
     """The `l3e ate` command as a function: returns the table rows and writes everything to out_dir.
     `scene_params` go to make_scene (a mesh scene's up axis, scale and route). With a `recording`,
     its own scene is used; `scene` matters only as the new path of a recorded mesh that has moved.
@@ -349,7 +350,7 @@ def run_experiment(out_dir: str | Path, scene: str, detectors: list[str], sensor
     `deskew`: where a swept recording's deskewing takes its rotation from ("gyro" or "odometry").
     `noise_streams`: the drive's EnvConfig.noise_streams (a recording keeps its own).
     `attitude`: the IMU's orientation in the fusion ("none", "tilt" or "full"); with it, a row
-    "odometry + attitude" follows odometry alone."""
+    "odometry + attitude" follows odometry alone. `icp_covariance`: FusionConfig.icp_covariance."""
     if workers < 1:
         raise ValueError(f"workers must be at least 1, got {workers}")
     if deskew not in DESKEW_SOURCES:
@@ -357,6 +358,7 @@ def run_experiment(out_dir: str | Path, scene: str, detectors: list[str], sensor
     if noise_streams not in NOISE_STREAMS:
         raise ValueError(f"noise_streams must be one of {NOISE_STREAMS}, got {noise_streams!r}")
     attitude_sigmas(attitude)  # a bad mode fails before the drive
+    fusion = check_config(FusionConfig(icp_covariance=icp_covariance))
     out = Path(out_dir)
     rec = Recording.load(recording) if recording else None
     scene_obj = (make_scene(rec.scene_file(moved_to=scene), **rec.scene_params) if rec
@@ -382,7 +384,7 @@ def run_experiment(out_dir: str | Path, scene: str, detectors: list[str], sensor
             ahead[i] = time.perf_counter() - t0
     if attitude != "none":
         dets, ahead = [OdometryAttitude(), *dets], [0.0, *ahead]
-    fused = evaluate(rec, dets, regs, progress=progress, backend=backend, attitude=attitude)
+    fused = evaluate(rec, dets, regs, fusion=fusion, progress=progress, backend=backend, attitude=attitude)
     for result, seconds in zip(fused, ahead):
         result.seconds += seconds
     results = [odometry_only(rec)] + fused
@@ -391,6 +393,7 @@ def run_experiment(out_dir: str | Path, scene: str, detectors: list[str], sensor
     summary = {"scene": rec.scene, "sensor": rec.sensor, "seed": rec.seed, "noise_streams": rec.noise_streams,
                "swept": swept,
                "deskew": deskew if swept else None, "backend": backend, "attitude": attitude,
+               "icp_covariance": icp_covariance,
                "steps": len(rec.odometry), "icp_seconds": round(icp_seconds, 1),
                "icp_failed_or_not_converged": failed, "rows": rows}
     (out / "results.json").write_text(json.dumps(summary, indent=1))

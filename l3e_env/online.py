@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from fusion import FusionConfig, check_backend, make_fusion
+from fusion import FusionConfig, check_backend, check_config, make_fusion
 
 from .config import LoopFusionConfig, OdometryConfig
 from .detectors import UNKNOWN, Detector, Prediction, make_detector, safe_predict
@@ -29,7 +29,7 @@ class OnlineFusion:
         check_backend(config.backend)
         self.config, self.odometry, self.T_b_s, self.T_s_b = config, odometry, T_b_s, inverse(T_b_s)
         self.registration = RegistrationConfig()
-        self.fusion_config = FusionConfig(mode=config.mode)
+        self.fusion_config = check_config(FusionConfig(mode=config.mode, icp_covariance=config.icp_covariance))
         self.detector: Detector = make_detector(config.detector, lidar, seed)
         self.attitude_sigmas = attitude_sigmas(config.attitude)
 

@@ -99,7 +99,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
           f"-> {out.resolve()}")
     rows = evaluate_policies(out, args.policy or ["shortest", "planner"], list(scenes), args.episodes, args.seed,
                              args.detector, args.cache_dir, args.lam, args.workers, steer_on=args.steer_on,
-                             progress=not args.quiet, scene_params={k: v for k, v in scenes.items() if v})
+                             progress=not args.quiet, scene_params={k: v for k, v in scenes.items() if v},
+                             icp_covariance=args.icp_covariance)
     print(format_rows(rows))
     print(f"routes: {out / 'routes.png'}")
     return 0
@@ -153,6 +154,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--workers", type=int, default=1, help="episodes run in parallel processes")
     g.add_argument("--steer-on", dest="steer_on", choices=["estimate", "truth"], default="estimate",
                    help="pose the policies steer on (default: the fused estimate); ATE is measured either way")
+    g.add_argument("--icp-covariance", choices=["hessian", "fixed"], default="hessian",
+                   help="the fusion's ICP information: the registration's Hessian (default) or the fixed sigmas "
+                        "that the README's navigation tables were measured with")
     g.add_argument("--seed", type=int, default=0)
     g.add_argument("--out", help="output folder (default: l3e_out/policy-eval-<time>)")
     add_mesh_options(g, several=True)

@@ -213,6 +213,8 @@ def test_fusion_in_the_loop_takes_the_imu_attitude_once_a_second_from_a_stream_o
     assert not np.array_equal(plain["fused_T_w_b"], held["fused_T_w_b"])
     with pytest.raises(ValueError, match="attitude must be one of"):
         NavigationEnv(dict(scene="tunnel", fusion=dict(enabled=True, detector="none", attitude="compass")))
+    with pytest.raises(ValueError, match="icp_covariance must be one of"):
+        NavigationEnv(dict(scene="tunnel", fusion=dict(enabled=True, detector="none", icp_covariance="censi")))
 
 
 def test_separate_noise_streams_keep_the_odometry_noise_whatever_the_sensor():

@@ -87,6 +87,23 @@ def test_the_imu_attitude_joins_every_detector_alike_and_adds_its_own_reference_
     assert not (tmp_path / "bad").exists()
 
 
+def test_the_fixed_icp_sigmas_reproduce_the_figures_measured_before_the_hessian(walls_run, tmp_path):
+    from fusion import FusionConfig
+
+    rec, regs = walls_run
+    rec.save(tmp_path / "rec.npz")
+    fixed, = evaluate(rec, [NoDetector()], regs, fusion=FusionConfig(icp_covariance="fixed"), progress=False)
+    weighed, = evaluate(rec, [NoDetector()], regs, progress=False)
+    assert weighed.ate != pytest.approx(fixed.ate, rel=1e-3)
+    rows = run_experiment(tmp_path / "out", "mine", ["none"], recording=tmp_path / "rec.npz", progress=False,
+                          icp_covariance="fixed")
+    assert rows[1]["ate_m"] == round(fixed.ate, 3)  # rows are rounded
+    assert json.loads((tmp_path / "out" / "results.json").read_text())["icp_covariance"] == "fixed"
+    with pytest.raises(ValueError, match="icp_covariance must be one of"):
+        run_experiment(tmp_path / "bad", "mine", ["none"], icp_covariance="censi")
+    assert not (tmp_path / "bad").exists()
+
+
 def test_a_swept_recording_says_so_when_replayed(walls_run, tmp_path, capsys):
     from dataclasses import replace
 

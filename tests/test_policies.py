@@ -352,6 +352,13 @@ def test_a_users_mesh_is_driven_by_the_policies(cad_corridor, tmp_path, capsys, 
     np.savetxt(tmp_path / "other.csv", [[1000.0, 0, 0], [6000, 0, 0]])
     assert main([*args, "--route", str(tmp_path / "other.csv")]) == 2  # the folder's episodes had another route
     assert "holds episodes run with other settings (scene_params)" in capsys.readouterr().err
+    assert main([*args, "--route", str(route), "--icp-covariance", "fixed"]) == 2
+    assert "other settings (icp_covariance 'hessian', now 'fixed')" in capsys.readouterr().err
+    settings = json.loads((tmp_path / "ev" / "settings.json").read_text())
+    assert settings.pop("icp_covariance") == "hessian"
+    (tmp_path / "ev" / "settings.json").write_text(json.dumps(settings))  # a folder from before the option
+    assert main([*args, "--route", str(route)]) == 2  # its episodes had the fixed sigmas
+    assert main([*args, "--route", str(route), "--icp-covariance", "fixed"]) == 0
 
 
 def test_fork_variants_differ():
