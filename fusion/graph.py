@@ -55,7 +55,8 @@ class FusionGraph:
             base = gtsam.noiseModel.Diagonal.Precisions(np.where(precisions > 0.0, precisions, 0.0))  # no -0.0
         else:  # a square root of the information; its zero eigenvalues (masked axes) say nothing
             w, V = np.linalg.eigh(information)
-            base = gtsam.noiseModel.Gaussian.SqrtInformation(np.sqrt(np.clip(w, 0.0, None))[:, None] * V.T)
+            root = np.sqrt(np.where(w > 0.0, w, 0.0))[:, None] * V.T
+            base = gtsam.noiseModel.Gaussian.SqrtInformation(root, False)  # GTSAM's "smart" test refuses zero rows
         kernel = self.config.robust_kernel
         if kernel is None:
             return base

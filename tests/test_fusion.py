@@ -99,6 +99,11 @@ def test_the_registrations_hessian_weighs_each_axis_as_it_is_held_without_a_mask
     almost = np.diag([-1e-12, 1e6, 1e6, 1e6, 1e6, 1e6])
     T, report = graph.add_step(pose(0.1), np.full(6, 0.01), pose(0.1), np.r_[False, np.ones(5, bool)], almost)
     assert report.icp_used and np.isfinite(T).all()
+    coupled = np.eye(6)  # a tunnel step with x, y and z masked: the rotations held together
+    coupled[3:, 3:] = [[1.6e5, 9.7e4, -7.5e5], [9.7e4, 1.9e7, 2.5e5], [-7.5e5, 2.5e5, 1.4e7]]
+    T, report = graph.add_step(pose(0.1), np.full(6, 0.01), pose(0.1), np.r_[np.ones(3, bool), np.zeros(3, bool)],
+                               coupled)
+    assert report.icp_used and report.masked_axes == 3 and np.isfinite(T).all()
     for bad in (FusionConfig(icp_covariance="adaptive"), FusionConfig(icp_residual_variance=0.0)):
         with pytest.raises(ValueError, match="icp_covariance|icp_residual_variance"):
             BACKENDS[backend](np.eye(4), bad)
