@@ -25,6 +25,8 @@ def scene_names(text: str) -> list[str]:
 
 
 SENSOR_HELP = "vlp16, vlp16-calibrated, os0-128 or a beam pattern file (.yaml/.json, or an Ouster metadata .json)"
+ICP_COVARIANCE_HELP = ("the fusion's ICP information: the registration's Hessian over a fitted residual variance "
+                       "(default), or the fixed per-axis sigmas that the figures before it were measured with")
 NOISE_HELP = ("draw the odometry's and the LiDAR's noise from streams of their own, so that a drive with another "
               "--sensor or sweep setting has the same odometry noise (default: one stream, the drives the README's "
               "figures were measured on)")
@@ -496,7 +498,7 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
     taus = args.taus or DEFAULT_TAUS
     recordings = dict(r.split("=", 1) for r in args.recording or [])
     results = run_sweep(out, args.scene or ["tunnel", "field", "office"], taus, recordings=recordings,
-                        progress=not args.quiet)
+                        progress=not args.quiet, icp_covariance=args.icp_covariance)
     best = beaten_everywhere(results, "learned")
     print("taus at least as good as the learned detector in every scene: " + (", ".join(f"{t:g}" for t in best)
                                                                              if best else "none"))
@@ -562,9 +564,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="fuse the IMU's orientation once a second: tilt = roll and pitch, which gravity holds "
                         "(no heading: underground a magnetometer reads the rock), full = with the magnetometer's "
                         "heading; adds a row of the odometry fused with it alone (default: none)")
-    p.add_argument("--icp-covariance", choices=["hessian", "fixed"], default="hessian",
-                   help="the ICP factor's information: the registration's Hessian over a fitted residual variance "
-                        "(default), or the fixed per-axis sigmas that the figures before it were measured with")
+    p.add_argument("--icp-covariance", choices=["hessian", "fixed"], default="hessian", help=ICP_COVARIANCE_HELP)
     p.add_argument("--out", help="output folder (default: l3e_out/ate-<scene>-<time>)")
     p.add_argument("--workers", type=int, default=1,
                    help="processes that judge the route with scanmc before the fusion (default 1)")
@@ -703,6 +703,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scene", type=scene_name, action="append", help="repeat; default tunnel, field, office")
     p.add_argument("--taus", type=float_list, help="comma-separated thresholds (default 10 ... 300)")
     p.add_argument("--recording", action="append", help="SCENE=recording.npz to skip driving that scene")
+    p.add_argument("--icp-covariance", choices=["hessian", "fixed"], default="hessian", help=ICP_COVARIANCE_HELP)
     p.add_argument("--out", help="output folder (default: l3e_out/sweep-<time>)")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_cmd_sweep)

@@ -8,6 +8,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from fusion import FusionConfig, check_config
+
 from .detectors import EigenvalueDetector, make_detector
 from .experiment import Recording, evaluate, odometry_only, record_run, register_sequence
 from .registration import RegistrationConfig
@@ -17,9 +19,11 @@ DEFAULT_TAUS = (10, 20, 30, 50, 70, 90, 110, 150, 200, 300)
 
 def run_sweep(out_dir: str | Path, scenes: list[str], taus: tuple[float, ...] = DEFAULT_TAUS,
               references: tuple[str, ...] = ("learned", "none"), recordings: dict[str, str] | None = None,
-              seed: int = 0, progress: bool = True) -> dict:
+              seed: int = 0, progress: bool = True, icp_covariance: str = "hessian") -> dict:
     """Returns {scene: {"taus": [...], "eigen_ate": [...], "<reference>": ate, ...}} and writes
-    sweep.json and tau_sweep.png into out_dir (recordings are saved there for re-use)."""
+    sweep.json and tau_sweep.png into out_dir (recordings are saved there for re-use).
+    `icp_covariance`: FusionConfig.icp_covariance of every fusion."""
+    fusion = check_config(FusionConfig(icp_covariance=icp_covariance))
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     results: dict[str, dict] = {}
@@ -29,9 +33,9 @@ def run_sweep(out_dir: str | Path, scenes: list[str], taus: tuple[float, ...] = 
         if not given:
             rec.save(out / f"recording_{scene}.npz")
         regs = register_sequence(rec, RegistrationConfig(), progress)
-        eigen = evaluate(rec, [EigenvalueDetector(t) for t in taus], regs, progress=False)
-        refs = evaluate(rec, [make_detector(r) for r in references], regs, progress=False)
-        row = {"taus": list(map(float, taus)), "eigen_ate": [r.ate for r in eigen],
+        eigen = evaluate(rec, [EigenvalueDetector(t) for t in taus], regs, fusion=fusion, progress=False)
+        refs = evaluate(rec, [make_detector(r) for r in references], regs, fusion=fusion, progress=False)
+        row = {"icp_covariance": icp_covariance, "taus": list(map(float, taus)), "eigen_ate": [r.ate for r in eigen],
                "eigen_flagged": [r.masks.mean(axis=0).tolist() for r in eigen],
                "odometry only": odometry_only(rec).ate}
         for name, r in zip(references, refs):

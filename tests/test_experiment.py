@@ -102,6 +102,13 @@ def test_the_fixed_icp_sigmas_reproduce_the_figures_measured_before_the_hessian(
     with pytest.raises(ValueError, match="icp_covariance must be one of"):
         run_experiment(tmp_path / "bad", "mine", ["none"], icp_covariance="censi")
     assert not (tmp_path / "bad").exists()
+    from l3e_env.sweep import run_sweep
+
+    swept = run_sweep(tmp_path / "sweep", ["primitives-1"], taus=(1e12,), references=("none",),
+                      recordings={"primitives-1": str(tmp_path / "rec.npz")}, progress=False, icp_covariance="fixed")
+    row = swept["primitives-1"]
+    assert row["icp_covariance"] == "fixed" and row["none"] == pytest.approx(fixed.ate, rel=1e-9)
+    assert row["eigen_ate"][0] == pytest.approx(row["odometry only"], rel=1e-6)  # every axis flagged: the legs alone
 
 
 def test_a_swept_recording_says_so_when_replayed(walls_run, tmp_path, capsys):
