@@ -28,7 +28,7 @@ from l3e_env.detectors import EigenvalueDetector
 from l3e_env.experiment import record_run, register_sequence
 from l3e_env.labels import AXES
 from l3e_env.odometry import odometry_sigmas
-from l3e_env.registration import RegistrationConfig, hessian_in_frame
+from l3e_env.registration import RegistrationConfig
 from l3e_env.transforms import inverse, matrix_to_pose
 
 
@@ -43,11 +43,11 @@ def step_errors(scene: str, tau: float, seed: int) -> tuple[np.ndarray, np.ndarr
         if reg is None or not reg.converged:
             continue
         truth = inverse(rec.ground_truth[k]) @ rec.ground_truth[k + 1]
-        icp = T_b_s @ reg.T_target_source @ inverse(T_b_s)
+        icp, hessian = reg.in_frame(T_b_s)
         errors.append(matrix_to_pose(inverse(truth) @ icp))
         trusted.append(~detector.predict(rec.scans[k + 1], reg).mask)
         sigmas.append(odometry_sigmas(rec.odometry[k], OdometryConfig()))
-        quadratic.append(errors[-1] @ hessian_in_frame(reg.hessian, T_b_s) @ errors[-1] / 6.0)
+        quadratic.append(errors[-1] @ hessian @ errors[-1] / 6.0)
     return np.array(errors), np.array(trusted), np.array(sigmas), np.array(quadratic)
 
 

@@ -25,11 +25,17 @@ def scene_names(text: str) -> list[str]:
 
 
 SENSOR_HELP = "vlp16, vlp16-calibrated, os0-128 or a beam pattern file (.yaml/.json, or an Ouster metadata .json)"
-ICP_COVARIANCE_HELP = ("the fusion's ICP information: the registration's Hessian over a fitted residual variance "
-                       "(default), or the fixed per-axis sigmas that the figures before it were measured with")
 NOISE_HELP = ("draw the odometry's and the LiDAR's noise from streams of their own, so that a drive with another "
               "--sensor or sweep setting has the same odometry noise (default: one stream, the drives the README's "
               "figures were measured on)")
+
+
+def add_icp_covariance_option(parser: argparse.ArgumentParser) -> None:
+    """--icp-covariance, as fusion.FusionConfig.icp_covariance (`l3e ate`, `l3e sweep`, `l3e policy evaluate`)."""
+    parser.add_argument("--icp-covariance", choices=["hessian", "fixed"], default="hessian",
+                        help="the fusion's ICP information: the registration's Hessian over a fitted residual "
+                             "variance (default), or the fixed per-axis sigmas that the figures before it were "
+                             "measured with")
 
 
 def sensor_name(text: str) -> str:
@@ -564,7 +570,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="fuse the IMU's orientation once a second: tilt = roll and pitch, which gravity holds "
                         "(no heading: underground a magnetometer reads the rock), full = with the magnetometer's "
                         "heading; adds a row of the odometry fused with it alone (default: none)")
-    p.add_argument("--icp-covariance", choices=["hessian", "fixed"], default="hessian", help=ICP_COVARIANCE_HELP)
+    add_icp_covariance_option(p)
     p.add_argument("--out", help="output folder (default: l3e_out/ate-<scene>-<time>)")
     p.add_argument("--workers", type=int, default=1,
                    help="processes that judge the route with scanmc before the fusion (default 1)")
@@ -703,7 +709,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scene", type=scene_name, action="append", help="repeat; default tunnel, field, office")
     p.add_argument("--taus", type=float_list, help="comma-separated thresholds (default 10 ... 300)")
     p.add_argument("--recording", action="append", help="SCENE=recording.npz to skip driving that scene")
-    p.add_argument("--icp-covariance", choices=["hessian", "fixed"], default="hessian", help=ICP_COVARIANCE_HELP)
+    add_icp_covariance_option(p)
     p.add_argument("--out", help="output folder (default: l3e_out/sweep-<time>)")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_cmd_sweep)

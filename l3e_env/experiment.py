@@ -31,7 +31,7 @@ from .labels import AXES
 from .lidar import DESKEW_SOURCES, Lidar, Scan, deskew, deskew_motion, get_pattern
 from .odometry import odometry_sigmas
 from .raycast import EmbreeCaster
-from .registration import PreparedTarget, RegistrationConfig, RegistrationError, hessian_in_frame, register
+from .registration import PreparedTarget, RegistrationConfig, RegistrationError, register
 from .transforms import inverse
 from .workers import ordered_map
 
@@ -291,7 +291,7 @@ def evaluate(rec: Recording, detectors: list[Detector], registrations: list, fus
     steps, the same readings for every detector (drawn from the recording's seed)."""
     check_backend(backend)
     fusion, odometry = fusion or FusionConfig(), odometry or OdometryConfig()
-    T_b_s, T_s_b = rec.T_b_s, inverse(rec.T_b_s)
+    T_b_s = rec.T_b_s
     gt = rec.ground_truth
     sigmas = attitude_sigmas(attitude)
     readings = None if sigmas is None else attitude_readings(gt, RobotConfig.dt,
@@ -305,8 +305,7 @@ def evaluate(rec: Recording, detectors: list[Detector], registrations: list, fus
             pred, failed = safe_predict(det, rec.detector_input(k + 1), reg, gt[k + 1] @ T_b_s)
             unknown += not pred.known
             errors += failed
-            icp = T_b_s @ reg.T_target_source @ T_s_b if reg is not None and reg.converged else None
-            hessian = hessian_in_frame(reg.hessian, T_b_s) if icp is not None else None
+            icp, hessian = (reg.in_frame(T_b_s) if reg is not None else None) or (None, None)
             inc = rec.odometry[k]
             _, report = graph.add_step(inc, odometry_sigmas(inc, odometry), icp, pred.mask, hessian)
             if readings is not None and (k + 1) % ATTITUDE_EVERY == 0:

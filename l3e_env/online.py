@@ -17,8 +17,7 @@ from .detectors import UNKNOWN, Detector, Prediction, make_detector, safe_predic
 from .imu import ATTITUDE_EVERY, attitude_sigmas
 from .lidar import Lidar
 from .odometry import odometry_sigmas
-from .registration import PreparedTarget, RegistrationConfig, RegistrationError, hessian_in_frame, register
-from .transforms import inverse
+from .registration import PreparedTarget, RegistrationConfig, RegistrationError, register
 
 
 class OnlineFusion:
@@ -27,7 +26,7 @@ class OnlineFusion:
     def __init__(self, config: LoopFusionConfig, lidar: Lidar, odometry: OdometryConfig, T_b_s: np.ndarray,
                  seed: int = 0):
         check_backend(config.backend)
-        self.config, self.odometry, self.T_b_s, self.T_s_b = config, odometry, T_b_s, inverse(T_b_s)
+        self.config, self.odometry, self.T_b_s = config, odometry, T_b_s
         self.registration = RegistrationConfig()
         self.fusion_config = check_config(FusionConfig(mode=config.mode, icp_covariance=config.icp_covariance))
         self.detector: Detector = make_detector(config.detector, lidar, seed)
@@ -56,13 +55,12 @@ class OnlineFusion:
                 reg = register(points, self.target, self.registration)
             except RegistrationError:
                 reg = None
-        icp = self.T_b_s @ reg.T_target_source @ self.T_s_b if reg is not None and reg.converged else None
+        icp, hessian = (reg.in_frame(self.T_b_s) if reg is not None else None) or (None, None)
         self.counts["icp_failed"] += icp is None
         pred, failed = safe_predict(self.detector, points, reg, T_w_b_true @ self.T_b_s)
         self.counts["detector_errors"] += failed
         self.counts["unknown"] += not pred.known
         sigmas = odometry_sigmas(odom_increment, self.odometry)
-        hessian = hessian_in_frame(reg.hessian, self.T_b_s) if icp is not None else None
         T, report = self.backend.add_step(odom_increment, sigmas, icp, pred.mask, hessian)
         self.counts["fallbacks"] += report.fallback is not None
         if self.attitude_sigmas is not None and len(self.squared_errors) % ATTITUDE_EVERY == 0:

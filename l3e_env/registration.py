@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 import small_gicp
 
-from .transforms import adjoint
+from .transforms import adjoint, inverse
 
 # small_gicp's tangent order is (rx, ry, rz, tx, ty, tz); the project's is (x, y, z, roll, pitch, yaw).
 TO_PROJECT_ORDER = np.array([3, 4, 5, 0, 1, 2])
@@ -59,6 +59,13 @@ class RegistrationResult:
     @property
     def ok(self) -> bool:
         return self.converged
+
+    def in_frame(self, T_b_s: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """The registered step and its Hessian seen in frame b, T_b_s the sensor's mounting (what
+        the fusion's body-frame ICP factor takes), or None where the registration did not converge."""
+        if not self.converged:
+            return None
+        return T_b_s @ self.T_target_source @ inverse(T_b_s), hessian_in_frame(self.hessian, T_b_s)
 
 
 def _checked(points: np.ndarray, what: str) -> np.ndarray:
@@ -154,9 +161,9 @@ def point_to_plane_hessian(source: np.ndarray, target: PreparedTarget, T: np.nda
 def hessian_in_frame(hessian: np.ndarray, T_b_s: np.ndarray) -> np.ndarray:
     """A registration's Hessian (project order, scans in frame s) for the same step seen in frame b,
     T_b_s the sensor's mounting: a perturbation d of T_target_source is Ad(T_b_s) d in b, so the
-    Hessian becomes Ad^-T H Ad^-1 (what the fusion's body-frame ICP factor weighs)."""
-    inverse_adjoint = np.linalg.inv(adjoint(T_b_s))
-    return inverse_adjoint.T @ np.asarray(hessian, dtype=np.float64) @ inverse_adjoint
+    Hessian becomes Ad^-T H Ad^-1 = Ad(T_s_b)^T H Ad(T_s_b) (what the fusion's body-frame ICP factor weighs)."""
+    back = adjoint(inverse(T_b_s))
+    return back.T @ np.asarray(hessian, dtype=np.float64) @ back
 
 
 def scan_hessian(points: np.ndarray, config: RegistrationConfig | None = None) -> np.ndarray:

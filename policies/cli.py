@@ -10,7 +10,8 @@ from pathlib import Path
 import numpy as np
 
 from l3e_env.cli import (
-    ICP_COVARIANCE_HELP, add_mesh_options, mesh_options_given, meshes_file, scene_names, scene_params, sensor_name,
+    add_icp_covariance_option, add_mesh_options, mesh_options_given, meshes_file, scene_names, scene_params,
+    sensor_name,
 )
 
 
@@ -156,7 +157,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--workers", type=int, default=1, help="episodes run in parallel processes")
     g.add_argument("--steer-on", dest="steer_on", choices=["estimate", "truth"], default="estimate",
                    help="pose the policies steer on (default: the fused estimate); ATE is measured either way")
-    g.add_argument("--icp-covariance", choices=["hessian", "fixed"], default="hessian", help=ICP_COVARIANCE_HELP)
+    add_icp_covariance_option(g)
     g.add_argument("--seed", type=int, default=0)
     g.add_argument("--out", help="output folder (default: l3e_out/policy-eval-<time>)")
     add_mesh_options(g, several=True)
