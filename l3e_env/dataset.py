@@ -27,7 +27,7 @@ from tqdm import tqdm
 
 from scenes import DATASET_SCENES, check_scene_name, file_sha256, is_mesh_path, make_scene
 
-from .config import LidarConfig, from_dict, settings_changed
+from .config import LidarConfig, from_dict, plain, settings_changed, to_dict
 from .files import write_atomic
 from .labels import AXES, LabelConfig, SamplingError, label_parent, sample_parent_pose
 from .lidar import Lidar, get_pattern
@@ -383,6 +383,13 @@ class LabelDataset:
         return from_dict(LabelConfig, self.manifest["settings"]["labels"])
 
 
+def comparable_settings(manifest: dict[str, Any], key: str) -> dict[str, Any]:
+    """A manifest's lidar or registration settings with every option it predates at its default: a
+    dataset made before an option existed (the LiDAR's `sweep`) was made as that default makes it."""
+    cls = {"lidar": LidarConfig, "registration": RegistrationConfig}[key]
+    return plain(to_dict(from_dict(cls, manifest["settings"][key])))
+
+
 class DatasetUnion:
     """Datasets of one sensor and one registration read as one, e.g. the paper's poses and the
     level operating poses of the same scenes: scenes matched by name, rows in the given order.
@@ -393,9 +400,10 @@ class DatasetUnion:
         first = self.parts[0].manifest
         for part in self.parts[1:]:
             for key in ("lidar", "registration"):
-                if part.manifest["settings"][key] != first["settings"][key]:
-                    raise DatasetError(f"{part.folder} and {self.parts[0].folder} differ in their {key} settings: "
-                                       "they cannot be trained on together")
+                ours, theirs = comparable_settings(first, key), comparable_settings(part.manifest, key)
+                if theirs != ours:
+                    raise DatasetError(f"{part.folder} and {self.parts[0].folder} differ in their {key} settings "
+                                       f"({settings_changed(ours, theirs)}): they cannot be trained on together")
         names: list[str] = []
         for part in self.parts:
             names += [s for s in part.manifest["scenes"] if s not in names]

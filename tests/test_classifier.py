@@ -2,6 +2,7 @@
 import copy
 import dataclasses
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -404,8 +405,18 @@ def test_datasets_are_read_as_one_with_scenes_matched_by_name(tiny_dataset, tmp_
     os0 = tmp_path / "os0"
     generate(os0, config_for(None, scenes=["field-0"], parents_per_scene=1, shard_size=1, labels={"children": 4},
                              lidar={"model": "os0-128"}), workers=1, progress=False)
-    with pytest.raises(DatasetError, match="lidar settings"):
+    with pytest.raises(DatasetError, match="lidar settings .*model 'vlp16', now 'os0-128'"):
         open_datasets([tiny_dataset, os0])
+    older = tmp_path / "older"  # made before the LiDAR's `sweep` option existed: as its default makes it
+    shutil.copytree(other, older)
+    manifest = json.loads((older / "manifest.json").read_text())
+    del manifest["settings"]["lidar"]["sweep"]
+    (older / "manifest.json").write_text(json.dumps(manifest))
+    assert len(open_datasets([tiny_dataset, older])) == len(a) + len(b)
+    manifest["settings"]["lidar"]["sweep"] = True
+    (older / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(DatasetError, match="sweep False, now True"):
+        open_datasets([tiny_dataset, older])
 
 
 def test_fine_tuning_starts_from_the_given_weights(tiny_dataset, tmp_path):
