@@ -2,6 +2,7 @@
 environment, PPO checkpoints and full-pipeline episodes, on a small fork."""
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -196,6 +197,19 @@ def test_fast_env_rewards_progress_and_penalises_drift(fast_env):
     expected = (info["path_length"] - cfg.lam * info["expected_drift"] + cfg.goal_reward
                 - cfg.step_penalty * fast_env.decisions)
     assert total == pytest.approx(expected, abs=1.0)
+
+
+def test_fast_env_charges_turning_as_drift(fast_env):
+    """Swinging the heading where nothing is masked still costs drift (ICP's per-turn heading error)."""
+    fast_env.reset(seed=0)
+    cfg = fast_env.config
+    _, reward, _, _, info = fast_env.step(np.array([0.0, 0.0, 1.0]))  # turn in place at the full yaw rate
+    turned = cfg.robot.max_twist[2] * cfg.robot.dt * cfg.action_repeat
+    assert info["path_length"] == 0.0 and info["expected_drift"] == pytest.approx(cfg.turn_drift * turned)
+    assert reward == pytest.approx(-cfg.lam * cfg.turn_drift * turned - cfg.step_penalty)
+    fast_env.config = dataclasses.replace(cfg, turn_drift=0.0)
+    _, reward, _, _, _ = fast_env.step(np.array([0.0, 0.0, -1.0]))
+    assert reward == pytest.approx(-cfg.step_penalty)
 
 
 def test_fast_env_blocks_at_walls(fast_env):
