@@ -7,7 +7,10 @@ steps where no axis is flagged, e the step's error and H its Hessian in the body
 The route of each scene (training families only, so that the mine and the caves stay unseen) is
 driven once with separate noise streams, consecutive scans are registered as `l3e ate` does, and
 on every step that eigen:TAU leaves an axis unflagged the ICP step's error on that axis (in the
-body frame, the fusion's) is collected. The error's RMS, pooled over the scenes, carries its bias
+body frame, the fusion's) is collected. On the steps with no axis flagged, each axis's squared
+error over the variance that the fusion's information gives it (the diagonal of
+icp_residual_variance x H^-1) says where that covariance is calibrated: 1 where it is right, above
+1 where it flatters ICP, below where it under-sells it. The error's RMS, pooled over the scenes, carries its bias
 too (ICP under-estimates a step where normals lean across corners), since a per-step bias adds
 up along a route as the graph's sigmas assume noise does not. Printed per scene and pooled, with
 the defaults beside them. The pooled RMS is not a good constant: where the detector trusts a
@@ -32,13 +35,15 @@ from l3e_env.registration import RegistrationConfig
 from l3e_env.transforms import inverse, matrix_to_pose
 
 
-def step_errors(scene: str, tau: float, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def step_errors(scene: str, tau: float, seed: int) -> tuple[np.ndarray, ...]:
     """(errors, trusted, odometry sigmas) per registered step of the scene's route, (K, 6) each,
-    and e' H e / 6 per step (K)."""
+    e' H e / 6 per step (K), and e_i^2 / (v H^-1)_ii per axis (K, 6; NaN where an axis is flagged),
+    v the default residual variance."""
     rec = record_run(scene, seed=seed, progress=False, noise_streams="separate")
     registrations = register_sequence(rec, RegistrationConfig(), progress=False)
     detector, T_b_s = EigenvalueDetector(tau), rec.T_b_s
-    errors, trusted, sigmas, quadratic = [], [], [], []
+    errors, trusted, sigmas, quadratic, calibration = [], [], [], [], []
+    variance = FusionConfig().icp_residual_variance
     for k, reg in enumerate(registrations):
         if reg is None or not reg.converged:
             continue
@@ -48,7 +53,9 @@ def step_errors(scene: str, tau: float, seed: int) -> tuple[np.ndarray, np.ndarr
         trusted.append(~detector.predict(rec.scans[k + 1], reg).mask)
         sigmas.append(odometry_sigmas(rec.odometry[k], OdometryConfig()))
         quadratic.append(errors[-1] @ hessian @ errors[-1] / 6.0)
-    return np.array(errors), np.array(trusted), np.array(sigmas), np.array(quadratic)
+        covariance = variance * np.linalg.inv(hessian) if trusted[-1].all() else np.full((6, 6), np.nan)
+        calibration.append(errors[-1] ** 2 / np.diag(covariance))
+    return tuple(map(np.array, (errors, trusted, sigmas, quadratic, calibration)))
 
 
 def row(name: str, values: np.ndarray) -> str:
@@ -64,7 +71,7 @@ def main() -> None:
     print(f"{'':34s}" + "".join(f"{a:>8s}" for a in AXES))
     pooled_sq, pooled_n, fits = np.zeros(6), np.zeros(6), []
     for scene in args.scenes.split(","):
-        errors, trusted, sigmas, quadratic = step_errors(scene, args.tau, args.seed)
+        errors, trusted, sigmas, quadratic, calibration = step_errors(scene, args.tau, args.seed)
         fits.append(quadratic[trusted.all(axis=1)])
         n = trusted.sum(axis=0)
         squares = np.where(trusted, errors**2, 0.0).sum(axis=0)
@@ -78,6 +85,7 @@ def main() -> None:
         print(row("  leg odometry sigma, median", np.median(sigmas, axis=0)))
         if len(fits[-1]):
             print(f"  e' H e / 6 on the {len(fits[-1])} steps with no axis flagged: mean {fits[-1].mean():.4f}")
+            print(row("  there, e_i^2 / (v H^-1)_ii, mean", np.nanmean(calibration[trusted.all(axis=1)], axis=0)))
     print(row("pooled ICP step error, RMS", np.sqrt(pooled_sq / np.maximum(pooled_n, 1))))
     print(row("FusionConfig.icp_sigmas (fixed)", np.asarray(FusionConfig().icp_sigmas)))
     pooled = np.concatenate(fits)
