@@ -368,7 +368,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     out = Path(args.out or f"l3e_out/evaluate-{time.strftime('%Y%m%d-%H%M%S')}")
     results = evaluate(args.checkpoint or [DEFAULT_CHECKPOINT], args.dataset, out, others=args.other,
                        progress=not args.quiet, symmetric=args.symmetric, eigen=args.eigen, int8=not args.float32,
-                       by_family=args.by_family, scan_mc=args.scan_mc, workers=args.workers)
+                       by_family=args.by_family, scan_mc=args.scan_mc, workers=args.workers, draws=args.draws)
     print(results["table"])
     print(f"written: {out / 'table.txt'}, {out / 'results.json'}, {out / 'pr_curves.png'}")
     return 0
@@ -647,6 +647,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "about 50 ms a child, and a scan stops drawing once its axes are settled), on every split "
                         "but the training one")
     p.add_argument("--workers", type=int, default=1, help="processes for --scan-mc (default 1)")
+    p.add_argument("--draws", type=int, default=1, metavar="N",
+                   help="also score each checkpoint on N draws of the points read from each scan and print the "
+                        "spread of its mean F1 and accuracy (N times the model's time; default 1: the table's draw)")
     p.add_argument("--out", help="output folder (default: l3e_out/evaluate-<time>)")
     p.add_argument("--symmetric", action="store_true",
                    help="average each scan's probabilities over its eight mirror/swap views (8x slower)")

@@ -53,7 +53,7 @@ def split_rows(data: LabelDataset | DatasetUnion, training: dict[str, Any]) -> d
 def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Path] | None, out_dir: str | Path,
              others: list[str | Path] | None = None, progress: bool = True, symmetric: bool = False,
              eigen: list[float] | None = None, int8: bool = True, by_family: bool = False,
-             scan_mc: int = 0, workers: int = 1) -> dict[str, Any]:
+             scan_mc: int = 0, workers: int = 1, draws: int = 1) -> dict[str, Any]:
     """Score each checkpoint on its own train/validation split and on the test families of the
     dataset, and on every scan of each of `others` (a dataset of another sensor, or of scene
     families the model never saw: column 'all of <folder>'); writes table.txt, results.json and
@@ -68,13 +68,17 @@ def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Pat
     scored: how a model does on a user's own scenes needs no training data. `scan_mc`: children of
     the scan's own Monte-Carlo estimate (scan_mc.py), scored on the first checkpoint's splits but
     its training split (up to M registrations a scan, over `workers` processes); the estimates are
-    saved in scan_mc.npz."""
+    saved in scan_mc.npz. `draws`: each checkpoint also scored on that many draws of the points it
+    reads from a scan (seeds 0 ... draws-1; the table is draw 0's): which 4000 points a scan gives
+    moves a split's mean F1 by a few hundredths, as much as some of the differences between models."""
     if not dataset and not others:
         raise ValueError("nothing to score: give the training dataset(s) (--dataset, scored by split), other "
                          "datasets (--other, scored whole), or both")
     if dataset and not checkpoints:
         raise ValueError("a dataset is split by a checkpoint's training and validation scenes: give a checkpoint, "
                          "or score the dataset whole as an other")
+    if draws < 1:
+        raise ValueError(f"draws must be at least 1 (the table's own draw), got {draws}")
     if scan_mc < 0 or workers < 1:
         raise ValueError(f"the scan estimate needs 0 (none) or more children and at least one worker, got "
                          f"{scan_mc} and {workers}")
@@ -128,6 +132,9 @@ def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Pat
             probs = predict_dataset(clf.model, ds, rows, progress=progress, symmetric=symmetric)
             curves[name][split] = (ds.labels[rows], probs)
             score(name, split, ds, rows, probs > clf.thresholds)
+            if draws > 1:
+                results["models"][name]["splits"][split]["draws"] = draw_scores(
+                    clf, ds, rows, probs, draws, progress, symmetric)
         if "valid" in curves[name]:
             families = {split: family_columns(split, *splits[split]) for split in curves[name]}
             results["models"][name]["f1_operating_point"] = f1_operating_point(curves[name], families)
@@ -160,7 +167,8 @@ def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Pat
                   mean_children=float(drawn[split][known].mean()) if known.any() else 0.0)
         np.savez(out / "scan_mc.npz", **{split.replace(" ", "_"): e for split, e in estimates.items()},
                  **{f"children_{split.replace(' ', '_')}": n for split, n in drawn.items()})
-    text = format_table(table, intervals=intervals) + format_f1_operating_points(results["models"])
+    text = (format_table(table, intervals=intervals) + format_f1_operating_points(results["models"])
+            + format_draws(results["models"], draws))
     if scan_mc:
         scored = results["models"][f"scanmc:{scan_mc}"]["splits"]
         text += f"\nscanmc:{scan_mc} children drawn a scan (mean): " + ", ".join(
@@ -186,6 +194,36 @@ def dataset_hessians(data: LabelDataset | DatasetUnion, rows: np.ndarray, progre
         except RegistrationError:
             pass
     return out
+
+
+def draw_scores(clf: Classifier, data: LabelDataset | DatasetUnion, rows: np.ndarray, first: np.ndarray,
+                draws: int, progress: bool, symmetric: bool) -> dict[str, list[float]]:
+    """Mean accuracy and F1 over axes at the stored thresholds, one per draw of the scans' points
+    (`first`: draw 0's probabilities, already computed)."""
+    y, out = data.labels[rows], {"mean_accuracy": [], "mean_f1": []}
+    for seed in range(draws):
+        probs = first if seed == 0 else predict_dataset(clf.model, data, rows, seed=seed, progress=progress,
+                                                        symmetric=symmetric)
+        means = mean_scores(axis_scores(y, probs > clf.thresholds))
+        out["mean_accuracy"].append(means["accuracy"])
+        out["mean_f1"].append(means["f1"])
+    return out
+
+
+def format_draws(models: dict[str, Any], draws: int) -> str:
+    lines = []
+    for name, model in models.items():
+        for split, scored in model["splits"].items():
+            if "draws" not in scored:
+                continue
+            f1, acc = (np.array(scored["draws"][k], dtype=float) for k in ("mean_f1", "mean_accuracy"))
+            lines.append(f"  {name:10s} {split:16s} f1 {np.nanmean(f1):.3f} +- {np.nanstd(f1):.3f} "
+                         f"({np.nanmin(f1):.3f}-{np.nanmax(f1):.3f})  accuracy {np.nanmean(acc):.3f} +- "
+                         f"{np.nanstd(acc):.3f}")
+    if not lines:
+        return ""
+    return (f"\n\nover {draws} draws of the points read from each scan (seeds 0-{draws - 1}; the table is draw 0), "
+            "means over axes at the stored thresholds, mean +- std (range):\n" + "\n".join(lines))
 
 
 def f1_operating_point(curves: dict[str, tuple[np.ndarray, np.ndarray]],

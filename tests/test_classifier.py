@@ -460,9 +460,19 @@ def test_evaluate_writes_table_curves_and_results(tiny_dataset, tmp_path, monkey
         assert column["accuracy"] == pytest.approx(expected["accuracy"].tolist())
     assert f"office of {Path(tiny_dataset).name}" in res["table"]
     monkeypatch.setattr(evaluation, "TEST_SCENES", ["field-0", "tunnel-0"])  # a test split of two families
-    splits = evaluate([tmp_path / "run" / "model.pt"], tiny_dataset, tmp_path / "eval-test", progress=False,
-                      by_family=True)["models"][name]["splits"]
+    drawn = evaluate([tmp_path / "run" / "model.pt"], tiny_dataset, tmp_path / "eval-test", progress=False,
+                     by_family=True, draws=3)
+    splits = drawn["models"][name]["splits"]
     assert set(splits) == {"train", "valid", "test", "tunnel of test", "field of test"}
+    test_rows = split_indices(data, ["field-0", "tunnel-0"])
+    assert splits["test"]["draws"]["mean_f1"][0] == pytest.approx(splits["test"]["mean"]["f1"], nan_ok=True)
+    again = mean_scores(axis_scores(data.labels[test_rows],
+                                    predict_dataset(clf.model, data, test_rows, seed=2) > clf.thresholds))
+    assert splits["test"]["draws"]["mean_accuracy"][2] == pytest.approx(again["accuracy"])
+    assert len(splits["valid"]["draws"]["mean_f1"]) == 3 and "draws" not in splits["tunnel of test"]
+    assert "over 3 draws of the points" in drawn["table"]
+    with pytest.raises(ValueError, match="draws must be at least 1"):
+        evaluate([tmp_path / "run" / "model.pt"], tiny_dataset, tmp_path / "eval-none", progress=False, draws=0)
     rows = split_indices(data, ["tunnel-0"])
     expected = axis_scores(data.labels[rows], predict_dataset(clf.model, data, rows) > clf.thresholds)
     assert splits["test"]["count"] == 8 and splits["tunnel of test"]["count"] == 4
