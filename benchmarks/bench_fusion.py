@@ -12,19 +12,20 @@ import time
 import numpy as np
 import torch
 
-from fusion import EKFFusion, FusionGraph
+from fusion import EKFFusion, FusionConfig, FusionGraph
 from l3e_env.config import EnvConfig, LoopFusionConfig
 from l3e_env.envs.navigation import NavigationEnv
 from l3e_env.follower import RouteFollower
 from l3e_env.transforms import pose_to_matrix
 
 
-def update_times(backend, steps: int, seed: int = 0, hessians: bool = False) -> np.ndarray:
+def update_times(backend, steps: int, seed: int = 0, hessians: bool = False,
+                 config: FusionConfig | None = None) -> np.ndarray:
     """Seconds per add_step along a winding 3-D run with noisy odometry, ICP and random masks;
     with `hessians`, each ICP step comes with a point-to-plane Hessian (its information then
     enters as a full square-root model instead of the fixed diagonal)."""
     rng = np.random.default_rng(seed)
-    fusion = backend(np.eye(4))
+    fusion = backend(np.eye(4), config)
     sigmas = np.array([0.01, 0.01, 0.01, 0.002, 0.002, 0.004])
     times = np.empty(steps)
     for k in range(steps):
@@ -72,6 +73,10 @@ def main() -> None:
     weighed = update_times(FusionGraph, args.steps, hessians=True) * 1e3
     print(f"iSAM2 update with each step's Hessian as the ICP information: median {np.median(weighed):.3f} ms "
           f"({np.median(weighed) / np.median(isam):.2f}x the fixed sigmas')")
+    for axes in (("yaw",), ("yaw", "z")):
+        biased = update_times(FusionGraph, args.steps, hessians=True, config=FusionConfig(odometry_bias=axes)) * 1e3
+        print(f"iSAM2 update with the legs' {'+'.join(axes)} bias as states: median {np.median(biased):.3f} ms, "
+              f"p90 {np.percentile(biased, 90):.3f} ms ({np.median(biased) / np.median(weighed):.2f}x without)")
     bare = env_rate(LoopFusionConfig(enabled=False), args.scene, args.env_steps)
     full = env_rate(LoopFusionConfig(enabled=True, detector="learned"), args.scene, args.env_steps)
     print(f"{args.scene} env, VLP-16: {full:.1f} steps/s with scan + learned detector + ICP + iSAM2 "

@@ -4,7 +4,8 @@ The state is the error of the last two poses (stochastic cloning, 12-d, GTSAM ta
 right perturbation T <- T Exp(d)): odometry propagates the clone, the scan-to-scan ICP is a
 relative measurement between the two, and only its localizable rows enter the update (the
 filter's partial update). A filter cannot revise old poses: `trajectory()` is the sequence of
-filtered estimates, which is what a robot has online.
+filtered estimates, which is what a robot has online. With `FusionConfig.odometry_bias` the
+legs' biases (fusion.bias) join the state after the two poses.
 """
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ import gtsam
 import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter
 
+from .bias import axis_index, corrected_increment
 from .steps import (
     FusionConfig, StepReport, check_attitude, check_config, check_odometry_sigmas, icp_information, resolve_step,
 )
@@ -26,7 +28,13 @@ class EKFFusion:
         if self.config.robust_kernel is not None:
             raise ValueError("the EKF backend has no robust kernel; use the graph backend for that")
         self.T = gtsam.Pose3(np.asarray(T_w_0, dtype=np.float64))
-        self.P = np.diag(to_gtsam_order(np.asarray(self.config.prior_sigmas)) ** 2)
+        self.bias_axes = self.config.odometry_bias
+        pick = axis_index(self.bias_axes)
+        self._walk = np.asarray(self.config.odometry_bias_walk)[pick]
+        self.odometry_bias = np.zeros(len(pick))
+        spread = np.asarray(self.config.odometry_bias_sigmas)[pick]
+        # the newest pose's error (GTSAM order), then the biases'
+        self.P = np.diag(np.concatenate([to_gtsam_order(np.asarray(self.config.prior_sigmas)), spread]) ** 2)
         self.poses = [self.T.matrix()]
         self.k = 0
 
@@ -35,23 +43,36 @@ class EKFFusion:
                  non_localizable: np.ndarray | None = None,
                  icp_hessian: np.ndarray | None = None) -> tuple[np.ndarray, StepReport]:
         step = resolve_step(self.config.mode, odom_T_prev_cur, icp_T_prev_cur, non_localizable)
+        nb = len(self.bias_axes)
+        G = np.zeros((6, nb))  # how the motion moves with the biases
         if step.has_odom:
             sigmas = check_odometry_sigmas(odom_sigmas)
-            motion = gtsam.Pose3(np.asarray(odom_T_prev_cur, dtype=np.float64))
+            motion, G = corrected_increment(odom_T_prev_cur, self.odometry_bias, self.bias_axes)
+            walked = float(np.linalg.norm(np.asarray(odom_T_prev_cur)[:3, 3]))
         elif step.has_icp:  # no odometry: ICP carries the motion, as in the graph
             motion, sigmas = gtsam.Pose3(np.asarray(step.icp_T_prev_cur)), np.asarray(self.config.icp_sigmas)
+            walked = 0.0
         else:
-            motion, sigmas = gtsam.Pose3(), np.ones(6)  # the graph's weak constant-position tie
+            motion, sigmas, walked = gtsam.Pose3(), np.ones(6), 0.0  # the graph's weak constant-position tie
+        P = self.P.copy()
+        P[6:, 6:] += np.diag(self._walk**2 * max(walked, 1e-4))  # the biases wander before the step reads them
         Q = np.diag(to_gtsam_order(np.maximum(sigmas, 1e-9)) ** 2)
-        F = motion.inverse().AdjointMap()
+        # (previous pose, biases) -> (previous pose, current pose, biases)
+        M = np.zeros((12 + nb, 6 + nb))
+        M[:6, :6] = np.eye(6)
+        M[6:12, :6] = motion.inverse().AdjointMap()
+        M[6:12, 6:] = G
+        M[12:, 6:] = np.eye(nb)
         prev, pred = self.T, self.T.compose(motion)
-        ekf = ExtendedKalmanFilter(dim_x=12, dim_z=6)
-        ekf.x = np.zeros(12)
-        ekf.P = np.block([[self.P, self.P @ F.T], [F @ self.P, F @ self.P @ F.T + Q]])
+        ekf = ExtendedKalmanFilter(dim_x=12 + nb, dim_z=6)
+        ekf.x = np.zeros(12 + nb)
+        ekf.P = M @ P @ M.T
+        ekf.P[6:12, 6:12] += Q
         if step.has_odom and step.has_icp:
             information = icp_information(self.config, icp_hessian, step.mask)
             self._partial_update(ekf, prev, pred, gtsam.Pose3(np.asarray(step.icp_T_prev_cur)), step.mask, information)
-        self.T = pred.retract(ekf.x[6:])  # the previous pose is marginalised: a filter does not revise the past
+        self.T = pred.retract(ekf.x[6:12])  # the previous pose is marginalised: a filter does not revise the past
+        self.odometry_bias = self.odometry_bias + ekf.x[12:]
         self.P = 0.5 * (ekf.P[6:, 6:] + ekf.P[6:, 6:].T)
         self.k += 1
         self.poses.append(self.T.matrix())
@@ -64,7 +85,7 @@ class EKFFusion:
         floor of 1e-9 keeps an unheld direction among them finite and all but ignored)."""
         rel = prev.between(pred)
         keep = ~np.asarray(mask_project, dtype=bool)[GTSAM_FROM_PROJECT]  # rows in GTSAM order
-        H = np.hstack([-rel.inverse().AdjointMap(), np.eye(6)])[keep]
+        H = np.hstack([-rel.inverse().AdjointMap(), np.eye(6), np.zeros((6, ekf.dim_x - 12))])[keep]
         z = gtsam.Pose3.Logmap(rel.between(icp))[keep]
         block = to_gtsam_order(information_project)[np.ix_(keep, keep)]
         R = np.linalg.inv(block + 1e-9 * np.eye(len(block)))
@@ -77,12 +98,14 @@ class EKFFusion:
         R, precisions = check_attitude(R_w_b, sigmas)
         keep = precisions > 0
         if keep.any():
-            H = np.hstack([np.eye(3), np.zeros((3, 3))])[keep]
-            ekf = ExtendedKalmanFilter(dim_x=6, dim_z=int(keep.sum()))
-            ekf.x, ekf.P = np.zeros(6), self.P.copy()
+            n = len(self.P)
+            H = np.hstack([np.eye(3), np.zeros((3, n - 3))])[keep]
+            ekf = ExtendedKalmanFilter(dim_x=n, dim_z=int(keep.sum()))
+            ekf.x, ekf.P = np.zeros(n), self.P.copy()
             z = gtsam.Rot3.Logmap(self.T.rotation().between(gtsam.Rot3(R)))[keep]
             ekf.update(z, lambda x: H, lambda x: H @ x, R=np.diag(1.0 / precisions[keep]))
-            self.T = self.T.retract(ekf.x)
+            self.T = self.T.retract(ekf.x[:6])
+            self.odometry_bias = self.odometry_bias + ekf.x[6:]
             self.P = 0.5 * (ekf.P + ekf.P.T)
             self.poses[-1] = self.T.matrix()
         return self.T.matrix()

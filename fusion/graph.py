@@ -9,6 +9,7 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
+from .bias import BIAS_KNOT_METRES, axis_index, corrected_increment, odometry_bias_factor
 from .steps import (
     FusionConfig, StepReport, check_attitude, check_config, check_odometry_sigmas, icp_information, resolve_step,
 )
@@ -23,8 +24,15 @@ def _pose3(T: np.ndarray) -> gtsam.Pose3:
     return gtsam.Pose3(np.asarray(T, dtype=np.float64))
 
 
+def bias_key(n: int) -> int:
+    """The key of the n-th odometry bias state (poses are keyed by their index)."""
+    return gtsam.symbol("b", n)
+
+
 class FusionGraph:
-    """One Pose3 per scan; `add_step` adds odometry and (masked) ICP between-factors."""
+    """One Pose3 per scan; `add_step` adds odometry and (masked) ICP between-factors. With
+    `FusionConfig.odometry_bias`, a bias vector per metre walked too (fusion.bias), each tied to the
+    last by its random walk; `odometry_bias` is the newest one's estimate, in the config's axis order."""
 
     def __init__(self, T_w_0: np.ndarray, config: FusionConfig | None = None):
         self.config = check_config(config or FusionConfig())
@@ -37,6 +45,15 @@ class FusionGraph:
         prior = gtsam.noiseModel.Diagonal.Sigmas(to_gtsam_order(np.asarray(self.config.prior_sigmas)))
         graph.add(gtsam.PriorFactorPose3(0, self.estimate, prior))
         values.insert(0, self.estimate)
+        self.bias_axes = self.config.odometry_bias
+        self._walk = np.asarray(self.config.odometry_bias_walk)[axis_index(self.bias_axes)]
+        self.odometry_bias = np.zeros(len(self.bias_axes))
+        self._knot, self._walked = 0, 0.0
+        if self.bias_axes:
+            spread = np.asarray(self.config.odometry_bias_sigmas)[axis_index(self.bias_axes)]
+            spread_noise = gtsam.noiseModel.Diagonal.Sigmas(spread)
+            graph.add(gtsam.PriorFactorVector(bias_key(0), self.odometry_bias, spread_noise))
+            values.insert(bias_key(0), self.odometry_bias)
         self._update(graph, values, 0)
 
     def _update(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, k: int) -> None:
@@ -83,22 +100,45 @@ class FusionGraph:
         has_odom, has_icp, mask, icp_T_prev_cur = step.has_odom, step.has_icp, step.mask, step.icp_T_prev_cur
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         i, j = self.k, self.k + 1
+        odometry = None
+        if self.bias_axes and has_odom:
+            self._next_bias_knot(float(np.linalg.norm(odom_T_prev_cur[:3, 3])), graph, values)
         if has_odom:
             precision = 1.0 / np.maximum(check_odometry_sigmas(odom_sigmas), 1e-9) ** 2
-            graph.add(gtsam.BetweenFactorPose3(i, j, _pose3(odom_T_prev_cur), self._noise(precision)))
+            if self.bias_axes:
+                odometry = corrected_increment(odom_T_prev_cur, self.odometry_bias, self.bias_axes)[0]
+                graph.add(odometry_bias_factor(odom_T_prev_cur, i, j, bias_key(self._knot), self._noise(precision),
+                                               self.bias_axes))
+            else:
+                odometry = _pose3(odom_T_prev_cur)
+                graph.add(gtsam.BetweenFactorPose3(i, j, odometry, self._noise(precision)))
         if has_icp:
             information = icp_information(self.config, icp_hessian, mask)
             graph.add(gtsam.BetweenFactorPose3(i, j, _pose3(icp_T_prev_cur), self._noise(information)))
         if not has_odom and not has_icp:
             weak = gtsam.noiseModel.Isotropic.Sigma(6, 1.0)
             graph.add(gtsam.BetweenFactorPose3(i, j, gtsam.Pose3(), weak))
-        guess = self.estimate.compose(_pose3(odom_T_prev_cur)) if has_odom else (
+        guess = self.estimate.compose(odometry) if odometry is not None else (
             self.estimate.compose(_pose3(icp_T_prev_cur)) if has_icp else self.estimate)
         values.insert(j, guess)
         self._update(graph, values, j)
         self.k = j
         self.estimate = self.isam.calculateEstimatePose3(j)
+        if self.bias_axes:
+            self.odometry_bias = np.asarray(self.isam.calculateEstimateVector(bias_key(self._knot)), dtype=np.float64)
         return self.estimate.matrix(), step.report()
+
+    def _next_bias_knot(self, walked: float, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> None:
+        """Count the metres walked on the present bias state; past BIAS_KNOT_METRES start the next,
+        tied to it by the random walk over those metres (standing still starts none)."""
+        self._walked += walked
+        if self._walked < BIAS_KNOT_METRES:
+            return
+        walk = gtsam.noiseModel.Diagonal.Sigmas(self._walk * np.sqrt(self._walked))
+        graph.add(gtsam.BetweenFactorVector(bias_key(self._knot), bias_key(self._knot + 1),
+                                            np.zeros(len(self.bias_axes)), walk))
+        self._knot, self._walked = self._knot + 1, 0.0
+        values.insert(bias_key(self._knot), self.odometry_bias)
 
     def add_attitude(self, R_w_b: np.ndarray, sigmas: np.ndarray) -> np.ndarray:
         """An absolute orientation of the newest pose, as an IMU gives it (roll and pitch from

@@ -5,6 +5,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .bias import check_bias_axes
+
 MASK_MODES = ("mask", "full", "drop")
 ICP_COVARIANCES = ("hessian", "fixed")
 
@@ -19,7 +21,12 @@ class FusionConfig:
     Hessian over `icp_residual_variance`, so that a weakly held axis weighs little even where no
     axis is flagged, and a well held one more than the legs; the variance is fitted on training
     drives by `benchmarks/icp_step_errors.py`. "fixed": the constant `icp_sigmas` (also where a
-    step comes without a finite Hessian)."""
+    step comes without a finite Hessian).
+
+    odometry_bias: which of the leg odometry's per-metre biases ("yaw", "z") are estimated as
+    states of the fusion (see fusion.bias), with their prior spread `odometry_bias_sigmas` (rad/m,
+    m/m) and random walk `odometry_bias_walk` (per square-root metre), both in BIAS_AXES order;
+    none by default."""
 
     mode: str = "mask"
     icp_covariance: str = "hessian"
@@ -29,6 +36,9 @@ class FusionConfig:
     robust_kernel: str | None = None  # None | "huber" | "cauchy"
     robust_threshold: float = 1.345
     relinearize_threshold: float = 0.01
+    odometry_bias: tuple[str, ...] = ()
+    odometry_bias_sigmas: tuple[float, ...] = (0.001, 0.005)
+    odometry_bias_walk: tuple[float, ...] = (0.0003, 0.0005)
 
 
 def check_config(config: FusionConfig) -> FusionConfig:
@@ -38,6 +48,8 @@ def check_config(config: FusionConfig) -> FusionConfig:
         raise ValueError(f"icp_covariance must be one of {ICP_COVARIANCES}, got '{config.icp_covariance}'")
     if not (np.isfinite(config.icp_residual_variance) and config.icp_residual_variance > 0):
         raise ValueError(f"icp_residual_variance must be a positive number, got {config.icp_residual_variance!r}")
+    config.odometry_bias = tuple(config.odometry_bias)
+    check_bias_axes(config.odometry_bias, config.odometry_bias_sigmas, config.odometry_bias_walk)
     return config
 
 

@@ -69,7 +69,8 @@ class LoopFusionConfig:
     revolution's deskewing takes its rotation from (its translation is the leg odometry's);
     attitude: none | tilt | full, the IMU's orientation fused once a second (tilt: roll and pitch,
     which gravity holds; full: with the magnetometer's heading); icp_covariance: hessian | fixed
-    (see fusion.FusionConfig)."""
+    (see fusion.FusionConfig); odometry_bias: the leg odometry's biases estimated as fusion states,
+    () or among "yaw" and "z" (see fusion.bias; their prior is the odometry config's)."""
 
     enabled: bool = False
     detector: str = "learned"
@@ -78,6 +79,7 @@ class LoopFusionConfig:
     deskew: str = "gyro"
     attitude: str = "none"
     icp_covariance: str = "hessian"
+    odometry_bias: tuple[str, ...] = ()
 
 
 @dataclass

@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from fusion import FusionConfig, check_config
+
 from .config import OdometryConfig
 from .transforms import adjoint, inverse, matrix_to_pose, pose_to_matrix
 
@@ -41,6 +43,14 @@ class LegOdometry:
         noisy[2] += self.z_bias * d
         noisy[5] += self.yaw_bias * d
         return pose_to_matrix(noisy)
+
+
+def odometry_fusion_config(odometry: OdometryConfig, **fusion_options) -> FusionConfig:
+    """A checked FusionConfig whose odometry bias states (if `odometry_bias` names any) start from
+    this noise model's bias spread and wander by its random walk."""
+    return check_config(FusionConfig(odometry_bias_sigmas=(odometry.yaw_bias_std, odometry.z_bias_std),
+                                     odometry_bias_walk=(odometry.yaw_bias_walk, odometry.z_bias_walk),
+                                     **fusion_options))
 
 
 def _white_sigmas(v: np.ndarray, cfg: OdometryConfig) -> np.ndarray:

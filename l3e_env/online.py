@@ -10,13 +10,13 @@ from typing import Any
 
 import numpy as np
 
-from fusion import FusionConfig, check_backend, check_config, make_fusion
+from fusion import check_backend, make_fusion
 
 from .config import LoopFusionConfig, OdometryConfig
 from .detectors import UNKNOWN, Detector, Prediction, make_detector, safe_predict
 from .imu import ATTITUDE_EVERY, attitude_sigmas
 from .lidar import Lidar
-from .odometry import odometry_sigmas
+from .odometry import odometry_fusion_config, odometry_sigmas
 from .registration import PreparedTarget, RegistrationConfig, RegistrationError, register
 
 
@@ -28,7 +28,8 @@ class OnlineFusion:
         check_backend(config.backend)
         self.config, self.odometry, self.T_b_s = config, odometry, T_b_s
         self.registration = RegistrationConfig()
-        self.fusion_config = check_config(FusionConfig(mode=config.mode, icp_covariance=config.icp_covariance))
+        self.fusion_config = odometry_fusion_config(odometry, mode=config.mode, icp_covariance=config.icp_covariance,
+                                                    odometry_bias=config.odometry_bias)
         self.detector: Detector = make_detector(config.detector, lidar, seed)
         self.attitude_sigmas = attitude_sigmas(config.attitude)
 

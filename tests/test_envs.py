@@ -101,8 +101,10 @@ def test_os0_128_option_and_async_vector_env():
     envs.close()
 
 
-def test_fusion_in_the_loop_reports_estimate_mask_and_running_ate():
-    env = NavigationEnv(dict(scene="tunnel", fusion=dict(enabled=True, detector="eigen:110")))
+@pytest.mark.parametrize("odometry_bias", [(), ("yaw",)])
+def test_fusion_in_the_loop_reports_estimate_mask_and_running_ate(odometry_bias):
+    env = NavigationEnv(dict(scene="tunnel", fusion=dict(enabled=True, detector="eigen:110",
+                                                         odometry_bias=list(odometry_bias))))
     _, info = env.reset(seed=0)
     follow = RouteFollower(env.route)
     assert info["running_ate"] == 0.0 and not info["localizability_known"]
@@ -115,6 +117,8 @@ def test_fusion_in_the_loop_reports_estimate_mask_and_running_ate():
     assert np.mean(flagged_x) > 0.5  # the tunnel's axis is x in the body frame at the start
     assert 0 < info["running_ate"] < 0.5
     assert info["fusion_counts"]["detector_errors"] == 0
+    assert env.fusion.backend.odometry_bias.shape == (len(odometry_bias),)
+    assert env.fusion.fusion_config.odometry_bias_sigmas[0] == env.config.odometry.yaw_bias_std
     env.close()
 
 
@@ -215,6 +219,8 @@ def test_fusion_in_the_loop_takes_the_imu_attitude_once_a_second_from_a_stream_o
         NavigationEnv(dict(scene="tunnel", fusion=dict(enabled=True, detector="none", attitude="compass")))
     with pytest.raises(ValueError, match="icp_covariance must be one of"):
         NavigationEnv(dict(scene="tunnel", fusion=dict(enabled=True, detector="none", icp_covariance="censi")))
+    with pytest.raises(ValueError, match="odometry_bias takes distinct axes"):
+        NavigationEnv(dict(scene="tunnel", fusion=dict(enabled=True, detector="none", odometry_bias=["scale"])))
 
 
 def test_separate_noise_streams_keep_the_odometry_noise_whatever_the_sensor():

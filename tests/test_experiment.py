@@ -111,6 +111,34 @@ def test_the_fixed_icp_sigmas_reproduce_the_figures_measured_before_the_hessian(
     assert row["eigen_ate"][0] == pytest.approx(row["odometry only"], rel=1e-6)  # every axis flagged: the legs alone
 
 
+def test_the_legs_bias_as_a_fusion_state_from_the_command_line(walls_run, tmp_path, capsys):
+    from l3e_env.cli import main
+    from l3e_env.config import OdometryConfig
+    from l3e_env.odometry import odometry_fusion_config
+
+    rec, regs = walls_run
+    rec.save(tmp_path / "rec.npz")
+    noisy = OdometryConfig(yaw_bias_std=0.004, z_bias_walk=0.002)
+    config = odometry_fusion_config(noisy, odometry_bias=["yaw"])
+    assert config.odometry_bias == ("yaw",) and config.odometry_bias_sigmas == (0.004, noisy.z_bias_std)
+    assert config.odometry_bias_walk == (noisy.yaw_bias_walk, 0.002)
+    plain, = evaluate(rec, [NoDetector()], regs, progress=False)
+    learnt, = evaluate(rec, [NoDetector()], regs, fusion=odometry_fusion_config(OdometryConfig(),
+                                                                                odometry_bias=("yaw", "z")),
+                       progress=False)
+    assert np.abs(learnt.trajectory - plain.trajectory).max() > 1e-6
+    assert main(["ate", "--recording", str(tmp_path / "rec.npz"), "--detector", "none", "--odometry-bias", "yaw,z",
+                 "--out", str(tmp_path / "out"), "--quiet"]) == 0
+    summary = json.loads((tmp_path / "out" / "results.json").read_text())
+    assert summary["odometry_bias"] == ["yaw", "z"] and summary["rows"][1]["ate_m"] == round(learnt.ate, 3)
+    with pytest.raises(SystemExit):
+        main(["ate", "--recording", str(tmp_path / "rec.npz"), "--odometry-bias", "scale", "--quiet"])
+    assert "expected none or distinct axes among yaw, z" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="odometry_bias takes distinct axes"):
+        run_experiment(tmp_path / "bad", "mine", ["none"], odometry_bias=("yaw", "yaw"))
+    assert not (tmp_path / "bad").exists()
+
+
 def test_a_swept_recording_says_so_when_replayed(walls_run, tmp_path, capsys):
     from dataclasses import replace
 

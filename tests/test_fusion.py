@@ -189,6 +189,90 @@ def test_the_filter_matches_the_smoother_at_the_newest_pose_with_attitudes():
     np.testing.assert_allclose(ekf_tilt, graph_tilt, atol=1e-3)
 
 
+def test_the_bias_factors_jacobians_match_numerical_differences():
+    from fusion.bias import corrected_increment, odometry_bias_factor
+
+    measured = gtsam.Pose3(gtsam.Rot3.RzRyRx(0.01, -0.02, 0.1), np.array([0.1, 0.02, 0.01])).matrix()
+    axes, bias = ("yaw", "z"), np.array([0.003, -0.01])
+    Z, G = corrected_increment(measured, bias, axes)
+    assert np.degrees(gtsam.Rot3(measured[:3, :3]).between(Z.rotation()).yaw()) < 0  # a positive bias over-reads
+    for n in range(2):
+        step = 1e-6 * np.eye(2)[n]
+        np.testing.assert_allclose(gtsam.Pose3.Logmap(Z.between(corrected_increment(measured, bias + step, axes)[0]))
+                                   / 1e-6, G[:, n], atol=1e-8)
+    X_prev = gtsam.Pose3(gtsam.Rot3.RzRyRx(0.1, 0.2, 0.3), np.array([1.0, 2.0, 3.0]))
+    X_cur = X_prev.compose(gtsam.Pose3(gtsam.Rot3.RzRyRx(0.02, -0.01, 0.12), np.array([0.11, 0.0, 0.02])))
+    factor = odometry_bias_factor(measured, 0, 1, 2, gtsam.noiseModel.Unit.Create(6), axes)
+    values = gtsam.Values()
+    values.insert(0, X_prev)
+    values.insert(1, X_cur)
+    values.insert(2, bias)
+    analytic, _ = factor.linearize(values).jacobian()
+    e0, numeric = factor.unwhitenedError(values), []
+    for key, dim in ((0, 6), (1, 6), (2, 2)):
+        for n in range(dim):
+            moved = gtsam.Values(values)
+            step = 1e-7 * np.eye(dim)[n]
+            moved.update(key, values.atPose3(key).retract(step) if key < 2 else bias + step)
+            numeric.append((factor.unwhitenedError(moved) - e0) / 1e-7)
+    np.testing.assert_allclose(np.array(numeric).T, analytic, atol=1e-6)
+
+
+def biased_walk(backend, axes, held_steps=200, blind_steps=100, yaw_bias=0.005, z_bias=0.01):
+    """Legs that over-read the heading by `yaw_bias` rad and the height by `z_bias` m per metre;
+    ICP holds every axis for `held_steps`, then yaw and z are masked for `blind_steps` (as where a
+    corridor leaves the scans nothing to turn or climb against). Returns the final yaw and height
+    errors and the fusion."""
+    config = FusionConfig(odometry_bias=axes, odometry_bias_sigmas=(0.01, 0.02))
+    fusion = BACKENDS[backend](np.eye(4), config)
+    truth, step = np.eye(4), pose(0.1, 0.0, 0.0, 0.0)
+    odom = pose(0.1, 0.0, 0.1 * z_bias, 0.1 * yaw_bias)
+    sigmas = np.array([0.004, 0.004, 0.004, 3e-4, 3e-4, 6e-4])
+    for k in range(held_steps + blind_steps):
+        truth = truth @ step
+        mask = np.array([False, False, k >= held_steps, False, False, k >= held_steps])
+        T, _ = fusion.add_step(odom, sigmas, step, mask)
+        yaw_error = np.arctan2((np.linalg.inv(truth) @ T)[1, 0], (np.linalg.inv(truth) @ T)[0, 0])
+    return abs(yaw_error), abs(T[2, 3] - truth[2, 3]), fusion
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_the_legs_bias_learnt_where_icp_holds_keeps_the_heading_and_height_where_it_does_not(backend):
+    plain_yaw, plain_z, _ = biased_walk(backend, ())
+    yaw_only, yaw_only_z, fusion = biased_walk(backend, ("yaw",))
+    assert plain_yaw > 0.04 and plain_z > 0.08  # 10 m blind: 0.05 rad and 0.1 m of the legs' bias
+    assert yaw_only < 0.2 * plain_yaw and yaw_only_z == pytest.approx(plain_z, rel=0.05)
+    assert fusion.odometry_bias == pytest.approx([0.005], rel=0.1)
+    both_yaw, both_z, fusion = biased_walk(backend, ("yaw", "z"))
+    assert both_yaw < 0.2 * plain_yaw and both_z < 0.2 * plain_z
+    assert fusion.odometry_bias == pytest.approx([0.005, 0.01], rel=0.1)
+
+
+def test_the_filter_matches_the_smoother_with_the_legs_bias():
+    """The graph holds one bias state per metre, the filter one per step: the same walk, within 1 mm."""
+    *_, graph = biased_walk("graph", ("yaw", "z"), held_steps=100, blind_steps=50)
+    *_, ekf = biased_walk("ekf", ("yaw", "z"), held_steps=100, blind_steps=50)
+    np.testing.assert_allclose(ekf.odometry_bias, graph.odometry_bias, rtol=0.05)
+    np.testing.assert_allclose(ekf.trajectory()[-1][:3, 3], graph.trajectory()[-1][:3, 3], atol=1e-3)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_the_legs_bias_survives_standing_still_missing_steps_and_refuses_bad_settings(backend):
+    fusion = BACKENDS[backend](np.eye(4), FusionConfig(odometry_bias=("yaw",)))
+    for _ in range(20):  # standing still: the bias does not wander, and the graph adds no bias state
+        T, _ = fusion.add_step(np.eye(4), np.full(6, 1e-3), np.eye(4), np.zeros(6, bool))
+    assert getattr(fusion, "_knot", 0) == 0 and np.isfinite(T).all()
+    T, report = fusion.add_step(None, None, pose(0.1), np.ones(6, dtype=bool))
+    assert "all axes masked" in report.fallback and np.isfinite(T).all()
+    T, report = fusion.add_step(None, None, None, None)
+    assert "constant-position" in report.fallback and np.isfinite(fusion.odometry_bias).all()
+    for bad in (dict(odometry_bias=("scale",)), dict(odometry_bias=("yaw", "yaw")),
+                dict(odometry_bias=("yaw",), odometry_bias_walk=(0.0, 1e-3)),
+                dict(odometry_bias=("z",), odometry_bias_sigmas=(np.nan, 1e-3))):
+        with pytest.raises(ValueError, match="odometry_bias"):
+            BACKENDS[backend](np.eye(4), FusionConfig(**bad))
+
+
 def test_robust_kernels_build():
     for kernel in ("huber", "cauchy"):
         graph = FusionGraph(np.eye(4), FusionConfig(robust_kernel=kernel))

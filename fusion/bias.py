@@ -1,0 +1,86 @@
+"""The leg odometry's slowly wandering biases as states of the fusion.
+
+Legs drift in heading and height by a rate per metre walked that persists and wanders (a random
+walk per square-root metre). With the rate as a state, the ICP steps that hold yaw (or z) teach
+the fusion the legs' present bias, so the legs stop pulling the heading by a fraction of their
+bias on every step, and keep walking true for a while where the detector masks the scans'
+heading. The stride-scale error is not offered: its estimate learns ICP's own step bias (7-16 %
+of a step along corridors) and hurt every drive it was tried on (benchmarks/RESULTS.md).
+
+Model: the measured increment M = (R, t) walked d = |t| metres; with yaw bias b_yaw (rad/m) and
+z bias b_z (m/m) the true increment is Z(b) = (Rz(-b_yaw d) R, t - b_z d e_z).
+"""
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+
+BIAS_AXES = ("yaw", "z")
+# The graph holds one bias state per metre walked, not one per scan: the bias wanders by
+# 0.3 mrad/m over a metre, far below what a metre of ICP steps can tell, and ten times fewer
+# states keep iSAM2's update near the plain graph's cost.
+BIAS_KNOT_METRES = 1.0
+
+
+def check_bias_axes(axes: tuple[str, ...], sigmas: tuple[float, ...], walk: tuple[float, ...]) -> None:
+    """A ValueError naming the problem: unknown or repeated axes, or a spread or walk that is not
+    a positive number (a zero walk would make the graph's tie between bias states singular)."""
+    unknown = [a for a in axes if a not in BIAS_AXES]
+    if unknown or len(set(axes)) != len(axes):
+        raise ValueError(f"odometry_bias takes distinct axes among {BIAS_AXES}, got {tuple(axes)!r}")
+    for name, values in (("odometry_bias_sigmas", sigmas), ("odometry_bias_walk", walk)):
+        v = np.asarray(values, dtype=np.float64)
+        if v.shape != (len(BIAS_AXES),) or not (np.isfinite(v).all() and (v > 0).all()):
+            raise ValueError(f"{name} must be {len(BIAS_AXES)} positive numbers ({', '.join(BIAS_AXES)}), "
+                             f"got {values!r}")
+
+
+def axis_index(axes: tuple[str, ...]) -> np.ndarray:
+    """Where each estimated axis sits in BIAS_AXES order (to pick its sigma and walk)."""
+    return np.array([BIAS_AXES.index(a) for a in axes], dtype=int)
+
+
+def corrected_increment(measured: np.ndarray, bias: np.ndarray,
+                        axes: tuple[str, ...]) -> tuple[gtsam.Pose3, np.ndarray]:
+    """Z(b) for the measured 4x4 increment, and its Jacobian G (6 x len(axes), GTSAM's
+    rotation-first order) in the right perturbation: Z(b + db) = Z(b) Exp(G db)."""
+    M = np.asarray(measured, dtype=np.float64)
+    t = M[:3, 3]
+    d = float(np.linalg.norm(t))
+    full = dict(zip(BIAS_AXES, np.zeros(len(BIAS_AXES))))
+    full.update(zip(axes, np.asarray(bias, dtype=np.float64)))
+    angle = -full["yaw"] * d
+    c, s = np.cos(angle), np.sin(angle)
+    Z = np.eye(4)
+    Z[:3, :3] = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ M[:3, :3]
+    Z[:3, 3] = t - np.array([0.0, 0.0, full["z"] * d])
+    down = Z[:3, :3].T @ np.array([0.0, 0.0, -d])  # -d e_z seen from the corrected body frame
+    G = np.zeros((6, len(axes)))
+    for n, axis in enumerate(axes):
+        if axis == "yaw":  # a left turn of the rotation only
+            G[:3, n] = down
+        else:  # a shift of the translation only
+            G[3:, n] = down
+    return gtsam.Pose3(Z), G
+
+
+def odometry_bias_factor(measured: np.ndarray, key_prev: int, key_cur: int, key_bias: int,
+                         noise: gtsam.noiseModel.Base, axes: tuple[str, ...]) -> gtsam.CustomFactor:
+    """The leg odometry's between-factor with its bias corrected: error Log(Z(b)^-1 X_prev^-1 X_cur).
+    A Python factor because GTSAM has no between-factor whose measurement depends on another
+    variable (its IMU factors model accelerometers and gyros, not legs)."""
+    M = np.asarray(measured, dtype=np.float64).copy()
+
+    def error(this: gtsam.CustomFactor, values: gtsam.Values, jacobians: list | None) -> np.ndarray:
+        X_prev, X_cur, bias = values.atPose3(key_prev), values.atPose3(key_cur), values.atVector(key_bias)
+        Z, G = corrected_increment(M, bias, axes)
+        E = Z.between(X_prev.between(X_cur))
+        e = gtsam.Pose3.Logmap(E)
+        if jacobians is not None:
+            J = gtsam.Pose3.LogmapDerivative(e)
+            jacobians[0] = -J @ X_cur.between(X_prev).AdjointMap()
+            jacobians[1] = J
+            jacobians[2] = -J @ E.inverse().AdjointMap() @ G
+        return e
+
+    return gtsam.CustomFactor(noise, [key_prev, key_cur, key_bias], error)
