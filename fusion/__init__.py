@@ -1,9 +1,10 @@
-"""Estimation only (gtsam, filterpy, numpy): factor graph, localizability masks, ATE/RPE.
+"""Estimation only (gtsam, filterpy, numpy): factor graph, localizability masks, leg-bias states, ATE/RPE.
 
 Imports nothing from the rest of the project. Axis order in every public array is the
 project's (x, y, z, roll, pitch, yaw); `fusion.tangent` is the one place that converts to
 GTSAM's rotation-first tangent order.
 """
+from .bias import BIAS_AXES
 from .ekf import EKFFusion
 from .graph import FusionError, FusionGraph
 from .metrics import MetricError, ate, ate_aligned, rpe, rpe_pairs, umeyama, write_tum
@@ -24,7 +25,7 @@ def make_fusion(backend: str, T_w_0, config: FusionConfig | None = None) -> Fusi
     return BACKENDS[check_backend(backend)](T_w_0, config)
 
 
-__all__ = ["BACKENDS", "ICP_COVARIANCES", "check_config", "icp_information",
+__all__ = ["BACKENDS", "BIAS_AXES", "ICP_COVARIANCES", "check_config", "icp_information",
            "check_backend", "make_fusion", "EKFFusion", "FusionConfig", "FusionError", "FusionGraph",
            "StepReport",
            "MetricError", "ate", "ate_aligned", "rpe", "rpe_pairs", "umeyama", "write_tum", "to_gtsam_order",

@@ -40,7 +40,7 @@ def add_icp_covariance_option(parser: argparse.ArgumentParser) -> None:
 
 def bias_axes(text: str) -> tuple[str, ...]:
     """argparse type: "none", or comma-separated axes among fusion.bias.BIAS_AXES ("yaw", "yaw,z")."""
-    from fusion.bias import BIAS_AXES
+    from fusion import BIAS_AXES
 
     axes = () if text.strip() == "none" else tuple(a.strip() for a in text.split(","))
     if any(a not in BIAS_AXES for a in axes) or len(set(axes)) != len(axes):
