@@ -162,15 +162,28 @@ def _write_atomic(path: Path, write: Callable[[BinaryIO], None]) -> None:
                            "run again to resume") from exc
 
 
-def _settings(config: DatasetConfig) -> dict[str, Any]:
-    """What a resumed run must match. A mesh file's bytes count too: an edited mesh is another dataset."""
+def _settings(config: DatasetConfig, meshes: dict[str, str] | None = None) -> dict[str, Any]:
+    """What a resumed run must match. A mesh file's bytes count too: an edited mesh is another
+    dataset (`meshes`: their hashes as a manifest holds them; by default read from the files)."""
     settings = json.loads(json.dumps(dataclasses.asdict(config)))
     if not config.scene_params:
         del settings["scene_params"]  # so that datasets made before meshes were taken still resume
-    meshes = {name: file_sha256(name) for name in config.scenes if is_mesh_path(name)}
+    if meshes is None:
+        meshes = {name: file_sha256(name) for name in config.scenes if is_mesh_path(name)}
     if meshes:
         settings["mesh_sha256"] = meshes
     return settings
+
+
+def _stored_settings(stored: dict[str, Any]) -> dict[str, Any]:
+    """A manifest's settings with every option it predates at its default (as `comparable_settings`
+    does for training): a folder begun before an option existed was made as that default makes it,
+    and resumes. Settings no config can read are returned as stored, to be reported as different."""
+    try:
+        config = from_dict(DatasetConfig, {k: v for k, v in stored.items() if k != "mesh_sha256"})
+    except (TypeError, ValueError):
+        return stored
+    return _settings(config, stored.get("mesh_sha256") or {})
 
 
 def _versions() -> dict[str, str]:
@@ -215,7 +228,7 @@ def _open_folder(out: Path, config: DatasetConfig) -> dict[str, Any]:
     settings = _settings(config)
     if manifest_path.exists():
         manifest = json.loads(manifest_path.read_text())
-        if manifest.get("settings") != settings:
+        if _stored_settings(manifest.get("settings") or {}) != settings:
             raise DatasetError(f"{out} holds a dataset made with other settings "
                                f"({settings_changed(manifest.get('settings') or {}, settings)}); choose another folder")
         return manifest

@@ -116,6 +116,17 @@ def test_resuming_with_other_settings_or_reading_unfinished_data_is_refused(tmp_
     generate(tmp_path / "d", small_config(), workers=1, progress=False)
     with pytest.raises(DatasetError, match="other settings \\(seed 0, now 5\\)"):
         generate(tmp_path / "d", small_config(seed=5), workers=1, progress=False)
+    # a folder begun before an option existed (its manifest lacks the LiDAR's sweep) resumes, since
+    # it was made as that option's default makes it; an option no config knows is another dataset
+    path = tmp_path / "d" / "manifest.json"
+    manifest = json.loads(path.read_text())
+    del manifest["settings"]["lidar"]["sweep"]
+    path.write_text(json.dumps(manifest))
+    assert generate(tmp_path / "d", small_config(), workers=1, progress=False)["count"] == 6
+    manifest["settings"]["lidar"]["wobble"] = 1.0
+    path.write_text(json.dumps(manifest))
+    with pytest.raises(DatasetError, match="other settings"):
+        generate(tmp_path / "d", small_config(), workers=1, progress=False)
     (tmp_path / "e").mkdir()
     with pytest.raises(DatasetError, match="not a dataset"):
         LabelDataset(tmp_path / "e")
