@@ -55,7 +55,7 @@ class EKFFusion:
         else:
             motion, sigmas, walked = gtsam.Pose3(), np.ones(6), 0.0  # the graph's weak constant-position tie
         P = self.P.copy()
-        P[6:, 6:] += np.diag(self._walk**2 * max(walked, 1e-4))  # the biases wander before the step reads them
+        P[6:, 6:] += np.diag(self._walk**2 * walked)  # the biases wander with the metres walked, as they are read
         Q = np.diag(to_gtsam_order(np.maximum(sigmas, 1e-9)) ** 2)
         # (previous pose, biases) -> (previous pose, current pose, biases)
         M = np.zeros((12 + nb, 6 + nb))
