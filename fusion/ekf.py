@@ -13,7 +13,7 @@ import gtsam
 import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter
 
-from .bias import axis_index, corrected_increment
+from .bias import bias_prior, corrected_increment
 from .steps import (
     FusionConfig, StepReport, check_attitude, check_config, check_odometry_sigmas, icp_information, resolve_step,
 )
@@ -29,10 +29,9 @@ class EKFFusion:
             raise ValueError("the EKF backend has no robust kernel; use the graph backend for that")
         self.T = gtsam.Pose3(np.asarray(T_w_0, dtype=np.float64))
         self.bias_axes = self.config.odometry_bias
-        pick = axis_index(self.bias_axes)
-        self._walk = np.asarray(self.config.odometry_bias_walk)[pick]
-        self.odometry_bias = np.zeros(len(pick))
-        spread = np.asarray(self.config.odometry_bias_sigmas)[pick]
+        spread, self._walk = bias_prior(self.bias_axes, self.config.odometry_bias_sigmas,
+                                        self.config.odometry_bias_walk)
+        self.odometry_bias = np.zeros(len(self.bias_axes))
         # the newest pose's error (GTSAM order), then the biases'
         self.P = np.diag(np.concatenate([to_gtsam_order(np.asarray(self.config.prior_sigmas)), spread]) ** 2)
         self.poses = [self.T.matrix()]

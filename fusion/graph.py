@@ -9,7 +9,7 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
-from .bias import BIAS_KNOT_METRES, axis_index, corrected_increment, odometry_bias_factor
+from .bias import BIAS_KNOT_METRES, bias_prior, corrected_increment, odometry_bias_factor
 from .steps import (
     FusionConfig, StepReport, check_attitude, check_config, check_odometry_sigmas, icp_information, resolve_step,
 )
@@ -46,11 +46,11 @@ class FusionGraph:
         graph.add(gtsam.PriorFactorPose3(0, self.estimate, prior))
         values.insert(0, self.estimate)
         self.bias_axes = self.config.odometry_bias
-        self._walk = np.asarray(self.config.odometry_bias_walk)[axis_index(self.bias_axes)]
+        spread, self._walk = bias_prior(self.bias_axes, self.config.odometry_bias_sigmas,
+                                        self.config.odometry_bias_walk)
         self.odometry_bias = np.zeros(len(self.bias_axes))
         self._knot, self._walked = 0, 0.0
         if self.bias_axes:
-            spread = np.asarray(self.config.odometry_bias_sigmas)[axis_index(self.bias_axes)]
             spread_noise = gtsam.noiseModel.Diagonal.Sigmas(spread)
             graph.add(gtsam.PriorFactorVector(bias_key(0), self.odometry_bias, spread_noise))
             values.insert(bias_key(0), self.odometry_bias)

@@ -5,7 +5,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .bias import check_bias_axes
+from .bias import check_bias_settings
 
 MASK_MODES = ("mask", "full", "drop")
 ICP_COVARIANCES = ("hessian", "fixed")
@@ -49,7 +49,7 @@ def check_config(config: FusionConfig) -> FusionConfig:
     if not (np.isfinite(config.icp_residual_variance) and config.icp_residual_variance > 0):
         raise ValueError(f"icp_residual_variance must be a positive number, got {config.icp_residual_variance!r}")
     config.odometry_bias = tuple(config.odometry_bias)
-    check_bias_axes(config.odometry_bias, config.odometry_bias_sigmas, config.odometry_bias_walk)
+    check_bias_settings(config.odometry_bias, config.odometry_bias_sigmas, config.odometry_bias_walk)
     return config
 
 

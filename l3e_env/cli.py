@@ -40,12 +40,14 @@ def add_icp_covariance_option(parser: argparse.ArgumentParser) -> None:
 
 def bias_axes(text: str) -> tuple[str, ...]:
     """argparse type: "none", or comma-separated axes among fusion.bias.BIAS_AXES ("yaw", "yaw,z")."""
-    from fusion import BIAS_AXES
+    from fusion.bias import BIAS_AXES, check_bias_axes
 
     axes = () if text.strip() == "none" else tuple(a.strip() for a in text.split(","))
-    if any(a not in BIAS_AXES for a in axes) or len(set(axes)) != len(axes):
+    try:
+        check_bias_axes(axes)
+    except ValueError:
         raise argparse.ArgumentTypeError(f"expected none or distinct axes among {', '.join(BIAS_AXES)} "
-                                         f"separated by commas, got {text!r}")
+                                         f"separated by commas, got {text!r}") from None
     return axes
 
 

@@ -8,9 +8,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-
-from .detectors import EigenvalueDetector, make_detector
 from .config import OdometryConfig
+from .detectors import EigenvalueDetector, make_detector
 from .experiment import Recording, evaluate, odometry_only, record_run, register_sequence
 from .odometry import odometry_fusion_config
 from .registration import RegistrationConfig
