@@ -8,6 +8,8 @@ import time
 from importlib.metadata import entry_points
 from pathlib import Path
 
+from .config import FusionOptions
+
 
 def scene_name(text: str) -> str:
     """argparse type: a scene name or mesh path, refused at parse time (before any folder or worker)."""
@@ -30,14 +32,6 @@ NOISE_HELP = ("draw the odometry's and the LiDAR's noise from streams of their o
               "figures were measured on)")
 
 
-def add_icp_covariance_option(parser: argparse.ArgumentParser) -> None:
-    """--icp-covariance, as fusion.FusionConfig.icp_covariance (`l3e ate`, `l3e sweep`, `l3e policy evaluate`)."""
-    parser.add_argument("--icp-covariance", choices=["hessian", "fixed"], default="hessian",
-                        help="the fusion's ICP information: the registration's Hessian over a fitted residual "
-                             "variance (default), or the fixed per-axis sigmas that the figures before it were "
-                             "measured with")
-
-
 def bias_axes(text: str) -> tuple[str, ...]:
     """argparse type: "none", or comma-separated axes among fusion.bias.BIAS_AXES ("yaw", "yaw,z")."""
     from fusion.bias import BIAS_AXES, check_bias_axes
@@ -51,13 +45,23 @@ def bias_axes(text: str) -> tuple[str, ...]:
     return axes
 
 
-def add_odometry_bias_option(parser: argparse.ArgumentParser) -> None:
-    """--odometry-bias, as fusion.FusionConfig.odometry_bias (`l3e ate`, `l3e sweep`)."""
+def add_fusion_options(parser: argparse.ArgumentParser) -> None:
+    """--icp-covariance and --odometry-bias, read back by `fusion_options` (`l3e ate`, `l3e sweep`,
+    `l3e policy evaluate`)."""
+    parser.add_argument("--icp-covariance", choices=["hessian", "fixed"], default="hessian",
+                        help="the fusion's ICP information: the registration's Hessian over a fitted residual "
+                             "variance (default), or the fixed per-axis sigmas that the figures before it were "
+                             "measured with")
     parser.add_argument("--odometry-bias", type=bias_axes, default=(), metavar="AXES",
                         help="estimate the leg odometry's per-metre biases as states of the fusion: yaw, z or "
                              "yaw,z (default none; on the mine's five drives yaw takes the learned mask's ATE "
                              "from 1.93 to 1.64 m, but where ICP's heading is wrong and unmasked, as in the cave, "
                              "it follows ICP further)")
+
+
+def fusion_options(args: argparse.Namespace) -> FusionOptions:
+    """The options that `add_fusion_options` added."""
+    return FusionOptions(args.icp_covariance, args.odometry_bias)
 
 
 def sensor_name(text: str) -> str:
@@ -283,7 +287,7 @@ def _cmd_ate(args: argparse.Namespace) -> int:
             runs[seed] = run_experiment(out / f"seed-{seed}", args.scene, detectors, sensor=args.sensor, seed=seed,
                                         progress=not args.quiet, backend=args.backend, scene_params=params,
                                         workers=args.workers, noise_streams=streams, attitude=args.attitude,
-                                        icp_covariance=args.icp_covariance, odometry_bias=args.odometry_bias)
+                                        fusion_options=fusion_options(args))
             print(format_table(runs[seed]))
         summary = summarize_seeds(runs)
         (out / "seeds.json").write_text(json.dumps(summary, indent=1))
@@ -294,7 +298,7 @@ def _cmd_ate(args: argparse.Namespace) -> int:
     rows = run_experiment(out, args.scene, detectors, sensor=args.sensor, seed=args.seed, recording=args.recording,
                           progress=not args.quiet, backend=args.backend, scene_params=params, workers=args.workers,
                           deskew=args.deskew, noise_streams=streams, attitude=args.attitude,
-                          icp_covariance=args.icp_covariance, odometry_bias=args.odometry_bias)
+                          fusion_options=fusion_options(args))
     print(format_table(rows))
     if json.loads((out / "results.json").read_text()).get("swept"):
         turn = "the gyro's rotation over it" if args.deskew == "gyro" else "the odometry's rotation"
@@ -526,8 +530,7 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
     taus = args.taus or DEFAULT_TAUS
     recordings = dict(r.split("=", 1) for r in args.recording or [])
     results = run_sweep(out, args.scene or ["tunnel", "field", "office"], taus, recordings=recordings,
-                        progress=not args.quiet, icp_covariance=args.icp_covariance,
-                        odometry_bias=args.odometry_bias)
+                        progress=not args.quiet, fusion_options=fusion_options(args))
     best = beaten_everywhere(results, "learned")
     print("taus at least as good as the learned detector in every scene: " + (", ".join(f"{t:g}" for t in best)
                                                                              if best else "none"))
@@ -593,8 +596,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="fuse the IMU's orientation once a second: tilt = roll and pitch, which gravity holds "
                         "(no heading: underground a magnetometer reads the rock), full = with the magnetometer's "
                         "heading; adds a row of the odometry fused with it alone (default: none)")
-    add_icp_covariance_option(p)
-    add_odometry_bias_option(p)
+    add_fusion_options(p)
     p.add_argument("--out", help="output folder (default: l3e_out/ate-<scene>-<time>)")
     p.add_argument("--workers", type=int, default=1,
                    help="processes that judge the route with scanmc before the fusion (default 1)")
@@ -736,8 +738,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scene", type=scene_name, action="append", help="repeat; default tunnel, field, office")
     p.add_argument("--taus", type=float_list, help="comma-separated thresholds (default 10 ... 300)")
     p.add_argument("--recording", action="append", help="SCENE=recording.npz to skip driving that scene")
-    add_icp_covariance_option(p)
-    add_odometry_bias_option(p)
+    add_fusion_options(p)
     p.add_argument("--out", help="output folder (default: l3e_out/sweep-<time>)")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_cmd_sweep)

@@ -61,6 +61,20 @@ class OdometryConfig:
     scale_error_std: float = 0.02  # constant stride-length scale error per episode
 
 
+@dataclass(frozen=True)
+class FusionOptions:
+    """The fusion's choices that `l3e ate`, `l3e sweep` and `l3e policy evaluate` share, each as in
+    fusion.FusionConfig: icp_covariance hessian | fixed; odometry_bias () or among "yaw" and "z",
+    the leg odometry's biases estimated as fusion states (their prior is the odometry config's)."""
+
+    icp_covariance: str = "hessian"
+    odometry_bias: tuple[str, ...] = ()
+
+    def record(self) -> dict[str, Any]:
+        """As written into results.json, sweep.json and a policy evaluation's settings."""
+        return {"icp_covariance": self.icp_covariance, "odometry_bias": list(self.odometry_bias)}
+
+
 @dataclass
 class LoopFusionConfig:
     """Fusion inside the environment loop (off by default: it costs ICP and a detector per step).

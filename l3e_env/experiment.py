@@ -22,7 +22,7 @@ from tqdm import tqdm
 from fusion import FusionConfig, MetricError, ate, ate_aligned, check_backend, make_fusion, rpe
 from scenes import Scene, SceneError, canonical_scene_name, file_sha256, is_mesh_path, make_scene
 
-from .config import NOISE_STREAMS, EnvConfig, LidarConfig, OdometryConfig, RobotConfig
+from .config import NOISE_STREAMS, EnvConfig, FusionOptions, LidarConfig, OdometryConfig, RobotConfig
 from .detectors import UNKNOWN, Detector, Prediction, ScanMCDetector, make_detector, safe_predict
 from .envs.navigation import NavigationEnv
 from .follower import RouteFollower
@@ -341,7 +341,7 @@ def run_experiment(out_dir: str | Path, scene: str, detectors: list[str], sensor
                    recording: str | Path | None = None, progress: bool = True, backend: str = "graph",
                    scene_params: dict | None = None, workers: int = 1, deskew: str = "gyro",
                    noise_streams: str = "shared", attitude: str = "none",
-                   icp_covariance: str = "hessian", odometry_bias: tuple[str, ...] = ()) -> list[dict]:
+                   fusion_options: FusionOptions = FusionOptions()) -> list[dict]:
     """The `l3e ate` command as a function: returns the table rows and writes everything to out_dir.
     `scene_params` go to make_scene (a mesh scene's up axis, scale and route). With a `recording`,
     its own scene is used; `scene` matters only as the new path of a recorded mesh that has moved.
@@ -349,8 +349,8 @@ def run_experiment(out_dir: str | Path, scene: str, detectors: list[str], sensor
     `deskew`: where a swept recording's deskewing takes its rotation from ("gyro" or "odometry").
     `noise_streams`: the drive's EnvConfig.noise_streams (a recording keeps its own).
     `attitude`: the IMU's orientation in the fusion ("none", "tilt" or "full"); with it, a row
-    "odometry + attitude" follows odometry alone. `icp_covariance`, `odometry_bias`: FusionConfig's
-    (the biases' prior from the default OdometryConfig, as the drive's)."""
+    "odometry + attitude" follows odometry alone. `fusion_options`: every fusion's (the biases' prior
+    from the default OdometryConfig, as the drive's)."""
     if workers < 1:
         raise ValueError(f"workers must be at least 1, got {workers}")
     if deskew not in DESKEW_SOURCES:
@@ -358,7 +358,7 @@ def run_experiment(out_dir: str | Path, scene: str, detectors: list[str], sensor
     if noise_streams not in NOISE_STREAMS:
         raise ValueError(f"noise_streams must be one of {NOISE_STREAMS}, got {noise_streams!r}")
     attitude_sigmas(attitude)  # a bad mode fails before the drive
-    fusion = odometry_fusion_config(OdometryConfig(), icp_covariance=icp_covariance, odometry_bias=odometry_bias)
+    fusion = odometry_fusion_config(OdometryConfig(), fusion_options)
     out = Path(out_dir)
     rec = Recording.load(recording) if recording else None
     scene_obj = (make_scene(rec.scene_file(moved_to=scene), **rec.scene_params) if rec
@@ -393,8 +393,7 @@ def run_experiment(out_dir: str | Path, scene: str, detectors: list[str], sensor
     summary = {"scene": rec.scene, "sensor": rec.sensor, "seed": rec.seed, "noise_streams": rec.noise_streams,
                "swept": swept,
                "deskew": deskew if swept else None, "backend": backend, "attitude": attitude,
-               "icp_covariance": icp_covariance, "odometry_bias": list(fusion.odometry_bias),
-               "steps": len(rec.odometry), "icp_seconds": round(icp_seconds, 1),
+               **fusion_options.record(), "steps": len(rec.odometry), "icp_seconds": round(icp_seconds, 1),
                "icp_failed_or_not_converged": failed, "rows": rows}
     (out / "results.json").write_text(json.dumps(summary, indent=1))
     from .experiment_plots import plot_map, plot_timeline, plot_trajectories

@@ -5,7 +5,7 @@ import numpy as np
 
 from fusion import FusionConfig, check_config
 
-from .config import OdometryConfig
+from .config import FusionOptions, OdometryConfig
 from .transforms import adjoint, inverse, matrix_to_pose, pose_to_matrix
 
 
@@ -45,11 +45,13 @@ class LegOdometry:
         return pose_to_matrix(noisy)
 
 
-def odometry_fusion_config(odometry: OdometryConfig, **fusion_options) -> FusionConfig:
-    """A checked FusionConfig whose odometry bias states (if `odometry_bias` names any) start from
-    this noise model's bias spread and wander by its random walk."""
+def odometry_fusion_config(odometry: OdometryConfig, options: FusionOptions = FusionOptions(),
+                           **fusion_options) -> FusionConfig:
+    """A checked FusionConfig with `options` (and any other FusionConfig fields) whose odometry bias
+    states, if any, start from this noise model's bias spread and wander by its random walk."""
     return check_config(FusionConfig(odometry_bias_sigmas=(odometry.yaw_bias_std, odometry.z_bias_std),
                                      odometry_bias_walk=(odometry.yaw_bias_walk, odometry.z_bias_walk),
+                                     icp_covariance=options.icp_covariance, odometry_bias=options.odometry_bias,
                                      **fusion_options))
 
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from .config import OdometryConfig
+from .config import FusionOptions, OdometryConfig
 from .detectors import EigenvalueDetector, make_detector
 from .experiment import Recording, evaluate, odometry_only, record_run, register_sequence
 from .odometry import odometry_fusion_config
@@ -19,12 +19,11 @@ DEFAULT_TAUS = (10, 20, 30, 50, 70, 90, 110, 150, 200, 300)
 
 def run_sweep(out_dir: str | Path, scenes: list[str], taus: tuple[float, ...] = DEFAULT_TAUS,
               references: tuple[str, ...] = ("learned", "none"), recordings: dict[str, str] | None = None,
-              seed: int = 0, progress: bool = True, icp_covariance: str = "hessian",
-              odometry_bias: tuple[str, ...] = ()) -> dict:
+              seed: int = 0, progress: bool = True, fusion_options: FusionOptions = FusionOptions()) -> dict:
     """Returns {scene: {"taus": [...], "eigen_ate": [...], "<reference>": ate, ...}} and writes
     sweep.json and tau_sweep.png into out_dir (recordings are saved there for re-use).
-    `icp_covariance`, `odometry_bias`: FusionConfig's of every fusion."""
-    fusion = odometry_fusion_config(OdometryConfig(), icp_covariance=icp_covariance, odometry_bias=odometry_bias)
+    `fusion_options`: every fusion's."""
+    fusion = odometry_fusion_config(OdometryConfig(), fusion_options)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     results: dict[str, dict] = {}
@@ -36,8 +35,7 @@ def run_sweep(out_dir: str | Path, scenes: list[str], taus: tuple[float, ...] = 
         regs = register_sequence(rec, RegistrationConfig(), progress)
         eigen = evaluate(rec, [EigenvalueDetector(t) for t in taus], regs, fusion=fusion, progress=False)
         refs = evaluate(rec, [make_detector(r) for r in references], regs, fusion=fusion, progress=False)
-        row = {"icp_covariance": icp_covariance, "odometry_bias": list(fusion.odometry_bias),
-               "taus": list(map(float, taus)), "eigen_ate": [r.ate for r in eigen],
+        row = {**fusion_options.record(), "taus": list(map(float, taus)), "eigen_ate": [r.ate for r in eigen],
                "eigen_flagged": [r.masks.mean(axis=0).tolist() for r in eigen],
                "odometry only": odometry_only(rec).ate}
         for name, r in zip(references, refs):

@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 
 from l3e_env.cli import (
-    add_icp_covariance_option, add_mesh_options, mesh_options_given, meshes_file, scene_names, scene_params,
-    sensor_name,
+    add_fusion_options, add_mesh_options, fusion_options, mesh_options_given, meshes_file, scene_names,
+    scene_params, sensor_name,
 )
 
 
@@ -103,7 +103,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     rows = evaluate_policies(out, args.policy or ["shortest", "planner"], list(scenes), args.episodes, args.seed,
                              args.detector, args.cache_dir, args.lam, args.workers, steer_on=args.steer_on,
                              progress=not args.quiet, scene_params={k: v for k, v in scenes.items() if v},
-                             icp_covariance=args.icp_covariance)
+                             fusion_options=fusion_options(args))
     print(format_rows(rows))
     print(f"routes: {out / 'routes.png'}")
     return 0
@@ -157,7 +157,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--workers", type=int, default=1, help="episodes run in parallel processes")
     g.add_argument("--steer-on", dest="steer_on", choices=["estimate", "truth"], default="estimate",
                    help="pose the policies steer on (default: the fused estimate); ATE is measured either way")
-    add_icp_covariance_option(g)
+    add_fusion_options(g)
     g.add_argument("--seed", type=int, default=0)
     g.add_argument("--out", help="output folder (default: l3e_out/policy-eval-<time>)")
     add_mesh_options(g, several=True)

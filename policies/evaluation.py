@@ -19,7 +19,7 @@ from typing import Any, Callable
 import numpy as np
 from tqdm import tqdm
 
-from l3e_env.config import settings_changed
+from l3e_env.config import FusionOptions, settings_changed
 from l3e_env.envs import NavigationEnv
 from l3e_env.follower import RouteFollower
 from l3e_env.transforms import yaw_of
@@ -95,14 +95,14 @@ STEER_ON = ("estimate", "truth")
 
 def run_episode(policy: str, scene: str, seed: int, detector: str = "learned", cache_dir: str | Path | None = None,
                 lam: float = 50.0, backend: str = "graph", steer_on: str = "estimate",
-                scene_params: dict | None = None, icp_covariance: str = "hessian") -> Episode:
+                scene_params: dict | None = None, fusion_options: FusionOptions = FusionOptions()) -> Episode:
     import torch
 
     torch.set_num_threads(1)
     controller: Callable = make_controller(policy, scene, detector, cache_dir, lam, scene_params)
     env = NavigationEnv(scene=scene, scene_params=scene_params or {},
                         fusion={"enabled": True, "detector": detector, "backend": backend,
-                                "icp_covariance": icp_covariance})
+                                **asdict(fusion_options)})
     try:
         _, info = env.reset(seed=seed)
         trail, length, terminated, truncated = [info["T_w_b"][:2, 3]], 0.0, False, False
@@ -155,10 +155,10 @@ def evaluate_policies(out: str | Path, policies: list[str], scenes: list[str], e
                       detector: str = "learned", cache_dir: str | Path | None = None, lam: float = 50.0,
                       workers: int = 1, backend: str = "graph", steer_on: str = "estimate",
                       progress: bool = True, scene_params: dict[str, dict] | None = None,
-                      icp_covariance: str = "hessian") -> list[dict[str, Any]]:
+                      fusion_options: FusionOptions = FusionOptions()) -> list[dict[str, Any]]:
     """Episode i of every policy runs on scenes[i % len(scenes)] with environment seed seed + i.
     `scene_params`: make_scene's arguments by scene name (a mesh's up axis, scale and route).
-    `icp_covariance`: the fusion's (LoopFusionConfig.icp_covariance).
+    `fusion_options`: the fusion's (LoopFusionConfig.icp_covariance and .odometry_bias).
     Writes episodes.jsonl, summary.json, summary.txt and routes.png into `out`."""
     from .plots import plot_paths
 
@@ -173,16 +173,17 @@ def evaluate_policies(out: str | Path, policies: list[str], scenes: list[str], e
         for d in sorted(map_detectors):
             scene_context(name, d, cache_dir, progress=progress, scene_params=params.get(name))
     jobs = [(p, scenes[i % len(scenes)], seed + i, detector, cache_dir, lam, backend, steer_on,
-             params.get(scenes[i % len(scenes)]), icp_covariance) for i in range(episodes) for p in policies]
+             params.get(scenes[i % len(scenes)]), fusion_options) for i in range(episodes) for p in policies]
     # episodes are appended as they finish; a killed evaluation resumes where it stopped, with the
     # settings it started with
     settings = {"detector": detector, "lam": lam, "backend": backend, "steer_on": steer_on,
-                "icp_covariance": icp_covariance}
+                **fusion_options.record()}
     if params:  # left out without a mesh, so that folders written before meshes were taken resume
         settings["scene_params"] = params
     settings_file = out / "settings.json"
     before = json.loads(settings_file.read_text()) if settings_file.exists() else settings
     before.setdefault("icp_covariance", "fixed")  # folders written before the Hessian's weights had fixed sigmas
+    before.setdefault("odometry_bias", [])  # and before the bias states, none
     if before != settings:
         raise ValueError(f"{out} holds episodes run with other settings ({settings_changed(before, settings)}); "
                          "use another folder")
@@ -218,7 +219,7 @@ def evaluate_policies(out: str | Path, policies: list[str], scenes: list[str], e
     rows = summarize(results)
     (out / "summary.json").write_text(json.dumps({"rows": rows, "scenes": scenes, "episodes": episodes, "seed": seed,
                                                   "detector": detector, "lam": lam, "backend": backend,
-                                                  "steer_on": steer_on, "icp_covariance": icp_covariance,
+                                                  "steer_on": steer_on, **fusion_options.record(),
                                                   "seconds": round(time.perf_counter() - t0, 1)}, indent=2))
     (out / "summary.txt").write_text(format_rows(rows) + "\n")
     first = scenes[0]

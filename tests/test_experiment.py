@@ -3,7 +3,7 @@ import json
 import numpy as np
 import pytest
 
-from l3e_env.config import LidarConfig
+from l3e_env.config import FusionOptions, LidarConfig
 from l3e_env.detectors import EigenvalueDetector, NoDetector, make_detector
 from l3e_env.experiment import (
     RecastScans, Recording, evaluate, file_stem, format_seed_table, format_table, record_run, register_sequence,
@@ -96,16 +96,17 @@ def test_the_fixed_icp_sigmas_reproduce_the_figures_measured_before_the_hessian(
     weighed, = evaluate(rec, [NoDetector()], regs, progress=False)
     assert weighed.ate != pytest.approx(fixed.ate, rel=1e-3)
     rows = run_experiment(tmp_path / "out", "mine", ["none"], recording=tmp_path / "rec.npz", progress=False,
-                          icp_covariance="fixed")
+                          fusion_options=FusionOptions(icp_covariance="fixed"))
     assert rows[1]["ate_m"] == round(fixed.ate, 3)  # rows are rounded
     assert json.loads((tmp_path / "out" / "results.json").read_text())["icp_covariance"] == "fixed"
     with pytest.raises(ValueError, match="icp_covariance must be one of"):
-        run_experiment(tmp_path / "bad", "mine", ["none"], icp_covariance="censi")
+        run_experiment(tmp_path / "bad", "mine", ["none"], fusion_options=FusionOptions(icp_covariance="censi"))
     assert not (tmp_path / "bad").exists()
     from l3e_env.sweep import run_sweep
 
     swept = run_sweep(tmp_path / "sweep", ["primitives-1"], taus=(1e12,), references=("none",),
-                      recordings={"primitives-1": str(tmp_path / "rec.npz")}, progress=False, icp_covariance="fixed")
+                      recordings={"primitives-1": str(tmp_path / "rec.npz")}, progress=False,
+                      fusion_options=FusionOptions(icp_covariance="fixed"))
     row = swept["primitives-1"]
     assert row["icp_covariance"] == "fixed" and row["none"] == pytest.approx(fixed.ate, rel=1e-9)
     assert row["eigen_ate"][0] == pytest.approx(row["odometry only"], rel=1e-6)  # every axis flagged: the legs alone
@@ -119,13 +120,12 @@ def test_the_legs_bias_as_a_fusion_state_from_the_command_line(walls_run, tmp_pa
     rec, regs = walls_run
     rec.save(tmp_path / "rec.npz")
     noisy = OdometryConfig(yaw_bias_std=0.004, z_bias_walk=0.002)
-    config = odometry_fusion_config(noisy, odometry_bias=["yaw"])
+    config = odometry_fusion_config(noisy, FusionOptions(odometry_bias=("yaw",)))
     assert config.odometry_bias == ("yaw",) and config.odometry_bias_sigmas == (0.004, noisy.z_bias_std)
     assert config.odometry_bias_walk == (noisy.yaw_bias_walk, 0.002)
     plain, = evaluate(rec, [NoDetector()], regs, progress=False)
-    learnt, = evaluate(rec, [NoDetector()], regs, fusion=odometry_fusion_config(OdometryConfig(),
-                                                                                odometry_bias=("yaw", "z")),
-                       progress=False)
+    both = odometry_fusion_config(OdometryConfig(), FusionOptions(odometry_bias=("yaw", "z")))
+    learnt, = evaluate(rec, [NoDetector()], regs, fusion=both, progress=False)
     assert np.abs(learnt.trajectory - plain.trajectory).max() > 1e-6
     assert main(["ate", "--recording", str(tmp_path / "rec.npz"), "--detector", "none", "--odometry-bias", "yaw,z",
                  "--out", str(tmp_path / "out"), "--quiet"]) == 0
@@ -135,7 +135,7 @@ def test_the_legs_bias_as_a_fusion_state_from_the_command_line(walls_run, tmp_pa
         main(["ate", "--recording", str(tmp_path / "rec.npz"), "--odometry-bias", "scale", "--quiet"])
     assert "expected none or distinct axes among yaw, z" in capsys.readouterr().err
     with pytest.raises(ValueError, match="odometry_bias takes distinct axes"):
-        run_experiment(tmp_path / "bad", "mine", ["none"], odometry_bias=("yaw", "yaw"))
+        run_experiment(tmp_path / "bad", "mine", ["none"], fusion_options=FusionOptions(odometry_bias=("yaw", "yaw")))
     assert not (tmp_path / "bad").exists()
 
 

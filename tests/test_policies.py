@@ -368,11 +368,19 @@ def test_a_users_mesh_is_driven_by_the_policies(cad_corridor, tmp_path, capsys, 
     assert "holds episodes run with other settings (scene_params)" in capsys.readouterr().err
     assert main([*args, "--route", str(route), "--icp-covariance", "fixed"]) == 2
     assert "other settings (icp_covariance 'hessian', now 'fixed')" in capsys.readouterr().err
+    assert main([*args, "--route", str(route), "--odometry-bias", "yaw"]) == 2
+    assert "other settings (odometry_bias [], now ['yaw'])" in capsys.readouterr().err
     settings = json.loads((tmp_path / "ev" / "settings.json").read_text())
-    assert settings.pop("icp_covariance") == "hessian"
-    (tmp_path / "ev" / "settings.json").write_text(json.dumps(settings))  # a folder from before the option
+    assert settings.pop("icp_covariance") == "hessian" and settings.pop("odometry_bias") == []
+    (tmp_path / "ev" / "settings.json").write_text(json.dumps(settings))  # a folder from before the options
     assert main([*args, "--route", str(route)]) == 2  # its episodes had the fixed sigmas
     assert main([*args, "--route", str(route), "--icp-covariance", "fixed"]) == 0
+    biased = [*args[:-3], "--out", str(tmp_path / "ev-bias"), "--quiet", "--route", str(route)]
+    assert main([*biased, "--odometry-bias", "yaw", "--policy", "shortest"]) == 0
+    summary = json.loads((tmp_path / "ev-bias" / "summary.json").read_text())
+    assert summary["odometry_bias"] == ["yaw"] and summary["rows"][0]["success"] == 1.0
+    (same_drive,) = [json.loads(line) for line in (tmp_path / "ev-bias" / "episodes.jsonl").read_text().splitlines()]
+    assert same_drive["mean_ate"] != episode["mean_ate"]  # the same drive: the option reached the fusion
 
 
 def test_fork_variants_differ():
