@@ -4,8 +4,9 @@ per second instead of about 20). Policies trained here are evaluated with the fu
 
 Reward per decision: progress (metres of shortest free-space distance to the goal gained)
 - lam * expected drift of the motion (the planner's drift model on the map, see
-policies.planner, plus turn_drift per radian turned) - step_penalty - collision_penalty when
-blocked - tight_penalty per metre walked in cells next to an obstacle + goal_reward on arrival.
+policies.planner, plus turn_drift per radian turned and lateral_drift per metre walked sideways)
+- step_penalty - collision_penalty when blocked - tight_penalty per metre walked in cells next to
+an obstacle + goal_reward on arrival.
 Here the robot is a point on free cells; the simulated robot is a 0.9 x 0.5 m box that fits a
 cell next to an obstacle only square to the grid at its centre, so brushing past obstacles (which
 gets it stuck there) costs as much as the walk gains, the planner's squeeze rule.
@@ -43,6 +44,11 @@ class FastEnvConfig:
     # benchmarks/RESULTS.md), a position error over the planner's 10 m lever arm. Without it a policy
     # that swings its heading at the full yaw rate pays nothing here and drifts 3x more in the pipeline
     turn_drift: float = 0.015
+    # expected drift (m) per metre walked sideways (along the body's y): at full speed a diagonal
+    # gait leaves ICP's heading 2-4 deg off over the fork's route against 0.7-1.2 deg walking along
+    # it or backwards (benchmarks/RESULTS.md, "PPO's gait"), about 0.007 m of drift per metre over
+    # the 10 m lever arm, half of each metre sideways. Without it PPO crabs at full speed
+    lateral_drift: float = 0.015
     tight_clearance: float = TIGHT_CLEARANCE  # m, the planner's
     goal_reward: float = 10.0
     goal_radius: float = 1.0
@@ -95,7 +101,7 @@ class MapNavigationEnv(gym.Env):
             step = float(np.hypot(cx - self.x, cy - self.y))
             if step > 0:
                 drift += step * float(self.view.drift_rate(np.array([cx, cy]), yaw))
-            drift += cfg.turn_drift * abs(twist[2]) * robot.dt
+            drift += (cfg.turn_drift * abs(twist[2]) + cfg.lateral_drift * abs(twist[1])) * robot.dt
             moved += step
             tight += step * (self.view.clearance(np.array([cx, cy])) < cfg.tight_clearance)
             self.x, self.y, self.yaw = cx, cy, yaw

@@ -212,6 +212,23 @@ def test_fast_env_charges_turning_as_drift(fast_env):
     assert reward == pytest.approx(-cfg.step_penalty)
 
 
+def test_fast_env_charges_walking_sideways_as_drift(fast_env):
+    """The same sideways step costs lateral_drift per metre more than with the term off (ICP's
+    heading under a fast diagonal gait); a step forward costs nothing extra."""
+    drifts = {}
+    for lateral in (0.0, 0.015):
+        fast_env.config = dataclasses.replace(fast_env.config, lateral_drift=lateral)
+        for action in ((0.0, 1.0, 0.0), (1.0, 0.0, 0.0)):
+            fast_env.reset(seed=0)
+            _, _, _, _, info = fast_env.step(np.array(action))
+            assert not info["blocked"]
+            drifts[lateral, action[1]] = info["expected_drift"]
+    cfg = fast_env.config
+    sideways = cfg.robot.max_twist[1] * cfg.robot.dt * cfg.action_repeat
+    assert drifts[0.015, 1.0] - drifts[0.0, 1.0] == pytest.approx(0.015 * sideways)
+    assert drifts[0.015, 0.0] == drifts[0.0, 0.0]
+
+
 def test_fast_env_blocks_at_walls(fast_env):
     fast_env.reset(seed=0)
     blocked = False
