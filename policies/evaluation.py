@@ -19,9 +19,10 @@ from typing import Any, Callable
 import numpy as np
 from tqdm import tqdm
 
-from l3e_env.config import FusionOptions, settings_changed
+from l3e_env.config import FusionOptions, OdometryConfig, settings_changed
 from l3e_env.envs import NavigationEnv
 from l3e_env.follower import RouteFollower
+from l3e_env.odometry import odometry_fusion_config
 from l3e_env.transforms import yaw_of
 
 from .context import scene_context
@@ -164,6 +165,7 @@ def evaluate_policies(out: str | Path, policies: list[str], scenes: list[str], e
 
     if steer_on not in STEER_ON:
         raise ValueError(f"steer_on must be one of {STEER_ON}, got {steer_on!r}")
+    odometry_fusion_config(OdometryConfig(), fusion_options)  # bad options fail here, not in every episode
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     map_detectors = {_ppo_detector(p, detector) if p.startswith("ppo:") else detector
