@@ -4,6 +4,7 @@ Registered with the `l3e` command through the `l3e.commands` entry-point group."
 from __future__ import annotations
 
 import argparse
+import json
 import time
 from pathlib import Path
 
@@ -77,6 +78,17 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     return 0
 
 
+def non_negative(text: str) -> float:
+    """argparse type: a finite number, 0 or more."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not np.isfinite(value) or value < 0:
+        raise argparse.ArgumentTypeError(f"expected a finite number, 0 or more, got {text!r}")
+    return value
+
+
 def _cmd_train(args: argparse.Namespace) -> int:
     from .context import scene_context
     from .fastenv import FastEnvConfig
@@ -86,8 +98,12 @@ def _cmd_train(args: argparse.Namespace) -> int:
     print(f"PPO on {', '.join(scenes)} (fast map environment, {args.detector} maps) -> {Path(args.out).resolve()}")
     contexts = [scene_context(name, args.detector, args.cache_dir, sensor=args.sensor, progress=not args.quiet,
                               scene_params=params) for name, params in scenes.items()]
+    lateral = args.lateral_drift
+    if lateral is None:  # a resumed run keeps its own, a new one has none
+        meta = Path(args.out) / "policy.json"
+        lateral = json.loads(meta.read_text())["fast_env"].get("lateral_drift", 0.0) if meta.exists() else 0.0
     summary = train_ppo(args.out, contexts, args.detector, args.timesteps, args.seed, args.envs,
-                        FastEnvConfig(lam=args.lam), progress=not args.quiet)
+                        FastEnvConfig(lam=args.lam, lateral_drift=lateral), progress=not args.quiet)
     print(f"{summary['timesteps']} steps; policy: {Path(args.out) / 'policy.zip'}; logs: progress.csv, monitor.csv")
     return 0
 
@@ -143,6 +159,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--timesteps", type=int, default=300_000, help="decisions of 0.5 s (default 300000)")
     g.add_argument("--envs", type=int, default=4, help="environments stepped together (default 4)")
     g.add_argument("--lam", type=float, default=50.0, help="weight of expected drift in the reward (default 50)")
+    g.add_argument("--lateral-drift", type=non_negative, metavar="M",
+                   help="expected drift charged per metre walked sideways (default: a resumed run's own, else 0; "
+                        "0.015 halves PPO's final ATE on the fork variants but it then sticks on fork-104)")
     g.add_argument("--seed", type=int, default=0)
     add_mesh_options(g, several=True)
     g.set_defaults(func=_cmd_train)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -227,6 +228,30 @@ def test_fast_env_charges_walking_sideways_as_drift(fast_env):
     sideways = cfg.robot.max_twist[1] * cfg.robot.dt * cfg.action_repeat
     assert drifts[0.015, 1.0] - drifts[0.0, 1.0] == pytest.approx(0.015 * sideways)
     assert drifts[0.015, 0.0] == drifts[0.0, 0.0]
+
+
+def test_policy_train_takes_the_sideways_cost_and_a_resumed_run_keeps_it(tmp_path, monkeypatch, capsys):
+    from l3e_env.cli import main
+
+    given = []
+
+    def fake_train(out, contexts, detector, timesteps, seed, envs, config, progress):
+        given.append(config.lateral_drift)
+        (Path(out) / "policy.json").parent.mkdir(parents=True, exist_ok=True)
+        (Path(out) / "policy.json").write_text(json.dumps({"fast_env": plain(dataclasses.asdict(config))}))
+        return {"timesteps": timesteps}
+
+    monkeypatch.setattr("policies.ppo.train_ppo", fake_train)
+    monkeypatch.setattr("policies.context.scene_context", lambda *args, **kwargs: None)
+    run = ["policy", "train", "--scene", "fork-0", "--quiet", "--out"]
+    assert main([*run, str(tmp_path / "a"), "--lateral-drift", "0.015"]) == 0
+    assert main([*run, str(tmp_path / "a")]) == 0  # the second stage, resumed
+    assert main([*run, str(tmp_path / "b")]) == 0  # a new run
+    assert given == [0.015, 0.015, 0.0]
+    for bad in ("-0.1", "nan", "much"):
+        with pytest.raises(SystemExit):
+            main([*run, str(tmp_path / "c"), "--lateral-drift", bad])
+        assert "expected a finite number, 0 or more" in capsys.readouterr().err
 
 
 def test_fast_env_blocks_at_walls(fast_env):
