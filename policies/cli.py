@@ -101,7 +101,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
     lateral = args.lateral_drift
     if lateral is None:  # a resumed run keeps its own, a new one has none
         meta = Path(args.out) / "policy.json"
-        lateral = json.loads(meta.read_text())["fast_env"].get("lateral_drift", 0.0) if meta.exists() else 0.0
+        lateral = json.loads(meta.read_text()).get("fast_env", {}).get("lateral_drift", 0.0) if meta.exists() else 0.0
     summary = train_ppo(args.out, contexts, args.detector, args.timesteps, args.seed, args.envs,
                         FastEnvConfig(lam=args.lam, lateral_drift=lateral), progress=not args.quiet)
     print(f"{summary['timesteps']} steps; policy: {Path(args.out) / 'policy.zip'}; logs: progress.csv, monitor.csv")
