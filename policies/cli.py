@@ -4,7 +4,6 @@ Registered with the `l3e` command through the `l3e.commands` entry-point group."
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
@@ -92,7 +91,7 @@ def non_negative(text: str) -> float:
 def _cmd_train(args: argparse.Namespace) -> int:
     from .context import scene_context
     from .fastenv import FastEnvConfig
-    from .ppo import TRAIN_VARIANTS, train_ppo
+    from .ppo import TRAIN_VARIANTS, run_record, train_ppo
 
     scenes = _scenes_with_params(args, tuple(TRAIN_VARIANTS))
     print(f"PPO on {', '.join(scenes)} (fast map environment, {args.detector} maps) -> {Path(args.out).resolve()}")
@@ -100,8 +99,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
                               scene_params=params) for name, params in scenes.items()]
     lateral = args.lateral_drift
     if lateral is None:  # a resumed run keeps its own, a new one has none
-        meta = Path(args.out) / "policy.json"
-        lateral = json.loads(meta.read_text()).get("fast_env", {}).get("lateral_drift", 0.0) if meta.exists() else 0.0
+        lateral = run_record(args.out).get("fast_env", {}).get("lateral_drift", 0.0)
     summary = train_ppo(args.out, contexts, args.detector, args.timesteps, args.seed, args.envs,
                         FastEnvConfig(lam=args.lam, lateral_drift=lateral), progress=not args.quiet)
     print(f"{summary['timesteps']} steps; policy: {Path(args.out) / 'policy.zip'}; logs: progress.csv, monitor.csv")

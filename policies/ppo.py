@@ -37,6 +37,12 @@ def _sb3():
     return stable_baselines3
 
 
+def run_record(out: str | Path) -> dict[str, Any]:
+    """A run folder's policy.json (what `train_ppo` writes after each stage); {} before the first."""
+    meta_file = Path(out) / "policy.json"
+    return json.loads(meta_file.read_text()) if meta_file.exists() else {}
+
+
 def train_ppo(out: str | Path, contexts: list[SceneContext], detector: str = "learned", timesteps: int = 300_000,
               seed: int = 0, n_envs: int = 4, config: FastEnvConfig | None = None,
               progress: bool = True) -> dict[str, Any]:
@@ -87,13 +93,12 @@ def train_ppo(out: str | Path, contexts: list[SceneContext], detector: str = "le
     model.save(last)
     model.save(out / "policy.zip")
     # a run resumed on other variants (a curriculum) keeps the record of every stage
-    meta_file = out / "policy.json"
-    history = json.loads(meta_file.read_text()).get("history", []) if meta_file.exists() else []
+    history = run_record(out).get("history", [])
     history.append({"scenes": scenes, "from_timestep": int(done), "to_timestep": int(model.num_timesteps)})
     summary = {"observation": OBSERVATION, "scenes": scenes, "detector": detector,
                "timesteps": int(model.num_timesteps),
                "seed": seed, "fast_env": plain(dataclasses.asdict(config)), "history": history}
-    meta_file.write_text(json.dumps(summary, indent=2))
+    (out / "policy.json").write_text(json.dumps(summary, indent=2))
     return summary
 
 
