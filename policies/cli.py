@@ -97,11 +97,12 @@ def _cmd_train(args: argparse.Namespace) -> int:
     print(f"PPO on {', '.join(scenes)} (fast map environment, {args.detector} maps) -> {Path(args.out).resolve()}")
     contexts = [scene_context(name, args.detector, args.cache_dir, sensor=args.sensor, progress=not args.quiet,
                               scene_params=params) for name, params in scenes.items()]
-    lateral = args.lateral_drift
-    if lateral is None:  # a resumed run keeps its own, a new one has none
-        lateral = run_record(args.out).get("fast_env", {}).get("lateral_drift", 0.0)
-    summary = train_ppo(args.out, contexts, args.detector, args.timesteps, args.seed, args.envs,
-                        FastEnvConfig(lam=args.lam, lateral_drift=lateral), progress=not args.quiet)
+    # options not given: a resumed run keeps its own, a new one (or one from before the option) the default
+    own, default = run_record(args.out).get("fast_env", {}), FastEnvConfig()
+    given = {"lam": args.lam, "lateral_drift": args.lateral_drift}
+    config = FastEnvConfig(**{k: own.get(k, getattr(default, k)) if v is None else v for k, v in given.items()})
+    summary = train_ppo(args.out, contexts, args.detector, args.timesteps, args.seed, args.envs, config,
+                        progress=not args.quiet)
     print(f"{summary['timesteps']} steps; policy: {Path(args.out) / 'policy.zip'}; logs: progress.csv, monitor.csv")
     return 0
 
@@ -156,7 +157,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--detector", default="learned", help="map detector (default: learned)")
     g.add_argument("--timesteps", type=int, default=300_000, help="decisions of 0.5 s (default 300000)")
     g.add_argument("--envs", type=int, default=4, help="environments stepped together (default 4)")
-    g.add_argument("--lam", type=float, default=50.0, help="weight of expected drift in the reward (default 50)")
+    g.add_argument("--lam", type=non_negative, help="weight of expected drift in the reward (default: a resumed "
+                                                    "run's own, else 50)")
     g.add_argument("--lateral-drift", type=non_negative, metavar="M",
                    help="expected drift charged per metre walked sideways (default: a resumed run's own, else 0; "
                         "0.015 halves PPO's final ATE on the fork variants but it then sticks on fork-104)")

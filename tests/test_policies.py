@@ -231,12 +231,13 @@ def test_fast_env_charges_walking_sideways_as_drift(fast_env):
 
 
 def test_policy_train_takes_the_sideways_cost_and_a_resumed_run_keeps_it(tmp_path, monkeypatch, capsys):
+    """And its drift weight: a second stage run without the options trains as the first did."""
     from l3e_env.cli import main
 
     given = []
 
     def fake_train(out, contexts, detector, timesteps, seed, envs, config, progress):
-        given.append(config.lateral_drift)
+        given.append((config.lateral_drift, config.lam))
         (Path(out) / "policy.json").parent.mkdir(parents=True, exist_ok=True)
         (Path(out) / "policy.json").write_text(json.dumps({"fast_env": plain(dataclasses.asdict(config))}))
         return {"timesteps": timesteps}
@@ -244,14 +245,16 @@ def test_policy_train_takes_the_sideways_cost_and_a_resumed_run_keeps_it(tmp_pat
     monkeypatch.setattr("policies.ppo.train_ppo", fake_train)
     monkeypatch.setattr("policies.context.scene_context", lambda *args, **kwargs: None)
     run = ["policy", "train", "--scene", "fork-0", "--quiet", "--out"]
-    assert main([*run, str(tmp_path / "a"), "--lateral-drift", "0.015"]) == 0
+    assert main([*run, str(tmp_path / "a"), "--lateral-drift", "0.015", "--lam", "20"]) == 0
     assert main([*run, str(tmp_path / "a")]) == 0  # the second stage, resumed
+    assert main([*run, str(tmp_path / "a"), "--lam", "30"]) == 0  # a given option wins
     assert main([*run, str(tmp_path / "b")]) == 0  # a new run
-    assert given == [0.015, 0.015, 0.0]
-    for bad in ("-0.1", "nan", "much"):
-        with pytest.raises(SystemExit):
-            main([*run, str(tmp_path / "c"), "--lateral-drift", bad])
-        assert "expected a finite number, 0 or more" in capsys.readouterr().err
+    assert given == [(0.015, 20.0), (0.015, 20.0), (0.015, 30.0), (0.0, 50.0)]
+    for option in ("--lateral-drift", "--lam"):
+        for bad in ("-0.1", "nan", "much"):
+            with pytest.raises(SystemExit):
+                main([*run, str(tmp_path / "c"), option, bad])
+            assert "expected a finite number, 0 or more" in capsys.readouterr().err
 
 
 def test_fast_env_blocks_at_walls(fast_env):
