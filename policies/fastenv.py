@@ -7,13 +7,9 @@ Reward per decision: progress (metres of shortest free-space distance to the goa
 policies.planner, plus turn_drift per radian turned and lateral_drift per metre walked sideways)
 - step_penalty - collision_penalty when blocked - tight_penalty per metre walked in cells next to
 an obstacle + goal_reward on arrival.
-The robot moves as the simulated one does: a pose is taken where its base box fits at its heading,
-and a blocked motion slides along walls in the same order (l3e_env.robot). Whether the box fits
-is the simulated robot's own PyBullet check, asked only where the fast answer is not enough: on a
-free cell with the box clear of the walls in policies.footprint (which never passes a colliding
-pose) it fits. Both matter: a turned box catches corners that the 0.5 m free cells clear, and the
-simulated robot squeezes into pockets between obstacles that the cells and the footprint's 5 cm
-raster refuse, and is wedged there; a policy that never met either pushes into them. Next to an
+Here the robot stands on free cells with its base box clear of the obstacles' walls at its
+heading (policies.footprint: a turned box catches corners that the 0.5 m cells clear, and the
+simulated robot is wedged there); it slides along walls as the simulated one does. Next to an
 obstacle the simulated robot fits a cell only square to the grid at its centre, so brushing past
 obstacles costs as much as the walk gains, the planner's squeeze rule.
 The expected drift penalises steps taken where the detector will mask axes, weighted by how much
@@ -29,11 +25,8 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from scipy import ndimage
-
 from l3e_env.config import RobotConfig
 from l3e_env.robot import planar_motion
-from l3e_env.world import World
 
 from .context import SceneContext
 from .footprint import build_footprint
@@ -78,10 +71,6 @@ class MapNavigationEnv(gym.Env):
         self.config = config or FastEnvConfig()
         self.views = [PolicyView(c.space, c.locmap, c.scene.goal, self.config.lam) for c in contexts]
         self.footprints = [build_footprint(c.scene, c.space, self.config.robot) for c in contexts]
-        # per grid cell, the nearest free cell: the simulated robot can stand off the free cells
-        self.nearest_free = [ndimage.distance_transform_edt(~c.space.free, return_distances=False,
-                                                            return_indices=True) for c in contexts]
-        self.worlds: dict[int, World] = {}  # PyBullet, built for a variant when first asked
         self.contexts = contexts
         self.observation_space = self.views[0].observation_space
         self.action_space = spaces.Box(-1.0, 1.0, (3,), dtype=np.float32)
@@ -91,7 +80,7 @@ class MapNavigationEnv(gym.Env):
         self.k = int(self.np_random.integers(len(self.contexts)))
         ctx, self.view, self.footprint = self.contexts[self.k], self.views[self.k], self.footprints[self.k]
         self.x, self.y, self.yaw = (float(v) for v in ctx.scene.start)
-        self.to_go = self._distance_to_go()
+        self.to_go = self.view.distance_to_go(np.array([self.x, self.y]))
         if not np.isfinite(self.to_go):
             raise ValueError(f"scene '{ctx.scene.name}': the goal cannot be reached from the start")
         speed = self.config.robot.max_twist[0] * self.config.robot.dt * self.config.action_repeat
@@ -114,7 +103,7 @@ class MapNavigationEnv(gym.Env):
             # alone with the turn, then the turn alone; else it stays
             for cx, cy, cyaw in ((x, y, yaw), (x, self.y, yaw), (self.x, y, yaw), (self.x, self.y, yaw),
                                  (self.x, self.y, self.yaw)):
-                if self._fits(cx, cy, cyaw):
+                if self.view.space.is_free(np.array([cx, cy])) and not self.footprint.collides(cx, cy, cyaw):
                     break
             blocked |= (cx, cy, cyaw) != (x, y, yaw)
             step = float(np.hypot(cx - self.x, cy - self.y))
@@ -129,7 +118,7 @@ class MapNavigationEnv(gym.Env):
         self.expected_drift += drift
         self.length += moved
         self.tight_length += tight
-        to_go = self._distance_to_go()
+        to_go = self.view.distance_to_go(np.array([self.x, self.y]))
         reward = cfg.progress_reward * (self.to_go - to_go) - cfg.lam * drift - cfg.step_penalty
         reward -= cfg.collision_penalty * blocked + cfg.tight_penalty * tight
         self.to_go = to_go
@@ -137,29 +126,6 @@ class MapNavigationEnv(gym.Env):
         reward += cfg.goal_reward * terminated
         truncated = (not terminated) and self.decisions >= self.max_decisions
         return self.view(self.x, self.y, self.yaw), float(reward), terminated, truncated, self._info(blocked)
-
-    def _fits(self, x: float, y: float, yaw: float) -> bool:
-        """Whether the simulated robot's base fits at (x, y, yaw) on the ground there."""
-        if self.view.space.is_free(np.array([x, y])) and not self.footprint.collides(x, y, yaw):
-            return True
-        if self.k not in self.worlds:
-            self.worlds[self.k] = World(self.contexts[self.k].scene, self.config.robot)
-        world, floor = self.worlds[self.k], float(self.contexts[self.k].scene.route[0, 2])
-        T = world.ground_pose(x, y, yaw, floor)
-        return T is not None and not world.in_collision(T)
-
-    def _distance_to_go(self) -> float:
-        """Shortest free-space distance to the goal, from the nearest free cell where the robot
-        stands off them (plus the way there)."""
-        space = self.view.space
-        idx = np.clip(space.index(np.array([self.x, self.y])), 0, np.asarray(space.shape) - 1)
-        free = self.nearest_free[self.k][:, idx[0], idx[1]]
-        return float(self.view.to_go[free[0], free[1]]) + float(np.hypot(*(free - idx))) * space.resolution
-
-    def close(self) -> None:
-        for world in self.worlds.values():
-            world.close()
-        self.worlds.clear()
 
     def _info(self, blocked: bool) -> dict[str, Any]:
         return {"scene": self.contexts[self.k].scene.name, "pose": (self.x, self.y, self.yaw), "blocked": blocked,
