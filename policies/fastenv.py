@@ -7,11 +7,9 @@ Reward per decision: progress (metres of shortest free-space distance to the goa
 policies.planner, plus turn_drift per radian turned and lateral_drift per metre walked sideways)
 - step_penalty - collision_penalty when blocked - tight_penalty per metre walked in cells next to
 an obstacle + goal_reward on arrival.
-Here the robot stands on free cells with its base box clear of the obstacles' walls at its
-heading (policies.footprint: a turned box catches corners that the 0.5 m cells clear, and the
-simulated robot is wedged there); it slides along walls as the simulated one does. Next to an
-obstacle the simulated robot fits a cell only square to the grid at its centre, so brushing past
-obstacles costs as much as the walk gains, the planner's squeeze rule.
+Here the robot is a point on free cells; the simulated robot is a 0.9 x 0.5 m box that fits a
+cell next to an obstacle only square to the grid at its centre, so brushing past obstacles (which
+gets it stuck there) costs as much as the walk gains, the planner's squeeze rule.
 The expected drift penalises steps taken where the detector will mask axes, weighted by how much
 the odometry drifts along them; the fused estimate's actual error is only known with the full
 pipeline, too slow to train on here, and its expectation is what this term is.
@@ -29,7 +27,6 @@ from l3e_env.config import RobotConfig
 from l3e_env.robot import planar_motion
 
 from .context import SceneContext
-from .footprint import build_footprint
 from .observation import PolicyView
 from .planner import TIGHT_CLEARANCE
 
@@ -70,7 +67,6 @@ class MapNavigationEnv(gym.Env):
             raise ValueError(f"scenes without a localizability map: {missing}")
         self.config = config or FastEnvConfig()
         self.views = [PolicyView(c.space, c.locmap, c.scene.goal, self.config.lam) for c in contexts]
-        self.footprints = [build_footprint(c.scene, c.space, self.config.robot) for c in contexts]
         self.contexts = contexts
         self.observation_space = self.views[0].observation_space
         self.action_space = spaces.Box(-1.0, 1.0, (3,), dtype=np.float32)
@@ -78,7 +74,7 @@ class MapNavigationEnv(gym.Env):
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
         self.k = int(self.np_random.integers(len(self.contexts)))
-        ctx, self.view, self.footprint = self.contexts[self.k], self.views[self.k], self.footprints[self.k]
+        ctx, self.view = self.contexts[self.k], self.views[self.k]
         self.x, self.y, self.yaw = (float(v) for v in ctx.scene.start)
         self.to_go = self.view.distance_to_go(np.array([self.x, self.y]))
         if not np.isfinite(self.to_go):
@@ -99,20 +95,17 @@ class MapNavigationEnv(gym.Env):
         for _ in range(cfg.action_repeat):
             dx, dy, yaw = planar_motion(self.yaw, twist, robot.dt)  # the simulated robot's own kinematics
             x, y = self.x + dx, self.y + dy
-            # the simulated robot's order (l3e_env.robot): the motion, then its world x or y part
-            # alone with the turn, then the turn alone; else it stays
-            for cx, cy, cyaw in ((x, y, yaw), (x, self.y, yaw), (self.x, y, yaw), (self.x, self.y, yaw),
-                                 (self.x, self.y, self.yaw)):
-                if self.view.space.is_free(np.array([cx, cy])) and not self.footprint.collides(cx, cy, cyaw):
+            for cx, cy in ((x, y), (x, self.y), (self.x, y), (self.x, self.y)):  # slide along walls
+                if self.view.space.is_free(np.array([cx, cy])):
                     break
-            blocked |= (cx, cy, cyaw) != (x, y, yaw)
+            blocked |= (cx, cy) != (x, y)
             step = float(np.hypot(cx - self.x, cy - self.y))
             if step > 0:
-                drift += step * float(self.view.drift_rate(np.array([cx, cy]), cyaw))
+                drift += step * float(self.view.drift_rate(np.array([cx, cy]), yaw))
             drift += (cfg.turn_drift * abs(twist[2]) + cfg.lateral_drift * abs(twist[1])) * robot.dt
             moved += step
             tight += step * (self.view.clearance(np.array([cx, cy])) < cfg.tight_clearance)
-            self.x, self.y, self.yaw = cx, cy, cyaw
+            self.x, self.y, self.yaw = cx, cy, yaw
         self.trail.append((self.x, self.y))
         self.decisions += 1
         self.expected_drift += drift

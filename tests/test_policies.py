@@ -274,60 +274,6 @@ def test_fast_env_blocks_at_walls(fast_env):
     assert reward == pytest.approx(gained - cfg.tight_penalty * walked - cfg.step_penalty)
 
 
-def test_footprint_agrees_with_the_robot_near_obstacles(small_fork):
-    """Never clear where the simulated base box collides; blocked where it fits only at a few
-    poses (the raster's 5 cm)."""
-    from l3e_env.config import RobotConfig
-    from l3e_env.world import World
-    from policies.footprint import build_footprint
-
-    scene, space, _ = small_fork
-    footprint = build_footprint(scene, space)
-    cells = np.argwhere(space.free & (space.clearance <= 0.5))
-    rng = np.random.default_rng(0)
-    world = World(scene, RobotConfig())
-    try:
-        agree = []
-        for _ in range(400):
-            x, y = space.center(cells[rng.integers(len(cells))]) + rng.uniform(-0.25, 0.25, 2)
-            yaw = rng.uniform(-np.pi, np.pi)
-            T = world.ground_pose(x, y, yaw, float(scene.route[0, 2]))
-            if T is not None:
-                agree.append((world.in_collision(T), footprint.collides(x, y, yaw)))
-    finally:
-        world.close()
-    truth, mine = np.array(agree).T
-    assert truth.sum() >= 20 and (~truth).sum() >= 100  # both kinds of pose were drawn
-    assert not (truth & ~mine).any()
-    assert (mine & ~truth).mean() < 0.05
-    with pytest.raises(ValueError, match="must be positive"):
-        build_footprint(scene, space, resolution=0.0)
-
-
-def test_fast_env_refuses_a_turn_that_swings_the_box_into_a_wall(fast_env):
-    """Beside the corridor's wall (|y| = 1.5) at y = 1.05 the base fits square (0.25 m to its
-    side) but not turned 60 degrees (0.52 m); the 0.5 m free cell is free either way, and the
-    simulated robot agrees with the fast environment."""
-    from l3e_env.config import RobotConfig
-    from l3e_env.world import World
-
-    fast_env.reset(seed=0)
-    fast_env.x, fast_env.y, fast_env.yaw = 10.0, 1.05, 0.0
-    assert fast_env.view.space.is_free(np.array([10.0, 1.05]))
-    yaws = []
-    for _ in range(4):  # 0.5 rad a decision at the full yaw rate
-        _, _, _, _, info = fast_env.step(np.array([0.0, 0.0, 1.0]))
-        yaws.append(info["pose"][2])
-    assert info["blocked"] and info["pose"][:2] == (10.0, 1.05)
-    assert 0.3 <= max(yaws) < np.radians(60)
-    world = World(fast_env.contexts[0].scene, RobotConfig())
-    try:
-        pose = lambda yaw: world.ground_pose(10.0, 1.05, yaw, 0.0)  # noqa: E731
-        assert not world.in_collision(pose(max(yaws))) and world.in_collision(pose(np.radians(60)))
-    finally:
-        world.close()
-
-
 def test_policy_view_sees_the_corridor_ahead(small_fork):
     scene, space, _ = small_fork
     locmap = synthetic_map(space, lambda xy: (np.abs(xy[:, 1]) < 1.5) & (xy[:, 0] > 4) & (xy[:, 0] < 16))
