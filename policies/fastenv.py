@@ -45,10 +45,11 @@ class FastEnvConfig:
     # that swings its heading at the full yaw rate pays nothing here and drifts 3x more in the pipeline
     turn_drift: float = 0.015
     # expected drift (m) per metre walked sideways (along the body's y): at full speed a diagonal
-    # gait leaves ICP's heading 2-4 deg off over the fork's route against 0.7-1.2 deg walking along
-    # it or backwards (benchmarks/RESULTS.md, "PPO's gait"), about 0.007 m of drift per metre over
-    # the 10 m lever arm, half of each metre sideways. 0.015 halves PPO's drift, but the policy then
-    # walks facing its way and sticks on a box corner of fork-104 (90 % success), so it is off by default
+    # gait leaves ICP's heading 1.2-4.5 deg off over the fork's route against 1.0-3.3 deg walking
+    # forward, depending on how the voxel grid lies (benchmarks/RESULTS.md, "PPO's gait" and "ICP's
+    # heading over a route"), about 0.007 m of drift per metre over the 10 m lever arm at the first
+    # measured 4 deg. 0.015 halves PPO's drift, but the policy then walks facing its way and sticks
+    # on a box corner of fork-104 (90 % success), so it is off by default
     lateral_drift: float = 0.0
     tight_clearance: float = TIGHT_CLEARANCE  # m, the planner's
     goal_reward: float = 10.0
