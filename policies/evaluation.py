@@ -44,6 +44,38 @@ class Episode:
     path_length: float  # m, ground truth
     steps: int
     trajectory: list  # ground-truth (x, y) every 5 steps
+    recoveries: int = 0  # times the robot backed off a wedge (with recovery on)
+
+
+class BackOff:
+    """A wedged robot's recovery, as navigation stacks have one: once the controller's commands
+    have been blocked `after` steps in a row, the reverse of its last command for `steps` steps,
+    then the controller again. Without it a policy that pushes into a corner stays there."""
+
+    def __init__(self, controller: Callable, after: int = 10, steps: int = 10):
+        if after < 1 or steps < 1:
+            raise ValueError(f"after and steps must be at least 1, got {after} and {steps}")
+        self.controller, self.after, self.steps = controller, after, steps
+        self.blocked = self.backing = self.recoveries = 0
+        self.recovering = False
+        self.last = np.zeros(3, dtype=np.float32)
+
+    def __call__(self, T: np.ndarray, i: int) -> np.ndarray:
+        self.recovering = self.backing > 0
+        if self.recovering:
+            self.backing -= 1
+            return -self.last
+        self.last = np.asarray(self.controller(T, i), dtype=np.float32)
+        return self.last
+
+    def observe(self, blocked: bool) -> None:
+        """After each step; a block while backing off does not count."""
+        if self.recovering:
+            return
+        self.blocked = self.blocked + 1 if blocked else 0
+        if self.blocked >= self.after:
+            self.backing, self.blocked = self.steps, 0
+            self.recoveries += 1
 
 
 def avoided_corridor(trajectory: np.ndarray, scene) -> bool | None:
@@ -96,11 +128,12 @@ STEER_ON = ("estimate", "truth")
 
 def run_episode(policy: str, scene: str, seed: int, detector: str = "learned", cache_dir: str | Path | None = None,
                 lam: float = 50.0, backend: str = "graph", steer_on: str = "estimate",
-                scene_params: dict | None = None, fusion_options: FusionOptions = FusionOptions()) -> Episode:
+                scene_params: dict | None = None, fusion_options: FusionOptions = FusionOptions(),
+                recovery: bool = False) -> Episode:
     import torch
 
     torch.set_num_threads(1)
-    controller: Callable = make_controller(policy, scene, detector, cache_dir, lam, scene_params)
+    controller = BackOff(make_controller(policy, scene, detector, cache_dir, lam, scene_params))
     env = NavigationEnv(scene=scene, scene_params=scene_params or {},
                         fusion={"enabled": True, "detector": detector, "backend": backend,
                                 **asdict(fusion_options)})
@@ -111,6 +144,8 @@ def run_episode(policy: str, scene: str, seed: int, detector: str = "learned", c
             previous = info["T_w_b"][:3, 3]
             pose = info["fused_T_w_b"] if steer_on == "estimate" else info["T_w_b"]
             _, _, terminated, truncated, info = env.step(controller(pose, env.steps))
+            if recovery:
+                controller.observe(info["blocked"])
             length += float(np.linalg.norm(info["T_w_b"][:3, 3] - previous))
             if env.steps % 5 == 0:
                 trail.append(info["T_w_b"][:2, 3])
@@ -118,7 +153,7 @@ def run_episode(policy: str, scene: str, seed: int, detector: str = "learned", c
         path = np.array(trail)
         final = float(np.linalg.norm(info["fused_T_w_b"][:3, 3] - info["T_w_b"][:3, 3]))
         return Episode(policy, scene, seed, bool(terminated), avoided_corridor(path, env.scene), final,
-                       float(info["running_ate"]), length, env.steps, path.round(2).tolist())
+                       float(info["running_ate"]), length, env.steps, path.round(2).tolist(), controller.recoveries)
     finally:
         env.close()
 
@@ -137,18 +172,19 @@ def summarize(episodes: list[Episode]) -> list[dict[str, Any]]:
                      "rich_route": float(np.mean(marked)) if marked else None,
                      "final_ate": float(np.mean([e.final_ate for e in group])),
                      "mean_ate": float(np.mean([e.mean_ate for e in group])),
-                     "path_length": float(np.mean([e.path_length for e in group]))})
+                     "path_length": float(np.mean([e.path_length for e in group])),
+                     "recoveries": int(sum(e.recoveries for e in group))})
     return rows
 
 
 def format_rows(rows: list[dict[str, Any]]) -> str:
     head = f"{'policy':28s} {'episodes':>8s} {'success':>8s} {'rich route':>10s} {'final ATE':>10s} " \
-           f"{'mean ATE':>9s} {'path [m]':>9s}"
+           f"{'mean ATE':>9s} {'path [m]':>9s} {'backed off':>10s}"
     lines = [head, "-" * len(head)]
     for r in rows:
         rich = "n/a" if r["rich_route"] is None else f"{r['rich_route']:.0%}"
         lines.append(f"{r['policy'][:28]:28s} {r['episodes']:8d} {r['success']:8.0%} {rich:>10s} "
-                     f"{r['final_ate']:10.2f} {r['mean_ate']:9.2f} {r['path_length']:9.1f}")
+                     f"{r['final_ate']:10.2f} {r['mean_ate']:9.2f} {r['path_length']:9.1f} {r['recoveries']:10d}")
     return "\n".join(lines)
 
 
@@ -156,10 +192,11 @@ def evaluate_policies(out: str | Path, policies: list[str], scenes: list[str], e
                       detector: str = "learned", cache_dir: str | Path | None = None, lam: float = 50.0,
                       workers: int = 1, backend: str = "graph", steer_on: str = "estimate",
                       progress: bool = True, scene_params: dict[str, dict] | None = None,
-                      fusion_options: FusionOptions = FusionOptions()) -> list[dict[str, Any]]:
+                      fusion_options: FusionOptions = FusionOptions(), recovery: bool = False) -> list[dict[str, Any]]:
     """Episode i of every policy runs on scenes[i % len(scenes)] with environment seed seed + i.
     `scene_params`: make_scene's arguments by scene name (a mesh's up axis, scale and route).
     `fusion_options`: the fusion's (LoopFusionConfig.icp_covariance and .odometry_bias).
+    `recovery`: a wedged robot backs off (BackOff) instead of staying there.
     Writes episodes.jsonl, summary.json, summary.txt and routes.png into `out`."""
     from .plots import plot_paths
 
@@ -175,17 +212,18 @@ def evaluate_policies(out: str | Path, policies: list[str], scenes: list[str], e
         for d in sorted(map_detectors):
             scene_context(name, d, cache_dir, progress=progress, scene_params=params.get(name))
     jobs = [(p, scenes[i % len(scenes)], seed + i, detector, cache_dir, lam, backend, steer_on,
-             params.get(scenes[i % len(scenes)]), fusion_options) for i in range(episodes) for p in policies]
+             params.get(scenes[i % len(scenes)]), fusion_options, recovery) for i in range(episodes) for p in policies]
     # episodes are appended as they finish; a killed evaluation resumes where it stopped, with the
     # settings it started with
     settings = {"detector": detector, "lam": lam, "backend": backend, "steer_on": steer_on,
-                **fusion_options.record()}
+                **fusion_options.record(), "recovery": recovery}
     if params:  # left out without a mesh, so that folders written before meshes were taken resume
         settings["scene_params"] = params
     settings_file = out / "settings.json"
     before = json.loads(settings_file.read_text()) if settings_file.exists() else settings
     before.setdefault("icp_covariance", "fixed")  # folders written before the Hessian's weights had fixed sigmas
     before.setdefault("odometry_bias", [])  # and before the bias states, none
+    before.setdefault("recovery", False)  # and before the recovery, none
     if before != settings:
         raise ValueError(f"{out} holds episodes run with other settings ({settings_changed(before, settings)}); "
                          "use another folder")
@@ -222,6 +260,7 @@ def evaluate_policies(out: str | Path, policies: list[str], scenes: list[str], e
     (out / "summary.json").write_text(json.dumps({"rows": rows, "scenes": scenes, "episodes": episodes, "seed": seed,
                                                   "detector": detector, "lam": lam, "backend": backend,
                                                   "steer_on": steer_on, **fusion_options.record(),
+                                                  "recovery": recovery,
                                                   "seconds": round(time.perf_counter() - t0, 1)}, indent=2))
     (out / "summary.txt").write_text(format_rows(rows) + "\n")
     first = scenes[0]

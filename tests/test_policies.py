@@ -350,6 +350,26 @@ def test_full_pipeline_evaluation_on_the_small_fork(small_fork, monkeypatch, tmp
         evaluation.make_controller("wander", "fork-0", "eigen:30", cache, 50.0)
 
 
+def test_back_off_reverses_the_last_command_after_blocked_steps():
+    from policies.evaluation import BackOff
+
+    commands = iter(np.array([[1.0, 0.5, 0.2], [0.3, 0.0, 0.0], [0.0, 1.0, 0.0]] * 20, dtype=np.float32))
+    back_off = BackOff(lambda T, i: next(commands), after=3, steps=2)
+    actions = []
+    for blocked in [True, True, False, True, True, True, True, True, False, False]:
+        actions.append(back_off(np.eye(4), len(actions)))
+        back_off.observe(blocked)
+    actions = np.array(actions)
+    # three blocked steps in a row (the 4th to 6th) start it: the 6th command reversed, twice; a
+    # block while backing off does not count; then the controller again
+    np.testing.assert_allclose(actions[6], -actions[5])
+    np.testing.assert_allclose(actions[7], -actions[5])
+    np.testing.assert_allclose(actions[8], [1.0, 0.5, 0.2], rtol=1e-6)  # the next command
+    assert back_off.recoveries == 1
+    with pytest.raises(ValueError, match="at least 1"):
+        BackOff(lambda T, i: np.zeros(3), after=0)
+
+
 def test_policy_commands_are_registered(capsys):
     from l3e_env.cli import main
 
@@ -419,8 +439,11 @@ def test_a_users_mesh_is_driven_by_the_policies(cad_corridor, tmp_path, capsys, 
     assert "other settings (icp_covariance 'hessian', now 'fixed')" in capsys.readouterr().err
     assert main([*args, "--route", str(route), "--odometry-bias", "yaw"]) == 2
     assert "other settings (odometry_bias [], now ['yaw'])" in capsys.readouterr().err
+    assert main([*args, "--route", str(route), "--recovery"]) == 2
+    assert "other settings (recovery False, now True)" in capsys.readouterr().err
     settings = json.loads((tmp_path / "ev" / "settings.json").read_text())
     assert settings.pop("icp_covariance") == "hessian" and settings.pop("odometry_bias") == []
+    assert settings.pop("recovery") is False
     (tmp_path / "ev" / "settings.json").write_text(json.dumps(settings))  # a folder from before the options
     assert main([*args, "--route", str(route)]) == 2  # its episodes had the fixed sigmas
     assert main([*args, "--route", str(route), "--icp-covariance", "fixed"]) == 0
