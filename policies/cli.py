@@ -161,7 +161,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                                                     "run's own, else 50)")
     g.add_argument("--lateral-drift", type=non_negative, metavar="M",
                    help="expected drift charged per metre walked sideways (default: a resumed run's own, else 0; "
-                        "0.015 halves PPO's final ATE on the fork variants but it then sticks on fork-104)")
+                        "0.015 halves PPO's final ATE on the fork variants but it then sticks on fork-104 "
+                        "unless evaluated with --recovery)")
     g.add_argument("--seed", type=int, default=0)
     add_mesh_options(g, several=True)
     g.set_defaults(func=_cmd_train)
