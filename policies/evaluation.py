@@ -6,7 +6,7 @@ still measures the fused estimate's error, separating route choice from getting 
 
 Per episode: success (reached the goal within the time limit), whether it took the scene's
 feature-rich route, final and mean position error of the fused estimate against ground truth,
-and path length."""
+path length, and (with `recovery`) how often the robot backed off a wedge."""
 from __future__ import annotations
 
 import json
