@@ -124,6 +124,9 @@ def make_controller(policy: str, scene: str, detector: str, cache_dir: str | Pat
 
 
 STEER_ON = ("estimate", "truth")
+# what a folder written before each of these options existed was run with: the fixed ICP sigmas
+# (before the Hessian's weights), no leg-bias states, no recovery
+SETTINGS_BEFORE_OPTIONS = {"icp_covariance": "fixed", "odometry_bias": [], "recovery": False}
 
 
 def run_episode(policy: str, scene: str, seed: int, detector: str = "learned", cache_dir: str | Path | None = None,
@@ -220,10 +223,8 @@ def evaluate_policies(out: str | Path, policies: list[str], scenes: list[str], e
     if params:  # left out without a mesh, so that folders written before meshes were taken resume
         settings["scene_params"] = params
     settings_file = out / "settings.json"
-    before = json.loads(settings_file.read_text()) if settings_file.exists() else settings
-    before.setdefault("icp_covariance", "fixed")  # folders written before the Hessian's weights had fixed sigmas
-    before.setdefault("odometry_bias", [])  # and before the bias states, none
-    before.setdefault("recovery", False)  # and before the recovery, none
+    before = {**SETTINGS_BEFORE_OPTIONS,
+              **(json.loads(settings_file.read_text()) if settings_file.exists() else settings)}
     if before != settings:
         raise ValueError(f"{out} holds episodes run with other settings ({settings_changed(before, settings)}); "
                          "use another folder")
