@@ -90,17 +90,13 @@ def non_negative(text: str) -> float:
 
 def _cmd_train(args: argparse.Namespace) -> int:
     from .context import scene_context
-    from .fastenv import FastEnvConfig
-    from .ppo import TRAIN_VARIANTS, run_record, train_ppo
+    from .ppo import TRAIN_VARIANTS, resumed_config, train_ppo
 
     scenes = _scenes_with_params(args, tuple(TRAIN_VARIANTS))
     print(f"PPO on {', '.join(scenes)} (fast map environment, {args.detector} maps) -> {Path(args.out).resolve()}")
     contexts = [scene_context(name, args.detector, args.cache_dir, sensor=args.sensor, progress=not args.quiet,
                               scene_params=params) for name, params in scenes.items()]
-    # options not given: a resumed run keeps its own, a new one (or one from before the option) the default
-    own, default = run_record(args.out).get("fast_env", {}), FastEnvConfig()
-    given = {"lam": args.lam, "lateral_drift": args.lateral_drift}
-    config = FastEnvConfig(**{k: own.get(k, getattr(default, k)) if v is None else v for k, v in given.items()})
+    config = resumed_config(args.out, lam=args.lam, lateral_drift=args.lateral_drift)
     summary = train_ppo(args.out, contexts, args.detector, args.timesteps, args.seed, args.envs, config,
                         progress=not args.quiet)
     print(f"{summary['timesteps']} steps; policy: {Path(args.out) / 'policy.zip'}; logs: progress.csv, monitor.csv")
@@ -160,9 +156,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--lam", type=non_negative, help="weight of expected drift in the reward (default: a resumed "
                                                     "run's own, else 50)")
     g.add_argument("--lateral-drift", type=non_negative, metavar="M",
-                   help="expected drift charged per metre walked sideways (default: a resumed run's own, else 0; "
-                        "0.015 halves PPO's final ATE on the fork variants but it then sticks on fork-104 "
-                        "unless evaluated with --recovery)")
+                   help="expected drift charged per metre walked sideways (default: a resumed run's own, else "
+                        "0.015, which halves PPO's final ATE on the fork variants against 0)")
     g.add_argument("--seed", type=int, default=0)
     add_mesh_options(g, several=True)
     g.set_defaults(func=_cmd_train)
@@ -175,9 +170,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--detector", default="learned", help="detector of the fusion and the planner's map")
     g.add_argument("--lam", type=float, default=50.0, help="the planner's drift weight (default 50)")
     g.add_argument("--workers", type=int, default=1, help="episodes run in parallel processes")
-    g.add_argument("--recovery", action="store_true",
+    g.add_argument("--recovery", action=argparse.BooleanOptionalAction,
                    help="a robot blocked for 1 s backs off along its last command reversed for 1 s, then the "
-                        "policy acts again (off by default: the README's tables were measured without it)")
+                        "policy acts again (default: a resumed folder's own, else on)")
     g.add_argument("--steer-on", dest="steer_on", choices=["estimate", "truth"], default="estimate",
                    help="pose the policies steer on (default: the fused estimate); ATE is measured either way")
     add_fusion_options(g)

@@ -132,7 +132,7 @@ SETTINGS_BEFORE_OPTIONS = {"icp_covariance": "fixed", "odometry_bias": [], "reco
 def run_episode(policy: str, scene: str, seed: int, detector: str = "learned", cache_dir: str | Path | None = None,
                 lam: float = 50.0, backend: str = "graph", steer_on: str = "estimate",
                 scene_params: dict | None = None, fusion_options: FusionOptions = FusionOptions(),
-                recovery: bool = False) -> Episode:
+                recovery: bool = True) -> Episode:
     import torch
 
     torch.set_num_threads(1)
@@ -195,11 +195,13 @@ def evaluate_policies(out: str | Path, policies: list[str], scenes: list[str], e
                       detector: str = "learned", cache_dir: str | Path | None = None, lam: float = 50.0,
                       workers: int = 1, backend: str = "graph", steer_on: str = "estimate",
                       progress: bool = True, scene_params: dict[str, dict] | None = None,
-                      fusion_options: FusionOptions = FusionOptions(), recovery: bool = False) -> list[dict[str, Any]]:
+                      fusion_options: FusionOptions = FusionOptions(),
+                      recovery: bool | None = None) -> list[dict[str, Any]]:
     """Episode i of every policy runs on scenes[i % len(scenes)] with environment seed seed + i.
     `scene_params`: make_scene's arguments by scene name (a mesh's up axis, scale and route).
     `fusion_options`: the fusion's (LoopFusionConfig.icp_covariance and .odometry_bias).
-    `recovery`: a wedged robot backs off (BackOff) instead of staying there.
+    `recovery`: a wedged robot backs off (BackOff) instead of staying there; None: as the folder's
+    episodes so far, else on.
     Writes episodes.jsonl, summary.json, summary.txt and routes.png into `out`."""
     from .plots import plot_paths
 
@@ -214,6 +216,10 @@ def evaluate_policies(out: str | Path, policies: list[str], scenes: list[str], e
     for name in dict.fromkeys(scenes):  # maps must exist: build them here, once, not in every worker
         for d in sorted(map_detectors):
             scene_context(name, d, cache_dir, progress=progress, scene_params=params.get(name))
+    settings_file = out / "settings.json"
+    held = {**SETTINGS_BEFORE_OPTIONS, **json.loads(settings_file.read_text())} if settings_file.exists() else None
+    if recovery is None:
+        recovery = held["recovery"] if held else True
     jobs = [(p, scenes[i % len(scenes)], seed + i, detector, cache_dir, lam, backend, steer_on,
              params.get(scenes[i % len(scenes)]), fusion_options, recovery) for i in range(episodes) for p in policies]
     # episodes are appended as they finish; a killed evaluation resumes where it stopped, with the
@@ -222,11 +228,8 @@ def evaluate_policies(out: str | Path, policies: list[str], scenes: list[str], e
                 **fusion_options.record(), "recovery": recovery}
     if params:  # left out without a mesh, so that folders written before meshes were taken resume
         settings["scene_params"] = params
-    settings_file = out / "settings.json"
-    before = {**SETTINGS_BEFORE_OPTIONS,
-              **(json.loads(settings_file.read_text()) if settings_file.exists() else settings)}
-    if before != settings:
-        raise ValueError(f"{out} holds episodes run with other settings ({settings_changed(before, settings)}); "
+    if held is not None and held != settings:
+        raise ValueError(f"{out} holds episodes run with other settings ({settings_changed(held, settings)}); "
                          "use another folder")
     settings_file.write_text(json.dumps(settings))
     log = out / "episodes.jsonl"

@@ -37,10 +37,25 @@ def _sb3():
     return stable_baselines3
 
 
+# what a run trained before each of these options existed (or before its default changed) was
+# trained with: no cost for walking sideways
+FAST_ENV_BEFORE_OPTIONS = {"lateral_drift": 0.0}
+
+
 def run_record(out: str | Path) -> dict[str, Any]:
     """A run folder's policy.json (what `train_ppo` writes after each stage); {} before the first."""
     meta_file = Path(out) / "policy.json"
     return json.loads(meta_file.read_text()) if meta_file.exists() else {}
+
+
+def resumed_config(out: str | Path, **given: float | None) -> FastEnvConfig:
+    """The fast environment's settings for a stage in `out`: each option given wins; one not given
+    is the run's own where the folder holds a stage already (so a second stage trains as the first
+    did), else the default."""
+    own = run_record(out).get("fast_env")
+    own = {**FAST_ENV_BEFORE_OPTIONS, **own} if own is not None else {}
+    default = FastEnvConfig()
+    return FastEnvConfig(**{k: own.get(k, getattr(default, k)) if v is None else v for k, v in given.items()})
 
 
 def train_ppo(out: str | Path, contexts: list[SceneContext], detector: str = "learned", timesteps: int = 300_000,

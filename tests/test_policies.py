@@ -248,12 +248,19 @@ def test_policy_train_takes_the_sideways_cost_and_a_resumed_run_keeps_it(tmp_pat
     assert main([*run, str(tmp_path / "a"), "--lateral-drift", "0.015", "--lam", "20"]) == 0
     assert main([*run, str(tmp_path / "a")]) == 0  # the second stage, resumed
     assert main([*run, str(tmp_path / "a"), "--lam", "30"]) == 0  # a given option wins
-    assert main([*run, str(tmp_path / "b")]) == 0  # a new run
-    assert given == [(0.015, 20.0), (0.015, 20.0), (0.015, 30.0), (0.0, 50.0)]
+    assert main([*run, str(tmp_path / "b"), "--lateral-drift", "0"]) == 0
+    assert main([*run, str(tmp_path / "b")]) == 0  # resumed: still without the cost
+    assert main([*run, str(tmp_path / "c")]) == 0  # a new run: the defaults
+    record = json.loads((tmp_path / "c" / "policy.json").read_text())
+    del record["fast_env"]["lateral_drift"]  # a run trained before the option, without that cost
+    (tmp_path / "c" / "policy.json").write_text(json.dumps(record))
+    assert main([*run, str(tmp_path / "c")]) == 0
+    assert given == [(0.015, 20.0), (0.015, 20.0), (0.015, 30.0), (0.0, 50.0), (0.0, 50.0), (0.015, 50.0),
+                     (0.0, 50.0)]
     for option in ("--lateral-drift", "--lam"):
         for bad in ("-0.1", "nan", "much"):
             with pytest.raises(SystemExit):
-                main([*run, str(tmp_path / "c"), option, bad])
+                main([*run, str(tmp_path / "d"), option, bad])
             assert "expected a finite number, 0 or more" in capsys.readouterr().err
 
 
@@ -439,14 +446,17 @@ def test_a_users_mesh_is_driven_by_the_policies(cad_corridor, tmp_path, capsys, 
     assert "other settings (icp_covariance 'hessian', now 'fixed')" in capsys.readouterr().err
     assert main([*args, "--route", str(route), "--odometry-bias", "yaw"]) == 2
     assert "other settings (odometry_bias [], now ['yaw'])" in capsys.readouterr().err
-    assert main([*args, "--route", str(route), "--recovery"]) == 2
-    assert "other settings (recovery False, now True)" in capsys.readouterr().err
+    assert main([*args, "--route", str(route), "--no-recovery"]) == 2  # the recovery is on by default
+    assert "other settings (recovery True, now False)" in capsys.readouterr().err
+    assert main([*args, "--route", str(route), "--recovery"]) == 0
     settings = json.loads((tmp_path / "ev" / "settings.json").read_text())
     assert settings.pop("icp_covariance") == "hessian" and settings.pop("odometry_bias") == []
-    assert settings.pop("recovery") is False
+    assert settings.pop("recovery") is True
     (tmp_path / "ev" / "settings.json").write_text(json.dumps(settings))  # a folder from before the options
     assert main([*args, "--route", str(route)]) == 2  # its episodes had the fixed sigmas
-    assert main([*args, "--route", str(route), "--icp-covariance", "fixed"]) == 0
+    assert main([*args, "--route", str(route), "--icp-covariance", "fixed", "--recovery"]) == 2
+    assert "other settings (recovery False, now True)" in capsys.readouterr().err
+    assert main([*args, "--route", str(route), "--icp-covariance", "fixed"]) == 0  # without the recovery, as run
     biased = [*args[:-3], "--out", str(tmp_path / "ev-bias"), "--quiet", "--route", str(route)]
     assert main([*biased, "--odometry-bias", "yaw", "--policy", "shortest"]) == 0
     summary = json.loads((tmp_path / "ev-bias" / "summary.json").read_text())
