@@ -37,8 +37,8 @@ def _sb3():
     return stable_baselines3
 
 
-# what a run trained before each of these options existed (or before its default changed) was
-# trained with: no cost for walking sideways
+# what a run trained before each of these options existed was trained with (policy.json records
+# every FastEnvConfig field since): no cost for walking sideways
 FAST_ENV_BEFORE_OPTIONS = {"lateral_drift": 0.0}
 
 
