@@ -224,8 +224,9 @@ def evaluate_policies(out: str | Path, policies: list[str], scenes: list[str], e
              params.get(scenes[i % len(scenes)]), fusion_options, recovery) for i in range(episodes) for p in policies]
     # episodes are appended as they finish; a killed evaluation resumes where it stopped, with the
     # settings it started with
-    settings = {"detector": detector, "lam": lam, "backend": backend, "steer_on": steer_on,
-                **fusion_options.record(), "recovery": recovery}
+    run = {"detector": detector, "lam": lam, "backend": backend, "steer_on": steer_on,
+           **fusion_options.record(), "recovery": recovery}  # also in summary.json
+    settings = dict(run)
     if params:  # left out without a mesh, so that folders written before meshes were taken resume
         settings["scene_params"] = params
     if held is not None and held != settings:
@@ -262,10 +263,7 @@ def evaluate_policies(out: str | Path, policies: list[str], scenes: list[str], e
     results = [done[j[:3]] for j in jobs]
     rows = summarize(results)
     (out / "summary.json").write_text(json.dumps({"rows": rows, "scenes": scenes, "episodes": episodes, "seed": seed,
-                                                  "detector": detector, "lam": lam, "backend": backend,
-                                                  "steer_on": steer_on, **fusion_options.record(),
-                                                  "recovery": recovery,
-                                                  "seconds": round(time.perf_counter() - t0, 1)}, indent=2))
+                                                  **run, "seconds": round(time.perf_counter() - t0, 1)}, indent=2))
     (out / "summary.txt").write_text(format_rows(rows) + "\n")
     first = scenes[0]
     ctx = scene_context(first, None, cache_dir, scene_params=params.get(first))
