@@ -95,6 +95,11 @@ class LoopFusionConfig:
     icp_covariance: str = "hessian"
     odometry_bias: tuple[str, ...] = ()
 
+    def options(self) -> FusionOptions:
+        """The choices it shares with `l3e ate` and `l3e policy evaluate` (kept as flat fields so that
+        an environment's `fusion=dict(...)` stays one level deep)."""
+        return FusionOptions(self.icp_covariance, tuple(self.odometry_bias))
+
 
 @dataclass
 class EnvConfig:

@@ -12,7 +12,7 @@ import numpy as np
 
 from fusion import check_backend, make_fusion
 
-from .config import FusionOptions, LoopFusionConfig, OdometryConfig
+from .config import LoopFusionConfig, OdometryConfig
 from .detectors import UNKNOWN, Detector, Prediction, make_detector, safe_predict
 from .imu import ATTITUDE_EVERY, attitude_sigmas
 from .lidar import Lidar
@@ -28,8 +28,7 @@ class OnlineFusion:
         check_backend(config.backend)
         self.config, self.odometry, self.T_b_s = config, odometry, T_b_s
         self.registration = RegistrationConfig()
-        options = FusionOptions(config.icp_covariance, tuple(config.odometry_bias))
-        self.fusion_config = odometry_fusion_config(odometry, options, mode=config.mode)
+        self.fusion_config = odometry_fusion_config(odometry, config.options(), mode=config.mode)
         self.detector: Detector = make_detector(config.detector, lidar, seed)
         self.attitude_sigmas = attitude_sigmas(config.attitude)
 

@@ -199,7 +199,7 @@ def evaluate_policies(out: str | Path, policies: list[str], scenes: list[str], e
                       recovery: bool | None = None) -> list[dict[str, Any]]:
     """Episode i of every policy runs on scenes[i % len(scenes)] with environment seed seed + i.
     `scene_params`: make_scene's arguments by scene name (a mesh's up axis, scale and route).
-    `fusion_options`: the fusion's (LoopFusionConfig.icp_covariance and .odometry_bias).
+    `fusion_options`: the fusion's (as `LoopFusionConfig.options()` gives them in the environment).
     `recovery`: a wedged robot backs off (BackOff) instead of staying there; None: as the folder's
     episodes so far, else on.
     Writes episodes.jsonl, summary.json, summary.txt and routes.png into `out`."""

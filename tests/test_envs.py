@@ -4,6 +4,7 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 
 import l3e_env
+from l3e_env.config import FusionOptions
 from l3e_env.envs.navigation import NavigationEnv
 from l3e_env.follower import RouteFollower
 from l3e_env.transforms import inverse
@@ -119,6 +120,8 @@ def test_fusion_in_the_loop_reports_estimate_mask_and_running_ate(odometry_bias)
     assert info["fusion_counts"]["detector_errors"] == 0
     assert env.fusion.backend.odometry_bias.shape == (len(odometry_bias),)
     assert env.fusion.fusion_config.odometry_bias_sigmas[0] == env.config.odometry.yaw_bias_std
+    assert env.fusion.fusion_config.odometry_bias == odometry_bias
+    assert env.config.fusion.options() == FusionOptions("hessian", odometry_bias)
     env.close()
 
 
