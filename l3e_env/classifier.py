@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from .config import from_dict, plain
+from .config import MAX_SCAN_RANGE_M, from_dict, plain
 from .constraints import FEATURES, SURFACE_FEATURES, AxisStacker, scan_features, surface_rows
 from .files import write_atomic
 from .sparse import (
@@ -36,9 +36,6 @@ from .sparse import (
 CHECKPOINT_FORMAT = "l3e-classifier"
 CHECKPOINT_VERSION = 1
 MIN_POINTS = 50
-# No LiDAR of this kind returns from a kilometre away: points beyond it are a scan in millimetres or
-# one not in the sensor's frame (map or UTM coordinates), which the network would judge confidently.
-MAX_RANGE_M = 1000.0
 DEFAULT_CHECKPOINT = Path(__file__).parent / "models" / "resunet_vlp16.pt"
 # Mirroring a scan in x or y, or swapping x and y, gives a scan whose labels are the same up to the
 # order of the axes (a degenerate direction stays degenerate whatever its sign): swapping x and y
@@ -313,8 +310,8 @@ def check_scan(points: np.ndarray) -> np.ndarray:
     if len(points) < MIN_POINTS:
         raise ScanError(f"the scan has {len(points)} points; the classifier needs at least {MIN_POINTS}")
     reach = float(np.sqrt(np.einsum("ij,ij->i", points, points).max()))
-    if reach > MAX_RANGE_M:
-        raise ScanError(f"the scan's points reach {reach:.0f} m from the sensor, beyond {MAX_RANGE_M:.0f} m: "
+    if reach > MAX_SCAN_RANGE_M:
+        raise ScanError(f"the scan's points reach {reach:.0f} m from the sensor, beyond {MAX_SCAN_RANGE_M:.0f} m: "
                         f"a scan in millimetres, or not in the sensor's frame?")
     return points.astype(np.float32, copy=False)
 

@@ -501,7 +501,7 @@ def _cmd_judge(args: argparse.Namespace) -> int:
     if not judgements:
         print("l3e judge: no scan in the bag between --start and --end", file=sys.stderr)
     elif failed:
-        print(f"l3e judge: {failed} of {len(judgements)} scans could not be read", file=sys.stderr)
+        print(f"l3e judge: {failed} of {len(judgements)} scans could not be read or judged", file=sys.stderr)
     return 2 if failed or not judgements else 0
 
 

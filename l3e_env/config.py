@@ -127,6 +127,10 @@ class EnvConfig:
 
 
 NOISE_STREAMS = ("shared", "separate")
+# No LiDAR of the kinds judged here returns from a kilometre away: points beyond it are a scan in
+# millimetres or one not in the sensor's frame (map or UTM coordinates), which a detector would judge
+# with confidence.
+MAX_SCAN_RANGE_M = 1000.0
 ATTITUDE_MODES = ("none", "tilt", "full")  # the IMU's orientation in the fusion: none, roll and pitch, all three
 
 

@@ -103,10 +103,16 @@ def test_the_judge_command_prints_and_writes_the_scores(tmp_path, rng, capsys):
     assert main(["judge", str(tmp_path / "nothing.pcd"), str(tmp_path / "corridor.npy"), "--detector", "none",
                  "--json", str(out)]) == 2
     captured = capsys.readouterr()
-    assert "nothing.pcd: no such file" in captured.err and "1 of 2 scans could not be read" in captured.err
+    assert "nothing.pcd: no such file" in captured.err and "1 of 2 scans could not be read or judged" in captured.err
     assert "none: localizable along every axis" in captured.out
     saved = json.loads(out.read_text())
     assert "no such file" in saved[0]["error"] and saved[1]["detectors"]["none"]["known"]
+    # a scan in millimetres is not judged by any detector, and says why
+    np.save(tmp_path / "millimetres.npy", _corridor_scan(rng) * 1000)
+    assert main(["judge", str(tmp_path / "millimetres.npy"), "--detector", "eigen:30", "--detector", "learned",
+                 "--json", str(out)]) == 2
+    assert "a scan in millimetres, or not in the sensor's frame?): not judged" in capsys.readouterr().err
+    assert "beyond 1000 m" in json.loads(out.read_text())[0]["error"]
 
 
 def test_files_judged_by_two_workers_are_judged_alike_and_in_order(tmp_path, rng):
