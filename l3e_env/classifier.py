@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from .config import MAX_SCAN_RANGE_M, from_dict, plain
+from .config import from_dict, out_of_reach, plain
 from .constraints import FEATURES, SURFACE_FEATURES, AxisStacker, scan_features, surface_rows
 from .files import write_atomic
 from .sparse import (
@@ -309,10 +309,9 @@ def check_scan(points: np.ndarray) -> np.ndarray:
         raise ScanError(f"the scan holds {bad} point{'s' if bad != 1 else ''} with NaN or inf")
     if len(points) < MIN_POINTS:
         raise ScanError(f"the scan has {len(points)} points; the classifier needs at least {MIN_POINTS}")
-    reach = float(np.sqrt(np.einsum("ij,ij->i", points, points).max()))
-    if reach > MAX_SCAN_RANGE_M:
-        raise ScanError(f"the scan's points reach {reach:.0f} m from the sensor, beyond {MAX_SCAN_RANGE_M:.0f} m: "
-                        f"a scan in millimetres, or not in the sensor's frame?")
+    far = out_of_reach(points)
+    if far is not None:
+        raise ScanError(f"the scan: {far}")
     return points.astype(np.float32, copy=False)
 
 

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .config import MAX_SCAN_RANGE_M, LidarConfig
+from .config import LidarConfig, out_of_reach
 from .detectors import Detector, EigenvalueDetector, Prediction, ScanMCDetector, make_detector
 from .labels import AXES
 from .patterns import BeamPattern, PatternError, fit_pattern, get_pattern, register_pattern
@@ -154,11 +154,9 @@ def _judge_source(index: int, source: str | Path | BagScan, detectors: list[Dete
     if error is not None:
         return Judgement(name, 0, 0, {}, error=error, stamp=stamp)
     kept = np.isfinite(points).all(axis=1) & (np.abs(points).sum(axis=1) > 0)
-    reach = float(np.sqrt((points[kept] ** 2).sum(axis=1).max())) if kept.any() else 0.0
-    if reach > MAX_SCAN_RANGE_M:
-        return Judgement(name, int(kept.sum()), int((~kept).sum()), {}, stamp=stamp,
-                         error=f"{name}: its points reach {reach:.0f} m from the sensor, beyond "
-                               f"{MAX_SCAN_RANGE_M:.0f} m (a scan in millimetres, or not in the sensor's frame?)")
+    far = out_of_reach(points[kept])
+    if far is not None:
+        return Judgement(name, int(kept.sum()), int((~kept).sum()), {}, error=f"{name}: {far}", stamp=stamp)
     return Judgement(name, int(kept.sum()), int((~kept).sum()),
                      judge_points(points[kept], detectors, rng=np.random.default_rng([seed, index])), stamp=stamp)
 
