@@ -128,6 +128,8 @@ class EnvConfig:
 
 
 NOISE_STREAMS = ("shared", "separate")
+ATTITUDE_MODES = ("none", "tilt", "full")  # the IMU's orientation in the fusion: none, roll and pitch, all three
+
 # No LiDAR of the kinds judged here returns from a kilometre away: points beyond it are a scan in
 # millimetres or one not in the sensor's frame (map or UTM coordinates), which a detector would judge
 # with confidence.
@@ -142,7 +144,6 @@ def out_of_reach(points: np.ndarray) -> str | None:
         return None
     return (f"its points reach {reach:.0f} m from the sensor, beyond {MAX_SCAN_RANGE_M:.0f} m "
             f"(a scan in millimetres, or not in the sensor's frame?)")
-ATTITUDE_MODES = ("none", "tilt", "full")  # the IMU's orientation in the fusion: none, roll and pitch, all three
 
 
 def to_dict(cfg: Any) -> dict[str, Any]:

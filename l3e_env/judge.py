@@ -154,11 +154,12 @@ def _judge_source(index: int, source: str | Path | BagScan, detectors: list[Dete
     if error is not None:
         return Judgement(name, 0, 0, {}, error=error, stamp=stamp)
     kept = np.isfinite(points).all(axis=1) & (np.abs(points).sum(axis=1) > 0)
-    far = out_of_reach(points[kept])
+    returns, dropped = points[kept], int((~kept).sum())
+    far = out_of_reach(returns)
     if far is not None:
-        return Judgement(name, int(kept.sum()), int((~kept).sum()), {}, error=f"{name}: {far}", stamp=stamp)
-    return Judgement(name, int(kept.sum()), int((~kept).sum()),
-                     judge_points(points[kept], detectors, rng=np.random.default_rng([seed, index])), stamp=stamp)
+        return Judgement(name, len(returns), dropped, {}, error=f"{name}: {far}", stamp=stamp)
+    return Judgement(name, len(returns), dropped,
+                     judge_points(returns, detectors, rng=np.random.default_rng([seed, index])), stamp=stamp)
 
 
 def _judges(specs: list[str], sensor: LidarConfig, seed: int,
