@@ -102,10 +102,11 @@ def read_scan(path: str | Path) -> np.ndarray:
                     raise ScanFileError(f"{path}: holds {names}; name the points array 'points'")
                 points = archive["points" if "points" in names else names[0]]
         elif suffix == ".bin":
-            flat = np.fromfile(path, dtype=np.float32)
-            if len(flat) % 4:
-                raise ScanFileError(f"{path}: {len(flat)} floats, not x y z intensity quadruples (KITTI .bin)")
-            points = flat.reshape(-1, 4)
+            size = path.stat().st_size
+            if size % 16:  # np.fromfile would drop a cut-off tail silently
+                raise ScanFileError(f"{path}: {size} bytes, not whole x y z intensity float32 quadruples "
+                                    "(KITTI .bin: 16 bytes a point)")
+            points = np.fromfile(path, dtype=np.float32).reshape(-1, 4)
         elif suffix == ".ply":
             import trimesh
 

@@ -68,10 +68,14 @@ class RegistrationResult:
         return T_b_s @ self.T_target_source @ inverse(T_b_s), hessian_in_frame(self.hessian, T_b_s)
 
 
-def _checked(points: np.ndarray, what: str) -> np.ndarray:
+def _checked(points: np.ndarray, what: str, min_points: int) -> np.ndarray:
+    """The points as float64, or a RegistrationError naming the problem (checked before small_gicp,
+    which only prints a warning for an empty cloud)."""
     pts = np.asarray(points)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise RegistrationError(f"{what} must be an (N, 3) array, got shape {pts.shape}")
+    if len(pts) < min_points:
+        raise RegistrationError(f"{what} has {len(pts)} points (minimum {min_points})")
     if not np.isfinite(pts).all():
         raise RegistrationError(f"{what} contains NaN or infinite points")
     return pts.astype(np.float64, copy=False)
@@ -81,7 +85,7 @@ class PreparedTarget:
     """A target scan downsampled, with normals and a k-d tree: prepared once, matched many times."""
 
     def __init__(self, points: np.ndarray, config: RegistrationConfig):
-        pts = _checked(points, "target scan")
+        pts = _checked(points, "target scan", config.min_points)
         self.cloud, self.tree = small_gicp.preprocess_points(pts, config.downsampling_resolution, config.num_neighbors)
         if self.cloud.size() < config.min_points:
             raise RegistrationError(
@@ -91,7 +95,8 @@ class PreparedTarget:
 
 
 def prepare_source(points: np.ndarray, config: RegistrationConfig) -> small_gicp.PointCloud:
-    cloud = small_gicp.voxelgrid_sampling(_checked(points, "source scan"), config.downsampling_resolution)
+    pts = _checked(points, "source scan", config.min_points)
+    cloud = small_gicp.voxelgrid_sampling(pts, config.downsampling_resolution)
     if config.max_source_points and cloud.size() > config.max_source_points:
         # deterministic stride: voxel output order is spatially scrambled, so this is an even thinning
         stride = int(np.ceil(cloud.size() / config.max_source_points))

@@ -52,11 +52,12 @@ def test_a_broken_or_unknown_scan_file_is_named(tmp_path):
     np.save(tmp_path / "flat.npy", np.zeros((10, 2)))
     np.savez(tmp_path / "two.npz", a=np.zeros((3, 3)), b=np.zeros((3, 3)))
     np.zeros(7, np.float32).tofile(tmp_path / "odd.bin")
+    (tmp_path / "stub.bin").write_bytes(b"abc")  # under one float: np.fromfile reads it as no points
     (tmp_path / "cut.pcd").write_bytes(b"FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nPOINTS 100\nDATA binary\n"
                                        + b"\0" * 40)
     (tmp_path / "packed.pcd").write_bytes(b"FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nPOINTS 1\nDATA binary_compressed\n")
     cases = {"broken.npy": "cannot be read as numpy", "flat.npy": r"shape \(10, 2\)", "two.npz": "name the points",
-             "odd.bin": "KITTI", "cut.pcd": "cut short", "packed.pcd": "ascii or binary",
+             "odd.bin": "KITTI", "stub.bin": "3 bytes", "cut.pcd": "cut short", "packed.pcd": "ascii or binary",
              "scan.las": "unknown scan format", "missing.npy": "no such file"}
     for name, message in cases.items():
         with pytest.raises(ScanFileError, match=message) as info:

@@ -82,7 +82,7 @@ def test_a_single_scan_hessian_is_that_of_registering_the_scan_onto_itself():
         scan_hessian(tunnel[:20])
 
 
-def test_bad_scans_raise_clear_errors():
+def test_bad_scans_raise_clear_errors(capfd):
     target, source, _ = scan_pair("office", [5, 0, 0.85, 0, 0, 0], [0, 0, 0, 0, 0, 0])
     with pytest.raises(RegistrationError, match="NaN"):
         register(np.vstack([source, [[np.nan, 0, 0]]]), target)
@@ -90,6 +90,9 @@ def test_bad_scans_raise_clear_errors():
         register(source[:20], target)
     with pytest.raises(RegistrationError, match="minimum"):
         register(source, np.zeros((0, 3)))
+    with pytest.raises(RegistrationError, match="has 0 points"):
+        scan_hessian(np.zeros((0, 3)))
+    assert "Empty point cloud" not in capfd.readouterr().err  # refused before small_gicp prints its warning
     with pytest.raises(RegistrationError, match=r"\(N, 3\)"):
         register(source[:, :2], target)
     with pytest.raises(ValueError, match="6x6"):
