@@ -95,6 +95,17 @@ def avoided_corridor(trajectory: np.ndarray, scene) -> bool | None:
     return mean_distance(scene.routes["rich"]) < mean_distance(scene.routes["short"])
 
 
+def check_policy(policy: str) -> None:
+    """Raises a ValueError for an unknown policy name, a PolicyCheckpointError for a PPO policy that
+    cannot be loaded."""
+    if policy.startswith("ppo:"):
+        from .ppo import PPOPolicy
+
+        PPOPolicy(policy.partition(":")[2])
+    elif policy not in ("shortest", "planner"):
+        raise ValueError(f"unknown policy '{policy}'; use one of {', '.join(POLICY_KINDS)}")
+
+
 def make_controller(policy: str, scene: str, detector: str, cache_dir: str | Path | None, lam: float,
                     scene_params: dict | None = None):
     """A function (T_w_b estimate, step index) -> normalised twist, for one scene."""
@@ -208,6 +219,8 @@ def evaluate_policies(out: str | Path, policies: list[str], scenes: list[str], e
     if steer_on not in STEER_ON:
         raise ValueError(f"steer_on must be one of {STEER_ON}, got {steer_on!r}")
     odometry_fusion_config(OdometryConfig(), fusion_options)  # bad options fail here, not in every episode
+    for policy in policies:  # and a wrong policy before the maps are built, which can take minutes
+        check_policy(policy)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     map_detectors = {_ppo_detector(p, detector) if p.startswith("ppo:") else detector

@@ -355,6 +355,13 @@ def test_full_pipeline_evaluation_on_the_small_fork(small_fork, monkeypatch, tmp
     assert not (tmp_path / "bad").exists()
     with pytest.raises(ValueError, match="unknown policy"):
         evaluation.make_controller("wander", "fork-0", "eigen:30", cache, 50.0)
+    # a wrong policy is named before any map is built or any folder written
+    monkeypatch.setattr(evaluation, "scene_context", lambda *a, **k: pytest.fail("a map was looked up first"))
+    for policy, message in (("wander", "unknown policy"), (f"ppo:{tmp_path / 'none'}", "no policy.zip")):
+        with pytest.raises((ValueError, RuntimeError), match=message):
+            evaluation.evaluate_policies(tmp_path / "bad", ["shortest", policy], ["fork-0"], episodes=1,
+                                         detector="eigen:30", cache_dir=cache)
+    assert not (tmp_path / "bad").exists()
 
 
 def test_back_off_reverses_the_last_command_after_blocked_steps():
