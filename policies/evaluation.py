@@ -103,7 +103,11 @@ def check_policy(policy: str) -> None:
 
         PPOPolicy(policy.partition(":")[2])
     elif policy not in ("shortest", "planner"):
-        raise ValueError(f"unknown policy '{policy}'; use one of {', '.join(POLICY_KINDS)}")
+        raise _unknown_policy(policy)
+
+
+def _unknown_policy(policy: str) -> ValueError:
+    return ValueError(f"unknown policy '{policy}'; use one of {', '.join(POLICY_KINDS)}")
 
 
 def make_controller(policy: str, scene: str, detector: str, cache_dir: str | Path | None, lam: float,
@@ -131,7 +135,7 @@ def make_controller(policy: str, scene: str, detector: str, cache_dir: str | Pat
             return held["action"]
 
         return act
-    raise ValueError(f"unknown policy '{policy}'; use one of {', '.join(POLICY_KINDS)}")
+    raise _unknown_policy(policy)
 
 
 STEER_ON = ("estimate", "truth")
