@@ -61,6 +61,9 @@ class ScanMCConfig:
 class ScanEstimate(NamedTuple):
     errors: np.ndarray  # (6,) estimated mean registration errors, calibrated
     children: int  # children drawn (registered or not)
+    # (registered children, 6) each registered child's errors in draw order, not calibrated: what
+    # the estimate's own Monte-Carlo spread, or another calibration, is worked out from
+    child_errors: np.ndarray
 
 
 class ScanPatternError(ValueError):
@@ -208,7 +211,7 @@ def scan_errors(points: np.ndarray, lidar: LidarConfig, registration: Registrati
         margin = np.abs(np.log(np.maximum(estimate, 1e-12) / thresholds))
         settled = config.settle > 0 and (margin >= config.settle * spread * np.sqrt(20 / drawn)).all()
         if drawn >= config.children or settled:
-            return ScanEstimate(estimate, drawn)
+            return ScanEstimate(estimate, drawn, np.array(errors))
         stage = min(2 * drawn, config.children)
 
 
@@ -238,8 +241,8 @@ def _estimate_rows(scans: _DatasetScans, rows: np.ndarray) -> tuple[np.ndarray, 
     for k, row in enumerate(rows):
         part, at = scans.data.locate(int(row))
         try:  # seeded by the row: the same estimate whatever the number of workers
-            out[k], drawn[k] = scan_errors(part.scan(at), scans.lidar, scans.registration, part.label_config,
-                                           scans.config, np.random.default_rng([scans.seed, int(row)]))
+            out[k], drawn[k], _ = scan_errors(part.scan(at), scans.lidar, scans.registration, part.label_config,
+                                              scans.config, np.random.default_rng([scans.seed, int(row)]))
         except (RegistrationError, ScanPatternError):
             pass
     return out, drawn

@@ -118,6 +118,12 @@ def test_children_stop_once_every_axis_is_settled_and_are_the_same_draws(rng):
     assert every.children == 16
     prefix = scan_errors(*args, ScanMCConfig(children=settled.children, first=1, settle=0), np.random.default_rng(3))
     assert np.array_equal(prefix.errors, settled.errors) and prefix.children == settled.children
+    # the raw children behind each estimate: the estimate is their mean times the calibration, and
+    # the first children of a longer run are the same draws
+    raw = every.child_errors
+    assert raw.shape[1] == 6 and 8 <= len(raw) <= 16
+    assert every.errors == pytest.approx(raw.mean(axis=0) * np.array(ScanMCConfig.calibration))
+    assert np.array_equal(raw[:len(settled.child_errors)], settled.child_errors)
     with pytest.raises(ValueError, match="at least one child"):
         scan_errors(*args, ScanMCConfig(first=0), rng)
     with pytest.raises(ValueError, match="settle must be >= 0"):
