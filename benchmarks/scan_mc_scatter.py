@@ -120,9 +120,9 @@ def main() -> None:
     for split, r in (("valid", rows["valid"]), ("test", rows["test"])):
         kids = children[split]
         n = np.isfinite(kids[..., 0]).sum(axis=1)[:, None]
-        mean = np.nanmean(kids, axis=1)
-        relative = np.nanstd(kids, axis=1) / mean  # a child's spread relative to the mean
-        ratio = np.log(data.errors[r] / (mean * calibration))
+        estimate = np.nanmean(kids, axis=1)
+        relative = np.nanstd(kids, axis=1) / estimate  # a child's spread relative to the mean
+        ratio = np.log(data.errors[r] / (estimate * calibration))
         near = np.abs(np.log(data.errors[r] / thresholds[r])) < NEAR
         for a, axis in enumerate(AXES):
             m = near[:, a] & np.isfinite(ratio[:, a])
@@ -137,8 +137,8 @@ def main() -> None:
 
     train = children["train"]
     known = np.isfinite(np.nanmean(train, axis=1)).all(axis=1)  # scans with a registered child
-    mean = np.nanmean(train[known], axis=1)
-    log_ratio = np.log(data.errors[rows["train"][known]] / mean)
+    estimate = np.nanmean(train[known], axis=1)
+    log_ratio = np.log(data.errors[rows["train"][known]] / estimate)
     constant = np.exp(np.median(log_ratio, axis=0))
     line = np.array([least_absolute_line(openness["train"][known], log_ratio[:, a]) for a in range(6)])
     print("\n2. Openness: mean share of the grid with no return: "
@@ -149,14 +149,14 @@ def main() -> None:
         print(f"{axis:6s}  {corr:+.2f}{'':38s}  {constant[a]:.3f}    {line[a, 0]:+.2f}  {line[a, 1]:+.2f}")
     print("split  calibration  accuracy  F1     F1 per axis")
     for split, r in rows.items():
-        mean = np.nanmean(children[split], axis=1)
-        ok = np.isfinite(mean).all(axis=1)
+        estimate = np.nanmean(children[split], axis=1)
+        ok = np.isfinite(estimate).all(axis=1)
         factors = {"constant": constant[None], "openness": np.exp(line[:, 0] + line[:, 1] * openness[split][:, None])}
         for name, factor in factors.items():
-            flags = (mean * factor > thresholds[r])[ok]
+            flags = (estimate * factor > thresholds[r])[ok]
             scores = axis_scores(data.labels[r][ok], flags)
-            m = mean_scores(scores)
-            print(f"{split:6s} {name:11s}  {m['accuracy']:.3f}     {m['f1']:.3f}  "
+            means = mean_scores(scores)
+            print(f"{split:6s} {name:11s}  {means['accuracy']:.3f}     {means['f1']:.3f}  "
                   + " ".join(f"{f:.2f}" for f in scores["f1"]))
 
 
