@@ -29,7 +29,8 @@ from .context import scene_context
 from .observation import PolicyView
 from .planner import Planner, route_of
 
-POLICY_KINDS = ("shortest", "planner", "ppo:<policy folder or zip>")
+ROUTE_POLICIES = ("shortest", "planner")  # route followers on a plan; "ppo:<folder>" is the learned one
+POLICY_KINDS = (*ROUTE_POLICIES, "ppo:<policy folder or zip>")
 
 
 @dataclass
@@ -102,7 +103,7 @@ def check_policy(policy: str) -> None:
         from .ppo import PPOPolicy
 
         PPOPolicy(policy.partition(":")[2])
-    elif policy not in ("shortest", "planner"):
+    elif policy not in ROUTE_POLICIES:
         raise _unknown_policy(policy)
 
 
@@ -113,7 +114,7 @@ def _unknown_policy(policy: str) -> ValueError:
 def make_controller(policy: str, scene: str, detector: str, cache_dir: str | Path | None, lam: float,
                     scene_params: dict | None = None):
     """A function (T_w_b estimate, step index) -> normalised twist, for one scene."""
-    if policy in ("shortest", "planner"):
+    if policy in ROUTE_POLICIES:
         ctx = scene_context(scene, detector if policy == "planner" else None, cache_dir, build=False,
                             scene_params=scene_params)
         plan = Planner(ctx.space, ctx.locmap, lam=lam if policy == "planner" else 0.0).plan(ctx.scene.start[:2],
