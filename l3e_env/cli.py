@@ -394,7 +394,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     out = Path(args.out or f"l3e_out/evaluate-{time.strftime('%Y%m%d-%H%M%S')}")
     results = evaluate(args.checkpoint or [DEFAULT_CHECKPOINT], args.dataset, out, others=args.other,
                        progress=not args.quiet, symmetric=args.symmetric, eigen=args.eigen, int8=not args.float32,
-                       by_family=args.by_family, scan_mc=args.scan_mc, workers=args.workers, draws=args.draws)
+                       by_family=args.by_family, by_region=args.by_region, scan_mc=args.scan_mc, workers=args.workers,
+                       draws=args.draws)
     print(results["table"])
     print(f"written: {out / 'table.txt'}, {out / 'results.json'}, {out / 'pr_curves.png'}")
     return 0
@@ -665,6 +666,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--by-family", action="store_true", dest="by_family",
                    help="also score each scene family of the test split and of an --other dataset on its own "
                         "(e.g. 'mine of test', 'yard of rooms48')")
+    p.add_argument("--by-region", action="store_true", dest="by_region",
+                   help="also score each named region of a scene there on its own (e.g. 'yard of mine-0', "
+                        "'tunnel of mine-0', 'quarry of mine-0')")
     p.add_argument("--eigen", type=float, action="append", metavar="TAU",
                    help="also score the eigenvalue detector at this threshold (Hessian of each scan onto itself); "
                         "repeat for several")

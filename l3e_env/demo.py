@@ -16,13 +16,6 @@ from .follower import RouteFollower  # noqa: E402
 from .render import wall_points  # noqa: E402
 
 
-def _region_of(xy: np.ndarray, regions: dict[str, np.ndarray]) -> str | None:
-    for name, (x0, y0, x1, y1) in regions.items():
-        if x0 <= xy[0] <= x1 and y0 <= xy[1] <= y1:
-            return name
-    return None
-
-
 ROUTE_SHOTS = {"20pct": 0.2, "50pct": 0.5, "80pct": 0.8}  # scan pictures on a route without named places
 
 
@@ -57,7 +50,7 @@ def run_demo(out_dir: str | Path, scene: str = "mine", sensor: str = "vlp16", se
         reached, done = terminated, terminated or truncated
         bar.update()
         if env.scene.regions:  # named places (the mine's yard, tunnel, quarry): a scan from the middle of each
-            place = _region_of(info["T_w_b"][:2, 3], env.scene.regions)
+            place = env.scene.region_of(info["T_w_b"][:2, 3])
             shot = place if place and _centred(info["T_w_b"], env.scene.regions.get(place)) else None
         else:  # a scan where the route passes 20, 50 and 80 % of its length; shares for the whole route only
             place = None

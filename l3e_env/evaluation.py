@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from scenes import TEST_SCENES, scene_family
+from scenes import TEST_SCENES, is_mesh_path, make_scene, scene_family
 
 from .classifier import Classifier
 from .config import from_dict
@@ -42,6 +42,25 @@ def family_rows(data: LabelDataset | DatasetUnion, rows: np.ndarray | None = Non
     return {f: np.flatnonzero(of_row == f) for f in dict.fromkeys(map(scene_family, names)) if (of_row == f).any()}
 
 
+def region_rows(data: LabelDataset | DatasetUnion, rows: np.ndarray) -> dict[str, np.ndarray]:
+    """The positions in `rows` of each named region of a procedural scene ('tunnel of mine-0': the
+    parents that stood in the mine's tunnel), regions in the order the scene lists them; a parent
+    outside every region is in none."""
+    names = data.manifest["scenes"]
+    scene = np.asarray(data.arrays["scene"], dtype=np.int64)[rows]
+    xy = data.poses[rows][:, :2, 3]
+    out: dict[str, np.ndarray] = {}
+    for si in dict.fromkeys(scene.tolist()):
+        if is_mesh_path(names[si]):
+            continue  # a user's mesh names no regions
+        built = make_scene(names[si])
+        at = np.flatnonzero(scene == si)
+        place = np.array([built.region_of(p) or "" for p in xy[at]])
+        out.update({f"{region} of {names[si]}": at[place == region] for region in built.regions
+                    if (place == region).any()})
+    return out
+
+
 def split_rows(data: LabelDataset | DatasetUnion, training: dict[str, Any]) -> dict[str, np.ndarray]:
     """A checkpoint's train and validation rows (its own scenes) and the test rows (the test
     families that the dataset holds)."""
@@ -53,24 +72,26 @@ def split_rows(data: LabelDataset | DatasetUnion, training: dict[str, Any]) -> d
 def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Path] | None, out_dir: str | Path,
              others: list[str | Path] | None = None, progress: bool = True, symmetric: bool = False,
              eigen: list[float] | None = None, int8: bool = True, by_family: bool = False,
-             scan_mc: int = 0, workers: int = 1, draws: int = 1) -> dict[str, Any]:
+             by_region: bool = False, scan_mc: int = 0, workers: int = 1, draws: int = 1) -> dict[str, Any]:
     """Score each checkpoint on its own train/validation split and on the test families of the
     dataset, and on every scan of each of `others` (a dataset of another sensor, or of scene
     families the model never saw: column 'all of <folder>'); writes table.txt, results.json and
-    pr_curves.png into out_dir and returns the results. `symmetric`: probabilities averaged over
-    the eight mirror/swap views, with the thresholds chosen for them. `eigen`: thresholds tau of
-    the eigenvalue detector, scored on the first checkpoint's splits from each scan's own Hessian
+    pr_curves.png into out_dir and returns the results. `symmetric`: probabilities averaged over the
+    eight mirror/swap views, with the thresholds chosen for them. `eigen`: thresholds tau of the
+    eigenvalue detector, scored on the first checkpoint's splits from each scan's own Hessian
     (`scan_hessian`); a scan too small to register flags nothing, as the detector's UNKNOWN does.
     `int8`: the ResUNet's convolutions as deployed (Classifier.load); False scores them in float32.
     `by_family`: each scene family of the test split and of an `others` dataset, where it holds
     several, also gets a column of its own ('mine of test', 'yard of rooms48'): a mean over families
-    of unlike difficulty hides which one a model fails on. Without `dataset` only `others` are
-    scored: how a model does on a user's own scenes needs no training data. `scan_mc`: children of
-    the scan's own Monte-Carlo estimate (scan_mc.py), scored on the first checkpoint's splits but
-    its training split (up to M registrations a scan, over `workers` processes); the estimates are
-    saved in scan_mc.npz. `draws`: each checkpoint also scored on that many draws of the points it
-    reads from a scan (seeds 0 ... draws-1; the table is draw 0's): which 4000 points a scan gives
-    moves a split's mean F1 by a few hundredths, as much as some of the differences between models."""
+    of unlike difficulty hides which one a model fails on. `by_region`: the same for each named
+    region of a scene there ('yard of mine-0', 'tunnel of mine-0', 'quarry of mine-0'). Without
+    `dataset` only `others` are scored: how a model does on a user's own scenes needs no training
+    data. `scan_mc`: children of the scan's own Monte-Carlo estimate (scan_mc.py), scored on the
+    first checkpoint's splits but its training split (up to M registrations a scan, over `workers`
+    processes); the estimates are saved in scan_mc.npz. `draws`: each checkpoint also scored on that
+    many draws of the points it reads from a scan (seeds 0 ... draws-1; the table is draw 0's):
+    which 4000 points a scan gives moves a split's mean F1 by a few hundredths, as much as some of
+    the differences between models."""
     if not dataset and not others:
         raise ValueError("nothing to score: give the training dataset(s) (--dataset, scored by split), other "
                          "datasets (--other, scored whole), or both")
@@ -95,10 +116,19 @@ def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Pat
     results: dict[str, Any] = {"dataset": data.name if data is not None else None, "test_scenes": test_scenes,
                                "symmetric": symmetric, "int8": int8, "models": {}}
 
+    part_columns: dict[str, dict[str, np.ndarray]] = {}
+
     def family_columns(split: str, ds: LabelDataset | DatasetUnion, rows: np.ndarray) -> dict[str, np.ndarray]:
-        """Column name -> positions in `rows` of each family, for a test or `others` split of several."""
-        parts = family_rows(ds, rows) if by_family and (split == "test" or split in extra) else {}
-        return {f"{f} of {split.removeprefix('all of ')}": at for f, at in parts.items()} if len(parts) > 1 else {}
+        """Column name -> positions in `rows` of each family (of a split of several) and of each
+        region, for a test or `others` split, as asked."""
+        if split != "test" and split not in extra:
+            return {}
+        if split not in part_columns:  # the same rows for every model: scenes are built once
+            parts = family_rows(ds, rows) if by_family else {}
+            name = split.removeprefix("all of ")
+            columns = {f"{f} of {name}": at for f, at in parts.items()} if len(parts) > 1 else {}
+            part_columns[split] = {**columns, **(region_rows(ds, rows) if by_region else {})}
+        return part_columns[split]
 
     def score(name: str, split: str, ds: LabelDataset | DatasetUnion, rows: np.ndarray, predicted: np.ndarray,
               **fields: Any) -> None:

@@ -100,11 +100,19 @@ def best_thresholds(labels: np.ndarray, probabilities: np.ndarray, default: floa
 
 
 def format_table(rows: dict[str, dict[str, dict[str, np.ndarray]]], digits: int = 3,
-                 intervals: dict[tuple[str, str], dict[str, tuple[float, float]]] | None = None) -> str:
+                 intervals: dict[tuple[str, str], dict[str, tuple[float, float]]] | None = None,
+                 per_block: int = 8) -> str:
     """A Table III layout: one column per (model, split), rows are score x axis plus the mean
-    (and its bootstrap interval where given), and the count of positives per axis."""
+    (and its bootstrap interval where given), and the count of positives per axis. Past
+    `per_block` columns the table goes on in another block below, so that it fits a terminal."""
     columns = [(m, s) for m, splits in rows.items() for s in splits]
     width = max(14, *(len(m) + 2 for m, _ in columns), *(len(s) + 2 for _, s in columns))
+    blocks = [columns[i:i + per_block] for i in range(0, len(columns), per_block)]
+    return "\n\n".join(_table_block(rows, block, width, digits, intervals) for block in blocks)
+
+
+def _table_block(rows: dict[str, dict[str, dict[str, np.ndarray]]], columns: list[tuple[str, str]], width: int,
+                 digits: int, intervals: dict[tuple[str, str], dict[str, tuple[float, float]]] | None) -> str:
     lines = [f"{'':16s}" + "".join(f"{m:>{width}s}" for m, _ in columns),
              f"{'':16s}" + "".join(f"{s:>{width}s}" for _, s in columns)]
     for score in ("accuracy", "f1", "precision", "recall"):

@@ -37,6 +37,7 @@ class Scene:
     routes: dict[str, np.ndarray] = field(default_factory=dict)
     family: str = "custom"
     seed: int = 0
+    # named places (the mine's yard, tunnel and quarry) as ground-plane boxes (x0, y0, x1, y1)
     regions: dict[str, np.ndarray] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -63,6 +64,13 @@ class Scene:
         if not self.routes:
             raise SceneError(f"scene '{self.name}' has no route")
         return self.routes.get("main", next(iter(self.routes.values())))
+
+    def region_of(self, xy: np.ndarray) -> str | None:
+        """The first named region (x0, y0, x1, y1 in the world's ground plane) holding the point, if any."""
+        for name, (x0, y0, x1, y1) in self.regions.items():
+            if x0 <= xy[0] <= x1 and y0 <= xy[1] <= y1:
+                return name
+        return None
 
     @property
     def bounds(self) -> np.ndarray:

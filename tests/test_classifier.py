@@ -16,7 +16,7 @@ from l3e_env.classifier import (
 )
 from l3e_env.dataset import DatasetError, LabelDataset, config_for, error_ratios, generate, open_datasets
 from l3e_env.detectors import LearnedDetector, make_detector
-from l3e_env.scores import auroc, axis_scores, best_thresholds, mean_interval, mean_scores, pr_curve
+from l3e_env.scores import auroc, axis_scores, best_thresholds, format_table, mean_interval, mean_scores, pr_curve
 from l3e_env.sparse import GatherConv, int8_products_work, int8_residual_block, voxelize
 from l3e_env.training import (
     SWAP_LABELS, TrainConfig, TrainingError, augment, balanced_pool, calibrate_symmetric, predict_dataset,
@@ -214,6 +214,23 @@ def test_sensor_or_registration_mismatch_is_a_warning_and_a_match_is_silent(tmp_
     assert len(caught) == 1 and "other registration settings" in str(caught[0].message)
 
 
+def test_region_rows_split_the_scenes_by_their_named_places():
+    from types import SimpleNamespace
+
+    from l3e_env.evaluation import region_rows
+
+    xy = [(-20, 0), (50, 0), (120, 0), (200, 0), (10, 0), (0, 40), (5, 5)]  # yard, tunnel, quarry, none; ...
+    poses = np.tile(np.eye(4), (len(xy), 1, 1))
+    poses[:, :2, 3] = xy
+    data = SimpleNamespace(manifest={"scenes": ["mine-0", "fork-0", "tunnel-0"]}, poses=poses,
+                           arrays={"scene": np.array([0, 0, 0, 0, 1, 1, 2])})
+    found = region_rows(data, np.arange(len(xy)))
+    assert list(found) == ["yard of mine-0", "tunnel of mine-0", "quarry of mine-0", "corridor of fork-0"]
+    assert [at.tolist() for at in found.values()] == [[0], [1], [2], [4]]
+    found = region_rows(data, np.array([6, 2, 5, 0]))  # positions within the rows given
+    assert {k: at.tolist() for k, at in found.items()} == {"quarry of mine-0": [1], "yard of mine-0": [3]}
+
+
 def test_axis_scores_by_hand():
     y = np.array([[1, 0, 0, 0, 0, 1], [1, 1, 0, 0, 0, 0], [0, 0, 0, 0, 0, 0], [0, 1, 0, 0, 0, 0]])
     p = np.array([[1, 0, 0, 0, 0, 0], [0, 1, 0, 0, 1, 0], [0, 0, 0, 0, 0, 0], [1, 1, 0, 0, 0, 0]])
@@ -222,6 +239,18 @@ def test_axis_scores_by_hand():
     assert s["precision"][0] == 0.5 and s["recall"][0] == 0.5 and s["f1"][0] == 0.5
     assert s["f1"][1] == 1.0 and np.isnan(s["f1"][2]) and s["f1"][4] == 0.0 and s["f1"][5] == 0.0
     assert mean_scores(s)["f1"] == pytest.approx((0.5 + 1 + 0 + 0) / 4)  # z and roll: undefined, left out
+
+
+def test_a_wide_table_goes_on_in_blocks_that_keep_every_column_once(rng):
+    y = rng.random((40, 6)) < 0.3
+    rows = {m: {f"split {k}": axis_scores(y, rng.random((40, 6)) < 0.3) for k in range(7)} for m in ("one", "two")}
+    blocks = format_table(rows, per_block=5).split("\n\n")
+    assert [len(b.splitlines()[1].split("split")) - 1 for b in blocks] == [5, 5, 4]
+    assert len({len(b.splitlines()) for b in blocks}) == 1  # the same rows in each block
+    whole = format_table(rows, per_block=14)
+    assert "\n\n" not in whole
+    for line, *parts in zip(whole.splitlines(), *(b.splitlines() for b in blocks)):  # the same cells, in order
+        assert line == parts[0] + "".join(p[16:] for p in parts[1:])
 
 
 def test_bootstrap_interval_brackets_the_mean_and_widens_with_few_positives(rng):
@@ -463,10 +492,21 @@ def test_evaluate_writes_table_curves_and_results(tiny_dataset, tmp_path, monkey
         assert column["accuracy"] == pytest.approx(expected["accuracy"].tolist())
     assert f"office of {Path(tiny_dataset).name}" in res["table"]
     monkeypatch.setattr(evaluation, "TEST_SCENES", ["field-0", "tunnel-0"])  # a test split of two families
+    built = evaluation.make_scene
+
+    def tunnel_as_one_region(name: str):  # the tiny dataset's scenes name no regions: give the tunnel one
+        scene = built(name)
+        scene.regions = {"anywhere": np.array([-1e3, -1e3, 1e3, 1e3])} if name == "tunnel-0" else {}
+        return scene
+
+    monkeypatch.setattr(evaluation, "make_scene", tunnel_as_one_region)
     drawn = evaluate([tmp_path / "run" / "model.pt"], tiny_dataset, tmp_path / "eval-test", progress=False,
-                     by_family=True, draws=3)
+                     by_family=True, by_region=True, draws=3)
     splits = drawn["models"][name]["splits"]
-    assert set(splits) == {"train", "valid", "test", "tunnel of test", "field of test"}
+    assert set(splits) == {"train", "valid", "test", "tunnel of test", "field of test", "anywhere of tunnel-0"}
+    region, family = ({k: v for k, v in splits[c].items() if k != "dataset"} for c in ("anywhere of tunnel-0",
+                                                                                    "tunnel of test"))
+    assert json.dumps(region, sort_keys=True) == json.dumps(family, sort_keys=True)  # NaN F1 where no positive
     test_rows = split_indices(data, ["field-0", "tunnel-0"])
     assert splits["test"]["draws"]["mean_f1"][0] == pytest.approx(splits["test"]["mean"]["f1"], nan_ok=True)
     again = mean_scores(axis_scores(data.labels[test_rows],
