@@ -116,24 +116,24 @@ def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Pat
     results: dict[str, Any] = {"dataset": data.name if data is not None else None, "test_scenes": test_scenes,
                                "symmetric": symmetric, "int8": int8, "models": {}}
 
-    part_columns: dict[str, dict[str, np.ndarray]] = {}
+    built_columns: dict[str, dict[str, np.ndarray]] = {}
 
-    def family_columns(split: str, ds: LabelDataset | DatasetUnion, rows: np.ndarray) -> dict[str, np.ndarray]:
+    def part_columns(split: str, ds: LabelDataset | DatasetUnion, rows: np.ndarray) -> dict[str, np.ndarray]:
         """Column name -> positions in `rows` of each family (of a split of several) and of each
         region, for a test or `others` split, as asked."""
         if split != "test" and split not in extra:
             return {}
-        if split not in part_columns:  # the same rows for every model: scenes are built once
+        if split not in built_columns:  # the same rows for every model: scenes are built once
             parts = family_rows(ds, rows) if by_family else {}
             name = split.removeprefix("all of ")
             columns = {f"{f} of {name}": at for f, at in parts.items()} if len(parts) > 1 else {}
-            part_columns[split] = {**columns, **(region_rows(ds, rows) if by_region else {})}
-        return part_columns[split]
+            built_columns[split] = {**columns, **(region_rows(ds, rows) if by_region else {})}
+        return built_columns[split]
 
     def score(name: str, split: str, ds: LabelDataset | DatasetUnion, rows: np.ndarray, predicted: np.ndarray,
               **fields: Any) -> None:
-        """The split's scores, and those of each of its families where asked (`by_family`)."""
-        parts = {split: np.arange(len(rows)), **family_columns(split, ds, rows)}
+        """The split's scores, and those of each of its families and regions where asked."""
+        parts = {split: np.arange(len(rows)), **part_columns(split, ds, rows)}
         for column, subset in parts.items():
             y = ds.labels[rows[subset]]
             table[name][column] = scores = axis_scores(y, predicted[subset])
@@ -166,8 +166,8 @@ def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Pat
                 results["models"][name]["splits"][split]["draws"] = draw_scores(
                     clf, ds, rows, probs, draws, progress, symmetric)
         if "valid" in curves[name]:
-            families = {split: family_columns(split, *splits[split]) for split in curves[name]}
-            results["models"][name]["f1_operating_point"] = f1_operating_point(curves[name], families)
+            parts = {split: part_columns(split, *splits[split]) for split in curves[name]}
+            results["models"][name]["f1_operating_point"] = f1_operating_point(curves[name], parts)
     hessians = {}
     if eigen:  # one Hessian per scan serves every tau
         hessians = {split: dataset_hessians(ds, rows, progress) for split, (ds, rows) in first_splits.items()}
@@ -257,14 +257,14 @@ def format_draws(models: dict[str, Any], draws: int) -> str:
 
 
 def f1_operating_point(curves: dict[str, tuple[np.ndarray, np.ndarray]],
-                       families: dict[str, dict[str, np.ndarray]] | None = None) -> dict[str, Any]:
-    """Mean scores of every split (and of the `families` columns of a split: column -> its rows) at
+                       parts: dict[str, dict[str, np.ndarray]] | None = None) -> dict[str, Any]:
+    """Mean scores of every split (and of the `parts` columns of a split: column -> its rows) at
     the F1-best validation thresholds. The stored thresholds weigh recall (a missed degenerate axis
     corrupts the fused estimate); this shows what a pure classification operating point would score."""
     thresholds = best_thresholds(*curves["valid"], beta=1.0)
     splits = {}
     for split, (y, p) in curves.items():
-        for column, rows in {split: np.arange(len(y)), **(families or {}).get(split, {})}.items():
+        for column, rows in {split: np.arange(len(y)), **(parts or {}).get(split, {})}.items():
             splits[column] = mean_scores(axis_scores(y[rows], p[rows] > thresholds))
     return {"thresholds": thresholds.tolist(), "splits": splits}
 
