@@ -395,7 +395,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     results = evaluate(args.checkpoint or [DEFAULT_CHECKPOINT], args.dataset, out, others=args.other,
                        progress=not args.quiet, symmetric=args.symmetric, eigen=args.eigen, int8=not args.float32,
                        by_family=args.by_family, by_region=args.by_region, scan_mc=args.scan_mc, workers=args.workers,
-                       draws=args.draws)
+                       draws=args.draws, cascade=args.cascade)
     print(results["table"])
     print(f"written: {out / 'table.txt'}, {out / 'results.json'}, {out / 'pr_curves.png'}")
     return 0
@@ -676,6 +676,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="also score the scan's own Monte-Carlo estimate with up to M children (no training; "
                         "about 50 ms a child, and a scan stops drawing once its axes are settled), on every split "
                         "but the training one")
+    p.add_argument("--cascade", type=float, action="append", metavar="MARGIN",
+                   help="also score the first checkpoint checked by --scan-mc's estimate on the scans where an axis "
+                        "lies within MARGIN (log-odds) of its threshold, as the learned+scanmc detector does "
+                        "(1 is its default); repeat for several")
     p.add_argument("--workers", type=int, default=1, help="processes for --scan-mc (default 1)")
     p.add_argument("--draws", type=int, default=1, metavar="N",
                    help="also score each checkpoint on N draws of the points read from each scan and print the "

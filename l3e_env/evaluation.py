@@ -15,6 +15,7 @@ from scenes import TEST_SCENES, is_mesh_path, make_scene, scene_family
 from .classifier import Classifier
 from .config import from_dict
 from .dataset import DatasetUnion, LabelDataset, open_datasets, row_thresholds
+from .detectors import near_threshold
 from .labels import AXES
 from .registration import RegistrationConfig, RegistrationError, eigen_mask, scan_hessian
 from .scan_mc import ScanMCConfig, dataset_scan_errors
@@ -72,7 +73,8 @@ def split_rows(data: LabelDataset | DatasetUnion, training: dict[str, Any]) -> d
 def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Path] | None, out_dir: str | Path,
              others: list[str | Path] | None = None, progress: bool = True, symmetric: bool = False,
              eigen: list[float] | None = None, int8: bool = True, by_family: bool = False,
-             by_region: bool = False, scan_mc: int = 0, workers: int = 1, draws: int = 1) -> dict[str, Any]:
+             by_region: bool = False, scan_mc: int = 0, workers: int = 1, draws: int = 1,
+             cascade: list[float] | None = None) -> dict[str, Any]:
     """Score each checkpoint on its own train/validation split and on the test families of the
     dataset, and on every scan of each of `others` (a dataset of another sensor, or of scene
     families the model never saw: column 'all of <folder>'); writes table.txt, results.json and
@@ -91,7 +93,9 @@ def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Pat
     processes); the estimates are saved in scan_mc.npz. `draws`: each checkpoint also scored on that
     many draws of the points it reads from a scan (seeds 0 ... draws-1; the table is draw 0's):
     which 4000 points a scan gives moves a split's mean F1 by a few hundredths, as much as some of
-    the differences between models."""
+    the differences between models. `cascade`: margins (log-odds) of the first checkpoint checked by
+    the scan estimate where it is unsure (detectors.CascadeDetector), scored from the same
+    probabilities and estimates; it needs `scan_mc`."""
     if not dataset and not others:
         raise ValueError("nothing to score: give the training dataset(s) (--dataset, scored by split), other "
                          "datasets (--other, scored whole), or both")
@@ -100,6 +104,11 @@ def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Pat
                          "or score the dataset whole as an other")
     if draws < 1:
         raise ValueError(f"draws must be at least 1 (the table's own draw), got {draws}")
+    if cascade and not (scan_mc and checkpoints):
+        raise ValueError("the cascade checks a checkpoint's unsure scans with the scan estimate: give a checkpoint "
+                         "and --scan-mc M")
+    if any(not m >= 0 for m in cascade or []):
+        raise ValueError(f"a cascade's margin is a log-odds distance >= 0, got {cascade}")
     if scan_mc < 0 or workers < 1:
         raise ValueError(f"the scan estimate needs 0 (none) or more children and at least one worker, got "
                          f"{scan_mc} and {workers}")
@@ -180,7 +189,7 @@ def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Pat
             predicted[known] = [eigen_mask(H, tau)[1] for H in hessians[split][known]]
             score(name, split, ds, rows, predicted, unregistrable=int((~known).sum()))
     if scan_mc:
-        estimates, drawn = {}, {}
+        estimates, drawn, judged = {}, {}, {}
         name = f"scanmc:{scan_mc}"
         table[name], results["models"][name] = {}, {"children": scan_mc, "splits": {}}
         for split, (ds, rows) in first_splits.items():
@@ -192,17 +201,32 @@ def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Pat
                                                                  ScanMCConfig(children=scan_mc), workers=workers,
                                                                  progress=progress)
             known = np.isfinite(estimates[split]).all(axis=1)
-            predicted = np.where(known[:, None], estimates[split] > row_thresholds(ds)[rows], False)
-            score(name, split, ds, rows, predicted, unjudged=int((~known).sum()),
+            judged[split] = np.where(known[:, None], estimates[split] > row_thresholds(ds)[rows], False)
+            score(name, split, ds, rows, judged[split], unjudged=int((~known).sum()),
                   mean_children=float(drawn[split][known].mean()) if known.any() else 0.0)
         np.savez(out / "scan_mc.npz", **{split.replace(" ", "_"): e for split, e in estimates.items()},
                  **{f"children_{split.replace(' ', '_')}": n for split, n in drawn.items()})
+        first = next(iter(curves))
+        thresholds = np.asarray(results["models"][first]["thresholds"])
+        for margin in cascade or []:
+            name = f"{first}+scanmc:{margin:g}"
+            table[name], results["models"][name] = {}, {"margin": margin, "children": scan_mc, "splits": {}}
+            for split in estimates:
+                ds, rows = first_splits[split]
+                checked = near_threshold(curves[first][split][1], thresholds, margin)
+                predicted = np.where(checked[:, None], judged[split], curves[first][split][1] > thresholds)
+                score(name, split, ds, rows, predicted, checked=float(checked.mean()))
     text = (format_table(table, intervals=intervals) + format_f1_operating_points(results["models"])
             + format_draws(results["models"], draws))
     if scan_mc:
         scored = results["models"][f"scanmc:{scan_mc}"]["splits"]
         text += f"\nscanmc:{scan_mc} children drawn a scan (mean): " + ", ".join(
             f"{split} {scored[split]['mean_children']:.1f}" for split in drawn if scored[split]["mean_children"]) + "\n"
+    for margin in cascade or []:
+        name = f"{next(iter(curves))}+scanmc:{margin:g}"
+        text += f"{name}: share of scans checked by scanmc:{scan_mc}: " + ", ".join(
+            f"{split} {r['checked']:.2f}" for split, r in results["models"][name]["splits"].items()
+            if "checked" in r) + "\n"
     if symmetric:
         text = "probabilities averaged over the eight mirror/swap views of each scan\n" + text
     (out / "table.txt").write_text(text + "\n")

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from .config import LidarConfig, out_of_reach
-from .detectors import Detector, EigenvalueDetector, Prediction, ScanMCDetector, make_detector
+from .detectors import CascadeDetector, Detector, EigenvalueDetector, Prediction, ScanMCDetector, make_detector
 from .labels import AXES
 from .patterns import BeamPattern, PatternError, fit_pattern, get_pattern, register_pattern
 from .registration import RegistrationConfig, RegistrationError, RegistrationResult, scan_hessian
@@ -26,6 +26,8 @@ FORMATS = {".npy": "numpy (N, >=3)", ".npz": "numpy archive ('points' or its onl
 SCORES = {"learned": "probability that the axis is not localizable (flagged above the model's threshold)",
           "eigen": "share of the axis in the Hessian's degenerate subspace (flagged above 0.5)",
           "scanmc": "r / (1 + r), r = estimated registration error over the label threshold (flagged above 0.5)",
+          "learned+scanmc": "the classifier's probability where it is sure; where an axis lies within the margin "
+                            "of its threshold, scanmc's r / (1 + r) for every axis",
           "none": "nothing is flagged"}
 
 
@@ -137,7 +139,7 @@ def judge_points(points: np.ndarray, detectors: list[Detector], registration: Re
             onto_itself = RegistrationResult(np.eye(4), H, True, 0, len(points), len(points), 0.0)
         except RegistrationError:
             pass
-    return {d.name: d.judge(points, rng) if rng is not None and isinstance(d, ScanMCDetector)
+    return {d.name: d.judge(points, rng) if rng is not None and isinstance(d, (ScanMCDetector, CascadeDetector))
             else d.predict(points, onto_itself, None) for d in detectors}
 
 
@@ -219,14 +221,14 @@ def recognise_sensor(scans: Iterator[str | Path | BagScan]) -> tuple[Iterator[st
 
 def needs_sensor(specs: list[str]) -> bool:
     """Whether a detector simulates the sensor's beams (scanmc does; the others read points only)."""
-    return any(spec.partition(":")[0] == "scanmc" for spec in specs)
+    return any(spec.partition(":")[0] in ("scanmc", "learned+scanmc") for spec in specs)
 
 
 def judge_scans(scans: Iterable[str | Path | BagScan], specs: list[str], sensor: LidarConfig | None = None,
                 seed: int = 0, workers: int = 1,
                 on_sensor: Callable[[BeamPattern, str], None] | None = None) -> Iterator[Judgement]:
     """Judge each scan, a file to read or a bag's scan (`read_bag`), with each detector
-    ('learned[...]', 'eigen:<tau>', 'scanmc[:M]', 'none'; make_detector refuses the oracle,
+    ('learned[...]', 'eigen:<tau>', 'scanmc[:M]', 'learned+scanmc[:margin]', 'none'; make_detector refuses the oracle,
     which needs a scene), after dropping its points without a return, in the order given,
     `workers` scans at a time. Without `sensor`, a detector that needs one gets the pattern
     recognised from the first scans (the default where none fits), reported to `on_sensor`

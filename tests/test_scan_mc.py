@@ -197,3 +197,59 @@ def test_a_thinned_scan_is_refused_by_name(rng):
     with pytest.raises(ScanPatternError, match="thinned or sampled"):
         range_image_mesh(sampled, scan.pattern)
     assert not make_detector("scanmc:4").predict(sampled).known
+
+
+def test_near_threshold_measures_log_odds_from_each_axis_threshold():
+    from l3e_env.detectors import near_threshold
+
+    thresholds = np.array([0.5, 0.5, 0.2, 0.5, 0.5, 0.9])
+    sure = np.array([[0.05, 0.95, 0.01, 0.05, 0.05, 0.999], [0.5, 0.05, 0.05, 0.05, 0.05, 0.05]])
+    assert near_threshold(sure, thresholds, 1.0).tolist() == [False, True]  # the second scan: x at its threshold
+    one_off = np.full(6, 0.01)
+    one_off[2] = 1 / (1 + 4 * np.exp(-0.9))  # 0.9 log-odds above z's threshold of 0.2
+    assert near_threshold(one_off, thresholds, 1.0) and not near_threshold(one_off, thresholds, 0.8)
+    assert not near_threshold(sure, thresholds, 0.0).any()  # margin 0: never unsure
+
+
+def test_cascade_detector_asks_the_estimate_only_where_the_classifier_is_unsure(rng):
+    from l3e_env.detectors import CascadeDetector, LearnedDetector, ScanMCDetector
+
+    scan = _scan(_box([200, 4, 3]), rng)  # a corridor along x
+    learned, scan_mc = LearnedDetector(), ScanMCDetector(LidarConfig(), children=6)
+    never, always = CascadeDetector(learned, scan_mc, margin=0.0), CascadeDetector(learned, scan_mc, margin=100.0)
+    alone = learned.predict(scan.points)
+    kept = never.judge(scan.points, np.random.default_rng(1))
+    assert np.array_equal(kept.probabilities, alone.probabilities) and never.checked == 0 and never.calls == 1
+    checked = always.judge(scan.points, np.random.default_rng(1))
+    estimate = scan_mc.judge(scan.points, np.random.default_rng(1))
+    assert checked.known and np.array_equal(checked.probabilities, estimate.probabilities)
+    assert checked.mask[0] and always.checked == 1  # the estimate flags the corridor's x
+    assert not always.predict(np.full((100, 3), np.nan)).known  # a scan the classifier cannot judge: unknown
+    assert always.checked == 1 and always.calls == 2
+    made = make_detector("learned+scanmc")
+    assert made.name == "learned+scanmc:1" and made.margin == 1.0
+    assert make_detector("learned+scanmc:0.5").name == "learned+scanmc:0.5"
+    for spec in ("learned+scanmc:x", "learned+scanmc:-1"):
+        with pytest.raises(ValueError, match="margin"):
+            make_detector(spec)
+
+
+def test_evaluate_scores_the_cascade_from_the_classifier_and_the_estimate(tiny_dataset, tmp_path):
+    from l3e_env.classifier import DEFAULT_CHECKPOINT
+    from l3e_env.evaluation import evaluate
+
+    res = evaluate([DEFAULT_CHECKPOINT], None, tmp_path / "eval", others=[tiny_dataset], progress=False, scan_mc=3,
+                   cascade=[0.0, 100.0])
+    column = f"all of {Path(tiny_dataset).name}"
+    model = next(name for name in res["models"] if "scanmc" not in name)
+    never, always = (res["models"][f"{model}+scanmc:{m}"]["splits"][column] for m in ("0", "100"))
+    assert never["checked"] == 0.0 and always["checked"] == 1.0  # margin 0: the classifier; 100: the estimate
+    for cascade, alone in ((never, res["models"][model]), (always, res["models"]["scanmc:3"])):
+        for key in ("accuracy", "f1", "precision", "recall"):
+            assert cascade[key] == pytest.approx(alone["splits"][column][key], nan_ok=True)
+    assert f"{model}+scanmc:100: share of scans checked by scanmc:3: {column} 1.00" in res["table"]
+    for bad in ({"scan_mc": 0, "cascade": [1.0]}, {"scan_mc": 3, "cascade": [-1.0]}):
+        with pytest.raises(ValueError, match="cascade"):
+            evaluate([DEFAULT_CHECKPOINT], None, tmp_path / "bad", others=[tiny_dataset], progress=False, **bad)
+    with pytest.raises(ValueError, match="cascade"):
+        evaluate([], None, tmp_path / "bad", others=[tiny_dataset], progress=False, scan_mc=3, cascade=[1.0])
