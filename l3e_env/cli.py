@@ -581,7 +581,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("ate", help="drive a route once, fuse with each detector, compare ATE")
     p.add_argument("--scene", type=scene_name, default="mine")
     p.add_argument("--detector", action="append",
-                   help="none | eigen:<tau> | oracle[:M] | scanmc[:M] | learned[:checkpoint]; repeat for several")
+                   help="none | eigen:<tau> | oracle[:M] | scanmc[:M] | learned[:checkpoint] | "
+                        "learned+scanmc[:margin]; repeat for several")
     p.add_argument("--backend", choices=["graph", "ekf"], default="graph", help="iSAM2 smoother or filterpy EKF")
     p.add_argument("--sensor", type=sensor_name, default="vlp16", help=SENSOR_HELP)
     p.add_argument("--seed", type=int, default=0)
@@ -706,8 +707,8 @@ def build_parser() -> argparse.ArgumentParser:
                                         "PoseWithCovarianceStamped (default: the only Odometry topic); it also "
                                         "writes each scan's position into --json")
     p.add_argument("--detector", action="append",
-                   help="learned[-sym][:checkpoint] | eigen:<tau> | scanmc[:M] | none; repeat for several "
-                        "(default: learned, eigen:30 and scanmc)")
+                   help="learned[-sym][:checkpoint] | eigen:<tau> | scanmc[:M] | learned+scanmc[:margin] | none; "
+                        "repeat for several (default: learned, eigen:30 and scanmc)")
     p.add_argument("--sensor", type=sensor_name,
                    help="the LiDAR that took the scans, for scanmc's beams: vlp16, os0-128 or a beam pattern file "
                         "(.yaml/.json, or an Ouster metadata .json); default: recognised from the scans")

@@ -23,7 +23,8 @@ from fusion import FusionConfig, MetricError, ate, ate_aligned, check_backend, m
 from scenes import Scene, SceneError, canonical_scene_name, file_sha256, is_mesh_path, make_scene
 
 from .config import NOISE_STREAMS, EnvConfig, FusionOptions, LidarConfig, OdometryConfig, RobotConfig
-from .detectors import UNKNOWN, Detector, Prediction, ScanMCDetector, make_detector, safe_predict
+from .detectors import (UNKNOWN, CascadeDetector, Detector, Prediction, ScanMCDetector, make_detector,
+                        near_threshold, safe_predict)
 from .envs.navigation import NavigationEnv
 from .follower import RouteFollower
 from .imu import ATTITUDE_EVERY, StepGyro, attitude_readings, attitude_sigmas
@@ -116,9 +117,11 @@ class RecastScans:
         scan = self.lidar.scan(T_w_s, np.random.default_rng([self.seed, 2, step]))
         return self.detector.judge(scan.points, np.random.default_rng([self.seed, 3, step]))
 
-    def judge_ahead(self, poses: list[np.ndarray], scene: Scene, workers: int, progress: bool = True) -> None:
-        """Judge the steps that `predict` will be asked for, T_w_s of call k being poses[k]."""
-        steps = list(range(0, len(poses), self.stride))
+    def judge_ahead(self, poses: list[np.ndarray], scene: Scene, workers: int, progress: bool = True,
+                    steps: list[int] | None = None) -> None:
+        """Judge the steps that `predict` will be asked for (every `stride`-th, or `steps`), T_w_s of
+        call k being poses[k]."""
+        steps = list(range(0, len(poses), self.stride)) if steps is None else steps
         jobs = [(k, poses[k]) for k in steps]
         judged = list(tqdm(ordered_map(_judge_recast_step, jobs, self, _recast_on, (self, scene.mesh), workers),
                            total=len(jobs), disable=not progress,
@@ -138,6 +141,48 @@ class RecastScans:
             return self._last
         finally:
             self._calls += 1
+
+
+class RecastCascade:
+    """learned+scanmc in a replay: the classifier reads the recorded samples, and where it is unsure
+    the estimate judges the scan cast again at the true pose (RecastScans). At most one judgement
+    per `stride` steps, as the estimate alone has: the first unsure step of each block of `stride`
+    steps is judged, and its judgement serves the block's later unsure steps."""
+
+    def __init__(self, cascade: CascadeDetector, lidar: Lidar, stride: int = 5, seed: int = 0):
+        self.cascade, self.recast = cascade, RecastScans(cascade.scan_mc, lidar, stride, seed)
+        self.name = cascade.name
+        self._calls, self._held = 0, {}
+
+    def _classified(self, points: np.ndarray, T_w_s: np.ndarray) -> tuple[Prediction, bool]:
+        """The classifier's prediction, and whether it is unsure (an unknown one is not checked)."""
+        first = self.cascade.learned.predict(points, None, T_w_s)
+        thresholds = self.cascade.learned.classifier.thresholds
+        return first, first.known and bool(near_threshold(first.probabilities, thresholds, self.cascade.margin))
+
+    def predict(self, points: np.ndarray, registration=None, T_w_s: np.ndarray | None = None) -> Prediction:
+        if T_w_s is None:
+            raise ValueError(f"{self.name} in a replay casts the scan again at the true sensor pose: give T_w_s")
+        step, self._calls = self._calls, self._calls + 1
+        self.cascade.calls += 1
+        first, unsure = self._classified(points, T_w_s)
+        if not unsure:
+            return first
+        self.cascade.checked += 1
+        block = step // self.recast.stride
+        if block not in self._held:
+            self._held[block] = self.recast._ahead.pop(step, None) or self.recast.judge_step(step, T_w_s)
+        return self._held[block]
+
+    def judge_ahead(self, samples: list[np.ndarray], poses: list[np.ndarray], scene: Scene, workers: int,
+                    progress: bool = True) -> None:
+        """Judge the steps that `predict` will ask the estimate for, the samples and T_w_s of call k
+        being samples[k] and poses[k]."""
+        first_unsure: dict[int, int] = {}
+        for k, (points, T) in enumerate(zip(samples, poses)):
+            if k // self.recast.stride not in first_unsure and self._classified(points, T)[1]:
+                first_unsure[k // self.recast.stride] = k
+        self.recast.judge_ahead(poses, scene, workers, progress, steps=list(first_unsure.values()))
 
 
 def _recast_on(recast: RecastScans, mesh) -> RecastScans:
@@ -365,8 +410,8 @@ def run_experiment(out_dir: str | Path, scene: str, detectors: list[str], sensor
                  else make_scene(scene, **(scene_params or {})))
     lidar = Lidar(EmbreeCaster(scene_obj.mesh), LidarConfig(model=rec.sensor if rec else sensor))
     dets = [make_detector(spec, lidar, seed) for spec in detectors]  # a bad spec fails before the drive
-    dets = [RecastScans(d, lidar, seed=seed) if spec.partition(":")[0] == "scanmc" else d
-            for spec, d in zip(detectors, dets)]
+    dets = [RecastScans(d, lidar, seed=seed) if isinstance(d, ScanMCDetector)
+            else RecastCascade(d, lidar, seed=seed) if isinstance(d, CascadeDetector) else d for d in dets]
     out.mkdir(parents=True, exist_ok=True)
     if rec is None:
         rec = record_run(scene, sensor, seed, progress, scene_params, scene_object=scene_obj,
@@ -377,11 +422,14 @@ def run_experiment(out_dir: str | Path, scene: str, detectors: list[str], sensor
     regs = register_sequence(rec, RegistrationConfig(), progress)
     icp_seconds = time.perf_counter() - t0
     ahead = [0.0] * len(dets)  # seconds of judging ahead, counted in the detector's time
+    poses = [T @ rec.T_b_s for T in rec.ground_truth[1:]]  # call k of the fusion is at the pose of scan k + 1
     for i, det in enumerate(dets):
-        if isinstance(det, RecastScans) and workers > 1:  # call k of the fusion is at the pose of scan k + 1
-            t0 = time.perf_counter()
-            det.judge_ahead([T @ rec.T_b_s for T in rec.ground_truth[1:]], scene_obj, workers, progress)
-            ahead[i] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        if isinstance(det, RecastScans) and workers > 1:
+            det.judge_ahead(poses, scene_obj, workers, progress)
+        elif isinstance(det, RecastCascade) and workers > 1:
+            det.judge_ahead([rec.detector_input(k + 1) for k in range(len(poses))], poses, scene_obj, workers, progress)
+        ahead[i] = time.perf_counter() - t0
     if attitude != "none":
         dets, ahead = [OdometryAttitude(), *dets], [0.0, *ahead]
     fused = evaluate(rec, dets, regs, fusion=fusion, progress=progress, backend=backend, attitude=attitude)

@@ -6,8 +6,8 @@ import pytest
 from l3e_env.config import FusionOptions, LidarConfig
 from l3e_env.detectors import EigenvalueDetector, NoDetector, make_detector
 from l3e_env.experiment import (
-    RecastScans, Recording, evaluate, file_stem, format_seed_table, format_table, record_run, register_sequence,
-    run_experiment, summarize_seeds,
+    RecastCascade, RecastScans, Recording, evaluate, file_stem, format_seed_table, format_table, record_run,
+    register_sequence, run_experiment, summarize_seeds,
 )
 from l3e_env.labels import AXES
 from l3e_env.lidar import Lidar
@@ -203,6 +203,41 @@ def test_a_recast_detector_judges_every_stride_steps_alike_in_workers_and_holds_
     assert not failing.predict(rec.scans[0], None, poses[1]).known  # not held as a judgement
     with pytest.raises(ValueError, match="true sensor pose"):
         failing.predict(rec.scans[0])
+
+
+def test_the_cascade_in_a_replay_checks_only_unsure_steps_alike_in_workers(walls_run):
+    from l3e_env.detectors import CascadeDetector, LearnedDetector, ScanMCDetector
+
+    rec, _ = walls_run
+    scene = make_scene(rec.scene)
+    lidar = Lidar(EmbreeCaster(scene.mesh), LidarConfig())
+    poses = [T @ rec.T_b_s for T in rec.ground_truth[1:13]]
+    samples = [rec.detector_input(k + 1) for k in range(len(poses))]
+    learned = LearnedDetector()
+
+    def replay(detector):
+        return [detector.predict(points, None, T) for points, T in zip(samples, poses)]
+
+    def cascade(margin: float) -> RecastCascade:
+        return RecastCascade(CascadeDetector(learned, ScanMCDetector(lidar.config, children=3), margin), lidar,
+                             stride=4)
+
+    sure = cascade(0.0)  # never unsure: the classifier on the recorded samples
+    assert all(np.array_equal(a.probabilities, b.probabilities) for a, b in zip(replay(sure), replay(learned)))
+    assert sure.cascade.checked == 0 and sure.cascade.calls == len(poses)
+    unsure = cascade(100.0)  # always unsure: the estimate on recast scans, once a block, as scanmc alone
+    estimate = replay(RecastScans(make_detector("scanmc:3", lidar), lidar, stride=4))
+    alone = replay(unsure)
+    assert unsure.cascade.checked == len(poses) and all(p.known for p in alone)
+    assert all(np.array_equal(a.probabilities, b.probabilities) for a, b in zip(alone, estimate))
+    ahead = cascade(100.0)
+    ahead.judge_ahead(samples, poses, scene, workers=2, progress=False)
+    assert ahead.recast._ahead.keys() == {0, 4, 8}
+    shared = replay(ahead)
+    assert not ahead.recast._ahead and all(np.array_equal(a.probabilities, b.probabilities)
+                                           for a, b in zip(alone, shared))
+    with pytest.raises(ValueError, match="true sensor pose"):
+        unsure.predict(samples[0])
 
 
 def test_a_users_mesh_and_route_are_driven_and_replayed(cad_corridor, tmp_path, capsys):
