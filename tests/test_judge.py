@@ -131,3 +131,21 @@ def test_files_judged_by_two_workers_are_judged_alike_and_in_order(tmp_path, rng
     assert shared[0].predictions["scanmc:4"].mask.tolist() == [True] + [False] * 5
     with pytest.raises(ValueError, match="workers must be at least 1"):
         list(judge_scans(paths, ["none"], workers=0))
+
+
+def test_the_cascade_judges_a_file_with_the_estimate_where_it_is_unsure(tmp_path, rng):
+    from l3e_env.detectors import make_detector
+    from l3e_env.judge import needs_sensor, score_legend
+
+    points = _corridor_scan(rng)
+    np.save(tmp_path / "corridor.npy", points)
+    (judged,) = judge_scans([tmp_path / "corridor.npy"], ["learned+scanmc:100", "learned+scanmc:0", "learned"],
+                            LidarConfig())
+    checked = judged.predictions["learned+scanmc:100"]  # always unsure: the estimate, seeded by the file's place
+    estimate = make_detector("scanmc", sensor=LidarConfig()).judge(points, np.random.default_rng([0, 0]))
+    assert checked.known and checked.mask.tolist() == [True] + [False] * 5
+    assert np.array_equal(checked.probabilities, estimate.probabilities)
+    assert np.array_equal(judged.predictions["learned+scanmc:0"].probabilities,
+                          judged.predictions["learned"].probabilities)  # never unsure: the classifier alone
+    assert needs_sensor(["learned+scanmc"]) and not needs_sensor(["learned"])
+    assert "learned+scanmc: the classifier's probability where it is sure" in score_legend(["learned+scanmc:1"])
