@@ -437,6 +437,9 @@ def run_experiment(out_dir: str | Path, scene: str, detectors: list[str], sensor
         result.seconds += seconds
     results = [odometry_only(rec)] + fused
     rows = [r.row() for r in results]
+    for det, row in zip(dets, rows[1:]):
+        if isinstance(det, RecastCascade):  # what the estimate cost it: steps it was asked, scans it judged
+            row.update(checked_steps=det.cascade.checked, judged_steps=len(det._held))
     failed = sum(r is None or not r.converged for r in regs)
     summary = {"scene": rec.scene, "sensor": rec.sensor, "seed": rec.seed, "noise_streams": rec.noise_streams,
                "swept": swept,
