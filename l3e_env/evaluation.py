@@ -206,9 +206,9 @@ def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Pat
                   mean_children=float(drawn[split][known].mean()) if known.any() else 0.0)
         np.savez(out / "scan_mc.npz", **{split.replace(" ", "_"): e for split, e in estimates.items()},
                  **{f"children_{split.replace(' ', '_')}": n for split, n in drawn.items()})
-        first = next(iter(curves))
-        thresholds = np.asarray(results["models"][first]["thresholds"])
-        for margin in cascade or []:
+        for margin in cascade or []:  # checked above: there is a first checkpoint
+            first = next(iter(curves))
+            thresholds = np.asarray(results["models"][first]["thresholds"])
             name = f"{first}+scanmc:{margin:g}"
             table[name], results["models"][name] = {}, {"margin": margin, "children": scan_mc, "splits": {}}
             for split in estimates:
