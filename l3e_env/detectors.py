@@ -179,12 +179,18 @@ class CascadeDetector:
         rng = np.random.default_rng([self.scan_mc.seed, self.calls])
         return self.judge(points, rng, T_w_s)
 
+    def classify(self, points: np.ndarray, T_w_s: np.ndarray | None = None) -> tuple[Prediction, bool]:
+        """The classifier's prediction, and whether it is unsure (a scan it cannot judge is not checked:
+        the estimate could not judge it either)."""
+        first = self.learned.predict(points, None, T_w_s)
+        thresholds = self.learned.classifier.thresholds
+        return first, first.known and bool(near_threshold(first.probabilities, thresholds, self.margin))
+
     def judge(self, points: np.ndarray, rng: np.random.Generator, T_w_s: np.ndarray | None = None) -> Prediction:
         """One scan; the estimate, where it is asked, draws its children from `rng`."""
         self.calls += 1
-        first = self.learned.predict(points, None, T_w_s)
-        if not first.known or not near_threshold(first.probabilities, self.learned.classifier.thresholds,
-                                                 self.margin):
+        first, unsure = self.classify(points, T_w_s)
+        if not unsure:
             return first
         self.checked += 1
         return self.scan_mc.judge(points, rng)

@@ -23,8 +23,7 @@ from fusion import FusionConfig, MetricError, ate, ate_aligned, check_backend, m
 from scenes import Scene, SceneError, canonical_scene_name, file_sha256, is_mesh_path, make_scene
 
 from .config import NOISE_STREAMS, EnvConfig, FusionOptions, LidarConfig, OdometryConfig, RobotConfig
-from .detectors import (UNKNOWN, CascadeDetector, Detector, Prediction, ScanMCDetector, make_detector,
-                        near_threshold, safe_predict)
+from .detectors import UNKNOWN, CascadeDetector, Detector, Prediction, ScanMCDetector, make_detector, safe_predict
 from .envs.navigation import NavigationEnv
 from .follower import RouteFollower
 from .imu import ATTITUDE_EVERY, StepGyro, attitude_readings, attitude_sigmas
@@ -154,18 +153,12 @@ class RecastCascade:
         self.name = cascade.name
         self._calls, self._held = 0, {}
 
-    def _classified(self, points: np.ndarray, T_w_s: np.ndarray) -> tuple[Prediction, bool]:
-        """The classifier's prediction, and whether it is unsure (an unknown one is not checked)."""
-        first = self.cascade.learned.predict(points, None, T_w_s)
-        thresholds = self.cascade.learned.classifier.thresholds
-        return first, first.known and bool(near_threshold(first.probabilities, thresholds, self.cascade.margin))
-
     def predict(self, points: np.ndarray, registration=None, T_w_s: np.ndarray | None = None) -> Prediction:
         if T_w_s is None:
             raise ValueError(f"{self.name} in a replay casts the scan again at the true sensor pose: give T_w_s")
         step, self._calls = self._calls, self._calls + 1
         self.cascade.calls += 1
-        first, unsure = self._classified(points, T_w_s)
+        first, unsure = self.cascade.classify(points, T_w_s)
         if not unsure:
             return first
         self.cascade.checked += 1
@@ -180,7 +173,7 @@ class RecastCascade:
         being samples[k] and poses[k]."""
         first_unsure: dict[int, int] = {}
         for k, (points, T) in enumerate(zip(samples, poses)):
-            if k // self.recast.stride not in first_unsure and self._classified(points, T)[1]:
+            if k // self.recast.stride not in first_unsure and self.cascade.classify(points, T)[1]:
                 first_unsure[k // self.recast.stride] = k
         self.recast.judge_ahead(poses, scene, workers, progress, steps=list(first_unsure.values()))
 

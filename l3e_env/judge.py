@@ -220,7 +220,8 @@ def recognise_sensor(scans: Iterator[str | Path | BagScan]) -> tuple[Iterator[st
 
 
 def needs_sensor(specs: list[str]) -> bool:
-    """Whether a detector simulates the sensor's beams (scanmc does; the others read points only)."""
+    """Whether a detector simulates the sensor's beams (scanmc and learned+scanmc do; the others read
+    points only)."""
     return any(spec.partition(":")[0] in ("scanmc", "learned+scanmc") for spec in specs)
 
 
