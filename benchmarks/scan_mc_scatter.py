@@ -30,8 +30,7 @@ from tqdm import tqdm
 from l3e_env.dataset import open_datasets, row_thresholds
 from l3e_env.labels import AXES
 from l3e_env.patterns import get_pattern
-from l3e_env.registration import RegistrationError
-from l3e_env.scan_mc import ScanMCConfig, ScanPatternError, _DatasetScans, _open_scans, scan_errors
+from l3e_env.scan_mc import ScanMCConfig, _DatasetScans, _open_scans, row_estimate
 from l3e_env.scores import axis_scores, mean_scores
 from l3e_env.training import split_indices
 from l3e_env.workers import ordered_map
@@ -45,16 +44,11 @@ def _raw_rows(scans: _DatasetScans, rows: np.ndarray) -> list[tuple[np.ndarray, 
     pattern = get_pattern(scans.lidar.model)
     out = []
     for row in rows:
-        part, at = scans.data.locate(int(row))
-        points = part.scan(at)
         children = np.full((scans.config.children, 6), np.nan)
-        try:  # seeded by the row, as dataset_scan_errors is
-            raw = scan_errors(points, scans.lidar, scans.registration, part.label_config, scans.config,
-                              np.random.default_rng([scans.seed, int(row)])).child_errors
-            children[:len(raw)] = raw
-        except (RegistrationError, ScanPatternError):
-            pass
-        out.append((children, 1.0 - len(points) / (pattern.n_beams * pattern.n_azimuth)))
+        if (found := row_estimate(scans, row)) is not None:  # seeded by the row, as dataset_scan_errors is
+            children[:len(found.child_errors)] = found.child_errors
+        part, at = scans.data.locate(int(row))
+        out.append((children, 1.0 - len(part.scan(at)) / (pattern.n_beams * pattern.n_azimuth)))
     return out
 
 

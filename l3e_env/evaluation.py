@@ -206,8 +206,8 @@ def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Pat
                   mean_children=float(drawn[split][known].mean()) if known.any() else 0.0)
         np.savez(out / "scan_mc.npz", **{split.replace(" ", "_"): e for split, e in estimates.items()},
                  **{f"children_{split.replace(' ', '_')}": n for split, n in drawn.items()})
-        for margin in cascade or []:  # checked above: there is a first checkpoint
-            first = next(iter(curves))
+        first = next(iter(curves), "")  # the cascade was refused above without a checkpoint
+        for margin in cascade or []:
             thresholds = np.asarray(results["models"][first]["thresholds"])
             name = f"{first}+scanmc:{margin:g}"
             table[name], results["models"][name] = {}, {"margin": margin, "children": scan_mc, "splits": {}}
@@ -222,11 +222,10 @@ def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Pat
         scored = results["models"][f"scanmc:{scan_mc}"]["splits"]
         text += f"\nscanmc:{scan_mc} children drawn a scan (mean): " + ", ".join(
             f"{split} {scored[split]['mean_children']:.1f}" for split in drawn if scored[split]["mean_children"]) + "\n"
-    for margin in cascade or []:
-        name = f"{next(iter(curves))}+scanmc:{margin:g}"
-        text += f"{name}: share of scans checked by scanmc:{scan_mc}: " + ", ".join(
-            f"{split} {r['checked']:.2f}" for split, r in results["models"][name]["splits"].items()
-            if "checked" in r) + "\n"
+    for name, model in results["models"].items():
+        if "margin" in model:  # a cascade
+            text += f"{name}: share of scans checked by scanmc:{scan_mc}: " + ", ".join(
+                f"{split} {r['checked']:.2f}" for split, r in model["splits"].items() if "checked" in r) + "\n"
     if symmetric:
         text = "probabilities averaged over the eight mirror/swap views of each scan\n" + text
     (out / "table.txt").write_text(text + "\n")

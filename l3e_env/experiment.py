@@ -116,6 +116,10 @@ class RecastScans:
         scan = self.lidar.scan(T_w_s, np.random.default_rng([self.seed, 2, step]))
         return self.detector.judge(scan.points, np.random.default_rng([self.seed, 3, step]))
 
+    def judgement(self, step: int, T_w_s: np.ndarray) -> Prediction:
+        """The step's judgement: the one made ahead, or made now."""
+        return self._ahead.pop(step, None) or self.judge_step(step, T_w_s)
+
     def judge_ahead(self, poses: list[np.ndarray], scene: Scene, workers: int, progress: bool = True,
                     steps: list[int] | None = None) -> None:
         """Judge the steps that `predict` will be asked for (every `stride`-th, or `steps`), T_w_s of
@@ -136,7 +140,7 @@ class RecastScans:
         try:
             if self._calls % self.stride == 0:
                 self._last = UNKNOWN  # a judgement that raises is not held over the next steps
-                self._last = self._ahead.pop(self._calls, None) or self.judge_step(self._calls, T_w_s)
+                self._last = self.judgement(self._calls, T_w_s)
             return self._last
         finally:
             self._calls += 1
@@ -152,29 +156,31 @@ class RecastCascade:
         self.cascade, self.recast = cascade, RecastScans(cascade.scan_mc, lidar, stride, seed)
         self.name = cascade.name
         self._calls, self._held = 0, {}
+        self._classified: dict[int, tuple[Prediction, bool]] = {}  # by judge_ahead, for predict to take
 
     def predict(self, points: np.ndarray, registration=None, T_w_s: np.ndarray | None = None) -> Prediction:
         if T_w_s is None:
             raise ValueError(f"{self.name} in a replay casts the scan again at the true sensor pose: give T_w_s")
         step, self._calls = self._calls, self._calls + 1
         self.cascade.calls += 1
-        first, unsure = self.cascade.classify(points, T_w_s)
+        first, unsure = self._classified.pop(step, None) or self.cascade.classify(points, T_w_s)
         if not unsure:
             return first
         self.cascade.checked += 1
         block = step // self.recast.stride
         if block not in self._held:
-            self._held[block] = self.recast._ahead.pop(step, None) or self.recast.judge_step(step, T_w_s)
+            self._held[block] = self.recast.judgement(step, T_w_s)
         return self._held[block]
 
     def judge_ahead(self, samples: list[np.ndarray], poses: list[np.ndarray], scene: Scene, workers: int,
                     progress: bool = True) -> None:
         """Judge the steps that `predict` will ask the estimate for, the samples and T_w_s of call k
         being samples[k] and poses[k]."""
+        self._classified = {k: self.cascade.classify(points, T) for k, (points, T) in enumerate(zip(samples, poses))}
         first_unsure: dict[int, int] = {}
-        for k, (points, T) in enumerate(zip(samples, poses)):
-            if k // self.recast.stride not in first_unsure and self.cascade.classify(points, T)[1]:
-                first_unsure[k // self.recast.stride] = k
+        for k, (_, unsure) in self._classified.items():
+            if unsure:
+                first_unsure.setdefault(k // self.recast.stride, k)
         self.recast.judge_ahead(poses, scene, workers, progress, steps=list(first_unsure.values()))
 
 

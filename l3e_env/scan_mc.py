@@ -235,16 +235,23 @@ def _open_scans(folders: list[str], config: ScanMCConfig, seed: int) -> _Dataset
                          from_dict(RegistrationConfig, settings["registration"]), config, seed)
 
 
+def row_estimate(scans: _DatasetScans, row: int) -> ScanEstimate | None:
+    """One dataset row's estimate, None where its scan cannot be judged; seeded by the row, so it is
+    the same whatever the number of workers."""
+    part, at = scans.data.locate(int(row))
+    try:
+        return scan_errors(part.scan(at), scans.lidar, scans.registration, part.label_config, scans.config,
+                           np.random.default_rng([scans.seed, int(row)]))
+    except (RegistrationError, ScanPatternError):
+        return None
+
+
 def _estimate_rows(scans: _DatasetScans, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Estimates and children drawn of some rows."""
     out, drawn = np.full((len(rows), 6), np.nan), np.zeros(len(rows), dtype=np.int64)
     for k, row in enumerate(rows):
-        part, at = scans.data.locate(int(row))
-        try:  # seeded by the row: the same estimate whatever the number of workers
-            out[k], drawn[k], _ = scan_errors(part.scan(at), scans.lidar, scans.registration, part.label_config,
-                                              scans.config, np.random.default_rng([scans.seed, int(row)]))
-        except (RegistrationError, ScanPatternError):
-            pass
+        if (found := row_estimate(scans, row)) is not None:
+            out[k], drawn[k] = found.errors, found.children
     return out, drawn
 
 
