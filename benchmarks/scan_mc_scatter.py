@@ -30,7 +30,7 @@ from tqdm import tqdm
 from l3e_env.dataset import open_datasets, row_thresholds
 from l3e_env.labels import AXES
 from l3e_env.patterns import get_pattern
-from l3e_env.scan_mc import ScanMCConfig, _DatasetScans, _open_scans, row_estimate
+from l3e_env.scan_mc import DatasetScans, ScanMCConfig, open_dataset_scans, row_estimate
 from l3e_env.scores import axis_scores, mean_scores
 from l3e_env.training import split_indices
 from l3e_env.workers import ordered_map
@@ -39,7 +39,7 @@ from scenes import TEST_SCENES, TRAIN_SCENES, VALIDATION_SCENES
 NEAR = 0.5  # |log(label error / threshold)| under this: a scan near its threshold
 
 
-def _raw_rows(scans: _DatasetScans, rows: np.ndarray) -> list[tuple[np.ndarray, float]]:
+def _raw_rows(scans: DatasetScans, rows: np.ndarray) -> list[tuple[np.ndarray, float]]:
     """Each row's children's raw errors, NaN-padded to the configured count, and its openness."""
     pattern = get_pattern(scans.lidar.model)
     out = []
@@ -58,7 +58,7 @@ def raw_estimates(folders: list[str], rows: np.ndarray, children: int, workers: 
     chunks = [rows[i:i + 4] for i in range(0, len(rows), 4)]
     found: list[tuple[np.ndarray, float]] = []
     with tqdm(total=len(rows), desc=f"{children} children a scan", leave=False) as bar:
-        for part in ordered_map(_raw_rows, chunks, None, _open_scans, (folders, config, 0), workers):
+        for part in ordered_map(_raw_rows, chunks, None, open_dataset_scans, (folders, config, 0), workers):
             found.extend(part)
             bar.update(len(part))
     return np.stack([c for c, _ in found]), np.array([o for _, o in found])

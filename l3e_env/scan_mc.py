@@ -215,7 +215,7 @@ def scan_errors(points: np.ndarray, lidar: LidarConfig, registration: Registrati
         stage = min(2 * drawn, config.children)
 
 
-class _DatasetScans(NamedTuple):
+class DatasetScans(NamedTuple):
     """What a worker estimates rows with: the dataset(s) opened by itself (memory maps) and their
     sensor and registration."""
     data: Any
@@ -225,17 +225,18 @@ class _DatasetScans(NamedTuple):
     seed: int
 
 
-def _open_scans(folders: list[str], config: ScanMCConfig, seed: int) -> _DatasetScans:
+def open_dataset_scans(folders: list[str], config: ScanMCConfig, seed: int) -> DatasetScans:
+    """The dataset(s) `folders` opened for `row_estimate`, once per worker process."""
     from .config import from_dict
     from .dataset import open_datasets
 
     data = open_datasets(folders)
     settings = data.manifest["settings"]
-    return _DatasetScans(data, from_dict(LidarConfig, settings["lidar"]),
-                         from_dict(RegistrationConfig, settings["registration"]), config, seed)
+    return DatasetScans(data, from_dict(LidarConfig, settings["lidar"]),
+                        from_dict(RegistrationConfig, settings["registration"]), config, seed)
 
 
-def row_estimate(scans: _DatasetScans, row: int) -> ScanEstimate | None:
+def row_estimate(scans: DatasetScans, row: int) -> ScanEstimate | None:
     """One dataset row's estimate, None where its scan cannot be judged; seeded by the row, so it is
     the same whatever the number of workers."""
     part, at = scans.data.locate(int(row))
@@ -246,7 +247,7 @@ def row_estimate(scans: _DatasetScans, row: int) -> ScanEstimate | None:
         return None
 
 
-def _estimate_rows(scans: _DatasetScans, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _estimate_rows(scans: DatasetScans, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Estimates and children drawn of some rows."""
     out, drawn = np.full((len(rows), 6), np.nan), np.zeros(len(rows), dtype=np.int64)
     for k, row in enumerate(rows):
@@ -268,7 +269,7 @@ def dataset_scan_errors(folders: list[str], rows: np.ndarray, config: ScanMCConf
     out, drawn = np.full((len(rows), 6), np.nan), np.zeros(len(rows), dtype=np.int64)
     with tqdm(total=len(rows), desc=f"scan Monte-Carlo (up to {config.children} children)", disable=not progress,
               leave=False) as bar:
-        parts = ordered_map(_estimate_rows, chunks, None, _open_scans, (folders, config, seed), workers)
+        parts = ordered_map(_estimate_rows, chunks, None, open_dataset_scans, (folders, config, seed), workers)
         for k, (part, children) in enumerate(parts):
             out[4 * k:4 * k + len(part)], drawn[4 * k:4 * k + len(part)] = part, children
             bar.update(len(part))
