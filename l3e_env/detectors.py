@@ -151,13 +151,18 @@ class LearnedDetector:
 CASCADE_MARGIN = 1.0  # chosen on the validation scenes (benchmarks/RESULTS.md, "The classifier checked ...")
 
 
+def log_odds_over_threshold(probabilities: np.ndarray, thresholds: np.ndarray) -> np.ndarray:
+    """logit(p) - logit(threshold), per axis: positive where the axis is flagged."""
+    p = np.clip(probabilities, 1e-6, 1 - 1e-6)
+    t = np.clip(thresholds, 1e-6, 1 - 1e-6)
+    return np.log(p / (1 - p)) - np.log(t / (1 - t))
+
+
 def near_threshold(probabilities: np.ndarray, thresholds: np.ndarray, margin: float) -> np.ndarray:
     """Whether any axis's probability lies within `margin` of its threshold in log-odds, per scan
     ((..., 6) -> (...)): where the classifier is unsure, and where most of its errors on scene
     families it never saw lie."""
-    p = np.clip(probabilities, 1e-6, 1 - 1e-6)
-    t = np.clip(thresholds, 1e-6, 1 - 1e-6)
-    return (np.abs(np.log(p / (1 - p)) - np.log(t / (1 - t))) < margin).any(axis=-1)
+    return (np.abs(log_odds_over_threshold(probabilities, thresholds)) < margin).any(axis=-1)
 
 
 class CascadeDetector:

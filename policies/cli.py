@@ -131,7 +131,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     g = psub.add_parser("map", parents=[common], help="build (or load) and plot localizability maps")
     g.add_argument("--scene", type=scene_names, action="append",
                    help="scene names, comma-separated or repeated (default: fork)")
-    g.add_argument("--detector", default="learned", help="learned[:checkpoint] | eigen:<tau> | oracle[:M] | scanmc[:M]")
+    g.add_argument("--detector", default="learned",
+                   help="learned[:checkpoint] | eigen:<tau> | oracle[:M] | scanmc[:M] | learned+scanmc[:margin]")
     g.add_argument("--resolution", type=float, default=2.0, help="metres between mapped positions (default 2)")
     g.add_argument("--out", help="folder for the plots (default: l3e_out/maps)")
     g.add_argument("--workers", type=int, default=1, help="processes that build a map not yet cached")

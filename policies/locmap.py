@@ -17,7 +17,7 @@ from tqdm import tqdm
 
 from l3e_env.classifier import DEFAULT_CHECKPOINT, Classifier, ScanError
 from l3e_env.config import LidarConfig, RobotConfig, plain, to_dict
-from l3e_env.detectors import learned_spec, make_detector
+from l3e_env.detectors import learned_spec, log_odds_over_threshold, make_detector
 from l3e_env.files import write_atomic
 from l3e_env.lidar import Lidar
 from l3e_env.raycast import EmbreeCaster, make_caster
@@ -114,8 +114,11 @@ class MapJudge:
     - eigen:<tau>: Zhang's test on the Hessian of registering a scan taken `step` metres further
       ahead onto the pose's scan (what the fusion loop sees between consecutive scans);
     - oracle[:M]: Monte-Carlo ICP labels with M children at the pose (slow; ground truth);
-    - scanmc[:M]: the same estimated from the scan at the pose alone (l3e_env.scan_mc; slow).
-    Eigen and oracle give 0/1 masks as probabilities; all three have thresholds 0.5."""
+    - scanmc[:M]: the same estimated from the scan at the pose alone (l3e_env.scan_mc; slow);
+    - learned+scanmc[:margin]: the shipped classifier, and scanmc where it is unsure. Its two judges
+      have different thresholds, so the classifier's probabilities are moved to put its thresholds
+      at 0.5 (sigmoid of the log-odds over the threshold): the same flags on one scale.
+    Eigen and oracle give 0/1 masks as probabilities; all but learned have thresholds 0.5."""
 
     def __init__(self, spec: str, lidar: Lidar, seed: int = 0, step: float = 0.1):
         self.spec, self.lidar, self.seed, self.step = spec, lidar, seed, step
@@ -127,16 +130,38 @@ class MapJudge:
             self.classifier.check_settings(lidar.config.model)
             self.thresholds = self.classifier.thresholds.copy()
             self.identity = f"{kind}-{file_digest(checkpoint or DEFAULT_CHECKPOINT)}"
-        elif kind in ("eigen", "oracle", "scanmc"):
+        elif kind in ("eigen", "oracle", "scanmc", "learned+scanmc"):
             self.detector = make_detector(spec, lidar, seed)
             self.thresholds = np.full(6, 0.5)
             self.identity = self.detector.name.replace(":", "")
+            if kind == "learned+scanmc":
+                self.detector.learned.classifier.check_settings(lidar.config.model)
+                self.identity += "-" + file_digest(DEFAULT_CHECKPOINT)
             if kind != "eigen":  # new labels, a new calibration or another seeding is another map
-                config = self.detector.labels if kind == "oracle" else self.detector.config
+                config = self.detector.labels if kind == "oracle" else self.estimate_config
                 self.identity += "-" + settings_digest({"config": to_dict(config), "children": "seeded by pose"})
         else:
-            raise ValueError(f"map detector '{spec}': use learned[-sym][:checkpoint], eigen:<tau>, oracle[:M] or "
-                             "scanmc[:M]")
+            raise ValueError(f"map detector '{spec}': use learned[-sym][:checkpoint], eigen:<tau>, oracle[:M], "
+                             "scanmc[:M] or learned+scanmc[:margin]")
+
+    @property
+    def estimate_config(self) -> Any:
+        """The ScanMCConfig of a scanmc or learned+scanmc judge."""
+        return self.detector.scan_mc.config if self.kind == "learned+scanmc" else self.detector.config
+
+    def _judge_scan(self, points: np.ndarray, rng: np.random.Generator, T: np.ndarray) -> np.ndarray:
+        """scanmc's or the cascade's six probabilities for one scan, with thresholds 0.5 (NaN: unknown)."""
+        if self.kind == "learned+scanmc":
+            first, unsure = self.detector.classify(points, T)
+            if not first.known:
+                return np.full(6, np.nan)
+            if not unsure:
+                over = log_odds_over_threshold(first.probabilities, self.detector.learned.classifier.thresholds)
+                return 1 / (1 + np.exp(-over))
+            pred = self.detector.scan_mc.judge(points, rng)
+        else:
+            pred = self.detector.judge(points, rng)
+        return pred.probabilities if pred.known else np.full(6, np.nan)
 
     def __call__(self, poses: list[np.ndarray], rngs: list[np.random.Generator]) -> np.ndarray:
         out = np.full((len(poses), 6), np.nan)
@@ -155,10 +180,8 @@ class MapJudge:
             # the children come from the pose's own rng, so a map does not depend on the order of its poses
             if self.kind == "oracle":
                 pred = self.detector.judge(T, rng)
-            elif self.kind == "scanmc":
-                pred = self.detector.judge(self.lidar.scan(T, rng).points, rng)
-                if pred.known:
-                    out[i] = pred.probabilities
+            elif self.kind in ("scanmc", "learned+scanmc"):
+                out[i] = self._judge_scan(self.lidar.scan(T, rng).points, rng, T)
                 continue
             else:
                 ahead = T @ planar_pose(self.step, 0.0, 0.0, 0.0)

@@ -191,6 +191,34 @@ def test_map_judges_of_the_estimate_and_the_oracle_read_each_pose_by_itself(rng)
     assert masks[:, :2].tolist() == [[1, 0], [0, 1], [1, 0], [0, 1]]
 
 
+def test_map_judge_of_the_cascade_puts_its_two_judges_on_one_scale():
+    from policies.locmap import MapJudge
+
+    lidar = Lidar(EmbreeCaster(_box([200, 4, 3]), threads=1), LidarConfig())
+    across = SENSOR.copy()
+    across[:2, :2] = [[0, -1], [1, 0]]
+    poses = [SENSOR, across]
+
+    def seeds() -> list[np.random.Generator]:
+        return [np.random.default_rng(1), np.random.default_rng(2)]
+
+    learned, never = MapJudge("learned", lidar), MapJudge("learned+scanmc:0", lidar)
+    always, scanmc = MapJudge("learned+scanmc:100", lidar), MapJudge("scanmc", lidar)
+    assert never.identity.startswith("learned+scanmc0-") and always.identity.startswith("learned+scanmc100-")
+    assert (never.thresholds == 0.5).all() and not np.array_equal(learned.thresholds, never.thresholds)
+    # margin 0: the classifier alone, its probabilities moved so that its thresholds sit at 0.5 (pose by
+    # pose: the classifier draws a batch's points by the scan's place in it)
+    p = np.concatenate([learned([T], [rng]) for T, rng in zip(poses, seeds())])
+    centred = never(poses, seeds())
+    assert np.array_equal(centred > 0.5, p > learned.thresholds)
+    logit = lambda q: np.log(q / (1 - q))  # noqa: E731
+    inside = (p > 1e-5) & (p < 1 - 1e-5)  # log-odds are clipped at +-13.8
+    assert inside.sum() >= 8
+    np.testing.assert_allclose(logit(centred)[inside], (logit(p) - logit(learned.thresholds))[inside], atol=1e-4)
+    # margin 100: every scan judged by scanmc, with the pose's own children
+    assert np.array_equal(always(poses, seeds()), scanmc(poses, seeds()))
+
+
 def test_a_thinned_scan_is_refused_by_name(rng):
     scan = _scan(_box([12, 9, 3]), rng)
     sampled = scan.points[rng.choice(len(scan), 4000, replace=False)]  # as a recording keeps it
