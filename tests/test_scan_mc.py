@@ -192,6 +192,8 @@ def test_map_judges_of_the_estimate_and_the_oracle_read_each_pose_by_itself(rng)
 
 
 def test_map_judge_of_the_cascade_puts_its_two_judges_on_one_scale():
+    from scipy.special import logit
+
     from policies.locmap import MapJudge
 
     lidar = Lidar(EmbreeCaster(_box([200, 4, 3]), threads=1), LidarConfig())
@@ -211,7 +213,6 @@ def test_map_judge_of_the_cascade_puts_its_two_judges_on_one_scale():
     p = np.concatenate([learned([T], [rng]) for T, rng in zip(poses, seeds())])
     centred = never(poses, seeds())
     assert np.array_equal(centred > 0.5, p > learned.thresholds)
-    logit = lambda q: np.log(q / (1 - q))  # noqa: E731
     inside = (p > 1e-5) & (p < 1 - 1e-5)  # log-odds are clipped at +-13.8
     assert inside.sum() >= 8
     np.testing.assert_allclose(logit(centred)[inside], (logit(p) - logit(learned.thresholds))[inside], atol=1e-4)
