@@ -31,7 +31,7 @@ def _floor_plan(ax, scene: Scene, space: FreeSpace | None = None) -> None:
 
 
 def plot_locmap(path: str | Path, scene: Scene, locmap: LocalizabilityMap, space: FreeSpace | None = None) -> None:
-    """Six panels: per axis, the probability of non-localizability averaged over headings, with a
+    """Six panels: per axis, the detector's non-localizability score averaged over headings, with a
     short tick per position towards the heading where the detector masks that axis most."""
     fig, axes = plt.subplots(3, 2, figsize=(14, 12), squeeze=False)
     p = np.nanmean(locmap.probabilities, axis=1)
@@ -46,7 +46,9 @@ def plot_locmap(path: str | Path, scene: Scene, locmap: LocalizabilityMap, space
         ax.quiver(*locmap.positions[show].T, *d.T, angles="xy", scale_units="xy", scale=1, width=0.002,
                   color="tab:cyan")
         ax.set_title(f"{AXES[i]}: masked at {100 * masked[:, :, i].mean():.0f}% of poses")
-        fig.colorbar(sc, ax=ax, shrink=0.7, label="p(non-localizable)")
+        # the detector's own scale: scanmc's and the cascade's scores are flagged above 0.5, the classifier's
+        # probabilities above its stored thresholds
+        fig.colorbar(sc, ax=ax, shrink=0.7, label=f"non-localizability (masked above {locmap.thresholds[i]:.2f})")
     fig.suptitle(f"{scene.name}: localizability map ({len(locmap.positions)} positions x {len(locmap.yaws)} headings)")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
