@@ -193,12 +193,29 @@ class CascadeDetector:
 
     def judge(self, points: np.ndarray, rng: np.random.Generator, T_w_s: np.ndarray | None = None) -> Prediction:
         """One scan; the estimate, where it is asked, draws its children from `rng`."""
+        return self._judged(points, rng, T_w_s)[0]
+
+    def scores_at_half(self, points: np.ndarray, rng: np.random.Generator,
+                       T_w_s: np.ndarray | None = None) -> np.ndarray:
+        """`judge`'s six scores on one scale, flagged above 0.5 whichever judge judged: the classifier's
+        probabilities moved so that its thresholds sit at 0.5 (sigmoid of the log-odds over them), the
+        estimate's r / (1 + r) as they are; NaN for a scan neither can judge. A map holds these."""
+        pred, by_estimate = self._judged(points, rng, T_w_s)
+        if not pred.known:
+            return np.full(6, np.nan)
+        if by_estimate:
+            return pred.probabilities
+        return 1 / (1 + np.exp(-log_odds_over_threshold(pred.probabilities, self.learned.classifier.thresholds)))
+
+    def _judged(self, points: np.ndarray, rng: np.random.Generator,
+                T_w_s: np.ndarray | None) -> tuple[Prediction, bool]:
+        """The prediction, and whether the estimate made it."""
         self.calls += 1
         first, unsure = self.classify(points, T_w_s)
         if not unsure:
-            return first
+            return first, False
         self.checked += 1
-        return self.scan_mc.judge(points, rng)
+        return self.scan_mc.judge(points, rng), True
 
 
 def safe_predict(det: Detector, points: np.ndarray, reg, T_w_s: np.ndarray) -> tuple[Prediction, bool]:

@@ -172,6 +172,11 @@ class RecastCascade:
             self._held[block] = self.recast.judgement(step, T_w_s)
         return self._held[block]
 
+    @property
+    def judged_steps(self) -> int:
+        """Scans the estimate has judged (one per block with an unsure step)."""
+        return len(self._held)
+
     def judge_ahead(self, samples: list[np.ndarray], poses: list[np.ndarray], scene: Scene, workers: int,
                     progress: bool = True) -> None:
         """Judge the steps that `predict` will ask the estimate for, the samples and T_w_s of call k
@@ -438,7 +443,7 @@ def run_experiment(out_dir: str | Path, scene: str, detectors: list[str], sensor
     rows = [r.row() for r in results]
     for det, row in zip(dets, rows[1:]):
         if isinstance(det, RecastCascade):  # what the estimate cost it: steps it was asked, scans it judged
-            row.update(checked_steps=det.cascade.checked, judged_steps=len(det._held))
+            row.update(checked_steps=det.cascade.checked, judged_steps=det.judged_steps)
     failed = sum(r is None or not r.converged for r in regs)
     summary = {"scene": rec.scene, "sensor": rec.sensor, "seed": rec.seed, "noise_streams": rec.noise_streams,
                "swept": swept,

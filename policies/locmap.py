@@ -17,7 +17,7 @@ from tqdm import tqdm
 
 from l3e_env.classifier import DEFAULT_CHECKPOINT, Classifier, ScanError
 from l3e_env.config import LidarConfig, RobotConfig, plain, to_dict
-from l3e_env.detectors import learned_spec, log_odds_over_threshold, make_detector
+from l3e_env.detectors import learned_spec, make_detector
 from l3e_env.files import write_atomic
 from l3e_env.lidar import Lidar
 from l3e_env.raycast import EmbreeCaster, make_caster
@@ -152,15 +152,8 @@ class MapJudge:
     def _judge_scan(self, points: np.ndarray, rng: np.random.Generator, T: np.ndarray) -> np.ndarray:
         """scanmc's or the cascade's six probabilities for one scan, with thresholds 0.5 (NaN: unknown)."""
         if self.kind == "learned+scanmc":
-            first, unsure = self.detector.classify(points, T)
-            if not first.known:
-                return np.full(6, np.nan)
-            if not unsure:
-                over = log_odds_over_threshold(first.probabilities, self.detector.learned.classifier.thresholds)
-                return 1 / (1 + np.exp(-over))
-            pred = self.detector.scan_mc.judge(points, rng)
-        else:
-            pred = self.detector.judge(points, rng)
+            return self.detector.scores_at_half(points, rng, T)
+        pred = self.detector.judge(points, rng)
         return pred.probabilities if pred.known else np.full(6, np.nan)
 
     def __call__(self, poses: list[np.ndarray], rngs: list[np.random.Generator]) -> np.ndarray:

@@ -228,7 +228,7 @@ def test_the_cascade_in_a_replay_checks_only_unsure_steps_alike_in_workers(walls
     unsure = cascade(100.0)  # always unsure: the estimate on recast scans, once a block, as scanmc alone
     estimate = replay(RecastScans(make_detector("scanmc:3", lidar), lidar, stride=4))
     alone = replay(unsure)
-    assert unsure.cascade.checked == len(poses) and len(unsure._held) == 3 and all(p.known for p in alone)
+    assert unsure.cascade.checked == len(poses) and unsure.judged_steps == 3 and all(p.known for p in alone)
     assert all(np.array_equal(a.probabilities, b.probabilities) for a, b in zip(alone, estimate))
     ahead = cascade(100.0)
     ahead.judge_ahead(samples, poses, scene, workers=2, progress=False)
