@@ -196,16 +196,17 @@ class CascadeDetector:
         return self._judged(points, rng, T_w_s)[0]
 
     def scores_at_half(self, points: np.ndarray, rng: np.random.Generator,
-                       T_w_s: np.ndarray | None = None) -> np.ndarray:
+                       T_w_s: np.ndarray | None = None) -> tuple[np.ndarray, bool]:
         """`judge`'s six scores on one scale, flagged above 0.5 whichever judge judged: the classifier's
         probabilities moved so that its thresholds sit at 0.5 (sigmoid of the log-odds over them), the
-        estimate's r / (1 + r) as they are; NaN for a scan neither can judge. A map holds these."""
+        estimate's r / (1 + r) as they are; NaN for a scan neither can judge. And whether the estimate
+        judged. A map holds these."""
         pred, by_estimate = self._judged(points, rng, T_w_s)
         if not pred.known:
-            return np.full(6, np.nan)
+            return np.full(6, np.nan), by_estimate
         if by_estimate:
-            return pred.probabilities
-        return 1 / (1 + np.exp(-log_odds_over_threshold(pred.probabilities, self.learned.classifier.thresholds)))
+            return pred.probabilities, True
+        return 1 / (1 + np.exp(-log_odds_over_threshold(pred.probabilities, self.learned.classifier.thresholds))), False
 
     def _judged(self, points: np.ndarray, rng: np.random.Generator,
                 T_w_s: np.ndarray | None) -> tuple[Prediction, bool]:

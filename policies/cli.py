@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -13,6 +14,9 @@ from l3e_env.cli import (
     add_fusion_options, add_mesh_options, fusion_options, mesh_options_given, meshes_file, scene_names,
     scene_params, sensor_name,
 )
+
+if TYPE_CHECKING:
+    from .locmap import LocalizabilityMap
 
 
 def _scenes_with_params(args: argparse.Namespace, default: tuple[str, ...] = ("fork",)) -> dict[str, dict]:
@@ -48,8 +52,18 @@ def _cmd_map(args: argparse.Namespace) -> int:
         share = " ".join(f"{a} {100 * v:.0f}%" for a, v in zip("x y z roll pitch yaw".split(),
                                                                   ctx.locmap.masked.mean(axis=(0, 1))))
         print(f"{ctx.scene.name}: {len(ctx.locmap.positions)} positions x {len(ctx.locmap.yaws)} headings, "
-              f"masked: {share} ({time.perf_counter() - t0:.0f} s) -> {figure}")
+              f"masked: {share}{_estimated_share(ctx.locmap, args.detector)} ({time.perf_counter() - t0:.0f} s) "
+              f"-> {figure}")
     return 0
+
+
+def _estimated_share(locmap: LocalizabilityMap, detector: str) -> str:
+    """For a cascade map, the share of poses that scanmc judged: what the map cost beyond the classifier."""
+    if not detector.startswith("learned+scanmc"):
+        return ""
+    if locmap.estimated is None:
+        return "; scanmc's share not recorded in this cached map"
+    return f"; scanmc judged {100 * locmap.estimated.mean():.0f}% of the poses"
 
 
 def _cmd_plan(args: argparse.Namespace) -> int:

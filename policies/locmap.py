@@ -47,7 +47,9 @@ def heading_bins(heading: np.ndarray, bins: int) -> tuple[np.ndarray, np.ndarray
 class LocalizabilityMap:
     """probabilities[n, k] are the detector's six non-localizability probabilities (x, y, z,
     roll, pitch, yaw; sensor frame) with the body level at positions[n] and heading yaws[k];
-    NaN where the scan could not be judged. `thresholds` are the detector's own."""
+    NaN where the scan could not be judged. `thresholds` are the detector's own. `estimated[n, k]`
+    says where the scan's Monte-Carlo estimate judged (scanmc, and the cascade where the
+    classifier was unsure); None in a map saved before it was recorded."""
 
     scene: str
     positions: np.ndarray  # (N, 2)
@@ -55,6 +57,7 @@ class LocalizabilityMap:
     probabilities: np.ndarray  # (N, K, 6)
     thresholds: np.ndarray  # (6,)
     meta: dict[str, Any] = field(default_factory=dict)
+    estimated: np.ndarray | None = None  # (N, K) bool
 
     def __post_init__(self) -> None:
         self._tree = cKDTree(self.positions)
@@ -85,9 +88,11 @@ class LocalizabilityMap:
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         meta = np.array(json.dumps(plain({**self.meta, "format": MAP_FORMAT, "scene": self.scene})))
-        write_atomic(path, lambda fh: np.savez_compressed(fh, positions=self.positions, yaws=self.yaws,
-                                                          probabilities=self.probabilities,
-                                                          thresholds=self.thresholds, meta=meta))
+        arrays = {"positions": self.positions, "yaws": self.yaws, "probabilities": self.probabilities,
+                  "thresholds": self.thresholds, "meta": meta}
+        if self.estimated is not None:
+            arrays["estimated"] = self.estimated
+        write_atomic(path, lambda fh: np.savez_compressed(fh, **arrays))
 
     @classmethod
     def load(cls, path: str | Path) -> LocalizabilityMap:
@@ -95,6 +100,7 @@ class LocalizabilityMap:
             with np.load(path, allow_pickle=False) as z:
                 meta = json.loads(str(z["meta"]))
                 arrays = {k: z[k] for k in ("positions", "yaws", "probabilities", "thresholds")}
+                arrays["estimated"] = z["estimated"] if "estimated" in z.files else None
         except (OSError, KeyError, ValueError) as exc:
             raise MapCacheError(f"{path}: not a readable localizability map ({exc})") from exc
         if meta.get("format") != MAP_FORMAT:
@@ -149,32 +155,38 @@ class MapJudge:
         """The ScanMCConfig of a scanmc or learned+scanmc judge."""
         return self.detector.scan_mc.config if self.kind == "learned+scanmc" else self.detector.config
 
-    def _judge_scan(self, points: np.ndarray, rng: np.random.Generator, T: np.ndarray) -> np.ndarray:
-        """scanmc's or the cascade's six probabilities for one scan, with thresholds 0.5 (NaN: unknown)."""
+    def _judge_scan(self, points: np.ndarray, rng: np.random.Generator, T: np.ndarray) -> tuple[np.ndarray, bool]:
+        """scanmc's or the cascade's six probabilities for one scan, with thresholds 0.5 (NaN: unknown),
+        and whether the scan's estimate judged it."""
         if self.kind == "learned+scanmc":
             return self.detector.scores_at_half(points, rng, T)
         pred = self.detector.judge(points, rng)
-        return pred.probabilities if pred.known else np.full(6, np.nan)
+        return (pred.probabilities if pred.known else np.full(6, np.nan)), True
 
     def __call__(self, poses: list[np.ndarray], rngs: list[np.random.Generator]) -> np.ndarray:
-        out = np.full((len(poses), 6), np.nan)
+        return self.judge_poses(poses, rngs)[0]
+
+    def judge_poses(self, poses: list[np.ndarray],
+                    rngs: list[np.random.Generator]) -> tuple[np.ndarray, np.ndarray]:
+        """(n, 6) probabilities, and (n,) whether the scan's Monte-Carlo estimate judged each pose."""
+        out, estimated = np.full((len(poses), 6), np.nan), np.zeros(len(poses), dtype=bool)
         if self.kind == "learned":
             scans = [self.lidar.scan(T, rng).points for T, rng in zip(poses, rngs)]
             try:
-                return self.classifier.probabilities(scans, np.asarray(poses))
+                return self.classifier.probabilities(scans, np.asarray(poses)), estimated
             except ScanError:  # judge one by one; a scan that cannot be judged stays NaN
                 for i, (scan, T) in enumerate(zip(scans, poses)):
                     try:
                         out[i] = self.classifier.probabilities([scan], T[None])[0]
                     except ScanError:
                         pass
-                return out
+                return out, estimated
         for i, (T, rng) in enumerate(zip(poses, rngs)):
             # the children come from the pose's own rng, so a map does not depend on the order of its poses
             if self.kind == "oracle":
                 pred = self.detector.judge(T, rng)
             elif self.kind in ("scanmc", "learned+scanmc"):
-                out[i] = self._judge_scan(self.lidar.scan(T, rng).points, rng, T)
+                out[i], estimated[i] = self._judge_scan(self.lidar.scan(T, rng).points, rng, T)
                 continue
             else:
                 ahead = T @ planar_pose(self.step, 0.0, 0.0, 0.0)
@@ -185,7 +197,7 @@ class MapJudge:
                 pred = self.detector.predict(None, reg, T)
             if pred.known:
                 out[i] = pred.mask.astype(np.float64)
-        return out
+        return out, estimated
 
 
 def map_settings(scene: Scene, free: FreeSpace, resolution: float, yaw_bins: int, judge: MapJudge,
@@ -230,9 +242,9 @@ def _map_judge(spec: str, mesh: trimesh.Trimesh, lidar: LidarConfig, seed: int, 
     return MapJudge(spec, Lidar(EmbreeCaster(mesh, threads=1), lidar), seed, step)
 
 
-def _judge_batch(judge: MapJudge, job: tuple[list[np.ndarray], list[list[int]]]) -> np.ndarray:
+def _judge_batch(judge: MapJudge, job: tuple[list[np.ndarray], list[list[int]]]) -> tuple[np.ndarray, np.ndarray]:
     poses, seeds = job
-    return judge(poses, [np.random.default_rng(s) for s in seeds])
+    return judge.judge_poses(poses, [np.random.default_rng(s) for s in seeds])
 
 
 def build_map(scene: Scene, free: FreeSpace, judge: MapJudge, resolution: float = 1.0, yaw_bins: int = 4,
@@ -250,6 +262,7 @@ def build_map(scene: Scene, free: FreeSpace, judge: MapJudge, resolution: float 
     T_b_s = planar_pose(*robot.lidar_offset, 0.0)
     poses = [(n, k) for n in range(len(cells)) for k in range(yaw_bins)]
     probabilities = np.full((len(cells), yaw_bins, 6), np.nan)
+    estimated = np.zeros((len(cells), yaw_bins), dtype=bool)
     chunks = [poses[start:start + batch] for start in range(0, len(poses), batch)]
     jobs = [([planar_pose(*positions[n], free.ground[tuple(cells[n])] + robot.standing_height, yaws[k]) @ T_b_s
               for n, k in chunk], [[seed, n, k] for n, k in chunk]) for chunk in chunks]
@@ -257,10 +270,11 @@ def build_map(scene: Scene, free: FreeSpace, judge: MapJudge, resolution: float 
                          (judge.spec, scene.mesh, judge.lidar.config, judge.seed, judge.step), workers)
     judged = list(tqdm(judged, total=len(jobs), desc=f"{judge.spec} map of {scene.name}", unit="batch",
                        disable=not progress))
-    for chunk, p in zip(chunks, judged):
-        for (n, k), row in zip(chunk, p):
-            probabilities[n, k] = row
-    return LocalizabilityMap(scene.name, positions, yaws, probabilities, judge.thresholds.copy(), settings)
+    for chunk, (p, by_estimate) in zip(chunks, judged):
+        for (n, k), row, e in zip(chunk, p, by_estimate):
+            probabilities[n, k], estimated[n, k] = row, e
+    return LocalizabilityMap(scene.name, positions, yaws, probabilities, judge.thresholds.copy(), settings,
+                             estimated)
 
 
 def scene_lidar(scene: Scene, lidar: LidarConfig | None = None) -> Lidar:

@@ -49,7 +49,10 @@ def plot_locmap(path: str | Path, scene: Scene, locmap: LocalizabilityMap, space
         # the detector's own scale: scanmc's and the cascade's scores are flagged above 0.5, the classifier's
         # probabilities above its stored thresholds
         fig.colorbar(sc, ax=ax, shrink=0.7, label=f"non-localizability (masked above {locmap.thresholds[i]:.2f})")
-    fig.suptitle(f"{scene.name}: localizability map ({len(locmap.positions)} positions x {len(locmap.yaws)} headings)")
+    judged = "" if locmap.estimated is None or not locmap.estimated.any() else \
+        f"; scanmc judged {100 * locmap.estimated.mean():.0f}% of the poses"
+    fig.suptitle(f"{scene.name}: localizability map ({len(locmap.positions)} positions x {len(locmap.yaws)} "
+                 f"headings{judged})")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

@@ -124,6 +124,11 @@ def test_map_lookup_interpolates_headings_and_round_trips(tmp_path, small_fork):
     locmap.save(path)
     again = LocalizabilityMap.load(path)
     assert np.array_equal(again.probabilities, locmap.probabilities) and again.scene == "synthetic"
+    assert again.estimated is None  # a map without the record reads back without it
+    locmap.estimated = np.zeros(locmap.probabilities.shape[:2], dtype=bool)
+    locmap.estimated[::3, 1] = True
+    locmap.save(path)
+    assert np.array_equal(LocalizabilityMap.load(path).estimated, locmap.estimated)
     path.write_bytes(b"not a map")
     with pytest.raises(MapCacheError, match="not a readable localizability map"):
         LocalizabilityMap.load(path)
@@ -136,6 +141,7 @@ def test_eigen_map_is_cached_and_a_missing_cache_is_named(small_fork):
     built = get_map(scene, space, "eigen:30", cache, resolution=4.0)
     cached = get_map(scene, space, "eigen:30", cache, build=False, resolution=4.0)
     assert np.array_equal(built.probabilities, cached.probabilities, equal_nan=True)
+    assert cached.estimated.shape == built.probabilities.shape[:2] and not cached.estimated.any()
     # other ICP settings make another file
     assert cached.meta["registration"] == json.loads(json.dumps(plain(to_dict(RegistrationConfig()))))
     inside = (np.abs(built.positions[:, 1]) < 1.0) & (built.positions[:, 0] > 6) & (built.positions[:, 0] < 14)
