@@ -216,6 +216,12 @@ def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Pat
                 checked = near_threshold(curves[first][split][1], thresholds, margin)
                 predicted = np.where(checked[:, None], judged[split], curves[first][split][1] > thresholds)
                 score(name, split, ds, rows, predicted, checked=float(checked.mean()))
+        if cascade:
+            thresholds = np.asarray(results["models"][first]["thresholds"])
+            results["cascade_random_checks"] = {
+                split: random_checks(first_splits[split][0].labels[first_splits[split][1]],
+                                     curves[first][split][1] > thresholds, judged[split]) for split in estimates}
+            plot_cascade(results, first, scan_mc, out / "cascade.png")
     text = (format_table(table, intervals=intervals) + format_f1_operating_points(results["models"])
             + format_draws(results["models"], draws))
     if scan_mc:
@@ -223,9 +229,12 @@ def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Pat
         text += f"\nscanmc:{scan_mc} children drawn a scan (mean): " + ", ".join(
             f"{split} {scored[split]['mean_children']:.1f}" for split in drawn if scored[split]["mean_children"]) + "\n"
     for name, model in results["models"].items():
-        if "margin" in model:  # a cascade
+        if "margin" in model:  # a cascade, and random checks of as many scans as it checked
+            random = results["cascade_random_checks"]
             text += f"{name}: share of scans checked by scanmc:{scan_mc}: " + ", ".join(
-                f"{split} {r['checked']:.2f}" for split, r in model["splits"].items() if "checked" in r) + "\n"
+                f"{split} {r['checked']:.2f} (F1 of random checks that many: "
+                f"{np.interp(r['checked'], random[split]['share'], random[split]['mean_f1']):.3f})"
+                for split, r in model["splits"].items() if "checked" in r) + "\n"
     if symmetric:
         text = "probabilities averaged over the eight mirror/swap views of each scan\n" + text
     (out / "table.txt").write_text(text + "\n")
@@ -303,6 +312,55 @@ def format_f1_operating_points(models: dict[str, Any]) -> str:
         lines += [f"  {split:16s} accuracy {m['accuracy']:.3f}  f1 {m['f1']:.3f}  precision {m['precision']:.3f}  "
                   f"recall {m['recall']:.3f}" for split, m in point["splits"].items()]
     return "\n\n" + "\n".join(lines) if lines else ""
+
+
+def random_checks(labels: np.ndarray, first: np.ndarray, second: np.ndarray, shares: int = 11,
+                  repeats: int = 20, seed: int = 0) -> dict[str, list[float]]:
+    """Mean F1 over axes when a random share of the scans (0, 0.1, ... 1) takes `second`'s
+    prediction instead of `first`'s, averaged over `repeats` draws of that share: what checking
+    that many scans would give if the cascade chose them blindly, the reference its margins beat."""
+    rng = np.random.default_rng(seed)
+    out: dict[str, list[float]] = {"share": [], "mean_f1": []}
+    for share in np.linspace(0, 1, shares):
+        f1 = []
+        for _ in range(repeats):
+            checked = rng.random(len(labels)) < share
+            f1.append(mean_scores(axis_scores(labels, np.where(checked[:, None], second, first)))["f1"])
+        out["share"].append(float(share))
+        out["mean_f1"].append(float(np.nanmean(f1)))
+    return out
+
+
+def plot_cascade(results: dict[str, Any], first: str, children: int, path: Path) -> None:
+    """One panel per scored split: mean F1 against the share of scans the estimate checked, for the
+    classifier alone (0), each margin, the estimate alone (1) and random checks of the same share."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    models, reference = results["models"], results["cascade_random_checks"]
+    fig, axes = plt.subplots(1, len(reference), figsize=(5.5 * len(reference), 4.5), squeeze=False)
+    for ax, (split, random) in zip(axes[0], reference.items()):
+        cascades = sorted((m["margin"], m["splits"][split]) for m in models.values() if "margin" in m)
+        share = [0.0] + [r["checked"] for _, r in cascades] + [1.0]
+        f1 = ([models[first]["splits"][split]["mean"]["f1"]] + [r["mean"]["f1"] for _, r in cascades]
+              + [models[f"scanmc:{children}"]["splits"][split]["mean"]["f1"]])
+        ax.plot(random["share"], random["mean_f1"], "--", color="0.5", label="random checks of that share")
+        ax.plot(share, f1, "o-", color="C0", label="cascade by margin (log-odds)")
+        for (margin, _), x, y in zip(cascades, share[1:-1], f1[1:-1]):
+            ax.annotate(f"{margin:g}", (x, y), textcoords="offset points", xytext=(4, -12), fontsize=8)
+        ax.plot([0], f1[:1], "s", color="C1", ms=8, label=f"{first} alone")
+        ax.plot([1], f1[-1:], "D", color="C2", ms=8, label=f"scanmc:{children} alone")
+        ax.set_title(f"{split}")
+        ax.set_xlabel("share of scans checked by the estimate")
+        ax.set_ylabel("mean F1 over axes")
+        ax.set_xlim(-0.03, 1.03)
+        ax.grid(alpha=0.3)
+    axes[0, 0].legend(fontsize=8, loc="lower right")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
 
 
 def _nan_safe(value: Any) -> Any:

@@ -280,8 +280,28 @@ def test_evaluate_scores_the_cascade_from_the_classifier_and_the_estimate(tiny_d
         for key in ("accuracy", "f1", "precision", "recall"):
             assert cascade[key] == pytest.approx(alone["splits"][column][key], nan_ok=True)
     assert f"{model}+scanmc:100: share of scans checked by scanmc:3: {column} 1.00" in res["table"]
+    # random checks of no scan are the classifier, of every scan the estimate; the plot is drawn
+    random = res["cascade_random_checks"][column]
+    assert random["share"][0] == 0.0 and random["share"][-1] == 1.0
+    assert random["mean_f1"][0] == pytest.approx(never["mean"]["f1"], nan_ok=True)
+    assert random["mean_f1"][-1] == pytest.approx(always["mean"]["f1"], nan_ok=True)
+    assert (tmp_path / "eval" / "cascade.png").stat().st_size > 10_000
     for bad in ({"scan_mc": 0, "cascade": [1.0]}, {"scan_mc": 3, "cascade": [-1.0]}):
         with pytest.raises(ValueError, match="cascade"):
             evaluate([DEFAULT_CHECKPOINT], None, tmp_path / "bad", others=[tiny_dataset], progress=False, **bad)
     with pytest.raises(ValueError, match="cascade"):
         evaluate([], None, tmp_path / "bad", others=[tiny_dataset], progress=False, scan_mc=3, cascade=[1.0])
+
+
+def test_random_checks_move_from_the_first_detector_to_the_second_with_their_share():
+    from l3e_env.evaluation import random_checks
+
+    labels = np.random.default_rng(0).random((400, 6)) < 0.3
+    curve = random_checks(labels, labels.copy(), ~labels)  # the first right everywhere, the second wrong
+    assert curve["share"] == pytest.approx(np.linspace(0, 1, 11))
+    assert curve["mean_f1"][0] == 1.0 and curve["mean_f1"][-1] == 0.0
+    assert np.all(np.diff(curve["mean_f1"]) < 0)
+    # half the scans wrong: TP P/2, FN P/2, FP N/2 on each axis, so F1 = P / (1.5 P + N / 2)
+    positives, negatives = labels.sum(axis=0), (~labels).sum(axis=0)
+    expected = np.mean(positives / (1.5 * positives + negatives / 2))
+    assert curve["mean_f1"][5] == pytest.approx(expected, abs=0.02)
