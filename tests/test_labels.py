@@ -159,8 +159,12 @@ def test_a_users_mesh_is_labelled_resumed_by_its_own_bytes_and_scored(cad_corrid
     ground = data.poses[mesh_rows][:, :3, 3]  # sampled along the route: 1-8 m down the corridor, on its floor
     assert (ground[:, 0] > 0.5).all() and (ground[:, 0] < 8.5).all() and (np.abs(ground[:, 1]) < 1.7).all()
     assert (np.abs(ground[:, 2] - 0.85) < 1.2).all()
+    capsys.readouterr()
     assert main(["evaluate", "--other", str(out), "--by-family", "--by-region", "--out", str(tmp_path / "ev"),
-                 "--quiet"]) == 0
+                 "--scan-mc", "3", "--cascade", "1", "--quiet"]) == 0
+    written = capsys.readouterr().out.splitlines()[-1]  # the cascade's figure is named with the others
+    assert written.startswith("written: ") and written.endswith(str(tmp_path / "ev" / "cascade.png"))
+    assert (tmp_path / "ev" / "cascade.png").exists()
     columns = json.loads((tmp_path / "ev" / "results.json").read_text())["models"]["resunet"]["splits"]
     assert columns["all of d"]["count"] == 4 and columns["corridor of d"]["count"] == 2
     assert set(columns) == {"all of d", "corridor of d", "office of d"}  # a mesh, and the office, name no regions
