@@ -327,7 +327,8 @@ def random_checks(labels: np.ndarray, first: np.ndarray, second: np.ndarray, sha
             checked = rng.random(len(labels)) < share
             f1.append(mean_scores(axis_scores(labels, np.where(checked[:, None], second, first)))["f1"])
         out["share"].append(float(share))
-        out["mean_f1"].append(float(np.nanmean(f1)))
+        scored = [v for v in f1 if np.isfinite(v)]  # NaN: no positive label and no flag in that draw
+        out["mean_f1"].append(float(np.mean(scored)) if scored else float("nan"))
     return out
 
 

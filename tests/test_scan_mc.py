@@ -1,4 +1,5 @@
 """The scan's own Monte-Carlo estimate: its range-image mesh, and errors that follow the geometry."""
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -305,3 +306,8 @@ def test_random_checks_move_from_the_first_detector_to_the_second_with_their_sha
     positives, negatives = labels.sum(axis=0), (~labels).sum(axis=0)
     expected = np.mean(positives / (1.5 * positives + negatives / 2))
     assert curve["mean_f1"][5] == pytest.approx(expected, abs=0.02)
+    # a split with no positive label where neither detector flags: no F1 at any share, and no warning
+    quiet = np.zeros((50, 6), dtype=bool)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert np.isnan(random_checks(quiet, quiet, quiet, repeats=3)["mean_f1"]).all()
