@@ -397,8 +397,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
                        by_family=args.by_family, by_region=args.by_region, scan_mc=args.scan_mc, workers=args.workers,
                        draws=args.draws, cascade=args.cascade)
     print(results["table"])
-    figures = ["pr_curves.png"] + (["cascade.png"] if args.cascade else [])
-    print(f"written: {out / 'table.txt'}, {out / 'results.json'}, " + ", ".join(str(out / f) for f in figures))
+    print("written: " + ", ".join(results["written"]))
     return 0
 
 

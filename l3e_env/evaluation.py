@@ -78,7 +78,8 @@ def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Pat
     """Score each checkpoint on its own train/validation split and on the test families of the
     dataset, and on every scan of each of `others` (a dataset of another sensor, or of scene
     families the model never saw: column 'all of <folder>'); writes table.txt, results.json and
-    pr_curves.png into out_dir and returns the results. `symmetric`: probabilities averaged over the
+    pr_curves.png (and cascade.png with `cascade`) into out_dir and returns the results, with the
+    table's text and the files written. `symmetric`: probabilities averaged over the
     eight mirror/swap views, with the thresholds chosen for them. `eigen`: thresholds tau of the
     eigenvalue detector, scored on the first checkpoint's splits from each scan's own Hessian
     (`scan_hessian`); a scan too small to register flags nothing, as the detector's UNKNOWN does.
@@ -242,6 +243,8 @@ def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Pat
     plot_pr_curves(curves, {n: np.asarray(r["thresholds"]) for n, r in results["models"].items() if n in curves},
                    out / "pr_curves.png")
     results["table"] = text
+    results["written"] = [str(out / name) for name in ("table.txt", "results.json", "pr_curves.png",
+                                                        *(["cascade.png"] if cascade else []))]
     return results
 
 
