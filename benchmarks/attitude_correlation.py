@@ -20,12 +20,12 @@ import numpy as np
 
 from l3e_env import experiment
 from l3e_env.config import FusionOptions, LidarConfig, OdometryConfig
-from l3e_env.detectors import make_detector
-from l3e_env.imu import attitude_sigmas
-from l3e_env.lidar import Lidar
-from l3e_env.odometry import odometry_fusion_config
-from l3e_env.raycast import EmbreeCaster
-from l3e_env.registration import RegistrationConfig
+from l3e_env.detection.detectors import make_detector
+from l3e_env.sim.imu import attitude_sigmas
+from l3e_env.sim.lidar import Lidar
+from l3e_env.sim.odometry import odometry_fusion_config
+from l3e_env.sim.raycast import EmbreeCaster
+from l3e_env.localizability.registration import RegistrationConfig
 from scenes import make_scene
 
 

@@ -14,7 +14,7 @@ erf(d / (sqrt(2) s)), s^2 = s_roll^2 (y^2 + z^2) + s_pitch^2 (x^2 + z^2) + s_yaw
 the translation sigmas squared. Its twelve features per level (log diag(H^-1), log eigenvalues) at the
 shipped layer's levels (0.2 and 0.4 m voxels), and three range features (log median range, share of
 points beyond 10 and 20 m), are added to the shipped layer's inputs. Per-axis logistic layers are fitted
-on the training scans (l3e_env.constraints.fit_stacker, as `l3e fit-constraints` does), with and
+on the training scans (l3e_env.model.constraints.fit_stacker, as `l3e fit-constraints` does), with and
 without the network's logit; thresholds F1-best on the validation scans; every split is scored.
 """
 from __future__ import annotations
@@ -27,13 +27,13 @@ import torch
 from scipy.special import erf
 from tqdm import tqdm
 
-from l3e_env.classifier import DEFAULT_CHECKPOINT, load_checkpoint, model_from_checkpoint, model_input
-from l3e_env.constraints import coarser_means, fit_stacker, hessian_features, surface_rows
-from l3e_env.dataset import open_datasets
-from l3e_env.labels import AXES
-from l3e_env.scores import auroc, axis_scores, best_thresholds, mean_scores
-from l3e_env.sparse import Level, voxelize
-from l3e_env.training import split_indices
+from l3e_env.model.classifier import DEFAULT_CHECKPOINT, load_checkpoint, model_from_checkpoint, model_input
+from l3e_env.model.constraints import coarser_means, fit_stacker, hessian_features, surface_rows
+from l3e_env.data.dataset import open_datasets
+from l3e_env.localizability.labels import AXES
+from l3e_env.model.scores import auroc, axis_scores, best_thresholds, mean_scores
+from l3e_env.model.sparse import Level, voxelize
+from l3e_env.model.training import split_indices
 from scenes import TEST_SCENES, TRAIN_SCENES, VALIDATION_SCENES
 
 LEVELS = 2  # the shipped layer's levels: 0.2 and 0.4 m voxels

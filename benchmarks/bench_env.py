@@ -12,7 +12,7 @@ import numpy as np
 
 from l3e_env.config import EnvConfig, LidarConfig
 from l3e_env.envs.navigation import NavigationEnv
-from l3e_env.follower import RouteFollower
+from l3e_env.sim.follower import RouteFollower
 
 
 def main() -> None:

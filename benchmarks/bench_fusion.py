@@ -15,8 +15,8 @@ import torch
 from fusion import EKFFusion, FusionConfig, FusionGraph
 from l3e_env.config import EnvConfig, LoopFusionConfig
 from l3e_env.envs.navigation import NavigationEnv
-from l3e_env.follower import RouteFollower
-from l3e_env.transforms import pose_to_matrix
+from l3e_env.sim.follower import RouteFollower
+from l3e_env.core.transforms import pose_to_matrix
 
 
 def update_times(backend, steps: int, seed: int = 0, hessians: bool = False,

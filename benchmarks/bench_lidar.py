@@ -13,9 +13,9 @@ import time
 import numpy as np
 
 from l3e_env.config import LidarConfig
-from l3e_env.lidar import Lidar, get_pattern
-from l3e_env.raycast import EmbreeCaster, PyBulletCaster
-from l3e_env.transforms import pose_to_matrix
+from l3e_env.sim.lidar import Lidar, get_pattern
+from l3e_env.sim.raycast import EmbreeCaster, PyBulletCaster
+from l3e_env.core.transforms import pose_to_matrix
 from scenes import make_scene
 
 PLACES = {"yard": (-30.0, 0.5, 0.85, 0, 0, 0.3), "tunnel": (50.0, 0.0, 0.85, 0, 0, 0.0),

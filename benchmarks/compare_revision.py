@@ -22,9 +22,9 @@ import numpy as np
 import torch
 
 from bench_classifier import latencies_ms, route_scans
-from l3e_env.classifier import Classifier
-from l3e_env.dataset import LabelDataset
-from l3e_env.training import predict_dataset
+from l3e_env.model.classifier import Classifier
+from l3e_env.data.dataset import LabelDataset
+from l3e_env.model.training import predict_dataset
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -27,12 +27,12 @@ import argparse
 import numpy as np
 import torch
 
-from l3e_env.classifier import load_checkpoint, model_from_checkpoint
-from l3e_env.constraints import AxisStacker, fit_stacker
-from l3e_env.dataset import DatasetUnion, LabelDataset, open_datasets
-from l3e_env.evaluation import family_rows, split_rows
-from l3e_env.scores import axis_scores, best_thresholds, mean_scores
-from l3e_env.training import network_parts
+from l3e_env.model.classifier import load_checkpoint, model_from_checkpoint
+from l3e_env.model.constraints import AxisStacker, fit_stacker
+from l3e_env.data.dataset import DatasetUnion, LabelDataset, open_datasets
+from l3e_env.experiments.table3 import family_rows, split_rows
+from l3e_env.model.scores import axis_scores, best_thresholds, mean_scores
+from l3e_env.model.training import network_parts
 from scenes import scene_family
 
 

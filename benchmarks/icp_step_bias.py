@@ -26,10 +26,10 @@ import small_gicp
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from l3e_env.lidar import Lidar
-from l3e_env.raycast import make_caster
-from l3e_env.registration import RegistrationConfig, prepare_source, register
-from l3e_env.transforms import matrix_to_pose, planar_pose
+from l3e_env.sim.lidar import Lidar
+from l3e_env.sim.raycast import make_caster
+from l3e_env.localizability.registration import RegistrationConfig, prepare_source, register
+from l3e_env.core.transforms import matrix_to_pose, planar_pose
 from scenes import make_scene
 
 GROUND_BELOW = -0.6  # m in the sensor frame

@@ -27,12 +27,12 @@ import argparse
 
 import numpy as np
 
-from l3e_env.classifier import Classifier, up_vector
-from l3e_env.dataset import error_ratios, open_datasets
-from l3e_env.evaluation import split_rows
-from l3e_env.labels import AXES
-from l3e_env.scores import auroc, axis_scores, best_thresholds, mean_scores
-from l3e_env.training import predict_dataset
+from l3e_env.model.classifier import Classifier, up_vector
+from l3e_env.data.dataset import error_ratios, open_datasets
+from l3e_env.experiments.table3 import split_rows
+from l3e_env.localizability.labels import AXES
+from l3e_env.model.scores import auroc, axis_scores, best_thresholds, mean_scores
+from l3e_env.model.training import predict_dataset
 
 TARGET_F1 = 0.70
 SIGMA_GRID = np.round(np.arange(0.0, 3.001, 0.05), 2)

@@ -22,11 +22,11 @@ import numpy as np
 from tqdm import tqdm
 
 from l3e_env.config import LidarConfig, from_dict
-from l3e_env.dataset import LabelDataset, scene_tools
-from l3e_env.labels import AXES, LabelConfig, label_parent
-from l3e_env.registration import RegistrationConfig, RegistrationError
-from l3e_env.scores import axis_scores, mean_scores
-from l3e_env.training import split_indices
+from l3e_env.data.dataset import LabelDataset, scene_tools
+from l3e_env.localizability.labels import AXES, LabelConfig, label_parent
+from l3e_env.localizability.registration import RegistrationConfig, RegistrationError
+from l3e_env.model.scores import axis_scores, mean_scores
+from l3e_env.model.training import split_indices
 from scenes import TEST_SCENES
 
 

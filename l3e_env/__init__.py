@@ -1,8 +1,8 @@
 """Simulation and the L3E method: world, robot, LiDAR, environments (registered on import)."""
 from gymnasium.envs.registration import register, registry
 
-from .config import EnvConfig, LidarConfig, OdometryConfig, RobotConfig
-from .lidar import PATTERNS, BeamPattern, Lidar, Scan, register_pattern
+from l3e_env.config import EnvConfig, LidarConfig, OdometryConfig, RobotConfig
+from l3e_env.sim.lidar import PATTERNS, BeamPattern, Lidar, Scan, register_pattern
 
 ENV_IDS = {
     "l3e/Tunnel-v0": "tunnel",

@@ -10,10 +10,9 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from l3e_env.cli import (
-    add_fusion_options, add_mesh_options, fusion_options, mesh_options_given, meshes_file, scene_names,
-    scene_params, sensor_name,
-)
+from l3e_env.cli.options import (add_fusion_options, add_mesh_options, fusion_options, mesh_options_given, scene_names,
+                                 scene_params, sensor_name)
+from l3e_env.io.mesh_lists import meshes_file
 
 if TYPE_CHECKING:
     from .locmap import LocalizabilityMap

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from l3e_env.config import LidarConfig, RobotConfig, to_dict
-from l3e_env.files import write_atomic
+from l3e_env.core.files import write_atomic
 from scenes import Scene, make_scene
 
 from .freespace import FreeSpace, build_free_space, reachable_from

@@ -21,9 +21,9 @@ from tqdm import tqdm
 
 from l3e_env.config import FusionOptions, OdometryConfig, settings_changed
 from l3e_env.envs import NavigationEnv
-from l3e_env.follower import RouteFollower
-from l3e_env.odometry import odometry_fusion_config
-from l3e_env.transforms import yaw_of
+from l3e_env.sim.follower import RouteFollower
+from l3e_env.sim.odometry import odometry_fusion_config
+from l3e_env.core.transforms import yaw_of
 
 from .context import scene_context
 from .observation import PolicyView

@@ -24,7 +24,7 @@ import numpy as np
 from gymnasium import spaces
 
 from l3e_env.config import RobotConfig
-from l3e_env.robot import planar_motion
+from l3e_env.sim.robot import planar_motion
 
 from .context import SceneContext
 from .observation import PolicyView

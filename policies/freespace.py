@@ -9,7 +9,7 @@ from scipy import ndimage
 from tqdm import tqdm
 
 from l3e_env.config import RobotConfig
-from l3e_env.world import World
+from l3e_env.sim.world import World
 from scenes import Scene
 
 

@@ -15,15 +15,15 @@ import trimesh
 from scipy.spatial import cKDTree
 from tqdm import tqdm
 
-from l3e_env.classifier import DEFAULT_CHECKPOINT, Classifier, ScanError
+from l3e_env.model.classifier import DEFAULT_CHECKPOINT, Classifier, ScanError
 from l3e_env.config import LidarConfig, RobotConfig, plain, to_dict
-from l3e_env.detectors import learned_spec, make_detector
-from l3e_env.files import write_atomic
-from l3e_env.lidar import Lidar
-from l3e_env.raycast import EmbreeCaster, make_caster
-from l3e_env.registration import RegistrationConfig, RegistrationError, register
-from l3e_env.transforms import planar_pose
-from l3e_env.workers import ordered_map
+from l3e_env.detection.detectors import learned_spec, make_detector
+from l3e_env.core.files import write_atomic
+from l3e_env.sim.lidar import Lidar
+from l3e_env.sim.raycast import EmbreeCaster, make_caster
+from l3e_env.localizability.registration import RegistrationConfig, RegistrationError, register
+from l3e_env.core.transforms import planar_pose
+from l3e_env.core.workers import ordered_map
 from scenes import Scene
 
 from .freespace import FreeSpace
@@ -114,13 +114,13 @@ def file_digest(path: str | Path) -> str:
 
 class MapJudge:
     """Six probabilities of non-localizability for a batch of sensor poses, and the thresholds
-    above which the fusion masks an axis. Kinds, as in l3e_env.detectors.make_detector:
+    above which the fusion masks an axis. Kinds, as in l3e_env.detection.detectors.make_detector:
     - learned[:checkpoint]: the classifier on the scan at each pose (NaN: a scan it cannot judge);
       learned-sym[:checkpoint] averages it over the eight mirror/swap views of each scan;
     - eigen:<tau>: Zhang's test on the Hessian of registering a scan taken `step` metres further
       ahead onto the pose's scan (what the fusion loop sees between consecutive scans);
     - oracle[:M]: Monte-Carlo ICP labels with M children at the pose (slow; ground truth);
-    - scanmc[:M]: the same estimated from the scan at the pose alone (l3e_env.scan_mc; slow);
+    - scanmc[:M]: the same estimated from the scan at the pose alone (l3e_env.localizability.scan_mc; slow);
     - learned+scanmc[:margin]: the shipped classifier, and scanmc where it is unsure. Its two judges
       have different thresholds, so the classifier's probabilities are moved to put its thresholds
       at 0.5 (sigmoid of the log-odds over the threshold): the same flags on one scale.

@@ -33,7 +33,7 @@ class PlanningError(ValueError):
 def drift_rates(odometry: OdometryConfig | None = None, step_length: float = 0.1,
                 lever_arm: float = 10.0) -> np.ndarray:
     """Metres of position error per metre walked while one axis (x, y, z, roll, pitch, yaw) is
-    left to leg odometry, from its noise model (l3e_env.odometry.LegOdometry):
+    left to leg odometry, from its noise model (l3e_env.sim.odometry.LegOdometry):
     - systematic parts grow linearly: the stride-scale error (x), the z and yaw biases; their
       expected size is sqrt(2/pi) sigma;
     - white per-step noise (sigma proportional to the step length) grows as a random walk; it is

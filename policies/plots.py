@@ -9,8 +9,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from l3e_env.labels import AXES  # noqa: E402
-from l3e_env.render import wall_points  # noqa: E402
+from l3e_env.localizability.labels import AXES  # noqa: E402
+from l3e_env.sim.render import wall_points  # noqa: E402
 from scenes import Scene  # noqa: E402
 
 from .freespace import FreeSpace  # noqa: E402

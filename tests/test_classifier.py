@@ -9,20 +9,20 @@ import numpy as np
 import pytest
 import torch
 
-from l3e_env.classifier import (
+from l3e_env.model.classifier import (
     CHECKPOINT_VERSION, DEFAULT_CHECKPOINT, SYMMETRIES, CheckpointError, Classifier, LocalizabilityNet, ModelConfig,
     ScanError, check_scan, fold_batch_norms, load_checkpoint, model_from_checkpoint, model_input, model_probabilities,
     one_per_voxel, quantize_int8, sample_points, save_checkpoint, up_vector,
 )
-from l3e_env.dataset import DatasetError, LabelDataset, config_for, error_ratios, generate, open_datasets
-from l3e_env.detectors import LearnedDetector, make_detector
-from l3e_env.scores import auroc, axis_scores, best_thresholds, format_table, mean_interval, mean_scores, pr_curve
-from l3e_env.sparse import GatherConv, int8_products_work, int8_residual_block, voxelize
-from l3e_env.training import (
+from l3e_env.data.dataset import DatasetError, LabelDataset, config_for, error_ratios, generate, open_datasets
+from l3e_env.detection.detectors import LearnedDetector, make_detector
+from l3e_env.model.scores import auroc, axis_scores, best_thresholds, format_table, mean_interval, mean_scores, pr_curve
+from l3e_env.model.sparse import GatherConv, int8_products_work, int8_residual_block, voxelize
+from l3e_env.model.training import (
     SWAP_LABELS, TrainConfig, TrainingError, augment, balanced_pool, calibrate_symmetric, predict_dataset,
     scaled, split_indices, train, _resumable, training_targets,
 )
-from l3e_env.transforms import pose_to_matrix
+from l3e_env.core.transforms import pose_to_matrix
 
 SMALL = ModelConfig(points=600, channels=(8, 8, 16, 16), pointnet_channels=(16, 32), head=(16, 16, 16, 16))
 
@@ -217,7 +217,7 @@ def test_sensor_or_registration_mismatch_is_a_warning_and_a_match_is_silent(tmp_
 def test_region_rows_split_the_scenes_by_their_named_places():
     from types import SimpleNamespace
 
-    from l3e_env.evaluation import region_rows
+    from l3e_env.experiments.table3 import region_rows
 
     xy = [(-20, 0), (50, 0), (120, 0), (200, 0), (10, 0), (0, 40), (5, 5)]  # yard, tunnel, quarry, none; ...
     poses = np.tile(np.eye(4), (len(xy), 1, 1))
@@ -467,7 +467,7 @@ def test_fine_tuning_starts_from_the_given_weights(tiny_dataset, tmp_path):
 
 def test_evaluate_writes_table_curves_and_results(tiny_dataset, tmp_path, monkeypatch):
     from l3e_env import evaluation
-    from l3e_env.evaluation import evaluate
+    from l3e_env.experiments.table3 import evaluate
 
     train(tiny_dataset, tmp_path / "run", _train_cfg(), progress=False)
     res = evaluate([tmp_path / "run" / "model.pt"], tiny_dataset, tmp_path / "eval",
@@ -579,7 +579,7 @@ def test_soft_targets_follow_the_error_to_threshold_ratio(tiny_dataset, tmp_path
 
 
 def test_group_dro_weighs_the_family_with_the_higher_loss_up():
-    from l3e_env.training import GroupWeights, scene_families
+    from l3e_env.model.training import GroupWeights, scene_families
 
     class Rows:  # a dataset's scene table, as scene_families reads it
         manifest = {"scenes": ["tunnel-0", "tunnel-3", "office-1", "/meshes/my-mine.obj"]}

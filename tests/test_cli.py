@@ -3,11 +3,12 @@ import sys
 
 import pytest
 
-from l3e_env.cli import build_parser, main, scene_params
+from l3e_env.cli.main import build_parser, main
+from l3e_env.cli.options import scene_params
 
 
 def test_help_lists_the_subcommands():
-    out = subprocess.run([sys.executable, "-m", "l3e_env.cli", "--help"], capture_output=True, text=True,
+    out = subprocess.run([sys.executable, "-m", "l3e_env.cli.main", "--help"], capture_output=True, text=True,
                          check=True).stdout
     for cmd in ("demo", "scenes", "envs", "dataset", "train", "evaluate", "ate", "sweep"):
         assert cmd in out
@@ -78,7 +79,7 @@ def test_demo_drives_the_mine_and_writes_pictures(tmp_path, capsys):
 
 
 def test_record_options_give_the_imu_asked_for():
-    from l3e_env.cli import record_imu
+    from l3e_env.cli.drive import record_imu
 
     default = record_imu(build_parser().parse_args(["record", "--out", "a.bag"]))
     assert default.footfall_accel > 0 and default.orientation and default.rate == 200.0

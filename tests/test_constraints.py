@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import torch
 
-from l3e_env.classifier import (Classifier, LocalizabilityNet, ModelConfig, load_checkpoint,
+from l3e_env.model.classifier import (Classifier, LocalizabilityNet, ModelConfig, load_checkpoint,
                                 model_from_checkpoint, model_probabilities)
-from l3e_env.constraints import (
+from l3e_env.model.constraints import (
     AxisStacker,
     fit_stacker,
     hessian_features,
@@ -17,10 +17,10 @@ from l3e_env.constraints import (
     surface_rows,
     voxel_hessian,
 )
-from l3e_env.dataset import LabelDataset
-from l3e_env.scores import auroc, axis_scores, mean_scores
-from l3e_env.sparse import voxelize
-from l3e_env.training import (
+from l3e_env.data.dataset import LabelDataset
+from l3e_env.model.scores import auroc, axis_scores, mean_scores
+from l3e_env.model.sparse import voxelize
+from l3e_env.model.training import (
     TrainConfig,
     TrainingError,
     fit_constraints,
@@ -166,7 +166,7 @@ def test_an_unfitted_stacker_passes_the_logits_and_a_fitted_one_learns_the_featu
 
 
 def test_a_constraint_model_saves_loads_and_refuses_a_pointnet(tmp_path, rng):
-    from l3e_env.classifier import save_checkpoint
+    from l3e_env.model.classifier import save_checkpoint
 
     model = LocalizabilityNet(dataclasses.replace(SMALL, constraints=True, constraint_levels=(0, 1))).eval()
     with torch.no_grad():

@@ -6,8 +6,8 @@ from gymnasium.utils.env_checker import check_env
 import l3e_env
 from l3e_env.config import FusionOptions
 from l3e_env.envs.navigation import NavigationEnv
-from l3e_env.follower import RouteFollower
-from l3e_env.transforms import inverse
+from l3e_env.sim.follower import RouteFollower
+from l3e_env.core.transforms import inverse
 
 
 def run(env, seed, steps=15):

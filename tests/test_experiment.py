@@ -4,15 +4,15 @@ import numpy as np
 import pytest
 
 from l3e_env.config import FusionOptions, LidarConfig
-from l3e_env.detectors import EigenvalueDetector, NoDetector, make_detector
-from l3e_env.experiment import (
+from l3e_env.detection.detectors import EigenvalueDetector, NoDetector, make_detector
+from l3e_env.experiments.ate import (
     RecastCascade, RecastScans, Recording, evaluate, file_stem, format_seed_table, format_table, record_run,
     register_sequence, run_experiment, summarize_seeds,
 )
-from l3e_env.labels import AXES
-from l3e_env.lidar import Lidar
-from l3e_env.raycast import EmbreeCaster
-from l3e_env.registration import RegistrationConfig
+from l3e_env.localizability.labels import AXES
+from l3e_env.sim.lidar import Lidar
+from l3e_env.sim.raycast import EmbreeCaster
+from l3e_env.localizability.registration import RegistrationConfig
 from scenes import make_scene
 
 
@@ -55,7 +55,7 @@ def test_ate_from_a_recording_writes_results_and_figures(walls_run, tmp_path):
 def test_a_recordings_noise_streams_are_kept_and_a_replay_cannot_change_them(walls_run, tmp_path, capsys):
     from dataclasses import replace
 
-    from l3e_env.cli import main
+    from l3e_env.cli.main import main
 
     rec, _ = walls_run
     replace(rec, noise_streams="separate").save(tmp_path / "separate.npz")
@@ -69,7 +69,7 @@ def test_a_recordings_noise_streams_are_kept_and_a_replay_cannot_change_them(wal
 
 
 def test_the_imu_attitude_joins_every_detector_alike_and_adds_its_own_reference_row(walls_run, tmp_path):
-    from l3e_env.cli import main
+    from l3e_env.cli.main import main
 
     rec, regs = walls_run
     plain, = evaluate(rec, [NoDetector()], regs, progress=False)
@@ -102,7 +102,7 @@ def test_the_fixed_icp_sigmas_reproduce_the_figures_measured_before_the_hessian(
     with pytest.raises(ValueError, match="icp_covariance must be one of"):
         run_experiment(tmp_path / "bad", "mine", ["none"], fusion_options=FusionOptions(icp_covariance="censi"))
     assert not (tmp_path / "bad").exists()
-    from l3e_env.sweep import run_sweep
+    from l3e_env.experiments.tau_sweep import run_sweep
 
     swept = run_sweep(tmp_path / "sweep", ["primitives-1"], taus=(1e12,), references=("none",),
                       recordings={"primitives-1": str(tmp_path / "rec.npz")}, progress=False,
@@ -113,9 +113,9 @@ def test_the_fixed_icp_sigmas_reproduce_the_figures_measured_before_the_hessian(
 
 
 def test_the_legs_bias_as_a_fusion_state_from_the_command_line(walls_run, tmp_path, capsys):
-    from l3e_env.cli import main
+    from l3e_env.cli.main import main
     from l3e_env.config import OdometryConfig
-    from l3e_env.odometry import odometry_fusion_config
+    from l3e_env.sim.odometry import odometry_fusion_config
 
     rec, regs = walls_run
     rec.save(tmp_path / "rec.npz")
@@ -142,7 +142,7 @@ def test_the_legs_bias_as_a_fusion_state_from_the_command_line(walls_run, tmp_pa
 def test_a_swept_recording_says_so_when_replayed(walls_run, tmp_path, capsys):
     from dataclasses import replace
 
-    from l3e_env.cli import main
+    from l3e_env.cli.main import main
 
     rec, _ = walls_run
     assert not rec.sweep
@@ -206,7 +206,7 @@ def test_a_recast_detector_judges_every_stride_steps_alike_in_workers_and_holds_
 
 
 def test_the_cascade_in_a_replay_checks_only_unsure_steps_alike_in_workers(walls_run):
-    from l3e_env.detectors import CascadeDetector, LearnedDetector, ScanMCDetector
+    from l3e_env.detection.detectors import CascadeDetector, LearnedDetector, ScanMCDetector
 
     rec, _ = walls_run
     scene = make_scene(rec.scene)
@@ -242,7 +242,7 @@ def test_the_cascade_in_a_replay_checks_only_unsure_steps_alike_in_workers(walls
 
 def test_a_users_mesh_and_route_are_driven_and_replayed(cad_corridor, tmp_path, capsys):
     """A corridor exported as a CAD tool would (y up, millimetres) with its route in the same units."""
-    from l3e_env.cli import main
+    from l3e_env.cli.main import main
 
     mesh, route = cad_corridor
     out = tmp_path / "ate"
@@ -287,14 +287,14 @@ def test_a_bad_detector_fails_before_the_drive(spec, message, tmp_path, monkeypa
     def no_drive(*args, **kwargs):
         raise AssertionError("the route was driven before the detectors were checked")
 
-    monkeypatch.setattr("l3e_env.experiment.record_run", no_drive)
+    monkeypatch.setattr("l3e_env.experiments.ate.record_run", no_drive)
     with pytest.raises((ValueError, RuntimeError), match=message):  # what `l3e` reports as an error
         run_experiment(tmp_path / "out", "primitives-1", ["none", spec], progress=False)
     assert not (tmp_path / "out").exists()
 
 
 def test_a_tau_is_reported_only_when_it_is_as_good_as_the_reference_everywhere():
-    from l3e_env.sweep import beaten_everywhere
+    from l3e_env.experiments.tau_sweep import beaten_everywhere
 
     results = {"tunnel": {"taus": [30.0, 110.0], "eigen_ate": [5.0, 1.0], "learned": 1.2},
                "field": {"taus": [30.0, 110.0], "eigen_ate": [0.5, 3.0], "learned": 0.6}}
@@ -333,7 +333,7 @@ def test_several_drives_summarised_per_detector_and_against_odometry_on_the_same
 
 @pytest.mark.slow
 def test_ate_over_several_seeds_drives_each_and_writes_the_summary(tmp_path, capsys):
-    from l3e_env.cli import main
+    from l3e_env.cli.main import main
 
     out = tmp_path / "ate"
     assert main(["ate", "--scene", "primitives-1", "--detector", "none", "--detector", "eigen:30", "--seed", "7",
@@ -359,8 +359,8 @@ def test_a_swept_recording_is_deskewed_by_its_odometry_and_gyro_before_it_is_fus
 
     import trimesh
 
-    from l3e_env.experiment import deskewed
-    from l3e_env.transforms import pose_to_matrix
+    from l3e_env.experiments.ate import deskewed
+    from l3e_env.core.transforms import pose_to_matrix
 
     room = trimesh.creation.box(extents=(10.0, 6.0, 4.0))
     lidar = Lidar(EmbreeCaster(room), LidarConfig(range_noise_std=0.0))

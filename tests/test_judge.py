@@ -5,11 +5,12 @@ import numpy as np
 import pytest
 import trimesh
 
-from l3e_env.cli import main
+from l3e_env.cli.main import main
 from l3e_env.config import LidarConfig
-from l3e_env.judge import ScanFileError, format_judgement, judge_scans, read_scan
-from l3e_env.lidar import Lidar
-from l3e_env.raycast import EmbreeCaster
+from l3e_env.experiments.judge import format_judgement, judge_scans
+from l3e_env.io.scan_files import ScanFileError, read_scan
+from l3e_env.sim.lidar import Lidar
+from l3e_env.sim.raycast import EmbreeCaster
 
 
 def _corridor_scan(rng) -> np.ndarray:
@@ -134,8 +135,8 @@ def test_files_judged_by_two_workers_are_judged_alike_and_in_order(tmp_path, rng
 
 
 def test_the_cascade_judges_a_file_with_the_estimate_where_it_is_unsure(tmp_path, rng):
-    from l3e_env.detectors import make_detector
-    from l3e_env.judge import needs_sensor, score_legend
+    from l3e_env.detection.detectors import make_detector
+    from l3e_env.experiments.judge import needs_sensor, score_legend
 
     points = _corridor_scan(rng)
     np.save(tmp_path / "corridor.npy", points)

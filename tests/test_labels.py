@@ -6,12 +6,12 @@ import pytest
 import trimesh
 
 from scenes import SceneError
-from l3e_env.dataset import DatasetError, LabelDataset, config_for, generate, label_statistics
-from l3e_env.labels import LabelConfig, SamplingError, label_parent, sample_parent_pose
-from l3e_env.lidar import Lidar
-from l3e_env.raycast import EmbreeCaster
-from l3e_env.registration import RegistrationConfig
-from l3e_env.transforms import matrix_to_pose, pose_to_matrix
+from l3e_env.data.dataset import DatasetError, LabelDataset, config_for, generate, label_statistics
+from l3e_env.localizability.labels import LabelConfig, SamplingError, label_parent, sample_parent_pose
+from l3e_env.sim.lidar import Lidar
+from l3e_env.sim.raycast import EmbreeCaster
+from l3e_env.localizability.registration import RegistrationConfig
+from l3e_env.core.transforms import matrix_to_pose, pose_to_matrix
 from scenes import Scene, make_scene
 
 FAST = LabelConfig(children=30)
@@ -142,8 +142,8 @@ def test_resuming_with_other_settings_or_reading_unfinished_data_is_refused(tmp_
 def test_a_users_mesh_is_labelled_resumed_by_its_own_bytes_and_scored(cad_corridor, tmp_path, capsys, monkeypatch):
     """`l3e dataset generate --scenes corridor.obj --route ...` and then `l3e evaluate --other` alone:
     how the shipped model does on a user's own scene, without the training data."""
-    from l3e_env.classifier import load_checkpoint
-    from l3e_env.cli import main
+    from l3e_env.model.classifier import load_checkpoint
+    from l3e_env.cli.main import main
 
     mesh, route = cad_corridor
     out, args = tmp_path / "d", ["--up-axis", "y", "--scale", "0.001", "--parents", "2", "--children", "5",
@@ -197,7 +197,7 @@ def test_a_users_mesh_is_labelled_resumed_by_its_own_bytes_and_scored(cad_corrid
 
 def test_several_meshes_are_labelled_from_a_list_with_their_own_routes_axes_and_scales(cad_corridor, tmp_path,
                                                                                         capsys):
-    from l3e_env.cli import main
+    from l3e_env.cli.main import main
 
     mesh, route = cad_corridor  # y up, millimetres
     folder = tmp_path / "meshes"
@@ -246,7 +246,7 @@ def test_ray_backend_gives_the_same_dataset(tmp_path):
 def test_a_full_disk_is_a_clear_error_and_keeps_finished_shards(tmp_path, monkeypatch):
     import errno
 
-    import l3e_env.dataset as ds
+    import l3e_env.data.dataset as ds
 
     cfg = config_for(None, scenes=["office-0"], parents_per_scene=2, shard_size=1, labels={"children": 6})
     real_savez, calls = np.savez, []

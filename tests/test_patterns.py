@@ -8,15 +8,15 @@ import numpy as np
 import pytest
 import trimesh
 
-from l3e_env.cli import main
+from l3e_env.cli.main import main
 from l3e_env.config import LidarConfig
-from l3e_env.judge import judge_scans, recognise_sensor
-from l3e_env.lidar import Lidar
-from l3e_env.patterns import (PATTERNS, BeamPattern, PatternError, describe_pattern, fit_pattern, get_pattern,
+from l3e_env.experiments.judge import judge_scans, recognise_sensor
+from l3e_env.sim.lidar import Lidar
+from l3e_env.sim.patterns import (PATTERNS, BeamPattern, PatternError, describe_pattern, fit_pattern, get_pattern,
                               load_pattern, save_pattern)
-from l3e_env.raycast import EmbreeCaster, PyBulletCaster
-from l3e_env.scan_mc import range_image_mesh
-from l3e_env.transforms import pose_to_matrix
+from l3e_env.sim.raycast import EmbreeCaster, PyBulletCaster
+from l3e_env.localizability.scan_mc import range_image_mesh
+from l3e_env.core.transforms import pose_to_matrix
 
 # a 64-beam Ouster-like sensor: beams on the OS0-128's grid spacing, staggered azimuths, beams
 # leaving 27 mm out from the axis

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from l3e_env.config import FusionOptions, plain, to_dict
-from l3e_env.registration import RegistrationConfig
+from l3e_env.localizability.registration import RegistrationConfig
 from policies.context import SceneContext, free_space
 from policies.fastenv import MapNavigationEnv
 from policies.freespace import FreeSpace, FreeSpaceError, build_free_space, reachable_from
@@ -238,7 +238,7 @@ def test_fast_env_charges_walking_sideways_as_drift(fast_env):
 
 def test_policy_train_takes_the_sideways_cost_and_a_resumed_run_keeps_it(tmp_path, monkeypatch, capsys):
     """And its drift weight: a second stage run without the options trains as the first did."""
-    from l3e_env.cli import main
+    from l3e_env.cli.main import main
 
     given = []
 
@@ -391,7 +391,7 @@ def test_back_off_reverses_the_last_command_after_blocked_steps():
 
 
 def test_policy_commands_are_registered(capsys):
-    from l3e_env.cli import main
+    from l3e_env.cli.main import main
 
     with pytest.raises(SystemExit):
         main(["policy", "--help"])
@@ -404,7 +404,7 @@ def test_a_users_mesh_is_mapped_and_planned(tmp_path, capsys):
     """A 60 m roofed corridor (STL, z up, metres) with its route as 'x y' lines: the corridor axis is free."""
     import trimesh
 
-    from l3e_env.cli import main
+    from l3e_env.cli.main import main
 
     parts = [trimesh.creation.box(extents) for extents in ([60, 4, 0.2], [60, 0.2, 3], [60, 0.2, 3], [60, 4, 0.2])]
     for part, offset in zip(parts, ([30, 0, -0.1], [30, 2, 1.5], [30, -2, 1.5], [30, 0, 3.1])):
@@ -438,7 +438,7 @@ def test_a_users_mesh_is_mapped_and_planned(tmp_path, capsys):
 def test_a_users_mesh_is_driven_by_the_policies(cad_corridor, tmp_path, capsys, monkeypatch):
     """`l3e policy evaluate` in a y-up millimetre corridor: the episodes, the map and the resumption
     use the mesh's route, axes and scale; its scene marks no corridor, so 'rich route' is n/a."""
-    from l3e_env.cli import main
+    from l3e_env.cli.main import main
 
     mesh, route = cad_corridor
     monkeypatch.chdir(mesh.parent)  # the mesh given by a relative path

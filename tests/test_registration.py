@@ -3,13 +3,13 @@ import pytest
 import small_gicp
 
 from l3e_env.config import LidarConfig
-from l3e_env.lidar import Lidar
-from l3e_env.raycast import EmbreeCaster
-from l3e_env.registration import (
+from l3e_env.sim.lidar import Lidar
+from l3e_env.sim.raycast import EmbreeCaster
+from l3e_env.localizability.registration import (
     TO_PROJECT_ORDER, PreparedTarget, RegistrationConfig, RegistrationError, eigen_mask, prepare_source, register,
     scan_hessian,
 )
-from l3e_env.transforms import inverse, matrix_to_pose, pose_to_matrix
+from l3e_env.core.transforms import inverse, matrix_to_pose, pose_to_matrix
 from scenes import make_scene
 
 
@@ -113,8 +113,8 @@ def test_a_hessian_moves_to_the_body_frame_with_the_mounting():
     import gtsam
 
     from fusion import to_gtsam_order
-    from l3e_env.registration import hessian_in_frame
-    from l3e_env.transforms import adjoint
+    from l3e_env.localizability.registration import hessian_in_frame
+    from l3e_env.core.transforms import adjoint
 
     rng = np.random.default_rng(0)
     T_b_s = pose_to_matrix([0.3, -0.1, 0.85, 0.02, -0.05, 0.4])

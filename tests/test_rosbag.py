@@ -11,16 +11,16 @@ from rosbags.rosbag2 import Writer as Writer2
 from rosbags.typesys import Stores, get_typestore
 from scipy.spatial.transform import Rotation
 
-from l3e_env.cli import main
+from l3e_env.cli.main import main
 from l3e_env.config import LidarConfig
-from l3e_env.judge import judge_scans
-from l3e_env.imu import ImuConfig
-from l3e_env.judge_plots import flag_matrix
-from l3e_env.lidar import Lidar
-from l3e_env.patterns import PATTERNS
-from l3e_env.raycast import EmbreeCaster
-from l3e_env.rosbag import BagError, BagRecorder, cloud_points, cloud_rings, read_bag, read_path
-from l3e_env.transforms import planar_pose
+from l3e_env.experiments.judge import judge_scans
+from l3e_env.sim.imu import ImuConfig
+from l3e_env.experiments.judge_plots import flag_matrix
+from l3e_env.sim.lidar import Lidar
+from l3e_env.sim.patterns import PATTERNS
+from l3e_env.sim.raycast import EmbreeCaster
+from l3e_env.io.rosbag import BagError, BagRecorder, cloud_points, cloud_rings, read_bag, read_path
+from l3e_env.core.transforms import planar_pose
 
 ROS1, ROS2 = get_typestore(Stores.ROS1_NOETIC), get_typestore(Stores.ROS2_HUMBLE)
 CLOUD = "sensor_msgs/msg/PointCloud2"
@@ -325,7 +325,7 @@ def test_record_cli_writes_a_drive_that_judge_reads_back(tmp_path, capsys):
     bag, rec = tmp_path / "walls.bag", tmp_path / "walls.npz"
     assert main(["record", "--scene", "primitives-1", "--out", str(bag), "--recording", str(rec), "--quiet",
                  "--separate-noise"]) == 0
-    from l3e_env.experiment import Recording
+    from l3e_env.experiments.ate import Recording
 
     recording = Recording.load(rec)
     assert recording.noise_streams == "separate" and recording.sweep

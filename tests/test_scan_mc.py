@@ -7,16 +7,17 @@ import pytest
 import trimesh
 
 from l3e_env.config import LidarConfig
-from l3e_env.dataset import LabelDataset, row_thresholds
-from l3e_env.detectors import make_detector
-from l3e_env.labels import LabelConfig
-from l3e_env.lidar import Lidar
-from l3e_env.raycast import EmbreeCaster
-from l3e_env.registration import RegistrationConfig, RegistrationError
-from l3e_env.scan_mc import (ScanMCConfig, ScanPatternError, beams_and_columns, dataset_scan_errors,
-                             range_image_mesh, scan_errors)
-from l3e_env.scores import axis_scores
-from l3e_env.transforms import pose_to_matrix
+from l3e_env.data.dataset import LabelDataset, row_thresholds
+from l3e_env.detection.detectors import make_detector
+from l3e_env.localizability.labels import LabelConfig
+from l3e_env.sim.lidar import Lidar
+from l3e_env.sim.raycast import EmbreeCaster
+from l3e_env.localizability.registration import RegistrationConfig, RegistrationError
+from l3e_env.data.scan_estimates import dataset_scan_errors
+from l3e_env.localizability.scan_mc import (ScanMCConfig, ScanPatternError, beams_and_columns, range_image_mesh,
+                                            scan_errors)
+from l3e_env.model.scores import axis_scores
+from l3e_env.core.transforms import pose_to_matrix
 
 SENSOR = np.eye(4)
 SENSOR[2, 3] = 1.0
@@ -147,7 +148,7 @@ def test_the_detector_flags_the_corridor_and_answers_unknown_to_a_bad_scan(rng):
 
 
 def test_evaluate_scores_the_scan_estimate_the_same_with_any_number_of_workers(tiny_dataset, tmp_path):
-    from l3e_env.evaluation import evaluate
+    from l3e_env.experiments.table3 import evaluate
 
     res = evaluate([], None, tmp_path / "eval", others=[tiny_dataset], progress=False, scan_mc=3, workers=2)
     column = f"all of {Path(tiny_dataset).name}"
@@ -233,7 +234,7 @@ def test_a_thinned_scan_is_refused_by_name(rng):
 
 
 def test_near_threshold_measures_log_odds_from_each_axis_threshold():
-    from l3e_env.detectors import near_threshold
+    from l3e_env.detection.detectors import near_threshold
 
     thresholds = np.array([0.5, 0.5, 0.2, 0.5, 0.5, 0.9])
     sure = np.array([[0.05, 0.95, 0.01, 0.05, 0.05, 0.999], [0.5, 0.05, 0.05, 0.05, 0.05, 0.05]])
@@ -245,7 +246,7 @@ def test_near_threshold_measures_log_odds_from_each_axis_threshold():
 
 
 def test_cascade_detector_asks_the_estimate_only_where_the_classifier_is_unsure(rng):
-    from l3e_env.detectors import CascadeDetector, LearnedDetector, ScanMCDetector
+    from l3e_env.detection.detectors import CascadeDetector, LearnedDetector, ScanMCDetector
 
     scan = _scan(_box([200, 4, 3]), rng)  # a corridor along x
     learned, scan_mc = LearnedDetector(), ScanMCDetector(LidarConfig(), children=6)
@@ -268,8 +269,8 @@ def test_cascade_detector_asks_the_estimate_only_where_the_classifier_is_unsure(
 
 
 def test_evaluate_scores_the_cascade_from_the_classifier_and_the_estimate(tiny_dataset, tmp_path):
-    from l3e_env.classifier import DEFAULT_CHECKPOINT
-    from l3e_env.evaluation import evaluate
+    from l3e_env.model.classifier import DEFAULT_CHECKPOINT
+    from l3e_env.experiments.table3 import evaluate
 
     res = evaluate([DEFAULT_CHECKPOINT], None, tmp_path / "eval", others=[tiny_dataset], progress=False, scan_mc=3,
                    cascade=[0.0, 100.0])
@@ -295,7 +296,7 @@ def test_evaluate_scores_the_cascade_from_the_classifier_and_the_estimate(tiny_d
 
 
 def test_random_checks_move_from_the_first_detector_to_the_second_with_their_share():
-    from l3e_env.evaluation import random_checks
+    from l3e_env.experiments.table3 import random_checks
 
     labels = np.random.default_rng(0).random((400, 6)) < 0.3
     curve = random_checks(labels, labels.copy(), ~labels)  # the first right everywhere, the second wrong

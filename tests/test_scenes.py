@@ -122,7 +122,7 @@ def test_broken_and_missing_mesh_files_raise_clear_errors(tmp_path):
 
 
 def _horizontal_clearance(scene: Scene, points: np.ndarray, height: float = 1.0, max_range: float = 60.0) -> np.ndarray:
-    from l3e_env.raycast import EmbreeCaster
+    from l3e_env.sim.raycast import EmbreeCaster
 
     caster = EmbreeCaster(scene.mesh, threads=1)
     angles = np.linspace(0, 2 * np.pi, 32, endpoint=False)

@@ -2,7 +2,7 @@
 import pytest
 import torch
 
-from l3e_env.sparse import (
+from l3e_env.model.sparse import (
     OFFSETS_2, OFFSETS_3, DownConv, Level, SubmanifoldConv, UpConv, _int8_rows, global_max_pool, int8_products_work,
     voxelize,
 )

@@ -4,7 +4,7 @@ import os
 
 import pytest
 
-from l3e_env.workers import ordered_map
+from l3e_env.core.workers import ordered_map
 
 
 def test_workers_give_the_serial_results_in_order():

@@ -10,15 +10,15 @@ from gymnasium import spaces
 from scenes import Scene, make_scene
 from scenes.geometry import polyline_length
 
-from ..config import NOISE_STREAMS, EnvConfig, from_dict
-from ..imu import StepAttitude, StepGyro
-from ..lidar import DESKEW_SOURCES, DESKEW_STEPS, Lidar, Scan, deskew, deskew_motion
-from ..odometry import LegOdometry
-from ..raycast import make_caster
-from ..render import TopDownRenderer
-from ..robot import Robot
-from ..transforms import inverse, matrix_to_pose
-from ..world import World
+from l3e_env.config import NOISE_STREAMS, EnvConfig, from_dict
+from l3e_env.sim.imu import StepAttitude, StepGyro
+from l3e_env.sim.lidar import DESKEW_SOURCES, DESKEW_STEPS, Lidar, Scan, deskew, deskew_motion
+from l3e_env.sim.odometry import LegOdometry
+from l3e_env.sim.raycast import make_caster
+from l3e_env.sim.render import TopDownRenderer
+from l3e_env.sim.robot import Robot
+from l3e_env.core.transforms import inverse, matrix_to_pose
+from l3e_env.sim.world import World
 
 
 class NavigationEnv(gym.Env):
@@ -89,7 +89,7 @@ class NavigationEnv(gym.Env):
         self.gyro = StepGyro() if swept_fusion and config.fusion.deskew == "gyro" else None  # deskews only there
         self.attitude = StepAttitude() if config.fusion.enabled and config.fusion.attitude != "none" else None
         if config.fusion.enabled:
-            from ..online import OnlineFusion  # ICP, detector and GTSAM only when asked for
+            from l3e_env.detection.pipeline import OnlineFusion  # ICP, detector and GTSAM only when asked for
 
             self.fusion = OnlineFusion(config.fusion, self.lidar, config.odometry, self.robot.T_b_s)
         self._fusion_info: dict[str, Any] = {}

@@ -1,0 +1,1 @@
+"""The `l3e` command line: parse, call the library, print."""

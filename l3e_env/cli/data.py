@@ -1,0 +1,69 @@
+"""Labelled datasets: `l3e dataset generate` and `l3e dataset stats`."""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+
+from .options import (scene_names, SENSOR_HELP, sensor_name, add_mesh_options, dataset_scenes)
+
+
+def _cmd_dataset_generate(args: argparse.Namespace) -> int:
+    from l3e_env.data.dataset import config_for, format_statistics, generate
+
+    scenes, params = dataset_scenes(args)
+    overrides = {
+        "scenes": scenes,
+        "scene_params": params or None,
+        "parents_per_scene": args.parents,
+        "seed": args.seed,
+        "lidar": {"model": args.sensor} if args.sensor else None,
+        "labels": {"children": args.children} if args.children else None,
+    }
+    config = config_for(args.preset, **overrides)
+    print(f"dataset -> {Path(args.out).resolve()}: {len(config.scenes)} scenes x {config.parents_per_scene} parents, "
+          f"M = {config.labels.children}, {config.lidar.model}, seed {config.seed}, "
+          f"{args.workers} workers ({args.backend})")
+    manifest = generate(args.out, config, workers=args.workers, backend=args.backend, ray_address=args.address,
+                        progress=not args.quiet)
+    print(f"{manifest['count']} labelled parents, {len(manifest['failures'])} failed "
+          f"({manifest['generation_seconds_last_run']} s this run)")
+    for failure in manifest["failures"][:3]:
+        print(f"  failed: {failure['scene']} parent {failure['parent']}: {failure['reason']}")
+    print(format_statistics(manifest["statistics"]))
+    return 0
+
+
+def _cmd_dataset_stats(args: argparse.Namespace) -> int:
+    from l3e_env.data.dataset import LabelDataset, format_statistics
+
+    data = LabelDataset(args.folder)
+    print(f"{args.folder}: {len(data)} parents, sensor {data.manifest['sensor']}, "
+          f"scenes {', '.join(data.manifest['scenes'])}")
+    print(format_statistics(data.manifest["statistics"]))
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("dataset", help="Monte-Carlo localizability labels")
+    dsub = p.add_subparsers(dest="dataset_command", required=True)
+    g = dsub.add_parser("generate", help="generate or resume a labelled dataset")
+    g.add_argument("--out", required=True, help="dataset folder (an unfinished one is resumed)")
+    g.add_argument("--preset", choices=["small", "paper", "level"], default="small",
+                   help="small: a first look; paper: the paper's protocol; level: operating poses "
+                        "(level, heading along or across the paths)")
+    g.add_argument("--scenes", type=scene_names,
+                   help="comma-separated scene names (overrides the preset); one may be a mesh file, with --route")
+    g.add_argument("--parents", type=int, help="parents per scene")
+    g.add_argument("--children", type=int, help="M, children per parent (paper: 200)")
+    g.add_argument("--sensor", type=sensor_name, help=SENSOR_HELP)
+    g.add_argument("--seed", type=int)
+    g.add_argument("--workers", type=int, default=2)
+    g.add_argument("--backend", choices=["local", "ray"], default="local")
+    g.add_argument("--address", help="Ray cluster address (default: start a local Ray instance)")
+    g.add_argument("--quiet", action="store_true")
+    add_mesh_options(g, several=True)
+    g.set_defaults(func=_cmd_dataset_generate)
+    g = dsub.add_parser("stats", help="label statistics of a dataset")
+    g.add_argument("folder")
+    g.set_defaults(func=_cmd_dataset_stats)

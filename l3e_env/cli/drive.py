@@ -1,0 +1,224 @@
+"""Driving the scenes: the demo, scene and environment lists, ATE experiments, ROS bag recording, the tau sweep."""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+from l3e_env.config import ATTITUDE_MODES
+
+from .options import (scene_name, SENSOR_HELP, NOISE_HELP, add_fusion_options, fusion_options, sensor_name, float_list,
+                      add_mesh_options, mesh_options_given, scene_params)
+
+
+def _cmd_demo(args: argparse.Namespace) -> int:
+    from l3e_env.experiments.demo import run_demo
+
+    params = scene_params(args)
+    out = Path(args.out or f"l3e_out/demo-{time.strftime('%Y%m%d-%H%M%S')}")
+    print(f"writing the demo into {out.resolve()}")
+    result = run_demo(out, scene=args.scene, sensor=args.sensor, seed=args.seed, progress=not args.quiet,
+                      checkpoint=args.checkpoint, scene_params=params)
+    print(f"{result['steps']} steps, goal {'reached' if result['reached_goal'] else 'NOT reached'}")
+    from l3e_env.localizability.labels import AXES
+
+    print("share of scans flagged non-localizable by the learned detector:")
+    print(f"  {'':8s}" + "".join(f"{a:>7s}" for a in AXES))
+    for place, share in result["flagged"].items():
+        print(f"  {place:8s}" + "".join(f"{v:7.2f}" for v in share))
+    for f in result["files"]:
+        print(f"  {f}")
+    return 0 if result["reached_goal"] else 1
+
+
+def _cmd_scenes(args: argparse.Namespace) -> int:
+    from scenes import TEST_SCENES, TRAIN_SCENES, VALIDATION_SCENES, list_scenes, make_scene
+
+    names = args.names or list_scenes()
+    for name in names:
+        print(make_scene(name).summary())
+    if not args.names:
+        print(f"\ntraining environments ({len(TRAIN_SCENES)}): {', '.join(TRAIN_SCENES)}")
+        print(f"validation: {', '.join(VALIDATION_SCENES)}")
+        print(f"test (families unseen in training): {', '.join(TEST_SCENES)}")
+    return 0
+
+
+def _cmd_envs(args: argparse.Namespace) -> int:
+    from l3e_env import ENV_IDS
+
+    for env_id, scene in ENV_IDS.items():
+        print(f"{env_id:18s} scene '{scene}'")
+    return 0
+
+
+def _cmd_ate(args: argparse.Namespace) -> int:
+    from l3e_env.experiments.ate import format_seed_table, format_table, run_experiment, summarize_seeds
+    from l3e_env.experiments.ate_plots import plot_seeds
+    from l3e_env.sim.lidar import DESKEW_STEPS
+
+    # a recording holds its scene's route, axes and scale: a mesh given with it is where the mesh moved to
+    params = {} if args.recording and not mesh_options_given(args) else scene_params(args)
+    stem = "replay" if args.recording else Path(args.scene).stem  # a replay's scene is the recording's
+    out = Path(args.out or f"l3e_out/ate-{stem}-{time.strftime('%Y%m%d-%H%M%S')}")
+    if args.seeds < 1 or (args.seeds > 1 and args.recording):
+        print("l3e ate: --seeds is 1 or more drives, and a recording is one drive", file=sys.stderr)
+        return 2
+    if args.separate_noise and args.recording:
+        print("l3e ate: a recording keeps the noise it was driven with; --separate-noise is for "
+              "`l3e record` or a new drive", file=sys.stderr)
+        return 2
+    streams = "separate" if args.separate_noise else "shared"
+    print(f"writing the experiment into {out.resolve()}")
+    detectors = args.detector or ["none", "eigen:30", "eigen:110", "oracle"]
+    if args.seeds > 1:
+        runs = {}
+        for seed in range(args.seed, args.seed + args.seeds):
+            print(f"drive {seed - args.seed + 1} of {args.seeds} (seed {seed})")
+            runs[seed] = run_experiment(out / f"seed-{seed}", args.scene, detectors, sensor=args.sensor, seed=seed,
+                                        progress=not args.quiet, backend=args.backend, scene_params=params,
+                                        workers=args.workers, noise_streams=streams, attitude=args.attitude,
+                                        fusion_options=fusion_options(args))
+            print(format_table(runs[seed]))
+        summary = summarize_seeds(runs)
+        (out / "seeds.json").write_text(json.dumps(summary, indent=1))
+        plot_seeds(out / "seeds.png", summary)
+        print(format_seed_table(summary))
+        print(f"written: {out / 'seeds.json'}, {out / 'seeds.png'}")
+        return 0
+    rows = run_experiment(out, args.scene, detectors, sensor=args.sensor, seed=args.seed, recording=args.recording,
+                          progress=not args.quiet, backend=args.backend, scene_params=params, workers=args.workers,
+                          deskew=args.deskew, noise_streams=streams, attitude=args.attitude,
+                          fusion_options=fusion_options(args))
+    print(format_table(rows))
+    if json.loads((out / "results.json").read_text()).get("swept"):
+        turn = "the gyro's rotation over it" if args.deskew == "gyro" else "the odometry's rotation"
+        print("the recording's scans are swept over the robot's motion; each was deskewed with the leg "
+              f"odometry's mean motion over its last {DESKEW_STEPS} steps, with {turn}, before it was judged "
+              "and registered")
+    return 0
+
+
+def record_imu(args: argparse.Namespace):
+    """The ImuConfig that `l3e record`'s options ask for; None where --imu-rate is 0."""
+    from l3e_env.sim.imu import ImuConfig
+
+    if not args.imu_rate:
+        return None
+    return ImuConfig(rate=args.imu_rate, orientation=args.imu_orientation,
+                     footfall_accel=ImuConfig.footfall_accel if args.imu_footfalls else 0.0)
+
+
+def _cmd_record(args: argparse.Namespace) -> int:
+    from l3e_env.experiments.ate import record_run
+    from l3e_env.io.rosbag import BagError, BagRecorder
+
+    params = scene_params(args)
+    if not args.imu_rate >= 0:
+        print(f"l3e record: --imu-rate must be 0 (no IMU) or more, got {args.imu_rate}", file=sys.stderr)
+        return 2
+    try:
+        bag = BagRecorder(args.out, ros2=args.ros2, imu=record_imu(args), seed=args.seed)
+    except BagError as exc:
+        print(f"l3e record: {exc}", file=sys.stderr)
+        return 2
+    rec = record_run(args.scene, args.sensor, args.seed, progress=not args.quiet, scene_params=params, on_step=bag,
+                     sweep=args.sweep, noise_streams="separate" if args.separate_noise else "shared")
+    print(f"written: {bag.close()} ({bag.steps} scans)")
+    if args.recording:
+        Path(args.recording).parent.mkdir(parents=True, exist_ok=True)
+        rec.save(args.recording)
+        print(f"written: {args.recording} (l3e ate --recording {args.recording} fuses this same drive)")
+    return 0
+
+
+def _cmd_sweep(args: argparse.Namespace) -> int:
+    from l3e_env.experiments.tau_sweep import DEFAULT_TAUS, beaten_everywhere, run_sweep
+
+    out = Path(args.out or f"l3e_out/sweep-{time.strftime('%Y%m%d-%H%M%S')}")
+    print(f"writing the sweep into {out.resolve()}")
+    taus = args.taus or DEFAULT_TAUS
+    recordings = dict(r.split("=", 1) for r in args.recording or [])
+    results = run_sweep(out, args.scene or ["tunnel", "field", "office"], taus, recordings=recordings,
+                        progress=not args.quiet, fusion_options=fusion_options(args))
+    best = beaten_everywhere(results, "learned")
+    print("taus at least as good as the learned detector in every scene: " + (", ".join(f"{t:g}" for t in best)
+                                                                             if best else "none"))
+    print(f"plot: {out / 'tau_sweep.png'}")
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("demo", help="drive the mine route and save a top view and scan pictures")
+    p.add_argument("--out", help="output folder (default: l3e_out/demo-<time>)")
+    p.add_argument("--scene", type=scene_name, default="mine", help="scene name (default: mine)")
+    p.add_argument("--sensor", type=sensor_name, default="vlp16", help=SENSOR_HELP)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--checkpoint", help="classifier checkpoint (default: the shipped model)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_mesh_options(p)
+    p.set_defaults(func=_cmd_demo)
+    p = sub.add_parser("scenes", help="list scenes and the train/validation/test split")
+    p.add_argument("names", nargs="*", type=scene_name, help="scene names to describe (default: all families)")
+    p.set_defaults(func=_cmd_scenes)
+    p = sub.add_parser("envs", help="list the registered Gymnasium environment ids")
+    p.set_defaults(func=_cmd_envs)
+    p = sub.add_parser("ate", help="drive a route once, fuse with each detector, compare ATE")
+    p.add_argument("--scene", type=scene_name, default="mine")
+    p.add_argument("--detector", action="append",
+                   help="none | eigen:<tau> | oracle[:M] | scanmc[:M] | learned[:checkpoint] | "
+                        "learned+scanmc[:margin]; repeat for several")
+    p.add_argument("--backend", choices=["graph", "ekf"], default="graph", help="iSAM2 smoother or filterpy EKF")
+    p.add_argument("--sensor", type=sensor_name, default="vlp16", help=SENSOR_HELP)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seeds", type=int, default=1,
+                   help="drive N times, seeds --seed ... --seed + N - 1, and summarise each detector's ATE over them")
+    p.add_argument("--recording", help="evaluate a saved recording.npz instead of driving again")
+    p.add_argument("--deskew", choices=["gyro", "odometry"], default="gyro",
+                   help="a swept recording's scans are deskewed with the leg odometry's motion, turned by the "
+                        "gyro's rotation (default) or the odometry's own")
+    p.add_argument("--separate-noise", action="store_true",
+                   help=NOISE_HELP)
+    p.add_argument("--attitude", choices=ATTITUDE_MODES, default="none",
+                   help="fuse the IMU's orientation once a second: tilt = roll and pitch, which gravity holds "
+                        "(no heading: underground a magnetometer reads the rock), full = with the magnetometer's "
+                        "heading; adds a row of the odometry fused with it alone (default: none)")
+    add_fusion_options(p)
+    p.add_argument("--out", help="output folder (default: l3e_out/ate-<scene>-<time>)")
+    p.add_argument("--workers", type=int, default=1,
+                   help="processes that judge the route with scanmc before the fusion (default 1)")
+    p.add_argument("--quiet", action="store_true")
+    add_mesh_options(p)
+    p.set_defaults(func=_cmd_ate)
+    p = sub.add_parser("record", help="drive a route once and write it as a ROS bag: full scans, leg odometry, "
+                                      "ground truth (needs pip install 'l3e[bag]')")
+    p.add_argument("--out", required=True, help="the bag: a .bag file (ROS 1), or a folder with --ros2")
+    p.add_argument("--ros2", action="store_true", help="write a ROS 2 bag (sqlite3) instead of ROS 1")
+    p.add_argument("--scene", type=scene_name, default="mine")
+    p.add_argument("--sensor", type=sensor_name, default="vlp16", help=SENSOR_HELP)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--recording", help="also save the drive as a recording.npz for l3e ate --recording")
+    p.add_argument("--separate-noise", action="store_true",
+                   help=NOISE_HELP)
+    p.add_argument("--imu-rate", type=float, default=200.0, help="rate of /imu in Hz (default 200; 0: no IMU)")
+    p.add_argument("--imu-orientation", action=argparse.BooleanOptionalAction, default=True,
+                   help="write a nine-axis unit's orientation in /imu (default), or none as a six-axis unit")
+    p.add_argument("--sweep", action=argparse.BooleanOptionalAction, default=True,
+                   help="sweep each revolution over the step's motion and write each point's time, as a spinning "
+                        "sensor on a moving robot does (default), or take each revolution at one pose")
+    p.add_argument("--imu-footfalls", action=argparse.BooleanOptionalAction, default=True,
+                   help="jolt /imu at each footfall while walking, as a legged robot's body rings (default), or not")
+    p.add_argument("--quiet", action="store_true")
+    add_mesh_options(p)
+    p.set_defaults(func=_cmd_record)
+    p = sub.add_parser("sweep", help="ATE against the eigenvalue threshold in several scenes, with the learned "
+                                     "detector as reference")
+    p.add_argument("--scene", type=scene_name, action="append", help="repeat; default tunnel, field, office")
+    p.add_argument("--taus", type=float_list, help="comma-separated thresholds (default 10 ... 300)")
+    p.add_argument("--recording", action="append", help="SCENE=recording.npz to skip driving that scene")
+    add_fusion_options(p)
+    p.add_argument("--out", help="output folder (default: l3e_out/sweep-<time>)")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=_cmd_sweep)

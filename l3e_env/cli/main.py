@@ -1,0 +1,34 @@
+"""The `l3e` command line: a thin layer over library functions that return results. Each command
+group's module adds its parsers (`register`) and handlers."""
+from __future__ import annotations
+
+import argparse
+import sys
+from importlib.metadata import entry_points
+
+from . import data, drive, model, scans
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="l3e", description="Learned LiDAR localizability in simulation (L3E).")
+    sub = parser.add_subparsers(dest="command", required=True)
+    for group in (drive, data, model, scans):
+        group.register(sub)
+    # packages built on l3e_env (policies: `l3e policy`) add their commands through this entry-point
+    # group, so that l3e_env never imports them
+    for entry in entry_points(group="l3e.commands"):
+        entry.load()(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.func(args))
+    except (ValueError, RuntimeError, OSError) as exc:
+        print(f"l3e {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,150 @@
+"""One's own scans: `l3e judge` and `l3e sensor`."""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+
+from .options import (sensor_name)
+
+
+def _cmd_judge(args: argparse.Namespace) -> int:
+
+    import numpy as np
+
+    from l3e_env.config import LidarConfig
+    from l3e_env.experiments.judge import format_judgement, judge_scans, judgement_record, score_legend
+    from l3e_env.io.rosbag import BagError, read_bag, read_path
+
+    if bool(args.scans) == bool(args.bag):
+        print("l3e judge: give scan files or --bag, not both and not neither", file=sys.stderr)
+        return 2
+    if not args.bag and (args.topic or args.every != 1 or args.start is not None or args.end is not None):
+        print("l3e judge: --topic, --every, --start and --end read a bag: give --bag", file=sys.stderr)
+        return 2
+    if not args.bag and (args.path_plot or args.pose_topic):
+        print("l3e judge: --path-plot and --pose-topic read the path from a bag: give --bag", file=sys.stderr)
+        return 2
+    try:
+        scans = read_bag(args.bag, args.topic, args.every, args.start, args.end) if args.bag else args.scans
+        route = read_path(args.bag, args.pose_topic) if args.bag and (args.path_plot or args.pose_topic) else None
+    except BagError as exc:
+        print(f"l3e judge: {exc}", file=sys.stderr)
+        return 2
+    specs = args.detector or ["learned", "eigen:30", "scanmc"]
+    sensor = [args.sensor]
+
+    def recognised(pattern, how: str) -> None:
+        if pattern is None:
+            sensor[0] = LidarConfig().model
+            print(f"sensor: {how}; scanmc takes it as a {LidarConfig().model} and answers unknown for scans of "
+                  "another (give --sensor: a name, a pattern file or an Ouster's metadata JSON)", flush=True)
+        else:
+            sensor[0] = pattern.name
+            print(f"sensor: {how} (give --sensor to choose it)", flush=True)
+
+    judgements = []  # printed as each scan is judged; an unreadable scan is named and the next one read
+    for j in judge_scans(scans, specs, LidarConfig(model=args.sensor) if args.sensor else None, seed=args.seed,
+                         workers=args.workers, on_sensor=recognised):
+        judgements.append(j)
+        stamp = "" if j.stamp is None else f"[t = {j.stamp:.3f} s] "
+        print(stamp + format_judgement(j), file=sys.stderr if j.error else sys.stdout, flush=True)
+    print("scores ('*' flagged):\n" + score_legend(specs))
+    where = None if route is None else route.at(np.array([j.stamp for j in judgements], dtype=np.float64))
+    if args.json:
+        records = [judgement_record(j, sensor[0]) for j in judgements]
+        for record, position in zip(records, [] if where is None else where):
+            record["position"] = [float(v) for v in position] if np.isfinite(position).all() else None
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(records, indent=1) + "\n")
+        print(f"written: {args.json}")
+    if args.plot and any(j.predictions for j in judgements):
+        from l3e_env.experiments.judge_plots import plot_timeline
+
+        plot_timeline(judgements, args.plot)
+        print(f"written: {args.plot}")
+    if args.path_plot and any(j.predictions for j in judgements):
+        from l3e_env.experiments.judge_plots import plot_path
+
+        off = int((~np.isfinite(where).all(axis=1)).sum())
+        if off:
+            print(f"l3e judge: {off} scans lie outside the time of {route.topic}'s poses and are left off the map",
+                  file=sys.stderr)
+        try:
+            plot_path(judgements, where, route.positions, args.path_plot, f"{Path(args.bag).name} on {route.topic}")
+            print(f"written: {args.path_plot}")
+        except ValueError as exc:
+            print(f"l3e judge: {exc}", file=sys.stderr)
+            return 2
+    failed = sum(j.error is not None for j in judgements)
+    if not judgements:
+        print("l3e judge: no scan in the bag between --start and --end", file=sys.stderr)
+    elif failed:
+        print(f"l3e judge: {failed} of {len(judgements)} scans could not be read or judged", file=sys.stderr)
+    return 2 if failed or not judgements else 0
+
+
+def _cmd_sensor(args: argparse.Namespace) -> int:
+    from l3e_env.experiments.judge import recognise_sensor
+    from l3e_env.io.scan_files import ScanFileError, read_scan
+    from l3e_env.sim.patterns import PATTERN_FILES, PATTERNS, describe_pattern, get_pattern, save_pattern
+    from l3e_env.io.rosbag import BagError, read_bag
+
+    if bool(args.source) == bool(args.bag):
+        print("l3e sensor: give a sensor (name or pattern file), a scan file or --bag, one of them", file=sys.stderr)
+        return 2
+    if args.source and (args.source in PATTERNS or args.source.lower().endswith(PATTERN_FILES)):
+        pattern, how = get_pattern(args.source), "as given"
+    else:
+        try:
+            if not args.bag:
+                read_scan(args.source)  # a file that cannot be read is named here
+            scans = read_bag(args.bag, args.topic) if args.bag else iter([args.source])
+        except (BagError, ScanFileError) as exc:
+            print(f"l3e sensor: {exc}", file=sys.stderr)
+            return 2
+        _, pattern, how = recognise_sensor(scans)
+        if pattern is None:
+            print(f"l3e sensor: {how}", file=sys.stderr)
+            return 2
+    print(describe_pattern(pattern) + f"\n  ({how})")
+    if args.out:
+        print(f"written: {save_pattern(pattern, args.out)} (give it as --sensor)")
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("judge", help="judge your own scans (files or a ROS bag): along which axes would "
+                                     "scan-to-scan registration fail there")
+    p.add_argument("scans", nargs="*", metavar="SCAN",
+                   help="scan files in the sensor's frame: .npy .npz .bin (KITTI) .ply .pcd .xyz .txt .csv")
+    g = p.add_argument_group("a ROS bag instead of files (needs pip install 'l3e[bag]')")
+    g.add_argument("--bag", help="a ROS 1 .bag file or a ROS 2 bag folder (sqlite3 or mcap)")
+    g.add_argument("--topic", help="its sensor_msgs/PointCloud2 topic (default: the only one)")
+    g.add_argument("--every", type=int, default=1, help="judge every N-th scan (default 1: all)")
+    g.add_argument("--start", type=float, help="seconds after the bag's start to begin at")
+    g.add_argument("--end", type=float, help="seconds after the bag's start to stop at")
+    g.add_argument("--path-plot", help="also draw the judged scans on a map of the bag's path into this image")
+    g.add_argument("--pose-topic", help="the path's topic: nav_msgs/Odometry, geometry_msgs/PoseStamped or "
+                                        "PoseWithCovarianceStamped (default: the only Odometry topic); it also "
+                                        "writes each scan's position into --json")
+    p.add_argument("--detector", action="append",
+                   help="learned[-sym][:checkpoint] | eigen:<tau> | scanmc[:M] | learned+scanmc[:margin] | none; "
+                        "repeat for several (default: learned, eigen:30 and scanmc)")
+    p.add_argument("--sensor", type=sensor_name,
+                   help="the LiDAR that took the scans, for scanmc's beams: vlp16, os0-128 or a beam pattern file "
+                        "(.yaml/.json, or an Ouster metadata .json); default: recognised from the scans")
+    p.add_argument("--seed", type=int, default=0, help="seed of scanmc's children")
+    p.add_argument("--workers", type=int, default=1, help="scans judged side by side in processes (default 1)")
+    p.add_argument("--json", help="also write the scores here")
+    p.add_argument("--plot", help="also draw the flagged axes scan by scan (over time for a bag) into this image")
+    p.set_defaults(func=_cmd_judge)
+    p = sub.add_parser("sensor", help="show a LiDAR's beam pattern, or recognise it from a scan or a bag and "
+                                      "save it as a pattern file for --sensor")
+    p.add_argument("source", nargs="?", help="a sensor name, a pattern file, or a scan file to recognise it from")
+    p.add_argument("--bag", help="recognise it from this ROS bag's first scans")
+    p.add_argument("--topic", help="the bag's PointCloud2 topic (default: the only one)")
+    p.add_argument("--out", help="write the pattern here (.yaml or .json)")
+    p.set_defaults(func=_cmd_sensor)

@@ -1,0 +1,59 @@
+"""Config dataclasses to and from dicts and YAML, and the comparison of stored settings."""
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Any, TypeVar
+
+import yaml
+
+T = TypeVar("T")
+
+
+def to_dict(cfg: Any) -> dict[str, Any]:
+    return dataclasses.asdict(cfg)
+
+
+def from_dict(cls: type[T], data: dict[str, Any] | None) -> T:
+    """Build a (nested) config dataclass, rejecting unknown keys by name."""
+    data = dict(data or {})
+    names = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = sorted(set(data) - set(names))
+    if unknown:
+        raise ValueError(f"{cls.__name__}: unknown option(s) {unknown}; known: {sorted(names)}")
+    kwargs = {}
+    for key, value in data.items():
+        default = names[key].default_factory() if names[key].default_factory is not dataclasses.MISSING else None
+        if dataclasses.is_dataclass(default) and isinstance(value, dict):
+            value = from_dict(type(default), value)
+        elif isinstance(value, list):
+            value = tuple(value)
+        kwargs[key] = value
+    return cls(**kwargs)
+
+
+def dump_yaml(cfg: Any, path: str | Path) -> None:
+    Path(path).write_text(yaml.safe_dump(plain(to_dict(cfg)), sort_keys=False))
+
+
+def load_yaml(cls: type[T], path: str | Path) -> T:
+    return from_dict(cls, yaml.safe_load(Path(path).read_text()))
+
+
+def plain(x: Any) -> Any:
+    """Tuples to lists, recursively: the form YAML, JSON and torch's weights-only loader keep."""
+    if isinstance(x, dict):
+        return {k: plain(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [plain(v) for v in x]
+    return x
+
+
+def settings_changed(before: dict[str, Any], now: dict[str, Any]) -> str:
+    """The top-level settings that differ, named for an error message: the old and new values of
+    the short ones, the names only of long ones (a mesh's route is a long list)."""
+    def shown(key: str) -> str:
+        old, new = repr(before.get(key)), repr(now.get(key))
+        return key if len(old) + len(new) > 80 else f"{key} {old}, now {new}"
+
+    return ", ".join(shown(k) for k in sorted(before.keys() | now.keys()) if before.get(k) != now.get(k))

@@ -1,0 +1,1 @@
+"""Poses and transforms, ordered worker processes, atomic file writes: used by every layer."""

@@ -1,0 +1,66 @@
+"""Ordered work in spawned processes. The slow judges (maps, the scan estimate in a replay,
+`l3e judge`) each build one heavy object (a detector, a LiDAR on its own copy of a scene) that
+cannot cross a process boundary; every worker builds its own once from picklable settings, and
+the results come back in the order of the jobs, so a run gives the same output with any number
+of workers."""
+from __future__ import annotations
+
+import sys
+from collections import deque
+from itertools import chain, islice
+from multiprocessing import get_context
+from typing import Any, Callable, Iterable, Iterator, Sized, TypeVar
+
+Job = TypeVar("Job")
+Result = TypeVar("Result")
+
+_worker: tuple[Callable[[Any, Any], Any], Any] | None = None  # this worker's (work, object)
+
+
+def _one_torch_thread() -> None:
+    """The workers share the cores: torch, where the work has imported it, runs on one thread. It is
+    looked up rather than imported, so that workers of torch-free work never load it."""
+    if (torch := sys.modules.get("torch")) is not None:
+        torch.set_num_threads(1)
+
+
+def _start(work: Callable[[Any, Any], Any], build: Callable[..., Any], args: tuple) -> None:
+    global _worker
+    _one_torch_thread()
+    obj = build(*args)
+    _one_torch_thread()  # `build` may have imported it (a learned detector)
+    _worker = work, obj
+
+
+def _run(job: Any) -> Any:
+    work, obj = _worker
+    return work(obj, job)
+
+
+def ordered_map(work: Callable[[Any, Job], Result], jobs: Iterable[Job], local: Any, build: Callable[..., Any],
+                args: tuple, workers: int = 1) -> Iterator[Result]:
+    """work(obj, job) for each job, in order. With one worker (or one job) `obj` is the caller's
+    `local`, or `build(*args)` made here when `local` is None (a caller that does not hold one);
+    with more, each of `workers` spawned processes uses its own `build(*args)`. `work`
+    and `build` must be module-level functions, `args` picklable. Jobs are drawn from `jobs` as
+    workers free up (a few ahead), so a long stream (a bag's scans) is never held whole."""
+    if workers < 1:
+        raise ValueError(f"workers must be at least 1, got {workers}")
+    if isinstance(jobs, Sized):
+        workers = min(workers, max(1, len(jobs)))
+    jobs = iter(jobs)
+    head = list(islice(jobs, 2))
+    if workers == 1 or len(head) < 2:
+        if local is None and head:
+            local = build(*args)
+        for job in chain(head, jobs):
+            yield work(local, job)
+        return
+    with get_context("spawn").Pool(workers, _start, (work, build, args)) as pool:
+        pending: deque = deque()
+        for job in chain(head, jobs):
+            pending.append(pool.apply_async(_run, (job,)))
+            if len(pending) >= 2 * workers:
+                yield pending.popleft().get()
+        while pending:
+            yield pending.popleft().get()

@@ -1,0 +1,1 @@
+"""Labelled datasets: sharded, resumable, deterministic; the Ray backend."""

@@ -1,0 +1,479 @@
+"""Dataset generation: sharded, deterministic, resumable; consolidated into memory-mapped arrays.
+
+Layout of a dataset folder:
+  manifest.json          settings, package versions, seeds, counts, label statistics
+  shards/<scene>-<k>.npz one finished shard (written to a temporary name, then renamed)
+  points.npy offsets.npy poses.npy errors.npy labels.npy scene.npy children_failed.npy
+                         consolidated arrays, opened with numpy's mmap_mode="r" for training;
+                         scan i is points[offsets[i]:offsets[i+1]]
+Parent i of a scene always uses the generator seeded by (seed, scene index, i), so the labels do
+not depend on the number of workers or on which shards a killed run had finished.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import re
+import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass, field
+from functools import cached_property
+from importlib import metadata
+from pathlib import Path
+from typing import Any, BinaryIO, Callable, Iterator
+
+import numpy as np
+from tqdm import tqdm
+
+from scenes import DATASET_SCENES, check_scene_name, file_sha256, is_mesh_path, make_scene
+
+from l3e_env.config import LidarConfig, from_dict, plain, settings_changed, to_dict
+from l3e_env.core.files import write_atomic
+from l3e_env.localizability.labels import AXES, LabelConfig, SamplingError, label_parent, sample_parent_pose
+from l3e_env.sim.lidar import Lidar, get_pattern
+from l3e_env.sim.raycast import EmbreeCaster
+from l3e_env.localizability.registration import RegistrationConfig, RegistrationError
+
+FORMAT_VERSION = 1
+ARRAYS = ("points", "offsets", "poses", "errors", "labels", "scene", "children_failed")
+
+
+@dataclass
+class DatasetConfig:
+    scenes: list[str] = field(default_factory=lambda: ["tunnel-0", "office-0", "field-0"])
+    parents_per_scene: int = 8
+    seed: int = 0
+    shard_size: int = 4  # parents per shard: the unit of work and of resumption
+    lidar: LidarConfig = field(default_factory=LidarConfig)
+    labels: LabelConfig = field(default_factory=LabelConfig)
+    registration: RegistrationConfig = field(default_factory=RegistrationConfig)
+    # make_scene's keyword arguments by scene name: a mesh file's route (as its sampling path),
+    # up axis and scale; procedural scenes need none
+    scene_params: dict[str, dict[str, Any]] = field(default_factory=dict)
+
+
+PRESETS: dict[str, dict[str, Any]] = {
+    # minutes on 2 cores: for tests, CI and a first look
+    "small": {"scenes": ["tunnel-0", "office-0", "field-0", "primitives-3"], "parents_per_scene": 6,
+              "labels": {"children": 50}},
+    # the paper's protocol on every environment of the split (M = 200)
+    "paper": {"scenes": DATASET_SCENES, "parents_per_scene": 150},
+    # operating poses on the same environments: level within a few degrees, sensor at the
+    # robot's height, heading along the path or across it (another seed: other positions)
+    "level": {"scenes": DATASET_SCENES, "parents_per_scene": 16, "seed": 1,
+              "labels": {"parent_sigma": [0.3, 0.3, 0.05, 3.0, 3.0, 15.0], "heading": "path"}},
+}
+
+
+class DatasetError(RuntimeError):
+    """A dataset folder that cannot be written, resumed or read; the message says why."""
+
+
+def config_for(preset: str | None = None, **overrides: Any) -> DatasetConfig:
+    base: dict[str, Any] = {}
+    if preset is not None:
+        if preset not in PRESETS:
+            raise DatasetError(f"unknown preset '{preset}' (choose from {sorted(PRESETS)})")
+        base = json.loads(json.dumps(PRESETS[preset]))
+    for key, value in overrides.items():
+        if value is None:
+            continue
+        if isinstance(value, dict) and isinstance(base.get(key), dict):
+            base[key] = {**base[key], **value}
+        else:
+            base[key] = value
+    return from_dict(DatasetConfig, base)
+
+
+def shard_prefix(si: int, scene: str) -> str:
+    """The start of a scene's shard file names: the scene's name, or for a mesh file its position
+    and stem, so that a path makes a plain file name and two meshes of one stem do not share it."""
+    if not is_mesh_path(scene):
+        return scene
+    return f"mesh{si}-" + re.sub(r"[^A-Za-z0-9_.-]", "_", Path(scene).stem)
+
+
+def _shards(config: DatasetConfig) -> list[tuple[str, int, int, int]]:
+    """(shard id, scene index, first parent, last parent + 1) for every shard."""
+    out = []
+    for si, scene in enumerate(config.scenes):
+        for start in range(0, config.parents_per_scene, config.shard_size):
+            stop = min(start + config.shard_size, config.parents_per_scene)
+            out.append((f"{shard_prefix(si, scene)}-{start // config.shard_size:05d}", si, start, stop))
+    return out
+
+
+_WORKER_CACHE: dict[str, tuple] = {}
+
+
+def scene_tools(name: str, lidar_config: LidarConfig, params: dict[str, Any] | None = None):
+    """(scene, caster, lidar) of a worker process, kept for the next job on the same scene."""
+    key = json.dumps([name, params or {}, dataclasses.asdict(lidar_config)], sort_keys=True)
+    if key not in _WORKER_CACHE:
+        scene = make_scene(name, **(params or {}))
+        caster = EmbreeCaster(scene.mesh, threads=1)  # processes give the parallelism
+        _WORKER_CACHE.clear()  # one scene at a time keeps worker memory flat
+        _WORKER_CACHE[key] = (scene, caster, Lidar(caster, lidar_config))
+    return _WORKER_CACHE[key]
+
+
+def run_shard(config: DatasetConfig, shard: tuple[str, int, int, int]) -> dict[str, Any]:
+    """Label the parents of one shard; returns arrays and per-parent failure records."""
+    shard_id, si, start, stop = shard
+    name = config.scenes[si]
+    scene, caster, lidar = scene_tools(name, config.lidar, config.scene_params.get(name))
+    rows: dict[str, list] = {k: [] for k in ("points", "poses", "errors", "labels", "index", "children_failed")}
+    failures = []
+    for i in range(start, stop):
+        rng = np.random.default_rng([config.seed, si, i])
+        try:
+            T = sample_parent_pose(scene, caster, rng, config.labels)
+            result = label_parent(lidar, T, rng, config.labels, config.registration)
+        except (RegistrationError, SamplingError) as exc:
+            failures.append({"scene": scene.name, "parent": i, "reason": str(exc)})
+            continue
+        rows["points"].append(result.points)
+        rows["poses"].append(result.T_w_s)
+        rows["errors"].append(result.errors)
+        rows["labels"].append(result.labels)
+        rows["index"].append(i)
+        rows["children_failed"].append(result.children_failed)
+    lengths = np.array([len(p) for p in rows["points"]], dtype=np.int64)
+    return {
+        "shard": shard_id,
+        "scene": np.full(len(lengths), si, dtype=np.int16),
+        "index": np.array(rows["index"], dtype=np.int64),
+        "lengths": lengths,
+        "points": np.concatenate(rows["points"]) if rows["points"] else np.zeros((0, 3), np.float32),
+        "poses": np.array(rows["poses"], dtype=np.float64).reshape(-1, 4, 4),
+        "errors": np.array(rows["errors"], dtype=np.float32).reshape(-1, 6),
+        "labels": np.array(rows["labels"], dtype=np.uint8).reshape(-1, 6),
+        "children_failed": np.array(rows["children_failed"], dtype=np.int32),
+        "failures": json.dumps(failures),
+    }
+
+
+def _write_atomic(path: Path, write: Callable[[BinaryIO], None]) -> None:
+    """A full disk leaves what was finished in place (`write_atomic`), with an error that says so."""
+    try:
+        write_atomic(path, write)
+    except OSError as exc:
+        raise DatasetError(f"cannot write {path} ({exc.strerror or exc}); finished shards are kept, "
+                           "run again to resume") from exc
+
+
+def _settings(config: DatasetConfig, meshes: dict[str, str] | None = None) -> dict[str, Any]:
+    """What a resumed run must match. A mesh file's bytes count too: an edited mesh is another
+    dataset (`meshes`: their hashes as a manifest holds them; by default read from the files)."""
+    settings = json.loads(json.dumps(dataclasses.asdict(config)))
+    if not config.scene_params:
+        del settings["scene_params"]  # so that datasets made before meshes were taken still resume
+    if meshes is None:
+        meshes = {name: file_sha256(name) for name in config.scenes if is_mesh_path(name)}
+    if meshes:
+        settings["mesh_sha256"] = meshes
+    return settings
+
+
+def _stored_settings(stored: dict[str, Any]) -> dict[str, Any]:
+    """A manifest's settings with every option it predates at its default (as `comparable_settings`
+    does for training): a folder begun before an option existed was made as that default makes it,
+    and resumes. Settings no config can read are returned as stored, to be reported as different."""
+    try:
+        config = from_dict(DatasetConfig, {k: v for k, v in stored.items() if k != "mesh_sha256"})
+    except (TypeError, ValueError):
+        return stored
+    return _settings(config, stored.get("mesh_sha256") or {})
+
+
+def _versions() -> dict[str, str]:
+    out = {}
+    for pkg in ("l3e", "numpy", "small_gicp", "embreex", "trimesh", "pybullet"):
+        try:
+            out[pkg] = metadata.version(pkg)
+        except metadata.PackageNotFoundError:
+            pass
+    return out
+
+
+def check_dataset_config(config: DatasetConfig) -> None:
+    """DatasetError for settings no run can use (SceneError for a misspelt scene), before the
+    folder, its manifest or any worker exists."""
+    for name in config.scenes:
+        check_scene_name(name)
+    problems = [f"scene_params are given for '{name}', which is not among the scenes"
+                for name in config.scene_params if name not in config.scenes]
+    for name in filter(is_mesh_path, config.scenes):
+        if not config.scene_params.get(name, {}).get("sampling_paths"):
+            problems.append(f"the mesh {name} has no route to sample parents along (--route FILE)")
+        else:  # a broken mesh or route fails here, not in every worker
+            make_scene(name, **config.scene_params[name])
+    problems += [f"{name} must be {rule}, got {value}" for name, value, ok, rule in [
+        ("scenes", config.scenes, len(config.scenes) > 0, "at least one scene"),
+        ("parents_per_scene", config.parents_per_scene, config.parents_per_scene >= 1, "at least 1"),
+        ("shard_size", config.shard_size, config.shard_size >= 1, "at least 1"),
+        ("labels.children", config.labels.children, config.labels.children >= 1, "at least 1"),
+    ] if not ok]
+    try:
+        get_pattern(config.lidar.model)
+    except ValueError as exc:
+        problems.append(str(exc))
+    if problems:
+        raise DatasetError("; ".join(problems))
+
+
+def _open_folder(out: Path, config: DatasetConfig) -> dict[str, Any]:
+    """Create the folder or check that it holds a run of the same settings (to resume)."""
+    manifest_path = out / "manifest.json"
+    settings = _settings(config)
+    if manifest_path.exists():
+        manifest = json.loads(manifest_path.read_text())
+        if _stored_settings(manifest.get("settings") or {}) != settings:
+            raise DatasetError(f"{out} holds a dataset made with other settings "
+                               f"({settings_changed(manifest.get('settings') or {}, settings)}); choose another folder")
+        return manifest
+    (out / "shards").mkdir(parents=True, exist_ok=True)
+    manifest = {"format_version": FORMAT_VERSION, "settings": settings, "versions": _versions(), "complete": False,
+                "created": time.strftime("%Y-%m-%dT%H:%M:%S")}
+    _write_json(manifest_path, manifest)
+    return manifest
+
+
+def _write_json(path: Path, data: dict) -> None:
+    _write_atomic(path, lambda fh: fh.write(json.dumps(data, indent=1).encode()))
+
+
+def generate(
+    out_dir: str | Path, config: DatasetConfig, workers: int = 2, backend: str = "local",
+    ray_address: str | None = None, progress: bool = True,
+) -> dict[str, Any]:
+    """Generate (or resume) a dataset; returns the manifest. Finished shards are never redone."""
+    out = Path(out_dir)
+    check_dataset_config(config)
+    manifest = _open_folder(out, config)
+    todo = [s for s in _shards(config) if not (out / "shards" / f"{s[0]}.npz").exists()]
+    total = config.parents_per_scene * len(config.scenes)
+    done_before = total - sum(s[3] - s[2] for s in todo)
+    bar = tqdm(total=total, initial=done_before, desc="labelling parents", unit="parent", disable=not progress,
+               smoothing=0.05)
+    t0 = time.perf_counter()
+    for result in _execute(config, todo, workers, backend, ray_address):
+        _write_atomic(out / "shards" / f"{result['shard']}.npz", lambda fh, r=result: np.savez(fh, **r))
+        shard = next(s for s in todo if s[0] == result["shard"])
+        bar.update(shard[3] - shard[2])
+    bar.close()
+    manifest = consolidate(out, config, manifest)
+    manifest["generation_seconds_last_run"] = round(time.perf_counter() - t0, 1)
+    _write_json(out / "manifest.json", manifest)
+    return manifest
+
+
+def _execute(config: DatasetConfig, todo: list, workers: int, backend: str, ray_address: str | None) -> Iterator[dict]:
+    if backend == "ray":
+        from .ray_backend import run_with_ray
+
+        yield from run_with_ray(run_shard, config, todo, workers, ray_address)
+    elif backend != "local":
+        raise DatasetError(f"unknown backend '{backend}' (local, ray)")
+    elif workers <= 1:
+        for shard in todo:
+            yield run_shard(config, shard)
+    else:
+        with ProcessPoolExecutor(workers) as pool:
+            futures = [pool.submit(run_shard, config, s) for s in todo]
+            for fut in as_completed(futures):
+                yield fut.result()
+
+
+def consolidate(out: Path, config: DatasetConfig, manifest: dict[str, Any]) -> dict[str, Any]:
+    """Join all shards, in shard order, into the memory-mappable arrays; returns the updated
+    manifest (the caller writes it)."""
+    parts = []
+    for shard_id, *_ in _shards(config):
+        path = out / "shards" / f"{shard_id}.npz"
+        try:
+            with np.load(path) as z:
+                parts.append({k: z[k] for k in z.files})
+        except (OSError, ValueError, KeyError) as exc:
+            raise DatasetError(f"shard {path} is unreadable ({exc}); delete it and run again to redo it") from exc
+    lengths = np.concatenate([p["lengths"] for p in parts])
+    arrays = {
+        "points": np.concatenate([p["points"] for p in parts]).astype(np.float32),
+        "offsets": np.concatenate([[0], np.cumsum(lengths)]).astype(np.int64),
+        "poses": np.concatenate([p["poses"] for p in parts]),
+        "errors": np.concatenate([p["errors"] for p in parts]),
+        "labels": np.concatenate([p["labels"] for p in parts]),
+        "scene": np.concatenate([p["scene"] for p in parts]),
+        "children_failed": np.concatenate([p["children_failed"] for p in parts]),
+    }
+    for name, arr in arrays.items():
+        _write_atomic(out / f"{name}.npy", lambda fh, a=arr: np.save(fh, a))
+    failures = [f for p in parts for f in json.loads(str(p["failures"]))]
+    manifest.update({
+        "complete": True,
+        "count": int(len(lengths)),
+        "failures": failures,
+        "statistics": label_statistics(arrays["labels"]),
+        "scenes": config.scenes,
+        "sensor": config.lidar.model,
+    })
+    return manifest
+
+
+def label_statistics(labels: np.ndarray) -> dict[str, Any]:
+    """Positive rate per axis and the histogram of the 64 label combinations (bit i = axis i)."""
+    labels = np.asarray(labels, dtype=np.uint8).reshape(-1, 6)
+    codes = (labels.astype(np.int64) << np.arange(6)).sum(axis=1)
+    hist = np.bincount(codes, minlength=64)
+    return {
+        "positive_rate": {a: float(labels[:, i].mean()) if len(labels) else 0.0 for i, a in enumerate(AXES)},
+        "powerset_histogram": {combo_name(c): int(n) for c, n in enumerate(hist) if n},
+    }
+
+
+def combo_name(code: int) -> str:
+    flagged = [a for i, a in enumerate(AXES) if code >> i & 1]
+    return "+".join(flagged) if flagged else "none"
+
+
+def format_statistics(stats: dict[str, Any]) -> str:
+    rate = "  ".join(f"{a} {v:.2f}" for a, v in stats["positive_rate"].items())
+    combos = sorted(stats["powerset_histogram"].items(), key=lambda kv: -kv[1])
+    lines = [f"non-localizable rate per axis: {rate}", "label combinations (most common first):"]
+    lines += [f"  {n:6d}  {name}" for name, n in combos]
+    return "\n".join(lines)
+
+
+class LabelDataset:
+    """Random access to a finished dataset through memory maps."""
+
+    def __init__(self, folder: str | Path):
+        self.folder = Path(folder)
+        path = self.folder / "manifest.json"
+        if not path.exists():
+            raise DatasetError(f"{self.folder} is not a dataset (no manifest.json)")
+        self.manifest = json.loads(path.read_text())
+        if not self.manifest.get("complete"):
+            raise DatasetError(f"{self.folder}: generation has not finished; run the same command again to resume")
+        self.arrays = {k: np.load(self.folder / f"{k}.npy", mmap_mode="r") for k in ARRAYS}
+
+    def __len__(self) -> int:
+        return len(self.arrays["labels"])
+
+    def scan(self, i: int) -> np.ndarray:
+        o = self.arrays["offsets"]
+        return np.asarray(self.arrays["points"][o[i] : o[i + 1]])
+
+    @property
+    def name(self) -> str:
+        return self.folder.name
+
+    @property
+    def parts(self) -> list[LabelDataset]:
+        """The datasets read as this one: itself (a DatasetUnion has several)."""
+        return [self]
+
+    def locate(self, i: int) -> tuple[LabelDataset, int]:
+        """The dataset holding row i, and the row there: itself (a DatasetUnion has several)."""
+        return self, i
+
+    @property
+    def labels(self) -> np.ndarray:
+        return np.asarray(self.arrays["labels"])
+
+    @property
+    def errors(self) -> np.ndarray:
+        return np.asarray(self.arrays["errors"])
+
+    @property
+    def poses(self) -> np.ndarray:
+        """(N, 4, 4) world-from-sensor poses of the parent scans."""
+        return np.asarray(self.arrays["poses"])
+
+    @property
+    def label_config(self) -> LabelConfig:
+        """The label settings the dataset was made with (its thresholds turn errors into labels)."""
+        return from_dict(LabelConfig, self.manifest["settings"]["labels"])
+
+
+def comparable_settings(manifest: dict[str, Any], key: str) -> dict[str, Any]:
+    """A manifest's lidar or registration settings with every option it predates at its default: a
+    dataset made before an option existed (the LiDAR's `sweep`) was made as that default makes it."""
+    cls = {"lidar": LidarConfig, "registration": RegistrationConfig}[key]
+    return plain(to_dict(from_dict(cls, manifest["settings"][key])))
+
+
+class DatasetUnion:
+    """Datasets of one sensor and one registration read as one, e.g. the paper's poses and the
+    level operating poses of the same scenes: scenes matched by name, rows in the given order.
+    Offers what training and evaluation read of a LabelDataset."""
+
+    def __init__(self, folders: list[str | Path]):
+        self.parts = [LabelDataset(f) for f in folders]
+        first = self.parts[0].manifest
+        for part in self.parts[1:]:
+            for key in ("lidar", "registration"):
+                ours, theirs = comparable_settings(first, key), comparable_settings(part.manifest, key)
+                if theirs != ours:
+                    raise DatasetError(f"{part.folder} and {self.parts[0].folder} differ in their {key} settings "
+                                       f"({settings_changed(ours, theirs)}): they cannot be trained on together")
+        names: list[str] = []
+        for part in self.parts:
+            names += [s for s in part.manifest["scenes"] if s not in names]
+        scene = [np.array([names.index(s) for s in p.manifest["scenes"]], dtype=np.int16)[np.asarray(p.arrays["scene"])]
+                 for p in self.parts]
+        self.folder = self.parts[0].folder
+        self.manifest = {**first, "scenes": names, "settings": {
+            **first["settings"], "labels": [p.manifest["settings"]["labels"] for p in self.parts],
+            "seed": [p.manifest["settings"]["seed"] for p in self.parts]}}
+        self.arrays = {"scene": np.concatenate(scene)}
+        self._starts = np.cumsum([0] + [len(p) for p in self.parts])
+        self.manifest.update(count=len(self), statistics=label_statistics(self.labels))
+
+    @property
+    def name(self) -> str:
+        return "+".join(p.name for p in self.parts)
+
+    def __len__(self) -> int:
+        return int(self._starts[-1])
+
+    def locate(self, i: int) -> tuple[LabelDataset, int]:
+        """The part holding row i, and the row there."""
+        k = int(np.searchsorted(self._starts, i, side="right")) - 1
+        return self.parts[k], i - int(self._starts[k])
+
+    def scan(self, i: int) -> np.ndarray:
+        part, row = self.locate(i)
+        return part.scan(row)
+
+    @cached_property  # read many times per epoch; the parts do not change once opened
+    def labels(self) -> np.ndarray:
+        return np.concatenate([p.labels for p in self.parts])
+
+    @cached_property
+    def errors(self) -> np.ndarray:
+        return np.concatenate([p.errors for p in self.parts])
+
+    @cached_property
+    def poses(self) -> np.ndarray:
+        return np.concatenate([p.poses for p in self.parts])
+
+
+def row_thresholds(data: LabelDataset | DatasetUnion) -> np.ndarray:
+    """(N, 6) each row's own label thresholds (the parts of a union may differ)."""
+    return np.concatenate([np.tile(p.label_config.threshold_vector(), (len(p), 1)) for p in data.parts])
+
+
+def error_ratios(data: LabelDataset | DatasetUnion) -> np.ndarray:
+    """(N, 6) mean registration errors over each row's own label thresholds: above 1 is a
+    positive label."""
+    return data.errors / row_thresholds(data)
+
+
+def open_datasets(folders: str | Path | list[str | Path]) -> LabelDataset | DatasetUnion:
+    """One dataset folder, or several read as one."""
+    if isinstance(folders, (str, Path)):
+        return LabelDataset(folders)
+    if not folders:
+        raise DatasetError("no dataset folder given")
+    return LabelDataset(folders[0]) if len(folders) == 1 else DatasetUnion(list(folders))

@@ -1,0 +1,1 @@
+"""Detectors behind one interface, and the one per-step localization pipeline."""

@@ -1,0 +1,277 @@
+"""Localizability detectors behind one interface: none, eigenvalue (Zhang et al.), oracle,
+the scan's own Monte-Carlo estimate, learned, and the learned one checked by the estimate where
+it is unsure.
+
+Every detector maps one scan (and, where it needs it, the registration of that scan against
+the previous one, or the true pose) to six probabilities of non-localizability and a mask,
+in (x, y, z, roll, pitch, yaw) order, 1/True = not localizable.
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+from l3e_env.config import LidarConfig
+from l3e_env.localizability.labels import LabelConfig, label_parent
+from l3e_env.sim.lidar import Lidar
+from l3e_env.localizability.registration import RegistrationConfig, RegistrationError, RegistrationResult, eigen_mask
+from l3e_env.localizability.scan_mc import ScanMCConfig, ScanPatternError, scan_errors
+
+
+@dataclass
+class Prediction:
+    probabilities: np.ndarray  # (6,) float
+    mask: np.ndarray  # (6,) bool, True = not localizable
+    known: bool = True  # False: the detector could not judge this scan (mask is all False then)
+
+
+class Detector(Protocol):
+    name: str
+
+    def predict(self, points: np.ndarray, registration: RegistrationResult | None = None,
+                T_w_s: np.ndarray | None = None) -> Prediction: ...
+
+
+UNKNOWN = Prediction(np.full(6, np.nan), np.zeros(6, dtype=bool), known=False)
+
+
+class NoDetector:
+    """Trust ICP on every axis (the 'full ICP' baseline)."""
+
+    name = "none"
+
+    def predict(self, points, registration=None, T_w_s=None) -> Prediction:
+        return Prediction(np.zeros(6), np.zeros(6, dtype=bool))
+
+
+class EigenvalueDetector:
+    """Zhang et al. (2016) on the registration's Hessian; `probabilities` are the per-axis shares
+    of the degenerate subspace (not calibrated probabilities)."""
+
+    def __init__(self, tau: float):
+        if not tau > 0:
+            raise ValueError(f"eigenvalue threshold must be positive, got {tau}")
+        self.tau = float(tau)
+        self.name = f"eigen:{tau:g}"
+
+    def predict(self, points, registration=None, T_w_s=None) -> Prediction:
+        if registration is None or not np.isfinite(registration.hessian).all():
+            return UNKNOWN
+        scores, mask = eigen_mask(registration.hessian, self.tau)
+        return Prediction(scores, mask)
+
+
+class OracleDetector:
+    """Monte-Carlo labels computed at the true sensor pose with M children (fewer than the
+    paper's 200 to keep a route affordable), re-evaluated every `stride` calls and held between."""
+
+    def __init__(self, lidar: Lidar, children: int = 20, stride: int = 5, seed: int = 0,
+                 registration: RegistrationConfig | None = None):
+        self.lidar, self.stride, self.seed = lidar, stride, seed
+        self.labels = LabelConfig(children=children)
+        self.registration = registration or RegistrationConfig()
+        self.name = f"oracle:{children}"
+        self._calls, self._last = 0, UNKNOWN
+
+    def judge(self, T_w_s: np.ndarray, rng: np.random.Generator) -> Prediction:
+        """The labels at one pose, from `rng`'s children (a map seeds each pose by itself)."""
+        try:
+            res = label_parent(self.lidar, T_w_s, rng, self.labels, self.registration)
+        except RegistrationError:
+            return UNKNOWN
+        return Prediction(res.labels.astype(np.float64), res.labels.astype(bool))
+
+    def predict(self, points, registration=None, T_w_s=None) -> Prediction:
+        if T_w_s is None:
+            raise ValueError("the oracle detector needs the true sensor pose")
+        if self._calls % self.stride == 0:
+            self._last = self.judge(T_w_s, np.random.default_rng([self.seed, self._calls]))
+        self._calls += 1
+        return self._last
+
+
+class ScanMCDetector:
+    """The Monte-Carlo labels estimated from the scan alone (scan_mc.py): no scene, no true pose
+    and no training, at the cost of up to M registrations a scan. `probabilities` are r / (1 + r)
+    of the ratio r of each estimated error to its label threshold (0.5 at the threshold), not
+    calibrated probabilities."""
+
+    def __init__(self, lidar: LidarConfig, children: int = ScanMCConfig.children, seed: int = 0,
+                 registration: RegistrationConfig | None = None, labels: LabelConfig | None = None):
+        self.lidar, self.seed = lidar, seed
+        self.config = ScanMCConfig(children=children)
+        self.registration = registration or RegistrationConfig()
+        self.labels = labels or LabelConfig()
+        self.name = f"scanmc:{children}"
+        self._calls = 0
+
+    def predict(self, points, registration=None, T_w_s=None) -> Prediction:
+        rng = np.random.default_rng([self.seed, self._calls])
+        self._calls += 1
+        return self.judge(points, rng)
+
+    def judge(self, points: np.ndarray, rng: np.random.Generator) -> Prediction:
+        """One scan judged with `rng`'s children (a map seeds each pose by itself)."""
+        try:
+            errors = scan_errors(points, self.lidar, self.registration, self.labels, self.config, rng).errors
+        except (RegistrationError, ScanPatternError):
+            return UNKNOWN
+        ratio = errors / self.labels.threshold_vector()
+        return Prediction(ratio / (1 + ratio), ratio > 1)
+
+
+class LearnedDetector:
+    """The trained classifier (by default the checkpoint shipped with the package). A scan it
+    cannot judge (empty, fewer than 50 points, NaN) gives the UNKNOWN prediction: nothing is
+    masked, and `known` is False so that the caller can count it."""
+
+    name = "learned"
+
+    def __init__(self, checkpoint: str | None = None, lidar_model: str | None = None,
+                 registration: RegistrationConfig | None = None, symmetric: bool = False):
+        from l3e_env.model.classifier import Classifier  # torch is imported only when a learned detector is made
+
+        self.classifier = Classifier.load(checkpoint, symmetric=symmetric)
+        self.name = ("learned-sym" if symmetric else "learned") + (f":{checkpoint}" if checkpoint else "")
+        self.classifier.check_settings(lidar_model, dataclasses.asdict(registration or RegistrationConfig()))
+
+    def predict(self, points, registration=None, T_w_s=None) -> Prediction:
+        from l3e_env.model.classifier import ScanError
+
+        try:
+            p, mask = self.classifier.predict(points, T_w_s)
+        except ScanError:
+            return UNKNOWN
+        return Prediction(p, mask)
+
+
+CASCADE_MARGIN = 1.0  # chosen on the validation scenes (benchmarks/RESULTS.md, "The classifier checked ...")
+
+
+def log_odds_over_threshold(probabilities: np.ndarray, thresholds: np.ndarray) -> np.ndarray:
+    """logit(p) - logit(threshold), per axis: positive where the axis is flagged."""
+    p = np.clip(probabilities, 1e-6, 1 - 1e-6)
+    t = np.clip(thresholds, 1e-6, 1 - 1e-6)
+    return np.log(p / (1 - p)) - np.log(t / (1 - t))
+
+
+def near_threshold(probabilities: np.ndarray, thresholds: np.ndarray, margin: float) -> np.ndarray:
+    """Whether any axis's probability lies within `margin` of its threshold in log-odds, per scan
+    ((..., 6) -> (...)): where the classifier is unsure, and where most of its errors on scene
+    families it never saw lie."""
+    return (np.abs(log_odds_over_threshold(probabilities, thresholds)) < margin).any(axis=-1)
+
+
+class CascadeDetector:
+    """The classifier where it is sure; where any axis lies within `margin` (log-odds) of its
+    threshold, the scan's own Monte-Carlo estimate judges the scan instead, all six axes. The
+    classifier's misses and false flags on unseen families sit mostly in that band, so checking a
+    third of the scans there recovers most of the estimate's accuracy at a third of its cost.
+    `probabilities` are the classifier's or the estimate's r / (1 + r), whichever judged; `checked`
+    counts the scans the estimate judged."""
+
+    def __init__(self, learned: LearnedDetector, scan_mc: ScanMCDetector, margin: float = CASCADE_MARGIN):
+        if not margin >= 0:
+            raise ValueError(f"the cascade's margin is a log-odds distance >= 0, got {margin}")
+        self.learned, self.scan_mc, self.margin = learned, scan_mc, float(margin)
+        self.name = f"learned+scanmc:{self.margin:g}"
+        self.calls = self.checked = 0
+
+    def predict(self, points, registration=None, T_w_s=None) -> Prediction:
+        rng = np.random.default_rng([self.scan_mc.seed, self.calls])
+        return self.judge(points, rng, T_w_s)
+
+    def classify(self, points: np.ndarray, T_w_s: np.ndarray | None = None) -> tuple[Prediction, bool]:
+        """The classifier's prediction, and whether it is unsure (a scan it cannot judge is not checked:
+        the estimate could not judge it either)."""
+        first = self.learned.predict(points, None, T_w_s)
+        thresholds = self.learned.classifier.thresholds
+        return first, first.known and bool(near_threshold(first.probabilities, thresholds, self.margin))
+
+    def judge(self, points: np.ndarray, rng: np.random.Generator, T_w_s: np.ndarray | None = None) -> Prediction:
+        """One scan; the estimate, where it is asked, draws its children from `rng`."""
+        return self._judged(points, rng, T_w_s)[0]
+
+    def scores_at_half(self, points: np.ndarray, rng: np.random.Generator,
+                       T_w_s: np.ndarray | None = None) -> tuple[np.ndarray, bool]:
+        """`judge`'s six scores on one scale, flagged above 0.5 whichever judge judged: the classifier's
+        probabilities moved so that its thresholds sit at 0.5 (sigmoid of the log-odds over them), the
+        estimate's r / (1 + r) as they are; NaN for a scan neither can judge. And whether the estimate
+        judged. A map holds these."""
+        pred, by_estimate = self._judged(points, rng, T_w_s)
+        if not pred.known:
+            return np.full(6, np.nan), by_estimate
+        if by_estimate:
+            return pred.probabilities, True
+        return 1 / (1 + np.exp(-log_odds_over_threshold(pred.probabilities, self.learned.classifier.thresholds))), False
+
+    def _judged(self, points: np.ndarray, rng: np.random.Generator,
+                T_w_s: np.ndarray | None) -> tuple[Prediction, bool]:
+        """The prediction, and whether the estimate made it."""
+        self.calls += 1
+        first, unsure = self.classify(points, T_w_s)
+        if not unsure:
+            return first, False
+        self.checked += 1
+        return self.scan_mc.judge(points, rng), True
+
+
+def safe_predict(det: Detector, points: np.ndarray, reg, T_w_s: np.ndarray) -> tuple[Prediction, bool]:
+    """The detector's prediction, or UNKNOWN (nothing masked) if it raises: one bad scan or a
+    detector bug must not end a run; the caller counts these."""
+    try:
+        return det.predict(points, reg, T_w_s), False
+    except Exception:  # noqa: BLE001 - any detector failure becomes a counted UNKNOWN step
+        return UNKNOWN, True
+
+
+def learned_spec(spec: str) -> tuple[str | None, bool] | None:
+    """(checkpoint, None for the shipped one; symmetric) of a 'learned[-sym][:checkpoint]' spec, or
+    None for another kind: the fusion's detectors and the policy maps read it alike."""
+    kind, _, arg = spec.partition(":")
+    return (arg or None, kind == "learned-sym") if kind in ("learned", "learned-sym") else None
+
+
+def make_detector(spec: str, lidar: Lidar | None = None, seed: int = 0,
+                  sensor: LidarConfig | None = None) -> Detector:
+    """'none', 'eigen:<tau>', 'oracle', 'oracle:<M>', 'scanmc', 'scanmc:<M>', 'learned' (the shipped model) or
+    'learned:<checkpoint path>'; 'learned-sym[:<checkpoint path>]' averages over the eight mirror/swap
+    views of each scan; 'learned+scanmc[:<margin>]' is the shipped model checked by scanmc where it is
+    unsure (CascadeDetector). `sensor`: the LiDAR's settings where there is no scene LiDAR (scans read
+    from files): scanmc needs its beams, and the learned detector warns if it differs from training."""
+    sensor = lidar.config if lidar is not None else sensor
+    kind, _, arg = spec.partition(":")
+    if kind == "learned+scanmc":
+        try:
+            margin = float(arg) if arg else CASCADE_MARGIN
+        except ValueError as exc:
+            raise ValueError(f"detector '{spec}': give the margin as learned+scanmc:<log-odds>, e.g. "
+                             "learned+scanmc:1") from exc
+        return CascadeDetector(make_detector("learned", lidar, seed, sensor),  # type: ignore[arg-type]
+                               make_detector("scanmc", lidar, seed, sensor), margin)  # type: ignore[arg-type]
+    if kind == "none":
+        return NoDetector()
+    if kind == "eigen":
+        try:
+            tau = float(arg)
+        except ValueError as exc:
+            raise ValueError(f"detector '{spec}': give the threshold as eigen:<tau>, e.g. eigen:30") from exc
+        return EigenvalueDetector(tau)
+    if kind == "oracle":
+        if lidar is None:
+            raise ValueError("the oracle detector needs the scene's LiDAR")
+        return OracleDetector(lidar, children=int(arg) if arg else 20, seed=seed)
+    if kind == "scanmc":
+        if arg and not (arg.isdigit() and int(arg) >= 1):
+            raise ValueError(f"detector '{spec}': give the number of children as scanmc:<M>, M >= 1, e.g. scanmc:60")
+        return ScanMCDetector(sensor or LidarConfig(), children=int(arg) if arg else ScanMCConfig.children,
+                              seed=seed)
+    if (learned := learned_spec(spec)) is not None:
+        checkpoint, symmetric = learned
+        return LearnedDetector(checkpoint, lidar_model=sensor.model if sensor is not None else None,
+                               symmetric=symmetric)
+    raise ValueError(f"unknown detector '{spec}' (none, eigen:<tau>, oracle[:M], scanmc[:M], "
+                     "learned[-sym][:checkpoint], learned+scanmc[:margin])")

@@ -1,0 +1,1 @@
+"""ATE, the tau sweep, Table III, judging real scans, the demo."""

@@ -1,0 +1,521 @@
+"""Record a drive once, then fuse it with every detector: ATE/RPE tables, plots and maps.
+
+`record_run` drives a scene's route with the route follower and keeps, per step, the scan, the
+leg-odometry increment and the ground truth. `evaluate` registers consecutive scans once (the
+one registration), asks each detector for a mask, fuses odometry and masked ICP in the iSAM2
+graph, and measures against ground truth. A saved recording can be evaluated again with new
+detectors without driving.
+"""
+from __future__ import annotations
+
+import json
+import re
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import small_gicp
+from tqdm import tqdm
+
+from fusion import FusionConfig, MetricError, ate, ate_aligned, check_backend, make_fusion, rpe
+from scenes import Scene, SceneError, canonical_scene_name, file_sha256, is_mesh_path, make_scene
+
+from l3e_env.config import NOISE_STREAMS, EnvConfig, FusionOptions, LidarConfig, OdometryConfig, RobotConfig
+from l3e_env.detection.detectors import (UNKNOWN, CascadeDetector, Detector, Prediction, ScanMCDetector, make_detector,
+                                         safe_predict)
+from l3e_env.envs.navigation import NavigationEnv
+from l3e_env.sim.follower import RouteFollower
+from l3e_env.sim.imu import ATTITUDE_EVERY, StepGyro, attitude_readings, attitude_sigmas
+from l3e_env.localizability.labels import AXES
+from l3e_env.sim.lidar import DESKEW_SOURCES, Lidar, Scan, deskew, deskew_motion, get_pattern
+from l3e_env.sim.odometry import odometry_fusion_config, odometry_sigmas
+from l3e_env.sim.raycast import EmbreeCaster
+from l3e_env.localizability.registration import PreparedTarget, RegistrationConfig, RegistrationError, register
+from l3e_env.core.transforms import inverse
+from l3e_env.core.workers import ordered_map
+
+STORE_VOXEL = 0.2  # stored scans for ICP are thinned (ICP downsamples to 0.3 m anyway)
+CLASSIFIER_POINTS = 4000  # the classifier's input size (ModelConfig.points)
+
+
+@dataclass
+class Recording:
+    scene: str
+    sensor: str
+    seed: int
+    T_b_s: np.ndarray
+    ground_truth: np.ndarray  # (N+1, 4, 4) body poses
+    odometry: np.ndarray  # (N, 4, 4) increments T_b(k-1)_b(k)
+    scans: list[np.ndarray] = field(default_factory=list)  # N+1 scans, sensor frame, thinned for ICP
+    # N+1 random subsets of the raw scans, as the classifier samples them (thinned scans have
+    # another point density than the raw scans it was trained on)
+    samples: list[np.ndarray] = field(default_factory=list)
+    # make_scene's keyword arguments (a mesh scene's up axis, scale and route), to rebuild the scene
+    scene_params: dict = field(default_factory=dict)
+    mesh_sha256: str = ""  # a mesh scene's file, to tell it from an edited or replaced one
+    sweep: bool = False  # scans swept over the robot's motion (LidarConfig.sweep), deskewed before they are fused
+    noise_streams: str = "shared"  # EnvConfig.noise_streams of the drive
+
+    def save(self, path: str | Path) -> None:
+        np.savez_compressed(
+            path, scene=self.scene, sensor=self.sensor, seed=self.seed, T_b_s=self.T_b_s,
+            scene_params=json.dumps(self.scene_params), mesh_sha256=self.mesh_sha256, sweep=self.sweep,
+            noise_streams=self.noise_streams,
+            ground_truth=self.ground_truth, odometry=self.odometry, **_ragged("points", self.scans),
+            **_ragged("samples", self.samples),
+        )
+
+    @classmethod
+    def load(cls, path: str | Path) -> "Recording":
+        with np.load(path) as z:
+            samples = _unragged(z, "samples") if "samples_offsets" in z.files else []
+            params = json.loads(str(z["scene_params"])) if "scene_params" in z.files else {}
+            digest = str(z["mesh_sha256"]) if "mesh_sha256" in z.files else ""
+            swept = bool(z["sweep"]) if "sweep" in z.files else False
+            streams = str(z["noise_streams"]) if "noise_streams" in z.files else "shared"
+            return cls(str(z["scene"]), str(z["sensor"]), int(z["seed"]), z["T_b_s"], z["ground_truth"], z["odometry"],
+                       _unragged(z, "points"), samples, params, digest, swept, streams)
+
+    def scene_file(self, moved_to: str | None = None) -> str:
+        """The scene to rebuild: its name, or for a mesh its recorded path, or `moved_to` where the
+        mesh has moved since; SceneError if the mesh is missing or not the recorded one."""
+        if not is_mesh_path(self.scene):
+            return self.scene
+        path = self.scene
+        if not Path(path).is_file():
+            if moved_to is None or not is_mesh_path(moved_to):
+                raise SceneError(f"the recording's mesh {path} is not there: give its new path as the scene "
+                                 "(l3e ate --recording R --scene NEW_PATH)")
+            path = moved_to
+        if self.mesh_sha256 and file_sha256(path) != self.mesh_sha256:
+            raise SceneError(f"{path} is not the mesh this recording was made in (its SHA-256 differs): the "
+                             "recorded scans would not match its geometry")
+        return path
+
+    def detector_input(self, k: int) -> np.ndarray:
+        return self.samples[k] if self.samples else self.scans[k]
+
+
+class RecastScans:
+    """The scan estimate (scanmc), in a replay. It meshes every return of a revolution, and a
+    recording keeps thinned scans, so the scan is cast again from the scene at the recorded true
+    sensor pose: the same scene, sensor and pose, another draw of the range noise and dropout. It
+    is judged every `stride` steps and held between, as the oracle is, since a judgement costs up
+    to M registrations (about 2 s at M = 60). Each judged step draws its scan and children from its
+    own seed, so `judge_ahead` can judge a whole route in several processes first."""
+
+    def __init__(self, detector: ScanMCDetector, lidar: Lidar, stride: int = 5, seed: int = 0):
+        if stride < 1:
+            raise ValueError(f"a detector is judged every stride >= 1 steps, got {stride}")
+        self.detector, self.lidar, self.stride, self.seed = detector, lidar, stride, seed
+        self.name = detector.name
+        self._calls, self._last, self._ahead = 0, UNKNOWN, {}
+
+    def judge_step(self, step: int, T_w_s: np.ndarray) -> Prediction:
+        scan = self.lidar.scan(T_w_s, np.random.default_rng([self.seed, 2, step]))
+        return self.detector.judge(scan.points, np.random.default_rng([self.seed, 3, step]))
+
+    def judgement(self, step: int, T_w_s: np.ndarray) -> Prediction:
+        """The step's judgement: the one made ahead, or made now."""
+        return self._ahead.pop(step, None) or self.judge_step(step, T_w_s)
+
+    def judge_ahead(self, poses: list[np.ndarray], scene: Scene, workers: int, progress: bool = True,
+                    steps: list[int] | None = None) -> None:
+        """Judge the steps that `predict` will be asked for (every `stride`-th, or `steps`), T_w_s of
+        call k being poses[k]."""
+        steps = list(range(0, len(poses), self.stride)) if steps is None else steps
+        jobs = [(k, poses[k]) for k in steps]
+        judged = list(tqdm(ordered_map(_judge_recast_step, jobs, self, _recast_on, (self, scene.mesh), workers),
+                           total=len(jobs), disable=not progress,
+                           desc=f"judging with {self.name} ({workers} workers)", unit="scan"))
+        self._ahead = dict(zip(steps, judged))
+
+    def __getstate__(self) -> dict:  # a worker gets the settings, and casts against its own scene
+        return {**self.__dict__, "lidar": self.lidar.config, "_ahead": {}}
+
+    def predict(self, points: np.ndarray, registration=None, T_w_s: np.ndarray | None = None) -> Prediction:
+        if T_w_s is None:
+            raise ValueError(f"{self.name} in a replay casts the scan again at the true sensor pose: give T_w_s")
+        try:
+            if self._calls % self.stride == 0:
+                self._last = UNKNOWN  # a judgement that raises is not held over the next steps
+                self._last = self.judgement(self._calls, T_w_s)
+            return self._last
+        finally:
+            self._calls += 1
+
+
+class RecastCascade:
+    """learned+scanmc in a replay: the classifier reads the recorded samples, and where it is unsure
+    the estimate judges the scan cast again at the true pose (RecastScans). At most one judgement
+    per `stride` steps, as the estimate alone has: the first unsure step of each block of `stride`
+    steps is judged, and its judgement serves the block's later unsure steps."""
+
+    def __init__(self, cascade: CascadeDetector, lidar: Lidar, stride: int = 5, seed: int = 0):
+        self.cascade, self.recast = cascade, RecastScans(cascade.scan_mc, lidar, stride, seed)
+        self.name = cascade.name
+        self._calls, self._held = 0, {}
+        self._classified: dict[int, tuple[Prediction, bool]] = {}  # by judge_ahead, for predict to take
+
+    def predict(self, points: np.ndarray, registration=None, T_w_s: np.ndarray | None = None) -> Prediction:
+        if T_w_s is None:
+            raise ValueError(f"{self.name} in a replay casts the scan again at the true sensor pose: give T_w_s")
+        step, self._calls = self._calls, self._calls + 1
+        self.cascade.calls += 1
+        first, unsure = self._classified.pop(step, None) or self.cascade.classify(points, T_w_s)
+        if not unsure:
+            return first
+        self.cascade.checked += 1
+        block = step // self.recast.stride
+        if block not in self._held:
+            self._held[block] = self.recast.judgement(step, T_w_s)
+        return self._held[block]
+
+    @property
+    def judged_steps(self) -> int:
+        """Scans the estimate has judged (one per block with an unsure step)."""
+        return len(self._held)
+
+    def judge_ahead(self, samples: list[np.ndarray], poses: list[np.ndarray], scene: Scene, workers: int,
+                    progress: bool = True) -> None:
+        """Judge the steps that `predict` will ask the estimate for, the samples and T_w_s of call k
+        being samples[k] and poses[k]."""
+        self._classified = {k: self.cascade.classify(points, T) for k, (points, T) in enumerate(zip(samples, poses))}
+        first_unsure: dict[int, int] = {}
+        for k, (_, unsure) in self._classified.items():
+            if unsure:
+                first_unsure.setdefault(k // self.recast.stride, k)
+        self.recast.judge_ahead(poses, scene, workers, progress, steps=list(first_unsure.values()))
+
+
+def _recast_on(recast: RecastScans, mesh) -> RecastScans:
+    """A worker's own copy, with a LiDAR on its own copy of the scene."""
+    recast.lidar = Lidar(EmbreeCaster(mesh, threads=1), recast.lidar)
+    return recast
+
+
+def _judge_recast_step(recast: RecastScans, job: tuple[int, np.ndarray]) -> Prediction:
+    return recast.judge_step(*job)
+
+
+def _ragged(name: str, arrays: list[np.ndarray]) -> dict[str, np.ndarray]:
+    lengths = np.array([len(a) for a in arrays], dtype=np.int64)
+    flat = np.concatenate(arrays) if arrays else np.zeros((0, 3), np.float32)
+    return {name: flat, f"{name}_offsets" if name != "points" else "offsets": np.concatenate([[0], np.cumsum(lengths)])}
+
+
+def _unragged(z, name: str) -> list[np.ndarray]:
+    o, flat = z[f"{name}_offsets" if name != "points" else "offsets"], z[name]
+    return [flat[o[i]:o[i + 1]] for i in range(len(o) - 1)]
+
+
+def record_run(scene: str = "mine", sensor: str = "vlp16", seed: int = 0, progress: bool = True,
+               scene_params: dict | None = None, scene_object: Scene | None = None,
+               on_step: Callable[[Scan, dict], None] | None = None, sweep: bool = False,
+               noise_streams: str = "shared") -> Recording:
+    """Drive the scene's route once; `scene_object`, if given, is that scene already built.
+    `on_step(scan, info)` sees every full scan with the step's info (T_w_b, odom_T_w_b) and the
+    sensor's mounting T_b_s, the start's included, before the recording thins it (a bag writer).
+    `sweep`: each step's scan is swept over the step's motion (LidarConfig.sweep). `noise_streams`:
+    EnvConfig.noise_streams ("separate": the odometry's noise does not depend on the sensor)."""
+    env = NavigationEnv(EnvConfig(scene=scene, lidar=LidarConfig(model=sensor, sweep=sweep),
+                                  scene_params=scene_params or {}, noise_streams=noise_streams),
+                        scene_object=scene_object)
+    obs, info = env.reset(seed=seed)
+    follow = RouteFollower(env.route)
+
+    def thin(points: np.ndarray) -> np.ndarray:
+        cloud = small_gicp.voxelgrid_sampling(points.astype(np.float64), STORE_VOXEL)
+        return np.asarray(cloud.points())[:, :3].astype(np.float32)
+
+    sampler = np.random.default_rng([seed, 1])
+
+    def sample(points: np.ndarray) -> np.ndarray:
+        if len(points) > CLASSIFIER_POINTS:
+            points = points[sampler.choice(len(points), CLASSIFIER_POINTS, replace=False)]
+        return points.astype(np.float32)
+
+    gt, odom, scans, samples = [info["T_w_b"]], [], [thin(env.scan.points)], [sample(env.scan.points)]
+    if on_step is not None:
+        on_step(env.scan, {**info, "T_b_s": env.robot.T_b_s})
+    bar = tqdm(total=env.max_steps, desc=f"recording {env.scene.name}", unit="step", disable=not progress)
+    done = False
+    while not done:
+        prev_odom = info["odom_T_w_b"]
+        obs, _, terminated, truncated, info = env.step(follow(info["T_w_b"]))
+        done = terminated or truncated
+        gt.append(info["T_w_b"])
+        odom.append(inverse(prev_odom) @ info["odom_T_w_b"])
+        scans.append(thin(env.scan.points))
+        samples.append(sample(env.scan.points))
+        if on_step is not None:
+            on_step(env.scan, {**info, "T_b_s": env.robot.T_b_s})
+        bar.update()
+    bar.close()
+    # a mesh scene is rebuilt from its file, a procedural one from its canonical name ('tunnel' -> 'tunnel-0')
+    name = canonical_scene_name(scene) if is_mesh_path(scene) else env.scene.name
+    rec = Recording(name, sensor, seed, env.robot.T_b_s, np.array(gt), np.array(odom), scans, samples,
+                    dict(scene_params or {}), file_sha256(scene) if is_mesh_path(scene) else "", sweep, noise_streams)
+    env.close()
+    return rec
+
+
+@dataclass
+class DetectorResult:
+    name: str
+    trajectory: np.ndarray
+    masks: np.ndarray  # (N, 6) bool
+    probabilities: np.ndarray  # (N, 6)
+    ate: float
+    ate_aligned: float | None
+    rpe_translation: float
+    rpe_rotation: float
+    seconds: float
+    unknown_steps: int
+    fallback_steps: int
+    detector_errors: int = 0
+
+    def row(self) -> dict:
+        flagged = self.masks.mean(axis=0)
+        return {"detector": self.name, "ate_m": round(self.ate, 3),
+                "ate_aligned_m": None if self.ate_aligned is None else round(self.ate_aligned, 3),
+                "rpe_m": round(self.rpe_translation, 4), "rpe_deg": round(float(np.degrees(self.rpe_rotation)), 3),
+                **{f"flagged_{a}": round(float(f), 3) for a, f in zip(AXES, flagged)},
+                "seconds": round(self.seconds, 2), "unknown_steps": self.unknown_steps,
+                "fallback_steps": self.fallback_steps, "detector_errors": self.detector_errors}
+
+
+def deskewed(rec: Recording, source: str = "gyro") -> Recording:
+    """A swept recording's scans and samples put into the sensor frame at each revolution's end, by
+    the leg odometry's motion over the last steps (`deskew_motion`; the first revolution was taken
+    standing still), its rotation the gyro's where `source` is "gyro": a StepGyro along the drive's
+    true poses, drawing from the recording's own seed."""
+    if source not in DESKEW_SOURCES:
+        raise ValueError(f"deskewing source must be one of {DESKEW_SOURCES}, got {source!r}")
+    if not rec.sweep:
+        return rec
+    pattern = get_pattern(rec.sensor)
+    gyro = StepGyro(rng=np.random.default_rng([rec.seed, 4])) if source == "gyro" else None
+    motions = [np.eye(4)]
+    for k, (before, after) in enumerate(zip(rec.ground_truth, rec.ground_truth[1:])):
+        turn = None if gyro is None else gyro.measure(before[:3, :3], after[:3, :3], RobotConfig.dt)
+        motions.append(deskew_motion(rec.odometry[: k + 1], turn, mounting=rec.T_b_s))  # the last steps count
+    return replace(rec, scans=[deskew(s, m, pattern) for s, m in zip(rec.scans, motions)],
+                   samples=[deskew(s, m, pattern) for s, m in zip(rec.samples, motions)])
+
+
+def register_sequence(rec: Recording, config: RegistrationConfig, progress: bool = True) -> list:
+    """Scan k registered to scan k-1 from identity; None where registration is impossible."""
+    results, target = [], None
+    for k, scan in enumerate(tqdm(rec.scans, desc="registering scans", unit="scan", disable=not progress)):
+        try:
+            new_target = PreparedTarget(scan, config)
+        except RegistrationError:
+            new_target = None
+        if k > 0:
+            try:
+                results.append(register(scan, target, config) if target is not None else None)
+            except RegistrationError:
+                results.append(None)
+        target = new_target
+    return results
+
+
+class OdometryAttitude:
+    """The odometry fused with the IMU's attitude alone: every ICP axis masked, for the reference
+    row against which the detectors' rows show what the scans add to the IMU."""
+
+    name = "odometry + attitude"
+
+    def predict(self, points: np.ndarray, registration=None, T_w_s: np.ndarray | None = None) -> Prediction:
+        return Prediction(np.ones(6), np.ones(6, dtype=bool))
+
+
+def evaluate(rec: Recording, detectors: list[Detector], registrations: list, fusion: FusionConfig | None = None,
+             odometry: OdometryConfig | None = None, progress: bool = True,
+             backend: str = "graph", attitude: str = "none") -> list[DetectorResult]:
+    """Fuse the recording's odometry and registrations with each detector's masks; with `attitude`
+    ("tilt" or "full", see `imu.attitude_sigmas`) the IMU's orientation joins every ATTITUDE_EVERY
+    steps, the same readings for every detector (drawn from the recording's seed)."""
+    check_backend(backend)
+    fusion, odometry = fusion or FusionConfig(), odometry or OdometryConfig()
+    T_b_s = rec.T_b_s
+    gt = rec.ground_truth
+    sigmas = attitude_sigmas(attitude)
+    readings = None if sigmas is None else attitude_readings(gt, RobotConfig.dt,
+                                                             rng=np.random.default_rng([rec.seed, 5]))
+    out = []
+    for det in detectors:
+        t0 = time.perf_counter()
+        graph = make_fusion(backend, gt[0], fusion)
+        masks, probs, unknown, fallbacks, errors = [], [], 0, 0, 0
+        for k, reg in enumerate(tqdm(registrations, desc=f"fusing with {det.name}", unit="step", disable=not progress)):
+            pred, failed = safe_predict(det, rec.detector_input(k + 1), reg, gt[k + 1] @ T_b_s)
+            unknown += not pred.known
+            errors += failed
+            icp, hessian = (reg.in_frame(T_b_s) if reg is not None else None) or (None, None)
+            inc = rec.odometry[k]
+            _, report = graph.add_step(inc, odometry_sigmas(inc, odometry), icp, pred.mask, hessian)
+            if readings is not None and (k + 1) % ATTITUDE_EVERY == 0:
+                graph.add_attitude(readings[k + 1], sigmas)
+            fallbacks += report.fallback is not None
+            masks.append(pred.mask)
+            probs.append(pred.probabilities)
+        out.append(_scored(det.name, graph.trajectory(), gt, np.array(masks), np.array(probs),
+                           time.perf_counter() - t0, unknown, fallbacks, errors))
+    return out
+
+
+def odometry_only(rec: Recording) -> DetectorResult:
+    traj = [rec.ground_truth[0]]
+    for inc in rec.odometry:
+        traj.append(traj[-1] @ inc)
+    n = len(rec.odometry)
+    return _scored("odometry only", np.array(traj), rec.ground_truth, np.ones((n, 6), bool), np.ones((n, 6)), 0.0, 0, 0)
+
+
+def _scored(name: str, traj: np.ndarray, gt: np.ndarray, masks: np.ndarray, probs: np.ndarray, seconds: float,
+            unknown: int, fallbacks: int, errors: int = 0) -> DetectorResult:
+    """A trajectory with its metrics against ground truth (aligned ATE is None for colinear runs)."""
+    try:
+        aligned = ate_aligned(traj, gt)
+    except MetricError:
+        aligned = None
+    rt, rr = rpe(traj, gt, delta=min(10, len(gt) - 1))
+    return DetectorResult(name, traj, masks, probs, ate(traj, gt), aligned, rt, rr, seconds, unknown, fallbacks, errors)
+
+
+def run_experiment(out_dir: str | Path, scene: str, detectors: list[str], sensor: str = "vlp16", seed: int = 0,
+                   recording: str | Path | None = None, progress: bool = True, backend: str = "graph",
+                   scene_params: dict | None = None, workers: int = 1, deskew: str = "gyro",
+                   noise_streams: str = "shared", attitude: str = "none",
+                   fusion_options: FusionOptions = FusionOptions()) -> list[dict]:
+    """The `l3e ate` command as a function: returns the table rows and writes everything to out_dir.
+    `scene_params` go to make_scene (a mesh scene's up axis, scale and route). With a `recording`,
+    its own scene is used; `scene` matters only as the new path of a recorded mesh that has moved.
+    `workers` processes judge the route with scanmc before the fusion (the same judgements as one).
+    `deskew`: where a swept recording's deskewing takes its rotation from ("gyro" or "odometry").
+    `noise_streams`: the drive's EnvConfig.noise_streams (a recording keeps its own).
+    `attitude`: the IMU's orientation in the fusion ("none", "tilt" or "full"); with it, a row
+    "odometry + attitude" follows odometry alone. `fusion_options`: every fusion's (the biases' prior
+    from the default OdometryConfig, as the drive's)."""
+    if workers < 1:
+        raise ValueError(f"workers must be at least 1, got {workers}")
+    if deskew not in DESKEW_SOURCES:
+        raise ValueError(f"deskew must be one of {DESKEW_SOURCES}, got {deskew!r}")
+    if noise_streams not in NOISE_STREAMS:
+        raise ValueError(f"noise_streams must be one of {NOISE_STREAMS}, got {noise_streams!r}")
+    attitude_sigmas(attitude)  # a bad mode fails before the drive
+    fusion = odometry_fusion_config(OdometryConfig(), fusion_options)
+    out = Path(out_dir)
+    rec = Recording.load(recording) if recording else None
+    scene_obj = (make_scene(rec.scene_file(moved_to=scene), **rec.scene_params) if rec
+                 else make_scene(scene, **(scene_params or {})))
+    lidar = Lidar(EmbreeCaster(scene_obj.mesh), LidarConfig(model=rec.sensor if rec else sensor))
+    dets = [make_detector(spec, lidar, seed) for spec in detectors]  # a bad spec fails before the drive
+    dets = [RecastScans(d, lidar, seed=seed) if isinstance(d, ScanMCDetector)
+            else RecastCascade(d, lidar, seed=seed) if isinstance(d, CascadeDetector) else d for d in dets]
+    out.mkdir(parents=True, exist_ok=True)
+    if rec is None:
+        rec = record_run(scene, sensor, seed, progress, scene_params, scene_object=scene_obj,
+                         noise_streams=noise_streams)
+        rec.save(out / "recording.npz")
+    swept, rec = rec.sweep, deskewed(rec, deskew)
+    t0 = time.perf_counter()
+    regs = register_sequence(rec, RegistrationConfig(), progress)
+    icp_seconds = time.perf_counter() - t0
+    ahead = [0.0] * len(dets)  # seconds of judging ahead, counted in the detector's time
+    poses = [T @ rec.T_b_s for T in rec.ground_truth[1:]]  # call k of the fusion is at the pose of scan k + 1
+    for i, det in enumerate(dets):
+        t0 = time.perf_counter()
+        if isinstance(det, RecastScans) and workers > 1:
+            det.judge_ahead(poses, scene_obj, workers, progress)
+        elif isinstance(det, RecastCascade) and workers > 1:
+            det.judge_ahead([rec.detector_input(k + 1) for k in range(len(poses))], poses, scene_obj, workers, progress)
+        ahead[i] = time.perf_counter() - t0
+    if attitude != "none":
+        dets, ahead = [OdometryAttitude(), *dets], [0.0, *ahead]
+    fused = evaluate(rec, dets, regs, fusion=fusion, progress=progress, backend=backend, attitude=attitude)
+    for result, seconds in zip(fused, ahead):
+        result.seconds += seconds
+    results = [odometry_only(rec)] + fused
+    rows = [r.row() for r in results]
+    for det, row in zip(dets, rows[1:]):
+        if isinstance(det, RecastCascade):  # what the estimate cost it: steps it was asked, scans it judged
+            row.update(checked_steps=det.cascade.checked, judged_steps=det.judged_steps)
+    failed = sum(r is None or not r.converged for r in regs)
+    summary = {"scene": rec.scene, "sensor": rec.sensor, "seed": rec.seed, "noise_streams": rec.noise_streams,
+               "swept": swept,
+               "deskew": deskew if swept else None, "backend": backend, "attitude": attitude,
+               **fusion_options.record(), "steps": len(rec.odometry), "icp_seconds": round(icp_seconds, 1),
+               "icp_failed_or_not_converged": failed, "rows": rows}
+    (out / "results.json").write_text(json.dumps(summary, indent=1))
+    from .ate_plots import plot_map, plot_timeline, plot_trajectories
+
+    plot_trajectories(out / "trajectories.png", scene_obj, rec, results)
+    plot_timeline(out / "timeline.png", results[1:])
+    for r in results[1:]:
+        plot_map(out / f"map_{file_stem(r.name)}", rec, r.trajectory)
+    return rows
+
+
+def file_stem(detector_name: str) -> str:
+    """A detector's name as a file name: 'learned:runs/a/model.pt' names a path, not a folder."""
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", detector_name).strip("_")
+
+
+def summarize_seeds(runs: dict[int, list[dict]]) -> list[dict]:
+    """Per detector, over drives of several seeds: ATE and aligned ATE as mean, standard deviation
+    and range, and the ATE against odometry alone on the same drive, which cancels most of one
+    drive's luck (the odometry's noise decides much of the drift of every detector)."""
+    seeds = sorted(runs)
+    names = [r["detector"] for r in runs[seeds[0]]]
+    if any([r["detector"] for r in runs[k]] != names for k in seeds):
+        raise ValueError("every seed's drive must be fused with the same detectors")
+    if names[0] != "odometry only":
+        raise ValueError("each drive's rows start with odometry only, as run_experiment returns them")
+    summary = []
+    for i, name in enumerate(names):
+        ate = np.array([runs[k][i]["ate_m"] for k in seeds])
+        aligned = np.array([runs[k][i]["ate_aligned_m"] for k in seeds], dtype=float)
+        ratio = ate / np.array([runs[k][0]["ate_m"] for k in seeds])  # row 0: odometry only
+        summary.append({"detector": name, "seeds": seeds, "ate_m": ate.tolist(),
+                        "ate_mean_m": round(float(ate.mean()), 3), "ate_std_m": round(float(ate.std(ddof=1)), 3),
+                        "ate_min_m": float(ate.min()), "ate_max_m": float(ate.max()),
+                        "ate_aligned_mean_m": round(float(np.nanmean(aligned)), 3),
+                        "ate_over_odometry_mean": round(float(ratio.mean()), 3),
+                        "ate_over_odometry_std": round(float(ratio.std(ddof=1)), 3)})
+    return summary
+
+
+def format_seed_table(summary: list[dict]) -> str:
+    w = _name_width(summary)
+    head = (f"{'detector':{w}s} {'ATE m mean':>10s} {'std':>6s} {'min':>7s} {'max':>7s} {'aligned':>8s}  "
+            f"{'ATE / odometry':>14s}")
+    lines = [f"over {len(summary[0]['seeds'])} drives (seeds {summary[0]['seeds'][0]}-{summary[0]['seeds'][-1]})",
+             head, "-" * len(head)]
+    for r in summary:
+        lines.append(f"{r['detector']:{w}s} {r['ate_mean_m']:10.3f} {r['ate_std_m']:6.3f} {r['ate_min_m']:7.3f} "
+                     f"{r['ate_max_m']:7.3f} {r['ate_aligned_mean_m']:8.3f}  "
+                     f"{r['ate_over_odometry_mean']:7.3f} +-{r['ate_over_odometry_std']:.3f}")
+    return "\n".join(lines)
+
+
+def _name_width(rows: list[dict]) -> int:
+    """The detector column's width: the longest name, at least 14 characters."""
+    return max([14, *(len(r["detector"]) for r in rows)])
+
+
+def format_table(rows: list[dict]) -> str:
+    w = _name_width(rows)
+    head = (f"{'detector':{w}s} {'ATE m':>7s} {'aligned':>8s} {'RPE m':>7s} {'RPE deg':>8s}  "
+            f"flagged x/y/z/roll/pitch/yaw      {'s':>6s}")
+    lines = [head, "-" * len(head)]
+    for r in rows:
+        flags = " ".join(f"{r[f'flagged_{a}']:.2f}" for a in AXES)
+        al = "-" if r["ate_aligned_m"] is None else f"{r['ate_aligned_m']:.3f}"
+        lines.append(f"{r['detector']:{w}s} {r['ate_m']:7.3f} {al:>8s} {r['rpe_m']:7.4f} {r['rpe_deg']:8.3f}  "
+                     f"{flags}  {r['seconds']:6.1f}")
+    return "\n".join(lines)

@@ -1,0 +1,82 @@
+"""Figures of the ATE experiment: trajectories over the scene, mask timelines, maps."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import trimesh  # noqa: E402
+
+from l3e_env.localizability.labels import AXES  # noqa: E402
+from l3e_env.sim.render import wall_points  # noqa: E402
+
+
+def plot_trajectories(path: Path, scene, rec, results) -> None:
+    walls = wall_points(scene.mesh, 100_000)
+    fig, ax = plt.subplots(figsize=(12, 5))
+    ax.scatter(walls[:, 0], walls[:, 1], s=0.05, c="0.6", rasterized=True)
+    ax.plot(rec.ground_truth[:, 0, 3], rec.ground_truth[:, 1, 3], "k", lw=2, label="ground truth")
+    for r in results:
+        ax.plot(r.trajectory[:, 0, 3], r.trajectory[:, 1, 3], lw=1.2, label=f"{r.name} (ATE {r.ate:.2f} m)")
+    ax.set_aspect("equal")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.legend(fontsize=8, loc="best")
+    ax.set_title(f"{rec.scene}: estimates against ground truth")
+    fig.tight_layout()
+    fig.savefig(path, dpi=130)
+    plt.close(fig)
+
+
+def plot_timeline(path: Path, results) -> None:
+    fig, axes = plt.subplots(len(results), 1, figsize=(12, 1.2 + 1.1 * len(results)), squeeze=False)
+    for ax, r in zip(axes[:, 0], results):
+        ax.imshow(r.masks.T.astype(float), aspect="auto", cmap="Reds", vmin=0, vmax=1, interpolation="nearest")
+        ax.set_yticks(range(6), AXES, fontsize=7)
+        ax.set_title(f"{r.name}: non-localizable axes along the route", fontsize=9)
+    axes[-1, 0].set_xlabel("step (0.1 s)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def plot_map(stem: Path, rec, trajectory: np.ndarray, every: int = 10) -> None:
+    """Scans accumulated at the estimated poses, as PLY and a top view: a corrupted map shows."""
+    T_b_s = rec.T_b_s
+    pts = [rec.scans[k] @ (trajectory[k] @ T_b_s)[:3, :3].T + (trajectory[k] @ T_b_s)[:3, 3]
+           for k in range(0, len(rec.scans), every)]
+    cloud = np.concatenate(pts)
+    trimesh.PointCloud(cloud).export(str(stem) + ".ply")
+    fig, ax = plt.subplots(figsize=(12, 5))
+    keep = cloud[:, 2] < trajectory[:, 2, 3].max() + 1.0  # below the roof: walls and floor edges
+    ax.scatter(cloud[keep, 0], cloud[keep, 1], s=0.02, c=cloud[keep, 2], cmap="viridis", rasterized=True)
+    ax.set_aspect("equal")
+    ax.set_title(f"map from the estimate: {stem.name}")
+    fig.tight_layout()
+    fig.savefig(str(stem) + ".png", dpi=110)
+    plt.close(fig)
+
+
+def plot_seeds(path: Path, summary: list[dict]) -> None:
+    """Each detector's ATE on every drive, one line a drive: a detector that is better on every
+    drive is seen to be, whatever the spread between drives."""
+    fig, ax = plt.subplots(figsize=(1.6 + 1.1 * len(summary), 4.2))
+    names = [r["detector"] for r in summary]
+    ate = np.array([r["ate_m"] for r in summary])  # (detectors, seeds)
+    for k, seed in enumerate(summary[0]["seeds"]):
+        ax.plot(range(len(names)), ate[:, k], "o-", color=plt.cm.viridis(k / max(1, ate.shape[1] - 1)),
+                alpha=0.7, label=f"seed {seed}")
+    ax.set_xticks(range(len(names)), names, rotation=30, ha="right")
+    ax.set_ylabel("ATE (m)")
+    ax.set_yscale("log")
+    ax.yaxis.set_major_formatter(matplotlib.ticker.ScalarFormatter())
+    ax.yaxis.set_minor_formatter(matplotlib.ticker.FormatStrFormatter("%.3g"))
+    ax.set_title(f"ATE over {ate.shape[1]} drives")
+    ax.legend(fontsize=7, ncol=2)
+    ax.grid(True, which="both", alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)

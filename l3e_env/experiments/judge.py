@@ -1,0 +1,204 @@
+"""One's own scans, read from files or a ROS bag and judged by the detectors: along which axes
+scan-to-scan registration would fail there (`l3e judge`). A scan is in its sensor's frame, as
+the driver writes it; points that are NaN, infinite or at the origin (no return, as organised
+clouds keep them) are dropped and counted."""
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass
+from itertools import chain
+from pathlib import Path
+
+import numpy as np
+
+from l3e_env.config import LidarConfig
+from l3e_env.core.points import out_of_reach
+from l3e_env.detection.detectors import (CascadeDetector, Detector, EigenvalueDetector, Prediction, ScanMCDetector,
+                                         make_detector)
+from l3e_env.localizability.labels import AXES
+from l3e_env.sim.patterns import BeamPattern, PatternError, fit_pattern, get_pattern, register_pattern
+from l3e_env.localizability.registration import RegistrationConfig, RegistrationError, RegistrationResult, scan_hessian
+from l3e_env.io.rosbag import BagScan
+from l3e_env.io.scan_files import ScanFileError, read_scan
+from l3e_env.core.workers import ordered_map
+
+# what each detector's score means, printed under the table
+SCORES = {"learned": "probability that the axis is not localizable (flagged above the model's threshold)",
+          "eigen": "share of the axis in the Hessian's degenerate subspace (flagged above 0.5)",
+          "scanmc": "r / (1 + r), r = estimated registration error over the label threshold (flagged above 0.5)",
+          "learned+scanmc": "the classifier's probability where it is sure; where an axis lies within the margin "
+                            "of its threshold, scanmc's r / (1 + r) for every axis",
+          "none": "nothing is flagged"}
+
+
+@dataclass
+class Judgement:
+    path: str
+    points: int  # points judged
+    dropped: int  # NaN, infinite or at the origin
+    predictions: dict[str, Prediction]
+    error: str | None = None  # the file could not be read, or its points are not a scan: why (nothing judged)
+    stamp: float | None = None  # seconds, for a scan read from a bag
+
+
+def judge_points(points: np.ndarray, detectors: list[Detector], registration: RegistrationConfig | None = None,
+                 rng: np.random.Generator | None = None) -> dict[str, Prediction]:
+    """Each detector's prediction for one scan (UNKNOWN where it cannot judge it). The eigenvalue
+    test reads the Hessian of the scan registered onto itself, as `l3e evaluate` scores it; scanmc
+    draws its children from `rng` where given."""
+    onto_itself = None  # eigen answers UNKNOWN without it; the others do not read it
+    if any(isinstance(d, EigenvalueDetector) for d in detectors):
+        try:
+            H = scan_hessian(points, registration or RegistrationConfig())
+            onto_itself = RegistrationResult(np.eye(4), H, True, 0, len(points), len(points), 0.0)
+        except RegistrationError:
+            pass
+    return {d.name: d.judge(points, rng) if rng is not None and isinstance(d, (ScanMCDetector, CascadeDetector))
+            else d.predict(points, onto_itself, None) for d in detectors}
+
+
+def _judge_source(index: int, source: str | Path | BagScan, detectors: list[Detector], seed: int) -> Judgement:
+    """A scan file read, or a bag's scan, and judged; scanmc's children are seeded by the scan's
+    place in the list, so that a scan is judged alike alone or in a worker."""
+    if isinstance(source, BagScan):
+        name, stamp, points, error = source.name, source.stamp, source.points, source.error
+    else:
+        name, stamp, error = str(source), None, None
+        try:
+            points = read_scan(source)
+        except ScanFileError as exc:
+            error = str(exc)
+    if error is not None:
+        return Judgement(name, 0, 0, {}, error=error, stamp=stamp)
+    kept = np.isfinite(points).all(axis=1) & (np.abs(points).sum(axis=1) > 0)
+    returns, dropped = points[kept], int((~kept).sum())
+    far = out_of_reach(returns)
+    if far is not None:
+        return Judgement(name, len(returns), dropped, {}, error=f"{name}: {far}", stamp=stamp)
+    return Judgement(name, len(returns), dropped,
+                     judge_points(returns, detectors, rng=np.random.default_rng([seed, index])), stamp=stamp)
+
+
+def _judges(specs: list[str], sensor: LidarConfig, seed: int,
+            pattern: BeamPattern | None) -> tuple[list[Detector], int]:
+    """A judging worker's own detectors, and the seed; a pattern recognised from the scans is
+    registered here first, as a spawned worker does not inherit it."""
+    if pattern is not None:
+        register_pattern(pattern)
+    return [make_detector(spec, seed=seed, sensor=sensor) for spec in specs], seed
+
+
+def _judge_job(judges: tuple[list[Detector], int], job: tuple[int, str | BagScan]) -> Judgement:
+    return _judge_source(*job, *judges)
+
+
+RECOGNITION_TRIES = 5  # readable scans tried: a bag's first revolution may be cut short
+
+
+def recognise_sensor(scans: Iterator[str | Path | BagScan]) -> tuple[Iterator[str | Path | BagScan],
+                                                                     BeamPattern | None, str]:
+    """The beam pattern of the first of the first few readable scans that gives one (`fit_pattern`,
+    with the bag's ring field where it has one), or None where none does; what was found, or why
+    not; and the scans again from the first."""
+    seen: list[str | Path | BagScan] = []
+    refused: list[str] = []
+    for scan in scans:
+        seen.append(scan)
+        if isinstance(scan, BagScan):
+            name, points, rings = scan.name, scan.points, scan.rings
+        else:
+            name, rings = str(scan), None
+            try:
+                points = read_scan(scan)
+            except ScanFileError:
+                points = None
+        if points is None:
+            continue
+        try:
+            pattern, how = fit_pattern(points, rings)
+        except PatternError as exc:
+            refused.append(f"{name}: {exc}")
+            if len(refused) < RECOGNITION_TRIES:
+                continue
+            break
+        if refused:
+            before = "the scan" if len(refused) == 1 else f"the {len(refused)} scans"
+            how += f" (from {name}; not from {before} before it: {refused[0]})"
+        return chain(seen, scans), pattern, how
+    if len(refused) > 1:
+        return chain(seen, scans), None, (f"not recognised from any of the first {len(refused)} readable scans; "
+                                          f"the first, {refused[0]}")
+    if refused:
+        return chain(seen, scans), None, f"not recognised from {refused[0]}"
+    return iter(seen), None, "no scan could be read to recognise it from"
+
+
+def needs_sensor(specs: list[str]) -> bool:
+    """Whether a detector simulates the sensor's beams (scanmc and learned+scanmc do; the others read
+    points only)."""
+    return any(spec.partition(":")[0] in ("scanmc", "learned+scanmc") for spec in specs)
+
+
+def judge_scans(scans: Iterable[str | Path | BagScan], specs: list[str], sensor: LidarConfig | None = None,
+                seed: int = 0, workers: int = 1,
+                on_sensor: Callable[[BeamPattern, str], None] | None = None) -> Iterator[Judgement]:
+    """Judge each scan, a file to read or a bag's scan (`read_bag`), with each detector
+    ('learned[...]', 'eigen:<tau>', 'scanmc[:M]', 'learned+scanmc[:margin]', 'none'; make_detector refuses the oracle,
+    which needs a scene), after dropping its points without a return, in the order given,
+    `workers` scans at a time. Without `sensor`, a detector that needs one gets the pattern
+    recognised from the first scans (the default where none fits), reported to `on_sensor`
+    with what was found or why not. A scan that cannot be read gives a
+    Judgement with its `error`, and the next one is read."""
+    if workers < 1:
+        raise ValueError(f"workers must be at least 1, got {workers}")
+    pattern = None
+    if sensor is not None:
+        pattern = get_pattern(sensor.model)  # an unknown sensor is named before any file is read
+    elif needs_sensor(specs):
+        scans, pattern, how = recognise_sensor(iter(scans))
+        if pattern is not None:
+            register_pattern(pattern)
+        if on_sensor is not None:
+            on_sensor(pattern, how)
+    # a sensor not recognised is taken as the default; scanmc answers unknown for scans not of it
+    sensor = sensor or LidarConfig(model=pattern.name if pattern else LidarConfig().model)
+    detectors = [make_detector(spec, seed=seed, sensor=sensor) for spec in specs]  # a bad spec fails here
+    jobs = ((i, scan if isinstance(scan, BagScan) else str(scan)) for i, scan in enumerate(scans))
+    yield from ordered_map(_judge_job, jobs, (detectors, seed), _judges, (specs, sensor, seed, pattern), workers)
+
+
+def format_judgement(j: Judgement) -> str:
+    """A table of each detector's per-axis score, flagged axes marked '*', and a summary line."""
+    if j.error:
+        return f"{j.error}: not judged"
+    names = list(j.predictions)
+    lines = [f"{j.path}: {j.points} points" + (f" ({j.dropped} without a return dropped)" if j.dropped else ""),
+             f"  {'axis':6s}" + "".join(f"{n:>16s}" for n in names)]
+    for a, axis in enumerate(AXES):
+        cells = [f"{p.probabilities[a]:15.2f}{'*' if p.mask[a] else ' '}" if p.known else f"{'unknown':>16s}"
+                 for p in j.predictions.values()]
+        lines.append(f"  {axis:6s}" + "".join(cells))
+    for n in names:
+        p = j.predictions[n]
+        said = ("cannot judge this scan (too few points, or not a full revolution of the sensor)" if not p.known else
+                "not localizable along " + ", ".join(a for a, m in zip(AXES, p.mask) if m) if p.mask.any() else
+                "localizable along every axis")
+        lines.append(f"  {n}: {said}")
+    return "\n".join(lines)
+
+
+def judgement_record(j: Judgement, sensor: str | None) -> dict:
+    """The judgement as JSON-ready data (NaN scores of a scan a detector cannot judge as null)."""
+    where = {"path": j.path} | ({} if j.stamp is None else {"stamp": j.stamp})
+    if j.error:
+        return where | {"error": j.error}
+    return where | {"points": j.points, "dropped": j.dropped, "sensor": sensor,
+            "detectors": {name: {"known": p.known,
+                                 "scores": [float(v) if np.isfinite(v) else None for v in p.probabilities],
+                                 "not_localizable": [a for a, m in zip(AXES, p.mask) if m]}
+                          for name, p in j.predictions.items()}}
+
+
+def score_legend(specs: list[str]) -> str:
+    kinds = dict.fromkeys(spec.partition(":")[0].removesuffix("-sym") for spec in specs)
+    return "\n".join(f"  {k}: {SCORES[k]}" for k in kinds if k in SCORES)

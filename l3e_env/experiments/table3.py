@@ -1,0 +1,412 @@
+"""Table III for this project: per-axis scores of trained classifiers, and of the eigenvalue
+detector they replace, on the train, validation and test splits (and on whole datasets of another
+sensor or of unseen families), with PR curves per axis."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from scenes import TEST_SCENES, is_mesh_path, make_scene, scene_family
+
+from l3e_env.model.classifier import Classifier
+from l3e_env.config import from_dict
+from l3e_env.data.dataset import DatasetUnion, LabelDataset, open_datasets, row_thresholds
+from l3e_env.detection.detectors import near_threshold
+from l3e_env.localizability.labels import AXES
+from l3e_env.localizability.registration import RegistrationConfig, RegistrationError, eigen_mask, scan_hessian
+from l3e_env.data.scan_estimates import dataset_scan_errors
+from l3e_env.localizability.scan_mc import ScanMCConfig
+from l3e_env.model.scores import axis_scores, best_thresholds, format_table, mean_interval, mean_scores, pr_curve
+from l3e_env.model.training import predict_dataset, split_indices
+
+
+def model_name(classifier: Classifier, path: Path, taken: set[str]) -> str:
+    """The architecture, with the run folder's name where two models share it."""
+    name = classifier.model.config.architecture
+    return name if name not in taken else f"{name}:{path.parent.name}/{path.stem}"
+
+
+def test_scenes_in(data: LabelDataset | DatasetUnion) -> list[str]:
+    """The test families that the dataset holds."""
+    return [s for s in TEST_SCENES if s in data.manifest["scenes"]]
+
+
+def family_rows(data: LabelDataset | DatasetUnion, rows: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """The positions in `rows` (default: every row) of each scene family present ('yard': the rows
+    of yard-0, yard-1, ...), the families in the order the dataset lists its scenes."""
+    names = data.manifest["scenes"]
+    scene = np.asarray(data.arrays["scene"], dtype=np.int64)
+    of_row = np.array([scene_family(n) for n in names] or [""])[scene if rows is None else scene[rows]]
+    return {f: np.flatnonzero(of_row == f) for f in dict.fromkeys(map(scene_family, names)) if (of_row == f).any()}
+
+
+def region_rows(data: LabelDataset | DatasetUnion, rows: np.ndarray) -> dict[str, np.ndarray]:
+    """The positions in `rows` of each named region of a procedural scene ('tunnel of mine-0': the
+    parents that stood in the mine's tunnel), regions in the order the scene lists them; a parent
+    outside every region is in none."""
+    names = data.manifest["scenes"]
+    scene = np.asarray(data.arrays["scene"], dtype=np.int64)[rows]
+    xy = data.poses[rows][:, :2, 3]
+    out: dict[str, np.ndarray] = {}
+    for si in dict.fromkeys(scene.tolist()):
+        if is_mesh_path(names[si]):
+            continue  # a user's mesh names no regions
+        built = make_scene(names[si])
+        at = np.flatnonzero(scene == si)
+        place = np.array([built.region_of(p) or "" for p in xy[at]])
+        out.update({f"{region} of {names[si]}": at[place == region] for region in built.regions
+                    if (place == region).any()})
+    return out
+
+
+def split_rows(data: LabelDataset | DatasetUnion, training: dict[str, Any]) -> dict[str, np.ndarray]:
+    """A checkpoint's train and validation rows (its own scenes) and the test rows (the test
+    families that the dataset holds)."""
+    return {"train": split_indices(data, training["train_scenes"]),
+            "valid": split_indices(data, training["validation_scenes"]),
+            "test": split_indices(data, test_scenes_in(data))}
+
+
+def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Path] | None, out_dir: str | Path,
+             others: list[str | Path] | None = None, progress: bool = True, symmetric: bool = False,
+             eigen: list[float] | None = None, int8: bool = True, by_family: bool = False,
+             by_region: bool = False, scan_mc: int = 0, workers: int = 1, draws: int = 1,
+             cascade: list[float] | None = None) -> dict[str, Any]:
+    """Score each checkpoint on its own train/validation split and on the test families of the
+    dataset, and on every scan of each of `others` (a dataset of another sensor, or of scene
+    families the model never saw: column 'all of <folder>'); writes table.txt, results.json and
+    pr_curves.png (and cascade.png with `cascade`) into out_dir and returns the results, with the
+    table's text and the files written. `symmetric`: probabilities averaged over the
+    eight mirror/swap views, with the thresholds chosen for them. `eigen`: thresholds tau of the
+    eigenvalue detector, scored on the first checkpoint's splits from each scan's own Hessian
+    (`scan_hessian`); a scan too small to register flags nothing, as the detector's UNKNOWN does.
+    `int8`: the ResUNet's convolutions as deployed (Classifier.load); False scores them in float32.
+    `by_family`: each scene family of the test split and of an `others` dataset, where it holds
+    several, also gets a column of its own ('mine of test', 'yard of rooms48'): a mean over families
+    of unlike difficulty hides which one a model fails on. `by_region`: the same for each named
+    region of a scene there ('yard of mine-0', 'tunnel of mine-0', 'quarry of mine-0'). Without
+    `dataset` only `others` are scored: how a model does on a user's own scenes needs no training
+    data. `scan_mc`: children of the scan's own Monte-Carlo estimate (scan_mc.py), scored on the
+    first checkpoint's splits but its training split (up to M registrations a scan, over `workers`
+    processes); the estimates are saved in scan_mc.npz. `draws`: each checkpoint also scored on that
+    many draws of the points it reads from a scan (seeds 0 ... draws-1; the table is draw 0's):
+    which 4000 points a scan gives moves a split's mean F1 by a few hundredths, as much as some of
+    the differences between models. `cascade`: margins (log-odds) of the first checkpoint checked by
+    the scan estimate where it is unsure (detectors.CascadeDetector), scored from the same
+    probabilities and estimates; it needs `scan_mc`."""
+    if not dataset and not others:
+        raise ValueError("nothing to score: give the training dataset(s) (--dataset, scored by split), other "
+                         "datasets (--other, scored whole), or both")
+    if dataset and not checkpoints:
+        raise ValueError("a dataset is split by a checkpoint's training and validation scenes: give a checkpoint, "
+                         "or score the dataset whole as an other")
+    if draws < 1:
+        raise ValueError(f"draws must be at least 1 (the table's own draw), got {draws}")
+    if cascade and not (scan_mc and checkpoints):
+        raise ValueError("the cascade checks a checkpoint's unsure scans with the scan estimate: give a checkpoint "
+                         "and --scan-mc M")
+    if any(not m >= 0 for m in cascade or []):
+        raise ValueError(f"a cascade's margin is a log-odds distance >= 0, got {cascade}")
+    if scan_mc < 0 or workers < 1:
+        raise ValueError(f"the scan estimate needs 0 (none) or more children and at least one worker, got "
+                         f"{scan_mc} and {workers}")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    data = open_datasets(dataset) if dataset else None
+    extra: dict[str, LabelDataset] = {}
+    for d in map(LabelDataset, others or []):
+        extra[f"all of {d.name}" if f"all of {d.name}" not in extra else f"all of {d.folder}"] = d
+    test_scenes = test_scenes_in(data) if data is not None else []
+    table: dict[str, dict[str, dict[str, np.ndarray]]] = {}
+    curves: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = {}
+    intervals: dict[tuple[str, str], dict[str, tuple[float, float]]] = {}
+    results: dict[str, Any] = {"dataset": data.name if data is not None else None, "test_scenes": test_scenes,
+                               "symmetric": symmetric, "int8": int8, "models": {}}
+
+    built_columns: dict[str, dict[str, np.ndarray]] = {}
+
+    def part_columns(split: str, ds: LabelDataset | DatasetUnion, rows: np.ndarray) -> dict[str, np.ndarray]:
+        """Column name -> positions in `rows` of each family (of a split of several) and of each
+        region, for a test or `others` split, as asked."""
+        if split != "test" and split not in extra:
+            return {}
+        if split not in built_columns:  # the same rows for every model: scenes are built once
+            parts = family_rows(ds, rows) if by_family else {}
+            name = split.removeprefix("all of ")
+            columns = {f"{f} of {name}": at for f, at in parts.items()} if len(parts) > 1 else {}
+            built_columns[split] = {**columns, **(region_rows(ds, rows) if by_region else {})}
+        return built_columns[split]
+
+    def score(name: str, split: str, ds: LabelDataset | DatasetUnion, rows: np.ndarray, predicted: np.ndarray,
+              **fields: Any) -> None:
+        """The split's scores, and those of each of its families and regions where asked."""
+        parts = {split: np.arange(len(rows)), **part_columns(split, ds, rows)}
+        for column, subset in parts.items():
+            y = ds.labels[rows[subset]]
+            table[name][column] = scores = axis_scores(y, predicted[subset])
+            intervals[name, column] = mean_interval(y, predicted[subset])
+            results["models"][name]["splits"][column] = {
+                "count": len(subset), "dataset": ds.name, "sensor": ds.manifest["sensor"],
+                **(fields if column == split else {}), "mean": mean_scores(scores),
+                "mean_95_interval": intervals[name, column], **{k: np.asarray(v).tolist() for k, v in scores.items()}}
+
+    # the detectors without a checkpoint (eigen, scanmc) are scored on the first checkpoint's splits, or the others
+    first_splits: dict[str, tuple[LabelDataset | DatasetUnion, np.ndarray]] = {} if checkpoints else {
+        column: (d, np.arange(len(d))) for column, d in extra.items()}
+    for path in map(Path, checkpoints):
+        clf = Classifier.load(path, symmetric=symmetric, int8=int8)
+        name = model_name(clf, path, set(table))
+        splits = {} if data is None else {
+            split: (data, rows) for split, rows in split_rows(data, clf.meta["training"]).items()}
+        splits.update({column: (d, np.arange(len(d))) for column, d in extra.items()})
+        splits = {split: (ds, rows) for split, (ds, rows) in splits.items() if len(rows)}
+        first_splits = first_splits or splits
+        table[name], curves[name] = {}, {}
+        results["models"][name] = {"checkpoint": str(path), "thresholds": clf.thresholds.tolist(), "splits": {}}
+        for split, (ds, rows) in splits.items():
+            if progress:
+                print(f"{name}: {split} ({len(rows)} scans)")
+            probs = predict_dataset(clf.model, ds, rows, progress=progress, symmetric=symmetric)
+            curves[name][split] = (ds.labels[rows], probs)
+            score(name, split, ds, rows, probs > clf.thresholds)
+            if draws > 1:
+                results["models"][name]["splits"][split]["draws"] = draw_scores(
+                    clf, ds, rows, probs, draws, progress, symmetric)
+        if "valid" in curves[name]:
+            parts = {split: part_columns(split, *splits[split]) for split in curves[name]}
+            results["models"][name]["f1_operating_point"] = f1_operating_point(curves[name], parts)
+    hessians = {}
+    if eigen:  # one Hessian per scan serves every tau
+        hessians = {split: dataset_hessians(ds, rows, progress) for split, (ds, rows) in first_splits.items()}
+    for tau in eigen or []:
+        name = f"eigen:{tau:g}"
+        table[name], results["models"][name] = {}, {"tau": tau, "splits": {}}
+        for split, (ds, rows) in first_splits.items():
+            known = np.isfinite(hessians[split]).all(axis=(1, 2))
+            predicted = np.zeros((len(rows), 6), bool)
+            predicted[known] = [eigen_mask(H, tau)[1] for H in hessians[split][known]]
+            score(name, split, ds, rows, predicted, unregistrable=int((~known).sum()))
+    if scan_mc:
+        estimates, drawn, judged = {}, {}, {}
+        name = f"scanmc:{scan_mc}"
+        table[name], results["models"][name] = {}, {"children": scan_mc, "splits": {}}
+        for split, (ds, rows) in first_splits.items():
+            if split == "train":
+                continue
+            if progress:
+                print(f"{name}: {split} ({len(rows)} scans)")
+            estimates[split], drawn[split] = dataset_scan_errors([str(p.folder) for p in ds.parts], rows,
+                                                                 ScanMCConfig(children=scan_mc), workers=workers,
+                                                                 progress=progress)
+            known = np.isfinite(estimates[split]).all(axis=1)
+            judged[split] = np.where(known[:, None], estimates[split] > row_thresholds(ds)[rows], False)
+            score(name, split, ds, rows, judged[split], unjudged=int((~known).sum()),
+                  mean_children=float(drawn[split][known].mean()) if known.any() else 0.0)
+        np.savez(out / "scan_mc.npz", **{split.replace(" ", "_"): e for split, e in estimates.items()},
+                 **{f"children_{split.replace(' ', '_')}": n for split, n in drawn.items()})
+        first = next(iter(curves), "")  # the cascade was refused above without a checkpoint
+        for margin in cascade or []:
+            thresholds = np.asarray(results["models"][first]["thresholds"])
+            name = f"{first}+scanmc:{margin:g}"
+            table[name], results["models"][name] = {}, {"margin": margin, "children": scan_mc, "splits": {}}
+            for split in estimates:
+                ds, rows = first_splits[split]
+                checked = near_threshold(curves[first][split][1], thresholds, margin)
+                predicted = np.where(checked[:, None], judged[split], curves[first][split][1] > thresholds)
+                score(name, split, ds, rows, predicted, checked=float(checked.mean()))
+        if cascade:
+            thresholds = np.asarray(results["models"][first]["thresholds"])
+            results["cascade_random_checks"] = {
+                split: random_checks(first_splits[split][0].labels[first_splits[split][1]],
+                                     curves[first][split][1] > thresholds, judged[split]) for split in estimates}
+            plot_cascade(results, first, scan_mc, out / "cascade.png")
+    text = (format_table(table, intervals=intervals) + format_f1_operating_points(results["models"])
+            + format_draws(results["models"], draws))
+    if scan_mc:
+        scored = results["models"][f"scanmc:{scan_mc}"]["splits"]
+        text += f"\nscanmc:{scan_mc} children drawn a scan (mean): " + ", ".join(
+            f"{split} {scored[split]['mean_children']:.1f}" for split in drawn if scored[split]["mean_children"]) + "\n"
+    for name, model in results["models"].items():
+        if "margin" in model:  # a cascade, and random checks of as many scans as it checked
+            random = results["cascade_random_checks"]
+            text += f"{name}: share of scans checked by scanmc:{scan_mc}: " + ", ".join(
+                f"{split} {r['checked']:.2f} (F1 of random checks that many: "
+                f"{np.interp(r['checked'], random[split]['share'], random[split]['mean_f1']):.3f})"
+                for split, r in model["splits"].items() if "checked" in r) + "\n"
+    if symmetric:
+        text = "probabilities averaged over the eight mirror/swap views of each scan\n" + text
+    (out / "table.txt").write_text(text + "\n")
+    (out / "results.json").write_text(json.dumps(results, indent=1, default=_nan_safe))
+    plot_pr_curves(curves, {n: np.asarray(r["thresholds"]) for n, r in results["models"].items() if n in curves},
+                   out / "pr_curves.png")
+    results["table"] = text
+    results["written"] = [str(out / name) for name in ("table.txt", "results.json", "pr_curves.png",
+                                                        *(["cascade.png"] if cascade else []))]
+    return results
+
+
+def dataset_hessians(data: LabelDataset | DatasetUnion, rows: np.ndarray, progress: bool = False) -> np.ndarray:
+    """(len(rows), 6, 6) Hessians of the scans registered onto themselves with the dataset's own
+    registration settings; NaN for a scan too small to register."""
+    config = from_dict(RegistrationConfig, data.manifest["settings"]["registration"])
+    out = np.full((len(rows), 6, 6), np.nan)
+    for k, i in enumerate(tqdm(rows, desc="Hessians", disable=not progress, leave=False)):
+        try:
+            out[k] = scan_hessian(data.scan(int(i)), config)
+        except RegistrationError:
+            pass
+    return out
+
+
+def draw_scores(clf: Classifier, data: LabelDataset | DatasetUnion, rows: np.ndarray, first: np.ndarray,
+                draws: int, progress: bool, symmetric: bool) -> dict[str, list[float]]:
+    """Mean accuracy and F1 over axes at the stored thresholds, one per draw of the scans' points
+    (`first`: draw 0's probabilities, already computed)."""
+    y, out = data.labels[rows], {"mean_accuracy": [], "mean_f1": []}
+    for seed in range(draws):
+        probs = first if seed == 0 else predict_dataset(clf.model, data, rows, seed=seed, progress=progress,
+                                                        symmetric=symmetric)
+        means = mean_scores(axis_scores(y, probs > clf.thresholds))
+        out["mean_accuracy"].append(means["accuracy"])
+        out["mean_f1"].append(means["f1"])
+    return out
+
+
+def format_draws(models: dict[str, Any], draws: int) -> str:
+    lines = []
+    for name, model in models.items():
+        for split, scored in model["splits"].items():
+            if "draws" not in scored:
+                continue
+            f1, acc = (np.array(scored["draws"][k], dtype=float) for k in ("mean_f1", "mean_accuracy"))
+            lines.append(f"  {name:10s} {split:16s} f1 {np.nanmean(f1):.3f} +- {np.nanstd(f1):.3f} "
+                         f"({np.nanmin(f1):.3f}-{np.nanmax(f1):.3f})  accuracy {np.nanmean(acc):.3f} +- "
+                         f"{np.nanstd(acc):.3f}")
+    if not lines:
+        return ""
+    return (f"\n\nover {draws} draws of the points read from each scan (seeds 0-{draws - 1}; the table is draw 0), "
+            "means over axes at the stored thresholds, mean +- std (range):\n" + "\n".join(lines))
+
+
+def f1_operating_point(curves: dict[str, tuple[np.ndarray, np.ndarray]],
+                       parts: dict[str, dict[str, np.ndarray]] | None = None) -> dict[str, Any]:
+    """Mean scores of every split (and of the `parts` columns of a split: column -> its rows) at
+    the F1-best validation thresholds. The stored thresholds weigh recall (a missed degenerate axis
+    corrupts the fused estimate); this shows what a pure classification operating point would score."""
+    thresholds = best_thresholds(*curves["valid"], beta=1.0)
+    splits = {}
+    for split, (y, p) in curves.items():
+        for column, rows in {split: np.arange(len(y)), **(parts or {}).get(split, {})}.items():
+            splits[column] = mean_scores(axis_scores(y[rows], p[rows] > thresholds))
+    return {"thresholds": thresholds.tolist(), "splits": splits}
+
+
+def format_f1_operating_points(models: dict[str, Any]) -> str:
+    lines = []
+    for name, model in models.items():
+        point = model.get("f1_operating_point")
+        if point is None:
+            continue
+        lines.append(f"{name} at the F1-best validation thresholds "
+                     f"({' '.join(f'{t:.2f}' for t in point['thresholds'])}), means over axes:")
+        lines += [f"  {split:16s} accuracy {m['accuracy']:.3f}  f1 {m['f1']:.3f}  precision {m['precision']:.3f}  "
+                  f"recall {m['recall']:.3f}" for split, m in point["splits"].items()]
+    return "\n\n" + "\n".join(lines) if lines else ""
+
+
+def random_checks(labels: np.ndarray, first: np.ndarray, second: np.ndarray, shares: int = 11,
+                  repeats: int = 20, seed: int = 0) -> dict[str, list[float]]:
+    """Mean F1 over axes when a random share of the scans (0, 0.1, ... 1) takes `second`'s
+    prediction instead of `first`'s, averaged over `repeats` draws of that share: what checking
+    that many scans would give if the cascade chose them blindly, the reference its margins beat."""
+    rng = np.random.default_rng(seed)
+    out: dict[str, list[float]] = {"share": [], "mean_f1": []}
+    for share in np.linspace(0, 1, shares):
+        f1 = []
+        for _ in range(repeats):
+            checked = rng.random(len(labels)) < share
+            f1.append(mean_scores(axis_scores(labels, np.where(checked[:, None], second, first)))["f1"])
+        out["share"].append(float(share))
+        scored = [v for v in f1 if np.isfinite(v)]  # NaN: no positive label and no flag in that draw
+        out["mean_f1"].append(float(np.mean(scored)) if scored else float("nan"))
+    return out
+
+
+def plot_cascade(results: dict[str, Any], first: str, children: int, path: Path) -> None:
+    """One panel per scored split: mean F1 against the share of scans the estimate checked, for the
+    classifier alone (0), each margin, the estimate alone (1) and random checks of the same share."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    models, reference = results["models"], results["cascade_random_checks"]
+    fig, axes = plt.subplots(1, len(reference), figsize=(5.5 * len(reference), 4.5), squeeze=False)
+    for ax, (split, random) in zip(axes[0], reference.items()):
+        cascades = sorted((m["margin"], m["splits"][split]) for m in models.values() if "margin" in m)
+        share = [0.0] + [r["checked"] for _, r in cascades] + [1.0]
+        f1 = ([models[first]["splits"][split]["mean"]["f1"]] + [r["mean"]["f1"] for _, r in cascades]
+              + [models[f"scanmc:{children}"]["splits"][split]["mean"]["f1"]])
+        ax.plot(random["share"], random["mean_f1"], "--", color="0.5", label="random checks of that share")
+        ax.plot(share, f1, "o-", color="C0", label="cascade by margin (log-odds)")
+        for (margin, _), x, y in zip(cascades, share[1:-1], f1[1:-1]):
+            ax.annotate(f"{margin:g}", (x, y), textcoords="offset points", xytext=(4, -12), fontsize=8)
+        ax.plot([0], f1[:1], "s", color="C1", ms=8, label=f"{first} alone")
+        ax.plot([1], f1[-1:], "D", color="C2", ms=8, label=f"scanmc:{children} alone")
+        ax.set_title(f"{split}")
+        ax.set_xlabel("share of scans checked by the estimate")
+        ax.set_ylabel("mean F1 over axes")
+        ax.set_xlim(-0.03, 1.03)
+        ax.grid(alpha=0.3)
+    axes[0, 0].legend(fontsize=8, loc="best")  # the validation panel's points fall towards the lower right
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _nan_safe(value: Any) -> Any:
+    return None if isinstance(value, float) and not np.isfinite(value) else value
+
+
+def plot_pr_curves(curves: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]], thresholds: dict[str, np.ndarray],
+                   path: Path) -> None:
+    """One panel per axis: the PR curve of each model on each non-training split, with the
+    operating point of its stored threshold."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(2, 3, figsize=(13, 8), sharex=True, sharey=True)
+    styles = ["-", "--", ":", "-."]
+    for a, ax in enumerate(axes.flat):
+        for m, (name, splits) in enumerate(curves.items()):
+            for s, (split, (y, p)) in enumerate((k, v) for k, v in splits.items() if k != "train"):
+                if not y[:, a].any():
+                    continue
+                precision, recall, _ = pr_curve(y[:, a], p[:, a])
+                line, = ax.plot(recall, precision, styles[s % 4], color=f"C{m}", label=f"{name} {split}")
+                op = axis_scores(y, p > thresholds[name])
+                ax.plot(op["recall"][a], op["precision"][a], "o", color=line.get_color())
+        ax.set_title(f"{AXES[a]} (dot: stored threshold)")
+        ax.set_xlim(0, 1.02)
+        ax.set_ylim(0, 1.02)
+        ax.grid(alpha=0.3)
+    for ax in axes[1]:
+        ax.set_xlabel("recall")
+    for ax in axes[:, 0]:
+        ax.set_ylabel("precision")
+    handles, labels = axes.flat[0].get_legend_handles_labels()
+    for ax in axes.flat[1:]:
+        for h, lab in zip(*ax.get_legend_handles_labels()):
+            if lab not in labels:
+                handles.append(h)
+                labels.append(lab)
+    fig.legend(handles, labels, loc="lower center", ncol=3, fontsize=8)
+    fig.tight_layout(rect=(0, 0.08, 1, 1))
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

@@ -1,0 +1,80 @@
+"""The eigenvalue threshold sweep: ATE against tau in several scenes, with the learned detector,
+full ICP and odometry alone as reference lines. It shows whether one tau serves every scene.
+
+Each scene is driven and registered once; every tau only re-runs the fusion.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from l3e_env.config import FusionOptions, OdometryConfig
+from l3e_env.detection.detectors import EigenvalueDetector, make_detector
+from .ate import Recording, evaluate, odometry_only, record_run, register_sequence
+from l3e_env.sim.odometry import odometry_fusion_config
+from l3e_env.localizability.registration import RegistrationConfig
+
+DEFAULT_TAUS = (10, 20, 30, 50, 70, 90, 110, 150, 200, 300)
+
+
+def run_sweep(out_dir: str | Path, scenes: list[str], taus: tuple[float, ...] = DEFAULT_TAUS,
+              references: tuple[str, ...] = ("learned", "none"), recordings: dict[str, str] | None = None,
+              seed: int = 0, progress: bool = True, fusion_options: FusionOptions = FusionOptions()) -> dict:
+    """Returns {scene: {"taus": [...], "eigen_ate": [...], "<reference>": ate, ...}} and writes
+    sweep.json and tau_sweep.png into out_dir (recordings are saved there for re-use).
+    `fusion_options`: every fusion's."""
+    fusion = odometry_fusion_config(OdometryConfig(), fusion_options)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    results: dict[str, dict] = {}
+    for scene in scenes:
+        given = (recordings or {}).get(scene)
+        rec = Recording.load(given) if given else record_run(scene, seed=seed, progress=progress)
+        if not given:
+            rec.save(out / f"recording_{scene}.npz")
+        regs = register_sequence(rec, RegistrationConfig(), progress)
+        eigen = evaluate(rec, [EigenvalueDetector(t) for t in taus], regs, fusion=fusion, progress=False)
+        refs = evaluate(rec, [make_detector(r) for r in references], regs, fusion=fusion, progress=False)
+        row = {**fusion_options.record(), "taus": list(map(float, taus)), "eigen_ate": [r.ate for r in eigen],
+               "eigen_flagged": [r.masks.mean(axis=0).tolist() for r in eigen],
+               "odometry only": odometry_only(rec).ate}
+        for name, r in zip(references, refs):
+            row[name] = r.ate
+            row[f"{name}_flagged"] = r.masks.mean(axis=0).tolist()
+        results[rec.scene] = row
+        if progress:
+            print(f"{rec.scene}: " + ", ".join(f"tau {t:g}: {a:.2f} m" for t, a in zip(taus, row["eigen_ate"]))
+                  + "; " + ", ".join(f"{n}: {row[n]:.2f} m" for n in [*references, "odometry only"]))
+    (out / "sweep.json").write_text(json.dumps(results, indent=1))
+    plot_sweep(out / "tau_sweep.png", results, references)
+    return results
+
+
+def beaten_everywhere(results: dict, reference: str = "learned") -> list[float]:
+    """The taus whose ATE is at most the reference's in every scene (empty: no single tau does)."""
+    taus = next(iter(results.values()))["taus"]
+    return [t for i, t in enumerate(taus) if all(r["eigen_ate"][i] <= r[reference] for r in results.values())]
+
+
+def plot_sweep(path: Path, results: dict, references: tuple[str, ...]) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(results), figsize=(5 * len(results), 4), squeeze=False)
+    for ax, (scene, row) in zip(axes[0], results.items()):
+        ax.plot(row["taus"], row["eigen_ate"], "o-", c="tab:blue", label="eigenvalue detector")
+        for i, name in enumerate([*references, "odometry only"]):
+            ax.axhline(row[name], ls=["-", "--", ":"][i % 3], c=f"C{i + 1}", label=name)
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel("eigenvalue threshold tau")
+        ax.set_ylabel("ATE [m]")
+        ax.set_title(scene)
+        ax.grid(alpha=0.3, which="both")
+    axes[0][0].legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+

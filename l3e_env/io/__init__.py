@@ -1,0 +1,1 @@
+"""Files in and out: ROS bags, scan files, mesh lists."""

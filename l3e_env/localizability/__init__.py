@@ -1,0 +1,1 @@
+"""Registration, Monte-Carlo labels and the scan's own estimate (no torch)."""

@@ -1,0 +1,196 @@
+"""Scan-to-scan point-to-plane ICP (small_gicp), returning the 6x6 Hessian in project order.
+
+One registration everywhere: the ICP that labels the training data is the ICP the fusion runs
+between consecutive scans, built from the same `RegistrationConfig`.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import small_gicp
+
+from l3e_env.core.transforms import adjoint, inverse
+
+# small_gicp's tangent order is (rx, ry, rz, tx, ty, tz); the project's is (x, y, z, roll, pitch, yaw).
+TO_PROJECT_ORDER = np.array([3, 4, 5, 0, 1, 2])
+
+
+class RegistrationError(ValueError):
+    """Input that registration cannot use (too few or non-finite points)."""
+
+
+@dataclass
+class RegistrationConfig:
+    """Point-to-plane ICP settings. They shape the labels: they go into every dataset manifest
+    and checkpoint.
+
+    `max_correspondence_distance` is a coarse-to-fine schedule (metres), each stage starting
+    from the previous estimate, as a tuned scan-to-scan odometry does: the coarse stage pulls in
+    children that start 20-30 cm off, the fine one rejects wrong matches near convergence.
+
+    Voxels of 0.15 m with normals from 20 neighbours. Both scans are voxelised in their own
+    sensor frame, and at 0.3 m that grid pulls ICP towards zero motion: a 0.1 m step came out
+    as 0.08 m beside the fork's corridor (`benchmarks/icp_step_bias.py`). 20 neighbours keep the
+    finer normals as smooth as the coarse ones; with 10, the mine yard's labels turned noisy.
+    """
+
+    downsampling_resolution: float = 0.15
+    num_neighbors: int = 20  # for target normals
+    max_correspondence_distance: tuple[float, ...] = (2.0, 0.5)
+    max_iterations: int = 15  # per stage
+    max_source_points: int = 1000  # evenly strided subset of the downsampled source (0: all)
+    rotation_epsilon: float = 1e-3  # rad, convergence
+    translation_epsilon: float = 1e-3  # m, convergence
+    min_points: int = 100  # fewer points after downsampling: refuse
+    min_inlier_ratio: float = 0.3  # fewer final correspondences: failed
+
+
+@dataclass
+class RegistrationResult:
+    T_target_source: np.ndarray  # 4x4, maps source points into the target frame
+    hessian: np.ndarray  # 6x6 Gauss-Newton A^T A at the solution, (x, y, z, roll, pitch, yaw); NaN if not asked
+    converged: bool
+    iterations: int
+    num_inliers: int
+    num_source: int
+    error: float
+
+    @property
+    def ok(self) -> bool:
+        return self.converged
+
+    def in_frame(self, T_b_s: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """The registered step and its Hessian seen in frame b, T_b_s the sensor's mounting (what
+        the fusion's body-frame ICP factor takes), or None where the registration did not converge."""
+        if not self.converged:
+            return None
+        return T_b_s @ self.T_target_source @ inverse(T_b_s), hessian_in_frame(self.hessian, T_b_s)
+
+
+def _checked(points: np.ndarray, what: str, min_points: int) -> np.ndarray:
+    """The points as float64, or a RegistrationError naming the problem (checked before small_gicp,
+    which only prints a warning for an empty cloud)."""
+    pts = np.asarray(points)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise RegistrationError(f"{what} must be an (N, 3) array, got shape {pts.shape}")
+    if len(pts) < min_points:
+        raise RegistrationError(f"{what} has {len(pts)} points (minimum {min_points})")
+    if not np.isfinite(pts).all():
+        raise RegistrationError(f"{what} contains NaN or infinite points")
+    return pts.astype(np.float64, copy=False)
+
+
+class PreparedTarget:
+    """A target scan downsampled, with normals and a k-d tree: prepared once, matched many times."""
+
+    def __init__(self, points: np.ndarray, config: RegistrationConfig):
+        pts = _checked(points, "target scan", config.min_points)
+        self.cloud, self.tree = small_gicp.preprocess_points(pts, config.downsampling_resolution, config.num_neighbors)
+        if self.cloud.size() < config.min_points:
+            raise RegistrationError(
+                f"target scan has {self.cloud.size()} points after {config.downsampling_resolution} m downsampling "
+                f"(minimum {config.min_points})"
+            )
+
+
+def prepare_source(points: np.ndarray, config: RegistrationConfig) -> small_gicp.PointCloud:
+    pts = _checked(points, "source scan", config.min_points)
+    cloud = small_gicp.voxelgrid_sampling(pts, config.downsampling_resolution)
+    if config.max_source_points and cloud.size() > config.max_source_points:
+        # deterministic stride: voxel output order is spatially scrambled, so this is an even thinning
+        stride = int(np.ceil(cloud.size() / config.max_source_points))
+        cloud = small_gicp.PointCloud(np.asarray(cloud.points())[::stride, :3])
+    if cloud.size() < config.min_points:
+        raise RegistrationError(
+            f"source scan has {cloud.size()} points after {config.downsampling_resolution} m downsampling "
+            f"(minimum {config.min_points})"
+        )
+    return cloud
+
+
+def register(
+    source: np.ndarray | small_gicp.PointCloud,
+    target: np.ndarray | PreparedTarget,
+    config: RegistrationConfig | None = None,
+    init_T_target_source: np.ndarray | None = None,
+    with_hessian: bool = True,
+) -> RegistrationResult:
+    """Point-to-plane ICP of `source` onto `target` from `init` (identity by default).
+
+    Raises RegistrationError for unusable input; a run that does not converge or keeps too few
+    correspondences is returned with converged=False, never silently as a good estimate.
+    """
+    config = config or RegistrationConfig()
+    tgt = target if isinstance(target, PreparedTarget) else PreparedTarget(target, config)
+    src = source if isinstance(source, small_gicp.PointCloud) else prepare_source(source, config)
+    T = np.eye(4) if init_T_target_source is None else np.asarray(init_T_target_source, dtype=np.float64)
+    iterations, converged, result = 0, True, None
+    for distance in config.max_correspondence_distance:
+        result = small_gicp.align(
+            tgt.cloud, src, tgt.tree, init_T_target_source=T, registration_type="PLANE_ICP",
+            max_correspondence_distance=distance, max_iterations=config.max_iterations,
+            rotation_epsilon=config.rotation_epsilon, translation_epsilon=config.translation_epsilon,
+        )
+        T = np.asarray(result.T_target_source)
+        iterations += int(result.iterations)
+    converged = bool(result.converged) and np.isfinite(T).all()
+    inliers = int(result.num_inliers)
+    if inliers < config.min_inlier_ratio * src.size():
+        converged = False
+    H = (
+        point_to_plane_hessian(np.asarray(src.points())[:, :3], tgt, T, config.max_correspondence_distance[-1])
+        if with_hessian else np.full((6, 6), np.nan)
+    )
+    return RegistrationResult(T, H, converged, iterations, inliers, int(src.size()), float(result.error))
+
+
+def point_to_plane_hessian(source: np.ndarray, target: PreparedTarget, T: np.ndarray,
+                           max_distance: float) -> np.ndarray:
+    """A^T A of the point-to-plane residuals at T, from the final correspondences.
+
+    small_gicp's `H` is that of its last linearisation, one update before the solution (5 %
+    off on a converged office pair); the degeneracy test wants the Hessian at the solution.
+    Rows are d r / d delta for T * exp(delta), delta in project order: [R^T n, p x R^T n].
+    """
+    moved = source @ T[:3, :3].T + T[:3, 3]
+    idx, sq = target.tree.batch_nearest_neighbor_search(moved)
+    idx, sq = np.asarray(idx).reshape(-1), np.asarray(sq).reshape(-1)
+    keep = (idx >= 0) & (sq < max_distance**2)
+    normals = np.asarray(target.cloud.normals())[idx[keep], :3]
+    n_local = normals @ T[:3, :3]  # rows R^T n
+    J = np.hstack([n_local, np.cross(source[keep], n_local)])
+    return J.T @ J
+
+
+def hessian_in_frame(hessian: np.ndarray, T_b_s: np.ndarray) -> np.ndarray:
+    """A registration's Hessian (project order, scans in frame s) for the same step seen in frame b,
+    T_b_s the sensor's mounting: a perturbation d of T_target_source is Ad(T_b_s) d in b, so the
+    Hessian becomes Ad^-T H Ad^-1 = Ad(T_s_b)^T H Ad(T_s_b) (what the fusion's body-frame ICP factor weighs)."""
+    back = adjoint(inverse(T_b_s))
+    return back.T @ np.asarray(hessian, dtype=np.float64) @ back
+
+
+def scan_hessian(points: np.ndarray, config: RegistrationConfig | None = None) -> np.ndarray:
+    """The point-to-plane Hessian of a scan registered onto itself at identity: what Zhang's test
+    sees in a single scan (the same source thinning, normals and distance as `register`), so that
+    the eigenvalue detector can be scored on labelled single scans beside the classifier."""
+    config = config or RegistrationConfig()
+    target = PreparedTarget(points, config)
+    source = np.asarray(prepare_source(points, config).points())[:, :3]
+    return point_to_plane_hessian(source, target, np.eye(4), config.max_correspondence_distance[-1])
+
+
+def eigen_mask(hessian: np.ndarray, tau: float) -> tuple[np.ndarray, np.ndarray]:
+    """Zhang et al. (2016) degeneracy, projected to axes: returns (scores, mask).
+
+    Eigen-directions of the Hessian with eigenvalue below tau are degenerate; axis i's score is
+    sum_k V_ik^2 [lambda_k < tau] (the share of that axis lying in the degenerate subspace), and
+    the axis is flagged when the score exceeds 0.5.
+    """
+    H = np.asarray(hessian, dtype=np.float64)
+    if H.shape != (6, 6) or not np.isfinite(H).all():
+        raise ValueError("the Hessian must be a finite 6x6 matrix")
+    w, V = np.linalg.eigh(0.5 * (H + H.T))
+    scores = (V**2) @ (w < tau).astype(np.float64)
+    return scores, scores > 0.5

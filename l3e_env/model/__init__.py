@@ -1,0 +1,1 @@
+"""The classifier: sparse convolution, networks, constraint layer, training, scores (torch here)."""

@@ -1,0 +1,37 @@
+"""A scripted pure-pursuit route follower, for demos, recordings and as a baseline policy."""
+from __future__ import annotations
+
+import numpy as np
+
+from scenes.geometry import resample_polyline
+
+from l3e_env.core.transforms import inverse
+
+
+class RouteFollower:
+    """Steers towards a point `lookahead` metres further along the route.
+
+    Returns normalised actions ([-1, 1] of the max twist), the environments' action space.
+    Progress along the route only moves forward, so loops and U-turns in a route are followed.
+    """
+
+    def __init__(self, route: np.ndarray, lookahead: float = 2.0, speed: float = 1.0, turn_gain: float = 1.5):
+        self.route = resample_polyline(np.asarray(route)[:, :2], 0.25)
+        self.lookahead, self.speed, self.turn_gain = lookahead, speed, turn_gain
+        self.index = 0
+
+    def reset(self) -> None:
+        self.index = 0
+
+    def __call__(self, T_w_b: np.ndarray) -> np.ndarray:
+        xy = T_w_b[:2, 3]
+        window = self.route[self.index : self.index + 40]
+        self.index += int(np.argmin(np.linalg.norm(window - xy, axis=1)))
+        ahead = self.route[self.index :]
+        far = np.flatnonzero(np.linalg.norm(ahead - xy, axis=1) >= self.lookahead)
+        target = ahead[far[0]] if len(far) else self.route[-1]
+        local = inverse(T_w_b) @ np.array([target[0], target[1], T_w_b[2, 3], 1.0])
+        heading_error = float(np.arctan2(local[1], local[0]))
+        forward = self.speed * float(np.clip(np.cos(heading_error), 0.0, 1.0))
+        turn = float(np.clip(self.turn_gain * heading_error, -1.0, 1.0))
+        return np.array([forward, 0.0, turn], dtype=np.float32)
