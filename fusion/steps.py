@@ -20,7 +20,7 @@ class FusionConfig:
     icp_covariance "hessian": the ICP factor's information is the registration's point-to-plane
     Hessian over `icp_residual_variance`, so that a weakly held axis weighs little even where no
     axis is flagged, and a well held one more than the legs; the variance is fitted on training
-    drives by `benchmarks/icp_step_errors.py`. "fixed": the constant `icp_sigmas` (also where a
+    drives by `studies/icp_step_errors.py`. "fixed": the constant `icp_sigmas` (also where a
     step comes without a finite Hessian).
 
     odometry_bias: which of the leg odometry's per-metre biases ("yaw", "z") are estimated as

@@ -41,12 +41,12 @@ class FastEnvConfig:
     tight_penalty: float = 1.0  # per metre walked where the clearance is under tight_clearance
     # expected drift (m) per radian turned, weighed by lam like the map's: every turn leaves ICP's
     # heading a little off even where nothing is masked (about 0.0015 rad per radian on the fork,
-    # benchmarks/RESULTS.md), a position error over the planner's 10 m lever arm. Without it a policy
+    # docs/log.md), a position error over the planner's 10 m lever arm. Without it a policy
     # that swings its heading at the full yaw rate pays nothing here and drifts 3x more in the pipeline
     turn_drift: float = 0.015
     # expected drift (m) per metre walked sideways (along the body's y): at full speed a diagonal
     # gait leaves ICP's heading 1.2-4.5 deg off over the fork's route against 1.0-3.3 deg walking
-    # forward, depending on how the voxel grid lies (benchmarks/RESULTS.md, "PPO's gait" and "ICP's
+    # forward, depending on how the voxel grid lies (docs/log.md, "PPO's gait" and "ICP's
     # heading over a route"), about 0.007 m of drift per metre over the 10 m lever arm at the first
     # measured 4 deg. 0.015 halves PPO's drift; the policy then walks facing its way, and on fork-104
     # it wedges a corner against a box, which the evaluation's recovery (BackOff) backs it out of

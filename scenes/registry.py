@@ -81,8 +81,8 @@ def check_scene_name(name: str) -> str:
 # families never seen in training (the mine among them), the paper's protocol.
 # Rock galleries span smooth to rough walls: without them every tube in training is a smooth,
 # non-localizable one, and a model learns "tube = degenerate" instead of looking at the walls.
-# Yards and chambers are not in the split: trained on as well (benchmarks/yards_and_chambers.yaml),
-# they did not raise the test scores (benchmarks/RESULTS.md).
+# Yards and chambers are not in the split: trained on as well (studies/yards_and_chambers.yaml),
+# they did not raise the test scores (docs/log.md).
 GALLERIES = [f"gallery-{s}" for s in range(8)]
 TRAIN_SCENES = [f"tunnel-{s}" for s in range(4)] + [f"primitives-{s}" for s in range(5)] + [
     "field-0", "field-1", "office-0", "office-1", "office-2", "fork-0", "fork-1", *GALLERIES,

@@ -31,7 +31,7 @@ class RegistrationConfig:
 
     Voxels of 0.15 m with normals from 20 neighbours. Both scans are voxelised in their own
     sensor frame, and at 0.3 m that grid pulls ICP towards zero motion: a 0.1 m step came out
-    as 0.08 m beside the fork's corridor (`benchmarks/icp_step_bias.py`). 20 neighbours keep the
+    as 0.08 m beside the fork's corridor (`studies/icp_step_bias.py`). 20 neighbours keep the
     finer normals as smooth as the coarse ones; with 10, the mine yard's labels turned noisy.
     """
 

@@ -48,11 +48,11 @@ class ScanMCConfig:
     # a depth jump, as far as the farthest surface within this many degrees (0: none), and the edge
     # beams' surfaces continued this far past the field of view (children are pitched and rolled by
     # 5 deg). Chosen on the validation scenes: F1 0.860 with them, 0.790 without (test: 0.629 and
-    # 0.637; benchmarks/RESULTS.md).
+    # 0.637; docs/log.md).
     shadow_deg: float = 3.0
     beyond_deg: float = 4.0
     # Estimated errors are multiplied by these: 1 / the median of estimate over label on 240 scans
-    # of the training scenes with 20 children (`benchmarks/scan_mc_calibration.py --shadow-deg 3
+    # of the training scenes with 20 children (`studies/scan_mc_calibration.py --shadow-deg 3
     # --beyond-deg 4`; 1.23 1.23 1.21 1.17 1.20 1.11 for the scan's bare mesh).
     calibration: tuple[float, ...] = (1.16, 1.20, 1.16, 1.16, 1.16, 1.12)
 

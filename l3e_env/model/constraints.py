@@ -4,13 +4,13 @@ layer that weighs it against the network's logits.
 The network learns the scene families it was trained on; the Hessian is what point-to-plane ICP
 itself linearises, so it carries over to families never seen. On the mine and caves of the test
 split, the marginal variances diag(H^-1) of the model's own 0.2 m voxels rank the labels better than
-the network does on every axis, y only just (benchmarks/RESULTS.md). A logistic layer per axis over the
+the network does on every axis, y only just (docs/log.md). A logistic layer per axis over the
 network's logit, the six log marginal variances and the six log eigenvalues (13 weights an axis
 for one level) is fitted on the training scenes after the network, so it cannot overfit the way a layer trained
 with the network would. The same twelve features of the next coarser level (0.4 m voxels, normals of
 1.2 m blocks) can be added (ModelConfig.constraint_levels): they see the larger structure that the
 registration's coarse first stage locks onto, and they help on scene families never trained on
-(benchmarks/RESULTS.md).
+(docs/log.md).
 
 The normals are those of the 3x3x3 voxel neighbourhood of each voxel, from a closed-form
 eigen-decomposition of the 3x3 scatter (torch.linalg.eigh on a few thousand 3x3 matrices costs
@@ -137,7 +137,7 @@ def _add_planar_hessians(table: np.ndarray, means: np.ndarray, groups: np.ndarra
 
     A compiled loop, one voxel at a time: in numpy the same work is some sixty passes over a few
     thousand voxels, whose per-operation overhead cost several times the arithmetic
-    (benchmarks/RESULTS.md)."""
+    (docs/log.md)."""
     row = np.empty(6)
     for v in range(len(means)):
         if not _planar_row(table[v], means, v, row):

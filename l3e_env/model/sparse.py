@@ -10,7 +10,7 @@ the gather into a scatter-add in the backward pass, so gradients need no extra c
 Coordinates are int64 (N, 4) rows (batch, x, y, z) in voxel units of the current level. The
 levels and their kernel maps are index bookkeeping on a few thousand sites, where nothing needs a
 gradient: loops compiled with numba, one site at a time, because numpy's and torch's per-operation
-overhead on arrays this small costs several times the work (benchmarks/RESULTS.md); the sorts stay
+overhead on arrays this small costs several times the work (docs/log.md); the sorts stay
 in numpy, whose sort is several times faster than numba's. voxelize sorts the sites once, by Morton
 key (the batch, then the bits of x, y and z interleaved), so that the eight children of every
 coarser site are consecutive rows and each coarser level follows from the finer one without
@@ -331,7 +331,7 @@ class GatherConv(nn.Module):
     `quantize()` switches an inference copy to int8 gathers and products: the features are
     rounded to 8 bits with one scale per scan, the weight with one scale per output channel, and
     the int32 products scaled back. The gathered matrix is a quarter of the bytes and the CPU's
-    int8 matrix units multiply several times faster than float32 (benchmarks/RESULTS.md); the
+    int8 matrix units multiply several times faster than float32 (docs/log.md); the
     shipped model's probabilities move by at most 0.006 on the test families."""
 
     weight: nn.Parameter

@@ -130,7 +130,7 @@ def deskew_motion(steps: list[np.ndarray], gyro: np.ndarray | None = None,
     result is in their frame): the mean of the last DESKEW_STEPS, rotations averaged on SO(3). One
     step's leg odometry carries its white noise whole, which doubled ICP's yaw error on a steady
     walk; two steps halve the noise's variance and still follow a weaving walk's turns
-    (`benchmarks/deskew_step_error.py`). `gyro`, the gyro's rotation over the revolution (3x3, in
+    (`studies/deskew_step_error.py`). `gyro`, the gyro's rotation over the revolution (3x3, in
     the steps' frame), replaces the odometry's rotation, as LiDAR-inertial odometry deskews: it is
     the revolution's own turn, near exact, where the legs' turn is noisy and lags a weaving walk.
     `mounting` (the sensor in the steps' frame, T_b_s): the motion is then the sensor's, the body's

@@ -1,7 +1,7 @@
 """How close to their thresholds do the labels lie, and how well must a model predict the mean
 registration error to reach a given F1?
 
-Run: python benchmarks/label_margin.py --dataset data/l3e48b --dataset data/level-b --dataset data/mine-test
+Run: python studies/label_margin.py --dataset data/l3e48b --dataset data/level-b --dataset data/mine-test
      [--checkpoint PATH] [--noise 0.1,0.2,0.3,0.5] [--draws 200] [--plot margin.png]
 
 A label is e > threshold on one axis's mean registration error e over the M children. An estimator

@@ -13,7 +13,7 @@ voxels, source thinning and stages), is run twice on the same scans: with normal
 face its ray hits. With the true normals the bias is gone; the estimated ones lean where a
 neighbourhood reaches across a corner (the ground beside a wall's foot).
 
-Run: python benchmarks/icp_step_bias.py [--steps 10]
+Run: python studies/icp_step_bias.py [--steps 10]
 """
 from __future__ import annotations
 

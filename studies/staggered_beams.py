@@ -1,6 +1,6 @@
 """How scanmc meets a sensor with staggered beams (an Ouster's), against the labels.
 
-Run: python benchmarks/staggered_beams.py [--x 20,40,60] [--children 40] [--sensor FILE]
+Run: python studies/staggered_beams.py [--x 20,40,60] [--children 40] [--sensor FILE]
 
 At each pose along the mine's tunnel a 64-beam Ouster-like sensor (beams +-21.1 deg, azimuths
 staggered by up to 3.3 deg, beams leaving 15.8 mm out from the axis; or --sensor FILE) is

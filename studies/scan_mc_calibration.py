@@ -1,6 +1,6 @@
 """Fit the scan Monte-Carlo estimate's calibration (ScanMCConfig.calibration) on training scenes.
 
-Run: python benchmarks/scan_mc_calibration.py --dataset data/l3e48 --dataset data/level
+Run: python studies/scan_mc_calibration.py --dataset data/l3e48 --dataset data/level
      [--scans 240] [--children 20] [--workers 2] [--seed 0] [--shadow-deg 3] [--beyond-deg 4]
      [--out estimates.npz]
 

@@ -1,6 +1,6 @@
 """How well the covariance written with /odom (`DeadReckoningCovariance`) states the leg odometry's drift.
 
-Run: python benchmarks/odometry_covariance.py [--runs 400] [--steps 1000]
+Run: python studies/odometry_covariance.py [--runs 400] [--steps 1000]
 
 A 10 Hz walk at 1 m/s, straight and on a 5 m circle, is dead-reckoned by `LegOdometry` with
 `--runs` seeds; the spread of the end pose's error (position in the odometry frame, rotation about

@@ -17,7 +17,7 @@ the defaults beside them. The pooled RMS is not a good constant: where the detec
 weakly held axis (the field's yaw) its error is ten times that of a well held one (the tunnel's),
 which is why the fusion weighs each step by its Hessian instead.
 
-Run: python benchmarks/icp_step_errors.py [--scenes tunnel-0,office-0,fork-0,field-0] [--tau 110]
+Run: python studies/icp_step_errors.py [--scenes tunnel-0,office-0,fork-0,field-0] [--tau 110]
 """
 from __future__ import annotations
 

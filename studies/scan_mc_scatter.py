@@ -1,6 +1,6 @@
 """Where the scan Monte-Carlo estimate (scanmc) and the labels part, and whether the scan's openness explains it.
 
-Run: python benchmarks/scan_mc_scatter.py --dataset data/l3e48 --dataset data/level --dataset data/mine-test
+Run: python studies/scan_mc_scatter.py --dataset data/l3e48 --dataset data/level --dataset data/mine-test
      [--children 60] [--scans 240] [--workers 2] [--cache scatter.npz]
 
 Every scan of the validation and test scenes, and `--scans` of the training scenes, gets `--children`

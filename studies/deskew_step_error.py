@@ -19,7 +19,7 @@ path their error is small and, while the motion changes, large but cancelling fr
 the middles are half a revolution behind the ends at every step alike, so the summed yaw is off
 by about the half revolution's turn at the path's ends, not by the sum of the steps' errors.
 
-Run: python benchmarks/deskew_step_error.py [--steps 300]
+Run: python studies/deskew_step_error.py [--steps 300]
 """
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """How repeatable are the Monte-Carlo labels? The ceiling any classifier's scores meet.
 
-Run: python benchmarks/label_repeatability.py --dataset data/l3e48 [--scenes mine-0,cave-0,cave-1]
+Run: python studies/label_repeatability.py --dataset data/l3e48 [--scenes mine-0,cave-0,cave-1]
      [--children 200] [--workers 2] [--seed 1] [--out errors.npz] [--translation 0.1,0.05,0.04]
 
 Each parent pose of the chosen scenes is labelled again with the dataset's own sensor, label and

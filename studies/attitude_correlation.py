@@ -8,7 +8,7 @@ so its sigma times sqrt(60) = 7.74 is the independent reading's equivalent. The 
 fused with the attitude's sigmas times each factor ("tilt" and "full"), the learned detector, full
 ICP and the odometry with the attitude alone, the same registrations and readings for every factor.
 
-Run: python benchmarks/attitude_correlation.py [--seeds 0,1,2,3,4] [--factors 1,3,7.74]
+Run: python studies/attitude_correlation.py [--seeds 0,1,2,3,4] [--factors 1,3,7.74]
      (13 min on 2 cores for the defaults; per drive and row the ATE in metres, then the means)
 """
 from __future__ import annotations

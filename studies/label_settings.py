@@ -1,6 +1,6 @@
 """How the ICP settings shape the labels: mean absolute error and labels at fixed poses.
 
-Run: python benchmarks/label_settings.py [--children 40]
+Run: python studies/label_settings.py [--children 40]
 Each row registers M children to one parent with one registration setting and prints the mean
 error (m, deg), the labels (1 = not localizable), ICP time per child and non-converged runs.
 """

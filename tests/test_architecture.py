@@ -1,0 +1,70 @@
+"""The layers that pyproject.toml's import-linter contracts keep (docs/architecture.md), and the docs
+that build without a broken link."""
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).parents[1]
+PACKAGES = ("scenes", "fusion", "l3e_env", "policies")
+
+
+def lint_imports(root: Path) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PYTHONPATH": str(root)}
+    return subprocess.run([str(Path(sys.executable).with_name("lint-imports")), "--no-cache"], cwd=root, env=env,
+                          capture_output=True, text=True, timeout=300)
+
+
+def test_the_import_contracts_hold():
+    out = lint_imports(ROOT)
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert "0 broken" in out.stdout and " kept" in out.stdout
+
+
+@pytest.mark.parametrize("module, line, broken", [
+    ("l3e_env/sim/render.py", "from l3e_env.model import sparse", ["no torch", "layers"]),
+    ("l3e_env/localizability/labels.py", "from l3e_env.detection import detectors", ["no torch", "layers"]),
+    ("fusion/metrics.py", "import scenes", ["fusion imports nothing"]),
+    ("l3e_env/experiments/demo.py", "import policies", ["nothing imports policies"]),
+])
+def test_the_contracts_catch_an_import_against_the_layers(tmp_path, module, line, broken):
+    for name in PACKAGES:
+        shutil.copytree(ROOT / name, tmp_path / name, ignore=shutil.ignore_patterns("*.pt", "__pycache__"))
+    shutil.copy(ROOT / "pyproject.toml", tmp_path)
+    with open(tmp_path / module, "a") as fh:
+        fh.write(f"\n{line}  # noqa\n")
+    out = lint_imports(tmp_path)
+    assert out.returncode != 0
+    for contract in broken:
+        assert any(contract in row and "BROKEN" in row for row in out.stdout.splitlines()), out.stdout
+
+
+def test_the_docs_build_strictly(tmp_path):
+    """Every page listed, every link and anchor found (`mkdocs build --strict`)."""
+    out = subprocess.run([str(Path(sys.executable).with_name("mkdocs")), "build", "--strict", "--site-dir",
+                          str(tmp_path / "site")], cwd=ROOT, capture_output=True, text=True, timeout=300,
+                         env={**os.environ, "NO_MKDOCS_2_WARNING": "1"})
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert (tmp_path / "site" / "index.html").is_file()
+
+
+def test_the_cli_reference_is_current():
+    from l3e_env.cli.reference import cli_reference
+
+    assert (ROOT / "docs" / "cli.md").read_text() == cli_reference(), \
+        "docs/cli.md is stale: python -m l3e_env.cli.reference > docs/cli.md"
+
+
+def test_the_readme_is_short_and_its_links_resolve():
+    text = (ROOT / "README.md").read_text()
+    assert len(text.splitlines()) <= 250
+    targets = re.findall(r"\]\(([^)#]+)(?:#[^)]*)?\)", text)
+    assert targets
+    missing = [t for t in targets if "://" not in t and not (ROOT / t).exists()]
+    assert not missing, missing
