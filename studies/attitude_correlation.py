@@ -18,7 +18,7 @@ from unittest import mock
 
 import numpy as np
 
-from l3e_env import experiment
+from l3e_env.experiments import ate as experiment
 from l3e_env.config import FusionOptions, LidarConfig, OdometryConfig
 from l3e_env.detection.detectors import make_detector
 from l3e_env.sim.imu import attitude_sigmas
@@ -36,7 +36,7 @@ def drive_ates(seed: int, factors: list[float], scene, lidar: Lidar) -> dict[str
     fusion = odometry_fusion_config(OdometryConfig(), FusionOptions())
     detectors = [make_detector("learned", lidar, seed), make_detector("none", lidar, seed)]
     ates = {"odometry only": experiment.odometry_only(rec).ate}
-    for r in experiment.evaluate(rec, detectors, regs, fusion=fusion, progress=False):
+    for r in experiment.fuse_recording(rec, detectors, regs, fusion=fusion, progress=False):
         ates[f"{r.name}, no attitude"] = r.ate
     for mode in ("tilt", "full"):
         for factor in factors:
@@ -45,7 +45,7 @@ def drive_ates(seed: int, factors: list[float], scene, lidar: Lidar) -> dict[str
                 return None if sigmas is None else sigmas * factor
 
             with mock.patch.object(experiment, "attitude_sigmas", scaled):
-                rows = experiment.evaluate(rec, [experiment.OdometryAttitude(), *detectors], regs, fusion=fusion,
+                rows = experiment.fuse_recording(rec, [experiment.OdometryAttitude(), *detectors], regs, fusion=fusion,
                                            progress=False, attitude=mode)
             for r in rows:
                 ates[f"{r.name}, {mode} x{factor:g}"] = r.ate

@@ -466,11 +466,11 @@ def test_fine_tuning_starts_from_the_given_weights(tiny_dataset, tmp_path):
 
 
 def test_evaluate_writes_table_curves_and_results(tiny_dataset, tmp_path, monkeypatch):
-    from l3e_env import evaluation
-    from l3e_env.experiments.table3 import evaluate
+    from l3e_env.experiments import table3
+    from l3e_env.experiments.table3 import run_table3
 
     train(tiny_dataset, tmp_path / "run", _train_cfg(), progress=False)
-    res = evaluate([tmp_path / "run" / "model.pt"], tiny_dataset, tmp_path / "eval",
+    res = run_table3([tmp_path / "run" / "model.pt"], tiny_dataset, tmp_path / "eval",
                    others=[tiny_dataset, tiny_dataset], progress=False, eigen=[1e9], by_family=True)
     eigen = res["models"].pop("eigen:1e+09")
     (name, model), = res["models"].items()
@@ -491,16 +491,16 @@ def test_evaluate_writes_table_curves_and_results(tiny_dataset, tmp_path, monkey
         assert column["count"] == 4 and column["f1"] == pytest.approx(expected["f1"].tolist(), nan_ok=True)
         assert column["accuracy"] == pytest.approx(expected["accuracy"].tolist())
     assert f"office of {Path(tiny_dataset).name}" in res["table"]
-    monkeypatch.setattr(evaluation, "TEST_SCENES", ["field-0", "tunnel-0"])  # a test split of two families
-    built = evaluation.make_scene
+    monkeypatch.setattr(table3, "TEST_SCENES", ["field-0", "tunnel-0"])  # a test split of two families
+    built = table3.make_scene
 
     def tunnel_as_one_region(name: str):  # the tiny dataset's scenes name no regions: give the tunnel one
         scene = built(name)
         scene.regions = {"anywhere": np.array([-1e3, -1e3, 1e3, 1e3])} if name == "tunnel-0" else {}
         return scene
 
-    monkeypatch.setattr(evaluation, "make_scene", tunnel_as_one_region)
-    drawn = evaluate([tmp_path / "run" / "model.pt"], tiny_dataset, tmp_path / "eval-test", progress=False,
+    monkeypatch.setattr(table3, "make_scene", tunnel_as_one_region)
+    drawn = run_table3([tmp_path / "run" / "model.pt"], tiny_dataset, tmp_path / "eval-test", progress=False,
                      by_family=True, by_region=True, draws=3)
     splits = drawn["models"][name]["splits"]
     assert set(splits) == {"train", "valid", "test", "tunnel of test", "field of test", "anywhere of tunnel-0"}
@@ -515,7 +515,7 @@ def test_evaluate_writes_table_curves_and_results(tiny_dataset, tmp_path, monkey
     assert len(splits["valid"]["draws"]["mean_f1"]) == 3 and "draws" not in splits["tunnel of test"]
     assert "over 3 draws of the points" in drawn["table"]
     with pytest.raises(ValueError, match="draws must be at least 1"):
-        evaluate([tmp_path / "run" / "model.pt"], tiny_dataset, tmp_path / "eval-none", progress=False, draws=0)
+        run_table3([tmp_path / "run" / "model.pt"], tiny_dataset, tmp_path / "eval-none", progress=False, draws=0)
     rows = split_indices(data, ["tunnel-0"])
     expected = axis_scores(data.labels[rows], predict_dataset(clf.model, data, rows) > clf.thresholds)
     assert splits["test"]["count"] == 8 and splits["tunnel of test"]["count"] == 4
@@ -530,7 +530,7 @@ def test_evaluate_writes_table_curves_and_results(tiny_dataset, tmp_path, monkey
     valid_y, valid_p = _valid_predictions(tmp_path / "run" / "model.pt", tiny_dataset)
     assert point["thresholds"] == pytest.approx(best_thresholds(valid_y, valid_p, beta=1.0).tolist())
     assert "F1-best validation thresholds" in res["table"] and set(point["splits"]) == set(model["splits"])
-    sym = evaluate([tmp_path / "run" / "model.pt"], tiny_dataset, tmp_path / "eval-sym", progress=False,
+    sym = run_table3([tmp_path / "run" / "model.pt"], tiny_dataset, tmp_path / "eval-sym", progress=False,
                    symmetric=True)
     assert sym["symmetric"] and sym["table"].startswith("probabilities averaged over the eight")
     stored = Classifier.load(tmp_path / "run" / "model.pt", symmetric=True).thresholds

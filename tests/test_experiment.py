@@ -6,8 +6,8 @@ import pytest
 from l3e_env.config import FusionOptions, LidarConfig
 from l3e_env.detection.detectors import EigenvalueDetector, NoDetector, make_detector
 from l3e_env.experiments.ate import (
-    RecastCascade, RecastScans, Recording, evaluate, file_stem, format_seed_table, format_table, record_run,
-    register_sequence, run_experiment, summarize_seeds,
+    RecastCascade, RecastScans, Recording, file_stem, fuse_recording, format_seed_table, format_table, record_run,
+    register_sequence, run_ate, summarize_seeds,
 )
 from l3e_env.localizability.labels import AXES
 from l3e_env.sim.lidar import Lidar
@@ -27,7 +27,7 @@ def test_masking_the_wall_axis_beats_full_icp(walls_run, tmp_path):
     assert len(rec.scans) == len(rec.ground_truth) == len(rec.odometry) + 1
     w = np.array([np.linalg.eigvalsh(r.hessian)[:2] for r in regs if r is not None])
     tau = float(np.sqrt(np.median(w[:, 0]) * np.median(w[:, 1])))  # between the free axis and the rest
-    full, eigen = evaluate(rec, [NoDetector(), EigenvalueDetector(tau)], regs, progress=False)
+    full, eigen = fuse_recording(rec, [NoDetector(), EigenvalueDetector(tau)], regs, progress=False)
     assert eigen.masks[:, 0].mean() > 0.8 and eigen.masks[:, 1:].mean() < 0.2
     assert eigen.ate < full.ate
     assert "eigen" in format_table([full.row(), eigen.row()])
@@ -35,14 +35,14 @@ def test_masking_the_wall_axis_beats_full_icp(walls_run, tmp_path):
     rec.save(tmp_path / "rec.npz")
     again = Recording.load(tmp_path / "rec.npz")
     registered = register_sequence(again, RegistrationConfig(), False)
-    (eigen2,) = evaluate(again, [EigenvalueDetector(tau)], registered, progress=False)
+    (eigen2,) = fuse_recording(again, [EigenvalueDetector(tau)], registered, progress=False)
     assert eigen2.ate == pytest.approx(eigen.ate, rel=1e-9)
 
 
 def test_ate_from_a_recording_writes_results_and_figures(walls_run, tmp_path):
     rec, _ = walls_run
     rec.save(tmp_path / "rec.npz")
-    rows = run_experiment(tmp_path / "out", "mine", ["eigen:30", "none"], recording=tmp_path / "rec.npz",
+    rows = run_ate(tmp_path / "out", "mine", ["eigen:30", "none"], recording=tmp_path / "rec.npz",
                           progress=False)  # the recording's scene, not the argument, is used
     assert [r["detector"] for r in rows] == ["odometry only", "eigen:30", "none"]
     written = {p.name for p in (tmp_path / "out").iterdir()}
@@ -60,20 +60,20 @@ def test_a_recordings_noise_streams_are_kept_and_a_replay_cannot_change_them(wal
     rec, _ = walls_run
     replace(rec, noise_streams="separate").save(tmp_path / "separate.npz")
     assert Recording.load(tmp_path / "separate.npz").noise_streams == "separate"
-    run_experiment(tmp_path / "out", "mine", ["none"], recording=tmp_path / "separate.npz", progress=False)
+    run_ate(tmp_path / "out", "mine", ["none"], recording=tmp_path / "separate.npz", progress=False)
     assert json.loads((tmp_path / "out" / "results.json").read_text())["noise_streams"] == "separate"
     assert main(["ate", "--recording", str(tmp_path / "separate.npz"), "--separate-noise", "--quiet"]) == 2
     assert "a recording keeps the noise it was driven with" in capsys.readouterr().err
     with pytest.raises(ValueError, match="noise_streams must be one of"):
-        run_experiment(tmp_path / "bad", "mine", ["none"], noise_streams="split")
+        run_ate(tmp_path / "bad", "mine", ["none"], noise_streams="split")
 
 
 def test_the_imu_attitude_joins_every_detector_alike_and_adds_its_own_reference_row(walls_run, tmp_path):
     from l3e_env.cli.main import main
 
     rec, regs = walls_run
-    plain, = evaluate(rec, [NoDetector()], regs, progress=False)
-    held, again = evaluate(rec, [NoDetector(), NoDetector()], regs, progress=False, attitude="full")
+    plain, = fuse_recording(rec, [NoDetector()], regs, progress=False)
+    held, again = fuse_recording(rec, [NoDetector(), NoDetector()], regs, progress=False, attitude="full")
     np.testing.assert_array_equal(held.trajectory, again.trajectory)  # the same readings for every detector
     assert np.abs(held.trajectory - plain.trajectory).max() > 1e-6
     rec.save(tmp_path / "rec.npz")
@@ -83,7 +83,7 @@ def test_the_imu_attitude_joins_every_detector_alike_and_adds_its_own_reference_
     assert summary["attitude"] == "tilt"
     assert [r["detector"] for r in summary["rows"]] == ["odometry only", "odometry + attitude", "none"]
     with pytest.raises(ValueError, match="attitude must be one of"):
-        run_experiment(tmp_path / "bad", "mine", ["none"], attitude="compass")
+        run_ate(tmp_path / "bad", "mine", ["none"], attitude="compass")
     assert not (tmp_path / "bad").exists()
 
 
@@ -92,15 +92,15 @@ def test_the_fixed_icp_sigmas_reproduce_the_figures_measured_before_the_hessian(
 
     rec, regs = walls_run
     rec.save(tmp_path / "rec.npz")
-    fixed, = evaluate(rec, [NoDetector()], regs, fusion=FusionConfig(icp_covariance="fixed"), progress=False)
-    weighed, = evaluate(rec, [NoDetector()], regs, progress=False)
+    fixed, = fuse_recording(rec, [NoDetector()], regs, fusion=FusionConfig(icp_covariance="fixed"), progress=False)
+    weighed, = fuse_recording(rec, [NoDetector()], regs, progress=False)
     assert weighed.ate != pytest.approx(fixed.ate, rel=1e-3)
-    rows = run_experiment(tmp_path / "out", "mine", ["none"], recording=tmp_path / "rec.npz", progress=False,
+    rows = run_ate(tmp_path / "out", "mine", ["none"], recording=tmp_path / "rec.npz", progress=False,
                           fusion_options=FusionOptions(icp_covariance="fixed"))
     assert rows[1]["ate_m"] == round(fixed.ate, 3)  # rows are rounded
     assert json.loads((tmp_path / "out" / "results.json").read_text())["icp_covariance"] == "fixed"
     with pytest.raises(ValueError, match="icp_covariance must be one of"):
-        run_experiment(tmp_path / "bad", "mine", ["none"], fusion_options=FusionOptions(icp_covariance="censi"))
+        run_ate(tmp_path / "bad", "mine", ["none"], fusion_options=FusionOptions(icp_covariance="censi"))
     assert not (tmp_path / "bad").exists()
     from l3e_env.experiments.tau_sweep import run_sweep
 
@@ -123,9 +123,9 @@ def test_the_legs_bias_as_a_fusion_state_from_the_command_line(walls_run, tmp_pa
     config = odometry_fusion_config(noisy, FusionOptions(odometry_bias=("yaw",)))
     assert config.odometry_bias == ("yaw",) and config.odometry_bias_sigmas == (0.004, noisy.z_bias_std)
     assert config.odometry_bias_walk == (noisy.yaw_bias_walk, 0.002)
-    plain, = evaluate(rec, [NoDetector()], regs, progress=False)
+    plain, = fuse_recording(rec, [NoDetector()], regs, progress=False)
     both = odometry_fusion_config(OdometryConfig(), FusionOptions(odometry_bias=("yaw", "z")))
-    learnt, = evaluate(rec, [NoDetector()], regs, fusion=both, progress=False)
+    learnt, = fuse_recording(rec, [NoDetector()], regs, fusion=both, progress=False)
     assert np.abs(learnt.trajectory - plain.trajectory).max() > 1e-6
     assert main(["ate", "--recording", str(tmp_path / "rec.npz"), "--detector", "none", "--odometry-bias", "yaw,z",
                  "--out", str(tmp_path / "out"), "--quiet"]) == 0
@@ -135,7 +135,7 @@ def test_the_legs_bias_as_a_fusion_state_from_the_command_line(walls_run, tmp_pa
         main(["ate", "--recording", str(tmp_path / "rec.npz"), "--odometry-bias", "scale", "--quiet"])
     assert "expected none or distinct axes among yaw, z" in capsys.readouterr().err
     with pytest.raises(ValueError, match="odometry_bias takes distinct axes"):
-        run_experiment(tmp_path / "bad", "mine", ["none"], fusion_options=FusionOptions(odometry_bias=("yaw", "yaw")))
+        run_ate(tmp_path / "bad", "mine", ["none"], fusion_options=FusionOptions(odometry_bias=("yaw", "yaw")))
     assert not (tmp_path / "bad").exists()
 
 
@@ -159,13 +159,13 @@ def test_a_swept_recording_says_so_when_replayed(walls_run, tmp_path, capsys):
     assert json.loads((tmp_path / "legs" / "results.json").read_text())["deskew"] == "odometry"
     assert "with the odometry's rotation" in capsys.readouterr().out
     with pytest.raises(ValueError, match="deskew must be one of"):
-        run_experiment(tmp_path / "bad", "mine", ["none"], recording=tmp_path / "swept.npz", deskew="imu")
+        run_ate(tmp_path / "bad", "mine", ["none"], recording=tmp_path / "swept.npz", deskew="imu")
 
 
 def test_scanmc_in_a_replay_judges_scans_cast_again_at_the_true_poses(walls_run, tmp_path):
     rec, _ = walls_run  # two parallel walls: x (along them) is degenerate, nothing else
     rec.save(tmp_path / "rec.npz")
-    run_experiment(tmp_path / "out", "ignored", ["scanmc:4"], recording=tmp_path / "rec.npz", progress=False,
+    run_ate(tmp_path / "out", "ignored", ["scanmc:4"], recording=tmp_path / "rec.npz", progress=False,
                    workers=2)
     (row,) = [r for r in json.loads((tmp_path / "out" / "results.json").read_text())["rows"]
               if r["detector"] == "scanmc:4"]
@@ -252,7 +252,7 @@ def test_a_users_mesh_and_route_are_driven_and_replayed(cad_corridor, tmp_path, 
     rec = Recording.load(out / "recording.npz")
     assert rec.scene_params["up_axis"] == "y" and len(rec.ground_truth) > 50
     assert rec.ground_truth[-1][0, 3] > 7.0 and abs(rec.ground_truth[-1][1, 3]) < 0.3  # along the corridor
-    again = run_experiment(tmp_path / "again", "ignored", ["eigen:30"], recording=out / "recording.npz",
+    again = run_ate(tmp_path / "again", "ignored", ["eigen:30"], recording=out / "recording.npz",
                            progress=False)  # rebuilt from the recording's mesh path and parameters
     assert again[1]["ate_m"] == first[1]["ate_m"]
     # the mesh moved: the recording names its old path, and takes the new one as the scene
@@ -289,7 +289,7 @@ def test_a_bad_detector_fails_before_the_drive(spec, message, tmp_path, monkeypa
 
     monkeypatch.setattr("l3e_env.experiments.ate.record_run", no_drive)
     with pytest.raises((ValueError, RuntimeError), match=message):  # what `l3e` reports as an error
-        run_experiment(tmp_path / "out", "primitives-1", ["none", spec], progress=False)
+        run_ate(tmp_path / "out", "primitives-1", ["none", spec], progress=False)
     assert not (tmp_path / "out").exists()
 
 

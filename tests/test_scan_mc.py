@@ -148,9 +148,9 @@ def test_the_detector_flags_the_corridor_and_answers_unknown_to_a_bad_scan(rng):
 
 
 def test_evaluate_scores_the_scan_estimate_the_same_with_any_number_of_workers(tiny_dataset, tmp_path):
-    from l3e_env.experiments.table3 import evaluate
+    from l3e_env.experiments.table3 import run_table3
 
-    res = evaluate([], None, tmp_path / "eval", others=[tiny_dataset], progress=False, scan_mc=3, workers=2)
+    res = run_table3([], None, tmp_path / "eval", others=[tiny_dataset], progress=False, scan_mc=3, workers=2)
     column = f"all of {Path(tiny_dataset).name}"
     scored = res["models"]["scanmc:3"]["splits"][column]
     data = LabelDataset(tiny_dataset)
@@ -163,10 +163,10 @@ def test_evaluate_scores_the_scan_estimate_the_same_with_any_number_of_workers(t
     few, _ = dataset_scan_errors([str(tiny_dataset)], np.arange(3), ScanMCConfig(children=3), workers=2)
     assert np.array_equal(few, direct[:3])  # one chunk with two workers asked: judged here
     with pytest.raises(ValueError, match="give a checkpoint"):
-        evaluate([], tiny_dataset, tmp_path / "no-checkpoint", progress=False, scan_mc=3)
+        run_table3([], tiny_dataset, tmp_path / "no-checkpoint", progress=False, scan_mc=3)
     for bad in ({"scan_mc": -1}, {"scan_mc": 3, "workers": 0}):
         with pytest.raises(ValueError, match="scan estimate needs"):
-            evaluate([], None, tmp_path / "bad", others=[tiny_dataset], progress=False, **bad)
+            run_table3([], None, tmp_path / "bad", others=[tiny_dataset], progress=False, **bad)
     with pytest.raises(ValueError, match="at least one child"):
         scan_errors(data.scan(0), LidarConfig(), RegistrationConfig(), LabelConfig(), ScanMCConfig(children=0),
                     np.random.default_rng(0))
@@ -270,9 +270,9 @@ def test_cascade_detector_asks_the_estimate_only_where_the_classifier_is_unsure(
 
 def test_evaluate_scores_the_cascade_from_the_classifier_and_the_estimate(tiny_dataset, tmp_path):
     from l3e_env.model.classifier import DEFAULT_CHECKPOINT
-    from l3e_env.experiments.table3 import evaluate
+    from l3e_env.experiments.table3 import run_table3
 
-    res = evaluate([DEFAULT_CHECKPOINT], None, tmp_path / "eval", others=[tiny_dataset], progress=False, scan_mc=3,
+    res = run_table3([DEFAULT_CHECKPOINT], None, tmp_path / "eval", others=[tiny_dataset], progress=False, scan_mc=3,
                    cascade=[0.0, 100.0])
     column = f"all of {Path(tiny_dataset).name}"
     model = next(name for name in res["models"] if "scanmc" not in name)
@@ -290,9 +290,9 @@ def test_evaluate_scores_the_cascade_from_the_classifier_and_the_estimate(tiny_d
     assert (tmp_path / "eval" / "cascade.png").stat().st_size > 10_000
     for bad in ({"scan_mc": 0, "cascade": [1.0]}, {"scan_mc": 3, "cascade": [-1.0]}):
         with pytest.raises(ValueError, match="cascade"):
-            evaluate([DEFAULT_CHECKPOINT], None, tmp_path / "bad", others=[tiny_dataset], progress=False, **bad)
+            run_table3([DEFAULT_CHECKPOINT], None, tmp_path / "bad", others=[tiny_dataset], progress=False, **bad)
     with pytest.raises(ValueError, match="cascade"):
-        evaluate([], None, tmp_path / "bad", others=[tiny_dataset], progress=False, scan_mc=3, cascade=[1.0])
+        run_table3([], None, tmp_path / "bad", others=[tiny_dataset], progress=False, scan_mc=3, cascade=[1.0])
 
 
 def test_random_checks_move_from_the_first_detector_to_the_second_with_their_share():

@@ -55,7 +55,7 @@ def _cmd_envs(args: argparse.Namespace) -> int:
 
 
 def _cmd_ate(args: argparse.Namespace) -> int:
-    from l3e_env.experiments.ate import format_seed_table, format_table, run_experiment, summarize_seeds
+    from l3e_env.experiments.ate import format_seed_table, format_table, run_ate, summarize_seeds
     from l3e_env.experiments.ate_plots import plot_seeds
     from l3e_env.sim.lidar import DESKEW_STEPS
 
@@ -77,7 +77,7 @@ def _cmd_ate(args: argparse.Namespace) -> int:
         runs = {}
         for seed in range(args.seed, args.seed + args.seeds):
             print(f"drive {seed - args.seed + 1} of {args.seeds} (seed {seed})")
-            runs[seed] = run_experiment(out / f"seed-{seed}", args.scene, detectors, sensor=args.sensor, seed=seed,
+            runs[seed] = run_ate(out / f"seed-{seed}", args.scene, detectors, sensor=args.sensor, seed=seed,
                                         progress=not args.quiet, backend=args.backend, scene_params=params,
                                         workers=args.workers, noise_streams=streams, attitude=args.attitude,
                                         fusion_options=fusion_options(args))
@@ -88,7 +88,7 @@ def _cmd_ate(args: argparse.Namespace) -> int:
         print(format_seed_table(summary))
         print(f"written: {out / 'seeds.json'}, {out / 'seeds.png'}")
         return 0
-    rows = run_experiment(out, args.scene, detectors, sensor=args.sensor, seed=args.seed, recording=args.recording,
+    rows = run_ate(out, args.scene, detectors, sensor=args.sensor, seed=args.seed, recording=args.recording,
                           progress=not args.quiet, backend=args.backend, scene_params=params, workers=args.workers,
                           deskew=args.deskew, noise_streams=streams, attitude=args.attitude,
                           fusion_options=fusion_options(args))

@@ -56,10 +56,10 @@ def _asdict(cfg) -> dict:
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     from l3e_env.model.classifier import DEFAULT_CHECKPOINT
-    from l3e_env.experiments.table3 import evaluate
+    from l3e_env.experiments.table3 import run_table3
 
     out = Path(args.out or f"l3e_out/evaluate-{time.strftime('%Y%m%d-%H%M%S')}")
-    results = evaluate(args.checkpoint or [DEFAULT_CHECKPOINT], args.dataset, out, others=args.other,
+    results = run_table3(args.checkpoint or [DEFAULT_CHECKPOINT], args.dataset, out, others=args.other,
                        progress=not args.quiet, symmetric=args.symmetric, eigen=args.eigen, int8=not args.float32,
                        by_family=args.by_family, by_region=args.by_region, scan_mc=args.scan_mc, workers=args.workers,
                        draws=args.draws, cascade=args.cascade)

@@ -14,7 +14,7 @@ from typing import Protocol
 
 import numpy as np
 
-from l3e_env.config import LidarConfig
+from l3e_env.config import LidarConfig, from_dict
 from l3e_env.localizability.labels import LabelConfig, label_parent
 from l3e_env.sim.lidar import Lidar
 from l3e_env.localizability.registration import RegistrationConfig, RegistrationError, RegistrationResult, eigen_mask
@@ -136,7 +136,11 @@ class LearnedDetector:
 
         self.classifier = Classifier.load(checkpoint, symmetric=symmetric)
         self.name = ("learned-sym" if symmetric else "learned") + (f":{checkpoint}" if checkpoint else "")
-        self.classifier.check_settings(lidar_model, dataclasses.asdict(registration or RegistrationConfig()))
+        stored = self.classifier.meta.get("registration")
+        # the registration its labels were made with: the pipeline runs the same (pipeline.registration_of)
+        self.labelled_with = from_dict(RegistrationConfig, stored) if stored is not None else None
+        self.classifier.check_settings(lidar_model, dataclasses.asdict(registration or self.labelled_with
+                                                                       or RegistrationConfig()))
 
     def predict(self, points, registration=None, T_w_s=None) -> Prediction:
         from l3e_env.model.classifier import ScanError
@@ -177,6 +181,7 @@ class CascadeDetector:
         if not margin >= 0:
             raise ValueError(f"the cascade's margin is a log-odds distance >= 0, got {margin}")
         self.learned, self.scan_mc, self.margin = learned, scan_mc, float(margin)
+        self.labelled_with = learned.labelled_with
         self.name = f"learned+scanmc:{self.margin:g}"
         self.calls = self.checked = 0
 

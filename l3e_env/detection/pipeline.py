@@ -1,75 +1,160 @@
-"""Fusion in the loop: per environment step, register the new scan to the last, ask the
-detector for a mask, and add odometry and masked ICP to the fusion backend.
+"""The one per-step localization pipeline: register the new scan to the last (`ScanRegistrar`),
+ask the detector which axes to trust, and add the leg odometry and the masked ICP factor to the
+fusion backend (`LocalizationPipeline`). The environments (`OnlineFusion`), `l3e ate` and the
+policies' evaluation all step through these two classes.
 
-`EnvConfig.fusion` switches it on; `info` then carries the fused estimate, the detector's
-probabilities and mask, and the running ATE against ground truth.
+`EnvConfig.fusion` switches it on in an environment; `info` then carries the fused estimate, the
+detector's probabilities and mask, and the running ATE against ground truth.
 """
 from __future__ import annotations
 
+import warnings
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from fusion import check_backend, make_fusion
+from fusion import FusionConfig, check_backend, make_fusion
 
-from l3e_env.config import LoopFusionConfig, OdometryConfig
-from .detectors import UNKNOWN, Detector, Prediction, make_detector, safe_predict
+from l3e_env.config import LoopFusionConfig, OdometryConfig, from_dict
+from l3e_env.localizability.registration import (PreparedTarget, RegistrationConfig, RegistrationError,
+                                                 RegistrationResult, register)
 from l3e_env.sim.imu import ATTITUDE_EVERY, attitude_sigmas
 from l3e_env.sim.lidar import Lidar
 from l3e_env.sim.odometry import odometry_fusion_config, odometry_sigmas
-from l3e_env.localizability.registration import PreparedTarget, RegistrationConfig, RegistrationError, register
+
+from .detectors import UNKNOWN, Detector, Prediction, make_detector, safe_predict
+
+
+def registration_of(detectors: list[Detector]) -> RegistrationConfig:
+    """The registration the pipeline runs: the one the learned detectors' labels were made with (their
+    checkpoints store it), else the defaults. Detectors whose checkpoints disagree get the defaults and
+    a warning, as a checkpoint made with other settings than the ones in use does."""
+    stored = [d.labelled_with for d in detectors if getattr(d, "labelled_with", None) is not None]
+    if not stored:
+        return RegistrationConfig()
+    if any(s != stored[0] for s in stored[1:]):
+        warnings.warn("the detectors' checkpoints were labelled with different registration settings; the "
+                      "pipeline runs the defaults", stacklevel=2)
+        return RegistrationConfig()
+    return stored[0]
+
+
+class ScanRegistrar:
+    """Scan k registered to scan k-1, from identity (as the labels are made): `start` with the first
+    scan, then `next` with each new one. None where registration is impossible (too few points)."""
+
+    def __init__(self, config: RegistrationConfig):
+        self.config = config
+        self.target: PreparedTarget | None = None
+
+    def _prepare(self, points: np.ndarray) -> PreparedTarget | None:
+        try:
+            return PreparedTarget(points, self.config)
+        except RegistrationError:
+            return None
+
+    def start(self, points: np.ndarray) -> None:
+        self.target = self._prepare(points)
+
+    def next(self, points: np.ndarray) -> RegistrationResult | None:
+        result = None
+        if self.target is not None:
+            try:
+                result = register(points, self.target, self.config)
+            except RegistrationError:
+                result = None
+        self.target = self._prepare(points)
+        return result
+
+
+@dataclass
+class StepOutcome:
+    T_w_b: np.ndarray  # the fused estimate of the body after the step
+    prediction: Prediction  # the detector's answer for the new scan
+    detector_failed: bool  # the detector raised: its answer is UNKNOWN
+    icp_used: bool  # the registration gave an ICP factor (it converged, in the body frame)
+    fallback: bool  # the fusion had to fall back (no odometry and every axis masked, or neither)
+
+
+class LocalizationPipeline:
+    """Detect and fuse, one step at a time, along one drive: `start` at the first pose, then `step`
+    with each step's odometry increment and registration (from a `ScanRegistrar`)."""
+
+    def __init__(self, detector: Detector, backend: str, fusion: FusionConfig, odometry: OdometryConfig,
+                 T_b_s: np.ndarray, attitude: str = "none"):
+        check_backend(backend)
+        self.detector, self.backend_name, self.fusion, self.odometry = detector, backend, fusion, odometry
+        self.T_b_s = T_b_s
+        self.attitude_sigmas = attitude_sigmas(attitude)
+        self.attitude_mode = attitude
+
+    def start(self, T_w_b: np.ndarray) -> None:
+        self.backend = make_fusion(self.backend_name, T_w_b, self.fusion)
+        self.steps = 0
+
+    def step(self, odom_increment: np.ndarray, registration: RegistrationResult | None, detector_points: np.ndarray,
+             T_w_s: np.ndarray | None, attitude: np.ndarray | None = None) -> StepOutcome:
+        """`detector_points`: what the detector judges (the new scan, or the classifier's sample of
+        it); `T_w_s`: the sensor's pose where a detector needs one (the oracle, a model reading the
+        tilt); `attitude`: the IMU's orientation of the body (3x3), fused every ATTITUDE_EVERY steps
+        where the pipeline was built with an attitude mode."""
+        self.steps += 1
+        pred, failed = safe_predict(self.detector, detector_points, registration, T_w_s)
+        icp, hessian = (registration.in_frame(self.T_b_s) if registration is not None else None) or (None, None)
+        sigmas = odometry_sigmas(odom_increment, self.odometry)
+        T, report = self.backend.add_step(odom_increment, sigmas, icp, pred.mask, hessian)
+        if self.attitude_sigmas is not None and self.steps % ATTITUDE_EVERY == 0:
+            if attitude is None:
+                raise ValueError(f"fusion.attitude is {self.attitude_mode!r}: every step needs the IMU's attitude")
+            T = self.backend.add_attitude(attitude, self.attitude_sigmas)
+        return StepOutcome(T, pred, failed, icp is not None, report.fallback is not None)
+
+    def trajectory(self) -> np.ndarray:
+        return self.backend.trajectory()
 
 
 class OnlineFusion:
-    """One run of fusion along an episode; `reset` at every episode start."""
+    """The pipeline inside an environment: one run along an episode; `reset` at every episode start."""
 
     def __init__(self, config: LoopFusionConfig, lidar: Lidar, odometry: OdometryConfig, T_b_s: np.ndarray,
-                 seed: int = 0):
-        check_backend(config.backend)
-        self.config, self.odometry, self.T_b_s = config, odometry, T_b_s
-        self.registration = RegistrationConfig()
-        self.fusion_config = odometry_fusion_config(odometry, config.options(), mode=config.mode)
-        self.detector: Detector = make_detector(config.detector, lidar, seed)
-        self.attitude_sigmas = attitude_sigmas(config.attitude)
+                 seed: int = 0, registration: RegistrationConfig | dict | None = None):
+        self.config, self.T_b_s = config, T_b_s
+        detector = make_detector(config.detector, lidar, seed)
+        if isinstance(registration, dict):
+            registration = from_dict(RegistrationConfig, registration)
+        self.registrar = ScanRegistrar(registration or registration_of([detector]))
+        self.pipeline = LocalizationPipeline(detector, config.backend,
+                                             odometry_fusion_config(odometry, config.options(), mode=config.mode),
+                                             odometry, T_b_s, config.attitude)
+
+    @property
+    def detector(self) -> Detector:
+        return self.pipeline.detector
+
+    @property
+    def registration(self) -> RegistrationConfig:
+        return self.registrar.config
 
     def reset(self, T_w_b: np.ndarray, points: np.ndarray) -> dict[str, Any]:
-        self.backend = make_fusion(self.config.backend, T_w_b, self.fusion_config)
-        self.target = self._target(points)
+        self.pipeline.start(T_w_b)
+        self.registrar.start(points)
         self.squared_errors: list[float] = [0.0]
         self.counts = {"icp_failed": 0, "unknown": 0, "detector_errors": 0, "fallbacks": 0}
         return self._info(T_w_b, UNKNOWN)
-
-    def _target(self, points: np.ndarray) -> PreparedTarget | None:
-        try:
-            return PreparedTarget(points, self.registration)
-        except RegistrationError:
-            return None
 
     def step(self, odom_increment: np.ndarray, points: np.ndarray, T_w_b_true: np.ndarray,
              attitude: np.ndarray | None = None) -> dict[str, Any]:
         """`attitude`: the IMU's orientation of the body (3x3), fused every ATTITUDE_EVERY steps
         where `LoopFusionConfig.attitude` asks for it."""
-        reg = None
-        if self.target is not None:
-            try:
-                reg = register(points, self.target, self.registration)
-            except RegistrationError:
-                reg = None
-        icp, hessian = (reg.in_frame(self.T_b_s) if reg is not None else None) or (None, None)
-        self.counts["icp_failed"] += icp is None
-        pred, failed = safe_predict(self.detector, points, reg, T_w_b_true @ self.T_b_s)
-        self.counts["detector_errors"] += failed
-        self.counts["unknown"] += not pred.known
-        sigmas = odometry_sigmas(odom_increment, self.odometry)
-        T, report = self.backend.add_step(odom_increment, sigmas, icp, pred.mask, hessian)
-        self.counts["fallbacks"] += report.fallback is not None
-        if self.attitude_sigmas is not None and len(self.squared_errors) % ATTITUDE_EVERY == 0:
-            if attitude is None:
-                raise ValueError(f"fusion.attitude is {self.config.attitude!r}: every step needs the IMU's attitude")
-            T = self.backend.add_attitude(attitude, self.attitude_sigmas)
-        self.target = self._target(points)
-        self.squared_errors.append(float(np.sum((T[:3, 3] - T_w_b_true[:3, 3]) ** 2)))
-        return self._info(T, pred)
+        out = self.pipeline.step(odom_increment, self.registrar.next(points), points, T_w_b_true @ self.T_b_s,
+                                 attitude)
+        self.counts["icp_failed"] += not out.icp_used
+        self.counts["detector_errors"] += out.detector_failed
+        self.counts["unknown"] += not out.prediction.known
+        self.counts["fallbacks"] += out.fallback
+        self.squared_errors.append(float(np.sum((out.T_w_b[:3, 3] - T_w_b_true[:3, 3]) ** 2)))
+        return self._info(out.T_w_b, out.prediction)
 
     def _info(self, T: np.ndarray, pred: Prediction) -> dict[str, Any]:
         return {"fused_T_w_b": T.copy(), "localizability_probabilities": pred.probabilities.copy(),

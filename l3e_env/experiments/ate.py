@@ -1,7 +1,7 @@
 """Record a drive once, then fuse it with every detector: ATE/RPE tables, plots and maps.
 
 `record_run` drives a scene's route with the route follower and keeps, per step, the scan, the
-leg-odometry increment and the ground truth. `evaluate` registers consecutive scans once (the
+leg-odometry increment and the ground truth. `run_ate` registers consecutive scans once (the
 one registration), asks each detector for a mask, fuses odometry and masked ICP in the iSAM2
 graph, and measures against ground truth. A saved recording can be evaluated again with new
 detectors without driving.
@@ -19,20 +19,20 @@ import numpy as np
 import small_gicp
 from tqdm import tqdm
 
-from fusion import FusionConfig, MetricError, ate, ate_aligned, check_backend, make_fusion, rpe
+from fusion import FusionConfig, MetricError, ate, ate_aligned, check_backend, rpe
 from scenes import Scene, SceneError, canonical_scene_name, file_sha256, is_mesh_path, make_scene
 
-from l3e_env.config import NOISE_STREAMS, EnvConfig, FusionOptions, LidarConfig, OdometryConfig, RobotConfig
-from l3e_env.detection.detectors import (UNKNOWN, CascadeDetector, Detector, Prediction, ScanMCDetector, make_detector,
-                                         safe_predict)
+from l3e_env.config import NOISE_STREAMS, EnvConfig, FusionOptions, LidarConfig, OdometryConfig, RobotConfig, to_dict
+from l3e_env.detection.detectors import (UNKNOWN, CascadeDetector, Detector, Prediction, ScanMCDetector, make_detector)
+from l3e_env.detection.pipeline import LocalizationPipeline, ScanRegistrar, registration_of
 from l3e_env.envs.navigation import NavigationEnv
 from l3e_env.sim.follower import RouteFollower
-from l3e_env.sim.imu import ATTITUDE_EVERY, StepGyro, attitude_readings, attitude_sigmas
+from l3e_env.sim.imu import StepGyro, attitude_readings, attitude_sigmas
 from l3e_env.localizability.labels import AXES
 from l3e_env.sim.lidar import DESKEW_SOURCES, Lidar, Scan, deskew, deskew_motion, get_pattern
-from l3e_env.sim.odometry import odometry_fusion_config, odometry_sigmas
+from l3e_env.sim.odometry import odometry_fusion_config
 from l3e_env.sim.raycast import EmbreeCaster
-from l3e_env.localizability.registration import PreparedTarget, RegistrationConfig, RegistrationError, register
+from l3e_env.localizability.registration import RegistrationConfig
 from l3e_env.core.transforms import inverse
 from l3e_env.core.workers import ordered_map
 
@@ -307,19 +307,15 @@ def deskewed(rec: Recording, source: str = "gyro") -> Recording:
 
 
 def register_sequence(rec: Recording, config: RegistrationConfig, progress: bool = True) -> list:
-    """Scan k registered to scan k-1 from identity; None where registration is impossible."""
-    results, target = [], None
+    """Scan k registered to scan k-1 from identity, as the pipeline's `ScanRegistrar` does on line; None
+    where registration is impossible. Registered once, the steps serve every detector's fusion."""
+    registrar = ScanRegistrar(config)
+    results = []
     for k, scan in enumerate(tqdm(rec.scans, desc="registering scans", unit="scan", disable=not progress)):
-        try:
-            new_target = PreparedTarget(scan, config)
-        except RegistrationError:
-            new_target = None
-        if k > 0:
-            try:
-                results.append(register(scan, target, config) if target is not None else None)
-            except RegistrationError:
-                results.append(None)
-        target = new_target
+        if k == 0:
+            registrar.start(scan)
+        else:
+            results.append(registrar.next(scan))
     return results
 
 
@@ -333,37 +329,32 @@ class OdometryAttitude:
         return Prediction(np.ones(6), np.ones(6, dtype=bool))
 
 
-def evaluate(rec: Recording, detectors: list[Detector], registrations: list, fusion: FusionConfig | None = None,
-             odometry: OdometryConfig | None = None, progress: bool = True,
-             backend: str = "graph", attitude: str = "none") -> list[DetectorResult]:
-    """Fuse the recording's odometry and registrations with each detector's masks; with `attitude`
-    ("tilt" or "full", see `imu.attitude_sigmas`) the IMU's orientation joins every ATTITUDE_EVERY
-    steps, the same readings for every detector (drawn from the recording's seed)."""
+def fuse_recording(rec: Recording, detectors: list[Detector], registrations: list, fusion: FusionConfig | None = None,
+                   odometry: OdometryConfig | None = None, progress: bool = True, backend: str = "graph",
+                   attitude: str = "none") -> list[DetectorResult]:
+    """The recording's odometry and registrations through the localization pipeline with each
+    detector; with `attitude` ("tilt" or "full", see `imu.attitude_sigmas`) the IMU's orientation joins
+    every ATTITUDE_EVERY steps, the same readings for every detector (drawn from the recording's seed)."""
     check_backend(backend)
     fusion, odometry = fusion or FusionConfig(), odometry or OdometryConfig()
-    T_b_s = rec.T_b_s
     gt = rec.ground_truth
-    sigmas = attitude_sigmas(attitude)
-    readings = None if sigmas is None else attitude_readings(gt, RobotConfig.dt,
-                                                             rng=np.random.default_rng([rec.seed, 5]))
+    readings = None if attitude_sigmas(attitude) is None else attitude_readings(
+        gt, RobotConfig.dt, rng=np.random.default_rng([rec.seed, 5]))
     out = []
     for det in detectors:
         t0 = time.perf_counter()
-        graph = make_fusion(backend, gt[0], fusion)
+        pipeline = LocalizationPipeline(det, backend, fusion, odometry, rec.T_b_s, attitude)
+        pipeline.start(gt[0])
         masks, probs, unknown, fallbacks, errors = [], [], 0, 0, 0
         for k, reg in enumerate(tqdm(registrations, desc=f"fusing with {det.name}", unit="step", disable=not progress)):
-            pred, failed = safe_predict(det, rec.detector_input(k + 1), reg, gt[k + 1] @ T_b_s)
-            unknown += not pred.known
-            errors += failed
-            icp, hessian = (reg.in_frame(T_b_s) if reg is not None else None) or (None, None)
-            inc = rec.odometry[k]
-            _, report = graph.add_step(inc, odometry_sigmas(inc, odometry), icp, pred.mask, hessian)
-            if readings is not None and (k + 1) % ATTITUDE_EVERY == 0:
-                graph.add_attitude(readings[k + 1], sigmas)
-            fallbacks += report.fallback is not None
-            masks.append(pred.mask)
-            probs.append(pred.probabilities)
-        out.append(_scored(det.name, graph.trajectory(), gt, np.array(masks), np.array(probs),
+            step = pipeline.step(rec.odometry[k], reg, rec.detector_input(k + 1), gt[k + 1] @ rec.T_b_s,
+                                 None if readings is None else readings[k + 1])
+            unknown += not step.prediction.known
+            errors += step.detector_failed
+            fallbacks += step.fallback
+            masks.append(step.prediction.mask)
+            probs.append(step.prediction.probabilities)
+        out.append(_scored(det.name, pipeline.trajectory(), gt, np.array(masks), np.array(probs),
                            time.perf_counter() - t0, unknown, fallbacks, errors))
     return out
 
@@ -387,7 +378,7 @@ def _scored(name: str, traj: np.ndarray, gt: np.ndarray, masks: np.ndarray, prob
     return DetectorResult(name, traj, masks, probs, ate(traj, gt), aligned, rt, rr, seconds, unknown, fallbacks, errors)
 
 
-def run_experiment(out_dir: str | Path, scene: str, detectors: list[str], sensor: str = "vlp16", seed: int = 0,
+def run_ate(out_dir: str | Path, scene: str, detectors: list[str], sensor: str = "vlp16", seed: int = 0,
                    recording: str | Path | None = None, progress: bool = True, backend: str = "graph",
                    scene_params: dict | None = None, workers: int = 1, deskew: str = "gyro",
                    noise_streams: str = "shared", attitude: str = "none",
@@ -415,6 +406,7 @@ def run_experiment(out_dir: str | Path, scene: str, detectors: list[str], sensor
                  else make_scene(scene, **(scene_params or {})))
     lidar = Lidar(EmbreeCaster(scene_obj.mesh), LidarConfig(model=rec.sensor if rec else sensor))
     dets = [make_detector(spec, lidar, seed) for spec in detectors]  # a bad spec fails before the drive
+    registration = registration_of(dets)
     dets = [RecastScans(d, lidar, seed=seed) if isinstance(d, ScanMCDetector)
             else RecastCascade(d, lidar, seed=seed) if isinstance(d, CascadeDetector) else d for d in dets]
     out.mkdir(parents=True, exist_ok=True)
@@ -424,7 +416,7 @@ def run_experiment(out_dir: str | Path, scene: str, detectors: list[str], sensor
         rec.save(out / "recording.npz")
     swept, rec = rec.sweep, deskewed(rec, deskew)
     t0 = time.perf_counter()
-    regs = register_sequence(rec, RegistrationConfig(), progress)
+    regs = register_sequence(rec, registration, progress)
     icp_seconds = time.perf_counter() - t0
     ahead = [0.0] * len(dets)  # seconds of judging ahead, counted in the detector's time
     poses = [T @ rec.T_b_s for T in rec.ground_truth[1:]]  # call k of the fusion is at the pose of scan k + 1
@@ -437,7 +429,7 @@ def run_experiment(out_dir: str | Path, scene: str, detectors: list[str], sensor
         ahead[i] = time.perf_counter() - t0
     if attitude != "none":
         dets, ahead = [OdometryAttitude(), *dets], [0.0, *ahead]
-    fused = evaluate(rec, dets, regs, fusion=fusion, progress=progress, backend=backend, attitude=attitude)
+    fused = fuse_recording(rec, dets, regs, fusion=fusion, progress=progress, backend=backend, attitude=attitude)
     for result, seconds in zip(fused, ahead):
         result.seconds += seconds
     results = [odometry_only(rec)] + fused
@@ -450,7 +442,7 @@ def run_experiment(out_dir: str | Path, scene: str, detectors: list[str], sensor
                "swept": swept,
                "deskew": deskew if swept else None, "backend": backend, "attitude": attitude,
                **fusion_options.record(), "steps": len(rec.odometry), "icp_seconds": round(icp_seconds, 1),
-               "icp_failed_or_not_converged": failed, "rows": rows}
+               "icp_failed_or_not_converged": failed, "registration": to_dict(registration), "rows": rows}
     (out / "results.json").write_text(json.dumps(summary, indent=1))
     from .ate_plots import plot_map, plot_timeline, plot_trajectories
 
@@ -475,7 +467,7 @@ def summarize_seeds(runs: dict[int, list[dict]]) -> list[dict]:
     if any([r["detector"] for r in runs[k]] != names for k in seeds):
         raise ValueError("every seed's drive must be fused with the same detectors")
     if names[0] != "odometry only":
-        raise ValueError("each drive's rows start with odometry only, as run_experiment returns them")
+        raise ValueError("each drive's rows start with odometry only, as run_ate returns them")
     summary = []
     for i, name in enumerate(names):
         ate = np.array([runs[k][i]["ate_m"] for k in seeds])

@@ -71,7 +71,7 @@ def split_rows(data: LabelDataset | DatasetUnion, training: dict[str, Any]) -> d
             "test": split_indices(data, test_scenes_in(data))}
 
 
-def evaluate(checkpoints: list[str | Path], dataset: str | Path | list[str | Path] | None, out_dir: str | Path,
+def run_table3(checkpoints: list[str | Path], dataset: str | Path | list[str | Path] | None, out_dir: str | Path,
              others: list[str | Path] | None = None, progress: bool = True, symmetric: bool = False,
              eigen: list[float] | None = None, int8: bool = True, by_family: bool = False,
              by_region: bool = False, scan_mc: int = 0, workers: int = 1, draws: int = 1,

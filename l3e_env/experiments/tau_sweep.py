@@ -10,9 +10,10 @@ from pathlib import Path
 
 from l3e_env.config import FusionOptions, OdometryConfig
 from l3e_env.detection.detectors import EigenvalueDetector, make_detector
-from .ate import Recording, evaluate, odometry_only, record_run, register_sequence
+from l3e_env.detection.pipeline import registration_of
+
+from .ate import Recording, fuse_recording, odometry_only, record_run, register_sequence
 from l3e_env.sim.odometry import odometry_fusion_config
-from l3e_env.localizability.registration import RegistrationConfig
 
 DEFAULT_TAUS = (10, 20, 30, 50, 70, 90, 110, 150, 200, 300)
 
@@ -32,9 +33,10 @@ def run_sweep(out_dir: str | Path, scenes: list[str], taus: tuple[float, ...] = 
         rec = Recording.load(given) if given else record_run(scene, seed=seed, progress=progress)
         if not given:
             rec.save(out / f"recording_{scene}.npz")
-        regs = register_sequence(rec, RegistrationConfig(), progress)
-        eigen = evaluate(rec, [EigenvalueDetector(t) for t in taus], regs, fusion=fusion, progress=False)
-        refs = evaluate(rec, [make_detector(r) for r in references], regs, fusion=fusion, progress=False)
+        refs = [make_detector(r) for r in references]
+        regs = register_sequence(rec, registration_of(refs), progress)
+        eigen = fuse_recording(rec, [EigenvalueDetector(t) for t in taus], regs, fusion=fusion, progress=False)
+        refs = fuse_recording(rec, refs, regs, fusion=fusion, progress=False)
         row = {**fusion_options.record(), "taus": list(map(float, taus)), "eigen_ate": [r.ate for r in eigen],
                "eigen_flagged": [r.masks.mean(axis=0).tolist() for r in eigen],
                "odometry only": odometry_only(rec).ate}
