@@ -13,7 +13,7 @@ import numpy as np
 import torch
 
 from fusion import EKFFusion, FusionConfig, FusionGraph
-from l3e_env.config import EnvConfig, LoopFusionConfig
+from l3e_env.config import EnvConfig, FusionSettings
 from l3e_env.envs.navigation import NavigationEnv
 from l3e_env.sim.follower import RouteFollower
 from l3e_env.core.transforms import pose_to_matrix
@@ -41,7 +41,7 @@ def update_times(backend, steps: int, seed: int = 0, hessians: bool = False,
     return times
 
 
-def env_rate(fusion: LoopFusionConfig, scene: str, steps: int) -> float:
+def env_rate(fusion: FusionSettings, scene: str, steps: int) -> float:
     env = NavigationEnv(EnvConfig(scene=scene, fusion=fusion))
     _, info = env.reset(seed=0)
     follow = RouteFollower(env.route)
@@ -77,8 +77,8 @@ def main() -> None:
         biased = update_times(FusionGraph, args.steps, hessians=True, config=FusionConfig(odometry_bias=axes)) * 1e3
         print(f"iSAM2 update with the legs' {'+'.join(axes)} bias as states: median {np.median(biased):.3f} ms, "
               f"p90 {np.percentile(biased, 90):.3f} ms ({np.median(biased) / np.median(weighed):.2f}x without)")
-    bare = env_rate(LoopFusionConfig(enabled=False), args.scene, args.env_steps)
-    full = env_rate(LoopFusionConfig(enabled=True, detector="learned"), args.scene, args.env_steps)
+    bare = env_rate(FusionSettings(enabled=False), args.scene, args.env_steps)
+    full = env_rate(FusionSettings(enabled=True, detector="learned"), args.scene, args.env_steps)
     print(f"{args.scene} env, VLP-16: {full:.1f} steps/s with scan + learned detector + ICP + iSAM2 "
           f"(target >= 25), bare env {bare:.1f} steps/s (ratio {full / bare:.2f})")
 

@@ -10,8 +10,9 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from l3e_env.cli.options import (add_fusion_options, add_mesh_options, fusion_options, mesh_options_given, scene_names,
+from l3e_env.cli.options import (add_fusion_options, add_mesh_options, fusion_settings, mesh_options_given, scene_names,
                                  scene_params, sensor_name)
+from l3e_env.config.detector_spec import DETECTOR_GRAMMAR, MAP_DETECTORS, parse_detector
 from l3e_env.io.mesh_lists import meshes_file
 
 if TYPE_CHECKING:
@@ -127,10 +128,19 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     rows = evaluate_policies(out, args.policy or ["shortest", "planner"], list(scenes), args.episodes, args.seed,
                              args.detector, args.cache_dir, args.lam, args.workers, steer_on=args.steer_on,
                              progress=not args.quiet, scene_params={k: v for k, v in scenes.items() if v},
-                             fusion_options=fusion_options(args), recovery=args.recovery)
+                             fusion_settings=fusion_settings(args), recovery=args.recovery)
     print(format_rows(rows))
     print(f"routes: {out / 'routes.png'}")
     return 0
+
+
+def map_detector(text: str) -> str:
+    """argparse type: a detector spec a map can use (any but 'none')."""
+    try:
+        parse_detector(text, allowed=MAP_DETECTORS, what="map detector")
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    return text
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -144,8 +154,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     g = psub.add_parser("map", parents=[common], help="build (or load) and plot localizability maps")
     g.add_argument("--scene", type=scene_names, action="append",
                    help="scene names, comma-separated or repeated (default: fork)")
-    g.add_argument("--detector", default="learned",
-                   help="learned[:checkpoint] | eigen:<tau> | oracle[:M] | scanmc[:M] | learned+scanmc[:margin]")
+    g.add_argument("--detector", default="learned", type=map_detector,
+                   help=f"{DETECTOR_GRAMMAR}, not none (default: learned)")
     g.add_argument("--resolution", type=float, default=2.0, help="metres between mapped positions (default 2)")
     g.add_argument("--out", help="folder for the plots (default: l3e_out/maps)")
     g.add_argument("--workers", type=int, default=1, help="processes that build a map not yet cached")
@@ -153,7 +163,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.set_defaults(func=_cmd_map)
     g = psub.add_parser("plan", parents=[common], help="shortest path and localizability-aware plan, with a plot")
     g.add_argument("--scene", type=scene_names, action="append", help="scene names (default: fork)")
-    g.add_argument("--detector", default="learned", help="map detector (default: learned)")
+    g.add_argument("--detector", default="learned", type=map_detector, help="map detector (default: learned)")
     g.add_argument("--lam", type=float, default=50.0, help="weight of expected drift against length (default 50)")
     g.add_argument("--start", type=float, nargs=2, metavar=("X", "Y"), help="default: the scene's start")
     g.add_argument("--goal", type=float, nargs=2, metavar=("X", "Y"), help="default: the scene's goal")
@@ -164,7 +174,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     g = psub.add_parser("train", parents=[common], help="train a PPO navigation policy on fork variants (resumable)")
     g.add_argument("--out", required=True, help="run folder (an unfinished run there is resumed)")
     g.add_argument("--scene", type=scene_names, action="append", help="training variants (default: fork-0 ... fork-6)")
-    g.add_argument("--detector", default="learned", help="map detector (default: learned)")
+    g.add_argument("--detector", default="learned", type=map_detector, help="map detector (default: learned)")
     g.add_argument("--timesteps", type=int, default=300_000, help="decisions of 0.5 s (default 300000)")
     g.add_argument("--envs", type=int, default=4, help="environments stepped together (default 4)")
     g.add_argument("--lam", type=non_negative, help="weight of expected drift in the reward (default: a resumed "
@@ -181,7 +191,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--scene", type=scene_names, action="append",
                    help="evaluation variants (default: fork-100 ... fork-109)")
     g.add_argument("--episodes", type=int, default=50, help="episodes per policy (default 50)")
-    g.add_argument("--detector", default="learned", help="detector of the fusion and the planner's map")
+    g.add_argument("--detector", default="learned", type=map_detector,
+                   help="detector of the fusion and the planner's map (default: learned)")
     g.add_argument("--lam", type=float, default=50.0, help="the planner's drift weight (default 50)")
     g.add_argument("--workers", type=int, default=1, help="episodes run in parallel processes")
     g.add_argument("--recovery", action=argparse.BooleanOptionalAction,

@@ -19,7 +19,7 @@ from typing import Any, Callable
 import numpy as np
 from tqdm import tqdm
 
-from l3e_env.config import FusionOptions, OdometryConfig, settings_changed
+from l3e_env.config import FusionSettings, OdometryConfig, settings_changed
 from l3e_env.envs import NavigationEnv
 from l3e_env.sim.follower import RouteFollower
 from l3e_env.sim.odometry import odometry_fusion_config
@@ -147,15 +147,14 @@ SETTINGS_BEFORE_OPTIONS = {"icp_covariance": "fixed", "odometry_bias": [], "reco
 
 def run_episode(policy: str, scene: str, seed: int, detector: str = "learned", cache_dir: str | Path | None = None,
                 lam: float = 50.0, backend: str = "graph", steer_on: str = "estimate",
-                scene_params: dict | None = None, fusion_options: FusionOptions = FusionOptions(),
+                scene_params: dict | None = None, fusion_settings: FusionSettings = FusionSettings(),
                 recovery: bool = True) -> Episode:
     import torch
 
     torch.set_num_threads(1)
     controller = BackOff(make_controller(policy, scene, detector, cache_dir, lam, scene_params))
     env = NavigationEnv(scene=scene, scene_params=scene_params or {},
-                        fusion={"enabled": True, "detector": detector, "backend": backend,
-                                **asdict(fusion_options)})
+                        fusion={**asdict(fusion_settings), "enabled": True, "detector": detector, "backend": backend})
     try:
         _, info = env.reset(seed=seed)
         trail, length, terminated, truncated = [info["T_w_b"][:2, 3]], 0.0, False, False
@@ -211,11 +210,11 @@ def evaluate_policies(out: str | Path, policies: list[str], scenes: list[str], e
                       detector: str = "learned", cache_dir: str | Path | None = None, lam: float = 50.0,
                       workers: int = 1, backend: str = "graph", steer_on: str = "estimate",
                       progress: bool = True, scene_params: dict[str, dict] | None = None,
-                      fusion_options: FusionOptions = FusionOptions(),
+                      fusion_settings: FusionSettings = FusionSettings(),
                       recovery: bool | None = None) -> list[dict[str, Any]]:
     """Episode i of every policy runs on scenes[i % len(scenes)] with environment seed seed + i.
     `scene_params`: make_scene's arguments by scene name (a mesh's up axis, scale and route).
-    `fusion_options`: the fusion's (as `LoopFusionConfig.options()` gives them in the environment).
+    `fusion_settings`: the fusion's (as `FusionSettings` gives them in the environment).
     `recovery`: a wedged robot backs off (BackOff) instead of staying there; None: as the folder's
     episodes so far, else on.
     Writes episodes.jsonl, summary.json, summary.txt and routes.png into `out`."""
@@ -223,7 +222,7 @@ def evaluate_policies(out: str | Path, policies: list[str], scenes: list[str], e
 
     if steer_on not in STEER_ON:
         raise ValueError(f"steer_on must be one of {STEER_ON}, got {steer_on!r}")
-    odometry_fusion_config(OdometryConfig(), fusion_options)  # bad options fail here, not in every episode
+    odometry_fusion_config(OdometryConfig(), fusion_settings)  # bad options fail here, not in every episode
     for policy in policies:  # and a wrong policy before the maps are built, which can take minutes
         check_policy(policy)
     out = Path(out)
@@ -239,11 +238,11 @@ def evaluate_policies(out: str | Path, policies: list[str], scenes: list[str], e
     if recovery is None:
         recovery = held["recovery"] if held else True
     jobs = [(p, scenes[i % len(scenes)], seed + i, detector, cache_dir, lam, backend, steer_on,
-             params.get(scenes[i % len(scenes)]), fusion_options, recovery) for i in range(episodes) for p in policies]
+             params.get(scenes[i % len(scenes)]), fusion_settings, recovery) for i in range(episodes) for p in policies]
     # episodes are appended as they finish; a killed evaluation resumes where it stopped, with the
     # settings it started with
     run = {"detector": detector, "lam": lam, "backend": backend, "steer_on": steer_on,
-           **fusion_options.record(), "recovery": recovery}  # also in summary.json
+           **fusion_settings.record(), "recovery": recovery}  # also in summary.json
     settings = dict(run)
     if params:  # left out without a mesh, so that folders written before meshes were taken resume
         settings["scene_params"] = params

@@ -17,7 +17,8 @@ from tqdm import tqdm
 
 from l3e_env.model.classifier import DEFAULT_CHECKPOINT, Classifier, ScanError
 from l3e_env.config import LidarConfig, RobotConfig, plain, to_dict
-from l3e_env.detection.detectors import learned_spec, make_detector
+from l3e_env.config.detector_spec import MAP_DETECTORS, parse_detector
+from l3e_env.detection.detectors import make_detector
 from l3e_env.core.files import write_atomic
 from l3e_env.sim.lidar import Lidar
 from l3e_env.sim.raycast import EmbreeCaster, make_caster
@@ -128,15 +129,15 @@ class MapJudge:
 
     def __init__(self, spec: str, lidar: Lidar, seed: int = 0, step: float = 0.1):
         self.spec, self.lidar, self.seed, self.step = spec, lidar, seed, step
-        kind, learned = spec.partition(":")[0], learned_spec(spec)
-        self.kind = "learned" if learned is not None else kind
-        if learned is not None:
-            checkpoint, symmetric = learned
-            self.classifier = Classifier.load(checkpoint, symmetric=symmetric)
+        parsed = parse_detector(spec, allowed=MAP_DETECTORS, what="map detector")
+        kind = parsed.kind
+        self.kind = "learned" if parsed.learned else kind
+        if parsed.learned:
+            self.classifier = Classifier.load(parsed.checkpoint, symmetric=kind == "learned-sym")
             self.classifier.check_settings(lidar.config.model)
             self.thresholds = self.classifier.thresholds.copy()
-            self.identity = f"{kind}-{file_digest(checkpoint or DEFAULT_CHECKPOINT)}"
-        elif kind in ("eigen", "oracle", "scanmc", "learned+scanmc"):
+            self.identity = f"{kind}-{file_digest(parsed.checkpoint or DEFAULT_CHECKPOINT)}"
+        else:
             self.detector = make_detector(spec, lidar, seed)
             self.thresholds = np.full(6, 0.5)
             self.identity = self.detector.name.replace(":", "")
@@ -146,9 +147,6 @@ class MapJudge:
             if kind != "eigen":  # new labels, a new calibration or another seeding is another map
                 config = self.detector.labels if kind == "oracle" else self.estimate_config
                 self.identity += "-" + settings_digest({"config": to_dict(config), "children": "seeded by pose"})
-        else:
-            raise ValueError(f"map detector '{spec}': use learned[-sym][:checkpoint], eigen:<tau>, oracle[:M], "
-                             "scanmc[:M] or learned+scanmc[:margin]")
 
     @property
     def estimate_config(self) -> Any:

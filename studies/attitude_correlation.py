@@ -19,7 +19,7 @@ from unittest import mock
 import numpy as np
 
 from l3e_env.experiments import ate as experiment
-from l3e_env.config import FusionOptions, LidarConfig, OdometryConfig
+from l3e_env.config import FusionSettings, LidarConfig, OdometryConfig
 from l3e_env.detection.detectors import make_detector
 from l3e_env.sim.imu import attitude_sigmas
 from l3e_env.sim.lidar import Lidar
@@ -33,7 +33,7 @@ def drive_ates(seed: int, factors: list[float], scene, lidar: Lidar) -> dict[str
     """ATE (m) per row of one drive: without the attitude, then per mode and factor."""
     rec = experiment.deskewed(experiment.record_run("mine", "vlp16", seed, False, scene_object=scene), "gyro")
     regs = experiment.register_sequence(rec, RegistrationConfig(), False)
-    fusion = odometry_fusion_config(OdometryConfig(), FusionOptions())
+    fusion = odometry_fusion_config(OdometryConfig(), FusionSettings())
     detectors = [make_detector("learned", lidar, seed), make_detector("none", lidar, seed)]
     ates = {"odometry only": experiment.odometry_only(rec).ate}
     for r in experiment.fuse_recording(rec, detectors, regs, fusion=fusion, progress=False):

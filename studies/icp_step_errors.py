@@ -39,7 +39,7 @@ def step_errors(scene: str, tau: float, seed: int) -> tuple[np.ndarray, ...]:
     """(errors, trusted, odometry sigmas) per registered step of the scene's route, (K, 6) each,
     e' H e / 6 per step (K), and e_i^2 / (v H^-1)_ii per axis (K, 6; NaN where an axis is flagged),
     v the default residual variance."""
-    rec = record_run(scene, seed=seed, progress=False, noise_streams="separate")
+    rec = record_run(scene, seed=seed, progress=False)
     registrations = register_sequence(rec, RegistrationConfig(), progress=False)
     detector, T_b_s = EigenvalueDetector(tau), rec.T_b_s
     errors, trusted, sigmas, quadratic, calibration = [], [], [], [], []

@@ -4,7 +4,6 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 
 import l3e_env
-from l3e_env.config import FusionOptions
 from l3e_env.envs.navigation import NavigationEnv
 from l3e_env.sim.follower import RouteFollower
 from l3e_env.core.transforms import inverse
@@ -121,7 +120,7 @@ def test_fusion_in_the_loop_reports_estimate_mask_and_running_ate(odometry_bias)
     assert env.fusion.backend.odometry_bias.shape == (len(odometry_bias),)
     assert env.fusion.fusion_config.odometry_bias_sigmas[0] == env.config.odometry.yaw_bias_std
     assert env.fusion.fusion_config.odometry_bias == odometry_bias
-    assert env.config.fusion.options() == FusionOptions("hessian", odometry_bias)
+    assert (env.config.fusion.icp_covariance, env.config.fusion.odometry_bias) == ("hessian", odometry_bias)
     env.close()
 
 
@@ -226,12 +225,11 @@ def test_fusion_in_the_loop_takes_the_imu_attitude_once_a_second_from_a_stream_o
         NavigationEnv(dict(scene="tunnel", fusion=dict(enabled=True, detector="none", odometry_bias=["scale"])))
 
 
-def test_separate_noise_streams_keep_the_odometry_noise_whatever_the_sensor():
-    """With one shared generator the LiDAR's draws shift the odometry's, so another sensor means
-    another odometry noise; with separate streams the drive's odometry is the same for any sensor
-    or sweep setting, and the scans still differ from seed to seed."""
-    def drive(streams: str, seed: int = 0, **lidar):
-        env = NavigationEnv(dict(scene="tunnel", lidar=lidar, noise_streams=streams))
+def test_the_odometry_noise_is_the_same_whatever_the_sensor():
+    """The odometry and the LiDAR draw from streams of their own: the drive's odometry is the same for
+    any sensor or sweep setting, and the scans still differ from seed to seed."""
+    def drive(seed: int = 0, **lidar):
+        env = NavigationEnv(dict(scene="tunnel", lidar=lidar))
         _, info = env.reset(seed=seed)
         follow, odometry = RouteFollower(env.route), []
         for _ in range(8):
@@ -240,16 +238,13 @@ def test_separate_noise_streams_keep_the_odometry_noise_whatever_the_sensor():
         env.close()
         return np.array(odometry), env.scan.points
 
-    odom_vlp, scan_vlp = drive("separate")
-    odom_os0, _ = drive("separate", model="os0-128")
-    odom_swept, _ = drive("separate", sweep=True)
+    odom_vlp, scan_vlp = drive()
+    odom_os0, _ = drive(model="os0-128")
+    odom_swept, _ = drive(sweep=True)
     np.testing.assert_array_equal(odom_os0, odom_vlp)
     np.testing.assert_array_equal(odom_swept, odom_vlp)
-    odom_seed1, scan_seed1 = drive("separate", seed=1)
+    odom_seed1, scan_seed1 = drive(seed=1)
     assert not np.array_equal(odom_seed1, odom_vlp) and len(scan_seed1) and not np.array_equal(
         scan_seed1[:100], scan_vlp[:100])
-    shared_vlp, _ = drive("shared")
-    shared_os0, _ = drive("shared", model="os0-128")
-    assert not np.array_equal(shared_os0, shared_vlp)  # the shared stream's odometry follows the sensor
-    with pytest.raises(ValueError, match="noise_streams must be one of"):
-        NavigationEnv(dict(scene="tunnel", noise_streams="split"))
+    with pytest.raises(ValueError, match="noise_streams"):  # the option is gone, and named as unknown
+        NavigationEnv(dict(scene="tunnel", noise_streams="separate"))

@@ -3,7 +3,7 @@ import json
 import numpy as np
 import pytest
 
-from l3e_env.config import FusionOptions, LidarConfig
+from l3e_env.config import FusionSettings, LidarConfig
 from l3e_env.detection.detectors import EigenvalueDetector, NoDetector, make_detector
 from l3e_env.experiments.ate import (
     RecastCascade, RecastScans, Recording, file_stem, fuse_recording, format_seed_table, format_table, record_run,
@@ -29,7 +29,15 @@ def test_masking_the_wall_axis_beats_full_icp(walls_run, tmp_path):
     tau = float(np.sqrt(np.median(w[:, 0]) * np.median(w[:, 1])))  # between the free axis and the rest
     full, eigen = fuse_recording(rec, [NoDetector(), EigenvalueDetector(tau)], regs, progress=False)
     assert eigen.masks[:, 0].mean() > 0.8 and eigen.masks[:, 1:].mean() < 0.2
-    assert eigen.ate < full.ate
+    # one drive's odometry draw can favour either; over three drives the mask wins
+    fulls, masked = [full.ate], [eigen.ate]
+    for seed in (1, 2):
+        other = record_run("primitives-1", seed=seed, progress=False)
+        f, e = fuse_recording(other, [NoDetector(), EigenvalueDetector(tau)],
+                              register_sequence(other, RegistrationConfig(), progress=False), progress=False)
+        fulls.append(f.ate)
+        masked.append(e.ate)
+    assert np.mean(masked) < 0.8 * np.mean(fulls)
     assert "eigen" in format_table([full.row(), eigen.row()])
     # a saved recording evaluates to the same numbers without driving again
     rec.save(tmp_path / "rec.npz")
@@ -49,23 +57,8 @@ def test_ate_from_a_recording_writes_results_and_figures(walls_run, tmp_path):
     assert {"results.json", "trajectories.png", "timeline.png", "map_eigen_30.png", "map_none.png"} <= written
     assert "recording.npz" not in written
     summary = json.loads((tmp_path / "out" / "results.json").read_text())
-    assert summary["scene"] == "primitives-1" and summary["noise_streams"] == "shared"
-
-
-def test_a_recordings_noise_streams_are_kept_and_a_replay_cannot_change_them(walls_run, tmp_path, capsys):
-    from dataclasses import replace
-
-    from l3e_env.cli.main import main
-
-    rec, _ = walls_run
-    replace(rec, noise_streams="separate").save(tmp_path / "separate.npz")
-    assert Recording.load(tmp_path / "separate.npz").noise_streams == "separate"
-    run_ate(tmp_path / "out", "mine", ["none"], recording=tmp_path / "separate.npz", progress=False)
-    assert json.loads((tmp_path / "out" / "results.json").read_text())["noise_streams"] == "separate"
-    assert main(["ate", "--recording", str(tmp_path / "separate.npz"), "--separate-noise", "--quiet"]) == 2
-    assert "a recording keeps the noise it was driven with" in capsys.readouterr().err
-    with pytest.raises(ValueError, match="noise_streams must be one of"):
-        run_ate(tmp_path / "bad", "mine", ["none"], noise_streams="split")
+    assert summary["scene"] == "primitives-1"
+    assert summary["registration"]["downsampling_resolution"] == 0.15  # the registration that ran, written down
 
 
 def test_the_imu_attitude_joins_every_detector_alike_and_adds_its_own_reference_row(walls_run, tmp_path):
@@ -96,17 +89,17 @@ def test_the_fixed_icp_sigmas_reproduce_the_figures_measured_before_the_hessian(
     weighed, = fuse_recording(rec, [NoDetector()], regs, progress=False)
     assert weighed.ate != pytest.approx(fixed.ate, rel=1e-3)
     rows = run_ate(tmp_path / "out", "mine", ["none"], recording=tmp_path / "rec.npz", progress=False,
-                          fusion_options=FusionOptions(icp_covariance="fixed"))
+                          fusion_settings=FusionSettings(icp_covariance="fixed"))
     assert rows[1]["ate_m"] == round(fixed.ate, 3)  # rows are rounded
     assert json.loads((tmp_path / "out" / "results.json").read_text())["icp_covariance"] == "fixed"
     with pytest.raises(ValueError, match="icp_covariance must be one of"):
-        run_ate(tmp_path / "bad", "mine", ["none"], fusion_options=FusionOptions(icp_covariance="censi"))
+        run_ate(tmp_path / "bad", "mine", ["none"], fusion_settings=FusionSettings(icp_covariance="censi"))
     assert not (tmp_path / "bad").exists()
     from l3e_env.experiments.tau_sweep import run_sweep
 
     swept = run_sweep(tmp_path / "sweep", ["primitives-1"], taus=(1e12,), references=("none",),
                       recordings={"primitives-1": str(tmp_path / "rec.npz")}, progress=False,
-                      fusion_options=FusionOptions(icp_covariance="fixed"))
+                      fusion_settings=FusionSettings(icp_covariance="fixed"))
     row = swept["primitives-1"]
     assert row["icp_covariance"] == "fixed" and row["none"] == pytest.approx(fixed.ate, rel=1e-9)
     assert row["eigen_ate"][0] == pytest.approx(row["odometry only"], rel=1e-6)  # every axis flagged: the legs alone
@@ -120,11 +113,11 @@ def test_the_legs_bias_as_a_fusion_state_from_the_command_line(walls_run, tmp_pa
     rec, regs = walls_run
     rec.save(tmp_path / "rec.npz")
     noisy = OdometryConfig(yaw_bias_std=0.004, z_bias_walk=0.002)
-    config = odometry_fusion_config(noisy, FusionOptions(odometry_bias=("yaw",)))
+    config = odometry_fusion_config(noisy, FusionSettings(odometry_bias=("yaw",)))
     assert config.odometry_bias == ("yaw",) and config.odometry_bias_sigmas == (0.004, noisy.z_bias_std)
     assert config.odometry_bias_walk == (noisy.yaw_bias_walk, 0.002)
     plain, = fuse_recording(rec, [NoDetector()], regs, progress=False)
-    both = odometry_fusion_config(OdometryConfig(), FusionOptions(odometry_bias=("yaw", "z")))
+    both = odometry_fusion_config(OdometryConfig(), FusionSettings(odometry_bias=("yaw", "z")))
     learnt, = fuse_recording(rec, [NoDetector()], regs, fusion=both, progress=False)
     assert np.abs(learnt.trajectory - plain.trajectory).max() > 1e-6
     assert main(["ate", "--recording", str(tmp_path / "rec.npz"), "--detector", "none", "--odometry-bias", "yaw,z",
@@ -135,7 +128,7 @@ def test_the_legs_bias_as_a_fusion_state_from_the_command_line(walls_run, tmp_pa
         main(["ate", "--recording", str(tmp_path / "rec.npz"), "--odometry-bias", "scale", "--quiet"])
     assert "expected none or distinct axes among yaw, z" in capsys.readouterr().err
     with pytest.raises(ValueError, match="odometry_bias takes distinct axes"):
-        run_ate(tmp_path / "bad", "mine", ["none"], fusion_options=FusionOptions(odometry_bias=("yaw", "yaw")))
+        run_ate(tmp_path / "bad", "mine", ["none"], fusion_settings=FusionSettings(odometry_bias=("yaw", "yaw")))
     assert not (tmp_path / "bad").exists()
 
 

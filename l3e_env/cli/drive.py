@@ -9,7 +9,9 @@ from pathlib import Path
 
 from l3e_env.config import ATTITUDE_MODES
 
-from .options import (scene_name, SENSOR_HELP, NOISE_HELP, add_fusion_options, fusion_options, sensor_name, float_list,
+from l3e_env.config.detector_spec import DETECTOR_GRAMMAR, detector_spec
+
+from .options import (scene_name, SENSOR_HELP, add_fusion_options, fusion_settings, sensor_name, float_list,
                       add_mesh_options, mesh_options_given, scene_params)
 
 
@@ -66,11 +68,6 @@ def _cmd_ate(args: argparse.Namespace) -> int:
     if args.seeds < 1 or (args.seeds > 1 and args.recording):
         print("l3e ate: --seeds is 1 or more drives, and a recording is one drive", file=sys.stderr)
         return 2
-    if args.separate_noise and args.recording:
-        print("l3e ate: a recording keeps the noise it was driven with; --separate-noise is for "
-              "`l3e record` or a new drive", file=sys.stderr)
-        return 2
-    streams = "separate" if args.separate_noise else "shared"
     print(f"writing the experiment into {out.resolve()}")
     detectors = args.detector or ["none", "eigen:30", "eigen:110", "oracle"]
     if args.seeds > 1:
@@ -79,8 +76,8 @@ def _cmd_ate(args: argparse.Namespace) -> int:
             print(f"drive {seed - args.seed + 1} of {args.seeds} (seed {seed})")
             runs[seed] = run_ate(out / f"seed-{seed}", args.scene, detectors, sensor=args.sensor, seed=seed,
                                         progress=not args.quiet, backend=args.backend, scene_params=params,
-                                        workers=args.workers, noise_streams=streams, attitude=args.attitude,
-                                        fusion_options=fusion_options(args))
+                                        workers=args.workers, attitude=args.attitude,
+                                        fusion_settings=fusion_settings(args))
             print(format_table(runs[seed]))
         summary = summarize_seeds(runs)
         (out / "seeds.json").write_text(json.dumps(summary, indent=1))
@@ -90,8 +87,8 @@ def _cmd_ate(args: argparse.Namespace) -> int:
         return 0
     rows = run_ate(out, args.scene, detectors, sensor=args.sensor, seed=args.seed, recording=args.recording,
                           progress=not args.quiet, backend=args.backend, scene_params=params, workers=args.workers,
-                          deskew=args.deskew, noise_streams=streams, attitude=args.attitude,
-                          fusion_options=fusion_options(args))
+                          deskew=args.deskew, attitude=args.attitude,
+                          fusion_settings=fusion_settings(args))
     print(format_table(rows))
     if json.loads((out / "results.json").read_text()).get("swept"):
         turn = "the gyro's rotation over it" if args.deskew == "gyro" else "the odometry's rotation"
@@ -125,7 +122,7 @@ def _cmd_record(args: argparse.Namespace) -> int:
         print(f"l3e record: {exc}", file=sys.stderr)
         return 2
     rec = record_run(args.scene, args.sensor, args.seed, progress=not args.quiet, scene_params=params, on_step=bag,
-                     sweep=args.sweep, noise_streams="separate" if args.separate_noise else "shared")
+                     sweep=args.sweep)
     print(f"written: {bag.close()} ({bag.steps} scans)")
     if args.recording:
         Path(args.recording).parent.mkdir(parents=True, exist_ok=True)
@@ -142,7 +139,7 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
     taus = args.taus or DEFAULT_TAUS
     recordings = dict(r.split("=", 1) for r in args.recording or [])
     results = run_sweep(out, args.scene or ["tunnel", "field", "office"], taus, recordings=recordings,
-                        progress=not args.quiet, fusion_options=fusion_options(args))
+                        progress=not args.quiet, fusion_settings=fusion_settings(args))
     best = beaten_everywhere(results, "learned")
     print("taus at least as good as the learned detector in every scene: " + (", ".join(f"{t:g}" for t in best)
                                                                              if best else "none"))
@@ -167,9 +164,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_cmd_envs)
     p = sub.add_parser("ate", help="drive a route once, fuse with each detector, compare ATE")
     p.add_argument("--scene", type=scene_name, default="mine")
-    p.add_argument("--detector", action="append",
-                   help="none | eigen:<tau> | oracle[:M] | scanmc[:M] | learned[:checkpoint] | "
-                        "learned+scanmc[:margin]; repeat for several")
+    p.add_argument("--detector", action="append", type=detector_spec,
+                   help=f"{DETECTOR_GRAMMAR}; repeat for several")
     p.add_argument("--backend", choices=["graph", "ekf"], default="graph", help="iSAM2 smoother or filterpy EKF")
     p.add_argument("--sensor", type=sensor_name, default="vlp16", help=SENSOR_HELP)
     p.add_argument("--seed", type=int, default=0)
@@ -179,8 +175,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--deskew", choices=["gyro", "odometry"], default="gyro",
                    help="a swept recording's scans are deskewed with the leg odometry's motion, turned by the "
                         "gyro's rotation (default) or the odometry's own")
-    p.add_argument("--separate-noise", action="store_true",
-                   help=NOISE_HELP)
     p.add_argument("--attitude", choices=ATTITUDE_MODES, default="none",
                    help="fuse the IMU's orientation once a second: tilt = roll and pitch, which gravity holds "
                         "(no heading: underground a magnetometer reads the rock), full = with the magnetometer's "
@@ -200,8 +194,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--sensor", type=sensor_name, default="vlp16", help=SENSOR_HELP)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--recording", help="also save the drive as a recording.npz for l3e ate --recording")
-    p.add_argument("--separate-noise", action="store_true",
-                   help=NOISE_HELP)
     p.add_argument("--imu-rate", type=float, default=200.0, help="rate of /imu in Hz (default 200; 0: no IMU)")
     p.add_argument("--imu-orientation", action=argparse.BooleanOptionalAction, default=True,
                    help="write a nine-axis unit's orientation in /imu (default), or none as a six-axis unit")

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import argparse
 
-from l3e_env.config import FusionOptions
+from l3e_env.config import FusionSettings
 from l3e_env.io.mesh_lists import meshes_file
 
 
@@ -25,10 +25,6 @@ def scene_names(text: str) -> list[str]:
 SENSOR_HELP = "vlp16, vlp16-calibrated, os0-128 or a beam pattern file (.yaml/.json, or an Ouster metadata .json)"
 
 
-NOISE_HELP = ("draw the odometry's and the LiDAR's noise from streams of their own, so that a drive with another "
-              "--sensor or sweep setting has the same odometry noise (default: one stream, the drives the README's "
-              "figures were measured on)")
-
 
 def bias_axes(text: str) -> tuple[str, ...]:
     """argparse type: "none", or comma-separated axes among fusion.bias.BIAS_AXES ("yaw", "yaw,z")."""
@@ -44,7 +40,7 @@ def bias_axes(text: str) -> tuple[str, ...]:
 
 
 def add_fusion_options(parser: argparse.ArgumentParser) -> None:
-    """--icp-covariance and --odometry-bias, read back by `fusion_options` (`l3e ate`, `l3e sweep`,
+    """--icp-covariance and --odometry-bias, read back by `fusion_settings` (`l3e ate`, `l3e sweep`,
     `l3e policy evaluate`)."""
     parser.add_argument("--icp-covariance", choices=["hessian", "fixed"], default="hessian",
                         help="the fusion's ICP information: the registration's Hessian over a fitted residual "
@@ -57,9 +53,9 @@ def add_fusion_options(parser: argparse.ArgumentParser) -> None:
                              "it follows ICP further)")
 
 
-def fusion_options(args: argparse.Namespace) -> FusionOptions:
+def fusion_settings(args: argparse.Namespace) -> FusionSettings:
     """The options that `add_fusion_options` added."""
-    return FusionOptions(args.icp_covariance, args.odometry_bias)
+    return FusionSettings(icp_covariance=args.icp_covariance, odometry_bias=args.odometry_bias)
 
 
 def sensor_name(text: str) -> str:

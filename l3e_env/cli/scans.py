@@ -7,6 +7,8 @@ import sys
 from pathlib import Path
 
 
+from l3e_env.config.detector_spec import DETECTOR_GRAMMAR, detector_spec
+
 from .options import (sensor_name)
 
 
@@ -130,9 +132,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--pose-topic", help="the path's topic: nav_msgs/Odometry, geometry_msgs/PoseStamped or "
                                         "PoseWithCovarianceStamped (default: the only Odometry topic); it also "
                                         "writes each scan's position into --json")
-    p.add_argument("--detector", action="append",
-                   help="learned[-sym][:checkpoint] | eigen:<tau> | scanmc[:M] | learned+scanmc[:margin] | none; "
-                        "repeat for several (default: learned, eigen:30 and scanmc)")
+    p.add_argument("--detector", action="append", type=detector_spec,
+                   help=f"{DETECTOR_GRAMMAR} (not oracle: it needs a scene); repeat for several (default: learned, "
+                        "eigen:30 and scanmc)")
     p.add_argument("--sensor", type=sensor_name,
                    help="the LiDAR that took the scans, for scanmc's beams: vlp16, os0-128 or a beam pattern file "
                         "(.yaml/.json, or an Ouster metadata .json); default: recognised from the scans")

@@ -57,24 +57,13 @@ class OdometryConfig:
     scale_error_std: float = 0.02  # constant stride-length scale error per episode
 
 
-@dataclass(frozen=True)
-class FusionOptions:
-    """The fusion's choices that `l3e ate`, `l3e sweep` and `l3e policy evaluate` share, each as in
-    fusion.FusionConfig: icp_covariance hessian | fixed; odometry_bias () or among "yaw" and "z",
-    the leg odometry's biases estimated as fusion states (their prior is the odometry config's)."""
-
-    icp_covariance: str = "hessian"
-    odometry_bias: tuple[str, ...] = ()
-
-    def record(self) -> dict[str, Any]:
-        """As written into results.json, sweep.json and a policy evaluation's settings."""
-        return {"icp_covariance": self.icp_covariance, "odometry_bias": list(self.odometry_bias)}
-
-
 @dataclass
-class LoopFusionConfig:
-    """Fusion inside the environment loop (off by default: it costs ICP and a detector per step).
-    detector: none | eigen:<tau> | oracle[:M] | scanmc[:M] | learned[:checkpoint]; backend: graph | ekf;
+class FusionSettings:
+    """The fusion that l3e_env runs, in the environments' loop (`EnvConfig.fusion`, off by default: it
+    costs ICP and a detector per step), in `l3e ate`, `l3e sweep` and the policies' evaluation; the
+    estimator's own parameters are `fusion.FusionConfig`, made from these by
+    `sim.odometry.odometry_fusion_config`.
+    detector: a detector spec (config.detector_spec.DETECTOR_GRAMMAR); backend: graph | ekf;
     mode: mask | full | drop (see fusion.FusionConfig); deskew: gyro | odometry, where a swept
     revolution's deskewing takes its rotation from (its translation is the leg odometry's);
     attitude: none | tilt | full, the IMU's orientation fused once a second (tilt: roll and pitch,
@@ -91,10 +80,10 @@ class LoopFusionConfig:
     icp_covariance: str = "hessian"
     odometry_bias: tuple[str, ...] = ()
 
-    def options(self) -> FusionOptions:
-        """The choices it shares with `l3e ate` and `l3e policy evaluate` (kept as flat fields so that
-        an environment's `fusion=dict(...)` stays one level deep)."""
-        return FusionOptions(self.icp_covariance, tuple(self.odometry_bias))
+    def record(self) -> dict[str, Any]:
+        """The estimator's choices, as written into results.json, sweep.json and a policy evaluation's
+        settings."""
+        return {"icp_covariance": self.icp_covariance, "odometry_bias": list(self.odometry_bias)}
 
 
 @dataclass
@@ -114,13 +103,7 @@ class EnvConfig:
     step_penalty: float = 0.01
     collision_penalty: float = 0.1
     goal_reward: float = 10.0
-    fusion: LoopFusionConfig = field(default_factory=LoopFusionConfig)
-    # shared: the leg odometry and the LiDAR draw their noise in turn from the one generator of
-    # reset(seed) (the drives that the README's figures were measured on). separate: each draws
-    # from a stream of its own spawned from that seed, so a drive with another sensor, beam pattern
-    # or sweep setting keeps the same odometry noise, and two sensors can be compared on one drive.
-    noise_streams: str = "shared"
+    fusion: FusionSettings = field(default_factory=FusionSettings)
 
 
-NOISE_STREAMS = ("shared", "separate")
 ATTITUDE_MODES = ("none", "tilt", "full")  # the IMU's orientation in the fusion: none, roll and pitch, all three

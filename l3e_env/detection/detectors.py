@@ -15,6 +15,7 @@ from typing import Protocol
 import numpy as np
 
 from l3e_env.config import LidarConfig, from_dict
+from l3e_env.config.detector_spec import parse_detector
 from l3e_env.localizability.labels import LabelConfig, label_parent
 from l3e_env.sim.lidar import Lidar
 from l3e_env.localizability.registration import RegistrationConfig, RegistrationError, RegistrationResult, eigen_mask
@@ -233,50 +234,28 @@ def safe_predict(det: Detector, points: np.ndarray, reg, T_w_s: np.ndarray) -> t
         return UNKNOWN, True
 
 
-def learned_spec(spec: str) -> tuple[str | None, bool] | None:
-    """(checkpoint, None for the shipped one; symmetric) of a 'learned[-sym][:checkpoint]' spec, or
-    None for another kind: the fusion's detectors and the policy maps read it alike."""
-    kind, _, arg = spec.partition(":")
-    return (arg or None, kind == "learned-sym") if kind in ("learned", "learned-sym") else None
-
-
 def make_detector(spec: str, lidar: Lidar | None = None, seed: int = 0,
                   sensor: LidarConfig | None = None) -> Detector:
-    """'none', 'eigen:<tau>', 'oracle', 'oracle:<M>', 'scanmc', 'scanmc:<M>', 'learned' (the shipped model) or
-    'learned:<checkpoint path>'; 'learned-sym[:<checkpoint path>]' averages over the eight mirror/swap
-    views of each scan; 'learned+scanmc[:<margin>]' is the shipped model checked by scanmc where it is
-    unsure (CascadeDetector). `sensor`: the LiDAR's settings where there is no scene LiDAR (scans read
-    from files): scanmc needs its beams, and the learned detector warns if it differs from training."""
+    """The detector of `spec` (DETECTOR_GRAMMAR): 'learned' is the shipped model, 'learned-sym' averages
+    it over the eight mirror/swap views of each scan, 'learned+scanmc' is the shipped model checked by
+    scanmc where it is unsure (CascadeDetector). `sensor`: the LiDAR's settings where there is no scene
+    LiDAR (scans read from files): scanmc needs its beams, and the learned detector warns if it differs
+    from training."""
     sensor = lidar.config if lidar is not None else sensor
-    kind, _, arg = spec.partition(":")
-    if kind == "learned+scanmc":
-        try:
-            margin = float(arg) if arg else CASCADE_MARGIN
-        except ValueError as exc:
-            raise ValueError(f"detector '{spec}': give the margin as learned+scanmc:<log-odds>, e.g. "
-                             "learned+scanmc:1") from exc
+    parsed = parse_detector(spec)
+    if parsed.kind == "learned+scanmc":
+        margin = CASCADE_MARGIN if parsed.margin is None else parsed.margin
         return CascadeDetector(make_detector("learned", lidar, seed, sensor),  # type: ignore[arg-type]
                                make_detector("scanmc", lidar, seed, sensor), margin)  # type: ignore[arg-type]
-    if kind == "none":
+    if parsed.kind == "none":
         return NoDetector()
-    if kind == "eigen":
-        try:
-            tau = float(arg)
-        except ValueError as exc:
-            raise ValueError(f"detector '{spec}': give the threshold as eigen:<tau>, e.g. eigen:30") from exc
-        return EigenvalueDetector(tau)
-    if kind == "oracle":
+    if parsed.kind == "eigen":
+        return EigenvalueDetector(parsed.tau)
+    if parsed.kind == "oracle":
         if lidar is None:
             raise ValueError("the oracle detector needs the scene's LiDAR")
-        return OracleDetector(lidar, children=int(arg) if arg else 20, seed=seed)
-    if kind == "scanmc":
-        if arg and not (arg.isdigit() and int(arg) >= 1):
-            raise ValueError(f"detector '{spec}': give the number of children as scanmc:<M>, M >= 1, e.g. scanmc:60")
-        return ScanMCDetector(sensor or LidarConfig(), children=int(arg) if arg else ScanMCConfig.children,
-                              seed=seed)
-    if (learned := learned_spec(spec)) is not None:
-        checkpoint, symmetric = learned
-        return LearnedDetector(checkpoint, lidar_model=sensor.model if sensor is not None else None,
-                               symmetric=symmetric)
-    raise ValueError(f"unknown detector '{spec}' (none, eigen:<tau>, oracle[:M], scanmc[:M], "
-                     "learned[-sym][:checkpoint], learned+scanmc[:margin])")
+        return OracleDetector(lidar, children=parsed.children or 20, seed=seed)
+    if parsed.kind == "scanmc":
+        return ScanMCDetector(sensor or LidarConfig(), children=parsed.children or ScanMCConfig.children, seed=seed)
+    return LearnedDetector(parsed.checkpoint, lidar_model=sensor.model if sensor is not None else None,
+                           symmetric=parsed.kind == "learned-sym")

@@ -16,7 +16,7 @@ import numpy as np
 
 from fusion import FusionConfig, check_backend, make_fusion
 
-from l3e_env.config import LoopFusionConfig, OdometryConfig, from_dict
+from l3e_env.config import FusionSettings, OdometryConfig, from_dict
 from l3e_env.localizability.registration import (PreparedTarget, RegistrationConfig, RegistrationError,
                                                  RegistrationResult, register)
 from l3e_env.sim.imu import ATTITUDE_EVERY, attitude_sigmas
@@ -117,7 +117,7 @@ class LocalizationPipeline:
 class OnlineFusion:
     """The pipeline inside an environment: one run along an episode; `reset` at every episode start."""
 
-    def __init__(self, config: LoopFusionConfig, lidar: Lidar, odometry: OdometryConfig, T_b_s: np.ndarray,
+    def __init__(self, config: FusionSettings, lidar: Lidar, odometry: OdometryConfig, T_b_s: np.ndarray,
                  seed: int = 0, registration: RegistrationConfig | dict | None = None):
         self.config, self.T_b_s = config, T_b_s
         detector = make_detector(config.detector, lidar, seed)
@@ -125,7 +125,7 @@ class OnlineFusion:
             registration = from_dict(RegistrationConfig, registration)
         self.registrar = ScanRegistrar(registration or registration_of([detector]))
         self.pipeline = LocalizationPipeline(detector, config.backend,
-                                             odometry_fusion_config(odometry, config.options(), mode=config.mode),
+                                             odometry_fusion_config(odometry, config),
                                              odometry, T_b_s, config.attitude)
 
     @property
@@ -135,6 +135,16 @@ class OnlineFusion:
     @property
     def registration(self) -> RegistrationConfig:
         return self.registrar.config
+
+    @property
+    def fusion_config(self) -> FusionConfig:
+        """The estimator's settings, made from `FusionSettings` and the odometry's noise model."""
+        return self.pipeline.fusion
+
+    @property
+    def backend(self) -> Any:
+        """The fusion backend of the current episode (a FusionGraph or an EKFFusion)."""
+        return self.pipeline.backend
 
     def reset(self, T_w_b: np.ndarray, points: np.ndarray) -> dict[str, Any]:
         self.pipeline.start(T_w_b)
@@ -146,7 +156,7 @@ class OnlineFusion:
     def step(self, odom_increment: np.ndarray, points: np.ndarray, T_w_b_true: np.ndarray,
              attitude: np.ndarray | None = None) -> dict[str, Any]:
         """`attitude`: the IMU's orientation of the body (3x3), fused every ATTITUDE_EVERY steps
-        where `LoopFusionConfig.attitude` asks for it."""
+        where `FusionSettings.attitude` asks for it."""
         out = self.pipeline.step(odom_increment, self.registrar.next(points), points, T_w_b_true @ self.T_b_s,
                                  attitude)
         self.counts["icp_failed"] += not out.icp_used

@@ -10,7 +10,7 @@ from gymnasium import spaces
 from scenes import Scene, make_scene
 from scenes.geometry import polyline_length
 
-from l3e_env.config import NOISE_STREAMS, EnvConfig, from_dict
+from l3e_env.config import EnvConfig, from_dict
 from l3e_env.sim.imu import StepAttitude, StepGyro
 from l3e_env.sim.lidar import DESKEW_SOURCES, DESKEW_STEPS, Lidar, Scan, deskew, deskew_motion
 from l3e_env.sim.odometry import LegOdometry
@@ -34,7 +34,7 @@ class NavigationEnv(gym.Env):
     Terminated on arrival within goal_radius; truncated after max_episode_steps.
     info: T_w_b (4x4 ground truth), pose (x, y, z, roll, pitch, yaw), odom_T_w_b (dead reckoning),
       blocked, distance_to_goal. The current Scan (points in the sensor frame) is `env.unwrapped.scan`.
-      With `fusion.enabled` (see LoopFusionConfig) also: fused_T_w_b (odometry and masked ICP
+      With `fusion.enabled` (see FusionSettings) also: fused_T_w_b (odometry and masked ICP
       fused), localizability_probabilities and localizability_mask (6,) in (x, y, z, roll,
       pitch, yaw) order, localizability_known, running_ate (m, fused vs ground truth since reset)
       and fusion_counts (ICP failures, unknown predictions, detector errors, fallbacks).
@@ -81,8 +81,6 @@ class NavigationEnv(gym.Env):
         self.max_steps = config.max_episode_steps or int(np.ceil(3 * route_length / (speed * config.robot.dt)))
         self._renderer: TopDownRenderer | None = None
         self.fusion = None
-        if config.noise_streams not in NOISE_STREAMS:
-            raise ValueError(f"noise_streams must be one of {NOISE_STREAMS}, got {config.noise_streams!r}")
         if config.fusion.deskew not in DESKEW_SOURCES:
             raise ValueError(f"fusion.deskew must be one of {DESKEW_SOURCES}, got {config.fusion.deskew!r}")
         swept_fusion = config.fusion.enabled and config.lidar.sweep
@@ -99,10 +97,9 @@ class NavigationEnv(gym.Env):
         super().reset(seed=seed)
         x, y, yaw = self.scene.start
         self.robot.reset(x, y, yaw, z_ground=float(self.route[0, 2]))
-        if self.config.noise_streams == "separate":
-            odometry_rng, self._lidar_rng = self.np_random.spawn(2)
-        else:
-            odometry_rng = self._lidar_rng = self.np_random
+        # the odometry and the LiDAR draw from streams of their own, so that a drive's odometry noise is the
+        # same whatever the sensor, its beam pattern or its sweep setting
+        odometry_rng, self._lidar_rng = self.np_random.spawn(2)
         self.odometry.reset(odometry_rng)
         # streams of their own: the odometry's and the LiDAR's draws stay as they were
         gyro_rng, attitude_rng = self.np_random.spawn(2)

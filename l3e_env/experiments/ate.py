@@ -22,7 +22,7 @@ from tqdm import tqdm
 from fusion import FusionConfig, MetricError, ate, ate_aligned, check_backend, rpe
 from scenes import Scene, SceneError, canonical_scene_name, file_sha256, is_mesh_path, make_scene
 
-from l3e_env.config import NOISE_STREAMS, EnvConfig, FusionOptions, LidarConfig, OdometryConfig, RobotConfig, to_dict
+from l3e_env.config import EnvConfig, FusionSettings, LidarConfig, OdometryConfig, RobotConfig, to_dict
 from l3e_env.detection.detectors import (UNKNOWN, CascadeDetector, Detector, Prediction, ScanMCDetector, make_detector)
 from l3e_env.detection.pipeline import LocalizationPipeline, ScanRegistrar, registration_of
 from l3e_env.envs.navigation import NavigationEnv
@@ -56,13 +56,11 @@ class Recording:
     scene_params: dict = field(default_factory=dict)
     mesh_sha256: str = ""  # a mesh scene's file, to tell it from an edited or replaced one
     sweep: bool = False  # scans swept over the robot's motion (LidarConfig.sweep), deskewed before they are fused
-    noise_streams: str = "shared"  # EnvConfig.noise_streams of the drive
 
     def save(self, path: str | Path) -> None:
         np.savez_compressed(
             path, scene=self.scene, sensor=self.sensor, seed=self.seed, T_b_s=self.T_b_s,
             scene_params=json.dumps(self.scene_params), mesh_sha256=self.mesh_sha256, sweep=self.sweep,
-            noise_streams=self.noise_streams,
             ground_truth=self.ground_truth, odometry=self.odometry, **_ragged("points", self.scans),
             **_ragged("samples", self.samples),
         )
@@ -74,9 +72,8 @@ class Recording:
             params = json.loads(str(z["scene_params"])) if "scene_params" in z.files else {}
             digest = str(z["mesh_sha256"]) if "mesh_sha256" in z.files else ""
             swept = bool(z["sweep"]) if "sweep" in z.files else False
-            streams = str(z["noise_streams"]) if "noise_streams" in z.files else "shared"
             return cls(str(z["scene"]), str(z["sensor"]), int(z["seed"]), z["T_b_s"], z["ground_truth"], z["odometry"],
-                       _unragged(z, "points"), samples, params, digest, swept, streams)
+                       _unragged(z, "points"), samples, params, digest, swept)
 
     def scene_file(self, moved_to: str | None = None) -> str:
         """The scene to rebuild: its name, or for a mesh its recorded path, or `moved_to` where the
@@ -213,15 +210,13 @@ def _unragged(z, name: str) -> list[np.ndarray]:
 
 def record_run(scene: str = "mine", sensor: str = "vlp16", seed: int = 0, progress: bool = True,
                scene_params: dict | None = None, scene_object: Scene | None = None,
-               on_step: Callable[[Scan, dict], None] | None = None, sweep: bool = False,
-               noise_streams: str = "shared") -> Recording:
+               on_step: Callable[[Scan, dict], None] | None = None, sweep: bool = False) -> Recording:
     """Drive the scene's route once; `scene_object`, if given, is that scene already built.
     `on_step(scan, info)` sees every full scan with the step's info (T_w_b, odom_T_w_b) and the
     sensor's mounting T_b_s, the start's included, before the recording thins it (a bag writer).
-    `sweep`: each step's scan is swept over the step's motion (LidarConfig.sweep). `noise_streams`:
-    EnvConfig.noise_streams ("separate": the odometry's noise does not depend on the sensor)."""
+    `sweep`: each step's scan is swept over the step's motion (LidarConfig.sweep)."""
     env = NavigationEnv(EnvConfig(scene=scene, lidar=LidarConfig(model=sensor, sweep=sweep),
-                                  scene_params=scene_params or {}, noise_streams=noise_streams),
+                                  scene_params=scene_params or {}),
                         scene_object=scene_object)
     obs, info = env.reset(seed=seed)
     follow = RouteFollower(env.route)
@@ -257,7 +252,7 @@ def record_run(scene: str = "mine", sensor: str = "vlp16", seed: int = 0, progre
     # a mesh scene is rebuilt from its file, a procedural one from its canonical name ('tunnel' -> 'tunnel-0')
     name = canonical_scene_name(scene) if is_mesh_path(scene) else env.scene.name
     rec = Recording(name, sensor, seed, env.robot.T_b_s, np.array(gt), np.array(odom), scans, samples,
-                    dict(scene_params or {}), file_sha256(scene) if is_mesh_path(scene) else "", sweep, noise_streams)
+                    dict(scene_params or {}), file_sha256(scene) if is_mesh_path(scene) else "", sweep)
     env.close()
     return rec
 
@@ -381,25 +376,22 @@ def _scored(name: str, traj: np.ndarray, gt: np.ndarray, masks: np.ndarray, prob
 def run_ate(out_dir: str | Path, scene: str, detectors: list[str], sensor: str = "vlp16", seed: int = 0,
                    recording: str | Path | None = None, progress: bool = True, backend: str = "graph",
                    scene_params: dict | None = None, workers: int = 1, deskew: str = "gyro",
-                   noise_streams: str = "shared", attitude: str = "none",
-                   fusion_options: FusionOptions = FusionOptions()) -> list[dict]:
+                   attitude: str = "none",
+                   fusion_settings: FusionSettings = FusionSettings()) -> list[dict]:
     """The `l3e ate` command as a function: returns the table rows and writes everything to out_dir.
     `scene_params` go to make_scene (a mesh scene's up axis, scale and route). With a `recording`,
     its own scene is used; `scene` matters only as the new path of a recorded mesh that has moved.
     `workers` processes judge the route with scanmc before the fusion (the same judgements as one).
     `deskew`: where a swept recording's deskewing takes its rotation from ("gyro" or "odometry").
-    `noise_streams`: the drive's EnvConfig.noise_streams (a recording keeps its own).
     `attitude`: the IMU's orientation in the fusion ("none", "tilt" or "full"); with it, a row
-    "odometry + attitude" follows odometry alone. `fusion_options`: every fusion's (the biases' prior
+    "odometry + attitude" follows odometry alone. `fusion_settings`: every fusion's (the biases' prior
     from the default OdometryConfig, as the drive's)."""
     if workers < 1:
         raise ValueError(f"workers must be at least 1, got {workers}")
     if deskew not in DESKEW_SOURCES:
         raise ValueError(f"deskew must be one of {DESKEW_SOURCES}, got {deskew!r}")
-    if noise_streams not in NOISE_STREAMS:
-        raise ValueError(f"noise_streams must be one of {NOISE_STREAMS}, got {noise_streams!r}")
     attitude_sigmas(attitude)  # a bad mode fails before the drive
-    fusion = odometry_fusion_config(OdometryConfig(), fusion_options)
+    fusion = odometry_fusion_config(OdometryConfig(), fusion_settings)
     out = Path(out_dir)
     rec = Recording.load(recording) if recording else None
     scene_obj = (make_scene(rec.scene_file(moved_to=scene), **rec.scene_params) if rec
@@ -411,8 +403,7 @@ def run_ate(out_dir: str | Path, scene: str, detectors: list[str], sensor: str =
             else RecastCascade(d, lidar, seed=seed) if isinstance(d, CascadeDetector) else d for d in dets]
     out.mkdir(parents=True, exist_ok=True)
     if rec is None:
-        rec = record_run(scene, sensor, seed, progress, scene_params, scene_object=scene_obj,
-                         noise_streams=noise_streams)
+        rec = record_run(scene, sensor, seed, progress, scene_params, scene_object=scene_obj)
         rec.save(out / "recording.npz")
     swept, rec = rec.sweep, deskewed(rec, deskew)
     t0 = time.perf_counter()
@@ -438,10 +429,10 @@ def run_ate(out_dir: str | Path, scene: str, detectors: list[str], sensor: str =
         if isinstance(det, RecastCascade):  # what the estimate cost it: steps it was asked, scans it judged
             row.update(checked_steps=det.cascade.checked, judged_steps=det.judged_steps)
     failed = sum(r is None or not r.converged for r in regs)
-    summary = {"scene": rec.scene, "sensor": rec.sensor, "seed": rec.seed, "noise_streams": rec.noise_streams,
+    summary = {"scene": rec.scene, "sensor": rec.sensor, "seed": rec.seed,
                "swept": swept,
                "deskew": deskew if swept else None, "backend": backend, "attitude": attitude,
-               **fusion_options.record(), "steps": len(rec.odometry), "icp_seconds": round(icp_seconds, 1),
+               **fusion_settings.record(), "steps": len(rec.odometry), "icp_seconds": round(icp_seconds, 1),
                "icp_failed_or_not_converged": failed, "registration": to_dict(registration), "rows": rows}
     (out / "results.json").write_text(json.dumps(summary, indent=1))
     from .ate_plots import plot_map, plot_timeline, plot_trajectories

@@ -143,7 +143,7 @@ def judge_scans(scans: Iterable[str | Path | BagScan], specs: list[str], sensor:
                 seed: int = 0, workers: int = 1,
                 on_sensor: Callable[[BeamPattern, str], None] | None = None) -> Iterator[Judgement]:
     """Judge each scan, a file to read or a bag's scan (`read_bag`), with each detector
-    ('learned[...]', 'eigen:<tau>', 'scanmc[:M]', 'learned+scanmc[:margin]', 'none'; make_detector refuses the oracle,
+    (config.detector_spec.DETECTOR_GRAMMAR; make_detector refuses the oracle,
     which needs a scene), after dropping its points without a return, in the order given,
     `workers` scans at a time. Without `sensor`, a detector that needs one gets the pattern
     recognised from the first scans (the default where none fits), reported to `on_sensor`

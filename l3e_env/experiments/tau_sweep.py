@@ -8,7 +8,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from l3e_env.config import FusionOptions, OdometryConfig
+from l3e_env.config import FusionSettings, OdometryConfig
 from l3e_env.detection.detectors import EigenvalueDetector, make_detector
 from l3e_env.detection.pipeline import registration_of
 
@@ -20,11 +20,11 @@ DEFAULT_TAUS = (10, 20, 30, 50, 70, 90, 110, 150, 200, 300)
 
 def run_sweep(out_dir: str | Path, scenes: list[str], taus: tuple[float, ...] = DEFAULT_TAUS,
               references: tuple[str, ...] = ("learned", "none"), recordings: dict[str, str] | None = None,
-              seed: int = 0, progress: bool = True, fusion_options: FusionOptions = FusionOptions()) -> dict:
+              seed: int = 0, progress: bool = True, fusion_settings: FusionSettings = FusionSettings()) -> dict:
     """Returns {scene: {"taus": [...], "eigen_ate": [...], "<reference>": ate, ...}} and writes
     sweep.json and tau_sweep.png into out_dir (recordings are saved there for re-use).
-    `fusion_options`: every fusion's."""
-    fusion = odometry_fusion_config(OdometryConfig(), fusion_options)
+    `fusion_settings`: every fusion's."""
+    fusion = odometry_fusion_config(OdometryConfig(), fusion_settings)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     results: dict[str, dict] = {}
@@ -37,7 +37,7 @@ def run_sweep(out_dir: str | Path, scenes: list[str], taus: tuple[float, ...] = 
         regs = register_sequence(rec, registration_of(refs), progress)
         eigen = fuse_recording(rec, [EigenvalueDetector(t) for t in taus], regs, fusion=fusion, progress=False)
         refs = fuse_recording(rec, refs, regs, fusion=fusion, progress=False)
-        row = {**fusion_options.record(), "taus": list(map(float, taus)), "eigen_ate": [r.ate for r in eigen],
+        row = {**fusion_settings.record(), "taus": list(map(float, taus)), "eigen_ate": [r.ate for r in eigen],
                "eigen_flagged": [r.masks.mean(axis=0).tolist() for r in eigen],
                "odometry only": odometry_only(rec).ate}
         for name, r in zip(references, refs):

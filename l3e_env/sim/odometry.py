@@ -5,7 +5,7 @@ import numpy as np
 
 from fusion import FusionConfig, check_config
 
-from l3e_env.config import FusionOptions, OdometryConfig
+from l3e_env.config import FusionSettings, OdometryConfig
 from l3e_env.core.transforms import adjoint, inverse, matrix_to_pose, pose_to_matrix
 
 
@@ -45,14 +45,15 @@ class LegOdometry:
         return pose_to_matrix(noisy)
 
 
-def odometry_fusion_config(odometry: OdometryConfig, options: FusionOptions = FusionOptions(),
-                           **fusion_options) -> FusionConfig:
-    """A checked FusionConfig with `options` (and any other FusionConfig fields) whose odometry bias
-    states, if any, start from this noise model's bias spread and wander by its random walk."""
+def odometry_fusion_config(odometry: OdometryConfig, settings: FusionSettings = FusionSettings(),
+                           **overrides) -> FusionConfig:
+    """The estimator's checked FusionConfig for `settings` (and any other FusionConfig fields), its
+    odometry bias states, if any, starting from this noise model's bias spread and wandering by its
+    random walk."""
     return check_config(FusionConfig(odometry_bias_sigmas=(odometry.yaw_bias_std, odometry.z_bias_std),
                                      odometry_bias_walk=(odometry.yaw_bias_walk, odometry.z_bias_walk),
-                                     icp_covariance=options.icp_covariance, odometry_bias=options.odometry_bias,
-                                     **fusion_options))
+                                     mode=settings.mode, icp_covariance=settings.icp_covariance,
+                                     odometry_bias=tuple(settings.odometry_bias), **overrides))
 
 
 def _white_sigmas(v: np.ndarray, cfg: OdometryConfig) -> np.ndarray:
