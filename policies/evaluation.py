@@ -140,9 +140,6 @@ def make_controller(policy: str, scene: str, detector: str, cache_dir: str | Pat
 
 
 STEER_ON = ("estimate", "truth")
-# what a folder written before each of these options existed was run with: the fixed ICP sigmas
-# (before the Hessian's weights), no leg-bias states, no recovery
-SETTINGS_BEFORE_OPTIONS = {"icp_covariance": "fixed", "odometry_bias": [], "recovery": False}
 
 
 def run_episode(policy: str, scene: str, seed: int, detector: str = "learned", cache_dir: str | Path | None = None,
@@ -234,9 +231,9 @@ def evaluate_policies(out: str | Path, policies: list[str], scenes: list[str], e
         for d in sorted(map_detectors):
             scene_context(name, d, cache_dir, progress=progress, scene_params=params.get(name))
     settings_file = out / "settings.json"
-    held = {**SETTINGS_BEFORE_OPTIONS, **json.loads(settings_file.read_text())} if settings_file.exists() else None
+    held = json.loads(settings_file.read_text()) if settings_file.exists() else None
     if recovery is None:
-        recovery = held["recovery"] if held else True
+        recovery = held.get("recovery", True) if held else True
     jobs = [(p, scenes[i % len(scenes)], seed + i, detector, cache_dir, lam, backend, steer_on,
              params.get(scenes[i % len(scenes)]), fusion_settings, recovery) for i in range(episodes) for p in policies]
     # episodes are appended as they finish; a killed evaluation resumes where it stopped, with the

@@ -455,21 +455,16 @@ def test_a_users_mesh_is_driven_by_the_policies(cad_corridor, tmp_path, capsys, 
     np.savetxt(tmp_path / "other.csv", [[1000.0, 0, 0], [6000, 0, 0]])
     assert main([*args, "--route", str(tmp_path / "other.csv")]) == 2  # the folder's episodes had another route
     assert "holds episodes run with other settings (scene_params)" in capsys.readouterr().err
-    assert main([*args, "--route", str(route), "--icp-covariance", "fixed"]) == 2
-    assert "other settings (icp_covariance 'hessian', now 'fixed')" in capsys.readouterr().err
     assert main([*args, "--route", str(route), "--odometry-bias", "yaw"]) == 2
     assert "other settings (odometry_bias [], now ['yaw'])" in capsys.readouterr().err
     assert main([*args, "--route", str(route), "--no-recovery"]) == 2  # the recovery is on by default
     assert "other settings (recovery True, now False)" in capsys.readouterr().err
     assert main([*args, "--route", str(route), "--recovery"]) == 0
     settings = json.loads((tmp_path / "ev" / "settings.json").read_text())
-    assert settings.pop("icp_covariance") == "hessian" and settings.pop("odometry_bias") == []
-    assert settings.pop("recovery") is True
-    (tmp_path / "ev" / "settings.json").write_text(json.dumps(settings))  # a folder from before the options
-    assert main([*args, "--route", str(route)]) == 2  # its episodes had the fixed sigmas
-    assert main([*args, "--route", str(route), "--icp-covariance", "fixed", "--recovery"]) == 2
-    assert "other settings (recovery False, now True)" in capsys.readouterr().err
-    assert main([*args, "--route", str(route), "--icp-covariance", "fixed"]) == 0  # without the recovery, as run
+    assert settings.pop("odometry_bias") == [] and settings.pop("recovery") is True
+    (tmp_path / "ev" / "settings.json").write_text(json.dumps(settings))  # a folder that does not say its options
+    assert main([*args, "--route", str(route)]) == 2
+    assert "other settings (odometry_bias None, now [], recovery None, now True)" in capsys.readouterr().err
     biased = [*args[:-3], "--out", str(tmp_path / "ev-bias"), "--quiet", "--route", str(route)]
     assert main([*biased, "--odometry-bias", "yaw", "--policy", "shortest"]) == 0
     summary = json.loads((tmp_path / "ev-bias" / "summary.json").read_text())

@@ -40,22 +40,15 @@ def bias_axes(text: str) -> tuple[str, ...]:
 
 
 def add_fusion_options(parser: argparse.ArgumentParser) -> None:
-    """--icp-covariance and --odometry-bias, read back by `fusion_settings` (`l3e ate`, `l3e sweep`,
-    `l3e policy evaluate`)."""
-    parser.add_argument("--icp-covariance", choices=["hessian", "fixed"], default="hessian",
-                        help="the fusion's ICP information: the registration's Hessian over a fitted residual "
-                             "variance (default), or the fixed per-axis sigmas that the figures before it were "
-                             "measured with")
+    """--odometry-bias, read back by `fusion_settings` (`l3e ate`, `l3e sweep`, `l3e policy evaluate`)."""
     parser.add_argument("--odometry-bias", type=bias_axes, default=(), metavar="AXES",
                         help="estimate the leg odometry's per-metre biases as states of the fusion: yaw, z or "
-                             "yaw,z (default none; on the mine's five drives yaw takes the learned mask's ATE "
-                             "from 1.93 to 1.64 m, but where ICP's heading is wrong and unmasked, as in the cave, "
-                             "it follows ICP further)")
+                             "yaw,z (default none; see docs/decisions.md)")
 
 
 def fusion_settings(args: argparse.Namespace) -> FusionSettings:
     """The options that `add_fusion_options` added."""
-    return FusionSettings(icp_covariance=args.icp_covariance, odometry_bias=args.odometry_bias)
+    return FusionSettings(odometry_bias=args.odometry_bias)
 
 
 def sensor_name(text: str) -> str:

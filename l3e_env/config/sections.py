@@ -67,9 +67,9 @@ class FusionSettings:
     mode: mask | full | drop (see fusion.FusionConfig); deskew: gyro | odometry, where a swept
     revolution's deskewing takes its rotation from (its translation is the leg odometry's);
     attitude: none | tilt | full, the IMU's orientation fused once a second (tilt: roll and pitch,
-    which gravity holds; full: with the magnetometer's heading); icp_covariance: hessian | fixed
-    (see fusion.FusionConfig); odometry_bias: the leg odometry's biases estimated as fusion states,
-    () or among "yaw" and "z" (see fusion.bias; their prior is the odometry config's)."""
+    which gravity holds; full: with the magnetometer's heading); odometry_bias: the leg odometry's
+    biases estimated as fusion states, () or among "yaw" and "z" (see fusion.bias; their prior is the
+    odometry config's). The ICP factor is weighed by the registration's Hessian (fusion.FusionConfig)."""
 
     enabled: bool = False
     detector: str = "learned"
@@ -77,13 +77,12 @@ class FusionSettings:
     mode: str = "mask"
     deskew: str = "gyro"
     attitude: str = "none"
-    icp_covariance: str = "hessian"
     odometry_bias: tuple[str, ...] = ()
 
     def record(self) -> dict[str, Any]:
         """The estimator's choices, as written into results.json, sweep.json and a policy evaluation's
         settings."""
-        return {"icp_covariance": self.icp_covariance, "odometry_bias": list(self.odometry_bias)}
+        return {"odometry_bias": list(self.odometry_bias)}
 
 
 @dataclass

@@ -52,8 +52,7 @@ def odometry_fusion_config(odometry: OdometryConfig, settings: FusionSettings = 
     random walk."""
     return check_config(FusionConfig(odometry_bias_sigmas=(odometry.yaw_bias_std, odometry.z_bias_std),
                                      odometry_bias_walk=(odometry.yaw_bias_walk, odometry.z_bias_walk),
-                                     mode=settings.mode, icp_covariance=settings.icp_covariance,
-                                     odometry_bias=tuple(settings.odometry_bias), **overrides))
+                                     mode=settings.mode, odometry_bias=tuple(settings.odometry_bias), **overrides))
 
 
 def _white_sigmas(v: np.ndarray, cfg: OdometryConfig) -> np.ndarray:
