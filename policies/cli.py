@@ -42,6 +42,7 @@ def _cmd_map(args: argparse.Namespace) -> int:
 
     scenes = _scenes_with_params(args)
     out = Path(args.out or "l3e_out/maps")
+    args.out = str(out)  # the resolved options are written beside it
     out.mkdir(parents=True, exist_ok=True)
     for name, params in scenes.items():
         t0 = time.perf_counter()
@@ -73,6 +74,7 @@ def _cmd_plan(args: argparse.Namespace) -> int:
 
     scenes = _scenes_with_params(args)
     out = Path(args.out or "l3e_out/plans")
+    args.out = str(out)  # the resolved options are written beside it
     out.mkdir(parents=True, exist_ok=True)
     for name, params in scenes.items():
         ctx = scene_context(name, args.detector, args.cache_dir, sensor=args.sensor, progress=not args.quiet,
@@ -123,6 +125,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
     scenes = _scenes_with_params(args, tuple(EVAL_VARIANTS))
     out = Path(args.out or f"l3e_out/policy-eval-{time.strftime('%Y%m%d-%H%M%S')}")
+    args.out = str(out)  # the resolved options are written beside it
     print(f"{args.episodes} episodes per policy on {', '.join(scenes)}, full pipeline ({args.detector} detector) "
           f"-> {out.resolve()}")
     rows = evaluate_policies(out, args.policy or ["shortest", "planner"], list(scenes), args.episodes, args.seed,

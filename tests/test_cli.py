@@ -2,6 +2,7 @@ import subprocess
 import sys
 
 import pytest
+import yaml
 
 from l3e_env.cli.main import build_parser, main
 from l3e_env.cli.options import scene_params
@@ -87,3 +88,50 @@ def test_record_options_give_the_imu_asked_for():
                                                   "--no-imu-orientation", "--imu-rate", "100"]))
     assert quiet.footfall_accel == 0.0 and not quiet.orientation and quiet.rate == 100.0
     assert record_imu(build_parser().parse_args(["record", "--out", "a.bag", "--imu-rate", "0"])) is None
+
+
+def test_options_come_from_a_yaml_file_the_command_line_and_set_in_that_order(tmp_path):
+    from l3e_env.cli.option_files import resolve
+
+    (tmp_path / "ate.yaml").write_text("scene: tunnel\nseed: 3\nodometry-bias: [yaw]\ndetector: [none, 'eigen:30']\n")
+    args = resolve(build_parser(), ["ate", "--config", str(tmp_path / "ate.yaml")])
+    assert (args.scene, args.seed, args.odometry_bias, args.detector) == ("tunnel", 3, ("yaw",), ["none", "eigen:30"])
+    args = resolve(build_parser(), ["ate", "--config", str(tmp_path / "ate.yaml"), "--seed", "4"])
+    assert args.seed == 4 and args.scene == "tunnel"  # the command line wins over the file
+    args = resolve(build_parser(), ["ate", "--config", str(tmp_path / "ate.yaml"), "--seed", "4", "--set", "seed=5",
+                                    "--set", "quiet=true", "--set", "up-axis=y"])
+    assert (args.seed, args.quiet, args.up_axis) == (5, True, "y")  # --set wins over both
+    args = resolve(build_parser(), ["train", "--dataset", "d", "--out", "o", "--set", "epochs=2"])
+    assert args.epochs == 2 and args.config is None  # train keeps its own --config (a TrainConfig YAML)
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["ate", "--set", "bogus=1"], "l3e ate has no option 'bogus'"),
+    (["ate", "--set", "seeds"], "give KEY=VALUE"),
+    (["ate", "--set", "detector=[none, 'foo']"], "option detector: unknown detector 'foo'"),
+    (["ate", "--set", "backend=slam"], "option backend: 'slam' is not one of"),
+    (["ate", "--set", "scene=no-such-family"], "option scene"),
+    (["ate", "--set", "quiet=maybe"], "option quiet: give true or false"),
+    (["ate", "--config", "CONFIG"], "give a YAML mapping of option names to values, not a list"),
+    (["ate", "--config", "MISSING"], "cannot read the options"),
+])
+def test_a_bad_option_file_or_pair_is_refused_by_name_before_anything_runs(tmp_path, capsys, argv, message):
+    (tmp_path / "list.yaml").write_text("[1, 2]\n")
+    argv = [str(tmp_path / "list.yaml") if a == "CONFIG" else str(tmp_path / "none.yaml") if a == "MISSING" else a
+            for a in argv]
+    with pytest.raises(SystemExit) as exit_info:
+        main(argv)
+    assert exit_info.value.code == 2 and message in capsys.readouterr().err
+
+
+def test_a_run_writes_its_resolved_options_and_they_run_it_again(tmp_path, capsys):
+    out = tmp_path / "vlp16.yaml"
+    assert main(["sensor", "vlp16", "--out", str(out)]) == 0
+    written = tmp_path / "vlp16.yaml.options.yaml"  # beside the file it made
+    assert f"options: {written}" in capsys.readouterr().out
+    options = yaml.safe_load(written.read_text())
+    assert options["source"] == "vlp16" and options["out"] == str(out)
+    out.unlink()
+    assert main(["sensor", "--config", str(written)]) == 0 and out.is_file()  # the same run, from the file alone
+    capsys.readouterr()
+    assert main(["scenes", "tunnel"]) == 0 and "options:" not in capsys.readouterr().out  # it made nothing

@@ -20,6 +20,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
     params = scene_params(args)
     out = Path(args.out or f"l3e_out/demo-{time.strftime('%Y%m%d-%H%M%S')}")
+    args.out = str(out)  # the resolved options are written beside it
     print(f"writing the demo into {out.resolve()}")
     result = run_demo(out, scene=args.scene, sensor=args.sensor, seed=args.seed, progress=not args.quiet,
                       checkpoint=args.checkpoint, scene_params=params)
@@ -65,6 +66,7 @@ def _cmd_ate(args: argparse.Namespace) -> int:
     params = {} if args.recording and not mesh_options_given(args) else scene_params(args)
     stem = "replay" if args.recording else Path(args.scene).stem  # a replay's scene is the recording's
     out = Path(args.out or f"l3e_out/ate-{stem}-{time.strftime('%Y%m%d-%H%M%S')}")
+    args.out = str(out)  # the resolved options are written beside it
     if args.seeds < 1 or (args.seeds > 1 and args.recording):
         print("l3e ate: --seeds is 1 or more drives, and a recording is one drive", file=sys.stderr)
         return 2
@@ -135,6 +137,7 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
     from l3e_env.experiments.tau_sweep import DEFAULT_TAUS, beaten_everywhere, run_sweep
 
     out = Path(args.out or f"l3e_out/sweep-{time.strftime('%Y%m%d-%H%M%S')}")
+    args.out = str(out)  # the resolved options are written beside it
     print(f"writing the sweep into {out.resolve()}")
     taus = args.taus or DEFAULT_TAUS
     recordings = dict(r.split("=", 1) for r in args.recording or [])

@@ -7,6 +7,7 @@ import sys
 from importlib.metadata import entry_points
 
 from . import data, drive, model, scans
+from .option_files import add_option_files, resolve, write_resolved
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -18,16 +19,20 @@ def build_parser() -> argparse.ArgumentParser:
     # group, so that l3e_env never imports them
     for entry in entry_points(group="l3e.commands"):
         entry.load()(sub)
+    add_option_files(parser)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    args = resolve(build_parser(), argv)
     try:
-        return int(args.func(args))
+        status = int(args.func(args))
     except (ValueError, RuntimeError, OSError) as exc:
         print(f"l3e {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    if status == 0 and (written := write_resolved(args)) is not None:
+        print(f"options: {written} (l3e {args.command} ... --config {written} runs it again)")
+    return status
 
 
 if __name__ == "__main__":

@@ -59,6 +59,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     from l3e_env.experiments.table3 import run_table3
 
     out = Path(args.out or f"l3e_out/evaluate-{time.strftime('%Y%m%d-%H%M%S')}")
+    args.out = str(out)  # the resolved options are written beside it
     results = run_table3(args.checkpoint or [DEFAULT_CHECKPOINT], args.dataset, out, others=args.other,
                        progress=not args.quiet, symmetric=args.symmetric, eigen=args.eigen, int8=not args.float32,
                        by_family=args.by_family, by_region=args.by_region, scan_mc=args.scan_mc, workers=args.workers,

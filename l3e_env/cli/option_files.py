@@ -1,0 +1,159 @@
+"""Every command's options from a YAML file (`--config FILE.yaml`) and one at a time (`--set KEY=VALUE`),
+and the options a run resolved, written beside what it made (`<out>/options.yaml`, or `<out>.options.yaml`
+beside a file), so that `l3e COMMAND --config that.yaml` runs it again.
+
+Keys are the option names of `l3e COMMAND --help`, without the leading dashes (`seeds`, `odometry-bias`
+or `odometry_bias`). Precedence: `--set` over the command line over `--config` over the defaults. A YAML
+file is read with `yaml.safe_load`: it cannot run code."""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+RESERVED = {"help", "config", "set", "func", "command", "_parser"}
+OPTIONS_FILE = "options.yaml"
+
+
+def leaf_parsers(parser: argparse.ArgumentParser) -> list[argparse.ArgumentParser]:
+    """The parsers that run a command (those without sub-commands), depth first."""
+    subs = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+    if not subs:
+        return [parser]
+    return [leaf for action in subs for sub in action.choices.values() for leaf in leaf_parsers(sub)]
+
+
+def add_option_files(parser: argparse.ArgumentParser) -> None:
+    """--config (where the command has no --config of its own, as `l3e train` has) and --set on every
+    command; each remembers its parser so that `resolve` can check the keys against it."""
+    for leaf in leaf_parsers(parser):
+        own = any(a.dest == "config" for a in leaf._actions)
+        g = leaf.add_argument_group("options from a file")
+        if not own:
+            g.add_argument("--config", metavar="FILE.yaml",
+                           help="take the options from this YAML mapping of option names to values (the "
+                                "options.yaml a run writes); the command line wins over it")
+        g.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                       help="set one option (KEY as in --help, without the dashes; VALUE in YAML); repeat")
+        leaf.set_defaults(_parser=leaf, _options_file=not own)
+
+
+def _actions(leaf: argparse.ArgumentParser) -> dict[str, argparse.Action]:
+    return {a.dest: a for a in leaf._actions if a.dest not in RESERVED and a.dest != argparse.SUPPRESS
+            and not a.dest.startswith("_")}
+
+
+def _converted(action: argparse.Action, key: str, value: Any) -> Any:
+    """`value` as argparse would have made it from the command line; ValueError naming the key. None is
+    an option not given, as the defaults have it."""
+    if value is None:
+        return None
+    def one(v: Any) -> Any:
+        if isinstance(v, str) and action.type is not None:
+            try:
+                v = action.type(v)
+            except (argparse.ArgumentTypeError, TypeError, ValueError) as exc:
+                raise ValueError(f"option {key}: {exc}") from None
+        if action.choices is not None and v not in action.choices:
+            raise ValueError(f"option {key}: {v!r} is not one of {list(action.choices)}")
+        return v
+
+    if isinstance(action, (argparse._StoreTrueAction, argparse._StoreFalseAction,
+                           argparse.BooleanOptionalAction)):
+        if not isinstance(value, bool):
+            raise ValueError(f"option {key}: give true or false, got {value!r}")
+        return value
+    if isinstance(action, argparse._AppendAction) or action.nargs in ("+", "*") or isinstance(action.nargs, int):
+        return [one(v) for v in (value if isinstance(value, list) else [value])]
+    if isinstance(value, list) and action.type is not None:
+        if not value:
+            return ()
+        value = ",".join(map(str, value))  # a comma-separated option written as a YAML list
+    return one(value)
+
+
+def _mapping(leaf: argparse.ArgumentParser, values: dict[str, Any], where: str) -> dict[str, Any]:
+    actions = _actions(leaf)
+    out = {}
+    for raw, value in values.items():
+        key = str(raw).replace("-", "_")
+        if key not in actions:
+            raise ValueError(f"{where}: {leaf.prog} has no option '{raw}' (its options: "
+                             f"{', '.join(sorted(k.replace('_', '-') for k in actions))})")
+        out[key] = _converted(actions[key], str(raw), value)
+    return out
+
+
+def read_options(path: str | Path, leaf: argparse.ArgumentParser) -> dict[str, Any]:
+    """The options in a YAML file, checked and converted; ValueError naming the file and the problem."""
+    try:
+        loaded = yaml.safe_load(Path(path).read_text())
+    except (OSError, yaml.YAMLError) as exc:
+        raise ValueError(f"{path}: cannot read the options ({exc})") from None
+    if loaded is None:
+        return {}
+    if not isinstance(loaded, dict):
+        raise ValueError(f"{path}: give a YAML mapping of option names to values, not a {type(loaded).__name__}")
+    return _mapping(leaf, loaded, str(path))
+
+
+def set_options(pairs: list[str], leaf: argparse.ArgumentParser) -> dict[str, Any]:
+    values = {}
+    for pair in pairs:
+        key, sep, text = pair.partition("=")
+        if not sep or not key:
+            raise ValueError(f"--set {pair!r}: give KEY=VALUE, e.g. --set seeds=5")
+        try:
+            values[key] = yaml.safe_load(text)
+        except yaml.YAMLError:
+            values[key] = text
+        if values[key] is None:
+            values[key] = text
+    return _mapping(leaf, values, "--set")
+
+
+def resolve(parser: argparse.ArgumentParser, argv: list[str] | None) -> argparse.Namespace:
+    """Parse `argv` with the command's --config file as defaults and its --set pairs on top; ValueError
+    (naming the file or the pair) for an unknown option or a value its type refuses."""
+    args = parser.parse_args(argv)
+    leaf = getattr(args, "_parser", None)
+    if leaf is None:
+        return args
+    try:
+        path = getattr(args, "config", None) if args._options_file else None
+        if path:
+            leaf.set_defaults(**read_options(path, leaf))
+            args = parser.parse_args(argv)  # the command line wins over the file
+        for key, value in set_options(args.set, leaf).items():
+            setattr(args, key, value)
+    except ValueError as exc:
+        leaf.error(str(exc))
+    return args
+
+
+def _plain(value: Any) -> Any:
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if isinstance(value, Path):
+        return str(value)
+    return value
+
+
+def resolved_options(args: argparse.Namespace) -> dict[str, Any]:
+    """The options a run resolved, as `--config` reads them back."""
+    leaf = args._parser
+    return {k.replace("_", "-"): _plain(getattr(args, k)) for k in _actions(leaf) if hasattr(args, k)}
+
+
+def write_resolved(args: argparse.Namespace) -> Path | None:
+    """The resolved options into `<out>/options.yaml` where the run made a folder `out`, or beside a
+    file it made as `<out>.options.yaml`; None where the command names no output."""
+    out = getattr(args, "out", None)
+    if getattr(args, "_parser", None) is None or not out or not Path(out).exists():
+        return None
+    path = Path(out) / OPTIONS_FILE if Path(out).is_dir() else Path(f"{out}.{OPTIONS_FILE}")
+    path.write_text(f"# l3e {args._parser.prog.removeprefix('l3e ')} --config {path.name}\n"
+                    + yaml.safe_dump(resolved_options(args), sort_keys=False))
+    return path
