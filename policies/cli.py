@@ -115,7 +115,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
     config = resumed_config(args.out, lam=args.lam, lateral_drift=args.lateral_drift)
     summary = train_ppo(args.out, contexts, args.detector, args.timesteps, args.seed, args.envs, config,
                         progress=not args.quiet)
-    print(f"{summary['timesteps']} steps; policy: {Path(args.out) / 'policy.zip'}; logs: progress.csv, monitor.csv")
+    print(f"{summary['timesteps']} steps; policy: {Path(args.out) / 'policy.pt'}; logs: progress.csv, monitor.csv")
     return 0
 
 

@@ -1,9 +1,12 @@
 """PPO (stable-baselines3, the `rl` extra) on the fast map environment over seeded fork variants.
 
 A run folder holds `progress.csv` (SB3's CSV log: returns, losses, fps), `monitor.csv` (one row
-per episode), `checkpoints/`, `last.zip` (resumed by running the same command again) and
-`policy.zip` with `policy.json`, which records what the policy observes so that a policy of
-another observation layout is refused by name."""
+per episode), `last.pt` (weights, optimiser state and step count: running the same command again
+resumes from it), `policy.pt` (the trained policy's weights) and `policy.json`, which records the
+network's layout and what the policy observes, so that a policy of another observation layout is
+refused by name. Weights are stored as tensors and read with torch's weights-only loader, so that
+loading a policy folder never runs code from it; stable-baselines3's own zip files, whose loader
+unpickles what they hold, are neither written nor read."""
 from __future__ import annotations
 
 import dataclasses
@@ -15,6 +18,7 @@ import numpy as np
 from tqdm import tqdm
 
 from l3e_env.config import plain
+from l3e_env.core.files import write_atomic
 
 from .context import SceneContext
 from .fastenv import FastEnvConfig, MapNavigationEnv
@@ -37,9 +41,32 @@ def _sb3():
     return stable_baselines3
 
 
-# what a run trained before each of these options existed was trained with (policy.json records
-# every FastEnvConfig field since): no cost for walking sideways
-FAST_ENV_BEFORE_OPTIONS = {"lateral_drift": 0.0}
+POLICY_FILE, STATE_FILE, META_FILE = "policy.pt", "last.pt", "policy.json"
+NET_ARCH = [64, 64]
+PPO_SETTINGS = {"n_steps": 256, "batch_size": 256, "n_epochs": 10, "learning_rate": 3e-4, "gamma": 0.99,
+                "gae_lambda": 0.95, "ent_coef": 0.0}
+
+
+def _save_tensors(path: Path, tensors: dict[str, Any]) -> None:
+    import torch
+
+    write_atomic(path, lambda fh: torch.save(tensors, fh))
+
+
+def _load_tensors(path: Path) -> dict[str, Any]:
+    """A file of tensors, read with torch's weights-only loader (it runs no code from the file)."""
+    import torch
+
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # noqa: BLE001 - whatever the loader raises, name the file
+        raise PolicyCheckpointError(f"{path}: cannot be read as policy weights ({exc})") from exc
+
+
+def _save_state(model: Any, path: Path) -> None:
+    """What resuming needs: the policy's weights, its optimiser's state and the steps taken."""
+    _save_tensors(path, {"policy": model.policy.state_dict(), "optimizer": model.policy.optimizer.state_dict(),
+                         "num_timesteps": int(model.num_timesteps)})
 
 
 def run_record(out: str | Path) -> dict[str, Any]:
@@ -52,8 +79,7 @@ def resumed_config(out: str | Path, **given: float | None) -> FastEnvConfig:
     """The fast environment's settings for a stage in `out`: each option given wins; one not given
     is the run's own where the folder holds a stage already (so a second stage trains as the first
     did), else the default."""
-    own = run_record(out).get("fast_env")
-    own = {**FAST_ENV_BEFORE_OPTIONS, **own} if own is not None else {}
+    own = run_record(out).get("fast_env") or {}
     default = FastEnvConfig()
     return FastEnvConfig(**{k: own.get(k, getattr(default, k)) if v is None else v for k, v in given.items()})
 
@@ -65,7 +91,7 @@ def train_ppo(out: str | Path, contexts: list[SceneContext], detector: str = "le
     evaluation reads back from policy.json); returns the summary written there."""
     sb3 = _sb3()
     import torch
-    from stable_baselines3.common.callbacks import BaseCallback, CheckpointCallback
+    from stable_baselines3.common.callbacks import BaseCallback
     from stable_baselines3.common.logger import configure
     from stable_baselines3.common.vec_env import DummyVecEnv, VecMonitor
 
@@ -75,17 +101,22 @@ def train_ppo(out: str | Path, contexts: list[SceneContext], detector: str = "le
     config = config or FastEnvConfig()
     scenes = [c.scene.name for c in contexts]
 
-    last = out / "last.zip"
+    last = out / STATE_FILE
     # one episode log per run: monitor.csv, then resume-1.monitor.csv, ... (SB3 wants the suffix)
     runs = len(list(out.glob("*monitor.csv")))
     monitor = out / ("monitor.csv" if runs == 0 else f"resume-{runs}.monitor.csv")
     venv = VecMonitor(DummyVecEnv([lambda: MapNavigationEnv(contexts, config)] * n_envs), str(monitor))
     venv.seed(seed)
+    model = sb3.PPO("MlpPolicy", venv, seed=seed, device="cpu", policy_kwargs={"net_arch": NET_ARCH}, **PPO_SETTINGS)
     if last.exists():
-        model = sb3.PPO.load(last, env=venv, device="cpu")
-    else:
-        model = sb3.PPO("MlpPolicy", venv, n_steps=256, batch_size=256, n_epochs=10, learning_rate=3e-4, gamma=0.99,
-                        gae_lambda=0.95, ent_coef=0.0, seed=seed, device="cpu", policy_kwargs={"net_arch": [64, 64]})
+        state = _load_tensors(last)
+        try:
+            model.policy.load_state_dict(state["policy"])
+            model.policy.optimizer.load_state_dict(state["optimizer"])
+            model.num_timesteps = int(state["num_timesteps"])
+        except (KeyError, RuntimeError, ValueError, TypeError) as exc:
+            raise PolicyCheckpointError(f"{last}: not the state of a run of this network ({exc}); train into "
+                                        "another folder") from exc
     model.set_logger(configure(str(out), ["csv"]))
     done = model.num_timesteps
 
@@ -96,51 +127,60 @@ def train_ppo(out: str | Path, contexts: list[SceneContext], detector: str = "le
         def _on_step(self) -> bool:
             self.bar.update(self.training_env.num_envs)
             if self.num_timesteps % 20_000 < self.training_env.num_envs:
-                model.save(last)
+                _save_state(model, last)
             return True
 
         def _on_training_end(self) -> None:
             self.bar.close()
 
     if timesteps > done:
-        model.learn(timesteps - done, callback=[Bar(), CheckpointCallback(50_000, str(out / "checkpoints"), "ppo")],
-                    reset_num_timesteps=False)
-    model.save(last)
-    model.save(out / "policy.zip")
+        model.learn(timesteps - done, callback=[Bar()], reset_num_timesteps=False)
+    _save_state(model, last)
+    _save_tensors(out / POLICY_FILE, model.policy.state_dict())
     # a run resumed on other variants (a curriculum) keeps the record of every stage
     history = run_record(out).get("history", [])
     history.append({"scenes": scenes, "from_timestep": int(done), "to_timestep": int(model.num_timesteps)})
-    summary = {"observation": OBSERVATION, "scenes": scenes, "detector": detector,
+    summary = {"observation": OBSERVATION, "net_arch": NET_ARCH, "scenes": scenes, "detector": detector,
                "timesteps": int(model.num_timesteps),
                "seed": seed, "fast_env": plain(dataclasses.asdict(config)), "history": history}
-    (out / "policy.json").write_text(json.dumps(summary, indent=2))
+    (out / META_FILE).write_text(json.dumps(summary, indent=2))
     return summary
 
 
 class PPOPolicy:
-    """A trained policy: observation in, normalised twist out (deterministic)."""
+    """A trained policy: observation in, normalised twist out (deterministic). Built from the folder's
+    policy.json (the network's layout) and policy.pt (its weights, read as tensors only)."""
 
     def __init__(self, path: str | Path):
-        sb3 = _sb3()
+        _sb3()
+        from gymnasium import spaces
+        from stable_baselines3.common.policies import ActorCriticPolicy
+
         path = Path(path)
-        zip_path = path / "policy.zip" if path.is_dir() else path
-        meta_path = zip_path.with_name("policy.json")
-        if not zip_path.exists() or not meta_path.exists():
-            raise PolicyCheckpointError(f"{path}: no policy.zip with policy.json beside it (train one with "
-                                        f"`l3e policy train`)")
-        self.meta = json.loads(meta_path.read_text())
-        if self.meta.get("observation") != json.loads(json.dumps(OBSERVATION)):
-            raise PolicyCheckpointError(f"{zip_path}: trained on observation {self.meta.get('observation')}, this "
-                                        f"version gives {OBSERVATION}; retrain it")
+        folder = path if path.is_dir() else path.parent
+        weights, meta_path = folder / POLICY_FILE, folder / META_FILE
+        if not weights.exists() or not meta_path.exists():
+            old = " (its policy.zip is not read: loading it could run code from it; train the policy again)" \
+                if (folder / "policy.zip").exists() else ""
+            raise PolicyCheckpointError(f"{folder}: no {POLICY_FILE} with {META_FILE} beside it{old} (train one with "
+                                        "`l3e policy train`)")
         try:
-            self.model = sb3.PPO.load(zip_path, device="cpu")
-        except Exception as exc:  # noqa: BLE001 - SB3 raises many kinds for a broken zip
-            raise PolicyCheckpointError(f"{zip_path}: cannot be loaded as a PPO policy ({exc})") from exc
-        if self.model.observation_space.shape != (PolicyView.size,):
-            raise PolicyCheckpointError(f"{zip_path}: observation shape {self.model.observation_space.shape}, "
-                                        f"expected ({PolicyView.size},)")
+            self.meta = json.loads(meta_path.read_text())
+        except (OSError, ValueError) as exc:
+            raise PolicyCheckpointError(f"{meta_path}: cannot be read ({exc})") from exc
+        if self.meta.get("observation") != json.loads(json.dumps(OBSERVATION)):
+            raise PolicyCheckpointError(f"{folder}: trained on observation {self.meta.get('observation')}, this "
+                                        f"version gives {OBSERVATION}; retrain it")
+        self.policy = ActorCriticPolicy(spaces.Box(-np.inf, np.inf, (PolicyView.size,), np.float32),
+                                        spaces.Box(-1.0, 1.0, (3,), np.float32), lambda _: 0.0,
+                                        net_arch=list(self.meta.get("net_arch", NET_ARCH)))
+        try:
+            self.policy.load_state_dict(_load_tensors(weights))
+        except (RuntimeError, TypeError, ValueError) as exc:
+            raise PolicyCheckpointError(f"{weights}: not the weights of this network ({exc})") from exc
+        self.policy.set_training_mode(False)
         self.action_repeat = int(self.meta["fast_env"]["action_repeat"])
 
     def __call__(self, obs: np.ndarray) -> np.ndarray:
-        action, _ = self.model.predict(obs, deterministic=True)
+        action, _ = self.policy.predict(obs, deterministic=True)
         return np.clip(np.asarray(action, dtype=np.float32), -1, 1)

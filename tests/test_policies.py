@@ -257,12 +257,7 @@ def test_policy_train_takes_the_sideways_cost_and_a_resumed_run_keeps_it(tmp_pat
     assert main([*run, str(tmp_path / "b"), "--lateral-drift", "0"]) == 0
     assert main([*run, str(tmp_path / "b")]) == 0  # resumed: still without the cost
     assert main([*run, str(tmp_path / "c")]) == 0  # a new run: the defaults
-    record = json.loads((tmp_path / "c" / "policy.json").read_text())
-    del record["fast_env"]["lateral_drift"]  # a run trained before the option, without that cost
-    (tmp_path / "c" / "policy.json").write_text(json.dumps(record))
-    assert main([*run, str(tmp_path / "c")]) == 0
-    assert given == [(0.015, 20.0), (0.015, 20.0), (0.015, 30.0), (0.0, 50.0), (0.0, 50.0), (0.015, 50.0),
-                     (0.0, 50.0)]
+    assert given == [(0.015, 20.0), (0.015, 20.0), (0.015, 30.0), (0.0, 50.0), (0.0, 50.0), (0.015, 50.0)]
     for option in ("--lateral-drift", "--lam"):
         for bad in ("-0.1", "nan", "much"):
             with pytest.raises(SystemExit):
@@ -313,7 +308,7 @@ def test_ppo_trains_resumes_and_refuses_other_observations(tmp_path, small_fork)
     contexts = [SceneContext(scene, space, get_map(scene, space, "eigen:30", cache, resolution=4.0))]
     out = tmp_path / "ppo"
     first = train_ppo(out, contexts, "eigen:30", timesteps=512, n_envs=2, config=FastEnvConfig(), progress=False)
-    assert first["timesteps"] >= 512 and (out / "last.zip").exists()
+    assert first["timesteps"] >= 512 and (out / "last.pt").exists() and not list(out.glob("*.zip"))
     resumed = train_ppo(out, contexts, "eigen:30", timesteps=1024, n_envs=2, progress=False)
     assert resumed["timesteps"] >= 1024
     assert (out / "progress.csv").exists() and (out / "monitor.csv").exists()
@@ -327,8 +322,53 @@ def test_ppo_trains_resumes_and_refuses_other_observations(tmp_path, small_fork)
     (out / "policy.json").write_text(json.dumps(meta))
     with pytest.raises(PolicyCheckpointError, match="observation"):
         PPOPolicy(out)
-    with pytest.raises(PolicyCheckpointError, match="no policy.zip"):
+    with pytest.raises(PolicyCheckpointError, match="no policy.pt"):
         PPOPolicy(tmp_path / "nowhere")
+
+
+class _Payload:
+    """Unpickled, it writes a marker file: what a crafted policy file would do."""
+
+    def __init__(self, marker: Path):
+        self.marker = marker
+
+    def __reduce__(self):
+        return (Path.write_text, (self.marker, "ran"))
+
+
+def test_a_crafted_policy_folder_runs_no_code_when_loaded_or_resumed(tmp_path, small_fork, capsys):
+    """policy.zip (what stable-baselines3's loader would unpickle) is never read; policy.pt and last.pt go
+    through torch's weights-only loader, which refuses a pickled object instead of running it."""
+    pytest.importorskip("stable_baselines3")
+    import base64
+    import pickle
+    import zipfile
+
+    from l3e_env.cli.main import main
+    from policies.fastenv import FastEnvConfig
+    from policies.ppo import OBSERVATION, PolicyCheckpointError, PPOPolicy, train_ppo
+
+    marker = tmp_path / "marker"
+    folder = tmp_path / "shared-policy"
+    folder.mkdir()
+    meta = {"observation": OBSERVATION, "net_arch": [64, 64], "fast_env": {"action_repeat": 1}}
+    (folder / "policy.json").write_text(json.dumps(meta))
+    payload = base64.b64encode(pickle.dumps(_Payload(marker))).decode()
+    with zipfile.ZipFile(folder / "policy.zip", "w") as z:  # SB3's layout: cloudpickled entries in `data`
+        z.writestr("data", json.dumps({"policy_class": {":type:": "<class>", ":serialized:": payload}}))
+    with pytest.raises(PolicyCheckpointError, match="policy.zip is not read"):
+        PPOPolicy(folder)
+    assert main(["policy", "evaluate", "--policy", f"ppo:{folder}", "--scene", "fork-0", "--episodes", "1",
+                 "--out", str(tmp_path / "ev"), "--quiet"]) == 2
+    (folder / "policy.pt").write_bytes(pickle.dumps(_Payload(marker)))
+    with pytest.raises(PolicyCheckpointError, match="cannot be read as policy weights"):
+        PPOPolicy(folder)
+    scene, space, cache = small_fork
+    contexts = [SceneContext(scene, space, get_map(scene, space, "eigen:30", cache, resolution=4.0))]
+    (folder / "last.pt").write_bytes(pickle.dumps(_Payload(marker)))
+    with pytest.raises(PolicyCheckpointError, match="cannot be read as policy weights"):
+        train_ppo(folder, contexts, "eigen:30", timesteps=256, n_envs=1, config=FastEnvConfig(), progress=False)
+    assert not marker.exists()
 
 
 def test_full_pipeline_evaluation_on_the_small_fork(small_fork, monkeypatch, tmp_path):
