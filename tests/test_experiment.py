@@ -50,8 +50,12 @@ def test_masking_the_wall_axis_beats_full_icp(walls_run, tmp_path):
 def test_ate_from_a_recording_writes_results_and_figures(walls_run, tmp_path):
     rec, _ = walls_run
     rec.save(tmp_path / "rec.npz")
-    rows = run_ate(tmp_path / "out", "mine", ["eigen:30", "none"], recording=tmp_path / "rec.npz",
-                          progress=False)  # the recording's scene, not the argument, is used
+    run = run_ate(tmp_path / "out", "mine", ["eigen:30", "none"], recording=tmp_path / "rec.npz",
+                  progress=False)  # the recording's scene, not the argument, is used
+    rows = run.rows
+    assert all(path.is_file() for path in run.written) and not run.swept
+    assert {p.name for p in run.written} == {"results.json", "trajectories.png", "timeline.png", "map_eigen_30.png",
+                                            "map_eigen_30.ply", "map_none.png", "map_none.ply"}
     assert [r["detector"] for r in rows] == ["odometry only", "eigen:30", "none"]
     written = {p.name for p in (tmp_path / "out").iterdir()}
     assert {"results.json", "trajectories.png", "timeline.png", "map_eigen_30.png", "map_none.png"} <= written
@@ -88,7 +92,7 @@ def test_the_hessian_weighs_the_icp_factor_and_the_settings_are_written(walls_ru
     fixed, = fuse_recording(rec, [NoDetector()], regs, fusion=FusionConfig(icp_covariance="fixed"), progress=False)
     weighed, = fuse_recording(rec, [NoDetector()], regs, progress=False)
     assert weighed.ate != pytest.approx(fixed.ate, rel=1e-3)  # the library's fixed sigmas are another estimator
-    rows = run_ate(tmp_path / "out", "mine", ["none"], recording=tmp_path / "rec.npz", progress=False)
+    rows = run_ate(tmp_path / "out", "mine", ["none"], recording=tmp_path / "rec.npz", progress=False).rows
     assert rows[1]["ate_m"] == round(weighed.ate, 3)  # rows are rounded
     assert json.loads((tmp_path / "out" / "results.json").read_text())["odometry_bias"] == []
     from l3e_env.experiments.tau_sweep import run_sweep
@@ -241,7 +245,7 @@ def test_a_users_mesh_and_route_are_driven_and_replayed(cad_corridor, tmp_path, 
     assert rec.scene_params["up_axis"] == "y" and len(rec.ground_truth) > 50
     assert rec.ground_truth[-1][0, 3] > 7.0 and abs(rec.ground_truth[-1][1, 3]) < 0.3  # along the corridor
     again = run_ate(tmp_path / "again", "ignored", ["eigen:30"], recording=out / "recording.npz",
-                           progress=False)  # rebuilt from the recording's mesh path and parameters
+                    progress=False).rows  # rebuilt from the recording's mesh path and parameters
     assert again[1]["ate_m"] == first[1]["ate_m"]
     # the mesh moved: the recording names its old path, and takes the new one as the scene
     moved = mesh.rename(tmp_path / "moved.obj")

@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -58,8 +57,7 @@ def _cmd_envs(args: argparse.Namespace) -> int:
 
 
 def _cmd_ate(args: argparse.Namespace) -> int:
-    from l3e_env.experiments.ate import format_seed_table, format_table, run_ate, summarize_seeds
-    from l3e_env.experiments.ate_plots import plot_seeds
+    from l3e_env.experiments.ate import run_ate, run_ate_seeds
     from l3e_env.sim.lidar import DESKEW_STEPS
 
     # a recording holds its scene's route, axes and scale: a mesh given with it is where the mesh moved to
@@ -72,27 +70,18 @@ def _cmd_ate(args: argparse.Namespace) -> int:
         return 2
     print(f"writing the experiment into {out.resolve()}")
     detectors = args.detector or ["none", "eigen:30", "eigen:110", "oracle"]
+    options = dict(sensor=args.sensor, progress=not args.quiet, backend=args.backend, scene_params=params,
+                   workers=args.workers, attitude=args.attitude, fusion_settings=fusion_settings(args))
     if args.seeds > 1:
-        runs = {}
-        for seed in range(args.seed, args.seed + args.seeds):
-            print(f"drive {seed - args.seed + 1} of {args.seeds} (seed {seed})")
-            runs[seed] = run_ate(out / f"seed-{seed}", args.scene, detectors, sensor=args.sensor, seed=seed,
-                                        progress=not args.quiet, backend=args.backend, scene_params=params,
-                                        workers=args.workers, attitude=args.attitude,
-                                        fusion_settings=fusion_settings(args))
-            print(format_table(runs[seed]))
-        summary = summarize_seeds(runs)
-        (out / "seeds.json").write_text(json.dumps(summary, indent=1))
-        plot_seeds(out / "seeds.png", summary)
-        print(format_seed_table(summary))
-        print(f"written: {out / 'seeds.json'}, {out / 'seeds.png'}")
+        seeds = range(args.seed, args.seed + args.seeds)
+        done = run_ate_seeds(out, args.scene, detectors, seeds, on_drive=lambda seed, run: print(
+            f"drive {seed - args.seed + 1} of {args.seeds} (seed {seed})\n{run.table()}"), **options)
+        print(done.table())
+        print("written: " + ", ".join(map(str, done.written)))
         return 0
-    rows = run_ate(out, args.scene, detectors, sensor=args.sensor, seed=args.seed, recording=args.recording,
-                          progress=not args.quiet, backend=args.backend, scene_params=params, workers=args.workers,
-                          deskew=args.deskew, attitude=args.attitude,
-                          fusion_settings=fusion_settings(args))
-    print(format_table(rows))
-    if json.loads((out / "results.json").read_text()).get("swept"):
+    run = run_ate(out, args.scene, detectors, seed=args.seed, recording=args.recording, deskew=args.deskew, **options)
+    print(run.table())
+    if run.swept:
         turn = "the gyro's rotation over it" if args.deskew == "gyro" else "the odometry's rotation"
         print("the recording's scans are swept over the robot's motion; each was deskewed with the leg "
               f"odometry's mean motion over its last {DESKEW_STEPS} steps, with {turn}, before it was judged "

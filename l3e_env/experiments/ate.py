@@ -373,12 +373,59 @@ def _scored(name: str, traj: np.ndarray, gt: np.ndarray, masks: np.ndarray, prob
     return DetectorResult(name, traj, masks, probs, ate(traj, gt), aligned, rt, rr, seconds, unknown, fallbacks, errors)
 
 
+@dataclass
+class AteRun:
+    """One drive fused with every detector: the table's rows (odometry only first) and what was written."""
+    out_dir: Path
+    rows: list[dict]
+    swept: bool  # the drive's scans were swept revolutions, deskewed before they were judged and registered
+    written: list[Path]
+
+    def table(self) -> str:
+        return format_table(self.rows)
+
+
+@dataclass
+class AteSeeds:
+    """Drives of several seeds: each drive's run, the summary over them per detector, what was written."""
+    out_dir: Path
+    runs: dict[int, AteRun]
+    summary: list[dict]
+    written: list[Path]
+
+    def table(self) -> str:
+        return format_seed_table(self.summary)
+
+
+def run_ate_seeds(out_dir: str | Path, scene: str, detectors: list[str], seeds: range,
+                  on_drive: Callable[[int, AteRun], None] | None = None, **options) -> AteSeeds:
+    """`run_ate` on one drive per seed, each into `out_dir/seed-<seed>`, then the summary over them
+    (`summarize_seeds`) into seeds.json and seeds.png; `on_drive(seed, run)` sees each drive as it ends.
+    `options`: run_ate's (not a recording: that is one drive)."""
+    if len(seeds) < 1:
+        raise ValueError("give one seed or more")
+    if options.get("recording"):
+        raise ValueError("a recording is one drive: drive several seeds without it")
+    out = Path(out_dir)
+    runs = {}
+    for seed in seeds:
+        runs[seed] = run_ate(out / f"seed-{seed}", scene, detectors, seed=seed, **options)
+        if on_drive is not None:
+            on_drive(seed, runs[seed])
+    summary = summarize_seeds({seed: run.rows for seed, run in runs.items()})
+    (out / "seeds.json").write_text(json.dumps(summary, indent=1))
+    from .ate_plots import plot_seeds
+
+    plot_seeds(out / "seeds.png", summary)
+    return AteSeeds(out, runs, summary, [out / "seeds.json", out / "seeds.png"])
+
+
 def run_ate(out_dir: str | Path, scene: str, detectors: list[str], sensor: str = "vlp16", seed: int = 0,
                    recording: str | Path | None = None, progress: bool = True, backend: str = "graph",
                    scene_params: dict | None = None, workers: int = 1, deskew: str = "gyro",
                    attitude: str = "none",
-                   fusion_settings: FusionSettings = FusionSettings()) -> list[dict]:
-    """The `l3e ate` command as a function: returns the table rows and writes everything to out_dir.
+                   fusion_settings: FusionSettings = FusionSettings()) -> AteRun:
+    """The `l3e ate` command as a function: writes everything to out_dir and returns the rows.
     `scene_params` go to make_scene (a mesh scene's up axis, scale and route). With a `recording`,
     its own scene is used; `scene` matters only as the new path of a recorded mesh that has moved.
     `workers` processes judge the route with scanmc before the fusion (the same judgements as one).
@@ -439,9 +486,13 @@ def run_ate(out_dir: str | Path, scene: str, detectors: list[str], sensor: str =
 
     plot_trajectories(out / "trajectories.png", scene_obj, rec, results)
     plot_timeline(out / "timeline.png", results[1:])
+    maps = []
     for r in results[1:]:
-        plot_map(out / f"map_{file_stem(r.name)}", rec, r.trajectory)
-    return rows
+        maps += plot_map(out / f"map_{file_stem(r.name)}", rec, r.trajectory)
+    written = [out / "results.json", out / "trajectories.png", out / "timeline.png", *maps]
+    if (out / "recording.npz").exists():
+        written.insert(0, out / "recording.npz")
+    return AteRun(out, rows, swept, written)
 
 
 def file_stem(detector_name: str) -> str:

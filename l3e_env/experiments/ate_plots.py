@@ -43,8 +43,9 @@ def plot_timeline(path: Path, results) -> None:
     plt.close(fig)
 
 
-def plot_map(stem: Path, rec, trajectory: np.ndarray, every: int = 10) -> None:
-    """Scans accumulated at the estimated poses, as PLY and a top view: a corrupted map shows."""
+def plot_map(stem: Path, rec, trajectory: np.ndarray, every: int = 10) -> list[Path]:
+    """Scans accumulated at the estimated poses, as PLY and a top view: a corrupted map shows. Returns
+    the two files."""
     T_b_s = rec.T_b_s
     pts = [rec.scans[k] @ (trajectory[k] @ T_b_s)[:3, :3].T + (trajectory[k] @ T_b_s)[:3, 3]
            for k in range(0, len(rec.scans), every)]
@@ -58,6 +59,7 @@ def plot_map(stem: Path, rec, trajectory: np.ndarray, every: int = 10) -> None:
     fig.tight_layout()
     fig.savefig(str(stem) + ".png", dpi=110)
     plt.close(fig)
+    return [Path(str(stem) + ".ply"), Path(str(stem) + ".png")]
 
 
 def plot_seeds(path: Path, summary: list[dict]) -> None:
