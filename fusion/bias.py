@@ -4,8 +4,8 @@ Legs drift in heading and height by a rate per metre walked that persists and wa
 walk per square-root metre). With the rate as a state, the ICP steps that hold yaw (or z) teach
 the fusion the legs' present bias, so the legs stop pulling the heading by a fraction of their
 bias on every step, and keep walking true for a while where the detector masks the scans'
-heading. The stride-scale error is not offered: its estimate learns ICP's own step bias (7-16 %
-of a step along corridors) and took the mine's mean ATE from 1.90 to 2.54 m (docs/log.md).
+heading. The stride-scale error is not offered: its estimate learns ICP's own step bias along
+corridors instead (docs/decisions.md).
 
 Model: the measured increment M = (R, t) walked d = |t| metres; with yaw bias b_yaw (rad/m) and
 z bias b_z (m/m) the true increment is Z(b) = (Rz(-b_yaw d) R, t - b_z d e_z).

@@ -153,7 +153,7 @@ class LearnedDetector:
         return Prediction(p, mask)
 
 
-CASCADE_MARGIN = 1.0  # chosen on the validation scenes (docs/log.md, "The classifier checked ...")
+CASCADE_MARGIN = 1.0  # chosen on the validation scenes (docs/decisions.md)
 
 
 def log_odds_over_threshold(probabilities: np.ndarray, thresholds: np.ndarray) -> np.ndarray:

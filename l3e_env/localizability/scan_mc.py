@@ -47,8 +47,7 @@ class ScanMCConfig:
     # What a child sees that the scan did not (range_image_mesh): a surface behind the returns beside
     # a depth jump, as far as the farthest surface within this many degrees (0: none), and the edge
     # beams' surfaces continued this far past the field of view (children are pitched and rolled by
-    # 5 deg). Chosen on the validation scenes: F1 0.860 with them, 0.790 without (test: 0.629 and
-    # 0.637; docs/log.md).
+    # 5 deg). Chosen on the validation scenes (docs/decisions.md).
     shadow_deg: float = 3.0
     beyond_deg: float = 4.0
     # Estimated errors are multiplied by these: 1 / the median of estimate over label on 240 scans
