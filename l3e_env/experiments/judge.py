@@ -18,6 +18,7 @@ from l3e_env.detection.detectors import (CascadeDetector, Detector, EigenvalueDe
 from l3e_env.localizability.labels import AXES
 from l3e_env.sim.patterns import BeamPattern, PatternError, fit_pattern, get_pattern, register_pattern
 from l3e_env.localizability.registration import RegistrationConfig, RegistrationError, RegistrationResult, scan_hessian
+from l3e_env.detection.pipeline import registration_of
 from l3e_env.io.rosbag import BagScan
 from l3e_env.io.scan_files import ScanFileError, read_scan
 from l3e_env.core.workers import ordered_map
@@ -49,7 +50,7 @@ def judge_points(points: np.ndarray, detectors: list[Detector], registration: Re
     onto_itself = None  # eigen answers UNKNOWN without it; the others do not read it
     if any(isinstance(d, EigenvalueDetector) for d in detectors):
         try:
-            H = scan_hessian(points, registration or RegistrationConfig())
+            H = scan_hessian(points, registration or registration_of(detectors))
             onto_itself = RegistrationResult(np.eye(4), H, True, 0, len(points), len(points), 0.0)
         except RegistrationError:
             pass
