@@ -472,8 +472,8 @@ def test_evaluate_writes_table_curves_and_results(tiny_dataset, tmp_path, monkey
     train(tiny_dataset, tmp_path / "run", _train_cfg(), progress=False)
     res = run_table3([tmp_path / "run" / "model.pt"], tiny_dataset, tmp_path / "eval",
                    others=[tiny_dataset, tiny_dataset], progress=False, eigen=[1e9], by_family=True)
-    eigen = res["models"].pop("eigen:1e+09")
-    (name, model), = res["models"].items()
+    eigen = res.models.pop("eigen:1e+09")
+    (name, model), = res.models.items()
     assert set(eigen["splits"]) == set(model["splits"]) and eigen["splits"]["valid"]["unregistrable"] == 0
     data = LabelDataset(tiny_dataset)
     rows = split_indices(data, ["office-0"])  # the validation scene: an enormous tau flags every axis
@@ -490,7 +490,7 @@ def test_evaluate_writes_table_curves_and_results(tiny_dataset, tmp_path, monkey
         column = model["splits"][f"{family} of {Path(tiny_dataset).name}"]
         assert column["count"] == 4 and column["f1"] == pytest.approx(expected["f1"].tolist(), nan_ok=True)
         assert column["accuracy"] == pytest.approx(expected["accuracy"].tolist())
-    assert f"office of {Path(tiny_dataset).name}" in res["table"]
+    assert f"office of {Path(tiny_dataset).name}" in res.table
     monkeypatch.setattr(table3, "TEST_SCENES", ["field-0", "tunnel-0"])  # a test split of two families
     built = table3.make_scene
 
@@ -502,7 +502,7 @@ def test_evaluate_writes_table_curves_and_results(tiny_dataset, tmp_path, monkey
     monkeypatch.setattr(table3, "make_scene", tunnel_as_one_region)
     drawn = run_table3([tmp_path / "run" / "model.pt"], tiny_dataset, tmp_path / "eval-test", progress=False,
                      by_family=True, by_region=True, draws=3)
-    splits = drawn["models"][name]["splits"]
+    splits = drawn.models[name]["splits"]
     assert set(splits) == {"train", "valid", "test", "tunnel of test", "field of test", "anywhere of tunnel-0"}
     region, family = ({k: v for k, v in splits[c].items() if k != "dataset"} for c in ("anywhere of tunnel-0",
                                                                                     "tunnel of test"))
@@ -513,7 +513,7 @@ def test_evaluate_writes_table_curves_and_results(tiny_dataset, tmp_path, monkey
                                     predict_dataset(clf.model, data, test_rows, seed=2) > clf.thresholds))
     assert splits["test"]["draws"]["mean_accuracy"][2] == pytest.approx(again["accuracy"])
     assert len(splits["valid"]["draws"]["mean_f1"]) == 3 and "draws" not in splits["tunnel of test"]
-    assert "over 3 draws of the points" in drawn["table"]
+    assert "over 3 draws of the points" in drawn.table
     with pytest.raises(ValueError, match="draws must be at least 1"):
         run_table3([tmp_path / "run" / "model.pt"], tiny_dataset, tmp_path / "eval-none", progress=False, draws=0)
     rows = split_indices(data, ["tunnel-0"])
@@ -521,20 +521,20 @@ def test_evaluate_writes_table_curves_and_results(tiny_dataset, tmp_path, monkey
     assert splits["test"]["count"] == 8 and splits["tunnel of test"]["count"] == 4
     assert splits["tunnel of test"]["f1"] == pytest.approx(expected["f1"].tolist(), nan_ok=True)
     assert model["splits"][whole]["sensor"] == "vlp16"
-    assert "accuracy mean" in res["table"] and (tmp_path / "eval" / "pr_curves.png").stat().st_size > 10_000
+    assert "accuracy mean" in res.table and (tmp_path / "eval" / "pr_curves.png").stat().st_size > 10_000
     stored = json.loads((tmp_path / "eval" / "results.json").read_text())
     assert stored["models"][name]["thresholds"] == pytest.approx(model["thresholds"])
     lo, hi = model["splits"]["valid"]["mean_95_interval"]["f1"]
-    assert lo <= model["splits"]["valid"]["mean"]["f1"] <= hi and "f1 95% CI" in res["table"]
+    assert lo <= model["splits"]["valid"]["mean"]["f1"] <= hi and "f1 95% CI" in res.table
     point = model["f1_operating_point"]
     valid_y, valid_p = _valid_predictions(tmp_path / "run" / "model.pt", tiny_dataset)
     assert point["thresholds"] == pytest.approx(best_thresholds(valid_y, valid_p, beta=1.0).tolist())
-    assert "F1-best validation thresholds" in res["table"] and set(point["splits"]) == set(model["splits"])
+    assert "F1-best validation thresholds" in res.table and set(point["splits"]) == set(model["splits"])
     sym = run_table3([tmp_path / "run" / "model.pt"], tiny_dataset, tmp_path / "eval-sym", progress=False,
                    symmetric=True)
-    assert sym["symmetric"] and sym["table"].startswith("probabilities averaged over the eight")
+    assert sym.results["symmetric"] and sym.table.startswith("probabilities averaged over the eight")
     stored = Classifier.load(tmp_path / "run" / "model.pt", symmetric=True).thresholds
-    assert sym["models"][name]["thresholds"] == pytest.approx(stored.tolist())
+    assert sym.models[name]["thresholds"] == pytest.approx(stored.tolist())
 
 
 def _valid_predictions(checkpoint, dataset, symmetric=False):

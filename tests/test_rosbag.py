@@ -345,3 +345,15 @@ def test_record_cli_writes_a_drive_that_judge_reads_back(tmp_path, capsys):
     assert first.fields[-1].name == "time" and first.header.stamp.nanosec == pytest.approx(9e8, abs=1e3)
     vertical = np.array([m.linear_acceleration.z for m in imu])
     assert np.abs(vertical - 9.81).max() > 0.7 * ImuConfig().footfall_accel  # footfalls jolt it by default
+
+
+def test_a_stamp_a_hair_under_a_second_is_not_written_a_second_early():
+    from l3e_env.io.rosbag import split_stamp
+
+    assert split_stamp(3.9999999996) == (4, 0)  # rounding the fraction alone gave (3, 0): time ran back 1 s
+    assert split_stamp(3.9999999) == (3, 999_999_900) and split_stamp(0.0) == (0, 0)
+    stamps = np.arange(20_000) * 0.1 + 1e-10 * np.random.default_rng(0).standard_normal(20_000)
+    parts = np.array([split_stamp(s) for s in np.sort(stamps)])
+    assert (parts[:, 1] < 1_000_000_000).all() and (parts[:, 1] >= 0).all()
+    total = parts[:, 0] * 1_000_000_000 + parts[:, 1]
+    assert (np.diff(total) >= 0).all()  # the stamps of a drive never run back

@@ -152,14 +152,14 @@ def test_evaluate_scores_the_scan_estimate_the_same_with_any_number_of_workers(t
 
     res = run_table3([], None, tmp_path / "eval", others=[tiny_dataset], progress=False, scan_mc=3, workers=2)
     column = f"all of {Path(tiny_dataset).name}"
-    scored = res["models"]["scanmc:3"]["splits"][column]
+    scored = res.models["scanmc:3"]["splits"][column]
     data = LabelDataset(tiny_dataset)
     direct, _ = dataset_scan_errors([str(tiny_dataset)], np.arange(len(data)), ScanMCConfig(children=3), workers=1)
     saved = np.load(tmp_path / "eval" / "scan_mc.npz")[column.replace(" ", "_")]
     assert np.isfinite(direct).all() and np.array_equal(saved, direct)
     expected = axis_scores(data.labels, direct > row_thresholds(data))
     assert scored["count"] == len(data) and scored["accuracy"] == pytest.approx(expected["accuracy"].tolist())
-    assert "scanmc:3" in res["table"]
+    assert "scanmc:3" in res.table
     few, _ = dataset_scan_errors([str(tiny_dataset)], np.arange(3), ScanMCConfig(children=3), workers=2)
     assert np.array_equal(few, direct[:3])  # one chunk with two workers asked: judged here
     with pytest.raises(ValueError, match="give a checkpoint"):
@@ -275,15 +275,15 @@ def test_evaluate_scores_the_cascade_from_the_classifier_and_the_estimate(tiny_d
     res = run_table3([DEFAULT_CHECKPOINT], None, tmp_path / "eval", others=[tiny_dataset], progress=False, scan_mc=3,
                    cascade=[0.0, 100.0])
     column = f"all of {Path(tiny_dataset).name}"
-    model = next(name for name in res["models"] if "scanmc" not in name)
-    never, always = (res["models"][f"{model}+scanmc:{m}"]["splits"][column] for m in ("0", "100"))
+    model = next(name for name in res.models if "scanmc" not in name)
+    never, always = (res.models[f"{model}+scanmc:{m}"]["splits"][column] for m in ("0", "100"))
     assert never["checked"] == 0.0 and always["checked"] == 1.0  # margin 0: the classifier; 100: the estimate
-    for cascade, alone in ((never, res["models"][model]), (always, res["models"]["scanmc:3"])):
+    for cascade, alone in ((never, res.models[model]), (always, res.models["scanmc:3"])):
         for key in ("accuracy", "f1", "precision", "recall"):
             assert cascade[key] == pytest.approx(alone["splits"][column][key], nan_ok=True)
-    assert f"{model}+scanmc:100: share of scans checked by scanmc:3: {column} 1.00" in res["table"]
+    assert f"{model}+scanmc:100: share of scans checked by scanmc:3: {column} 1.00" in res.table
     # random checks of no scan are the classifier, of every scan the estimate; the plot is drawn
-    random = res["cascade_random_checks"][column]
+    random = res.results["cascade_random_checks"][column]
     assert random["share"][0] == 0.0 and random["share"][-1] == 1.0
     assert random["mean_f1"][0] == pytest.approx(never["mean"]["f1"], nan_ok=True)
     assert random["mean_f1"][-1] == pytest.approx(always["mean"]["f1"], nan_ok=True)

@@ -64,8 +64,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
                        progress=not args.quiet, symmetric=args.symmetric, eigen=args.eigen, int8=not args.float32,
                        by_family=args.by_family, by_region=args.by_region, scan_mc=args.scan_mc, workers=args.workers,
                        draws=args.draws, cascade=args.cascade)
-    print(results["table"])
-    print("written: " + ", ".join(results["written"]))
+    print(results.table)
+    print("written: " + ", ".join(map(str, results.written)))
     return 0
 
 

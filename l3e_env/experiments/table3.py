@@ -3,6 +3,8 @@ detector they replace, on the train, validation and test splits (and on whole da
 sensor or of unseen families), with PR curves per axis."""
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import json
 from pathlib import Path
 from typing import Any
@@ -71,11 +73,25 @@ def split_rows(data: LabelDataset | DatasetUnion, training: dict[str, Any]) -> d
             "test": split_indices(data, test_scenes_in(data))}
 
 
+@dataclass
+class Table3Result:
+    """Table III: `results` as results.json holds them (per model and detector, per split), the table's
+    text, and the files written."""
+    results: dict[str, Any]
+    table: str
+    written: list[Path]
+
+    @property
+    def models(self) -> dict[str, Any]:
+        """Per checkpoint and detector: its thresholds and its scores per split."""
+        return self.results["models"]
+
+
 def run_table3(checkpoints: list[str | Path], dataset: str | Path | list[str | Path] | None, out_dir: str | Path,
              others: list[str | Path] | None = None, progress: bool = True, symmetric: bool = False,
              eigen: list[float] | None = None, int8: bool = True, by_family: bool = False,
              by_region: bool = False, scan_mc: int = 0, workers: int = 1, draws: int = 1,
-             cascade: list[float] | None = None) -> dict[str, Any]:
+             cascade: list[float] | None = None) -> Table3Result:
     """Score each checkpoint on its own train/validation split and on the test families of the
     dataset, and on every scan of each of `others` (a dataset of another sensor, or of scene
     families the model never saw: column 'all of <folder>'); writes table.txt, results.json and
@@ -243,10 +259,9 @@ def run_table3(checkpoints: list[str | Path], dataset: str | Path | list[str | P
     (out / "results.json").write_text(json.dumps(results, indent=1, default=_nan_safe))
     plot_pr_curves(curves, {n: np.asarray(r["thresholds"]) for n, r in results["models"].items() if n in curves},
                    out / "pr_curves.png")
-    results["table"] = text
-    results["written"] = [str(out / name) for name in ("table.txt", "results.json", "pr_curves.png",
-                                                        *(["cascade.png"] if cascade else []))]
-    return results
+    written = [out / name for name in ("table.txt", "results.json", "pr_curves.png",
+                                       *(["cascade.png"] if cascade else []))]
+    return Table3Result(results, text, written)
 
 
 def dataset_hessians(data: LabelDataset | DatasetUnion, rows: np.ndarray, progress: bool = False) -> np.ndarray:

@@ -221,6 +221,13 @@ def read_path(path: str | Path, topic: str | None = None) -> BagPath:
     return BagPath(topic, np.asarray(stamps)[order], np.asarray(positions, dtype=np.float64)[order])
 
 
+def split_stamp(stamp: float) -> tuple[int, int]:
+    """Seconds and nanoseconds of a stamp, rounded to the nanosecond as one integer first, so that a stamp
+    a hair under a whole second (3.9999999997 s) becomes (4, 0), not (3, 0), and time never runs back."""
+    total = int(round(stamp * 1e9))
+    return total // 1_000_000_000, total % 1_000_000_000
+
+
 class BagRecorder:
     """Writes each step of a drive (`record_run(on_step=...)`) into a bag at `path`, at the
     drive's 10 Hz from `start` seconds:
@@ -279,7 +286,8 @@ class BagRecorder:
 
     def _header(self, stamp: float, frame: str, seq: int | None = None):
         t = self.store.types
-        time = t["builtin_interfaces/msg/Time"](sec=int(stamp), nanosec=int(round(stamp % 1 * 1e9)) % 1_000_000_000)
+        sec, nanosec = split_stamp(stamp)
+        time = t["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec)
         seq = self.steps if seq is None else seq
         return t["std_msgs/msg/Header"](**({} if self.ros2 else {"seq": seq}), stamp=time, frame_id=frame)
 
