@@ -186,6 +186,29 @@ def test_wrong_checkpoints_are_refused_by_name(tmp_path):
         Classifier.load(tmp_path / "missing.pt")
 
 
+def test_a_broken_checkpoint_is_refused_and_a_non_finite_answer_is_unknown(tmp_path, monkeypatch):
+    """NaN weights would answer 'localizable along every axis'; NaN thresholds never flag; three
+    thresholds broke inside numpy without naming the file."""
+    from l3e_env.detection.detectors import UNKNOWN, LearnedDetector
+
+    shipped = torch.load(DEFAULT_CHECKPOINT, weights_only=True)
+    nan = {**shipped, "state_dict": dict(shipped["state_dict"])}
+    name = next(k for k, t in nan["state_dict"].items() if t.is_floating_point())
+    nan["state_dict"][name] = torch.full_like(nan["state_dict"][name], float("nan"))
+    torch.save(nan, tmp_path / "nan.pt")
+    with pytest.raises(CheckpointError, match=f"nan.pt has non-finite weights in {name}"):
+        Classifier.load(tmp_path / "nan.pt")
+    for bad in ([0.5, 0.5, 0.5], [0.5] * 5 + [float("nan")], [0.5] * 5 + [1.5], "0.5"):
+        torch.save({**shipped, "thresholds": bad}, tmp_path / "thresholds.pt")
+        with pytest.raises(CheckpointError, match="thresholds.pt: its thresholds must be six probabilities"):
+            Classifier.load(tmp_path / "thresholds.pt")
+    detector = LearnedDetector()
+    scan = np.random.default_rng(0).uniform(-10, 10, (3000, 3)).astype(np.float32)
+    assert detector.predict(scan).known
+    monkeypatch.setattr(detector.classifier, "probabilities", lambda scans, poses=None: np.full((1, 6), np.nan))
+    assert detector.predict(scan) is UNKNOWN  # nothing masked, and counted as not judged
+
+
 def test_the_shipped_model_loads_by_default_and_is_small():
     assert DEFAULT_CHECKPOINT.exists() and DEFAULT_CHECKPOINT.stat().st_size <= 20 * 2**20
     det = make_detector("learned")

@@ -150,6 +150,8 @@ class LearnedDetector:
             p, mask = self.classifier.predict(points, T_w_s)
         except ScanError:
             return UNKNOWN
+        if not np.isfinite(p).all():  # a broken model answers "unknown", never "localizable"
+            return UNKNOWN
         return Prediction(p, mask)
 
 

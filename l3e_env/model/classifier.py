@@ -430,6 +430,11 @@ class Classifier:
         float32, with the same decisions (docs/decisions.md)."""
         path = Path(path) if path is not None else DEFAULT_CHECKPOINT
         state = load_checkpoint(path)
+        broken = [name for name, t in state["state_dict"].items()
+                  if torch.is_tensor(t) and t.is_floating_point() and not torch.isfinite(t).all()]
+        if broken:  # a model with NaN or infinite weights answers nothing trustworthy: refuse it, never judge with it
+            raise CheckpointError(f"{path} has non-finite weights in {', '.join(broken[:3])}"
+                                  f"{' ...' if len(broken) > 3 else ''}: the file is corrupt or its training diverged")
         model = fold_batch_norms(model_from_checkpoint(state, str(path)))
         if int8:
             quantize_int8(model)
@@ -439,8 +444,15 @@ class Classifier:
         if symmetric and "symmetric_thresholds" not in state:
             raise CheckpointError(f"{path} has no thresholds for symmetric inference; add them with "
                                   f"'l3e calibrate --checkpoint {path} --dataset <its dataset>'")
-        thresholds = state["symmetric_thresholds" if symmetric else "thresholds"]
-        return cls(model, np.asarray(thresholds, dtype=np.float64), meta, symmetric=symmetric)
+        key = "symmetric_thresholds" if symmetric else "thresholds"
+        try:
+            thresholds = np.asarray(state[key], dtype=np.float64)
+        except (TypeError, ValueError):
+            thresholds = np.full(0, np.nan)
+        if thresholds.shape != (6,) or not ((thresholds > 0) & (thresholds < 1)).all():
+            raise CheckpointError(f"{path}: its {key} must be six probabilities in (0, 1), one per axis "
+                                  f"(x, y, z, roll, pitch, yaw); it holds {state[key]!r}")
+        return cls(model, thresholds, meta, symmetric=symmetric)
 
     def check_settings(self, lidar_model: str | None = None, registration: dict | None = None) -> None:
         """Warn when the scans or the registration differ from those the labels were made with."""
