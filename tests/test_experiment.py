@@ -382,3 +382,27 @@ def test_a_swept_recording_is_deskewed_by_its_odometry_and_gyro_before_it_is_fus
         deskewed(rec, "lidar")
     still = replace(rec, sweep=False)
     assert deskewed(still) is still  # a recording taken at one pose a revolution is fused as it is
+
+
+def test_a_recording_is_saved_whole_and_a_damaged_one_is_named(walls_run, tmp_path, capsys, monkeypatch):
+    from l3e_env.cli.main import main
+    from l3e_env.experiments.ate import RecordingError
+
+    rec, _ = walls_run
+    rec.save(tmp_path / "rec.npz")
+    whole = (tmp_path / "rec.npz").read_bytes()
+    (tmp_path / "cut.npz").write_bytes(whole[: len(whole) // 2])
+    with pytest.raises(RecordingError, match="cut.npz cannot be read as a recording"):
+        Recording.load(tmp_path / "cut.npz")
+    assert main(["ate", "--recording", str(tmp_path / "cut.npz"), "--quiet", "--out", str(tmp_path / "o")]) == 2
+    assert "cut.npz cannot be read as a recording" in capsys.readouterr().err
+    with pytest.raises(RecordingError, match="missing.npz"):
+        Recording.load(tmp_path / "missing.npz")
+
+    def killed(*args, **kwargs):
+        raise KeyboardInterrupt  # the run is stopped while the file is written
+
+    monkeypatch.setattr(np, "savez_compressed", killed)
+    with pytest.raises(KeyboardInterrupt):
+        rec.save(tmp_path / "rec.npz")
+    assert (tmp_path / "rec.npz").read_bytes() == whole and not list(tmp_path.glob("*.tmp"))

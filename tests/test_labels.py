@@ -264,3 +264,26 @@ def test_a_full_disk_is_a_clear_error_and_keeps_finished_shards(tmp_path, monkey
     assert shards == ["office-0-00000.npz"]  # the finished shard stays, no temporary is left
     monkeypatch.setattr(ds.np, "savez", real_savez)
     assert generate(tmp_path, cfg, workers=1, progress=False)["count"] == 2
+
+
+def test_a_damaged_dataset_names_the_file_that_is_damaged(tiny_dataset, tmp_path):
+    """A cut-short shard, manifest or array gives an error naming the file, not a zipfile or JSON traceback."""
+    import shutil
+
+    from l3e_env.data.dataset import DatasetError, LabelDataset, config_for, consolidate
+
+    copy = tmp_path / "copy"
+    shutil.copytree(tiny_dataset, copy)
+    points = copy / "points.npy"
+    points.write_bytes(points.read_bytes()[:200])
+    with pytest.raises(DatasetError, match="points.npy cannot be read"):
+        LabelDataset(copy)
+    (copy / "manifest.json").write_text('{"complete": tr')
+    with pytest.raises(DatasetError, match="manifest.json cannot be read"):
+        LabelDataset(copy)
+    cfg = config_for(None, scenes=["tunnel-0", "office-0", "field-0"], parents_per_scene=4, shard_size=2,
+                     labels={"children": 8})
+    shard = sorted((copy / "shards").glob("*.npz"))[0]
+    shard.write_bytes(shard.read_bytes()[:100])
+    with pytest.raises(DatasetError, match=f"shard {shard} is unreadable.*delete it and run again"):
+        consolidate(copy, cfg, {})

@@ -15,6 +15,7 @@ import dataclasses
 import json
 import re
 import time
+import zipfile
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -294,7 +295,7 @@ def consolidate(out: Path, config: DatasetConfig, manifest: dict[str, Any]) -> d
         try:
             with np.load(path) as z:
                 parts.append({k: z[k] for k in z.files})
-        except (OSError, ValueError, KeyError) as exc:
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
             raise DatasetError(f"shard {path} is unreadable ({exc}); delete it and run again to redo it") from exc
     lengths = np.concatenate([p["lengths"] for p in parts])
     arrays = {
@@ -352,10 +353,19 @@ class LabelDataset:
         path = self.folder / "manifest.json"
         if not path.exists():
             raise DatasetError(f"{self.folder} is not a dataset (no manifest.json)")
-        self.manifest = json.loads(path.read_text())
-        if not self.manifest.get("complete"):
+        try:
+            self.manifest = json.loads(path.read_text())
+        except (OSError, ValueError) as exc:
+            raise DatasetError(f"{path} cannot be read ({exc}); the dataset is damaged: generate it again") from exc
+        if not isinstance(self.manifest, dict) or not self.manifest.get("complete"):
             raise DatasetError(f"{self.folder}: generation has not finished; run the same command again to resume")
-        self.arrays = {k: np.load(self.folder / f"{k}.npy", mmap_mode="r") for k in ARRAYS}
+        self.arrays = {}
+        for k in ARRAYS:
+            try:
+                self.arrays[k] = np.load(self.folder / f"{k}.npy", mmap_mode="r", allow_pickle=False)
+            except (OSError, ValueError, EOFError) as exc:
+                raise DatasetError(f"{self.folder / f'{k}.npy'} cannot be read ({exc}); the dataset is damaged: "
+                                   "generate it again") from exc
 
     def __len__(self) -> int:
         return len(self.arrays["labels"])

@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import re
 import time
+import zipfile
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable
@@ -33,11 +34,16 @@ from l3e_env.sim.lidar import DESKEW_SOURCES, Lidar, Scan, deskew, deskew_motion
 from l3e_env.sim.odometry import odometry_fusion_config
 from l3e_env.sim.raycast import EmbreeCaster
 from l3e_env.localizability.registration import RegistrationConfig
+from l3e_env.core.files import write_atomic
 from l3e_env.core.transforms import inverse
 from l3e_env.core.workers import ordered_map
 
 STORE_VOXEL = 0.2  # stored scans for ICP are thinned (ICP downsamples to 0.3 m anyway)
 CLASSIFIER_POINTS = 4000  # the classifier's input size (ModelConfig.points)
+
+
+class RecordingError(ValueError):
+    """A recording.npz that is missing, cut short or not a recording: the message names the file."""
 
 
 @dataclass
@@ -58,22 +64,28 @@ class Recording:
     sweep: bool = False  # scans swept over the robot's motion (LidarConfig.sweep), deskewed before they are fused
 
     def save(self, path: str | Path) -> None:
-        np.savez_compressed(
-            path, scene=self.scene, sensor=self.sensor, seed=self.seed, T_b_s=self.T_b_s,
+        """Written whole or not at all (a killed run leaves the file that was there)."""
+        write_atomic(path, lambda fh: np.savez_compressed(
+            fh, scene=self.scene, sensor=self.sensor, seed=self.seed, T_b_s=self.T_b_s,
             scene_params=json.dumps(self.scene_params), mesh_sha256=self.mesh_sha256, sweep=self.sweep,
             ground_truth=self.ground_truth, odometry=self.odometry, **_ragged("points", self.scans),
             **_ragged("samples", self.samples),
-        )
+        ))
 
     @classmethod
     def load(cls, path: str | Path) -> "Recording":
-        with np.load(path) as z:
-            samples = _unragged(z, "samples") if "samples_offsets" in z.files else []
-            params = json.loads(str(z["scene_params"])) if "scene_params" in z.files else {}
-            digest = str(z["mesh_sha256"]) if "mesh_sha256" in z.files else ""
-            swept = bool(z["sweep"]) if "sweep" in z.files else False
-            return cls(str(z["scene"]), str(z["sensor"]), int(z["seed"]), z["T_b_s"], z["ground_truth"], z["odometry"],
-                       _unragged(z, "points"), samples, params, digest, swept)
+        """RecordingError naming the file where it is missing, cut short or not a recording."""
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                samples = _unragged(z, "samples") if "samples_offsets" in z.files else []
+                params = json.loads(str(z["scene_params"])) if "scene_params" in z.files else {}
+                digest = str(z["mesh_sha256"]) if "mesh_sha256" in z.files else ""
+                swept = bool(z["sweep"]) if "sweep" in z.files else False
+                return cls(str(z["scene"]), str(z["sensor"]), int(z["seed"]), z["T_b_s"], z["ground_truth"],
+                           z["odometry"], _unragged(z, "points"), samples, params, digest, swept)
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
+            raise RecordingError(f"{path} cannot be read as a recording ({type(exc).__name__}: {exc}); record the "
+                                 "drive again (l3e ate or l3e record --recording)") from exc
 
     def scene_file(self, moved_to: str | None = None) -> str:
         """The scene to rebuild: its name, or for a mesh its recorded path, or `moved_to` where the
