@@ -3,12 +3,13 @@ from __future__ import annotations
 
 import hashlib
 import io
+import warnings
 from pathlib import Path
 
 import numpy as np
 import trimesh
 
-from .geometry import resample_polyline
+from .geometry import polyline_length, resample_polyline
 from .scene import Scene, SceneError, validate_mesh
 
 UP_AXES = {"z": np.eye(3), "y": np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]]),
@@ -76,6 +77,26 @@ def load_route(path: str | Path, up_axis: str = "z", scale: float = 1.0) -> np.n
     return points @ UP_AXES[up_axis].T * scale
 
 
+MIN_ROUTE_M = 0.5  # shorter than the robot: no drive, no heading to start with
+LONG_ROUTE_M = 2_000.0  # a drive of over 20,000 steps: warned of, as a mesh in millimetres given no scale
+MAX_ROUTE_M = 50_000.0  # no route of this tool's drives is this long: a units mix-up, refused
+
+
+def check_route_length(route: np.ndarray, where: str) -> None:
+    """SceneError for a route without length (identical waypoints) or of implausible length, a warning
+    for a very long one: both name the scale that would fix a mesh in millimetres."""
+    length = polyline_length(route[:, :2])
+    hint = "if the mesh and route are in millimetres, give scale 0.001 (--scale 0.001)"
+    if length < MIN_ROUTE_M:
+        raise SceneError(f"{where} is {length:.2f} m long on the floor: give waypoints at least {MIN_ROUTE_M} m apart "
+                         "(two identical waypoints make no route)")
+    if length > MAX_ROUTE_M:
+        raise SceneError(f"{where} is {length / 1000:.0f} km long: {hint}")
+    if length > LONG_ROUTE_M:
+        warnings.warn(f"{where} is {length / 1000:.1f} km long, a drive of about {length / 0.1:,.0f} steps: {hint}",
+                      stacklevel=3)
+
+
 def scene_from_mesh(
     path: str | Path,
     up_axis: str = "z",
@@ -97,6 +118,8 @@ def scene_from_mesh(
             raise SceneError(f"{path}: route point ({outside[0, 0]:.1f}, {outside[0, 1]:.1f}) m lies outside the "
                              f"mesh's extent (x {x0:.1f} to {x1:.1f}, y {y0:.1f} to {y1:.1f} m): are the route's "
                              "units and axes those of the mesh file?")
+    for i, p in enumerate(paths):
+        check_route_length(p, f"{path}: route {i}")
     if start is None and paths:
         (x0, y0, _), (x1, y1, _) = paths[0][:2]
         start = (x0, y0, float(np.arctan2(y1 - y0, x1 - x0)))

@@ -151,3 +151,18 @@ def test_chambers_are_closed_rooms_from_smooth_to_rough():
         smooth = make_chamber(seed, roughness=1e-9)  # the same room without the noise field
         roughness.append(np.abs(chamber.mesh.vertices - smooth.mesh.vertices).max(axis=1).mean())
     assert max(roughness) > 5 * min(roughness)
+
+
+def test_a_route_without_length_or_in_other_units_is_named(cad_corridor):
+    """Two identical waypoints made a one-step drive (or a crash in the demo); a millimetre mesh and route
+    given no scale made a drive of hours: both are named with what fixes them."""
+    mesh, route = cad_corridor
+    waypoints = load_route(route, "y", 0.001)
+    scene = scene_from_mesh(mesh, "y", 0.001, sampling_paths=[waypoints])
+    assert 6.9 < float(np.linalg.norm(np.diff(scene.route[:, :2], axis=0), axis=1).sum()) < 7.1
+    with pytest.raises(SceneError, match="0.00 m long on the floor.*two identical waypoints"):
+        scene_from_mesh(mesh, "y", 0.001, sampling_paths=[[waypoints[0], waypoints[0]]])
+    with pytest.warns(UserWarning, match=r"7\.0 km long, a drive of about 70,000 steps.*--scale 0.001"):
+        scene_from_mesh(mesh, "y", 1.0, sampling_paths=[load_route(route, "y", 1.0)])
+    with pytest.raises(SceneError, match=r"70 km long: if the mesh and route are in millimetres"):
+        scene_from_mesh(mesh, "y", 10.0, sampling_paths=[load_route(route, "y", 10.0)])
