@@ -135,3 +135,14 @@ def test_a_run_writes_its_resolved_options_and_they_run_it_again(tmp_path, capsy
     assert main(["sensor", "--config", str(written)]) == 0 and out.is_file()  # the same run, from the file alone
     capsys.readouterr()
     assert main(["scenes", "tunnel"]) == 0 and "options:" not in capsys.readouterr().out  # it made nothing
+
+
+def test_version_and_no_pybullet_banner_in_a_command_s_output():
+    from importlib.metadata import version
+
+    out = subprocess.run([sys.executable, "-m", "l3e_env.cli.main", "--version"], capture_output=True, text=True,
+                         check=True)
+    assert out.stdout.strip() == f"l3e {version('l3e')}"
+    out = subprocess.run([sys.executable, "-m", "l3e_env.cli.main", "scenes", "tunnel"], capture_output=True,
+                         text=True, check=True)
+    assert out.stdout.startswith("tunnel-0 (tunnel, seed 0)") and "pybullet build time" not in out.stdout + out.stderr

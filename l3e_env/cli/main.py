@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 import sys
-from importlib.metadata import entry_points
+from importlib.metadata import entry_points, version
 
 from . import data, drive, model, scans
 from .option_files import add_option_files, resolve, write_resolved
@@ -12,6 +12,7 @@ from .option_files import add_option_files, resolve, write_resolved
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="l3e", description="Learned LiDAR localizability in simulation (L3E).")
+    parser.add_argument("--version", action="version", version=f"l3e {version('l3e')}")
     sub = parser.add_subparsers(dest="command", required=True)
     for group in (drive, data, model, scans):
         group.register(sub)

@@ -6,10 +6,13 @@ from concurrent.futures import ThreadPoolExecutor
 from typing import Protocol
 
 import numpy as np
-import pybullet as pb
 import trimesh
 from embreex import rtcore_scene
 from embreex.mesh_construction import TriangleMesh
+
+from l3e_env.core.quiet import import_pybullet
+
+pb = import_pybullet()  # without its build banner
 
 # PyBullet returns 16383 results or none for 16384 rays and raises beyond: stay below.
 PYBULLET_MAX_RAYS = 16000

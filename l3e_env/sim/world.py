@@ -2,13 +2,16 @@
 from __future__ import annotations
 
 import numpy as np
-import pybullet as pb
 from scipy.spatial.transform import Rotation
 
 from scenes import Scene
 
 from l3e_env.config import RobotConfig
+from l3e_env.core.quiet import import_pybullet
+
 from .raycast import PyBulletCaster, add_static_mesh
+
+pb = import_pybullet()  # without its build banner
 
 SCENE_GROUP, ROBOT_GROUP = 1, 4
 
