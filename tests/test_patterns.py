@@ -217,6 +217,12 @@ def test_pattern_files_in_the_projects_own_keys_and_as_ouster_metadata(tmp_path)
     ("elevations_deg: [0, 1]\ncolumns: 10\nmax_range: 5\nspin: sideways\n", "spin is 'clockwise' or"),
     ("elevations_deg: [0, 1]\ncolumns: 10\nmax_range: 5\nscan_start_deg: .nan\n", "scan start of nan deg"),
     ("elevations_deg: [0, 1]\ncolumns: 10\nmax_range: 5\ntime_field: stamp\n", "time_field 'stamp'; it is one of"),
+    ("elevations_deg: [0, 1]\ncolumns: 100000000\nmax_range: 5\n", "100000000 columns; spinning LiDARs have at most"),
+    ("elevations_deg: {from: -10, to: 10, beams: 100000}\ncolumns: 10\nmax_range: 5\n", "100000 beams"),
+    ("elevations_deg: [0, 200]\ncolumns: 10\nmax_range: 5\n", "a beam at 200 deg elevation"),
+    ("elevations_deg: [0, 1, 1]\ncolumns: 10\nmax_range: 5\n", "two beams at the same elevation"),
+    ("elevations_deg: [0, 1]\ncolumns: 10\nmax_range: 5\nazimuth_offsets_deg: [0, 400]\n", "has an azimuth offset beyond"),
+    ("elevations_deg: [0, 1]\ncolums: 10\ncolumns: 10\nmax_range: 5\n", "unknown keys ['colums']"),
     ("- 1\n- 2\n", "mapping of keys, not list"),
     ("elevations_deg: [0, 1\n", "not a readable YAML file"),
 ])

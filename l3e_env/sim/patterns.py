@@ -132,6 +132,11 @@ PATTERN_FILES = (".yaml", ".yml", ".json")
 BEAM_TOLERANCE = 0.25  # a return lies on a beam within this share of the beams' spacing
 
 
+MAX_BEAMS, MAX_COLUMNS = 512, 8192  # beyond any spinning LiDAR's datasheet: a typo, refused before any array is made
+OWN_KEYS = {"elevations_deg", "columns", "max_range", "min_range", "image_width", "azimuth_offsets_deg",
+            "beam_origin_offset", "spin", "scan_start_deg", "time_field", "beam_vertical_offsets"}
+
+
 def check_pattern(pattern: BeamPattern) -> None:
     """Raise PatternError naming what makes `pattern` unusable."""
     problem = None
@@ -140,6 +145,15 @@ def check_pattern(pattern: BeamPattern) -> None:
                    f"{pattern.n_azimuth} columns, range {pattern.min_range}-{pattern.max_range} m)")
     elif not np.isfinite(pattern.elevations_deg).all() or not np.isfinite(pattern.azimuth_offsets_deg).all():
         problem = "holds an angle that is not a finite number"
+    elif pattern.n_beams > MAX_BEAMS or pattern.n_azimuth > MAX_COLUMNS:
+        problem = (f"has {pattern.n_beams} beams and {pattern.n_azimuth} columns; spinning LiDARs have at most "
+                   f"{MAX_BEAMS} beams and {MAX_COLUMNS} columns")
+    elif np.abs(pattern.elevations_deg).max() >= 90:
+        problem = f"has a beam at {np.abs(pattern.elevations_deg).max():g} deg elevation; beams lie within +-90 deg"
+    elif len(set(pattern.elevations_deg)) < pattern.n_beams and not pattern.azimuth_offsets_deg:
+        problem = "has two beams at the same elevation and no azimuth offsets to tell them apart"
+    elif np.abs(pattern.azimuth_offsets_deg).max(initial=0.0) > 180:
+        problem = "has an azimuth offset beyond +-180 deg"
     elif pattern.azimuth_offsets_deg and len(pattern.azimuth_offsets_deg) != pattern.n_beams:
         problem = f"has {len(pattern.azimuth_offsets_deg)} azimuth offsets for {pattern.n_beams} beams"
     elif pattern.beam_vertical_offsets and len(pattern.beam_vertical_offsets) != pattern.n_beams:
@@ -209,6 +223,8 @@ def _ouster_pattern(name: str, meta: dict) -> BeamPattern:
 
 
 def _own_pattern(name: str, spec: dict) -> BeamPattern:
+    if unknown := set(spec) - OWN_KEYS:
+        raise PatternError(f"{name}: unknown keys {sorted(unknown)} (a beam pattern file's keys: {sorted(OWN_KEYS)})")
     elevations = spec["elevations_deg"]
     if isinstance(elevations, dict):  # evenly spaced: {from, to, beams}
         elevations = np.linspace(float(elevations["from"]), float(elevations["to"]), int(elevations["beams"]))
