@@ -111,13 +111,15 @@ def scene_from_mesh(
     driven along a route."""
     mesh = load_mesh(path, up_axis, scale)
     paths = [resample_polyline(np.asarray(p, dtype=np.float64), 1.0) for p in (sampling_paths or [])]
-    (x0, y0), (x1, y1) = mesh.bounds[:, :2]
+    (x0, y0, z0), (x1, y1, z1) = mesh.bounds
     for p in paths:  # a route in other units or axes than the mesh: say so here, not as "no ground" later
-        outside = p[(p[:, 0] < x0 - 0.5) | (p[:, 0] > x1 + 0.5) | (p[:, 1] < y0 - 0.5) | (p[:, 1] > y1 + 0.5)]
+        outside = p[(p[:, 0] < x0 - 0.5) | (p[:, 0] > x1 + 0.5) | (p[:, 1] < y0 - 0.5) | (p[:, 1] > y1 + 0.5)
+                    | (p[:, 2] < z0 - 0.5) | (p[:, 2] > z1 + 0.5)]
         if len(outside):
-            raise SceneError(f"{path}: route point ({outside[0, 0]:.1f}, {outside[0, 1]:.1f}) m lies outside the "
-                             f"mesh's extent (x {x0:.1f} to {x1:.1f}, y {y0:.1f} to {y1:.1f} m): are the route's "
-                             "units and axes those of the mesh file?")
+            x, y, z = outside[0]
+            raise SceneError(f"{path}: route point ({x:.1f}, {y:.1f}, {z:.1f}) m lies outside the mesh's extent "
+                             f"(x {x0:.1f} to {x1:.1f}, y {y0:.1f} to {y1:.1f}, z {z0:.1f} to {z1:.1f} m): are the "
+                             "route's units and axes those of the mesh file (--scale, --up-axis)?")
     for i, p in enumerate(paths):
         check_route_length(p, f"{path}: route {i}")
     if start is None and paths:

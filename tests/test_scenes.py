@@ -88,7 +88,7 @@ def test_a_route_file_is_read_in_the_mesh_files_axes_and_units(tmp_path):
     scene = scene_from_mesh(tmp_path / "hall.obj", up_axis="y", scale=0.001, sampling_paths=[route])
     np.testing.assert_allclose(scene.start, [1, 0.5, 0])  # at the route's first point, facing along it
     np.testing.assert_allclose(scene.goal, [4, 2.5])
-    with pytest.raises(SceneError, match=r"route point \(1000.0, 500.0\) m lies outside the mesh's extent"):
+    with pytest.raises(SceneError, match=r"route point \(1000.0, 500.0, 0.0\) m lies outside the mesh's extent"):
         scene_from_mesh(tmp_path / "hall.obj", up_axis="y", scale=0.001,  # the route read without its scale
                         sampling_paths=[load_route(tmp_path / "route.csv", up_axis="y")])
     for text, message in [("1 2 3\n", "two or more"), ("1 2 3 4\n5 6 7 8\n", "two or more"),
@@ -166,3 +166,11 @@ def test_a_route_without_length_or_in_other_units_is_named(cad_corridor):
         scene_from_mesh(mesh, "y", 1.0, sampling_paths=[load_route(route, "y", 1.0)])
     with pytest.raises(SceneError, match=r"70 km long: if the mesh and route are in millimetres"):
         scene_from_mesh(mesh, "y", 10.0, sampling_paths=[load_route(route, "y", 10.0)])
+
+
+def test_a_route_in_other_axes_than_the_mesh_is_refused_naming_the_up_axis(cad_corridor, tmp_path):
+    """A z-up route given with a y-up mesh climbed out of the corridor as a vertical line, unnoticed."""
+    mesh, _ = cad_corridor
+    np.savetxt(tmp_path / "z-up.csv", [[1000.0, 0, 0], [1000, 7000, 0]], delimiter=",")  # along the corridor, z up
+    with pytest.raises(SceneError, match=r"route point \(1\.0, 0\.0, 4\.0\) m lies outside.*--up-axis"):
+        scene_from_mesh(mesh, "y", 0.001, sampling_paths=[load_route(tmp_path / "z-up.csv", "y", 0.001)])
