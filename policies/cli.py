@@ -106,8 +106,9 @@ def non_negative(text: str) -> float:
 
 def _cmd_train(args: argparse.Namespace) -> int:
     from .context import scene_context
-    from .ppo import TRAIN_VARIANTS, resumed_config, train_ppo
+    from .ppo import TRAIN_VARIANTS, require_sb3, resumed_config, train_ppo
 
+    require_sb3()  # before minutes of maps, not after
     scenes = _scenes_with_params(args, tuple(TRAIN_VARIANTS))
     print(f"PPO on {', '.join(scenes)} (fast map environment, {args.detector} maps) -> {Path(args.out).resolve()}")
     contexts = [scene_context(name, args.detector, args.cache_dir, sensor=args.sensor, progress=not args.quiet,

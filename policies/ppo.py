@@ -33,7 +33,7 @@ class PolicyCheckpointError(RuntimeError):
     """A policy file that is missing, unreadable or made for another observation layout."""
 
 
-def _sb3():
+def require_sb3():
     try:
         import stable_baselines3
     except ImportError as exc:
@@ -89,7 +89,7 @@ def train_ppo(out: str | Path, contexts: list[SceneContext], detector: str = "le
               progress: bool = True) -> dict[str, Any]:
     """Train (or resume) a PPO policy on the scenes' cached maps (made with `detector`, which
     evaluation reads back from policy.json); returns the summary written there."""
-    sb3 = _sb3()
+    sb3 = require_sb3()
     import torch
     from stable_baselines3.common.callbacks import BaseCallback
     from stable_baselines3.common.logger import configure
@@ -152,7 +152,7 @@ class PPOPolicy:
     policy.json (the network's layout) and policy.pt (its weights, read as tensors only)."""
 
     def __init__(self, path: str | Path):
-        _sb3()
+        require_sb3()
         from gymnasium import spaces
         from stable_baselines3.common.policies import ActorCriticPolicy
 

@@ -516,3 +516,14 @@ def test_a_users_mesh_is_driven_by_the_policies(cad_corridor, tmp_path, capsys, 
 def test_fork_variants_differ():
     a, b = make_scene("fork-100"), make_scene("fork-101")
     assert a.goal[0] != b.goal[0] or np.abs(a.routes["rich"][:, 1]).max() != np.abs(b.routes["rich"][:, 1]).max()
+
+
+def test_policy_train_without_the_rl_extra_says_so_before_building_maps(monkeypatch, tmp_path, capsys):
+    import sys
+
+    from l3e_env.cli.main import main
+
+    monkeypatch.setitem(sys.modules, "stable_baselines3", None)  # as if not installed
+    monkeypatch.setattr("policies.context.scene_context", lambda *a, **k: pytest.fail("a map was built first"))
+    assert main(["policy", "train", "--scene", "fork-0", "--out", str(tmp_path / "ppo"), "--quiet"]) == 2
+    assert "PPO needs stable-baselines3: pip install -e '.[rl]'" in capsys.readouterr().err
