@@ -7,7 +7,7 @@ GTSAM's rotation-first tangent order.
 from .bias import BIAS_AXES
 from .ekf import EKFFusion
 from .graph import FusionError, FusionGraph
-from .metrics import MetricError, ate, ate_aligned, rpe, rpe_pairs, umeyama, write_tum
+from .metrics import MetricError, ate, ate_aligned, rpe, rpe_pairs, umeyama, write_kitti, write_tum
 from .steps import ICP_COVARIANCES, FusionConfig, StepReport, check_config, icp_information
 from .tangent import to_gtsam_order, to_project_order
 
@@ -28,5 +28,6 @@ def make_fusion(backend: str, T_w_0, config: FusionConfig | None = None) -> Fusi
 __all__ = ["BACKENDS", "BIAS_AXES", "ICP_COVARIANCES", "check_config", "icp_information",
            "check_backend", "make_fusion", "EKFFusion", "FusionConfig", "FusionError", "FusionGraph",
            "StepReport",
-           "MetricError", "ate", "ate_aligned", "rpe", "rpe_pairs", "umeyama", "write_tum", "to_gtsam_order",
+           "MetricError", "ate", "ate_aligned", "rpe", "rpe_pairs", "umeyama", "write_kitti", "write_tum",
+           "to_gtsam_order",
            "to_project_order"]

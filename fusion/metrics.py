@@ -98,3 +98,10 @@ def write_tum(path, stamps: np.ndarray, poses: np.ndarray) -> None:
     q = Rotation.from_matrix(poses[:, :3, :3]).as_quat()  # x, y, z, w
     rows = np.column_stack([np.asarray(stamps, dtype=np.float64), poses[:, :3, 3], q])
     np.savetxt(path, rows, fmt="%.9f")
+
+
+def write_kitti(path, poses: np.ndarray) -> None:
+    """A trajectory in the KITTI odometry format (the first three rows of each 4x4 pose, 12 numbers a
+    line, no times), for evo and the KITTI tools."""
+    poses = np.asarray(poses, dtype=np.float64)
+    np.savetxt(path, poses[:, :3, :].reshape(len(poses), 12), fmt="%.9f")

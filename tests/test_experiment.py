@@ -54,8 +54,20 @@ def test_ate_from_a_recording_writes_results_and_figures(walls_run, tmp_path):
                   progress=False)  # the recording's scene, not the argument, is used
     rows = run.rows
     assert all(path.is_file() for path in run.written) and not run.swept
+    tracks = {f"{stem}.{kind}" for stem in ("ground_truth", "odometry_only", "eigen_30", "none")
+              for kind in ("tum", "kitti")}
     assert {p.name for p in run.written} == {"results.json", "trajectories.png", "timeline.png", "map_eigen_30.png",
-                                            "map_eigen_30.ply", "map_none.png", "map_none.ply"}
+                                            "map_eigen_30.ply", "map_none.png", "map_none.ply", *tracks}
+    evo_file = pytest.importorskip("evo.tools.file_interface")
+    evo_metrics = pytest.importorskip("evo.core.metrics")
+    ape = evo_metrics.APE(evo_metrics.PoseRelation.translation_part)
+    ape.process_data((evo_file.read_tum_trajectory_file(tmp_path / "out" / "trajectories" / "ground_truth.tum"),
+                      evo_file.read_tum_trajectory_file(tmp_path / "out" / "trajectories" / "none.tum")))
+    none_row = next(r for r in run.rows if r["detector"] == "none")
+    assert ape.get_statistic(evo_metrics.StatisticsType.rmse) == pytest.approx(none_row["ate_m"], abs=1e-3)
+    kitti = evo_file.read_kitti_poses_file(tmp_path / "out" / "trajectories" / "none.kitti")
+    tum = evo_file.read_tum_trajectory_file(tmp_path / "out" / "trajectories" / "none.tum")
+    np.testing.assert_allclose(kitti.positions_xyz, tum.positions_xyz, atol=1e-6)
     assert [r["detector"] for r in rows] == ["odometry only", "eigen:30", "none"]
     written = {p.name for p in (tmp_path / "out").iterdir()}
     assert {"results.json", "trajectories.png", "timeline.png", "map_eigen_30.png", "map_none.png"} <= written

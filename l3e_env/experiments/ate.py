@@ -20,7 +20,7 @@ import numpy as np
 import small_gicp
 from tqdm import tqdm
 
-from fusion import FusionConfig, MetricError, ate, ate_aligned, check_backend, rpe
+from fusion import FusionConfig, MetricError, ate, ate_aligned, check_backend, rpe, write_kitti, write_tum
 from scenes import Scene, SceneError, canonical_scene_name, file_sha256, is_mesh_path, make_scene
 
 from l3e_env.config import EnvConfig, FusionSettings, LidarConfig, OdometryConfig, RobotConfig, to_dict
@@ -501,10 +501,24 @@ def run_ate(out_dir: str | Path, scene: str, detectors: list[str], sensor: str =
     maps = []
     for r in results[1:]:
         maps += plot_map(out / f"map_{file_stem(r.name)}", rec, r.trajectory)
-    written = [out / "results.json", out / "trajectories.png", out / "timeline.png", *maps]
+    written = [out / "results.json", out / "trajectories.png", out / "timeline.png", *maps,
+               *write_trajectories(out / "trajectories", rec.ground_truth, results)]
     if (out / "recording.npz").exists():
         written.insert(0, out / "recording.npz")
     return AteRun(out, rows, swept, written)
+
+
+def write_trajectories(folder: Path, ground_truth: np.ndarray, results: list[DetectorResult]) -> list[Path]:
+    """The ground truth and each row's estimate of the body's pose, in TUM (times from the drive's start)
+    and KITTI files, so that evo_ape and other tools read them: `evo_ape tum ground_truth.tum learned.tum`."""
+    folder.mkdir(parents=True, exist_ok=True)
+    stamps = np.arange(len(ground_truth)) * RobotConfig.dt
+    written = []
+    for stem, poses in [("ground_truth", ground_truth), *((file_stem(r.name), r.trajectory) for r in results)]:
+        write_tum(folder / f"{stem}.tum", stamps, poses)
+        write_kitti(folder / f"{stem}.kitti", poses)
+        written += [folder / f"{stem}.tum", folder / f"{stem}.kitti"]
+    return written
 
 
 def file_stem(detector_name: str) -> str:
