@@ -123,7 +123,7 @@ class NavigationEnv(gym.Env):
         action = np.asarray(action, dtype=np.float64)
         if action.shape != (3,) or not np.isfinite(action).all():
             raise ValueError(f"action must be 3 finite numbers (vx, vy, yaw_rate), got {action!r}")
-        if not self.action_space.contains(action.astype(np.float32)):
+        if not ((action >= self.action_space.low) & (action <= self.action_space.high)).all():
             raise ValueError(f"action {action} is outside the action space "
                              f"[{self.action_space.low}, {self.action_space.high}]")
         T_prev = self.robot.T_w_b
