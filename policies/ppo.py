@@ -157,7 +157,7 @@ class PPOPolicy:
         from stable_baselines3.common.policies import ActorCriticPolicy
 
         path = Path(path)
-        folder = path if path.is_dir() else path.parent
+        folder = path.parent if path.is_file() else path
         weights, meta_path = folder / POLICY_FILE, folder / META_FILE
         if not weights.exists() or not meta_path.exists():
             old = " (its policy.zip is not read: loading it could run code from it; train the policy again)" \

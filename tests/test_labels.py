@@ -162,8 +162,10 @@ def test_a_users_mesh_is_labelled_resumed_by_its_own_bytes_and_scored(cad_corrid
     capsys.readouterr()
     assert main(["evaluate", "--other", str(out), "--by-family", "--by-region", "--out", str(tmp_path / "ev"),
                  "--scan-mc", "3", "--cascade", "1", "--quiet"]) == 0
-    written = capsys.readouterr().out.splitlines()[-1]  # the cascade's figure is named with the others
-    assert written.startswith("written: ") and written.endswith(str(tmp_path / "ev" / "cascade.png"))
+    lines = capsys.readouterr().out.splitlines()
+    written = next(line for line in lines if line.startswith("written: "))  # the cascade's figure among the others
+    assert written.endswith(str(tmp_path / "ev" / "cascade.png"))
+    assert lines[-1].startswith(f"options: {tmp_path / 'ev' / 'options.yaml'}")
     assert (tmp_path / "ev" / "cascade.png").exists()
     columns = json.loads((tmp_path / "ev" / "results.json").read_text())["models"]["resunet"]["splits"]
     assert columns["all of d"]["count"] == 4 and columns["corridor of d"]["count"] == 2

@@ -360,12 +360,12 @@ def test_a_crafted_policy_folder_runs_no_code_when_loaded_or_resumed(tmp_path, s
         PPOPolicy(folder)
     assert main(["policy", "evaluate", "--policy", f"ppo:{folder}", "--scene", "fork-0", "--episodes", "1",
                  "--out", str(tmp_path / "ev"), "--quiet"]) == 2
-    (folder / "policy.pt").write_bytes(pickle.dumps(_Payload(marker)))
+    (folder / "policy.pt").write_bytes(pickle.dumps(_Payload(marker), protocol=2))
     with pytest.raises(PolicyCheckpointError, match="cannot be read as policy weights"):
         PPOPolicy(folder)
     scene, space, cache = small_fork
     contexts = [SceneContext(scene, space, get_map(scene, space, "eigen:30", cache, resolution=4.0))]
-    (folder / "last.pt").write_bytes(pickle.dumps(_Payload(marker)))
+    (folder / "last.pt").write_bytes(pickle.dumps(_Payload(marker), protocol=2))
     with pytest.raises(PolicyCheckpointError, match="cannot be read as policy weights"):
         train_ppo(folder, contexts, "eigen:30", timesteps=256, n_envs=1, config=FastEnvConfig(), progress=False)
     assert not marker.exists()
@@ -403,7 +403,7 @@ def test_full_pipeline_evaluation_on_the_small_fork(small_fork, monkeypatch, tmp
         evaluation.make_controller("wander", "fork-0", "eigen:30", cache, 50.0)
     # a wrong policy is named before any map is built or any folder written
     monkeypatch.setattr(evaluation, "scene_context", lambda *a, **k: pytest.fail("a map was looked up first"))
-    for policy, message in (("wander", "unknown policy"), (f"ppo:{tmp_path / 'none'}", "no policy.zip")):
+    for policy, message in (("wander", "unknown policy"), (f"ppo:{tmp_path / 'none'}", "none: no policy.pt")):
         with pytest.raises((ValueError, RuntimeError), match=message):
             evaluation.evaluate_policies(tmp_path / "bad", ["shortest", policy], ["fork-0"], episodes=1,
                                          detector="eigen:30", cache_dir=cache)
