@@ -1,4 +1,5 @@
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -289,3 +290,14 @@ def test_a_damaged_dataset_names_the_file_that_is_damaged(tiny_dataset, tmp_path
     shard.write_bytes(shard.read_bytes()[:100])
     with pytest.raises(DatasetError, match=f"shard {shard} is unreadable.*delete it and run again"):
         consolidate(copy, cfg, {})
+
+
+def test_two_runs_into_one_dataset_folder_are_refused_by_name(tmp_path):
+    from l3e_env.core.files import FolderBusyError, folder_lock
+    from l3e_env.data.dataset import config_for, generate
+
+    cfg = config_for(None, scenes=["tunnel-0"], parents_per_scene=1, labels={"children": 4})
+    with folder_lock(tmp_path / "d"):  # a run already writing there
+        with pytest.raises(FolderBusyError, match=f"{tmp_path / 'd'}: another run \\(pid {os.getpid()}\\)"):
+            generate(tmp_path / "d", cfg, workers=1, progress=False)
+    assert generate(tmp_path / "d", cfg, workers=1, progress=False)["count"] == 1  # free again: it runs

@@ -25,3 +25,48 @@ def test_one_worker_runs_in_the_caller_and_zero_is_refused():
     assert pids == {os.getpid()}
     with pytest.raises(ValueError, match="workers must be at least 1"):
         list(ordered_map(operator.mul, [1], 1, int, (), workers=0))
+
+
+def test_a_killed_run_leaves_no_worker_behind(tmp_path):
+    """A real SIGKILL to the process that started the workers: the kernel ends them (die_with_parent)."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    script = tmp_path / "run.py"
+    script.write_text(
+        "import os, sys, time\n"
+        "from concurrent.futures import ProcessPoolExecutor\n"
+        "from l3e_env.core.workers import die_with_parent\n"
+        "def pid(_):\n"
+        "    return os.getpid()\n"
+        "def nap(_):\n"
+        "    time.sleep(60)\n"
+        "if __name__ == '__main__':\n"
+        "    with ProcessPoolExecutor(2, initializer=die_with_parent) as pool:\n"
+        "        pids = set(pool.map(pid, range(8)))\n"
+        "        print(' '.join(map(str, pids)), flush=True)\n"
+        "        list(pool.map(nap, range(2)))\n")
+    run = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True)
+    workers = [int(p) for p in run.stdout.readline().split()]
+    assert workers and all(Path(f"/proc/{p}").exists() for p in workers)
+    os.kill(run.pid, signal.SIGKILL)
+    run.wait(timeout=10)
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline and any(_alive(p) for p in workers):
+        time.sleep(0.1)
+    assert not any(_alive(p) for p in workers)
+
+
+def _alive(pid: int) -> bool:
+    """Running, not a zombie waiting for its parent to collect it."""
+    from pathlib import Path
+
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().split(")")[-1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"

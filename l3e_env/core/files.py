@@ -1,9 +1,11 @@
-"""Atomic file writes: a reader, or a resumed job, never sees half a file."""
+"""Atomic file writes: a reader, or a resumed job, never sees half a file; and one writer a folder."""
 from __future__ import annotations
 
+import fcntl
 import os
+from contextlib import contextmanager
 from pathlib import Path
-from typing import BinaryIO, Callable
+from typing import BinaryIO, Callable, Iterator
 
 
 def write_atomic(path: str | Path, write: Callable[[BinaryIO], None]) -> None:
@@ -21,3 +23,32 @@ def write_atomic(path: str | Path, write: Callable[[BinaryIO], None]) -> None:
         tmp.unlink(missing_ok=True)
         raise
 
+
+
+class FolderBusyError(RuntimeError):
+    """Another run is writing into the folder."""
+
+
+@contextmanager
+def folder_lock(folder: str | Path) -> Iterator[None]:
+    """Hold `folder` for this process while the block runs: a second run into the same folder is refused
+    by name instead of writing over the first's files. The lock is the kernel's (flock on `.lock`), so a
+    killed run leaves no stale lock behind."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    with open(folder / ".lock", "a+") as fh:
+        try:
+            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            fh.seek(0)
+            holder = fh.read().strip() or "another process"
+            raise FolderBusyError(f"{folder}: another run (pid {holder}) is writing into it; wait for it to end or "
+                                  "choose another folder") from None
+        fh.seek(0)
+        fh.truncate()
+        fh.write(str(os.getpid()))
+        fh.flush()
+        try:
+            yield
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)

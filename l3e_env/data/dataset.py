@@ -29,7 +29,8 @@ from tqdm import tqdm
 from scenes import DATASET_SCENES, check_scene_name, file_sha256, is_mesh_path, make_scene
 
 from l3e_env.config import LidarConfig, from_dict, plain, settings_changed, to_dict
-from l3e_env.core.files import write_atomic
+from l3e_env.core.files import folder_lock, write_atomic
+from l3e_env.core.workers import die_with_parent
 from l3e_env.localizability.labels import AXES, LabelConfig, SamplingError, label_parent, sample_parent_pose
 from l3e_env.sim.lidar import Lidar, get_pattern
 from l3e_env.sim.raycast import EmbreeCaster
@@ -251,6 +252,12 @@ def generate(
     """Generate (or resume) a dataset; returns the manifest. Finished shards are never redone."""
     out = Path(out_dir)
     check_dataset_config(config)
+    with folder_lock(out):
+        return _generate(out, config, workers, backend, ray_address, progress)
+
+
+def _generate(out: Path, config: DatasetConfig, workers: int, backend: str, ray_address: str | None,
+              progress: bool) -> dict[str, Any]:
     manifest = _open_folder(out, config)
     todo = [s for s in _shards(config) if not (out / "shards" / f"{s[0]}.npz").exists()]
     total = config.parents_per_scene * len(config.scenes)
@@ -280,7 +287,7 @@ def _execute(config: DatasetConfig, todo: list, workers: int, backend: str, ray_
         for shard in todo:
             yield run_shard(config, shard)
     else:
-        with ProcessPoolExecutor(workers) as pool:
+        with ProcessPoolExecutor(workers, initializer=die_with_parent) as pool:
             futures = [pool.submit(run_shard, config, s) for s in todo]
             for fut in as_completed(futures):
                 yield fut.result()
