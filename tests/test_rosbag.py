@@ -357,3 +357,13 @@ def test_a_stamp_a_hair_under_a_second_is_not_written_a_second_early():
     assert (parts[:, 1] < 1_000_000_000).all() and (parts[:, 1] >= 0).all()
     total = parts[:, 0] * 1_000_000_000 + parts[:, 1]
     assert (np.diff(total) >= 0).all()  # the stamps of a drive never run back
+
+
+def test_a_failed_or_stopped_record_leaves_no_half_written_bag(tmp_path, monkeypatch, capsys):
+    def stopped(*args, **kwargs):
+        raise RuntimeError("the drive was stopped")
+
+    monkeypatch.setattr("l3e_env.experiments.ate.record_run", stopped)
+    assert main(["record", "--scene", "primitives-1", "--out", str(tmp_path / "walls.bag"), "--quiet"]) == 2
+    assert "the drive was stopped" in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []  # neither the bag nor its .partial folder

@@ -112,9 +112,14 @@ def _cmd_record(args: argparse.Namespace) -> int:
     except BagError as exc:
         print(f"l3e record: {exc}", file=sys.stderr)
         return 2
-    rec = record_run(args.scene, args.sensor, args.seed, progress=not args.quiet, scene_params=params, on_step=bag,
-                     sweep=args.sweep)
-    print(f"written: {bag.close()} ({bag.steps} scans)")
+    try:
+        rec = record_run(args.scene, args.sensor, args.seed, progress=not args.quiet, scene_params=params,
+                         on_step=bag, sweep=args.sweep)
+        written = bag.close()
+    except BaseException:
+        bag.abort()  # no half-written bag beside the name
+        raise
+    print(f"written: {written} ({bag.steps} scans)")
     if args.recording:
         Path(args.recording).parent.mkdir(parents=True, exist_ok=True)
         rec.save(args.recording)

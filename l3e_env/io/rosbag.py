@@ -369,6 +369,14 @@ class BagRecorder:
                 angular_velocity_covariance=np.diag([gyro_sigma**2] * 3).ravel(),
                 linear_acceleration=vector(*a), linear_acceleration_covariance=np.diag([accel_sigma**2] * 3).ravel()))
 
+    def abort(self) -> None:
+        """Drop the unfinished bag: a drive that failed or was stopped leaves nothing half-written."""
+        try:
+            self.writer.close()
+        except Exception:  # noqa: BLE001 - the writer may be in any state; the folder goes regardless
+            pass
+        _remove(self.folder)
+
     def close(self) -> Path:
         """Finish the bag (writing `/imu`) and move it to its name."""
         self._write_imu()
