@@ -1,8 +1,12 @@
-"""Simulation and the L3E method: world, robot, LiDAR, environments (registered on import)."""
-from gymnasium.envs.registration import register, registry
+"""Simulation and the L3E method: world, robot, LiDAR, environments (registered on import).
 
-from l3e_env.config import EnvConfig, LidarConfig, OdometryConfig, RobotConfig
-from l3e_env.sim.lidar import PATTERNS, BeamPattern, Lidar, Scan, register_pattern
+Importing the package registers the Gymnasium ids and nothing heavier: the simulation's modules load
+when a name of theirs is first used (`l3e_env.Lidar`), so that `l3e --help` and short commands start
+fast."""
+from importlib import import_module
+from typing import Any
+
+from gymnasium.envs.registration import register, registry
 
 ENV_IDS = {
     "l3e/Tunnel-v0": "tunnel",
@@ -16,6 +20,19 @@ ENV_IDS = {
 for _id, _scene in ENV_IDS.items():
     if _id not in registry:
         register(id=_id, entry_point="l3e_env.envs.navigation:NavigationEnv", kwargs={"scene": _scene})
+
+_LAZY = {
+    "EnvConfig": "l3e_env.config", "LidarConfig": "l3e_env.config", "OdometryConfig": "l3e_env.config",
+    "RobotConfig": "l3e_env.config", "Lidar": "l3e_env.sim.lidar", "Scan": "l3e_env.sim.lidar",
+    "BeamPattern": "l3e_env.sim.lidar", "PATTERNS": "l3e_env.sim.lidar", "register_pattern": "l3e_env.sim.lidar",
+}
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        return getattr(import_module(_LAZY[name]), name)
+    raise AttributeError(f"module 'l3e_env' has no attribute '{name}'")
+
 
 __all__ = ["EnvConfig", "LidarConfig", "OdometryConfig", "RobotConfig", "Lidar", "Scan", "BeamPattern", "PATTERNS",
            "register_pattern", "ENV_IDS"]
