@@ -146,3 +146,4 @@ def test_version_and_no_pybullet_banner_in_a_command_s_output():
     out = subprocess.run([sys.executable, "-m", "l3e_env.cli.main", "scenes", "tunnel"], capture_output=True,
                          text=True, check=True)
     assert out.stdout.startswith("tunnel-0 (tunnel, seed 0)") and "pybullet build time" not in out.stdout + out.stderr
+    assert "its route 108 m, a drive of about 108 s (1080 steps)" in out.stdout  # what a drive there will cost

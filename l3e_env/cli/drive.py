@@ -37,10 +37,20 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 def _cmd_scenes(args: argparse.Namespace) -> int:
     from scenes import TEST_SCENES, TRAIN_SCENES, VALIDATION_SCENES, list_scenes, make_scene
+    from scenes.geometry import polyline_length
+
+    from l3e_env.config import RobotConfig
+    from l3e_env.sim.follower import CRUISE_SPEED as speed
 
     names = args.names or list_scenes()
     for name in names:
-        print(make_scene(name).summary())
+        scene = make_scene(name)
+        line = scene.summary()
+        if scene.routes:
+            length = polyline_length(scene.route[:, :2])
+            line += (f"; its route {length:.0f} m, a drive of about {length / speed:.0f} s "
+                     f"({length / speed / RobotConfig.dt:.0f} steps)")
+        print(line)
     if not args.names:
         print(f"\ntraining environments ({len(TRAIN_SCENES)}): {', '.join(TRAIN_SCENES)}")
         print(f"validation: {', '.join(VALIDATION_SCENES)}")

@@ -8,6 +8,9 @@ from scenes.geometry import resample_polyline
 from l3e_env.core.transforms import inverse
 
 
+CRUISE_SPEED = 1.0  # m/s, the robot stand-in's top forward speed (RobotConfig.max_twist)
+
+
 class RouteFollower:
     """Steers towards a point `lookahead` metres further along the route.
 
@@ -15,7 +18,7 @@ class RouteFollower:
     Progress along the route only moves forward, so loops and U-turns in a route are followed.
     """
 
-    def __init__(self, route: np.ndarray, lookahead: float = 2.0, speed: float = 1.0, turn_gain: float = 1.5):
+    def __init__(self, route: np.ndarray, lookahead: float = 2.0, speed: float = CRUISE_SPEED, turn_gain: float = 1.5):
         self.route = resample_polyline(np.asarray(route)[:, :2], 0.25)
         self.lookahead, self.speed, self.turn_gain = lookahead, speed, turn_gain
         self.index = 0
