@@ -147,3 +147,13 @@ def test_version_and_no_pybullet_banner_in_a_command_s_output():
                          text=True, check=True)
     assert out.stdout.startswith("tunnel-0 (tunnel, seed 0)") and "pybullet build time" not in out.stdout + out.stderr
     assert "its route 108 m, a drive of about 108 s (1080 steps)" in out.stdout  # what a drive there will cost
+
+
+def test_a_short_run_stops_after_max_steps(tmp_path):
+    import json
+
+    assert main(["ate", "--scene", "primitives-1", "--detector", "none", "--max-steps", "20", "--quiet",
+                 "--out", str(tmp_path / "ate")]) == 0
+    assert json.loads((tmp_path / "ate" / "results.json").read_text())["steps"] == 20
+    with pytest.raises(SystemExit):
+        main(["record", "--out", str(tmp_path / "r.bag"), "--max-steps", "-3"])

@@ -10,8 +10,8 @@ from l3e_env.config import ATTITUDE_MODES
 
 from l3e_env.config.detector_spec import DETECTOR_GRAMMAR, detector_spec
 
-from .options import (scene_name, SENSOR_HELP, add_fusion_options, fusion_settings, sensor_name, float_list,
-                      add_mesh_options, mesh_options_given, scene_params)
+from .options import (SENSOR_HELP, add_fusion_options, add_mesh_options, float_list, fusion_settings,
+                      mesh_options_given, positive_int, scene_name, scene_params, sensor_name)
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
@@ -22,7 +22,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     args.out = str(out)  # the resolved options are written beside it
     print(f"writing the demo into {out.resolve()}")
     result = run_demo(out, scene=args.scene, sensor=args.sensor, seed=args.seed, progress=not args.quiet,
-                      checkpoint=args.checkpoint, scene_params=params)
+                      checkpoint=args.checkpoint, scene_params=params, max_steps=args.max_steps)
     print(f"{result['steps']} steps, goal {'reached' if result['reached_goal'] else 'NOT reached'}")
     from l3e_env.localizability.labels import AXES
 
@@ -81,7 +81,8 @@ def _cmd_ate(args: argparse.Namespace) -> int:
     print(f"writing the experiment into {out.resolve()}")
     detectors = args.detector or ["none", "eigen:30", "eigen:110", "oracle"]
     options = dict(sensor=args.sensor, progress=not args.quiet, backend=args.backend, scene_params=params,
-                   workers=args.workers, attitude=args.attitude, fusion_settings=fusion_settings(args))
+                   workers=args.workers, attitude=args.attitude, fusion_settings=fusion_settings(args),
+                   max_steps=args.max_steps)
     if args.seeds > 1:
         seeds = range(args.seed, args.seed + args.seeds)
         done = run_ate_seeds(out, args.scene, detectors, seeds, on_drive=lambda seed, run: print(
@@ -124,7 +125,7 @@ def _cmd_record(args: argparse.Namespace) -> int:
         return 2
     try:
         rec = record_run(args.scene, args.sensor, args.seed, progress=not args.quiet, scene_params=params,
-                         on_step=bag, sweep=args.sweep)
+                         on_step=bag, sweep=args.sweep, max_steps=args.max_steps)
         written = bag.close()
     except BaseException:
         bag.abort()  # no half-written bag beside the name
@@ -160,6 +161,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--scene", type=scene_name, default="mine", help="scene name (default: mine)")
     p.add_argument("--sensor", type=sensor_name, default="vlp16", help=SENSOR_HELP)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--max-steps", type=positive_int, dest="max_steps",
+                   help="stop the drive after this many steps of 0.1 s (a short run; default: the route's end)")
     p.add_argument("--checkpoint", help="classifier checkpoint (default: the shipped model)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_mesh_options(p)
@@ -176,6 +179,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--backend", choices=["graph", "ekf"], default="graph", help="iSAM2 smoother or filterpy EKF")
     p.add_argument("--sensor", type=sensor_name, default="vlp16", help=SENSOR_HELP)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--max-steps", type=positive_int, dest="max_steps",
+                   help="stop the drive after this many steps of 0.1 s (a short run; default: the route's end)")
     p.add_argument("--seeds", type=int, default=1,
                    help="drive N times, seeds --seed ... --seed + N - 1, and summarise each detector's ATE over them")
     p.add_argument("--recording", help="evaluate a saved recording.npz instead of driving again")
@@ -200,6 +205,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--scene", type=scene_name, default="mine")
     p.add_argument("--sensor", type=sensor_name, default="vlp16", help=SENSOR_HELP)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--max-steps", type=positive_int, dest="max_steps",
+                   help="stop the drive after this many steps of 0.1 s (a short run; default: the route's end)")
     p.add_argument("--recording", help="also save the drive as a recording.npz for l3e ate --recording")
     p.add_argument("--imu-rate", type=float, default=200.0, help="rate of /imu in Hz (default 200; 0: no IMU)")
     p.add_argument("--imu-orientation", action=argparse.BooleanOptionalAction, default=True,

@@ -129,3 +129,14 @@ def dataset_scenes(args: argparse.Namespace) -> tuple[list[str] | None, dict[str
     return [canonical_scene_name(s) for s in args.scenes], {canonical_scene_name(meshes[0]): params}
 
 
+
+
+def positive_int(text: str) -> int:
+    """argparse type: a whole number of 1 or more."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a whole number, 1 or more, got {text!r}")
+    return value

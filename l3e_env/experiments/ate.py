@@ -222,13 +222,15 @@ def _unragged(z, name: str) -> list[np.ndarray]:
 
 def record_run(scene: str = "mine", sensor: str = "vlp16", seed: int = 0, progress: bool = True,
                scene_params: dict | None = None, scene_object: Scene | None = None,
-               on_step: Callable[[Scan, dict], None] | None = None, sweep: bool = False) -> Recording:
+               on_step: Callable[[Scan, dict], None] | None = None, sweep: bool = False,
+               max_steps: int | None = None) -> Recording:
     """Drive the scene's route once; `scene_object`, if given, is that scene already built.
     `on_step(scan, info)` sees every full scan with the step's info (T_w_b, odom_T_w_b) and the
     sensor's mounting T_b_s, the start's included, before the recording thins it (a bag writer).
-    `sweep`: each step's scan is swept over the step's motion (LidarConfig.sweep)."""
+    `sweep`: each step's scan is swept over the step's motion (LidarConfig.sweep). `max_steps`: stop the
+    drive there (a short run; default: the route's end, or 3x its length at full speed)."""
     env = NavigationEnv(EnvConfig(scene=scene, lidar=LidarConfig(model=sensor, sweep=sweep),
-                                  scene_params=scene_params or {}),
+                                  scene_params=scene_params or {}, max_episode_steps=max_steps),
                         scene_object=scene_object)
     obs, info = env.reset(seed=seed)
     follow = RouteFollower(env.route)
@@ -435,8 +437,8 @@ def run_ate_seeds(out_dir: str | Path, scene: str, detectors: list[str], seeds: 
 def run_ate(out_dir: str | Path, scene: str, detectors: list[str], sensor: str = "vlp16", seed: int = 0,
                    recording: str | Path | None = None, progress: bool = True, backend: str = "graph",
                    scene_params: dict | None = None, workers: int = 1, deskew: str = "gyro",
-                   attitude: str = "none",
-                   fusion_settings: FusionSettings = FusionSettings()) -> AteRun:
+                   attitude: str = "none", fusion_settings: FusionSettings = FusionSettings(),
+                   max_steps: int | None = None) -> AteRun:
     """The `l3e ate` command as a function: writes everything to out_dir and returns the rows.
     `scene_params` go to make_scene (a mesh scene's up axis, scale and route). With a `recording`,
     its own scene is used; `scene` matters only as the new path of a recorded mesh that has moved.
@@ -462,7 +464,7 @@ def run_ate(out_dir: str | Path, scene: str, detectors: list[str], sensor: str =
             else RecastCascade(d, lidar, seed=seed) if isinstance(d, CascadeDetector) else d for d in dets]
     out.mkdir(parents=True, exist_ok=True)
     if rec is None:
-        rec = record_run(scene, sensor, seed, progress, scene_params, scene_object=scene_obj)
+        rec = record_run(scene, sensor, seed, progress, scene_params, scene_object=scene_obj, max_steps=max_steps)
         rec.save(out / "recording.npz")
     swept, rec = rec.sweep, deskewed(rec, deskew)
     t0 = time.perf_counter()

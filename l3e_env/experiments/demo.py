@@ -20,20 +20,23 @@ ROUTE_SHOTS = {"20pct": 0.2, "50pct": 0.5, "80pct": 0.8}  # scan pictures on a r
 
 
 def run_demo(out_dir: str | Path, scene: str = "mine", sensor: str = "vlp16", seed: int = 0, progress: bool = True,
-             checkpoint: str | None = None, classify_every: int = 5, scene_params: dict | None = None) -> dict:
+             checkpoint: str | None = None, classify_every: int = 5, scene_params: dict | None = None,
+             max_steps: int | None = None) -> dict:
     """Drive the route, save a top view of the path and scan pictures at up to three places,
     and judge every `classify_every`-th scan with the learned detector (the shipped model unless
     `checkpoint` names another): a timeline of its probabilities and the flagged share per axis.
 
     Returns a summary (steps, reached goal, flagged shares, files written). For the mine the
     places are the yard, the tunnel and the quarry; other scenes use 20 %, 50 % and 80 % of the route.
-    `scene_params` go to make_scene (a mesh scene's up axis, scale and route).
+    `scene_params` go to make_scene (a mesh scene's up axis, scale and route); `max_steps` stops the
+    drive early (a short run).
     """
     from l3e_env.detection.detectors import LearnedDetector
 
     detector = LearnedDetector(checkpoint, lidar_model=sensor)
     judged: list[tuple[int, str, np.ndarray, np.ndarray]] = []  # step, place, probabilities, mask
-    config = EnvConfig(scene=scene, lidar=LidarConfig(model=sensor), scene_params=scene_params or {})
+    config = EnvConfig(scene=scene, lidar=LidarConfig(model=sensor), scene_params=scene_params or {},
+                       max_episode_steps=max_steps)
     env = NavigationEnv(config)  # a broken mesh or route fails here, before the folder exists
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
