@@ -367,3 +367,12 @@ def test_a_failed_or_stopped_record_leaves_no_half_written_bag(tmp_path, monkeyp
     assert main(["record", "--scene", "primitives-1", "--out", str(tmp_path / "walls.bag"), "--quiet"]) == 2
     assert "the drive was stopped" in capsys.readouterr().err
     assert list(tmp_path.iterdir()) == []  # neither the bag nor its .partial folder
+
+
+def test_record_says_how_large_the_bag_may_grow_before_driving(tmp_path, capsys):
+    import re
+
+    assert main(["record", "--scene", "primitives-1", "--out", str(tmp_path / "short.bag"), "--max-steps", "5",
+                 "--quiet"]) == 0
+    said = re.search(r"recording about 6 scans of vlp16: the bag's scans take up to (\d+) MiB", capsys.readouterr().out)
+    assert said and (tmp_path / "short.bag").stat().st_size <= 1.1 * int(said.group(1)) * 2**20

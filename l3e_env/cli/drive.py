@@ -118,6 +118,20 @@ def _cmd_record(args: argparse.Namespace) -> int:
     if not args.imu_rate >= 0:
         print(f"l3e record: --imu-rate must be 0 (no IMU) or more, got {args.imu_rate}", file=sys.stderr)
         return 2
+    from scenes import make_scene
+    from scenes.geometry import polyline_length
+
+    from l3e_env.config import RobotConfig
+    from l3e_env.io.rosbag import bag_size_bound
+    from l3e_env.sim.follower import CRUISE_SPEED
+    from l3e_env.sim.patterns import get_pattern
+
+    pattern = get_pattern(args.sensor)
+    steps = int(polyline_length(make_scene(args.scene, **params).route[:, :2]) / CRUISE_SPEED / RobotConfig.dt)
+    steps = min(steps, args.max_steps or steps)
+    size = bag_size_bound(pattern.n_beams * pattern.n_azimuth, steps + 1, args.sweep)
+    shown = f"{size / 2**30:.1f} GiB" if size >= 2**30 else f"{size / 2**20:.0f} MiB"
+    print(f"recording about {steps + 1} scans of {pattern.name}: the bag's scans take up to {shown}", flush=True)
     try:
         bag = BagRecorder(args.out, ros2=args.ros2, imu=record_imu(args), seed=args.seed)
     except BagError as exc:

@@ -399,6 +399,12 @@ def _quaternion(T: np.ndarray) -> tuple[float, float, float, float]:
     return tuple(float(v) for v in Rotation.from_matrix(T[:3, :3]).as_quat())  # x, y, z, w
 
 
+def bag_size_bound(rays_per_scan: int, scans: int, swept: bool) -> int:
+    """At most how many bytes a recorded drive's `/points` take: every ray a return, 16-byte points (20
+    with each point's time), the scans of the whole drive; the other topics add a few percent."""
+    return rays_per_scan * scans * (20 if swept else 16)
+
+
 def _cloud_message(types, header, points: np.ndarray, ring: np.ndarray, times: np.ndarray | None = None,
                    time_field: str = "time"):
     """x, y, z float32 and ring uint16 in 16-byte points, as a VLP-16 driver lays them out; with
