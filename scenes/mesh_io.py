@@ -46,6 +46,9 @@ def load_mesh(path: str | Path, up_axis: str = "z", scale: float = 1.0) -> trime
         raise SceneError(f"{path}: cannot read mesh ({type(exc).__name__}: {exc})") from exc
     if isinstance(loaded, trimesh.Scene) or not isinstance(loaded, trimesh.Trimesh):
         raise SceneError(f"{path}: file holds no triangle mesh")
+    if len(loaded.faces) == 0:
+        raise SceneError(f"{path}: no triangles could be read from it: the file is damaged, or it is not a "
+                         f"{path.suffix[1:].upper()} file")
     validate_mesh(loaded, str(path))
     tf = np.eye(4)
     tf[:3, :3] = UP_AXES[up_axis] * scale

@@ -174,3 +174,10 @@ def test_a_route_in_other_axes_than_the_mesh_is_refused_naming_the_up_axis(cad_c
     np.savetxt(tmp_path / "z-up.csv", [[1000.0, 0, 0], [1000, 7000, 0]], delimiter=",")  # along the corridor, z up
     with pytest.raises(SceneError, match=r"route point \(1\.0, 0\.0, 4\.0\) m lies outside.*--up-axis"):
         scene_from_mesh(mesh, "y", 0.001, sampling_paths=[load_route(tmp_path / "z-up.csv", "y", 0.001)])
+
+
+def test_random_bytes_in_a_mesh_file_are_named_as_damaged(tmp_path):
+    path = tmp_path / "tunnel.obj"
+    path.write_bytes(np.random.default_rng(0).bytes(4096))
+    with pytest.raises(SceneError, match="tunnel.obj: no triangles could be read from it: the file is damaged"):
+        scene_from_mesh(path)

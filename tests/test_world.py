@@ -42,7 +42,7 @@ def test_robot_follows_a_slope_and_stops_at_a_wall():
 def test_spawn_inside_geometry_or_off_the_map_is_refused():
     world = World(ramp_scene(0.0))
     robot = Robot(world)
-    with pytest.raises(SpawnError, match="inside scene geometry"):
+    with pytest.raises(SpawnError, match="inside scene geometry; is the route's first waypoint on a floor.*--up-axis"):
         robot.reset(10.0, 0.0, 0.0)
     with pytest.raises(SpawnError, match="no ground"):
         robot.reset(50.0, 0.0, 0.0)

@@ -16,6 +16,10 @@ def planar_motion(yaw: float, twist: np.ndarray, dt: float) -> tuple[float, floa
             (np.sin(mid) * twist[0] + np.cos(mid) * twist[1]) * dt, yaw + twist[2] * dt)
 
 
+SPAWN_HINT = ("; is the route's first waypoint on a floor? For a mesh given as a file, are --up-axis and --scale "
+              "those of the file?")
+
+
 class SpawnError(RuntimeError):
     """The robot cannot stand at the requested pose (inside geometry or no ground)."""
 
@@ -41,9 +45,10 @@ class Robot:
     def reset(self, x: float, y: float, yaw: float, z_ground: float = 0.0) -> np.ndarray:
         T = self.world.ground_pose(x, y, yaw, z_ground)
         if T is None:
-            raise SpawnError(f"no ground under the robot at ({x:.2f}, {y:.2f})")
+            raise SpawnError(f"no ground under the robot at ({x:.2f}, {y:.2f}){SPAWN_HINT}")
         if self.world.in_collision(T):
-            raise SpawnError(f"the robot at ({x:.2f}, {y:.2f}, yaw {yaw:.2f}) would be inside scene geometry")
+            raise SpawnError(f"the robot at ({x:.2f}, {y:.2f}, yaw {yaw:.2f}) would be inside scene "
+                             f"geometry{SPAWN_HINT}")
         self.T_w_b = T
         self._z_ground = self._ground_height(T)
         return T
