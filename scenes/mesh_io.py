@@ -100,6 +100,24 @@ def check_route_length(route: np.ndarray, where: str) -> None:
                       stacklevel=3)
 
 
+FLOOR_BELOW_M = 0.5  # a waypoint lies on the floor, or at most this far above it
+
+
+def check_route_on_floor(mesh: trimesh.Trimesh, route: np.ndarray, where: str) -> None:
+    """SceneError naming the waypoints with no floor under them within FLOOR_BELOW_M (a route written
+    in other axes, or 'x y' lines over a raised floor, whose parents and drive would find no ground)."""
+    origins = route + [0.0, 0.0, 1.0]
+    hits, rays, _ = mesh.ray.intersects_location(origins, np.tile([0.0, 0.0, -1.0], (len(route), 1)))
+    below = np.full(len(route), np.inf)
+    np.minimum.at(below, rays, origins[rays, 2] - hits[:, 2])
+    missing = np.flatnonzero(below > 1.0 + FLOOR_BELOW_M)
+    if len(missing):
+        shown = ", ".join(f"({route[k, 0]:.1f}, {route[k, 1]:.1f}, {route[k, 2]:.1f})" for k in missing[:3])
+        raise SceneError(f"{where}: {len(missing)} of its {len(route)} points have no floor within {FLOOR_BELOW_M} m "
+                         f"under them, e.g. {shown} m: give each waypoint's height on the floor ('x y z' lines), and "
+                         "check that --up-axis and --scale are the mesh file's")
+
+
 def scene_from_mesh(
     path: str | Path,
     up_axis: str = "z",
@@ -125,6 +143,7 @@ def scene_from_mesh(
                              "route's units and axes those of the mesh file (--scale, --up-axis)?")
     for i, p in enumerate(paths):
         check_route_length(p, f"{path}: route {i}")
+        check_route_on_floor(mesh, p, f"{path}: route {i}")
     if start is None and paths:
         (x0, y0, _), (x1, y1, _) = paths[0][:2]
         start = (x0, y0, float(np.arctan2(y1 - y0, x1 - x0)))

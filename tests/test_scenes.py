@@ -181,3 +181,20 @@ def test_random_bytes_in_a_mesh_file_are_named_as_damaged(tmp_path):
     path.write_bytes(np.random.default_rng(0).bytes(4096))
     with pytest.raises(SceneError, match="tunnel.obj: no triangles could be read from it: the file is damaged"):
         scene_from_mesh(path)
+
+
+def test_a_route_without_floor_under_it_is_named(tmp_path):
+    """'x y' lines over a raised floor put the route at z = 0, under the floor: named, not labelled empty."""
+    import trimesh
+
+    floor, wall = trimesh.creation.box([10, 4, 0.2]), trimesh.creation.box([10, 0.2, 3])
+    floor.apply_translation([5, 0, 1.4])  # the floor's top at 1.5 m
+    wall.apply_translation([5, -2.1, 1.5])  # from the ground to above the floor
+    trimesh.util.concatenate([floor, wall]).export(tmp_path / "platform.obj")
+    np.savetxt(tmp_path / "xy.csv", [[1.0, 0], [8, 0]], delimiter=",")
+    with pytest.raises(SceneError, match=r"route 0: 8 of its 8 points have no floor within 0.5 m under them, "
+                                         r"e.g. \(1.0, 0.0, 0.0\)"):
+        scene_from_mesh(tmp_path / "platform.obj", sampling_paths=[load_route(tmp_path / "xy.csv")])
+    np.savetxt(tmp_path / "xyz.csv", [[1.0, 0, 1.5], [8, 0, 1.5]], delimiter=",")
+    scene = scene_from_mesh(tmp_path / "platform.obj", sampling_paths=[load_route(tmp_path / "xyz.csv")])
+    assert scene.route[0, 2] == 1.5
