@@ -57,7 +57,13 @@ def test_a_broken_or_unknown_scan_file_is_named(tmp_path):
     (tmp_path / "cut.pcd").write_bytes(b"FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nPOINTS 100\nDATA binary\n"
                                        + b"\0" * 40)
     (tmp_path / "packed.pcd").write_bytes(b"FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nPOINTS 1\nDATA binary_compressed\n")
+    _write_pcd(tmp_path / "half.pcd", np.ones((20, 3)), binary=False)
+    lines = (tmp_path / "half.pcd").read_bytes().splitlines(keepends=True)
+    (tmp_path / "half.pcd").write_bytes(b"".join(lines[:-10]))  # ten rows of twenty: cut short
+    np.save(tmp_path / "rows.npy", np.zeros((3, 500)))
     cases = {"broken.npy": "cannot be read as numpy", "flat.npy": r"shape \(10, 2\)", "two.npz": "name the points",
+             "half.pcd": "the PCD header says 20 points and the file holds 10 rows",
+             "rows.npy": r"shape \(3, 500\): a scan is \(N, 3\) or \(N, 4\), one point a row.*points.T",
              "odd.bin": "KITTI", "stub.bin": "3 bytes", "cut.pcd": "cut short", "packed.pcd": "ascii or binary",
              "scan.las": "unknown scan format", "missing.npy": "no such file"}
     for name, message in cases.items():

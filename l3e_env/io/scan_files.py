@@ -37,6 +37,9 @@ def _read_pcd(path: Path) -> np.ndarray:
     kind = header["DATA"][0].lower()
     if kind == "ascii":
         table = np.loadtxt(raw[offset:].decode("ascii").splitlines(), ndmin=2)
+        if len(table) != n:  # a file cut short, or rows added: either way not the cloud the header describes
+            raise ScanFileError(f"{path}: the PCD header says {n} points and the file holds {len(table)} rows; "
+                                "the file is cut short or damaged")
         columns = np.cumsum([0] + counts)
         return np.stack([table[:, columns[fields.index(a)]] for a in "xyz"], axis=1)
     if kind != "binary":
@@ -92,4 +95,7 @@ def read_scan(path: str | Path) -> np.ndarray:
     points = np.asarray(points)
     if points.ndim != 2 or points.shape[1] < 3:
         raise ScanFileError(f"{path}: points of shape {points.shape}, not (N, 3) or more columns")
+    if points.shape[0] in (3, 4) and points.shape[1] > points.shape[0]:  # x, y, z (, intensity) as rows
+        raise ScanFileError(f"{path}: points of shape {points.shape}: a scan is (N, 3) or (N, 4), one point a row; "
+                            f"this looks like its transpose (save points.T)")
     return points[:, :3].astype(np.float64)
