@@ -1,6 +1,7 @@
 """Scan files in a sensor's frame, read as (N, 3) points: numpy, KITTI .bin, PLY, PCD and text."""
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -87,7 +88,9 @@ def read_scan(path: str | Path) -> np.ndarray:
         elif suffix == ".pcd":
             points = _read_pcd(path)
         else:
-            points = np.loadtxt(path, delimiter="," if suffix == ".csv" else None, ndmin=2)
+            with warnings.catch_warnings():  # an empty file is no points, judged "unknown" as any too-small scan
+                warnings.simplefilter("ignore", UserWarning)
+                points = np.loadtxt(path, delimiter="," if suffix == ".csv" else None, ndmin=2)
     except ScanFileError:
         raise
     except Exception as exc:  # noqa: BLE001 - whatever the reader raises, name the file and the problem
