@@ -9,6 +9,7 @@ in (x, y, z, roll, pitch, yaw) order, 1/True = not localizable.
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -261,3 +262,17 @@ def make_detector(spec: str, lidar: Lidar | None = None, seed: int = 0,
         return ScanMCDetector(sensor or LidarConfig(), children=parsed.children or ScanMCConfig.children, seed=seed)
     return LearnedDetector(parsed.checkpoint, lidar_model=sensor.model if sensor is not None else None,
                            symmetric=parsed.kind == "learned-sym")
+
+
+def registration_of(detectors: list[Detector]) -> RegistrationConfig:
+    """The registration the pipeline runs: the one the learned detectors' labels were made with (their
+    checkpoints store it), else the defaults. Detectors whose checkpoints disagree get the defaults and
+    a warning, as a checkpoint made with other settings than the ones in use does."""
+    stored = [d.labelled_with for d in detectors if getattr(d, "labelled_with", None) is not None]
+    if not stored:
+        return RegistrationConfig()
+    if any(s != stored[0] for s in stored[1:]):
+        warnings.warn("the detectors' checkpoints were labelled with different registration settings; the "
+                      "pipeline runs the defaults", stacklevel=2)
+        return RegistrationConfig()
+    return stored[0]

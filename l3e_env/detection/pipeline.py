@@ -8,7 +8,6 @@ detector's probabilities and mask, and the running ATE against ground truth.
 """
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass
 from typing import Any
 
@@ -23,21 +22,7 @@ from l3e_env.sim.imu import ATTITUDE_EVERY, attitude_sigmas
 from l3e_env.sim.lidar import Lidar
 from l3e_env.sim.odometry import odometry_fusion_config, odometry_sigmas
 
-from .detectors import UNKNOWN, Detector, Prediction, make_detector, safe_predict
-
-
-def registration_of(detectors: list[Detector]) -> RegistrationConfig:
-    """The registration the pipeline runs: the one the learned detectors' labels were made with (their
-    checkpoints store it), else the defaults. Detectors whose checkpoints disagree get the defaults and
-    a warning, as a checkpoint made with other settings than the ones in use does."""
-    stored = [d.labelled_with for d in detectors if getattr(d, "labelled_with", None) is not None]
-    if not stored:
-        return RegistrationConfig()
-    if any(s != stored[0] for s in stored[1:]):
-        warnings.warn("the detectors' checkpoints were labelled with different registration settings; the "
-                      "pipeline runs the defaults", stacklevel=2)
-        return RegistrationConfig()
-    return stored[0]
+from .detectors import UNKNOWN, Detector, Prediction, make_detector, registration_of, safe_predict
 
 
 class ScanRegistrar:

@@ -24,8 +24,9 @@ from fusion import FusionConfig, MetricError, ate, ate_aligned, check_backend, r
 from scenes import Scene, SceneError, canonical_scene_name, file_sha256, is_mesh_path, make_scene
 
 from l3e_env.config import EnvConfig, FusionSettings, LidarConfig, OdometryConfig, RobotConfig, to_dict
-from l3e_env.detection.detectors import (UNKNOWN, CascadeDetector, Detector, Prediction, ScanMCDetector, make_detector)
-from l3e_env.detection.pipeline import LocalizationPipeline, ScanRegistrar, registration_of
+from l3e_env.detection.detectors import (UNKNOWN, CascadeDetector, Detector, Prediction, ScanMCDetector, make_detector,
+                                         registration_of)
+from l3e_env.detection.pipeline import LocalizationPipeline, ScanRegistrar
 from l3e_env.envs.navigation import NavigationEnv
 from l3e_env.sim.follower import RouteFollower
 from l3e_env.sim.imu import StepGyro, attitude_readings, attitude_sigmas

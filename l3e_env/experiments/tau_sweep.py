@@ -9,8 +9,7 @@ import json
 from pathlib import Path
 
 from l3e_env.config import FusionSettings, OdometryConfig
-from l3e_env.detection.detectors import EigenvalueDetector, make_detector
-from l3e_env.detection.pipeline import registration_of
+from l3e_env.detection.detectors import EigenvalueDetector, make_detector, registration_of
 
 from .ate import Recording, fuse_recording, odometry_only, record_run, register_sequence
 from l3e_env.sim.odometry import odometry_fusion_config

@@ -9,7 +9,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.interpolate import CubicSpline
-from scipy.signal import lfilter
 from scipy.spatial.transform import Rotation, RotationSpline
 
 from l3e_env.config import ATTITUDE_MODES
@@ -209,4 +208,6 @@ def _gauss_markov(n: int, dt: float, time: float, sigmas: np.ndarray, rng: np.ra
     keep = np.exp(-dt / time)
     drive = rng.normal(0.0, 1.0, (n, 3)) * sigmas * np.sqrt(1.0 - keep**2)
     drive[0] = rng.normal(0.0, 1.0, 3) * sigmas  # started in its stationary spread
+    from scipy.signal import lfilter  # scipy.signal loads slowly: only where an IMU is simulated
+
     return lfilter([1.0], [1.0, -keep], drive, axis=0)  # e[k] = keep e[k-1] + drive[k]

@@ -1,12 +1,15 @@
 """Leg odometry: the true relative motion between steps, with the drift legged robots show."""
 from __future__ import annotations
 
-import numpy as np
+from typing import TYPE_CHECKING
 
-from fusion import FusionConfig, check_config
+import numpy as np
 
 from l3e_env.config import FusionSettings, OdometryConfig
 from l3e_env.core.transforms import adjoint, inverse, matrix_to_pose, pose_to_matrix
+
+if TYPE_CHECKING:
+    from fusion import FusionConfig
 
 
 class LegOdometry:
@@ -50,6 +53,8 @@ def odometry_fusion_config(odometry: OdometryConfig, settings: FusionSettings = 
     """The estimator's checked FusionConfig for `settings` (and any other FusionConfig fields), its
     odometry bias states, if any, starting from this noise model's bias spread and wandering by its
     random walk."""
+    from fusion import FusionConfig, check_config  # GTSAM loads slowly: only where a fusion is made
+
     return check_config(FusionConfig(odometry_bias_sigmas=(odometry.yaw_bias_std, odometry.z_bias_std),
                                      odometry_bias_walk=(odometry.yaw_bias_walk, odometry.z_bias_walk),
                                      mode=settings.mode, odometry_bias=tuple(settings.odometry_bias), **overrides))
