@@ -22,10 +22,8 @@ import time
 import numpy as np
 import torch
 
-from l3e_env.model.classifier import (
-    DEFAULT_CHECKPOINT, Classifier, LocalizabilityNet, ModelConfig, fold_batch_norms, load_checkpoint,
-    model_from_checkpoint, model_input,
-)
+from l3e_env.model.classifier import (DEFAULT_CHECKPOINT, Classifier, LocalizabilityNet, ModelConfig, fold_batch_norms,
+                                      load_checkpoint, model_from_checkpoint, model_input)
 from l3e_env.sim.lidar import Lidar
 from l3e_env.sim.raycast import EmbreeCaster
 from l3e_env.core.transforms import pose_to_matrix

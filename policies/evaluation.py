@@ -20,10 +20,10 @@ import numpy as np
 from tqdm import tqdm
 
 from l3e_env.config import FusionSettings, OdometryConfig, settings_changed
+from l3e_env.core.transforms import yaw_of
 from l3e_env.envs import NavigationEnv
 from l3e_env.sim.follower import RouteFollower
 from l3e_env.sim.odometry import odometry_fusion_config
-from l3e_env.core.transforms import yaw_of
 
 from .context import scene_context
 from .observation import PolicyView

@@ -15,16 +15,16 @@ import trimesh
 from scipy.spatial import cKDTree
 from tqdm import tqdm
 
-from l3e_env.model.classifier import DEFAULT_CHECKPOINT, Classifier, ScanError
 from l3e_env.config import LidarConfig, RobotConfig, plain, to_dict
 from l3e_env.config.detector_spec import MAP_DETECTORS, parse_detector
-from l3e_env.detection.detectors import make_detector
 from l3e_env.core.files import write_atomic
-from l3e_env.sim.lidar import Lidar
-from l3e_env.sim.raycast import EmbreeCaster, make_caster
-from l3e_env.localizability.registration import RegistrationConfig, RegistrationError, register
 from l3e_env.core.transforms import planar_pose
 from l3e_env.core.workers import ordered_map
+from l3e_env.detection.detectors import make_detector
+from l3e_env.localizability.registration import RegistrationConfig, RegistrationError, register
+from l3e_env.model.classifier import DEFAULT_CHECKPOINT, Classifier, ScanError
+from l3e_env.sim.lidar import Lidar
+from l3e_env.sim.raycast import EmbreeCaster, make_caster
 from scenes import Scene
 
 from .freespace import FreeSpace

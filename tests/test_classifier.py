@@ -9,19 +9,17 @@ import numpy as np
 import pytest
 import torch
 
-from l3e_env.model.classifier import (
-    CHECKPOINT_VERSION, DEFAULT_CHECKPOINT, SYMMETRIES, CheckpointError, Classifier, LocalizabilityNet, ModelConfig,
-    ScanError, check_scan, fold_batch_norms, load_checkpoint, model_from_checkpoint, model_input, model_probabilities,
-    one_per_voxel, quantize_int8, sample_points, save_checkpoint, up_vector,
-)
+from l3e_env.model.classifier import (CHECKPOINT_VERSION, DEFAULT_CHECKPOINT, SYMMETRIES, CheckpointError, Classifier,
+                                      LocalizabilityNet, ModelConfig, ScanError, check_scan, fold_batch_norms,
+                                      load_checkpoint, model_from_checkpoint, model_input, model_probabilities,
+                                      one_per_voxel, quantize_int8, sample_points, save_checkpoint, up_vector)
 from l3e_env.data.dataset import DatasetError, LabelDataset, config_for, error_ratios, generate, open_datasets
 from l3e_env.detection.detectors import LearnedDetector, make_detector
 from l3e_env.model.scores import auroc, axis_scores, best_thresholds, format_table, mean_interval, mean_scores, pr_curve
 from l3e_env.model.sparse import GatherConv, int8_products_work, int8_residual_block, voxelize
-from l3e_env.model.training import (
-    SWAP_LABELS, TrainConfig, TrainingError, augment, balanced_pool, calibrate_symmetric, predict_dataset,
-    scaled, split_indices, train, _resumable, training_targets,
-)
+from l3e_env.model.training import (SWAP_LABELS, TrainConfig, TrainingError, augment, balanced_pool,
+                                    calibrate_symmetric, predict_dataset, scaled, split_indices, train, _resumable,
+                                    training_targets)
 from l3e_env.core.transforms import pose_to_matrix
 
 SMALL = ModelConfig(points=600, channels=(8, 8, 16, 16), pointnet_channels=(16, 32), head=(16, 16, 16, 16))

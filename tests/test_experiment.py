@@ -5,10 +5,9 @@ import pytest
 
 from l3e_env.config import FusionSettings, LidarConfig
 from l3e_env.detection.detectors import EigenvalueDetector, NoDetector, make_detector
-from l3e_env.experiments.ate import (
-    RecastCascade, RecastScans, Recording, file_stem, fuse_recording, format_seed_table, format_table, record_run,
-    register_sequence, run_ate, summarize_seeds,
-)
+from l3e_env.experiments.ate import (RecastCascade, RecastScans, Recording, file_stem, fuse_recording,
+                                     format_seed_table, format_table, record_run, register_sequence, run_ate,
+                                     summarize_seeds)
 from l3e_env.localizability.labels import AXES
 from l3e_env.sim.lidar import Lidar
 from l3e_env.sim.raycast import EmbreeCaster

@@ -5,10 +5,8 @@ import gtsam
 import numpy as np
 import pytest
 
-from fusion import (
-    BACKENDS, FusionConfig, FusionError, FusionGraph, MetricError, ate, ate_aligned, icp_information, rpe,
-    to_gtsam_order, to_project_order, umeyama,
-)
+from fusion import (BACKENDS, FusionConfig, FusionError, FusionGraph, MetricError, ate, ate_aligned, icp_information,
+                    rpe, to_gtsam_order, to_project_order, umeyama)
 
 
 def pose(x=0.0, y=0.0, z=0.0, yaw=0.0):

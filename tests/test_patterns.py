@@ -13,7 +13,7 @@ from l3e_env.config import LidarConfig
 from l3e_env.experiments.judge import judge_scans, recognise_sensor
 from l3e_env.sim.lidar import Lidar
 from l3e_env.sim.patterns import (PATTERNS, BeamPattern, PatternError, describe_pattern, fit_pattern, get_pattern,
-                              load_pattern, save_pattern)
+                                  load_pattern, save_pattern)
 from l3e_env.sim.raycast import EmbreeCaster, PyBulletCaster
 from l3e_env.localizability.scan_mc import range_image_mesh
 from l3e_env.core.transforms import pose_to_matrix

@@ -5,10 +5,8 @@ import small_gicp
 from l3e_env.config import LidarConfig
 from l3e_env.sim.lidar import Lidar
 from l3e_env.sim.raycast import EmbreeCaster
-from l3e_env.localizability.registration import (
-    TO_PROJECT_ORDER, PreparedTarget, RegistrationConfig, RegistrationError, eigen_mask, prepare_source, register,
-    scan_hessian,
-)
+from l3e_env.localizability.registration import (TO_PROJECT_ORDER, PreparedTarget, RegistrationConfig,
+                                                 RegistrationError, eigen_mask, prepare_source, register, scan_hessian)
 from l3e_env.core.transforms import inverse, matrix_to_pose, pose_to_matrix
 from scenes import make_scene
 

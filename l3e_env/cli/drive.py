@@ -7,7 +7,6 @@ import time
 from pathlib import Path
 
 from l3e_env.config import ATTITUDE_MODES
-
 from l3e_env.config.detector_spec import DETECTOR_GRAMMAR, detector_spec
 
 from .options import (SENSOR_HELP, add_fusion_options, add_mesh_options, float_list, fusion_settings,

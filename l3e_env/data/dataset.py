@@ -32,9 +32,9 @@ from l3e_env.config import LidarConfig, from_dict, plain, settings_changed, to_d
 from l3e_env.core.files import folder_lock, write_atomic
 from l3e_env.core.workers import die_with_parent
 from l3e_env.localizability.labels import AXES, LabelConfig, SamplingError, label_parent, sample_parent_pose
+from l3e_env.localizability.registration import RegistrationConfig, RegistrationError
 from l3e_env.sim.lidar import Lidar, get_pattern
 from l3e_env.sim.raycast import EmbreeCaster
-from l3e_env.localizability.registration import RegistrationConfig, RegistrationError
 
 FORMAT_VERSION = 1
 ARRAYS = ("points", "offsets", "poses", "errors", "labels", "scene", "children_failed")

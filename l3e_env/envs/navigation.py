@@ -11,13 +11,13 @@ from scenes import Scene, make_scene
 from scenes.geometry import polyline_length
 
 from l3e_env.config import EnvConfig, from_dict
+from l3e_env.core.transforms import inverse, matrix_to_pose
 from l3e_env.sim.imu import StepAttitude, StepGyro
 from l3e_env.sim.lidar import DESKEW_SOURCES, DESKEW_STEPS, Lidar, Scan, deskew, deskew_motion
 from l3e_env.sim.odometry import LegOdometry
 from l3e_env.sim.raycast import make_caster
 from l3e_env.sim.render import TopDownRenderer
 from l3e_env.sim.robot import Robot
-from l3e_env.core.transforms import inverse, matrix_to_pose
 from l3e_env.sim.world import World
 
 

@@ -24,20 +24,20 @@ from fusion import FusionConfig, MetricError, ate, ate_aligned, check_backend, r
 from scenes import Scene, SceneError, canonical_scene_name, file_sha256, is_mesh_path, make_scene
 
 from l3e_env.config import EnvConfig, FusionSettings, LidarConfig, OdometryConfig, RobotConfig, to_dict
+from l3e_env.core.files import write_atomic
+from l3e_env.core.transforms import inverse
+from l3e_env.core.workers import ordered_map
 from l3e_env.detection.detectors import (UNKNOWN, CascadeDetector, Detector, Prediction, ScanMCDetector, make_detector,
                                          registration_of)
 from l3e_env.detection.pipeline import LocalizationPipeline, ScanRegistrar
 from l3e_env.envs.navigation import NavigationEnv
+from l3e_env.localizability.labels import AXES
+from l3e_env.localizability.registration import RegistrationConfig
 from l3e_env.sim.follower import RouteFollower
 from l3e_env.sim.imu import StepGyro, attitude_readings, attitude_sigmas
-from l3e_env.localizability.labels import AXES
 from l3e_env.sim.lidar import DESKEW_SOURCES, Lidar, Scan, deskew, deskew_motion, get_pattern
 from l3e_env.sim.odometry import odometry_fusion_config
 from l3e_env.sim.raycast import EmbreeCaster
-from l3e_env.localizability.registration import RegistrationConfig
-from l3e_env.core.files import write_atomic
-from l3e_env.core.transforms import inverse
-from l3e_env.core.workers import ordered_map
 
 STORE_VOXEL = 0.2  # stored scans for ICP are thinned (ICP downsamples to 0.3 m anyway)
 CLASSIFIER_POINTS = 4000  # the classifier's input size (ModelConfig.points)

@@ -7,8 +7,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .judge import Judgement
 from l3e_env.localizability.labels import AXES
+
+from .judge import Judgement
 
 
 def flag_matrix(judgements: list[Judgement], detector: str) -> np.ndarray:

@@ -14,14 +14,14 @@ from tqdm import tqdm
 
 from scenes import TEST_SCENES, is_mesh_path, make_scene, scene_family
 
-from l3e_env.model.classifier import Classifier
 from l3e_env.config import from_dict
 from l3e_env.data.dataset import DatasetUnion, LabelDataset, open_datasets, row_thresholds
+from l3e_env.data.scan_estimates import dataset_scan_errors
 from l3e_env.detection.detectors import near_threshold
 from l3e_env.localizability.labels import AXES
 from l3e_env.localizability.registration import RegistrationConfig, RegistrationError, eigen_mask, scan_hessian
-from l3e_env.data.scan_estimates import dataset_scan_errors
 from l3e_env.localizability.scan_mc import ScanMCConfig
+from l3e_env.model.classifier import Classifier
 from l3e_env.model.scores import axis_scores, best_thresholds, format_table, mean_interval, mean_scores, pr_curve
 from l3e_env.model.training import predict_dataset, split_indices
 

@@ -10,9 +10,9 @@ from pathlib import Path
 
 from l3e_env.config import FusionSettings, OdometryConfig
 from l3e_env.detection.detectors import EigenvalueDetector, make_detector, registration_of
+from l3e_env.sim.odometry import odometry_fusion_config
 
 from .ate import Recording, fuse_recording, odometry_only, record_run, register_sequence
-from l3e_env.sim.odometry import odometry_fusion_config
 
 DEFAULT_TAUS = (10, 20, 30, 50, 70, 90, 110, 150, 200, 300)
 

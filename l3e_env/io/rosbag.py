@@ -15,10 +15,10 @@ from pathlib import Path
 import numpy as np
 
 from l3e_env.config import OdometryConfig
+from l3e_env.core.transforms import inverse, matrix_to_pose
 from l3e_env.sim.imu import ImuConfig, imu_samples
 from l3e_env.sim.odometry import DeadReckoningCovariance
 from l3e_env.sim.patterns import TIME_FIELDS
-from l3e_env.core.transforms import inverse, matrix_to_pose
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 # sensor_msgs/PointField datatypes

@@ -8,10 +8,11 @@ import numpy as np
 
 from scenes import Scene
 
+from l3e_env.core.transforms import inverse, matrix_to_pose, pose_to_matrix
 from l3e_env.sim.lidar import Lidar
 from l3e_env.sim.raycast import RayCaster
+
 from .registration import PreparedTarget, RegistrationConfig, RegistrationError, prepare_source, register
-from l3e_env.core.transforms import inverse, matrix_to_pose, pose_to_matrix
 
 AXES = ("x", "y", "z", "roll", "pitch", "yaw")
 

@@ -23,12 +23,13 @@ import numpy as np
 import trimesh
 
 from l3e_env.config import LidarConfig
-from .labels import LabelConfig, registration_error
+from l3e_env.core.transforms import pose_to_matrix
 from l3e_env.sim.lidar import Lidar
 from l3e_env.sim.patterns import BEAM_TOLERANCE, BeamPattern, get_pattern
 from l3e_env.sim.raycast import EmbreeCaster
+
+from .labels import LabelConfig, registration_error
 from .registration import PreparedTarget, RegistrationConfig, RegistrationError, prepare_source, register
-from l3e_env.core.transforms import pose_to_matrix
 
 
 @dataclass

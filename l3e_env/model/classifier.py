@@ -19,20 +19,12 @@ import torch
 from torch import nn
 
 from l3e_env.config import from_dict, plain
-from l3e_env.core.points import out_of_reach
-from .constraints import FEATURES, SURFACE_FEATURES, AxisStacker, scan_features, surface_rows
 from l3e_env.core.files import write_atomic
-from .sparse import (
-    DownConv,
-    GatherConv,
-    Level,
-    SubmanifoldConv,
-    UpConv,
-    global_max_pool,
-    int8_products_work,
-    int8_residual_block,
-    voxelize,
-)
+from l3e_env.core.points import out_of_reach
+
+from .constraints import FEATURES, SURFACE_FEATURES, AxisStacker, scan_features, surface_rows
+from .sparse import (DownConv, GatherConv, Level, SubmanifoldConv, UpConv, global_max_pool, int8_products_work,
+                     int8_residual_block, voxelize)
 
 CHECKPOINT_FORMAT = "l3e-classifier"
 CHECKPOINT_VERSION = 1

@@ -7,9 +7,10 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from l3e_env.config import LidarConfig
+from l3e_env.core.transforms import inverse
+
 from .patterns import PATTERNS, BeamPattern, get_pattern, register_pattern
 from .raycast import RayCaster
-from l3e_env.core.transforms import inverse
 
 __all__ = ["PATTERNS", "BeamPattern", "Lidar", "Scan", "get_pattern", "register_pattern"]
 

@@ -5,6 +5,7 @@ import numpy as np
 
 from l3e_env.config import RobotConfig
 from l3e_env.core.transforms import planar_pose, yaw_of
+
 from .world import World
 
 
