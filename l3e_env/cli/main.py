@@ -32,7 +32,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"l3e {args.command}: error: {exc}", file=sys.stderr)
         return 2
     if status == 0 and (written := write_resolved(args)) is not None:
-        print(f"options: {written} (l3e {args.command} ... --config {written} runs it again)")
+        print(f"options: {written} ({args._parser.prog} ... --config {written} runs it again)")
     return status
 
 
