@@ -64,7 +64,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--checkpoint", help="default: the shipped model")
     parser.add_argument("--scans", type=int, default=60)
-    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--threads", type=int, default=2,
+                        help="torch's threads outside predict, which runs one scan on one thread")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     scans = route_scans(args.scans)
@@ -91,7 +92,8 @@ def main() -> None:
 
         rows.append((label, run))
     times = latencies_ms([fn for _, fn in rows], scans)
-    print(f"{len(scans)} VLP-16 scans along the mine route, {args.threads} threads, "
+    print(f"{len(scans)} VLP-16 scans along the mine route, predict on one torch thread ({args.threads} for "
+          "batches), "
           f"median {np.median([len(s) for s in scans]):.0f} points per scan")
     reference = np.median(times[-1])  # the FCGF-width ResUNet, the starting point
     print(f"{'model':32s} {'median ms':>10s} {'p90 ms':>8s} {'paper 28 ms / ours':>20s} {'FCGF width / ours':>18s}")

@@ -618,3 +618,19 @@ def test_group_dro_weighs_the_family_with_the_higher_loss_up():
     assert per_scan.grad[0] > per_scan.grad[2] > 0
     groups.loss(torch.tensor([0.5, 0.5]), torch.tensor([1, 1]))  # a family alone in a batch: only its weight moves
     assert groups.state()["tunnel"] > q["tunnel"]
+
+
+def test_one_scan_is_judged_on_one_torch_thread_and_the_threads_are_set_back(monkeypatch):
+    """Spinning OpenMP threads made a single scan 30-50x slower beside other work (bench_load.py)."""
+    clf = Classifier.load()
+    seen = []
+    real = clf.probabilities
+    monkeypatch.setattr(clf, "probabilities", lambda scans, poses=None: seen.append(torch.get_num_threads())
+                        or real(scans, poses))
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        clf.predict(np.random.default_rng(0).uniform(-10, 10, (3000, 3)).astype(np.float32))
+        assert seen == [1] and torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)

@@ -10,9 +10,10 @@ from __future__ import annotations
 import dataclasses
 import json
 import warnings
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 import numpy as np
 import torch
@@ -356,6 +357,21 @@ def model_probabilities(model: LocalizabilityNet, batch: list[torch.Tensor], sym
     return probs.mean(axis=0)
 
 
+@contextmanager
+def torch_threads(n: int) -> Iterator[None]:
+    """torch's intra-op threads set to `n` for the block, and set back after it (a switch costs well
+    under a microsecond)."""
+    before = torch.get_num_threads()
+    if before == n:
+        yield
+        return
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
 def save_checkpoint(path: str | Path, model: LocalizabilityNet, thresholds: np.ndarray, meta: dict[str, Any],
                     extra: dict[str, Any] | None = None) -> None:
     """Write atomically: a reader (or a resumed run) never sees half a checkpoint."""
@@ -475,5 +491,9 @@ class Classifier:
         return model_probabilities(self.model, batch, self.symmetric, up)
 
     def predict(self, points: np.ndarray, T_w_s: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        p = self.probabilities([points], None if T_w_s is None else np.asarray(T_w_s)[None])[0]
+        """One scan, on one torch thread: a single scan's work is too small for a second thread to pay
+        on an idle machine, and on a busy one OpenMP's waiting threads spin against the other work
+        (benchmarks/bench_load.py; docs/decisions.md)."""
+        with torch_threads(1):
+            p = self.probabilities([points], None if T_w_s is None else np.asarray(T_w_s)[None])[0]
         return p, p > self.thresholds
