@@ -77,6 +77,8 @@ def test_demo_drives_the_mine_and_writes_pictures(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "flagged non-localizable by the learned detector" in out and "tunnel" in out
     assert all((tmp_path / n).stat().st_size > 10_000 for n in names if n.endswith(".png"))
+    assert main(["judge", str(tmp_path / "scan_tunnel.npy"), "--detector", "eigen:30"]) == 0  # the README's
+    assert "scan_tunnel.npy" in capsys.readouterr().out                                       # quickstart
 
 
 def test_record_options_give_the_imu_asked_for():

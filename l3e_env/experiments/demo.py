@@ -71,6 +71,8 @@ def run_demo(out_dir: str | Path, scene: str = "mine", sensor: str = "vlp16", se
     files = [_plot_path(out / "path_topdown.png", env, trajectory, snapshots)]
     for place, (T, points) in snapshots.items():
         files.append(_plot_scan(out / f"scan_{place}.png", place, T, points))
+        np.save(out / f"scan_{place}.npy", points.astype(np.float32))  # in the sensor's frame: l3e judge reads it
+        files.append(out / f"scan_{place}.npy")
     np.savetxt(out / "trajectory.txt", trajectory, header="x y z (ground truth, world frame, 10 Hz)")
     flagged = _flagged_shares(judged)
     if judged:
