@@ -9,8 +9,8 @@ from pathlib import Path
 from l3e_env.config import ATTITUDE_MODES
 from l3e_env.config.detector_spec import DETECTOR_GRAMMAR, detector_spec
 
-from .options import (SENSOR_HELP, add_fusion_options, add_mesh_options, float_list, fusion_settings,
-                      mesh_options_given, positive_int, scene_name, scene_params, sensor_name)
+from .options import (SENSOR_HELP, add_fusion_options, add_max_steps, add_mesh_options, float_list, fusion_settings,
+                      mesh_options_given, scene_name, scene_params, sensor_name)
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
@@ -36,19 +36,17 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 def _cmd_scenes(args: argparse.Namespace) -> int:
     from scenes import TEST_SCENES, TRAIN_SCENES, VALIDATION_SCENES, list_scenes, make_scene
-    from scenes.geometry import polyline_length
 
     from l3e_env.config import RobotConfig
-    from l3e_env.sim.follower import CRUISE_SPEED as speed
+    from l3e_env.sim.follower import route_drive
 
     names = args.names or list_scenes()
     for name in names:
         scene = make_scene(name)
         line = scene.summary()
         if scene.routes:
-            length = polyline_length(scene.route[:, :2])
-            line += (f"; its route {length:.0f} m, a drive of about {length / speed:.0f} s "
-                     f"({length / speed / RobotConfig.dt:.0f} steps)")
+            length, steps = route_drive(scene.route)
+            line += f"; its route {length:.0f} m, a drive of about {steps * RobotConfig.dt:.0f} s ({steps} steps)"
         print(line)
     if not args.names:
         print(f"\ntraining environments ({len(TRAIN_SCENES)}): {', '.join(TRAIN_SCENES)}")
@@ -118,16 +116,14 @@ def _cmd_record(args: argparse.Namespace) -> int:
         print(f"l3e record: --imu-rate must be 0 (no IMU) or more, got {args.imu_rate}", file=sys.stderr)
         return 2
     from scenes import make_scene
-    from scenes.geometry import polyline_length
 
-    from l3e_env.config import RobotConfig
     from l3e_env.io.rosbag import bag_size_bound
-    from l3e_env.sim.follower import CRUISE_SPEED
+    from l3e_env.sim.follower import route_drive
     from l3e_env.sim.patterns import get_pattern
 
     pattern = get_pattern(args.sensor)
-    steps = int(polyline_length(make_scene(args.scene, **params).route[:, :2]) / CRUISE_SPEED / RobotConfig.dt)
-    steps = min(steps, args.max_steps or steps)
+    scene = make_scene(args.scene, **params)  # built once: the size estimate and the drive share it
+    steps = min(route_drive(scene.route)[1], args.max_steps or 10**9)
     size = bag_size_bound(pattern.n_beams * pattern.n_azimuth, steps + 1, args.sweep)
     shown = f"{size / 2**30:.1f} GiB" if size >= 2**30 else f"{size / 2**20:.0f} MiB"
     print(f"recording about {steps + 1} scans of {pattern.name}: the bag's scans take up to {shown}", flush=True)
@@ -138,7 +134,7 @@ def _cmd_record(args: argparse.Namespace) -> int:
         return 2
     try:
         rec = record_run(args.scene, args.sensor, args.seed, progress=not args.quiet, scene_params=params,
-                         on_step=bag, sweep=args.sweep, max_steps=args.max_steps)
+                         scene_object=scene, on_step=bag, sweep=args.sweep, max_steps=args.max_steps)
         written = bag.close()
     except BaseException:
         bag.abort()  # no half-written bag beside the name
@@ -174,8 +170,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--scene", type=scene_name, default="mine", help="scene name (default: mine)")
     p.add_argument("--sensor", type=sensor_name, default="vlp16", help=SENSOR_HELP)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--max-steps", type=positive_int, dest="max_steps",
-                   help="stop the drive after this many steps of 0.1 s (a short run; default: the route's end)")
+    add_max_steps(p)
     p.add_argument("--checkpoint", help="classifier checkpoint (default: the shipped model)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_mesh_options(p)
@@ -192,8 +187,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--backend", choices=["graph", "ekf"], default="graph", help="iSAM2 smoother or filterpy EKF")
     p.add_argument("--sensor", type=sensor_name, default="vlp16", help=SENSOR_HELP)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--max-steps", type=positive_int, dest="max_steps",
-                   help="stop the drive after this many steps of 0.1 s (a short run; default: the route's end)")
+    add_max_steps(p)
     p.add_argument("--seeds", type=int, default=1,
                    help="drive N times, seeds --seed ... --seed + N - 1, and summarise each detector's ATE over them")
     p.add_argument("--recording", help="evaluate a saved recording.npz instead of driving again")
@@ -218,8 +212,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--scene", type=scene_name, default="mine")
     p.add_argument("--sensor", type=sensor_name, default="vlp16", help=SENSOR_HELP)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--max-steps", type=positive_int, dest="max_steps",
-                   help="stop the drive after this many steps of 0.1 s (a short run; default: the route's end)")
+    add_max_steps(p)
     p.add_argument("--recording", help="also save the drive as a recording.npz for l3e ate --recording")
     p.add_argument("--imu-rate", type=float, default=200.0, help="rate of /imu in Hz (default 200; 0: no IMU)")
     p.add_argument("--imu-orientation", action=argparse.BooleanOptionalAction, default=True,

@@ -140,3 +140,9 @@ def positive_int(text: str) -> int:
     if value < 1:
         raise argparse.ArgumentTypeError(f"expected a whole number, 1 or more, got {text!r}")
     return value
+
+
+def add_max_steps(parser: argparse.ArgumentParser) -> None:
+    """--max-steps: a short drive (`l3e demo`, `l3e ate`, `l3e record`)."""
+    parser.add_argument("--max-steps", type=positive_int, dest="max_steps",
+                        help="stop the drive after this many steps of 0.1 s (a short run; default: the route's end)")

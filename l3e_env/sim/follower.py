@@ -3,12 +3,19 @@ from __future__ import annotations
 
 import numpy as np
 
-from scenes.geometry import resample_polyline
+from scenes.geometry import polyline_length, resample_polyline
 
+from l3e_env.config import RobotConfig
 from l3e_env.core.transforms import inverse
 
 
 CRUISE_SPEED = 1.0  # m/s, the robot stand-in's top forward speed (RobotConfig.max_twist)
+
+
+def route_drive(route: np.ndarray) -> tuple[float, int]:
+    """A route's length on the floor (m) and the steps of a drive along it at cruise speed."""
+    length = polyline_length(np.asarray(route)[:, :2])
+    return length, round(length / CRUISE_SPEED / RobotConfig.dt)
 
 
 class RouteFollower:
