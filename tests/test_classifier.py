@@ -17,6 +17,7 @@ from l3e_env.data.dataset import DatasetError, LabelDataset, config_for, error_r
 from l3e_env.detection.detectors import LearnedDetector, make_detector
 from l3e_env.model.scores import auroc, axis_scores, best_thresholds, format_table, mean_interval, mean_scores, pr_curve
 from l3e_env.model.sparse import GatherConv, int8_products_work, int8_residual_block, voxelize
+from l3e_env.model.classifier import canonical_view, symmetry_view
 from l3e_env.model.training import (SWAP_LABELS, TrainConfig, TrainingError, augment, balanced_pool,
                                     calibrate_symmetric, predict_dataset, scaled, split_indices, train, _resumable,
                                     training_targets)
@@ -161,6 +162,29 @@ def test_symmetric_inference_is_the_mean_over_the_views_and_blind_to_mirrors_and
     assert det.name == f"learned-sym:{path}" and det.classifier.symmetric
     with pytest.raises(CheckpointError, match="l3e calibrate"):
         Classifier.load(_checkpoint(tmp_path / "old.pt"), symmetric=True)
+
+
+@pytest.mark.parametrize("architecture", ["resunet", "pointnet"])
+def test_a_canonical_frame_model_answers_every_mirror_and_quarter_turn_of_a_scan_alike(architecture, rng):
+    torch.manual_seed(0)
+    model = LocalizabilityNet(ModelConfig(**{**SMALL.__dict__, "architecture": architecture, "frame": "canonical"}))
+    sensor = LocalizabilityNet(ModelConfig(**{**SMALL.__dict__, "architecture": architecture})).eval()
+    sensor.load_state_dict(model.state_dict())
+    clf, plain = Classifier(model.eval(), np.full(6, 0.5)), Classifier(sensor, np.full(6, 0.5))
+    scan = _scan(rng, 500) + np.float32([2, -1, 0])  # no symmetry of its own: every view is another scan
+    own = clf.probabilities([scan])[0]
+    turned = []
+    for sx, sy, swap in SYMMETRIES:  # the mirrors, the turns by 180 deg and, with a swap, by +-90 deg
+        view = scan * np.float32([sx, sy, 1])
+        p = clf.probabilities([view[:, [1, 0, 2]] if swap else view])[0]
+        assert np.allclose(p[SWAP_LABELS] if swap else p, own, atol=1e-5)
+        q = plain.probabilities([view[:, [1, 0, 2]] if swap else view])[0]
+        turned.append(q[SWAP_LABELS] if swap else q)
+    assert np.ptp(np.array(turned), axis=0).max() > 1e-3  # the sensor-frame model does tell the views apart
+    turned = torch.from_numpy(scan * np.float32([-1, -1, 1]))
+    own_view, turned_view = canonical_view(torch.from_numpy(scan)), canonical_view(turned)
+    assert own_view != turned_view and not own_view[2]  # the scan lies along x: no swap
+    assert torch.allclose(symmetry_view(turned, turned_view), symmetry_view(torch.from_numpy(scan), own_view))
 
 
 def test_wrong_checkpoints_are_refused_by_name(tmp_path):

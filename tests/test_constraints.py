@@ -186,7 +186,7 @@ def test_fit_constraints_fits_on_training_scenes_and_keeps_the_network(tiny_data
         assert torch.equal(weight, fitted.model.state_dict()[name])
     data = LabelDataset(tiny_dataset)
     rows = split_indices(data, ["tunnel-0", "field-0"])
-    logits, features = network_parts(fitted.model, data, rows)
+    logits, features, _ = network_parts(fitted.model, data, rows)
     assert np.all(np.isfinite(features)) and features.shape == (len(rows), 24)
     assert np.allclose(network_parts(base.model, data, rows)[1], features[:, :12])  # the base reads level 0 only
     assert fitted.model.stacker.mean[1:].numpy() == pytest.approx(features.mean(0), rel=1e-4, abs=1e-4)

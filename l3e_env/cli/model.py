@@ -38,6 +38,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
         model["sampling"] = args.sampling
     if args.points:
         model["points"] = args.points
+    if args.frame:
+        model["frame"] = args.frame
     cfg = from_dict(TrainConfig, {**_asdict(cfg), **overrides, "model": model})
     print(f"training {cfg.model.architecture} on {' + '.join(args.dataset)} -> {Path(args.out).resolve()} "
           f"({cfg.epochs} epochs of {cfg.samples_per_epoch or 'all'} samples, {cfg.optimizer}, seed {cfg.seed})")
@@ -81,7 +83,7 @@ def _cmd_fit_constraints(args: argparse.Namespace) -> int:
     from l3e_env.model.training import fit_constraints
 
     result = fit_constraints(args.checkpoint, args.dataset, args.out, beta=args.beta, levels=tuple(args.levels),
-                             progress=not args.quiet)
+                             progress=not args.quiet, frame=args.frame)
     print(f"thresholds {' '.join(f'{t:.3f}' for t in result['thresholds'])} -> {args.out}")
     return 0
 
@@ -102,6 +104,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--sampling", choices=["points", "voxels"],
                    help="draw the input from the scan's points (default) or from one point per voxel")
     p.add_argument("--points", type=int, help="points (or voxels) the model reads from a scan (default 4000)")
+    p.add_argument("--frame", choices=["sensor", "canonical"],
+                   help="canonical: each scan read in its canonical mirror/swap view, so that its mirror images and "
+                        "its turns by 90 and 180 deg about z get the same answer (default: sensor)")
     p.add_argument("--epochs", type=int)
     p.add_argument("--samples-per-epoch", type=int, dest="samples_per_epoch")
     p.add_argument("--optimizer", choices=["sgd", "adamw"])
@@ -169,5 +174,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--levels", type=int, nargs="+", default=[0, 1],
                    help="ResUNet levels whose Hessian features the layer reads (0: 0.2 m voxels, 1: 0.4 m; "
                         "default 0 1)")
+    p.add_argument("--frame", choices=["sensor", "canonical"],
+                   help="the view the model reads, the layer fitted in it (default: the checkpoint's; see l3e train)")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_cmd_fit_constraints)

@@ -77,6 +77,11 @@ class ModelConfig:
     # each voxel also enters the ResUNet with its point-to-plane row [n, p x n] (normal facing the
     # sensor) and whether its neighbourhood is planar: what each voxel constrains, in any scene
     surface_rows: bool = False
+    # "canonical": every scan is first turned into its own canonical view among the eight mirror and
+    # x/y-swap views (canonical_view), and the answer turned back: a scan and its mirror images or
+    # its turns by 90 and 180 deg about z get the same answer on their own axes, by construction.
+    # "sensor": the scan as the sensor gives it
+    frame: str = "sensor"
 
 
 def _bn_relu(c: int) -> nn.Sequential:
@@ -192,6 +197,8 @@ class LocalizabilityNet(nn.Module):
             raise ValueError(f"unknown sampling '{cfg.sampling}' (points, voxels)")
         if cfg.points < 1:
             raise ValueError(f"a model reads at least one point of a scan, not {cfg.points}")
+        if cfg.frame not in ("sensor", "canonical"):
+            raise ValueError(f"unknown frame '{cfg.frame}' (sensor, canonical)")
         widths = (cfg.feature + (3 if cfg.gravity else 0), *cfg.head)
         layers: list[nn.Module] = []
         for a, b in zip(widths[:-1], widths[1:]):
@@ -210,8 +217,24 @@ class LocalizabilityNet(nn.Module):
     def forward(self, points: list[torch.Tensor], up: torch.Tensor | None = None) -> torch.Tensor:
         """Logits (B, 6) for a batch of point sets in the sensor frame; `up` (B, 3): the world's up
         direction in each sensor frame, for a model with config.gravity (ignored otherwise)."""
+        points, up, swapped = self.canonical(points, up)
         logits, features = self.parts(points, up)  # the features only for a model with the layer
-        return logits if self.stacker is None else self.stacker(logits, features)
+        if self.stacker is not None:
+            logits = self.stacker(logits, features)
+        return logits if swapped is None else torch.where(swapped[:, None], logits[:, SWAP_LABELS], logits)
+
+    def canonical(self, points: list[torch.Tensor], up: torch.Tensor | None = None
+                  ) -> tuple[list[torch.Tensor], torch.Tensor | None, torch.Tensor | None]:
+        """For a model with config.frame "canonical": each scan (and up vector) in its canonical view
+        (canonical_view), and which scans that view swaps x and y (B,), whose answers then come in the
+        order y, x, z, pitch, roll, yaw. Otherwise the input as it is, and None."""
+        if self.config.frame != "canonical":
+            return points, up, None
+        views = [canonical_view(p) for p in points]
+        points = [symmetry_view(p, v) for p, v in zip(points, views)]
+        if up is not None:
+            up = torch.stack([symmetry_view(u[None], v)[0] for u, v in zip(up, views)])
+        return points, up, torch.tensor([swap for _, _, swap in views], dtype=torch.bool)
 
     def parts(self, points: list[torch.Tensor], up: torch.Tensor | None = None,
               constraints: bool | None = None) -> tuple[torch.Tensor, torch.Tensor | None]:
@@ -338,6 +361,18 @@ def symmetry_view(points: torch.Tensor, symmetry: tuple[float, float, bool]) -> 
     sx, sy, swap = symmetry
     view = points * points.new_tensor([sx, sy, 1.0])
     return view[:, [1, 0, 2]] if swap else view
+
+
+def canonical_view(points: torch.Tensor) -> tuple[float, float, bool]:
+    """The mirror/swap view (symmetry_view) that turns a scan into its canonical form: its larger second
+    moment along x (swap x and y if it lies along y), then the third moments along x and y positive.
+    Every view of a scan in the group of mirrors and 90-degree turns about z has the same canonical
+    form (up to float rounding), so a model that reads it answers each alike. A scan with equal
+    moments (a perfectly symmetric one) keeps its own axes there."""
+    p = points.double()
+    swap = bool((p[:, 1] ** 2).sum() > (p[:, 0] ** 2).sum())
+    third = (p[:, :2] ** 3).sum(dim=0)
+    return (-1.0 if third[0] < 0 else 1.0, -1.0 if third[1] < 0 else 1.0, swap)
 
 
 @torch.inference_mode()

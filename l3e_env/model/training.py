@@ -185,16 +185,22 @@ def predict_dataset(model: LocalizabilityNet, data: LabelDataset | DatasetUnion,
 
 @torch.inference_mode()
 def network_parts(model: LocalizabilityNet, data: LabelDataset | DatasetUnion, rows: np.ndarray, seed: int = 0,
-                  batch_size: int = 16, progress: bool = False) -> tuple[np.ndarray, np.ndarray]:
-    """The network's own logits (len(rows), 6), before any constraint layer, and the scans' Hessian
-    features (len(rows), 12 per level of config.constraint_levels)."""
+                  batch_size: int = 16, progress: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The network's own logits (len(rows), 6), before any constraint layer, the scans' Hessian
+    features (len(rows), 12 per level of config.constraint_levels), both on the axes of the view the
+    model reads (LocalizabilityNet.canonical), and which rows that view swaps x and y (len(rows),):
+    their labels in that view are labels[SWAP_LABELS]."""
     model.eval()
     logits = np.zeros((len(rows), 6))
     features = np.zeros((len(rows), FEATURES * len(model.config.constraint_levels)))
+    swapped = np.zeros(len(rows), dtype=bool)
     for start, batch, up in _dataset_batches(model, data, rows, seed, batch_size, progress):
-        net, feats = model.parts(batch, up_tensor(up), constraints=True)
+        views, view_up, swap = model.canonical(batch, up_tensor(up))
+        net, feats = model.parts(views, view_up, constraints=True)
         logits[start:start + len(batch)], features[start:start + len(batch)] = net.numpy(), feats.numpy()
-    return logits, features
+        if swap is not None:
+            swapped[start:start + len(batch)] = swap.numpy()
+    return logits, features, swapped
 
 
 def _optimizer(cfg: TrainConfig, model: torch.nn.Module) -> torch.optim.Optimizer:
@@ -428,11 +434,12 @@ def calibrate_symmetric(checkpoint: str | Path, dataset: str | Path | list[str |
 
 def fit_constraints(checkpoint: str | Path, dataset: str | Path | list[str | Path], out: str | Path,
                     beta: float | None = None, levels: tuple[int, ...] = (0, 1),
-                    progress: bool = True) -> dict[str, Any]:
+                    progress: bool = True, frame: str | None = None) -> dict[str, Any]:
     """A checkpoint with the constraint layer (l3e_env.model.constraints): the network of `checkpoint` as
     it is, a per-axis logistic layer over its logits and the Hessian features of the ResUNet levels
     `levels` fitted on its own training scenes, and thresholds (single and eight-view) chosen on its
-    validation scenes by F-beta (`beta`: the checkpoint's own by default)."""
+    validation scenes by F-beta (`beta`: the checkpoint's own by default). `frame`: the view the model
+    reads (ModelConfig.frame; the checkpoint's own by default), the layer fitted in it."""
     state = load_checkpoint(checkpoint)
     training = state.get("training")
     if not isinstance(training, dict) or not training.get("train_scenes") or not training.get("validation_scenes"):
@@ -449,12 +456,15 @@ def fit_constraints(checkpoint: str | Path, dataset: str | Path | list[str | Pat
     Path(out).parent.mkdir(parents=True, exist_ok=True)  # before minutes of fitting, not after
     seed = int(training.get("seed", 0))
     try:
-        model = LocalizabilityNet(replace(base.config, constraints=True, constraint_levels=tuple(levels)))
+        model = LocalizabilityNet(replace(base.config, constraints=True, constraint_levels=tuple(levels),
+                                          frame=frame or base.config.frame))
     except ValueError as exc:
         raise TrainingError(str(exc)) from exc
     model.load_state_dict({**model.state_dict(), **base.state_dict()})  # the base's network, the layer unfitted
-    logits, features = network_parts(model, data, train_rows, seed, progress=progress)
-    stacker = fit_stacker(logits, features, data.labels[train_rows])
+    logits, features, swapped = network_parts(model, data, train_rows, seed, progress=progress)
+    labels = np.array(data.labels[train_rows])
+    labels[swapped] = labels[swapped][:, SWAP_LABELS]
+    stacker = fit_stacker(logits, features, labels)
     model.stacker.load_state_dict(stacker.state_dict())
     model.eval()
     beta = float(state.get("threshold_beta", 1.0) if beta is None else beta)
