@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from l3e_env.config import FusionSettings, LidarConfig
-from l3e_env.detection.detectors import EigenvalueDetector, NoDetector, make_detector
+from l3e_env.detection.detectors import DCRegDetector, EigenvalueDetector, NoDetector, make_detector
 from l3e_env.experiments.ate import (RecastCascade, RecastScans, Recording, file_stem, fuse_recording,
                                      format_seed_table, format_table, record_run, register_sequence, run_ate,
                                      summarize_seeds)
@@ -109,10 +109,12 @@ def test_the_hessian_weighs_the_icp_factor_and_the_settings_are_written(walls_ru
     from l3e_env.experiments.tau_sweep import run_sweep
 
     swept = run_sweep(tmp_path / "sweep", ["primitives-1"], taus=(1e12,), references=("none",),
-                      recordings={"primitives-1": str(tmp_path / "rec.npz")}, progress=False)
+                      recordings={"primitives-1": str(tmp_path / "rec.npz")}, progress=False, kappas=(1e15,))
     row = swept["primitives-1"]
     assert row["odometry_bias"] == [] and row["none"] == pytest.approx(weighed.ate, rel=1e-9)
     assert row["eigen_ate"][0] == pytest.approx(row["odometry only"], rel=1e-6)  # every axis flagged: the legs alone
+    assert row["dcreg_ate"][0] == pytest.approx(row["none"], rel=1e-9)  # no ratio that high: nothing flagged
+    assert row["dcreg_flagged"][0] == [0.0] * 6 and (tmp_path / "sweep" / "tau_sweep.png").stat().st_size > 0
 
 
 def test_the_legs_bias_as_a_fusion_state_from_the_command_line(walls_run, tmp_path, capsys):
@@ -279,6 +281,12 @@ def test_detector_specs_and_errors():
         make_detector("eigen:-3")
     with pytest.raises(ValueError, match="unknown detector"):
         make_detector("magic")
+    assert make_detector("dcreg:10").kappa == 10.0 and make_detector("dcreg:10").name == "dcreg:10"
+    with pytest.raises(ValueError, match="dcreg:<kappa>"):
+        make_detector("dcreg:")
+    with pytest.raises(ValueError, match="exceed 1"):
+        make_detector("dcreg:0.5")
+    assert not DCRegDetector(10.0).predict(np.zeros((5, 3)), None).known
     with pytest.raises(ValueError, match="LiDAR"):
         make_detector("oracle")
     unknown = EigenvalueDetector(10.0).predict(np.zeros((5, 3)), None)

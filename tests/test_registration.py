@@ -6,7 +6,8 @@ from l3e_env.config import LidarConfig
 from l3e_env.sim.lidar import Lidar
 from l3e_env.sim.raycast import EmbreeCaster
 from l3e_env.localizability.registration import (TO_PROJECT_ORDER, PreparedTarget, RegistrationConfig,
-                                                 RegistrationError, eigen_mask, prepare_source, register, scan_hessian)
+                                                 RegistrationError, dcreg_mask, eigen_mask, prepare_source,
+                                                 register, scan_hessian)
 from l3e_env.core.transforms import inverse, matrix_to_pose, pose_to_matrix
 from scenes import make_scene
 
@@ -128,3 +129,53 @@ def test_a_hessian_moves_to_the_body_frame_with_the_mounting():
     step = pose_to_matrix([0.1, 0.01, 0.0, 0.0, 0.0, 0.02])
     perturbed = T_b_s @ step @ exp(d_s) @ inverse(T_b_s)
     np.testing.assert_allclose(perturbed, T_b_s @ step @ inverse(T_b_s) @ exp(d_b), atol=1e-9)
+
+
+def _point_to_plane_hessian(points: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """sum of J^T J over point-to-plane rows [n, p x n], in project order (x, y, z, roll, pitch, yaw)."""
+    J = np.hstack([normals, np.cross(points, normals)])
+    return J.T @ J
+
+
+def _cylinder(rng, radius=2.0, length=20.0, n=4000):  # a round tube along x: x and roll slide
+    a, x = rng.uniform(0, 2 * np.pi, n), rng.uniform(-length / 2, length / 2, n)
+    normals = np.column_stack([0 * a, np.cos(a), np.sin(a)])
+    return np.column_stack([x, radius * normals[:, 1], radius * normals[:, 2]]), -normals
+
+
+def _plane(rng, n=4000):  # ground only: x, y and yaw slide
+    xy = rng.uniform(-15, 15, (n, 2))
+    return np.column_stack([xy, np.full(n, -0.85)]), np.tile([0.0, 0.0, 1.0], (n, 1))
+
+
+def _cube_room(rng, half=4.0, n=6000):  # six walls: nothing slides
+    axis, side = rng.integers(0, 3, n), rng.choice([-1.0, 1.0], n)
+    points = rng.uniform(-half, half, (n, 3))
+    points[np.arange(n), axis] = side * half
+    normals = np.zeros((n, 3))
+    normals[np.arange(n), axis] = -side
+    return points, normals
+
+
+@pytest.mark.parametrize("surface, expected", [
+    (_cylinder, [True, False, False, True, False, False]),
+    (_plane, [True, True, False, False, False, True]),
+    (_cube_room, [False] * 6),
+])
+def test_dcreg_flags_the_axes_that_slide_on_surfaces_whose_degeneracy_is_known(surface, expected, rng):
+    H = _point_to_plane_hessian(*surface(rng))
+    scores, mask = dcreg_mask(H, 10.0)
+    assert mask.tolist() == expected
+    assert ((scores > 0.5) == mask).all() and ((0 <= scores) & (scores <= 1)).all()
+    turned = np.kron(np.eye(2), pose_to_matrix(np.array([0, 0, 0, 0, 0, np.pi / 2]))[:3, :3])  # x -> y
+    assert dcreg_mask(turned @ H @ turned.T, 10.0)[1].tolist() == [expected[i] for i in (1, 0, 2, 4, 3, 5)]
+
+
+def test_dcreg_reads_the_scene_on_a_real_scan_and_refuses_bad_input():
+    tunnel, _, _ = scan_pair("tunnel", [50, 0, 0.85, 0, 0, 0], [0, 0, 0, 0, 0, 0])
+    mask = dcreg_mask(scan_hessian(tunnel), 10.0)[1]
+    assert mask[0] and not mask[1:3].any()  # the tunnel's axis slides, its cross-section holds
+    with pytest.raises(ValueError, match="exceed 1"):
+        dcreg_mask(np.eye(6), 1.0)
+    with pytest.raises(ValueError, match="6x6"):
+        dcreg_mask(np.full((6, 6), np.nan), 10.0)

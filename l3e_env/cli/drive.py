@@ -148,7 +148,7 @@ def _cmd_record(args: argparse.Namespace) -> int:
 
 
 def _cmd_sweep(args: argparse.Namespace) -> int:
-    from l3e_env.experiments.tau_sweep import DEFAULT_TAUS, beaten_everywhere, run_sweep
+    from l3e_env.experiments.tau_sweep import DEFAULT_KAPPAS, DEFAULT_TAUS, beaten_everywhere, run_sweep
 
     out = Path(args.out or f"l3e_out/sweep-{time.strftime('%Y%m%d-%H%M%S')}")
     args.out = str(out)  # the resolved options are written beside it
@@ -156,7 +156,8 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
     taus = args.taus or DEFAULT_TAUS
     recordings = dict(r.split("=", 1) for r in args.recording or [])
     results = run_sweep(out, args.scene or ["tunnel", "field", "office"], taus, recordings=recordings,
-                        progress=not args.quiet, fusion_settings=fusion_settings(args))
+                        progress=not args.quiet, fusion_settings=fusion_settings(args),
+                        kappas=DEFAULT_KAPPAS if args.kappas is None else tuple(args.kappas))
     best = beaten_everywhere(results, "learned")
     print("taus at least as good as the learned detector in every scene: " + (", ".join(f"{t:g}" for t in best)
                                                                              if best else "none"))
@@ -229,6 +230,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                                      "detector as reference")
     p.add_argument("--scene", type=scene_name, action="append", help="repeat; default tunnel, field, office")
     p.add_argument("--taus", type=float_list, help="comma-separated thresholds (default 10 ... 300)")
+    p.add_argument("--kappas", type=float_list,
+                   help="comma-separated condition ratio thresholds of DCReg, swept beside tau (default 3 ... 1000)")
     p.add_argument("--recording", action="append", help="SCENE=recording.npz to skip driving that scene")
     add_fusion_options(p)
     p.add_argument("--out", help="output folder (default: l3e_out/sweep-<time>)")

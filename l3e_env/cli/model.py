@@ -65,7 +65,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     results = run_table3(args.checkpoint or [DEFAULT_CHECKPOINT], args.dataset, out, others=args.other,
                        progress=not args.quiet, symmetric=args.symmetric, eigen=args.eigen, int8=not args.float32,
                        by_family=args.by_family, by_region=args.by_region, scan_mc=args.scan_mc, workers=args.workers,
-                       draws=args.draws, cascade=args.cascade)
+                       draws=args.draws, cascade=args.cascade, dcreg=args.dcreg)
     print(results.table)
     print("written: " + ", ".join(map(str, results.written)))
     return 0
@@ -139,6 +139,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--eigen", type=float, action="append", metavar="TAU",
                    help="also score the eigenvalue detector at this threshold (Hessian of each scan onto itself); "
                         "repeat for several")
+    p.add_argument("--dcreg", type=float, action="append", metavar="KAPPA",
+                   help="also score DCReg's detection at this condition ratio threshold (rotation and translation "
+                        "decoupled by Schur complements, same Hessian); repeat for several")
     p.add_argument("--scan-mc", type=int, default=0, dest="scan_mc", metavar="M",
                    help="also score the scan's own Monte-Carlo estimate with up to M children (no training; "
                         "about 50 ms a child, and a scan stops drawing once its axes are settled), on every split "

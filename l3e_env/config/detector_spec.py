@@ -6,9 +6,9 @@ from dataclasses import dataclass
 
 # The one grammar of detector specs: every command's --detector, the environments' fusion.detector and the
 # policy maps' detectors are parsed by `parse_detector`.
-DETECTOR_GRAMMAR = ("none | eigen:<tau> | oracle[:M] | scanmc[:M] | learned[-sym][:checkpoint] | "
+DETECTOR_GRAMMAR = ("none | eigen:<tau> | dcreg:<kappa> | oracle[:M] | scanmc[:M] | learned[-sym][:checkpoint] | "
                     "learned+scanmc[:margin]")
-DETECTOR_KINDS = ("none", "eigen", "oracle", "scanmc", "learned", "learned-sym", "learned+scanmc")
+DETECTOR_KINDS = ("none", "eigen", "dcreg", "oracle", "scanmc", "learned", "learned-sym", "learned+scanmc")
 MAP_DETECTORS = DETECTOR_KINDS[1:]  # a localizability map of 'trust everything' says nothing
 
 
@@ -17,7 +17,7 @@ class DetectorSpec:
     """A parsed detector spec: its kind and its argument (tau, M, the checkpoint path or the margin;
     None where the spec gives none and the kind's default applies)."""
     kind: str
-    tau: float | None = None
+    tau: float | None = None  # eigen's tau, dcreg's kappa
     children: int | None = None
     checkpoint: str | None = None
     margin: float | None = None
@@ -48,6 +48,15 @@ def parse_detector(spec: str, allowed: tuple[str, ...] = DETECTOR_KINDS, what: s
         if not tau > 0:
             raise ValueError(f"eigenvalue threshold must be positive, got {tau}")
         return DetectorSpec(kind, tau=tau)
+    if kind == "dcreg":
+        try:
+            kappa = float(arg)
+        except ValueError as exc:
+            raise ValueError(f"detector '{spec}': give the condition ratio threshold as dcreg:<kappa>, e.g. "
+                             "dcreg:10") from exc
+        if not kappa > 1:
+            raise ValueError(f"detector '{spec}': DCReg's condition ratio threshold must exceed 1")
+        return DetectorSpec(kind, tau=kappa)
     if kind in ("oracle", "scanmc"):
         if arg and not (arg.isdigit() and int(arg) >= 1):
             raise ValueError(f"detector '{spec}': give the number of children as {kind}:<M>, M >= 1, e.g. "

@@ -18,7 +18,8 @@ import numpy as np
 from l3e_env.config import LidarConfig, from_dict
 from l3e_env.config.detector_spec import parse_detector
 from l3e_env.localizability.labels import LabelConfig, label_parent
-from l3e_env.localizability.registration import RegistrationConfig, RegistrationError, RegistrationResult, eigen_mask
+from l3e_env.localizability.registration import (RegistrationConfig, RegistrationError, RegistrationResult,
+                                                  dcreg_mask, eigen_mask)
 from l3e_env.localizability.scan_mc import ScanMCConfig, ScanPatternError, scan_errors
 from l3e_env.sim.lidar import Lidar
 
@@ -63,6 +64,24 @@ class EigenvalueDetector:
         if registration is None or not np.isfinite(registration.hessian).all():
             return UNKNOWN
         scores, mask = eigen_mask(registration.hessian, self.tau)
+        return Prediction(scores, mask)
+
+
+class DCRegDetector:
+    """DCReg's detection (Hu et al., 2025) on the registration's Hessian: rotation and translation
+    decoupled by Schur complements, an axis flagged when its subspace's condition ratio exceeds kappa
+    (registration.dcreg_mask); `probabilities` are log-ratio scores, not calibrated probabilities."""
+
+    def __init__(self, kappa: float):
+        if not kappa > 1:
+            raise ValueError(f"DCReg's condition ratio threshold must exceed 1, got {kappa}")
+        self.kappa = float(kappa)
+        self.name = f"dcreg:{kappa:g}"
+
+    def predict(self, points, registration=None, T_w_s=None) -> Prediction:
+        if registration is None or not np.isfinite(registration.hessian).all():
+            return UNKNOWN
+        scores, mask = dcreg_mask(registration.hessian, self.kappa)
         return Prediction(scores, mask)
 
 
@@ -254,6 +273,8 @@ def make_detector(spec: str, lidar: Lidar | None = None, seed: int = 0,
         return NoDetector()
     if parsed.kind == "eigen":
         return EigenvalueDetector(parsed.tau)
+    if parsed.kind == "dcreg":
+        return DCRegDetector(parsed.tau)
     if parsed.kind == "oracle":
         if lidar is None:
             raise ValueError("the oracle detector needs the scene's LiDAR")

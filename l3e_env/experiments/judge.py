@@ -14,8 +14,8 @@ import numpy as np
 from l3e_env.config import LidarConfig
 from l3e_env.core.points import out_of_reach
 from l3e_env.core.workers import ordered_map
-from l3e_env.detection.detectors import (CascadeDetector, Detector, EigenvalueDetector, Prediction, ScanMCDetector,
-                                         make_detector, registration_of)
+from l3e_env.detection.detectors import (CascadeDetector, DCRegDetector, Detector, EigenvalueDetector, Prediction,
+                                         ScanMCDetector, make_detector, registration_of)
 from l3e_env.io.rosbag import BagScan
 from l3e_env.io.scan_files import ScanFileError, read_scan
 from l3e_env.localizability.labels import AXES
@@ -25,6 +25,7 @@ from l3e_env.sim.patterns import BeamPattern, PatternError, fit_pattern, get_pat
 # what each detector's score means, printed under the table
 SCORES = {"learned": "probability that the axis is not localizable (flagged above the model's threshold)",
           "eigen": "share of the axis in the Hessian's degenerate subspace (flagged above 0.5)",
+          "dcreg": "log of the axis's condition ratio in its decoupled subspace over 2 log kappa (flagged above 0.5)",
           "scanmc": "r / (1 + r), r = estimated registration error over the label threshold (flagged above 0.5)",
           "learned+scanmc": "the classifier's probability where it is sure; where an axis lies within the margin "
                             "of its threshold, scanmc's r / (1 + r) for every axis",
@@ -44,10 +45,10 @@ class Judgement:
 def judge_points(points: np.ndarray, detectors: list[Detector], registration: RegistrationConfig | None = None,
                  rng: np.random.Generator | None = None) -> dict[str, Prediction]:
     """Each detector's prediction for one scan (UNKNOWN where it cannot judge it). The eigenvalue
-    test reads the Hessian of the scan registered onto itself, as `l3e evaluate` scores it; scanmc
+    test and DCReg read the Hessian of the scan registered onto itself, as `l3e evaluate` scores it; scanmc
     draws its children from `rng` where given."""
-    onto_itself = None  # eigen answers UNKNOWN without it; the others do not read it
-    if any(isinstance(d, EigenvalueDetector) for d in detectors):
+    onto_itself = None  # eigen and dcreg answer UNKNOWN without it; the others do not read it
+    if any(isinstance(d, (EigenvalueDetector, DCRegDetector)) for d in detectors):
         try:
             H = scan_hessian(points, registration or registration_of(detectors))
             onto_itself = RegistrationResult(np.eye(4), H, True, 0, len(points), len(points), 0.0)

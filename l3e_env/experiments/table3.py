@@ -19,7 +19,8 @@ from l3e_env.data.dataset import DatasetUnion, LabelDataset, open_datasets, row_
 from l3e_env.data.scan_estimates import dataset_scan_errors
 from l3e_env.detection.detectors import near_threshold
 from l3e_env.localizability.labels import AXES
-from l3e_env.localizability.registration import RegistrationConfig, RegistrationError, eigen_mask, scan_hessian
+from l3e_env.localizability.registration import (RegistrationConfig, RegistrationError, dcreg_mask, eigen_mask,
+                                                  scan_hessian)
 from l3e_env.localizability.scan_mc import ScanMCConfig
 from l3e_env.model.classifier import Classifier
 from l3e_env.model.scores import axis_scores, best_thresholds, format_table, mean_interval, mean_scores, pr_curve
@@ -91,7 +92,7 @@ def run_table3(checkpoints: list[str | Path], dataset: str | Path | list[str | P
              others: list[str | Path] | None = None, progress: bool = True, symmetric: bool = False,
              eigen: list[float] | None = None, int8: bool = True, by_family: bool = False,
              by_region: bool = False, scan_mc: int = 0, workers: int = 1, draws: int = 1,
-             cascade: list[float] | None = None) -> Table3Result:
+             cascade: list[float] | None = None, dcreg: list[float] | None = None) -> Table3Result:
     """Score each checkpoint on its own train/validation split and on the test families of the
     dataset, and on every scan of each of `others` (a dataset of another sensor, or of scene
     families the model never saw: column 'all of <folder>'); writes table.txt, results.json and
@@ -100,6 +101,8 @@ def run_table3(checkpoints: list[str | Path], dataset: str | Path | list[str | P
     eight mirror/swap views, with the thresholds chosen for them. `eigen`: thresholds tau of the
     eigenvalue detector, scored on the first checkpoint's splits from each scan's own Hessian
     (`scan_hessian`); a scan too small to register flags nothing, as the detector's UNKNOWN does.
+    `dcreg`: condition ratio thresholds kappa of DCReg's detection (registration.dcreg_mask), scored
+    alike.
     `int8`: the ResUNet's convolutions as deployed (Classifier.load); False scores them in float32.
     `by_family`: each scene family of the test split and of an `others` dataset, where it holds
     several, also gets a column of its own ('mine of test', 'yard of rooms48'): a mean over families
@@ -196,16 +199,17 @@ def run_table3(checkpoints: list[str | Path], dataset: str | Path | list[str | P
             parts = {split: part_columns(split, *splits[split]) for split in curves[name]}
             results["models"][name]["f1_operating_point"] = f1_operating_point(curves[name], parts)
     hessians = {}
-    if eigen:  # one Hessian per scan serves every tau
+    if eigen or dcreg:  # one Hessian per scan serves every tau and kappa
         hessians = {split: dataset_hessians(ds, rows, progress) for split, (ds, rows) in first_splits.items()}
-    for tau in eigen or []:
-        name = f"eigen:{tau:g}"
-        table[name], results["models"][name] = {}, {"tau": tau, "splits": {}}
-        for split, (ds, rows) in first_splits.items():
-            known = np.isfinite(hessians[split]).all(axis=(1, 2))
-            predicted = np.zeros((len(rows), 6), bool)
-            predicted[known] = [eigen_mask(H, tau)[1] for H in hessians[split][known]]
-            score(name, split, ds, rows, predicted, unregistrable=int((~known).sum()))
+    for kind, mask_of, values in (("eigen", eigen_mask, eigen or []), ("dcreg", dcreg_mask, dcreg or [])):
+        for value in values:
+            name = f"{kind}:{value:g}"
+            table[name], results["models"][name] = {}, {"tau" if kind == "eigen" else "kappa": value, "splits": {}}
+            for split, (ds, rows) in first_splits.items():
+                known = np.isfinite(hessians[split]).all(axis=(1, 2))
+                predicted = np.zeros((len(rows), 6), bool)
+                predicted[known] = [mask_of(H, value)[1] for H in hessians[split][known]]
+                score(name, split, ds, rows, predicted, unregistrable=int((~known).sum()))
     if scan_mc:
         estimates, drawn, judged = {}, {}, {}
         name = f"scanmc:{scan_mc}"

@@ -5,6 +5,7 @@ between consecutive scans, built from the same `RegistrationConfig`.
 """
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
@@ -194,3 +195,44 @@ def eigen_mask(hessian: np.ndarray, tau: float) -> tuple[np.ndarray, np.ndarray]
     w, V = np.linalg.eigh(0.5 * (H + H.T))
     scores = (V**2) @ (w < tau).astype(np.float64)
     return scores, scores > 0.5
+
+
+# the assignments of three eigenvectors to three axes, for DCReg's basis alignment
+_PERMUTATIONS = np.array(list(itertools.permutations(range(3))))
+
+
+def _aligned_ratios(block: np.ndarray) -> np.ndarray:
+    """Per physical axis of a 3x3 information block: the largest eigenvalue over the eigenvalue of the
+    eigenvector aligned with that axis (the one-to-one assignment with the largest total |component|)."""
+    w, V = np.linalg.eigh(0.5 * (block + block.T))
+    w = np.maximum(w, 1e-12 * max(float(w[-1]), 1e-300))  # a null direction has an infinite ratio, not a NaN
+    fit = np.abs(V)[np.arange(3)[None, :], _PERMUTATIONS].sum(axis=1)  # axis a takes eigenvector perm[a]
+    best = _PERMUTATIONS[int(np.argmax(fit))]
+    return w[-1] / w[best]
+
+
+def dcreg_mask(hessian: np.ndarray, kappa: float) -> tuple[np.ndarray, np.ndarray]:
+    """DCReg's degeneracy detection (Hu et al., 2025, arXiv 2509.06285), projected to axes: returns
+    (scores, mask) on (x, y, z, roll, pitch, yaw).
+
+    The Hessian's rotation and translation blocks are decoupled by Schur complements (the information
+    on rotation with translation marginalised out, and the other way round), so that neither hides
+    the other's weak directions and their units never meet. Each complement's eigenvectors are aligned
+    one-to-one with the physical axes, and an axis is flagged when its subspace's condition ratio,
+    the largest eigenvalue over the axis's own, exceeds `kappa`. Only the detection: the paper's
+    preconditioned solver is not part of this. scores: log(ratio) / (2 log kappa), clipped to [0, 1],
+    so that a flag is a score over 0.5 as in eigen_mask.
+    """
+    H = np.asarray(hessian, dtype=np.float64)
+    if H.shape != (6, 6) or not np.isfinite(H).all():
+        raise ValueError("the Hessian must be a finite 6x6 matrix")
+    if not kappa > 1:
+        raise ValueError(f"DCReg's condition ratio threshold must exceed 1, got {kappa}")
+    H = 0.5 * (H + H.T)
+    t, r = slice(0, 3), slice(3, 6)
+    ridge = 1e-9 * max(float(np.trace(H)), 1e-300) * np.eye(3)  # keeps a singular block invertible
+    translation = H[t, t] - H[t, r] @ np.linalg.solve(H[r, r] + ridge, H[r, t])
+    rotation = H[r, r] - H[r, t] @ np.linalg.solve(H[t, t] + ridge, H[t, r])
+    ratios = np.concatenate([_aligned_ratios(translation), _aligned_ratios(rotation)])
+    scores = np.clip(np.log(ratios) / (2 * np.log(kappa)), 0.0, 1.0)
+    return scores, ratios > kappa
