@@ -9,6 +9,7 @@ from .chamber import make_chamber
 from .field import make_field
 from .fork import make_fork
 from .gallery import make_gallery
+from .layout import make_layout
 from .mesh_io import is_mesh_path, scene_from_mesh
 from .mine import make_mine
 from .office import make_office
@@ -30,6 +31,7 @@ BUILDERS: dict[str, Callable[..., Scene]] = {
     "yard": make_yard,
     "chamber": make_chamber,
     "piperack": make_piperack,
+    "layout": make_layout,
 }
 
 
