@@ -1,4 +1,4 @@
-"""Estimation only (gtsam, filterpy, numpy): factor graph, localizability masks, leg-bias states, ATE/RPE.
+"""Estimation only (gtsam, filterpy, numpy): factor graph, localizability masks, leg-bias states, ATE/RPE/drift.
 
 Imports nothing from the rest of the project. Axis order in every public array is the
 project's (x, y, z, roll, pitch, yaw); `fusion.tangent` is the one place that converts to
@@ -7,7 +7,7 @@ GTSAM's rotation-first tangent order.
 from .bias import BIAS_AXES
 from .ekf import EKFFusion
 from .graph import FusionError, FusionGraph
-from .metrics import MetricError, ate, ate_aligned, rpe, rpe_pairs, umeyama, write_kitti, write_tum
+from .metrics import MetricError, ate, ate_aligned, rpe, rpe_pairs, stretch_drift, umeyama, write_kitti, write_tum
 from .steps import ICP_COVARIANCES, FusionConfig, StepReport, check_config, icp_information
 from .tangent import to_gtsam_order, to_project_order
 
@@ -28,6 +28,7 @@ def make_fusion(backend: str, T_w_0, config: FusionConfig | None = None) -> Fusi
 __all__ = ["BACKENDS", "BIAS_AXES", "ICP_COVARIANCES", "check_config", "icp_information",
            "check_backend", "make_fusion", "EKFFusion", "FusionConfig", "FusionError", "FusionGraph",
            "StepReport",
-           "MetricError", "ate", "ate_aligned", "rpe", "rpe_pairs", "umeyama", "write_kitti", "write_tum",
+           "MetricError", "ate", "ate_aligned", "rpe", "rpe_pairs", "stretch_drift", "umeyama", "write_kitti",
+           "write_tum",
            "to_gtsam_order",
            "to_project_order"]

@@ -1,4 +1,4 @@
-"""Trajectory metrics (pure numpy): ATE without and with SE(3) alignment, RPE."""
+"""Trajectory metrics (pure numpy): ATE without and with SE(3) alignment, RPE, drift over stretches."""
 from __future__ import annotations
 
 import numpy as np
@@ -88,6 +88,28 @@ def rpe(estimate: np.ndarray, ground_truth: np.ndarray, delta: float = 10, unit:
     errs_t = np.linalg.norm(err[:, :3, 3], axis=1)
     errs_r = np.arccos(np.clip((np.trace(err[:, :3, :3], axis1=1, axis2=2) - 1) / 2, -1, 1))
     return float(np.sqrt(np.mean(errs_t**2))), float(np.sqrt(np.mean(errs_r**2)))
+
+
+def stretch_drift(estimate: np.ndarray, ground_truth: np.ndarray, inside: np.ndarray) -> tuple[float, float]:
+    """The error accumulated over the stretches of a drive where `inside` (N,) holds, whatever the error
+    on entering them: (drift m, true distance travelled m). Over each maximal run of poses i..j inside,
+    the translation of the relative pose error (G_i^-1 G_j)^-1 (E_i^-1 E_j); the runs' norms are summed,
+    as are their true path lengths. (0, 0) where no two consecutive poses are inside."""
+    E, G = np.asarray(estimate, dtype=np.float64), np.asarray(ground_truth, dtype=np.float64)
+    inside = np.asarray(inside, dtype=bool)
+    if E.shape != G.shape or E.ndim != 3 or E.shape[1:] != (4, 4) or inside.shape != (len(G),):
+        raise MetricError(f"stretch_drift needs two (N, 4, 4) pose arrays and an (N,) mask, got {E.shape}, "
+                          f"{G.shape} and {inside.shape}")
+    edges = np.diff(np.concatenate([[0], inside.astype(np.int8), [0]]))
+    drift = distance = 0.0
+    inv = np.linalg.inv
+    for i, j in zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1) - 1):
+        if j <= i:
+            continue
+        err = inv(inv(G[i]) @ G[j]) @ (inv(E[i]) @ E[j])
+        drift += float(np.linalg.norm(err[:3, 3]))
+        distance += float(np.linalg.norm(np.diff(G[i:j + 1, :3, 3], axis=0), axis=1).sum())
+    return drift, distance
 
 
 def write_tum(path, stamps: np.ndarray, poses: np.ndarray) -> None:

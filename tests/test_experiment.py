@@ -320,14 +320,15 @@ def test_detector_names_become_flat_file_names():
     assert "/" not in file_stem("learned:/abs/path/model.pt")
 
 
-def _row(name: str, ate: float) -> dict:
-    return {"detector": name, "ate_m": ate, "ate_aligned_m": ate / 2}
+def _row(name: str, ate: float, tunnel_pct: float | None = None) -> dict:
+    return {"detector": name, "ate_m": ate, "ate_aligned_m": ate / 2, "drift_tunnel_m": tunnel_pct,
+            "drift_tunnel_pct": tunnel_pct}
 
 
 def test_several_drives_summarised_per_detector_and_against_odometry_on_the_same_drive():
-    runs = {3: [_row("odometry only", 2.0), _row("learned", 1.0)],
-            4: [_row("odometry only", 4.0), _row("learned", 3.0)],
-            5: [_row("odometry only", 3.0), _row("learned", 1.5)]}
+    runs = {3: [_row("odometry only", 2.0, 4.0), _row("learned", 1.0, 1.0)],
+            4: [_row("odometry only", 4.0, 6.0), _row("learned", 3.0)],  # a drive that never entered the tunnel
+            5: [_row("odometry only", 3.0, 5.0), _row("learned", 1.5, 2.0)]}
     odometry, learned = summarize_seeds(runs)
     assert learned["seeds"] == [3, 4, 5] and learned["ate_m"] == [1.0, 3.0, 1.5]
     assert learned["ate_mean_m"] == pytest.approx(11 / 6, abs=1e-3)
@@ -336,7 +337,9 @@ def test_several_drives_summarised_per_detector_and_against_odometry_on_the_same
     assert learned["ate_over_odometry_mean"] == pytest.approx(np.mean([0.5, 0.75, 0.5]), abs=1e-3)
     assert odometry["ate_over_odometry_mean"] == 1.0 and odometry["ate_over_odometry_std"] == 0.0
     assert learned["ate_aligned_mean_m"] == pytest.approx(11 / 12, abs=1e-3)
-    assert "over 3 drives (seeds 3-5)" in format_seed_table([odometry, learned])
+    assert learned["drift_tunnel_pct_mean"] == 1.5 and odometry["drift_tunnel_pct_mean"] == 5.0
+    table = format_seed_table([odometry, learned])
+    assert "over 3 drives (seeds 3-5)" in table and "drift tunnel %" in table and table.endswith("1.5")
     runs[5] = [_row("odometry only", 3.0), _row("eigen:30", 1.5)]
     with pytest.raises(ValueError, match="same detectors"):
         summarize_seeds(runs)
@@ -425,3 +428,24 @@ def test_a_recording_is_saved_whole_and_a_damaged_one_is_named(walls_run, tmp_pa
     with pytest.raises(KeyboardInterrupt):
         rec.save(tmp_path / "rec.npz")
     assert (tmp_path / "rec.npz").read_bytes() == whole and not list(tmp_path.glob("*.tmp"))
+
+
+def test_the_drift_of_each_region_is_its_own_and_the_table_shows_it():
+    from scenes import make_scene
+
+    from l3e_env.core.transforms import pose_to_matrix
+    from l3e_env.experiments.ate import format_table, region_drift
+
+    mine = make_scene("mine")
+    xs = np.arange(-20.0, 40.0, 0.5)  # 20 m of yard, 40 m of tunnel, no quarry
+    gt = np.stack([pose_to_matrix(np.array([x, 0, 0, 0, 0, 0])) for x in xs])
+    est = gt.copy()
+    est[:, 0, 3] -= 0.05 * np.clip(np.arange(len(xs)) - 40, 0, None)  # 5 cm short a step once in the tunnel
+    drift = region_drift(est, gt, mine)
+    assert drift["drift_yard_m"] == pytest.approx(0.0, abs=1e-9) and drift["drift_tunnel_m"] == pytest.approx(3.9)
+    assert drift["drift_tunnel_pct"] == pytest.approx(100 * 3.9 / 39.0)  # x = 0 is the yard's, the tunnel's from 0.5
+    assert drift["drift_quarry_m"] is None and drift["drift_quarry_pct"] is None
+    row = {"detector": "none", "ate_m": 1.0, "ate_aligned_m": None, "rpe_m": 0.1, "rpe_deg": 0.1, "seconds": 1.0,
+           **{f"flagged_{a}": 0.0 for a in ("x", "y", "z", "roll", "pitch", "yaw")}, **drift}
+    table = format_table([row])
+    assert "drift tunnel" in table and "3.90 m  10.0%" in table and table.splitlines()[-1].endswith("-")

@@ -307,3 +307,25 @@ def test_fusion_imports_nothing_of_the_project():
         names |= {n.module.split(".")[0] for n in ast.walk(tree)
                   if isinstance(n, ast.ImportFrom) and n.module and n.level == 0}
         assert not names & {"l3e_env", "scenes", "policies"}, path
+
+
+def test_stretch_drift_counts_only_the_error_made_inside_the_stretches():
+    from fusion import MetricError, stretch_drift
+    from l3e_env.core.transforms import pose_to_matrix
+
+    n = 60
+    gt = np.stack([pose_to_matrix(np.array([0.5 * k, 0, 0, 0, 0, 0])) for k in range(n)])
+    est = gt.copy()
+    est[:, 1, 3] += 3.0  # an error carried in from before: no drift of its own
+    est[20:, 0, 3] += 0.02 * np.arange(n - 20)  # 2 cm too far each step from step 20 on
+    inside = np.zeros(n, bool)
+    inside[30:40] = inside[50:55] = True
+    drift, distance = stretch_drift(est, gt, inside)
+    assert distance == pytest.approx(0.5 * (9 + 4))
+    assert drift == pytest.approx(0.02 * (9 + 4))
+    assert stretch_drift(est, gt, np.zeros(n, bool)) == (0.0, 0.0)
+    turned = pose_to_matrix(np.array([1, 2, 0, 0, 0, 0.3])) @ est  # a heading error made before the stretch
+    assert stretch_drift(turned, gt, inside)[0] == pytest.approx(drift, rel=1e-9)
+    assert ate(turned, gt) > 2 * ate(est, gt)  # which the ATE does count
+    with pytest.raises(MetricError, match="mask"):
+        stretch_drift(est, gt, inside[:-1])
