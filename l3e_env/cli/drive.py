@@ -79,7 +79,7 @@ def _cmd_ate(args: argparse.Namespace) -> int:
     detectors = args.detector or ["none", "eigen:30", "eigen:110", "oracle"]
     options = dict(sensor=args.sensor, progress=not args.quiet, backend=args.backend, scene_params=params,
                    workers=args.workers, attitude=args.attitude, fusion_settings=fusion_settings(args),
-                   max_steps=args.max_steps)
+                   max_steps=args.max_steps, baselines=args.baseline)
     if args.seeds > 1:
         seeds = range(args.seed, args.seed + args.seeds)
         done = run_ate_seeds(out, args.scene, detectors, seeds, on_drive=lambda seed, run: print(
@@ -186,6 +186,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--detector", action="append", type=detector_spec,
                    help=f"{DETECTOR_GRAMMAR}; repeat for several")
     p.add_argument("--backend", choices=["graph", "ekf"], default="graph", help="iSAM2 smoother or filterpy EKF")
+    p.add_argument("--baseline", action="append", choices=["kiss-icp", "genz-icp"],
+                   help="also run this external LiDAR odometry on the drive's scans, with its authors' defaults, as a "
+                        "row of its own; repeat for both (needs pip install 'l3e[baselines]')")
     p.add_argument("--sensor", type=sensor_name, default="vlp16", help=SENSOR_HELP)
     p.add_argument("--seed", type=int, default=0)
     add_max_steps(p)

@@ -40,6 +40,8 @@ from l3e_env.sim.lidar import DESKEW_SOURCES, Lidar, Scan, deskew, deskew_motion
 from l3e_env.sim.odometry import odometry_fusion_config
 from l3e_env.sim.raycast import EmbreeCaster
 
+from .baselines import check_baselines, run_baseline
+
 STORE_VOXEL = 0.2  # stored scans for ICP are thinned (ICP downsamples to 0.3 m anyway)
 CLASSIFIER_POINTS = 4000  # the classifier's input size (ModelConfig.points)
 
@@ -440,7 +442,7 @@ def run_ate(out_dir: str | Path, scene: str, detectors: list[str], sensor: str =
                    recording: str | Path | None = None, progress: bool = True, backend: str = "graph",
                    scene_params: dict | None = None, workers: int = 1, deskew: str = "gyro",
                    attitude: str = "none", fusion_settings: FusionSettings = FusionSettings(),
-                   max_steps: int | None = None) -> AteRun:
+                   max_steps: int | None = None, baselines: list[str] | None = None) -> AteRun:
     """The `l3e ate` command as a function: writes everything to out_dir and returns the rows.
     `scene_params` go to make_scene (a mesh scene's up axis, scale and route). With a `recording`,
     its own scene is used; `scene` matters only as the new path of a recorded mesh that has moved.
@@ -448,12 +450,16 @@ def run_ate(out_dir: str | Path, scene: str, detectors: list[str], sensor: str =
     `deskew`: where a swept recording's deskewing takes its rotation from ("gyro" or "odometry").
     `attitude`: the IMU's orientation in the fusion ("none", "tilt" or "full"); with it, a row
     "odometry + attitude" follows odometry alone. `fusion_settings`: every fusion's (the biases' prior
-    from the default OdometryConfig, as the drive's)."""
+    from the default OdometryConfig, as the drive's). `baselines`: external LiDAR odometries
+    (experiments.baselines: kiss-icp, genz-icp) run on the drive's scans as recorded (a swept drive's
+    with their firing times, which they deskew themselves), each a row after the fusion's; their
+    settings go into results.json, and one that fails says so in its row."""
     if workers < 1:
         raise ValueError(f"workers must be at least 1, got {workers}")
     if deskew not in DESKEW_SOURCES:
         raise ValueError(f"deskew must be one of {DESKEW_SOURCES}, got {deskew!r}")
     attitude_sigmas(attitude)  # a bad mode fails before the drive
+    check_baselines(baselines or [])  # and so does a missing package
     fusion = odometry_fusion_config(OdometryConfig(), fusion_settings)
     out = Path(out_dir)
     rec = Recording.load(recording) if recording else None
@@ -468,7 +474,7 @@ def run_ate(out_dir: str | Path, scene: str, detectors: list[str], sensor: str =
     if rec is None:
         rec = record_run(scene, sensor, seed, progress, scene_params, scene_object=scene_obj, max_steps=max_steps)
         rec.save(out / "recording.npz")
-    swept, rec = rec.sweep, deskewed(rec, deskew)
+    raw, swept, rec = rec, rec.sweep, deskewed(rec, deskew)
     t0 = time.perf_counter()
     regs = register_sequence(rec, registration, progress)
     icp_seconds = time.perf_counter() - t0
@@ -491,12 +497,25 @@ def run_ate(out_dir: str | Path, scene: str, detectors: list[str], sensor: str =
     for det, row in zip(dets, rows[1:]):
         if isinstance(det, RecastCascade):  # what the estimate cost it: steps it was asked, scans it judged
             row.update(checked_steps=det.cascade.checked, judged_steps=det.judged_steps)
+    external = {}
+    for name in baselines or []:
+        run = run_baseline(name, raw.scans, raw.ground_truth[0], raw.T_b_s, get_pattern(raw.sensor) if swept else None,
+                           progress=progress)
+        external[name] = {"config": run.config, "seconds": round(run.seconds, 2), "error": run.error}
+        if run.error is None:
+            steps = len(rec.odometry)
+            results.append(_scored(name, run.trajectory, rec.ground_truth, np.zeros((steps, 6), bool),
+                                   np.full((steps, 6), np.nan), run.seconds, 0, 0))
+            rows.append({**results[-1].row(), **region_drift(run.trajectory, rec.ground_truth, scene_obj)})
+        else:
+            rows.append(failed_row(name, run.error, scene_obj))
     failed = sum(r is None or not r.converged for r in regs)
     summary = {"scene": rec.scene, "sensor": rec.sensor, "seed": rec.seed,
                "swept": swept,
                "deskew": deskew if swept else None, "backend": backend, "attitude": attitude,
                **fusion_settings.record(), "steps": len(rec.odometry), "icp_seconds": round(icp_seconds, 1),
-               "icp_failed_or_not_converged": failed, "registration": to_dict(registration), "rows": rows}
+               "icp_failed_or_not_converged": failed, "registration": to_dict(registration), "baselines": external,
+               "rows": rows}
     (out / "results.json").write_text(json.dumps(summary, indent=1))
     from .ate_plots import plot_map, plot_timeline, plot_trajectories
 
@@ -524,6 +543,14 @@ def region_drift(trajectory: np.ndarray, ground_truth: np.ndarray, scene: Scene)
         out[f"drift_{region}_m"] = round(drift, 3) if distance > 0 else None
         out[f"drift_{region}_pct"] = round(100 * drift / distance, 2) if distance > 0 else None
     return out
+
+
+def failed_row(name: str, error: str, scene: Scene) -> dict:
+    """The row of an estimate that could not be made: its name and why, every figure None."""
+    keys = ("ate_m", "ate_aligned_m", "rpe_m", "rpe_deg", *(f"flagged_{a}" for a in AXES), "seconds",
+            *(f"drift_{g}_{u}" for g in scene.regions for u in ("m", "pct")))
+    return {"detector": name, **dict.fromkeys(keys), "unknown_steps": 0, "fallback_steps": 0, "detector_errors": 0,
+            "error": error}
 
 
 def regions_of(rows: list[dict]) -> list[str]:
@@ -568,7 +595,7 @@ def summarize_seeds(runs: dict[int, list[dict]]) -> list[dict]:
             for unit in ("m", "pct"):
                 values = [runs[k][i][f"drift_{g}_{unit}"] for k in seeds if runs[k][i][f"drift_{g}_{unit}"] is not None]
                 drifts[f"drift_{g}_{unit}_mean"] = round(float(np.mean(values)), 3) if values else None
-        ate = np.array([runs[k][i]["ate_m"] for k in seeds])
+        ate = np.array([runs[k][i]["ate_m"] for k in seeds], dtype=float)  # NaN where an estimate failed
         aligned = np.array([runs[k][i]["ate_aligned_m"] for k in seeds], dtype=float)
         ratio = ate / np.array([runs[k][0]["ate_m"] for k in seeds])  # row 0: odometry only
         summary.append({"detector": name, "seeds": seeds, "ate_m": ate.tolist(),
@@ -610,6 +637,9 @@ def format_table(rows: list[dict]) -> str:
             f"flagged x/y/z/roll/pitch/yaw      {'s':>6s}" + "".join(f"  {'drift ' + g:>15s}" for g in regions))
     lines = [head, "-" * len(head)]
     for r in rows:
+        if r.get("error"):
+            lines.append(f"{r['detector']:{w}s} failed: {r['error']}")
+            continue
         flags = " ".join(f"{r[f'flagged_{a}']:.2f}" for a in AXES)
         al = "-" if r["ate_aligned_m"] is None else f"{r['ate_aligned_m']:.3f}"
         drifts = "".join(f"  {'-':>15s}" if r[f"drift_{g}_m"] is None
