@@ -74,12 +74,30 @@ def test_kiss_icp_and_genz_icp_rows_in_the_ate_table(tmp_path):
     pytest.importorskip("genz_icp")
     from l3e_env.experiments.ate import run_ate
 
-    run = run_ate(tmp_path, "office", ["none"], max_steps=40, progress=False, baselines=["kiss-icp", "genz-icp"])
+    run = run_ate(tmp_path, "office", ["none", "eigen:30"], max_steps=40, progress=False,
+                  baselines=["kiss-icp", "genz-icp"], frontends=["icp", "genz-icp"])
     names = [r["detector"] for r in run.rows]
-    assert names == ["odometry only", "none", "kiss-icp", "genz-icp"]
+    assert names == ["odometry only", "none", "eigen:30", "none @genz-icp", "eigen:30 @genz-icp", "kiss-icp", "genz-icp"]
     assert all(r["ate_m"] is not None and np.isfinite(r["ate_m"]) for r in run.rows)
     assert "kiss-icp" in run.table() and (tmp_path / "trajectories" / "kiss-icp.tum").exists()
     import json
 
     saved = json.loads((tmp_path / "results.json").read_text())["baselines"]
     assert saved["kiss-icp"]["config"]["mapping"]["voxel_size"] == 1.0 and saved["genz-icp"]["error"] is None
+    rows = {r["detector"]: r for r in run.rows}  # the front end's steps are its own, not ICP's
+    assert rows["none @genz-icp"]["ate_m"] != rows["none"]["ate_m"]
+
+
+def test_a_front_end_takes_the_odometrys_steps_with_the_icp_information():
+    gt, T_b_s, _ = _drive(6)
+    P = np.stack([inverse(gt[0] @ T_b_s) @ T @ T_b_s for T in gt])
+    run = baselines.BaselineRun("kiss-icp", gt, {}, 0.0, sensor_poses=P)
+    from l3e_env.localizability.registration import RegistrationResult
+
+    icp = [RegistrationResult(np.eye(4), np.eye(6) * (k + 1), True, 5, 10, 10, 0.0) for k in range(4)] + [None]
+    steps = run.registrations(icp)
+    assert len(steps) == 5 and all(s.converged for s in steps)
+    assert np.allclose(steps[2].T_target_source, inverse(gt[2] @ T_b_s) @ gt[3] @ T_b_s)
+    assert np.array_equal(steps[1].hessian, np.eye(6) * 2) and np.isnan(steps[4].hessian).all()
+    with pytest.raises(ValueError, match="failed"):
+        baselines.BaselineRun("kiss-icp", None, {}, 0.0, "diverged").registrations(icp)

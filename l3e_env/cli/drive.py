@@ -79,7 +79,7 @@ def _cmd_ate(args: argparse.Namespace) -> int:
     detectors = args.detector or ["none", "eigen:30", "eigen:110", "oracle"]
     options = dict(sensor=args.sensor, progress=not args.quiet, backend=args.backend, scene_params=params,
                    workers=args.workers, attitude=args.attitude, fusion_settings=fusion_settings(args),
-                   max_steps=args.max_steps, baselines=args.baseline)
+                   max_steps=args.max_steps, baselines=args.baseline, frontends=args.frontend)
     if args.seeds > 1:
         seeds = range(args.seed, args.seed + args.seeds)
         done = run_ate_seeds(out, args.scene, detectors, seeds, on_drive=lambda seed, run: print(
@@ -189,6 +189,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--baseline", action="append", choices=["kiss-icp", "genz-icp"],
                    help="also run this external LiDAR odometry on the drive's scans, with its authors' defaults, as a "
                         "row of its own; repeat for both (needs pip install 'l3e[baselines]')")
+    p.add_argument("--frontend", action="append", choices=["icp", "kiss-icp", "genz-icp"],
+                   help="the LiDAR steps the fusion takes: scan-to-scan ICP (default) or an external odometry's "
+                        "relative motions, masked by the detectors and fused with the legs alike; repeat to fuse every "
+                        "detector with each (rows '<detector> @<front end>')")
     p.add_argument("--sensor", type=sensor_name, default="vlp16", help=SENSOR_HELP)
     p.add_argument("--seed", type=int, default=0)
     add_max_steps(p)

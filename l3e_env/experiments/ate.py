@@ -40,7 +40,7 @@ from l3e_env.sim.lidar import DESKEW_SOURCES, Lidar, Scan, deskew, deskew_motion
 from l3e_env.sim.odometry import odometry_fusion_config
 from l3e_env.sim.raycast import EmbreeCaster
 
-from .baselines import check_baselines, run_baseline
+from .baselines import BASELINES, BaselineRun, check_baselines, run_baseline
 
 STORE_VOXEL = 0.2  # stored scans for ICP are thinned (ICP downsamples to 0.3 m anyway)
 CLASSIFIER_POINTS = 4000  # the classifier's input size (ModelConfig.points)
@@ -442,7 +442,8 @@ def run_ate(out_dir: str | Path, scene: str, detectors: list[str], sensor: str =
                    recording: str | Path | None = None, progress: bool = True, backend: str = "graph",
                    scene_params: dict | None = None, workers: int = 1, deskew: str = "gyro",
                    attitude: str = "none", fusion_settings: FusionSettings = FusionSettings(),
-                   max_steps: int | None = None, baselines: list[str] | None = None) -> AteRun:
+                   max_steps: int | None = None, baselines: list[str] | None = None,
+                   frontends: list[str] | None = None) -> AteRun:
     """The `l3e ate` command as a function: writes everything to out_dir and returns the rows.
     `scene_params` go to make_scene (a mesh scene's up axis, scale and route). With a `recording`,
     its own scene is used; `scene` matters only as the new path of a recorded mesh that has moved.
@@ -453,13 +454,19 @@ def run_ate(out_dir: str | Path, scene: str, detectors: list[str], sensor: str =
     from the default OdometryConfig, as the drive's). `baselines`: external LiDAR odometries
     (experiments.baselines: kiss-icp, genz-icp) run on the drive's scans as recorded (a swept drive's
     with their firing times, which they deskew themselves), each a row after the fusion's; their
-    settings go into results.json, and one that fails says so in its row."""
+    settings go into results.json, and one that fails says so in its row. `frontends`: the LiDAR front
+    ends whose steps the fusion takes ("icp", the default: scan-to-scan ICP; or a baseline's name: its
+    relative motions with the ICP's information, BaselineRun.registrations); every detector is fused
+    with each, the rows of a front end other than ICP named "<detector> @<front end>"."""
     if workers < 1:
         raise ValueError(f"workers must be at least 1, got {workers}")
     if deskew not in DESKEW_SOURCES:
         raise ValueError(f"deskew must be one of {DESKEW_SOURCES}, got {deskew!r}")
     attitude_sigmas(attitude)  # a bad mode fails before the drive
-    check_baselines(baselines or [])  # and so does a missing package
+    frontends = frontends or ["icp"]
+    if any(f != "icp" and f not in BASELINES for f in frontends):
+        raise ValueError(f"front ends: icp or one of {', '.join(BASELINES)}, got {frontends}")
+    check_baselines([*(baselines or []), *(f for f in frontends if f != "icp")])  # and so does a missing package
     fusion = odometry_fusion_config(OdometryConfig(), fusion_settings)
     out = Path(out_dir)
     rec = Recording.load(recording) if recording else None
@@ -489,19 +496,32 @@ def run_ate(out_dir: str | Path, scene: str, detectors: list[str], sensor: str =
         ahead[i] = time.perf_counter() - t0
     if attitude != "none":
         dets, ahead = [OdometryAttitude(), *dets], [0.0, *ahead]
-    fused = fuse_recording(rec, dets, regs, fusion=fusion, progress=progress, backend=backend, attitude=attitude)
-    for result, seconds in zip(fused, ahead):
-        result.seconds += seconds
+    external: dict[str, dict] = {}
+    runs: dict[str, BaselineRun] = {}
+    for name in dict.fromkeys([*(f for f in frontends if f != "icp"), *(baselines or [])]):
+        runs[name] = run = run_baseline(name, raw.scans, raw.ground_truth[0], raw.T_b_s,
+                                        get_pattern(raw.sensor) if swept else None, progress=progress)
+        external[name] = {"config": run.config, "seconds": round(run.seconds, 2), "error": run.error}
+    fused, lost = [], []  # lost: rows of a front end whose odometry failed
+    for frontend in frontends:
+        if frontend != "icp" and runs[frontend].error is not None:
+            lost += [(f"{det.name} @{frontend}", runs[frontend].error) for det in dets]
+            continue
+        steps = regs if frontend == "icp" else runs[frontend].registrations(regs)
+        by_front = fuse_recording(rec, dets, steps, fusion=fusion, progress=progress, backend=backend,
+                                  attitude=attitude)
+        for result, seconds, det in zip(by_front, ahead, dets):
+            result.seconds += seconds
+            result.name = det.name if frontend == "icp" else f"{det.name} @{frontend}"
+        fused += by_front
     results = [odometry_only(rec)] + fused
     rows = [{**r.row(), **region_drift(r.trajectory, rec.ground_truth, scene_obj)} for r in results]
-    for det, row in zip(dets, rows[1:]):
+    for det, row in zip(dets * len(frontends), rows[1:]):
         if isinstance(det, RecastCascade):  # what the estimate cost it: steps it was asked, scans it judged
             row.update(checked_steps=det.cascade.checked, judged_steps=det.judged_steps)
-    external = {}
+    rows += [failed_row(name, error, scene_obj) for name, error in lost]
     for name in baselines or []:
-        run = run_baseline(name, raw.scans, raw.ground_truth[0], raw.T_b_s, get_pattern(raw.sensor) if swept else None,
-                           progress=progress)
-        external[name] = {"config": run.config, "seconds": round(run.seconds, 2), "error": run.error}
+        run = runs[name]
         if run.error is None:
             steps = len(rec.odometry)
             results.append(_scored(name, run.trajectory, rec.ground_truth, np.zeros((steps, 6), bool),
@@ -514,7 +534,8 @@ def run_ate(out_dir: str | Path, scene: str, detectors: list[str], sensor: str =
                "swept": swept,
                "deskew": deskew if swept else None, "backend": backend, "attitude": attitude,
                **fusion_settings.record(), "steps": len(rec.odometry), "icp_seconds": round(icp_seconds, 1),
-               "icp_failed_or_not_converged": failed, "registration": to_dict(registration), "baselines": external,
+               "icp_failed_or_not_converged": failed, "registration": to_dict(registration), "frontends": frontends,
+               "baselines": external,
                "rows": rows}
     (out / "results.json").write_text(json.dumps(summary, indent=1))
     from .ate_plots import plot_map, plot_timeline, plot_trajectories

@@ -17,6 +17,7 @@ import numpy as np
 from tqdm import tqdm
 
 from l3e_env.core.transforms import inverse
+from l3e_env.localizability.registration import RegistrationResult
 from l3e_env.sim.patterns import BeamPattern
 
 
@@ -33,6 +34,23 @@ class BaselineRun:
     config: dict[str, Any]
     seconds: float
     error: str | None = None
+    sensor_poses: np.ndarray | None = None  # (N+1, 4, 4) the sensor in the frame of its first scan, as estimated
+
+    def registrations(self, icp: list[RegistrationResult | None]) -> list[RegistrationResult]:
+        """The odometry's step from each scan to the next as the LiDAR factor a front end hands the fusion:
+        its relative motion with the information of the scan-to-scan ICP's Hessian on the same pair (the
+        geometry's, whatever the motion estimate; NaN, and the fusion's fixed sigmas, where ICP failed).
+        An external odometry reports no Hessian of its own, and its map-based estimate is at least as
+        well held as one pair's, so the pair's information is a conservative weight; the detector then
+        masks the axes the geometry does not hold, as for the ICP front end."""
+        if self.sensor_poses is None:
+            raise ValueError(f"{self.name} failed ({self.error}): it has no steps to hand the fusion")
+        P = self.sensor_poses
+        out = []
+        for k, reg in enumerate(icp):
+            hessian = reg.hessian if reg is not None and reg.converged else np.full((6, 6), np.nan)
+            out.append(RegistrationResult(inverse(P[k]) @ P[k + 1], hessian, True, 0, 0, 0, 0.0))
+        return out
 
 
 def _kiss(deskew: bool, max_range: float) -> tuple[Any, dict[str, Any]]:
@@ -96,4 +114,4 @@ def run_baseline(name: str, scans: list[np.ndarray], ground_truth_0: np.ndarray,
     if not np.isfinite(P).all():
         return BaselineRun(name, None, config, time.perf_counter() - t0, "non-finite poses (diverged)")
     trajectory = np.asarray(ground_truth_0) @ T_b_s @ P @ inverse(T_b_s)
-    return BaselineRun(name, trajectory, config, time.perf_counter() - t0)
+    return BaselineRun(name, trajectory, config, time.perf_counter() - t0, sensor_poses=P)
