@@ -77,7 +77,8 @@ def test_kiss_icp_and_genz_icp_rows_in_the_ate_table(tmp_path):
     run = run_ate(tmp_path, "office", ["none", "eigen:30"], max_steps=40, progress=False,
                   baselines=["kiss-icp", "genz-icp"], frontends=["icp", "genz-icp"])
     names = [r["detector"] for r in run.rows]
-    assert names == ["odometry only", "none", "eigen:30", "none @genz-icp", "eigen:30 @genz-icp", "kiss-icp", "genz-icp"]
+    assert names == ["odometry only", "none", "eigen:30", "none @genz-icp", "eigen:30 @genz-icp", "kiss-icp",
+                     "genz-icp"]
     assert all(r["ate_m"] is not None and np.isfinite(r["ate_m"]) for r in run.rows)
     assert "kiss-icp" in run.table() and (tmp_path / "trajectories" / "kiss-icp.tum").exists()
     import json
