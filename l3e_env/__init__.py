@@ -8,18 +8,21 @@ from typing import Any
 
 from gymnasium.envs.registration import register, registry
 
+# id -> (scene, the episode's step limit: 3x the route at full speed, as NavigationEnv sets it; a test
+# keeps the two equal, so that Gymnasium's TimeLimit and the environment truncate on the same step)
 ENV_IDS = {
-    "l3e/Tunnel-v0": "tunnel",
-    "l3e/Field-v0": "field",
-    "l3e/Office-v0": "office",
-    "l3e/Cave-v0": "cave",
-    "l3e/Mine-v0": "mine",
-    "l3e/Fork-v0": "fork",
+    "l3e/Tunnel-v0": ("tunnel", 3240),
+    "l3e/Field-v0": ("field", 2400),
+    "l3e/Office-v0": ("office", 840),
+    "l3e/Cave-v0": ("cave", 2643),
+    "l3e/Mine-v0": ("mine", 4753),
+    "l3e/Fork-v0": ("fork", 2400),
 }
 
-for _id, _scene in ENV_IDS.items():
+for _id, (_scene, _steps) in ENV_IDS.items():
     if _id not in registry:
-        register(id=_id, entry_point="l3e_env.envs.navigation:NavigationEnv", kwargs={"scene": _scene})
+        register(id=_id, entry_point="l3e_env.envs.navigation:NavigationEnv", kwargs={"scene": _scene},
+                 max_episode_steps=_steps)
 
 _LAZY = {
     "EnvConfig": "l3e_env.config", "LidarConfig": "l3e_env.config", "OdometryConfig": "l3e_env.config",

@@ -22,20 +22,37 @@ def run(env, seed, steps=15):
 def test_registered_environments_pass_gymnasiums_checker(env_id):
     env = gym.make(env_id, render_mode="rgb_array")
     check_env(env.unwrapped)
+    assert env.spec.max_episode_steps == env.unwrapped.max_steps  # TimeLimit and the environment agree
     obs, info = env.reset(seed=0)
     assert env.observation_space.contains(obs)
     frame = env.render()
     assert frame.dtype == np.uint8 and frame.ndim == 3 and frame.shape[2] == 3
     assert (frame != frame[0, 0]).any(axis=-1).mean() > 0.001  # something is drawn
+    assert frame.shape[0] % 2 == 0 and frame.shape[1] % 2 == 0  # as video encoders want, whatever the aspect
+    assert (frame[-20:, :60] == 0).all(axis=-1).sum() > 60  # the scale bar, black, in the legend strip
     assert info["T_w_b"].shape == (4, 4)
     env.close()
 
 
-def test_stable_baselines3_checker_accepts_the_environment():
+def test_stable_baselines3_checker_accepts_the_environment_and_the_flat_one_without_a_warning():
+    import warnings
+
     from stable_baselines3.common.env_checker import check_env as sb3_check
+
+    from l3e_env.envs.wrappers import FlatObservation
 
     env = gym.make("l3e/Fork-v0")
     sb3_check(env.unwrapped, warn=False)
+    flat = FlatObservation(env)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        sb3_check(flat, warn=True)
+    assert not [w for w in caught if "shape" in str(w.message)], [str(w.message) for w in caught]
+    obs, _ = flat.reset(seed=0)
+    image, _ = env.reset(seed=0)
+    assert flat.observation_space.contains(obs) and np.array_equal(obs["ranges"], image["ranges"].reshape(-1))
+    with pytest.raises(ValueError, match="Dict"):
+        FlatObservation(gym.make("CartPole-v1"))
 
 
 def test_same_seed_same_episode_different_seed_different_noise():

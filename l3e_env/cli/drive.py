@@ -58,8 +58,8 @@ def _cmd_scenes(args: argparse.Namespace) -> int:
 def _cmd_envs(args: argparse.Namespace) -> int:
     from l3e_env import ENV_IDS
 
-    for env_id, scene in ENV_IDS.items():
-        print(f"{env_id:18s} scene '{scene}'")
+    for env_id, (scene, steps) in ENV_IDS.items():
+        print(f"{env_id:18s} scene '{scene}', at most {steps} steps an episode")
     return 0
 
 
