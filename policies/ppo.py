@@ -1,7 +1,8 @@
 """PPO (stable-baselines3, the `rl` extra) on the fast map environment over seeded fork variants.
 
-A run folder holds `progress.csv` (SB3's CSV log: returns, losses, fps), `monitor.csv` (one row
-per episode), `last.pt` (weights, optimiser state and step count: running the same command again
+A run folder holds `progress.csv` (SB3's CSV log: returns, losses, fps) and the same in TensorBoard
+event files (`tensorboard --logdir <run folder>`; written where the `tensorboard` package, part of the
+`rl` extra, is installed), `monitor.csv` (one row per episode), `last.pt` (weights, optimiser state and step count: running the same command again
 resumes from it), `policy.pt` (the trained policy's weights) and `policy.json`, which records the
 network's layout and what the policy observes, so that a policy of another observation layout is
 refused by name. Weights are stored as tensors and read with torch's weights-only loader, so that
@@ -84,6 +85,12 @@ def resumed_config(out: str | Path, **given: float | None) -> FastEnvConfig:
     return FastEnvConfig(**{k: own.get(k, getattr(default, k)) if v is None else v for k, v in given.items()})
 
 
+def _has_tensorboard() -> bool:
+    import importlib.util
+
+    return importlib.util.find_spec("tensorboard") is not None
+
+
 def train_ppo(out: str | Path, contexts: list[SceneContext], detector: str = "learned", timesteps: int = 300_000,
               seed: int = 0, n_envs: int = 4, config: FastEnvConfig | None = None,
               progress: bool = True) -> dict[str, Any]:
@@ -117,7 +124,7 @@ def train_ppo(out: str | Path, contexts: list[SceneContext], detector: str = "le
         except (KeyError, RuntimeError, ValueError, TypeError) as exc:
             raise PolicyCheckpointError(f"{last}: not the state of a run of this network ({exc}); train into "
                                         "another folder") from exc
-    model.set_logger(configure(str(out), ["csv"]))
+    model.set_logger(configure(str(out), ["csv", *(["tensorboard"] if _has_tensorboard() else [])]))
     done = model.num_timesteps
 
     class Bar(BaseCallback):

@@ -312,6 +312,7 @@ def test_ppo_trains_resumes_and_refuses_other_observations(tmp_path, small_fork)
     resumed = train_ppo(out, contexts, "eigen:30", timesteps=1024, n_envs=2, progress=False)
     assert resumed["timesteps"] >= 1024
     assert (out / "progress.csv").exists() and (out / "monitor.csv").exists()
+    assert list(out.glob("events.out.tfevents.*")), "the TensorBoard log beside the CSV one"
     assert (out / "resume-1.monitor.csv").exists()  # the resumed run keeps its own episode log
     policy = PPOPolicy(out)
     action = policy(np.zeros(PolicyView.size, dtype=np.float32))
