@@ -123,7 +123,12 @@ def _cmd_record(args: argparse.Namespace) -> int:
 
     pattern = get_pattern(args.sensor)
     scene = make_scene(args.scene, **params)  # built once: the size estimate and the drive share it
-    steps = min(route_drive(scene.route)[1], args.max_steps or 10**9)
+    if not args.still >= 0:
+        print(f"l3e record: --still is 0 s or more, got {args.still}", file=sys.stderr)
+        return 2
+    from l3e_env.config import RobotConfig
+
+    steps = min(route_drive(scene.route)[1] + int(round(args.still / RobotConfig.dt)), args.max_steps or 10**9)
     size = bag_size_bound(pattern.n_beams * pattern.n_azimuth, steps + 1, args.sweep)
     shown = f"{size / 2**30:.1f} GiB" if size >= 2**30 else f"{size / 2**20:.0f} MiB"
     print(f"recording about {steps + 1} scans of {pattern.name}: the bag's scans take up to {shown}", flush=True)
@@ -134,7 +139,8 @@ def _cmd_record(args: argparse.Namespace) -> int:
         return 2
     try:
         rec = record_run(args.scene, args.sensor, args.seed, progress=not args.quiet, scene_params=params,
-                         scene_object=scene, on_step=bag, sweep=args.sweep, max_steps=args.max_steps)
+                         scene_object=scene, on_step=bag, sweep=args.sweep, max_steps=args.max_steps,
+                         still=args.still)
         written = bag.close()
     except BaseException:
         bag.abort()  # no half-written bag beside the name
@@ -228,6 +234,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--sweep", action=argparse.BooleanOptionalAction, default=True,
                    help="sweep each revolution over the step's motion and write each point's time, as a spinning "
                         "sensor on a moving robot does (default), or take each revolution at one pose")
+    p.add_argument("--still", type=float, default=3.0, metavar="SECONDS",
+                   help="the robot first stands still this long, so that a LiDAR-inertial odometry's IMU initialiser "
+                        "sees gravity alone (default 3 s, DLIO's calibration time; FAST-LIO needs less; 0: none)")
     p.add_argument("--imu-footfalls", action=argparse.BooleanOptionalAction, default=True,
                    help="jolt /imu at each footfall while walking, as a legged robot's body rings (default), or not")
     p.add_argument("--quiet", action="store_true")

@@ -227,12 +227,13 @@ def _unragged(z, name: str) -> list[np.ndarray]:
 def record_run(scene: str = "mine", sensor: str = "vlp16", seed: int = 0, progress: bool = True,
                scene_params: dict | None = None, scene_object: Scene | None = None,
                on_step: Callable[[Scan, dict], None] | None = None, sweep: bool = False,
-               max_steps: int | None = None) -> Recording:
+               max_steps: int | None = None, still: float = 0.0) -> Recording:
     """Drive the scene's route once; `scene_object`, if given, is that scene already built.
     `on_step(scan, info)` sees every full scan with the step's info (T_w_b, odom_T_w_b) and the
     sensor's mounting T_b_s, the start's included, before the recording thins it (a bag writer).
     `sweep`: each step's scan is swept over the step's motion (LidarConfig.sweep). `max_steps`: stop the
-    drive there (a short run; default: the route's end, or 3x its length at full speed)."""
+    drive there (a short run; default: the route's end, or 3x its length at full speed). `still`: seconds
+    the robot first stands at the start (an IMU initialiser's calibration), counted in `max_steps`."""
     env = NavigationEnv(EnvConfig(scene=scene, lidar=LidarConfig(model=sensor, sweep=sweep),
                                   scene_params=scene_params or {}, max_episode_steps=max_steps),
                         scene_object=scene_object)
@@ -254,10 +255,14 @@ def record_run(scene: str = "mine", sensor: str = "vlp16", seed: int = 0, progre
     if on_step is not None:
         on_step(env.scan, {**info, "T_b_s": env.robot.T_b_s})
     bar = tqdm(total=env.max_steps, desc=f"recording {env.scene.name}", unit="step", disable=not progress)
-    done = False
+    done, standing = False, int(round(still / RobotConfig.dt))
+    if standing < 0:
+        raise ValueError(f"the robot stands still for 0 s or more, not {still} s")
     while not done:
         prev_odom = info["odom_T_w_b"]
-        obs, _, terminated, truncated, info = env.step(follow(info["T_w_b"]))
+        action = np.zeros(3) if standing > 0 else follow(info["T_w_b"])
+        standing -= 1
+        obs, _, terminated, truncated, info = env.step(action)
         done = terminated or truncated
         gt.append(info["T_w_b"])
         odom.append(inverse(prev_odom) @ info["odom_T_w_b"])
