@@ -5,9 +5,10 @@ event files (`tensorboard --logdir <run folder>`; written where the `tensorboard
 the `rl` extra, is installed), `monitor.csv` (one row per episode), `last.pt` (weights, optimiser
 state and step count: running the same command again resumes from it), `policy.pt` (the trained
 policy's weights) and `policy.json`, which records the network's layout and what the policy
-observes, so that a policy of another observation layout is refused by name. Weights are stored as tensors and read with torch's weights-only loader, so that
-loading a policy folder never runs code from it; stable-baselines3's own zip files, whose loader
-unpickles what they hold, are neither written nor read."""
+observes, so that a policy of another observation layout is refused by name. Weights are stored as
+tensors and read with torch's weights-only loader, so that loading a policy folder never runs code
+from it; stable-baselines3's own zip files, whose loader unpickles what they hold, are neither
+written nor read."""
 from __future__ import annotations
 
 import dataclasses
