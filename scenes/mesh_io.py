@@ -114,8 +114,28 @@ def check_route_on_floor(mesh: trimesh.Trimesh, route: np.ndarray, where: str) -
     if len(missing):
         shown = ", ".join(f"({route[k, 0]:.1f}, {route[k, 1]:.1f}, {route[k, 2]:.1f})" for k in missing[:3])
         raise SceneError(f"{where}: {len(missing)} of its {len(route)} points have no floor within {FLOOR_BELOW_M} m "
-                         f"under them, e.g. {shown} m: give each waypoint's height on the floor ('x y z' lines), and "
-                         "check that --up-axis and --scale are the mesh file's")
+                         f"under them, e.g. {shown} m: give each waypoint's height on the floor ('x y z' lines) or "
+                         "let --snap-route set it, and check that --up-axis and --scale are the mesh file's")
+
+
+SNAP_REACH_M = 2.0  # snapping looks for the floor from this far above a waypoint down to FLOOR_BELOW_M under it
+
+
+def snap_route_to_floor(mesh: trimesh.Trimesh, route: np.ndarray) -> np.ndarray:
+    """The route with each waypoint's height set to the floor under it: the first upward-facing surface
+    met going down from SNAP_REACH_M above the waypoint (an 'x y' route over a raised floor, or
+    heights a little off). Waypoints with no such surface within reach keep their height, for
+    check_route_on_floor to name."""
+    route = np.array(route, dtype=np.float64)
+    origins = route + [0.0, 0.0, SNAP_REACH_M]
+    hits, rays, faces = mesh.ray.intersects_location(origins, np.tile([0.0, 0.0, -1.0], (len(route), 1)))
+    floor = np.full(len(route), -np.inf)
+    up = mesh.face_normals[faces, 2] > 0.5  # a floor faces up; a roof's underside does not
+    reach = hits[:, 2] >= route[rays, 2] - FLOOR_BELOW_M
+    np.maximum.at(floor, rays[up & reach], hits[up & reach, 2])
+    found = np.isfinite(floor)
+    route[found, 2] = floor[found]
+    return route
 
 
 def scene_from_mesh(
@@ -125,13 +145,17 @@ def scene_from_mesh(
     sampling_paths: list[np.ndarray] | None = None,
     start: tuple[float, float, float] | None = None,
     goal: tuple[float, float] | None = None,
+    snap_to_floor: bool = False,
 ) -> Scene:
     """A scene from a mesh file, its sampling paths in metres in the scene's frame (z up). The first
     path is also the route the robot drives, from its first point facing along it, unless `start`
     and `goal` say otherwise. Without sampling paths the scene can be stepped but not labelled or
-    driven along a route."""
+    driven along a route. `snap_to_floor`: each waypoint's height is set to the floor under it first
+    (snap_route_to_floor)."""
     mesh = load_mesh(path, up_axis, scale)
     paths = [resample_polyline(np.asarray(p, dtype=np.float64), 1.0) for p in (sampling_paths or [])]
+    if snap_to_floor:
+        paths = [snap_route_to_floor(mesh, p) for p in paths]
     (x0, y0, z0), (x1, y1, z1) = mesh.bounds
     for p in paths:  # a route in other units or axes than the mesh: say so here, not as "no ground" later
         outside = p[(p[:, 0] < x0 - 0.5) | (p[:, 0] > x1 + 0.5) | (p[:, 1] < y0 - 0.5) | (p[:, 1] > y1 + 0.5)

@@ -2,6 +2,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from scenes.mesh_io import snap_route_to_floor
 from scenes import (TEST_SCENES, TRAIN_SCENES, VALIDATION_SCENES, Scene, SceneError, check_scene_name, list_scenes,
                     load_mesh, load_route, make_scene, scene_family, scene_from_mesh)
 
@@ -191,8 +192,12 @@ def test_a_route_without_floor_under_it_is_named(tmp_path):
     trimesh.util.concatenate([floor, wall]).export(tmp_path / "platform.obj")
     np.savetxt(tmp_path / "xy.csv", [[1.0, 0], [8, 0]], delimiter=",")
     with pytest.raises(SceneError, match=r"route 0: 8 of its 8 points have no floor within 0.5 m under them, "
-                                         r"e.g. \(1.0, 0.0, 0.0\)"):
+                                         r"e.g. \(1.0, 0.0, 0.0\).* or let --snap-route set it"):
         scene_from_mesh(tmp_path / "platform.obj", sampling_paths=[load_route(tmp_path / "xy.csv")])
     np.savetxt(tmp_path / "xyz.csv", [[1.0, 0, 1.5], [8, 0, 1.5]], delimiter=",")
     scene = scene_from_mesh(tmp_path / "platform.obj", sampling_paths=[load_route(tmp_path / "xyz.csv")])
     assert scene.route[0, 2] == 1.5
+    snapped = scene_from_mesh(tmp_path / "platform.obj", sampling_paths=[load_route(tmp_path / "xy.csv")],
+                              snap_to_floor=True)  # the 'x y' route set onto the raised floor
+    assert np.allclose(snapped.route[:, 2], 1.5)
+    assert snap_route_to_floor(trimesh.creation.box([1, 1, 1]), np.array([[9.0, 9, 0]]))[0, 2] == 0  # none there

@@ -83,11 +83,15 @@ def add_mesh_options(parser: argparse.ArgumentParser, several: bool = False) -> 
                         "are sampled along all of them (the galleries of a mine)")
     g.add_argument("--up-axis", dest="up_axis", choices=["x", "y", "z"], help="the mesh's up axis (default z)")
     g.add_argument("--scale", type=float, help="metres per mesh unit (default 1; 0.001 for millimetres)")
+    g.add_argument("--snap-route", dest="snap_route", action="store_true", default=None,
+                   help="set each waypoint's height to the floor under it (the first upward-facing surface within "
+                        "2 m above it down to 0.5 m below): for 'x y' routes over a raised or uneven floor")
 
 
 def mesh_options_given(args: argparse.Namespace) -> list[str]:
     """The mesh options set on the command line, as spelt there."""
-    return [f"--{n.replace('_', '-')}" for n in ("route", "up_axis", "scale") if getattr(args, n) is not None]
+    return [f"--{n.replace('_', '-')}" for n in ("route", "up_axis", "scale", "snap_route")
+            if getattr(args, n, None) is not None]
 
 
 def scene_params(args: argparse.Namespace, scene: str | None = None) -> dict:
@@ -106,7 +110,8 @@ def scene_params(args: argparse.Namespace, scene: str | None = None) -> dict:
         raise ValueError(f"to drive or label the mesh {scene}, give its route: --route FILE (waypoints on its floor)")
     up_axis, scale = args.up_axis or "z", 1.0 if args.scale is None else args.scale
     routes = [load_route(path, up_axis, scale) for path in args.route]
-    return {"up_axis": up_axis, "scale": scale, "sampling_paths": [route.tolist() for route in routes]}
+    return {"up_axis": up_axis, "scale": scale, "sampling_paths": [route.tolist() for route in routes],
+            **({"snap_to_floor": True} if getattr(args, "snap_route", None) else {})}
 
 
 def dataset_scenes(args: argparse.Namespace) -> tuple[list[str] | None, dict[str, dict]]:

@@ -3,12 +3,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
-MESH_KEYS = {"mesh", "route", "up_axis", "scale"}
+MESH_KEYS = {"mesh", "route", "up_axis", "scale", "snap_route"}
 
 
 def meshes_file(path: str | Path, scenes: list[str], options: list[str]) -> dict[str, dict]:
     """The meshes a YAML file lists, each as {mesh: FILE, route: FILE or [FILE, ...], up_axis: z,
-    scale: 1} with paths relative to the file's folder: absolute mesh path -> make_scene's
+    scale: 1, snap_route: false} with paths relative to the file's folder: absolute mesh path -> make_scene's
     arguments. ValueError naming the entry where one is malformed, or where a mesh or mesh
     options (`options`, as spelt) are also given beside the file."""
     import yaml
@@ -17,7 +17,7 @@ def meshes_file(path: str | Path, scenes: list[str], options: list[str]) -> dict
 
     if any(is_mesh_path(s) for s in scenes) or options:
         raise ValueError("--meshes lists the meshes with their routes, axes and scales: give no other mesh scene and "
-                         "no --route, --up-axis or --scale beside it")
+                         "no --route, --up-axis, --scale or --snap-route beside it")
     path = Path(path)
     try:
         entries = yaml.safe_load(path.read_text())
@@ -36,11 +36,15 @@ def meshes_file(path: str | Path, scenes: list[str], options: list[str]) -> dict
         up_axis, scale = str(entry.get("up_axis", "z")), entry.get("scale", 1.0)
         if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not scale > 0:
             raise ValueError(f"{where}: scale is metres per mesh unit, a positive number; got {scale!r}")
+        snap = entry.get("snap_route", False)
+        if not isinstance(snap, bool):
+            raise ValueError(f"{where}: snap_route is true or false; got {snap!r}")
         routes = entry["route"] if isinstance(entry["route"], list) else [entry["route"]]
         name = canonical_scene_name(str(path.parent / str(entry["mesh"])))
         if name in meshes:
             raise ValueError(f"{where}: {name} is listed twice (give one mesh its routes as a list)")
         meshes[name] = {"up_axis": up_axis, "scale": float(scale), "sampling_paths": [
-            load_route(path.parent / str(r), up_axis, scale).tolist() for r in routes]}
+            load_route(path.parent / str(r), up_axis, scale).tolist() for r in routes],
+            **({"snap_to_floor": True} if snap else {})}
     return meshes
 
