@@ -156,3 +156,16 @@ def test_the_cascade_judges_a_file_with_the_estimate_where_it_is_unsure(tmp_path
                           judged.predictions["learned"].probabilities)  # never unsure: the classifier alone
     assert needs_sensor(["learned+scanmc"]) and not needs_sensor(["learned"])
     assert "learned+scanmc: the classifier's probability where it is sure" in score_legend(["learned+scanmc:1"])
+
+
+def test_a_cloud_larger_than_any_revolution_is_refused_by_name_before_any_work(tmp_path, capsys):
+    from l3e_env.core.points import MAX_REVOLUTION_POINTS
+
+    big = tmp_path / "map.npy"
+    np.save(big, np.random.default_rng(0).uniform(-50, 50, (MAX_REVOLUTION_POINTS + 1, 3)).astype(np.float32))
+    judged, = judge_scans([big], ["eigen:30", "scanmc:4"])
+    assert judged.error and "more than any spinning LiDAR returns in one revolution" in judged.error
+    assert "accumulated map" in judged.error and not judged.predictions
+    assert main(["judge", str(big), "--detector", "learned"]) == 2
+    said = capsys.readouterr()
+    assert "accumulated map" in said.err and "1 of 1 scans could not be read or judged" in said.err

@@ -331,7 +331,7 @@ def test_a_drive_recorded_with_a_pattern_file_is_judged_with_its_sensor_recognis
     save_pattern(OUSTER_LIKE, spec)
     bag = tmp_path / "walls.bag"
     assert main(["record", "--scene", "primitives-1", "--sensor", str(spec), "--out", str(bag), "--imu-rate", "0",
-                 "--quiet"]) == 0
+                 "--still", "0", "--quiet"]) == 0
     capsys.readouterr()
     PATTERNS.pop(str(spec))  # judged as in a process of its own, which has not read the file
     assert main(["judge", "--bag", str(bag), "--every", "300", "--detector", "scanmc:4", "--json",

@@ -7,6 +7,19 @@ import numpy as np
 # millimetres or one not in the sensor's frame (map or UTM coordinates), which a detector would judge
 # with confidence.
 MAX_SCAN_RANGE_M = 1000.0
+# Twice the most a spinning LiDAR returns in one revolution (128 beams x 2048 columns, two returns a
+# ray, is 524,288): a cloud beyond it is an accumulated map or several revolutions, which no detector
+# here judges; refused before its points are worked on, so that its size bounds nothing.
+MAX_REVOLUTION_POINTS = 1 << 20
+
+
+def too_many_points(count: int) -> str | None:
+    """Why a cloud of `count` points cannot be one revolution (more than MAX_REVOLUTION_POINTS), or None."""
+    if count <= MAX_REVOLUTION_POINTS:
+        return None
+    return (f"it holds {count:,} points, more than any spinning LiDAR returns in one revolution (at most "
+            f"{MAX_REVOLUTION_POINTS:,} are judged): an accumulated map or several revolutions; give one "
+            "revolution in the sensor's frame")
 
 
 def out_of_reach(points: np.ndarray) -> str | None:

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from l3e_env.config import LidarConfig
-from l3e_env.core.points import out_of_reach
+from l3e_env.core.points import out_of_reach, too_many_points
 from l3e_env.core.workers import ordered_map
 from l3e_env.detection.detectors import (CascadeDetector, DCRegDetector, Detector, EigenvalueDetector, Prediction,
                                          ScanMCDetector, make_detector, registration_of)
@@ -69,6 +69,8 @@ def _judge_source(index: int, source: str | Path | BagScan, detectors: list[Dete
             points = read_scan(source)
         except ScanFileError as exc:
             error = str(exc)
+    if error is None and (many := too_many_points(len(points))) is not None:
+        error = f"{name}: {many}"
     if error is not None:
         return Judgement(name, 0, 0, {}, error=error, stamp=stamp)
     kept = np.isfinite(points).all(axis=1) & (np.abs(points).sum(axis=1) > 0)
@@ -116,6 +118,8 @@ def recognise_sensor(scans: Iterator[str | Path | BagScan]) -> tuple[Iterator[st
         if points is None:
             continue
         try:
+            if (many := too_many_points(len(points))) is not None:
+                raise PatternError(many)
             pattern, how = fit_pattern(points, rings)
         except PatternError as exc:
             refused.append(f"{name}: {exc}")

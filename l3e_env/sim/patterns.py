@@ -91,7 +91,7 @@ class BeamPattern:
             horizontal = horizontal - self.beam_origin_offset
         elevation = np.degrees(np.arctan2(points[:, 2], horizontal))
         beams = np.asarray(self.elevations_deg)
-        beam = np.abs(elevation[:, None] - beams[None]).argmin(axis=1) if len(points) else np.zeros(0, np.int64)
+        beam = _nearest(beams, elevation)
         if self.beam_vertical_offsets and len(points):
             # seen from its beam's own origin; the beam first found is off by at most one near the sensor
             offsets = self._vertical_offsets()
@@ -99,11 +99,23 @@ class BeamPattern:
                 el = np.deg2rad(beams[beam])
                 dz = offsets[beam]
                 elevation = np.degrees(np.arctan2(points[:, 2] - dz * np.cos(el), horizontal + dz * np.sin(el)))
-                beam = np.abs(elevation[:, None] - beams[None]).argmin(axis=1)
+                beam = _nearest(beams, elevation)
         step = 2 * np.pi / self.n_azimuth
         azimuth = azimuth - self._beam_azimuth_offsets()[beam]
         column = np.round((azimuth % (2 * np.pi)) / step).astype(np.int64) % self.n_azimuth
         return beam, column, np.abs(elevation - beams[beam])
+
+
+def _nearest(values: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """The index into `values` of the one nearest each of `x` (the lower of two as near), by a binary
+    search over the sorted values: memory of a few arrays of len(x), where comparing every x with
+    every value takes len(x) x len(values)."""
+    order = np.argsort(values, kind="stable")
+    ordered = values[order]
+    right = np.clip(np.searchsorted(ordered, x), 1, len(ordered) - 1) if len(ordered) > 1 else np.zeros(len(x), int)
+    left = np.maximum(right - 1, 0)
+    nearer_left = np.abs(x - ordered[left]) <= np.abs(ordered[right] - x)
+    return order[np.where(nearer_left, left, right)].astype(np.int64)
 
 
 # The per-point time field of a sensor's ROS driver, as LIO-SAM and FAST-LIO read it, since the
