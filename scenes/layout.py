@@ -58,6 +58,19 @@ def _clear_of(walk: np.ndarray, xy: np.ndarray, radius: float) -> bool:
     return bool(np.min(np.linalg.norm(walk[:, :2] - xy, axis=1)) > radius + 1.2)
 
 
+def _keeps_clear(part: trimesh.Trimesh, walk: np.ndarray, height) -> bool:
+    """Whether the part's surface lower than 2.5 m over the ground stays 1 m clear of the walk (a tree's
+    crown or a rock's bulge may reach further than its footprint, a long wall cross the walk between
+    the points its placement checked): its vertices and points sampled over it, every 0.25 m or so."""
+    count = int(min(4000, max(50, part.area / 0.06)))
+    v = np.vstack([part.vertices, trimesh.sample.sample_surface(part, count, seed=0)[0]])
+    low = v[v[:, 2] - height(v[:, :2]) < 2.5]
+    if not len(low):
+        return True
+    gap = np.linalg.norm(low[:, None, :2] - walk[None, ::2, :2], axis=2).min()
+    return bool(gap > 1.0)
+
+
 def _beside(rng: np.random.Generator, walk: np.ndarray, near: float, far: float) -> tuple[np.ndarray, float]:
     """A point `near`-`far` m to the side of a random station of the walk, and the walk's heading there."""
     k = int(rng.integers(1, len(walk) - 1))
@@ -79,6 +92,7 @@ def make_layout(seed: int = 0) -> Scene:
     density = float(rng.choice([0.0, 1.0, 3.0, 8.0], p=[0.1, 0.25, 0.35, 0.3]))  # parts per 10 m of walk
     length = float(np.linalg.norm(np.diff(walk[:, :2], axis=0), axis=1).sum())
     regular = rng.random() < 0.4  # evenly spaced rows (a colonnade, a fence) or scattered
+    furniture: list[trimesh.Trimesh] = []
     for i in range(int(rng.poisson(density * length / 10))):
         kind = rng.choice(["box", "pillar", "tree", "rock", "wall"], p=[0.3, 0.2, 0.15, 0.15, 0.2])
         if regular:
@@ -92,21 +106,21 @@ def make_layout(seed: int = 0) -> Scene:
         if kind == "box":
             size = rng.uniform(0.4, 1.0, 3) * rng.choice([1.5, 4.0, 12.0])
             if _clear_of(walk, xy, 0.5 * float(np.hypot(size[0], size[1]))):
-                parts.append(box((xy[0], xy[1], z0 + size[2] / 2), tuple(size), yaw=float(rng.uniform(0, np.pi))))
+                furniture.append(box((xy[0], xy[1], z0 + size[2] / 2), tuple(size), yaw=float(rng.uniform(0, np.pi))))
         elif kind in ("pillar", "tree"):
             r = float(rng.uniform(0.1, 0.6)) if kind == "pillar" else float(rng.uniform(0.1, 0.3))
             h = float(rng.uniform(2.5, 8.0))
             if _clear_of(walk, xy, r if kind == "pillar" else 2.0):
-                parts.append(cylinder((xy[0], xy[1]), r, h, z0=z0))
+                furniture.append(cylinder((xy[0], xy[1]), r, h, z0=z0))
                 if kind == "tree":
-                    parts.append(trimesh.creation.icosphere(1, radius=float(rng.uniform(1.0, 2.5))).apply_translation(
+                    furniture.append(trimesh.creation.icosphere(1, radius=float(rng.uniform(1.0, 2.5))).apply_translation(
                         (xy[0], xy[1], z0 + h)))
         elif kind == "rock":
             r = float(rng.uniform(0.3, 3.0))
             if _clear_of(walk, xy, r * 1.3):
                 rock = trimesh.creation.icosphere(2, radius=r)
                 rock.vertices *= 1 + 0.25 * rng.standard_normal((len(rock.vertices), 1))
-                parts.append(rock.apply_translation((xy[0], xy[1], z0 + 0.3)))
+                furniture.append(rock.apply_translation((xy[0], xy[1], z0 + 0.3)))
         else:  # a wall along the walk (parallel: the corridor kind) or at an angle to it
             along = rng.random() < 0.6
             wall_len = float(rng.uniform(5, 40))
@@ -116,7 +130,8 @@ def make_layout(seed: int = 0) -> Scene:
             samples = ends[0] + np.linspace(0, 1, 12)[:, None] * (ends[1] - ends[0])
             if all(_clear_of(walk, p, 0.3) for p in samples):
                 h = float(rng.uniform(1.0, 6.0))
-                parts.append(box((centre[0], centre[1], z0 + h / 2), (wall_len, 0.3, h), yaw=yaw))
+                furniture.append(box((centre[0], centre[1], z0 + h / 2), (wall_len, 0.3, h), yaw=yaw))
+    parts += [part for part in furniture if _keeps_clear(part, walk, height)]
     if rng.random() < 0.25:  # a ceiling over the whole walk: a hall
         z = float(rng.uniform(3.0, 8.0))
         parts.append(box(((lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, z + 0.1), (hi[0] - lo[0], hi[1] - lo[1], 0.2)))

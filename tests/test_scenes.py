@@ -152,6 +152,33 @@ def test_chambers_are_closed_rooms_from_smooth_to_rough():
     assert max(roughness) > 5 * min(roughness)
 
 
+def test_pipe_racks_run_from_short_to_long_bays_and_keep_their_walkway_clear():
+    bays = []
+    for seed in range(6):
+        rack = make_scene(f"piperack-{seed}")
+        route = rack.route
+        assert _horizontal_clearance(rack, route[::4], height=0.85).min() > 1.0  # columns and clutter beside it
+        columns = rack.mesh.vertices[(np.abs(rack.mesh.vertices[:, 1]) > 1.5) & (rack.mesh.vertices[:, 2] > 2.5)]
+        bays.append(np.ptp(route[:, 0]) / max(len(np.unique(np.round(columns[:, 0] / 0.3))), 1))
+    assert max(bays) > 2 * min(bays)  # the seeds span short and long bays
+
+
+def test_layouts_span_bare_plains_to_furnished_and_tunnelled_walks():
+    furnished, tunnels, ground = [], 0, set()
+    for seed in range(12):
+        layout = make_scene(f"layout-{seed}")
+        walk = layout.route
+        assert _horizontal_clearance(layout, walk[::6], height=0.85).min() > 0.5  # the walk stays walkable
+        raised = layout.mesh.triangles_center[:, 2] - np.interp(
+            layout.mesh.triangles_center[:, 0], walk[:, 0], walk[:, 2])
+        furnished.append(int((raised > 1.0).sum()))
+        walled = np.isfinite(_horizontal_clearance(layout, walk[::4], max_range=8.0)).mean(axis=1)
+        tunnels += bool(walled.max() > 0.6)  # walls within 8 m all round but along the walk: a tunnel
+        ground.add(bool(np.ptp(walk[:, 2]) > 0.05))
+    assert min(furnished) < 50 < max(furnished) and tunnels >= 1 and ground == {True, False}
+    assert np.allclose(make_scene("layout-3").mesh.vertices, make_scene("layout-3").mesh.vertices)
+
+
 def test_a_route_without_length_or_in_other_units_is_named(cad_corridor):
     """Two identical waypoints made a one-step drive (or a crash in the demo); a millimetre mesh and route
     given no scale made a drive of hours: both are named with what fixes them."""
