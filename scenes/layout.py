@@ -113,8 +113,8 @@ def make_layout(seed: int = 0) -> Scene:
             if _clear_of(walk, xy, r if kind == "pillar" else 2.0):
                 furniture.append(cylinder((xy[0], xy[1]), r, h, z0=z0))
                 if kind == "tree":
-                    furniture.append(trimesh.creation.icosphere(1, radius=float(rng.uniform(1.0, 2.5))).apply_translation(
-                        (xy[0], xy[1], z0 + h)))
+                    crown = trimesh.creation.icosphere(1, radius=float(rng.uniform(1.0, 2.5)))
+                    furniture.append(crown.apply_translation((xy[0], xy[1], z0 + h)))
         elif kind == "rock":
             r = float(rng.uniform(0.3, 3.0))
             if _clear_of(walk, xy, r * 1.3):
