@@ -50,39 +50,48 @@ class NoDetector:
         return Prediction(np.zeros(6), np.zeros(6, dtype=bool))
 
 
-class EigenvalueDetector:
+class HessianDetector:
+    """A classical test on the registration's Hessian: `mask_of(hessian, threshold)` -> (scores, mask),
+    named '<kind>:<threshold>'; UNKNOWN where there is no finite Hessian."""
+
+    kind = ""
+    mask_of = staticmethod(eigen_mask)
+
+    def __init__(self, threshold: float):
+        self.threshold = float(threshold)
+        self.name = f"{self.kind}:{threshold:g}"
+
+    def predict(self, points, registration=None, T_w_s=None) -> Prediction:
+        if registration is None or not np.isfinite(registration.hessian).all():
+            return UNKNOWN
+        return Prediction(*self.mask_of(registration.hessian, self.threshold))
+
+
+class EigenvalueDetector(HessianDetector):
     """Zhang et al. (2016) on the registration's Hessian; `probabilities` are the per-axis shares
     of the degenerate subspace (not calibrated probabilities)."""
+
+    kind, mask_of = "eigen", staticmethod(eigen_mask)
 
     def __init__(self, tau: float):
         if not tau > 0:
             raise ValueError(f"eigenvalue threshold must be positive, got {tau}")
-        self.tau = float(tau)
-        self.name = f"eigen:{tau:g}"
-
-    def predict(self, points, registration=None, T_w_s=None) -> Prediction:
-        if registration is None or not np.isfinite(registration.hessian).all():
-            return UNKNOWN
-        scores, mask = eigen_mask(registration.hessian, self.tau)
-        return Prediction(scores, mask)
+        super().__init__(tau)
+        self.tau = self.threshold
 
 
-class DCRegDetector:
+class DCRegDetector(HessianDetector):
     """DCReg's detection (Hu et al., 2025) on the registration's Hessian: rotation and translation
     decoupled by Schur complements, an axis flagged when its subspace's condition ratio exceeds kappa
     (registration.dcreg_mask); `probabilities` are log-ratio scores, not calibrated probabilities."""
 
+    kind, mask_of = "dcreg", staticmethod(dcreg_mask)
+
     def __init__(self, kappa: float):
         if not kappa > 1:
             raise ValueError(f"DCReg's condition ratio threshold must exceed 1, got {kappa}")
-        self.kappa = float(kappa)
-        self.name = f"dcreg:{kappa:g}"
-
-    def predict(self, points, registration=None, T_w_s=None) -> Prediction:
-        if registration is None or not np.isfinite(registration.hessian).all():
-            return UNKNOWN
-        scores, mask = dcreg_mask(registration.hessian, self.kappa)
-        return Prediction(scores, mask)
+        super().__init__(kappa)
+        self.kappa = self.threshold
 
 
 class OracleDetector:

@@ -14,8 +14,8 @@ import numpy as np
 from l3e_env.config import LidarConfig
 from l3e_env.core.points import out_of_reach, too_many_points
 from l3e_env.core.workers import ordered_map
-from l3e_env.detection.detectors import (CascadeDetector, DCRegDetector, Detector, EigenvalueDetector, Prediction,
-                                         ScanMCDetector, make_detector, registration_of)
+from l3e_env.detection.detectors import (CascadeDetector, Detector, HessianDetector, Prediction, ScanMCDetector,
+                                         make_detector, registration_of)
 from l3e_env.io.rosbag import BagScan
 from l3e_env.io.scan_files import ScanFileError, read_scan
 from l3e_env.localizability.labels import AXES
@@ -48,7 +48,7 @@ def judge_points(points: np.ndarray, detectors: list[Detector], registration: Re
     test and DCReg read the Hessian of the scan registered onto itself, as `l3e evaluate` scores it; scanmc
     draws its children from `rng` where given."""
     onto_itself = None  # eigen and dcreg answer UNKNOWN without it; the others do not read it
-    if any(isinstance(d, (EigenvalueDetector, DCRegDetector)) for d in detectors):
+    if any(isinstance(d, HessianDetector) for d in detectors):
         try:
             H = scan_hessian(points, registration or registration_of(detectors))
             onto_itself = RegistrationResult(np.eye(4), H, True, 0, len(points), len(points), 0.0)
