@@ -434,14 +434,14 @@ def test_the_drift_of_each_region_is_its_own_and_the_table_shows_it():
     from scenes import make_scene
 
     from l3e_env.core.transforms import pose_to_matrix
-    from l3e_env.experiments.ate import format_table, region_drift
+    from l3e_env.experiments.ate import format_table, region_drift, regions_inside
 
     mine = make_scene("mine")
     xs = np.arange(-20.0, 40.0, 0.5)  # 20 m of yard, 40 m of tunnel, no quarry
     gt = np.stack([pose_to_matrix(np.array([x, 0, 0, 0, 0, 0])) for x in xs])
     est = gt.copy()
     est[:, 0, 3] -= 0.05 * np.clip(np.arange(len(xs)) - 40, 0, None)  # 5 cm short a step once in the tunnel
-    drift = region_drift(est, gt, mine)
+    drift = region_drift(est, gt, regions_inside(gt, mine))
     assert drift["drift_yard_m"] == pytest.approx(0.0, abs=1e-9) and drift["drift_tunnel_m"] == pytest.approx(3.9)
     assert drift["drift_tunnel_pct"] == pytest.approx(100 * 3.9 / 39.0)  # x = 0 is the yard's, the tunnel's from 0.5
     assert drift["drift_quarry_m"] is None and drift["drift_quarry_pct"] is None

@@ -520,7 +520,8 @@ def run_ate(out_dir: str | Path, scene: str, detectors: list[str], sensor: str =
             result.name = det.name if frontend == "icp" else f"{det.name} @{frontend}"
         fused += by_front
     results = [odometry_only(rec)] + fused
-    rows = [{**r.row(), **region_drift(r.trajectory, rec.ground_truth, scene_obj)} for r in results]
+    inside = regions_inside(rec.ground_truth, scene_obj)
+    rows = [{**r.row(), **region_drift(r.trajectory, rec.ground_truth, inside)} for r in results]
     for det, row in zip(dets * len(frontends), rows[1:]):
         if isinstance(det, RecastCascade):  # what the estimate cost it: steps it was asked, scans it judged
             row.update(checked_steps=det.cascade.checked, judged_steps=det.judged_steps)
@@ -531,7 +532,7 @@ def run_ate(out_dir: str | Path, scene: str, detectors: list[str], sensor: str =
             steps = len(rec.odometry)
             results.append(_scored(name, run.trajectory, rec.ground_truth, np.zeros((steps, 6), bool),
                                    np.full((steps, 6), np.nan), run.seconds, 0, 0))
-            rows.append({**results[-1].row(), **region_drift(run.trajectory, rec.ground_truth, scene_obj)})
+            rows.append({**results[-1].row(), **region_drift(run.trajectory, rec.ground_truth, inside)})
         else:
             rows.append(failed_row(name, run.error, scene_obj))
     failed = sum(r is None or not r.converged for r in regs)
@@ -557,15 +558,20 @@ def run_ate(out_dir: str | Path, scene: str, detectors: list[str], sensor: str =
     return AteRun(out, rows, swept, written)
 
 
-def region_drift(trajectory: np.ndarray, ground_truth: np.ndarray, scene: Scene) -> dict:
-    """Per named region of the scene (the mine's yard, tunnel and quarry): the error the estimate
-    accumulated while the robot was inside it (fusion.stretch_drift), in metres and in % of the true
-    distance travelled there; as row fields drift_<region>_m and drift_<region>_pct (None where the
-    drive did not move inside the region)."""
+def regions_inside(ground_truth: np.ndarray, scene: Scene) -> dict[str, np.ndarray]:
+    """Per named region of the scene (the mine's yard, tunnel and quarry), which poses of the drive
+    lie inside it (N,): found once a drive, for every row's region_drift."""
+    where = [scene.region_of(p) for p in ground_truth[:, :2, 3]]
+    return {region: np.array([w == region for w in where]) for region in scene.regions}
+
+
+def region_drift(trajectory: np.ndarray, ground_truth: np.ndarray, inside: dict[str, np.ndarray]) -> dict:
+    """Per region (`regions_inside`): the error the estimate accumulated while the robot was inside it
+    (fusion.stretch_drift), in metres and in % of the true distance travelled there; as row fields
+    drift_<region>_m and drift_<region>_pct (None where the drive did not move inside the region)."""
     out: dict[str, float | None] = {}
-    for region in scene.regions:
-        inside = np.array([scene.region_of(p) == region for p in ground_truth[:, :2, 3]])
-        drift, distance = stretch_drift(trajectory, ground_truth, inside)
+    for region, poses in inside.items():
+        drift, distance = stretch_drift(trajectory, ground_truth, poses)
         out[f"drift_{region}_m"] = round(drift, 3) if distance > 0 else None
         out[f"drift_{region}_pct"] = round(100 * drift / distance, 2) if distance > 0 else None
     return out
