@@ -1,12 +1,14 @@
-"""Simulation and the L3E method: world, robot, LiDAR, environments (registered on import).
+"""Simulation and the L3E method: world, robot, LiDAR, environments.
 
-Importing the package registers the Gymnasium ids and nothing heavier: the simulation's modules load
-when a name of theirs is first used (`l3e_env.Lidar`), so that `l3e --help` and short commands start
-fast."""
+Importing the package registers the Gymnasium ids (`l3e/Tunnel-v0`, ...) as soon as Gymnasium is
+imported, before or after, and loads nothing heavier: the simulation's modules load when a name of
+theirs is first used (`l3e_env.Lidar`), so that `l3e --help` and short commands start fast."""
+import sys
 from importlib import import_module
-from typing import Any
-
-from gymnasium.envs.registration import register, registry
+from importlib.abc import Loader, MetaPathFinder
+from importlib.machinery import ModuleSpec, PathFinder
+from types import ModuleType
+from typing import Any, Sequence
 
 # id -> (scene, the episode's step limit: 3x the route at full speed, as NavigationEnv sets it; a test
 # keeps the two equal, so that Gymnasium's TimeLimit and the environment truncate on the same step)
@@ -18,11 +20,48 @@ ENV_IDS = {
     "l3e/Mine-v0": ("mine", 4753),
     "l3e/Fork-v0": ("fork", 2400),
 }
+_REGISTRATION = "gymnasium.envs.registration"
 
-for _id, (_scene, _steps) in ENV_IDS.items():
-    if _id not in registry:
-        register(id=_id, entry_point="l3e_env.envs.navigation:NavigationEnv", kwargs={"scene": _scene},
-                 max_episode_steps=_steps)
+
+def _register(registration: ModuleType) -> None:
+    for env_id, (scene, steps) in ENV_IDS.items():
+        if env_id not in registration.registry:
+            registration.register(id=env_id, entry_point="l3e_env.envs.navigation:NavigationEnv",
+                                  kwargs={"scene": scene}, max_episode_steps=steps)
+
+
+class _RegisterWithGymnasium(MetaPathFinder):
+    """Registers the ids the moment Gymnasium's registry loads. Gymnasium has no lazy registration
+    (1.x dropped the entry-point plugins), and importing it costs more than the rest of a short
+    command's start-up, so the package waits for whoever imports Gymnasium (`gym.make` included)."""
+
+    def find_spec(self, name: str, path: Sequence[str] | None, target: ModuleType | None = None) -> ModuleSpec | None:
+        if name != _REGISTRATION:
+            return None
+        sys.meta_path.remove(self)
+        spec = PathFinder.find_spec(name, path)
+        if spec is None or spec.loader is None:
+            return spec
+        spec.loader = _ThenRegister(spec.loader)
+        return spec
+
+
+class _ThenRegister(Loader):
+    def __init__(self, loader: Loader):
+        self.loader = loader
+
+    def create_module(self, spec: ModuleSpec) -> ModuleType | None:
+        return self.loader.create_module(spec)
+
+    def exec_module(self, module: ModuleType) -> None:
+        self.loader.exec_module(module)
+        _register(module)
+
+
+if _REGISTRATION in sys.modules:
+    _register(sys.modules[_REGISTRATION])
+else:
+    sys.meta_path.insert(0, _RegisterWithGymnasium())
 
 _LAZY = {
     "EnvConfig": "l3e_env.config", "LidarConfig": "l3e_env.config", "OdometryConfig": "l3e_env.config",

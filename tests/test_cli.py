@@ -159,3 +159,25 @@ def test_a_short_run_stops_after_max_steps(tmp_path):
     assert json.loads((tmp_path / "ate" / "results.json").read_text())["steps"] == 20
     with pytest.raises(SystemExit):
         main(["record", "--out", str(tmp_path / "r.bag"), "--max-steps", "-3"])
+
+
+def _loaded_after(code: str) -> set[str]:
+    """The modules (and their top-level packages) that a fresh interpreter has loaded after running `code`."""
+    out = subprocess.run([sys.executable, "-c", f"{code}\nimport sys\nprint(' '.join(sys.modules))"],
+                         capture_output=True, text=True, check=True).stdout
+    return set(out.split()) | {name.split(".")[0] for name in out.split()}
+
+
+def test_short_commands_load_no_heavy_library():
+    # the CLI's start-up and judging a scan with a classical detector: no torch, Gymnasium, trimesh,
+    # pybullet or scipy.signal
+    heavy = {"torch", "gymnasium", "trimesh", "pybullet", "networkx"}
+    assert not _loaded_after("import l3e_env.cli.main; l3e_env.cli.main.build_parser()") & heavy
+    assert not _loaded_after("import l3e_env.experiments.judge") & heavy
+    assert "scipy.signal" not in _loaded_after("import l3e_env.io.rosbag")
+
+
+def test_ids_are_registered_whichever_is_imported_first():
+    check = "import gymnasium as gym\nassert gym.spec('l3e/Office-v0').max_episode_steps == 840"
+    _loaded_after("import l3e_env\n" + check)
+    _loaded_after(check.replace("import gymnasium as gym", "import gymnasium as gym\nimport l3e_env"))

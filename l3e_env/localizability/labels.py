@@ -3,14 +3,17 @@ children perturbed around them, each child ray-cast anew and registered to its p
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from scenes import Scene
 
 from l3e_env.core.transforms import inverse, matrix_to_pose, pose_to_matrix
 from l3e_env.sim.lidar import Lidar
 from l3e_env.sim.raycast import RayCaster
+
+if TYPE_CHECKING:  # scenes (trimesh) loads slowly: judging a scan needs none
+    from scenes import Scene
 
 from .registration import PreparedTarget, RegistrationConfig, RegistrationError, prepare_source, register
 

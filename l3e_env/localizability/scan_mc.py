@@ -17,16 +17,18 @@ gets exactly the estimate of M children.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
-import trimesh
 
 from l3e_env.config import LidarConfig
 from l3e_env.core.transforms import pose_to_matrix
 from l3e_env.sim.lidar import Lidar
 from l3e_env.sim.patterns import BEAM_TOLERANCE, BeamPattern, get_pattern
 from l3e_env.sim.raycast import EmbreeCaster
+
+if TYPE_CHECKING:
+    import trimesh
 
 from .labels import LabelConfig, registration_error
 from .registration import PreparedTarget, RegistrationConfig, RegistrationError, prepare_source, register
@@ -167,6 +169,8 @@ def range_image_mesh(points: np.ndarray, pattern: BeamPattern, max_range_ratio: 
         fresh = np.ones_like(stack, dtype=bool)
         fresh[-1 if edge == 0 else 0] = False
         faces.append(joined(stack, stack_ranges, fresh))
+    import trimesh  # loads slowly: only the scan estimate builds a mesh
+
     return trimesh.Trimesh(np.concatenate(vertices), np.concatenate(faces), process=False)
 
 

@@ -8,7 +8,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.interpolate import CubicSpline
 from scipy.spatial.transform import Rotation, RotationSpline
 
 from l3e_env.config import ATTITUDE_MODES
@@ -66,6 +65,8 @@ def imu_samples(stamps: np.ndarray, poses: list[np.ndarray], config: ImuConfig |
         raise ValueError(f"the IMU needs at least two poses at increasing times, got {len(poses)} poses "
                          f"at {len(stamps)} times")
     poses = np.asarray(poses, dtype=np.float64)
+    from scipy.interpolate import CubicSpline  # scipy.interpolate loads slowly: only where an IMU is simulated
+
     position = CubicSpline(stamps, poses[:, :3, 3])
     rotation = RotationSpline(stamps, Rotation.from_matrix(poses[:, :3, :3]))
     t = np.arange(stamps[0], stamps[-1] + 0.5 / config.rate, 1.0 / config.rate)

@@ -3,16 +3,17 @@ from __future__ import annotations
 
 import os
 from concurrent.futures import ThreadPoolExecutor
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
-import trimesh
 from embreex import rtcore_scene
 from embreex.mesh_construction import TriangleMesh
 
 from l3e_env.core.quiet import import_pybullet
 
-pb = import_pybullet()  # without its build banner
+if TYPE_CHECKING:  # trimesh and pybullet load slowly: only the meshes' owners need them
+    import trimesh
+
 
 # PyBullet returns 16383 results or none for 16384 rays and raises beyond: stay below.
 PYBULLET_MAX_RAYS = 16000
@@ -86,6 +87,7 @@ class PyBulletCaster:
     @classmethod
     def for_mesh(cls, mesh: trimesh.Trimesh) -> "PyBulletCaster":
         """A caster with its own DIRECT client holding only `mesh` (for tests and benchmarks)."""
+        pb = import_pybullet()
         client = pb.connect(pb.DIRECT)
         add_static_mesh(client, mesh)
         return cls(client)
@@ -94,6 +96,7 @@ class PyBulletCaster:
         dirs = np.asarray(directions, dtype=np.float64)
         origins = np.broadcast_to(np.asarray(origin, dtype=np.float64), dirs.shape)
         out = np.full(len(dirs), np.inf, dtype=np.float32)
+        pb = import_pybullet()
         for lo in range(0, len(dirs), PYBULLET_MAX_RAYS):
             chunk = dirs[lo : lo + PYBULLET_MAX_RAYS]
             starts = origins[lo : lo + PYBULLET_MAX_RAYS].copy()
@@ -105,10 +108,10 @@ class PyBulletCaster:
             out[lo : lo + len(chunk)] = frac * max_range
         return out
 
-
     def cast_many(self, origins: np.ndarray, direction: np.ndarray, max_range: float) -> np.ndarray:
         """Distances along one direction from many origins (a few rays: ground sensing)."""
         starts = np.asarray(origins, dtype=np.float64)
+        pb = import_pybullet()
         hits = pb.rayTestBatch(
             starts, starts + np.asarray(direction) * max_range, collisionFilterMask=self.mask,
             physicsClientId=self.client
@@ -118,6 +121,7 @@ class PyBulletCaster:
 
 def add_static_mesh(client: int, mesh: trimesh.Trimesh) -> int:
     """Add `mesh` to a PyBullet client as one static concave triangle mesh; returns the body id."""
+    pb = import_pybullet()
     shape = pb.createCollisionShape(
         pb.GEOM_MESH,
         vertices=np.asarray(mesh.vertices, dtype=np.float64),
