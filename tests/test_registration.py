@@ -29,6 +29,14 @@ def test_icp_recovers_a_small_offset_in_a_feature_rich_room():
     assert np.abs(err[:3]).max() < 0.03 and np.abs(err[3:]).max() < np.radians(0.5)
 
 
+def test_a_target_prepared_on_two_threads_gives_the_same_registration_to_the_bit():
+    cfg = RegistrationConfig()
+    target, source, _ = scan_pair("office", [5, 0, 0.85, 0, 0, 0.3], [0.1, 0.02, 0.0, 0.0, 0.0, 0.03])
+    one, two = register(source, PreparedTarget(target, cfg), cfg), register(source, PreparedTarget(target, cfg, 2), cfg)
+    assert one.converged
+    assert np.array_equal(one.T_target_source, two.T_target_source) and np.array_equal(one.hessian, two.hessian)
+
+
 def test_hessian_matches_finite_differences_of_the_point_to_plane_cost():
     cfg = RegistrationConfig()
     target, source, _ = scan_pair("office", [5, 0, 0.85, 0, 0, 0.3], [0.05, 0.02, 0.0, 0.0, 0.0, 0.03])

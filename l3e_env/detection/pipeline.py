@@ -8,6 +8,7 @@ detector's probabilities and mask, and the running ATE against ground truth.
 """
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from typing import Any
 
@@ -27,15 +28,18 @@ from .detectors import UNKNOWN, Detector, Prediction, make_detector, registratio
 
 class ScanRegistrar:
     """Scan k registered to scan k-1, from identity (as the labels are made): `start` with the first
-    scan, then `next` with each new one. None where registration is impossible (too few points)."""
+    scan, then `next` with each new one. None where registration is impossible (too few points).
+    Each scan is prepared as the next target (normals, k-d tree: the step's largest cost) on
+    `threads` threads, by default as many as the ray casting uses."""
 
-    def __init__(self, config: RegistrationConfig):
+    def __init__(self, config: RegistrationConfig, threads: int | None = None):
         self.config = config
+        self.threads = threads if threads is not None else min(2, os.cpu_count() or 1)
         self.target: PreparedTarget | None = None
 
     def _prepare(self, points: np.ndarray) -> PreparedTarget | None:
         try:
-            return PreparedTarget(points, self.config)
+            return PreparedTarget(points, self.config, self.threads)
         except RegistrationError:
             return None
 

@@ -7,6 +7,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from l3e_env.config import LidarConfig
+from l3e_env.core.threads import one_blas_thread
 from l3e_env.core.transforms import inverse
 
 from .patterns import PATTERNS, BeamPattern, get_pattern, register_pattern
@@ -71,11 +72,12 @@ class Lidar:
         T_w_s = np.asarray(T_w_s, dtype=np.float64)
         if T_w_s.shape != (4, 4) or not np.isfinite(T_w_s).all():
             raise ValueError("sensor pose must be a finite 4x4 matrix")
-        if start is None:
-            dirs_w = self._dirs @ T_w_s[:3, :3].T.astype(np.float32)
-            origin = T_w_s[:3, 3] if self._origins is None else self._origins @ T_w_s[:3, :3].T + T_w_s[:3, 3]
-        else:
-            dirs_w, origin = self._swept_rays(np.asarray(start, dtype=np.float64), T_w_s, period)
+        with one_blas_thread():  # a 131k x 3 product starts BLAS threads that spin on a busy machine
+            if start is None:
+                dirs_w = self._dirs @ T_w_s[:3, :3].T.astype(np.float32)
+                origin = T_w_s[:3, 3] if self._origins is None else self._origins @ T_w_s[:3, :3].T + T_w_s[:3, 3]
+            else:
+                dirs_w, origin = self._swept_rays(np.asarray(start, dtype=np.float64), T_w_s, period)
         r = self.caster.cast(origin, dirs_w, self.max_range)
         keep = np.isfinite(r)
         if rng is not None and self.config.dropout > 0:
