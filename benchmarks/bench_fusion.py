@@ -2,7 +2,8 @@
 same run), and environment steps per second with the whole pipeline in the loop (scan,
 learned detector, ICP, iSAM2) against the bare environment.
 
-Run: python benchmarks/bench_fusion.py [--steps 3000] [--env-steps 300] [--scene mine]
+Run: python benchmarks/bench_fusion.py [--steps 3000] [--env-steps 300] [--scene mine] [--loads 0,4]
+`--loads`: the environment rows idle and beside N processes that each spin a core (benchmarks/competing_load.py).
 """
 from __future__ import annotations
 
@@ -17,6 +18,8 @@ from l3e_env.config import EnvConfig, FusionSettings
 from l3e_env.envs.navigation import NavigationEnv
 from l3e_env.sim.follower import RouteFollower
 from l3e_env.core.transforms import pose_to_matrix
+
+from competing_load import header, loads, ratio_row, spinning
 
 
 def update_times(backend, steps: int, seed: int = 0, hessians: bool = False,
@@ -62,6 +65,7 @@ def main() -> None:
     parser.add_argument("--env-steps", type=int, default=300)
     parser.add_argument("--scene", default="mine")
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--loads", default="0", help="numbers of spinning processes for the environment rows, e.g. 0,4")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     isam = update_times(FusionGraph, args.steps) * 1e3
@@ -77,10 +81,16 @@ def main() -> None:
         biased = update_times(FusionGraph, args.steps, hessians=True, config=FusionConfig(odometry_bias=axes)) * 1e3
         print(f"iSAM2 update with the legs' {'+'.join(axes)} bias as states: median {np.median(biased):.3f} ms, "
               f"p90 {np.percentile(biased, 90):.3f} ms ({np.median(biased) / np.median(weighed):.2f}x without)")
-    bare = env_rate(FusionSettings(enabled=False), args.scene, args.env_steps)
-    full = env_rate(FusionSettings(enabled=True, detector="learned"), args.scene, args.env_steps)
-    print(f"{args.scene} env, VLP-16: {full:.1f} steps/s with scan + learned detector + ICP + iSAM2 "
-          f"(target >= 25), bare env {bare:.1f} steps/s (ratio {full / bare:.2f})")
+    full_rates: dict[int, float] = {}
+    bare_rates: dict[int, float] = {}
+    for load in loads(args.loads):
+        with spinning(load):
+            bare_rates[load] = env_rate(FusionSettings(enabled=False), args.scene, args.env_steps)
+            full_rates[load] = env_rate(FusionSettings(enabled=True, detector="learned"), args.scene, args.env_steps)
+    print(f"{args.scene} env, VLP-16, steps/s (ratio: loaded over idle)")
+    print(header(list(full_rates), width=44))
+    print(ratio_row("scan + learned detector + ICP + iSAM2", full_rates, "steps/s", width=44))
+    print(ratio_row("bare environment (scan, no fusion)", bare_rates, "steps/s", width=44))
 
 
 if __name__ == "__main__":

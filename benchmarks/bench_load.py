@@ -11,7 +11,6 @@ Run: python benchmarks/bench_load.py [--scans 20] [--loads 0,2,4]
 from __future__ import annotations
 
 import argparse
-import multiprocessing as mp
 import time
 
 import numpy as np
@@ -23,10 +22,7 @@ from l3e_env.sim.lidar import Lidar
 from l3e_env.sim.raycast import EmbreeCaster
 from scenes import make_scene
 
-
-def _spin() -> None:
-    while True:
-        pass
+from competing_load import header, loads, ratio_row, spinning
 
 
 def _scans(count: int) -> list[np.ndarray]:
@@ -67,27 +63,18 @@ def main() -> None:
     for scan in scans[:3]:
         shipped(scan), two_threads(scan)  # warm: numba's cache, torch's first passes
     rows: dict[str, dict[int, float]] = {"shipped (one thread)": {}, "reference (two threads)": {}}
-    for load in (int(n) for n in args.loads.split(",")):
-        spinners = [mp.get_context("spawn").Process(target=_spin, daemon=True) for _ in range(load)]
-        for process in spinners:
-            process.start()
-        time.sleep(1.0)
-        try:
+    for load in loads(args.loads):
+        with spinning(load):
             for _ in range(2):  # alternate the rows, so that a phase of the machine hits both
                 rows["shipped (one thread)"].setdefault(load, []).append(_median_ms(shipped, scans))
                 rows["reference (two threads)"].setdefault(load, []).append(_median_ms(two_threads, scans))
-        finally:
-            for process in spinners:
-                process.terminate()
-    loads = sorted(next(iter(rows.values())))
+    order = list(next(iter(rows.values())))
     print(f"median ms a scan ({len(scans)} mine scans, {torch.__version__}); ratio: loaded over idle")
-    print(f"{'':26s}" + "".join(f"{f'load {n}':>12s}" for n in loads) + "".join(f"{f'x{n}/x0':>9s}" for n in loads[1:]))
+    print(header(order, width=26))
     for name, by_load in rows.items():
-        medians = {n: float(np.median(v)) for n, v in by_load.items()}
-        print(f"{name:26s}" + "".join(f"{medians[n]:12.1f}" for n in loads)
-              + "".join(f"{medians[n] / medians[loads[0]]:9.1f}" for n in loads[1:]))
-    shipped_idle = np.median(rows["shipped (one thread)"][loads[0]])
-    reference_idle = np.median(rows["reference (two threads)"][loads[0]])
+        print(ratio_row(name, {n: float(np.median(v)) for n, v in by_load.items()}, width=26))
+    shipped_idle = np.median(rows["shipped (one thread)"][order[0]])
+    reference_idle = np.median(rows["reference (two threads)"][order[0]])
     print(f"idle: shipped / reference = {shipped_idle / reference_idle:.2f}")
 
 

@@ -10,6 +10,8 @@ from importlib.machinery import ModuleSpec, PathFinder
 from types import ModuleType
 from typing import Any, Sequence
 
+from l3e_env.core.threads import PACKAGE_THREAD_ENV, settle_process_threads
+
 # id -> (scene, the episode's step limit: 3x the route at full speed, as NavigationEnv sets it; a test
 # keeps the two equal, so that Gymnasium's TimeLimit and the environment truncate on the same step)
 ENV_IDS = {
@@ -21,6 +23,7 @@ ENV_IDS = {
     "l3e/Fork-v0": ("fork", 2400),
 }
 _REGISTRATION = "gymnasium.envs.registration"
+settle_process_threads(PACKAGE_THREAD_ENV)  # OpenMP threads that sleep when idle: see core/threads.py
 
 
 def _register(registration: ModuleType) -> None:

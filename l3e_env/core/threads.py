@@ -2,10 +2,12 @@
 detector, and a thread that spins while it waits for its team steals the core another process needs:
 OpenMP's default wait policy and OpenBLAS's threads both spin.
 
-- `settle_process_threads()`: for processes the project owns (the `l3e` command, its workers): OpenMP
-  threads sleep when idle and numpy's BLAS runs on one thread, unless the user set either; it must
-  run before torch and numpy load. Library users set the same variables themselves
-  (`OMP_WAIT_POLICY=PASSIVE OPENBLAS_NUM_THREADS=1`), see docs/speed.md.
+- Importing `l3e_env` sets `OMP_WAIT_POLICY=PASSIVE` unless it is set: OpenMP threads (torch's,
+  small_gicp's) sleep when idle. An OpenMP runtime reads it once, when it loads, so a script that
+  imports torch before `l3e_env` keeps torch's default; set it in the environment to be sure.
+- `settle_process_threads()`: for processes the project owns (the `l3e` command, its workers): the
+  same, and numpy's BLAS on one thread, unless the user set either; before numpy and torch load.
+  Library users set the same variables themselves (`OMP_WAIT_POLICY=PASSIVE OPENBLAS_NUM_THREADS=1`).
 - `one_blas_thread()`: the few large products the project makes itself (the LiDAR's ray directions)
   on one BLAS thread in any process, without touching the process's own setting.
 The classifier runs each scan on one torch thread (`Classifier.predict`), so it has no team to wait for.
@@ -16,14 +18,15 @@ import os
 from contextlib import AbstractContextManager, nullcontext
 from typing import Any
 
-PROCESS_THREAD_ENV = {"OMP_WAIT_POLICY": "PASSIVE", "OPENBLAS_NUM_THREADS": "1"}
+PACKAGE_THREAD_ENV = {"OMP_WAIT_POLICY": "PASSIVE"}
+PROCESS_THREAD_ENV = {**PACKAGE_THREAD_ENV, "OPENBLAS_NUM_THREADS": "1"}
 
 _blas: Any = None  # threadpoolctl's handle on the loaded BLAS libraries, found once
 
 
-def settle_process_threads() -> None:
-    """Set PROCESS_THREAD_ENV where the user has not; children inherit it."""
-    for name, value in PROCESS_THREAD_ENV.items():
+def settle_process_threads(variables: dict[str, str] = PROCESS_THREAD_ENV) -> None:
+    """Set `variables` where the user has not; child processes inherit them."""
+    for name, value in variables.items():
         os.environ.setdefault(name, value)
 
 
