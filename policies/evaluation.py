@@ -27,7 +27,7 @@ from l3e_env.sim.odometry import odometry_fusion_config
 
 from .context import scene_context
 from .observation import PolicyView
-from .planner import Planner, route_of
+from .planner import Planner, drift_rates, expected_drift_along, route_of
 
 ROUTE_POLICIES = ("shortest", "planner")  # route followers on a plan; "ppo:<folder>" is the learned one
 POLICY_KINDS = (*ROUTE_POLICIES, "ppo:<policy folder or zip>")
@@ -46,6 +46,10 @@ class Episode:
     steps: int
     trajectory: list  # ground-truth (x, y) every 5 steps
     recoveries: int = 0  # times the robot backed off a wedge (with recovery on)
+    # m, the planner's drift model summed along the path walked (the evaluation's detector map, the
+    # environment's odometry): what the cost model expects of this route, beside final_ate
+    expected_drift: float | None = None
+    planned_drift: float | None = None  # m, the same model over the plan a route policy follows
 
 
 class BackOff:
@@ -112,15 +116,17 @@ def _unknown_policy(policy: str) -> ValueError:
 
 
 def make_controller(policy: str, scene: str, detector: str, cache_dir: str | Path | None, lam: float,
-                    scene_params: dict | None = None):
-    """A function (T_w_b estimate, step index) -> normalised twist, for one scene."""
+                    scene_params: dict | None = None, odometry: OdometryConfig | None = None
+                    ) -> tuple[Callable[[np.ndarray, int], np.ndarray], float | None]:
+    """A function (T_w_b estimate, step index) -> normalised twist, for one scene, and for a route
+    policy the drift its plan is expected to cost (`odometry`: the environment's leg odometry, whose
+    noise model gives the drift rates)."""
     if policy in ROUTE_POLICIES:
-        ctx = scene_context(scene, detector if policy == "planner" else None, cache_dir, build=False,
-                            scene_params=scene_params)
-        plan = Planner(ctx.space, ctx.locmap, lam=lam if policy == "planner" else 0.0).plan(ctx.scene.start[:2],
-                                                                                             ctx.scene.goal)
+        ctx = scene_context(scene, detector, cache_dir, build=False, scene_params=scene_params)
+        plan = Planner(ctx.space, ctx.locmap, lam=lam if policy == "planner" else 0.0,
+                       odometry=odometry).plan(ctx.scene.start[:2], ctx.scene.goal)
         follower = RouteFollower(route_of(plan, ctx.space))
-        return lambda T, i: follower(T)
+        return (lambda T, i: follower(T)), plan.expected_drift
     if policy.startswith("ppo:"):
         from .ppo import PPOPolicy
 
@@ -135,7 +141,7 @@ def make_controller(policy: str, scene: str, detector: str, cache_dir: str | Pat
                 held["action"] = model(view(T[0, 3], T[1, 3], yaw_of(T)))
             return held["action"]
 
-        return act
+        return act, None
     raise _unknown_policy(policy)
 
 
@@ -149,10 +155,11 @@ def run_episode(policy: str, scene: str, seed: int, detector: str = "learned", c
     import torch
 
     torch.set_num_threads(1)
-    controller = BackOff(make_controller(policy, scene, detector, cache_dir, lam, scene_params))
     env = NavigationEnv(scene=scene, scene_params=scene_params or {},
                         fusion={**asdict(fusion_settings), "enabled": True, "detector": detector, "backend": backend})
     try:
+        steer, planned = make_controller(policy, scene, detector, cache_dir, lam, scene_params, env.config.odometry)
+        controller = BackOff(steer)
         _, info = env.reset(seed=seed)
         trail, length, terminated, truncated = [info["T_w_b"][:2, 3]], 0.0, False, False
         while not (terminated or truncated):
@@ -167,8 +174,11 @@ def run_episode(policy: str, scene: str, seed: int, detector: str = "learned", c
         trail.append(info["T_w_b"][:2, 3])
         path = np.array(trail)
         final = float(np.linalg.norm(info["fused_T_w_b"][:3, 3] - info["T_w_b"][:3, 3]))
+        locmap = scene_context(scene, detector, cache_dir, build=False, scene_params=scene_params).locmap
+        expected = expected_drift_along(path, locmap, drift_rates(env.config.odometry))
         return Episode(policy, scene, seed, bool(terminated), avoided_corridor(path, env.scene), final,
-                       float(info["running_ate"]), length, env.steps, path.round(2).tolist(), controller.recoveries)
+                       float(info["running_ate"]), length, env.steps, path.round(2).tolist(), controller.recoveries,
+                       expected, planned)
     finally:
         env.close()
 
@@ -182,9 +192,11 @@ def summarize(episodes: list[Episode]) -> list[dict[str, Any]]:
     for name in dict.fromkeys(e.policy for e in episodes):
         group = [e for e in episodes if e.policy == name]
         marked = [e.rich_route for e in group if e.rich_route is not None]
+        expected = [e.expected_drift for e in group if e.expected_drift is not None]
         rows.append({"policy": name, "episodes": len(group),
                      "success": float(np.mean([e.success for e in group])),
                      "rich_route": float(np.mean(marked)) if marked else None,
+                     "expected_drift": float(np.mean(expected)) if expected else None,
                      "final_ate": float(np.mean([e.final_ate for e in group])),
                      "mean_ate": float(np.mean([e.mean_ate for e in group])),
                      "path_length": float(np.mean([e.path_length for e in group])),
@@ -192,13 +204,23 @@ def summarize(episodes: list[Episode]) -> list[dict[str, Any]]:
     return rows
 
 
+def drift_correlation(episodes: list[Episode]) -> tuple[float | None, int]:
+    """Pearson's r between the drift the cost model expected of each episode's path and the final
+    error measured, over the episodes that have both (None with fewer than three or no spread)."""
+    pairs = np.array([(e.expected_drift, e.final_ate) for e in episodes if e.expected_drift is not None])
+    if len(pairs) < 3 or np.ptp(pairs[:, 0]) == 0 or np.ptp(pairs[:, 1]) == 0:
+        return None, len(pairs)
+    return float(np.corrcoef(pairs.T)[0, 1]), len(pairs)
+
+
 def format_rows(rows: list[dict[str, Any]]) -> str:
-    head = f"{'policy':28s} {'episodes':>8s} {'success':>8s} {'rich route':>10s} {'final ATE':>10s} " \
+    head = f"{'policy':28s} {'episodes':>8s} {'success':>8s} {'rich route':>10s} {'expected':>9s} {'final ATE':>10s} " \
            f"{'mean ATE':>9s} {'path [m]':>9s} {'backed off':>10s}"
     lines = [head, "-" * len(head)]
     for r in rows:
         rich = "n/a" if r["rich_route"] is None else f"{r['rich_route']:.0%}"
-        lines.append(f"{r['policy'][:28]:28s} {r['episodes']:8d} {r['success']:8.0%} {rich:>10s} "
+        expected = "n/a" if r.get("expected_drift") is None else f"{r['expected_drift']:.2f}"
+        lines.append(f"{r['policy'][:28]:28s} {r['episodes']:8d} {r['success']:8.0%} {rich:>10s} {expected:>9s} "
                      f"{r['final_ate']:10.2f} {r['mean_ate']:9.2f} {r['path_length']:9.1f} {r['recoveries']:10d}")
     return "\n".join(lines)
 
@@ -214,8 +236,9 @@ def evaluate_policies(out: str | Path, policies: list[str], scenes: list[str], e
     `fusion_settings`: the fusion's (as `FusionSettings` gives them in the environment).
     `recovery`: a wedged robot backs off (BackOff) instead of staying there; None: as the folder's
     episodes so far, else on.
-    Writes episodes.jsonl, summary.json, summary.txt and routes.png into `out`."""
-    from .plots import plot_paths
+    Writes episodes.jsonl, summary.json, summary.txt, routes.png and drift.png (the drift model's
+    expectation of each path against the final error measured) into `out`."""
+    from .plots import plot_drift_check, plot_paths
 
     if steer_on not in STEER_ON:
         raise ValueError(f"steer_on must be one of {STEER_ON}, got {steer_on!r}")
@@ -224,8 +247,8 @@ def evaluate_policies(out: str | Path, policies: list[str], scenes: list[str], e
         check_policy(policy)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    map_detectors = {_ppo_detector(p, detector) if p.startswith("ppo:") else detector
-                     for p in policies if p != "shortest"}
+    # every policy's episodes are weighed with the evaluation detector's map (expected_drift)
+    map_detectors = {_ppo_detector(p, detector) if p.startswith("ppo:") else detector for p in policies} | {detector}
     params = scene_params or {}
     for name in dict.fromkeys(scenes):  # maps must exist: build them here, once, not in every worker
         for d in sorted(map_detectors):
@@ -276,9 +299,18 @@ def evaluate_policies(out: str | Path, policies: list[str], scenes: list[str], e
     bar.close()
     results = [done[j[:3]] for j in jobs]
     rows = summarize(results)
-    (out / "summary.json").write_text(json.dumps({"rows": rows, "scenes": scenes, "episodes": episodes, "seed": seed,
-                                                  **run, "seconds": round(time.perf_counter() - t0, 1)}, indent=2))
-    (out / "summary.txt").write_text(format_rows(rows) + "\n")
+    r, paired = drift_correlation(results)
+    check = {"pearson_r": r, "episodes": paired}
+    (out / "summary.json").write_text(json.dumps({"rows": rows, "drift_check": check, "scenes": scenes,
+                                                  "episodes": episodes, "seed": seed, **run,
+                                                  "seconds": round(time.perf_counter() - t0, 1)}, indent=2))
+    words = "n/a (fewer than three episodes or no spread)" if r is None else \
+        f"Pearson r = {r:.2f} over {paired} episodes"
+    (out / "summary.txt").write_text(format_rows(rows) + f"\nexpected drift against final ATE: {words}\n")
+    plot_drift_check(out / "drift.png", {p: (np.array([e.expected_drift for e in results if e.policy == p
+                                                        and e.expected_drift is not None]),
+                                             np.array([e.final_ate for e in results if e.policy == p
+                                                       and e.expected_drift is not None])) for p in policies}, r)
     first = scenes[0]
     ctx = scene_context(first, None, cache_dir, scene_params=params.get(first))
     plot_paths(out / "routes.png", ctx.scene, {p: [np.array(e.trajectory) for e in results if e.policy == p and

@@ -140,6 +140,21 @@ class Planner:
         return Plan(path, length, drift, float(dist[g]))
 
 
+def expected_drift_along(path: np.ndarray, locmap: LocalizabilityMap, rates: np.ndarray) -> float:
+    """The drift model summed along a walked path (K, 2+), as the planner sums it along its edges:
+    each segment's length x the axes the map masks at its middle, heading along it, weighted by
+    the odometry's drift rates (metres)."""
+    xy = np.asarray(path, dtype=np.float64)[:, :2]
+    step = np.diff(xy, axis=0)
+    length = np.linalg.norm(step, axis=1)
+    moved = length > 1e-9
+    if not moved.any():
+        return 0.0
+    middle = xy[:-1][moved] + 0.5 * step[moved]
+    masked = locmap.lookup(middle, np.arctan2(step[moved, 1], step[moved, 0]))
+    return float(length[moved] @ (masked @ rates))
+
+
 def route_of(plan: Plan, space: FreeSpace) -> np.ndarray:
     """The plan as ground points (K, 3) for the route follower."""
     idx = space.index(plan.path)
@@ -147,4 +162,5 @@ def route_of(plan: Plan, space: FreeSpace) -> np.ndarray:
     return np.column_stack([plan.path, z])
 
 
-__all__ = ["Plan", "Planner", "PlanningError", "FreeSpaceError", "TIGHT_CLEARANCE", "drift_rates", "route_of"]
+__all__ = ["Plan", "Planner", "PlanningError", "FreeSpaceError", "TIGHT_CLEARANCE", "drift_rates",
+           "expected_drift_along", "route_of"]

@@ -77,3 +77,23 @@ def plot_paths(path: str | Path, scene: Scene, paths: dict[str, np.ndarray], spa
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
+
+
+def plot_drift_check(path: str | Path, points: dict[str, tuple[np.ndarray, np.ndarray]], correlation: float | None
+                     ) -> None:
+    """The drift the cost model expected of each episode's path against the final error the full
+    pipeline measured, one colour a policy; the diagonal is where the two agree."""
+    fig, ax = plt.subplots(figsize=(6, 5))
+    top = 0.0
+    for name, (expected, measured) in points.items():
+        ax.scatter(expected, measured, s=18, alpha=0.8, label=name)
+        top = max(top, float(np.max(expected, initial=0.0)), float(np.max(measured, initial=0.0)))
+    ax.plot([0, top], [0, top], color="0.6", lw=1, ls="--", label="expected = measured")
+    ax.set_xlabel("expected drift of the path walked [m] (planner's cost model)")
+    ax.set_ylabel("final error of the fused estimate [m]")
+    ax.set_title("drift model against the pipeline"
+                 + ("" if correlation is None else f" (Pearson r = {correlation:.2f})"))
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

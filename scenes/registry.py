@@ -4,6 +4,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Callable
 
+from .bypass import make_bypass
 from .cave import make_cave
 from .chamber import make_chamber
 from .field import make_field
@@ -32,6 +33,7 @@ BUILDERS: dict[str, Callable[..., Scene]] = {
     "chamber": make_chamber,
     "piperack": make_piperack,
     "layout": make_layout,
+    "bypass": make_bypass,
 }
 
 
