@@ -10,8 +10,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from l3e_env.cli.options import (add_fusion_options, add_mesh_options, fusion_settings, mesh_options_given, scene_names,
-                                 scene_params, sensor_name)
+from l3e_env.cli.options import (SENSOR_HELP, add_fusion_options, add_mesh_options, fusion_settings, mesh_options_given,
+                                 scene_names, scene_params, sensor_name)
 from l3e_env.config.detector_spec import DETECTOR_GRAMMAR, MAP_DETECTORS, parse_detector
 from l3e_env.io.mesh_lists import meshes_file
 
@@ -153,7 +153,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     common = argparse.ArgumentParser(add_help=False)
     common.add_argument("--cache-dir", dest="cache_dir",
                         help="map cache (default: $L3E_CACHE/maps or ~/.cache/l3e/maps)")
-    common.add_argument("--sensor", type=sensor_name, default="vlp16", help="vlp16 or os0-128")
+    common.add_argument("--sensor", type=sensor_name, default="vlp16", help=SENSOR_HELP)
     common.add_argument("--quiet", action="store_true", help="no progress bars")
     g = psub.add_parser("map", parents=[common], help="build (or load) and plot localizability maps")
     g.add_argument("--scene", type=scene_names, action="append",

@@ -12,8 +12,8 @@ from l3e_env.cli.main import main
 from l3e_env.config import LidarConfig
 from l3e_env.experiments.judge import judge_scans, recognise_sensor
 from l3e_env.sim.lidar import Lidar
-from l3e_env.sim.patterns import (PATTERNS, BeamPattern, PatternError, describe_pattern, fit_pattern, get_pattern,
-                                  load_pattern, save_pattern)
+from l3e_env.sim.patterns import (BUILT_IN_SENSORS, PATTERNS, BeamPattern, PatternError, describe_pattern, fit_pattern,
+                                  get_pattern, load_pattern, save_pattern)
 from l3e_env.sim.raycast import EmbreeCaster, PyBulletCaster
 from l3e_env.localizability.scan_mc import range_image_mesh
 from l3e_env.core.transforms import pose_to_matrix
@@ -99,7 +99,7 @@ def test_a_vlp16s_cloud_is_recognised_with_or_without_its_calibrations_vertical_
     assert "-11.2 to +11.2 mm from the axis, across the beam" in describe_pattern(calibrated)
 
 
-@pytest.mark.parametrize("model", ["vlp16", "os0-128"])
+@pytest.mark.parametrize("model", [m for m in BUILT_IN_SENSORS if m != "vlp16-calibrated"])
 def test_a_scan_of_a_built_in_sensor_is_recognised_as_it(mine, model):
     scan = Lidar(EmbreeCaster(mine.mesh), LidarConfig(model=model)).scan(POSE, np.random.default_rng(0))
     for rings in (None, scan.beam):
@@ -110,6 +110,33 @@ def test_a_scan_of_a_built_in_sensor_is_recognised_as_it(mine, model):
     pattern, how = fit_pattern(scan.points[half])
     assert pattern.name == f"{model}@{PATTERNS[model].n_azimuth // 2}"
     assert pattern.elevations_deg == PATTERNS[model].elevations_deg
+
+
+def test_the_common_sensors_are_built_in_from_their_datasheets():
+    for model in ("hdl32e", "vlp32c", "xt32", "pandar64", *(f"os{k}-{n}" for k in range(3) for n in (32, 64, 128))):
+        assert model in BUILT_IN_SENSORS
+    assert PATTERNS["os1-64"].n_beams == 64 and max(PATTERNS["os1-64"].elevations_deg) == pytest.approx(22.5)
+    assert min(PATTERNS["vlp32c"].elevations_deg) == -25 and max(PATTERNS["vlp32c"].elevations_deg) == 15
+    # the VLP-32C bunches its beams at the horizon, 1/3 deg apart, and turns each by +-1.4 or +-4.2 deg
+    assert PATTERNS["vlp32c"].spacing_deg() == pytest.approx(1 / 3, abs=1e-3)
+    assert {abs(a) for a in PATTERNS["vlp32c"].azimuth_offsets_deg} == {1.4, 4.2}
+    assert PATTERNS["pandar64"].spacing_deg() == pytest.approx(0.16, abs=0.01)
+
+
+@pytest.mark.parametrize("columns", [512, 2048])
+def test_an_ousters_column_modes_are_recognised(mine, columns):
+    mode = dataclasses.replace(PATTERNS["os1-64"], name="os1-64-mode", n_azimuth=columns)
+    pattern, how = fit_pattern(_scan(mine.mesh, mode, rng=np.random.default_rng(5)).points)
+    assert pattern.name == f"os1-64@{columns}" and how == f"os1-64's beams at {columns} columns a revolution"
+
+
+def test_a_built_in_sensor_whose_columns_start_off_its_grid_keeps_the_scans_phase(mine):
+    turned = dataclasses.replace(PATTERNS["hdl32e"], name="hdl32e-turned", azimuth_offsets_deg=(0.05,) * 32)
+    scan = _scan(mine.mesh, turned, rng=np.random.default_rng(6))
+    pattern, how = fit_pattern(scan.points)
+    assert pattern.name == "hdl32e-phased" and "columns +0.05 deg from the x axis" in how
+    beam, column, _ = pattern.locate(scan.points)
+    assert (beam == scan.beam).all() and (column == scan.column).all()
 
 
 def _phase_error(fitted: BeamPattern, true: BeamPattern) -> float:
@@ -138,9 +165,10 @@ def test_another_sensor_is_fitted_from_its_scan_not_taken_for_one_whose_beam_gri
         assert (beam == scan.beam).all()
 
 
-def test_an_ouster_cloud_without_a_ring_field_and_a_grid_off_the_x_axis_are_fitted(mine):
+def test_an_ouster_cloud_without_a_ring_field_and_a_grid_off_the_x_axis_are_read_back(mine):
     """A 128-beam Ouster's cloud without its ring field: beams 15.2 mm out, staggered by +-1.4 and
-    +-4.2 deg, fitted as from the metadata; a 32-beam sensor whose columns start 0.07 deg round."""
+    +-4.2 deg, fitted as from the metadata; a 32-beam sensor (an XT32's beams at 1800 columns) whose
+    columns start 0.07 deg round."""
     ouster = BeamPattern("ouster", tuple(np.linspace(-45, 45, 128)), 1024, 50.0, 0.3, 256,
                          tuple(np.tile([4.23, 1.41, -1.41, -4.23], 32)), 0.0152)
     pattern, how = fit_pattern(_scan(mine.mesh, ouster, rng=np.random.default_rng(2)).points)

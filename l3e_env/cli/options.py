@@ -22,7 +22,8 @@ def scene_names(text: str) -> list[str]:
     return [scene_name(name.strip()) for name in text.split(",")]
 
 
-SENSOR_HELP = "vlp16, vlp16-calibrated, os0-128 or a beam pattern file (.yaml/.json, or an Ouster metadata .json)"
+SENSOR_HELP = ("a built-in LiDAR (vlp16, vlp16-calibrated, hdl32e, vlp32c, os0-128, os<0|1|2>-<32|64|128>, xt32, "
+               "pandar64) or a beam pattern file (.yaml/.json, or an Ouster metadata .json)")
 
 
 

@@ -123,6 +123,11 @@ def _nearest(values: np.ndarray, x: np.ndarray) -> np.ndarray:
 # seconds, Ouster's `t` uint32 nanoseconds.
 TIME_FIELDS = {"time": ("float32 seconds", "<f4", 1.0), "t": ("uint32 nanoseconds", "<u4", 1e9)}
 
+def _image_width(n_azimuth: int) -> int:
+    """The widest divisor of the column count up to 360: the observations' range-image width."""
+    return max(w for w in range(1, min(n_azimuth, 360) + 1) if n_azimuth % w == 0)
+
+
 PATTERNS: dict[str, BeamPattern] = {
     # Velodyne VLP-16: 16 beams over +-15 deg, 0.2 deg azimuth at 10 Hz, 100 m, every beam from the axis.
     "vlp16": BeamPattern("vlp16", tuple(np.linspace(-15, 15, 16)), 1800, 100.0, 0.5, 360),
@@ -140,6 +145,55 @@ PATTERNS["vlp16-calibrated"] = replace(
     PATTERNS["vlp16"], name="vlp16-calibrated",
     beam_vertical_offsets=(0.0112, 0.0097, 0.0081, 0.0066, 0.0051, 0.0037, 0.0022, 0.0007,
                            -0.0007, -0.0022, -0.0037, -0.0051, -0.0066, -0.0081, -0.0097, -0.0112))
+
+
+def _with_width(pattern: BeamPattern) -> BeamPattern:
+    return replace(pattern, image_width=_image_width(pattern.n_azimuth))
+
+
+# The common spinning LiDARs, from their datasheets and their drivers' default calibrations, at 10 Hz.
+# Velodyne HDL-32E: 32 beams every 4/3 deg from -30.67 to +10.67 deg, a firing cycle every 46.08 us
+# (2170 columns a revolution), 100 m.
+PATTERNS["hdl32e"] = _with_width(BeamPattern("hdl32e", tuple(np.linspace(-30.67, 10.67, 32)), 2170, 100.0, 1.0, 1))
+# Velodyne VLP-32C (Ultra Puck): 32 beams from -25 to +15 deg, bunched round the horizon; the driver's
+# calibration (VeloView-VLP-32C.yaml) turns each beam by +-1.4 or +-4.2 deg (rot_correction, listed
+# by laser id), which shifts its returns' azimuth by the same; 0.2 deg azimuth, 200 m.
+_VLP32C = ((-25.0, 1.4), (-1.0, -4.2), (-1.667, 1.4), (-15.639, -1.4), (-11.31, 1.4), (0.0, -1.4), (-0.667, 4.2),
+           (-8.843, -1.4), (-7.254, 1.4), (0.333, -4.2), (-0.333, 1.4), (-6.148, -1.4), (-5.333, 4.2), (1.333, -1.4),
+           (0.667, 4.2), (-4.0, -1.4), (-4.667, 1.4), (1.667, -4.2), (1.0, 1.4), (-3.667, -4.2), (-3.333, 4.2),
+           (3.333, -1.4), (2.333, 1.4), (-2.667, -1.4), (-3.0, 1.4), (7.0, -1.4), (4.667, 1.4), (-2.333, -4.2),
+           (-2.0, 4.2), (15.0, -1.4), (10.333, 1.4), (-1.333, -1.4))
+_VLP32C_SORTED = sorted(_VLP32C)
+PATTERNS["vlp32c"] = _with_width(BeamPattern(
+    "vlp32c", tuple(e for e, _ in _VLP32C_SORTED), 1800, 200.0, 0.5, 1,
+    azimuth_offsets_deg=tuple(a for _, a in _VLP32C_SORTED)))
+# Ouster OS0, OS1 and OS2 with 32, 64 or 128 beams spread evenly over their vertical fields (90, 45 and
+# 22.5 deg), 1024 columns (their 512 and 2048 column modes are recognised from a scan as `@512`,
+# `@2048`), ranges at 80 % reflectivity. As `os0-128` (the simulation's), every beam leaves from the
+# axis at its nominal angle: a unit's own angles, stagger and beam origin are in its metadata JSON,
+# which `--sensor` reads.
+for _line, _field, (_far, _near) in (("os0", 90.0, (50.0, 0.3)), ("os1", 45.0, (120.0, 0.5)),
+                                     ("os2", 22.5, (240.0, 0.8))):
+    for _beams in (32, 64, 128):
+        _name = f"{_line}-{_beams}"
+        if _name not in PATTERNS:
+            PATTERNS[_name] = BeamPattern(_name, tuple(np.linspace(-_field / 2, _field / 2, _beams)), 1024, _far,
+                                          _near, 256, time_field="t")
+# Hesai PandarXT-32: 32 beams every degree from -16 to +15 deg, 0.18 deg azimuth (2000 columns), 120 m.
+PATTERNS["xt32"] = _with_width(BeamPattern("xt32", tuple(float(e) for e in range(-16, 16)), 2000, 120.0, 0.05, 1))
+# Hesai Pandar64: 64 beams from -25 to +15 deg, 0.167 deg apart between -6 and +2 deg, each turned by
+# one of +-1.042, +-3.125, +-5.208 deg in azimuth (the user manual's nominal angle correction, by
+# channel from the top), 0.2 deg azimuth, 200 m.
+_PANDAR64_ELEVATIONS = (14.882, 11.032, 8.059, 5.057, 3.04, 2.028, 1.86, 1.688, 1.522, 1.351, 1.184, 1.013, 0.846,
+                        0.675, 0.508, 0.337, 0.169, 0.0, -0.169, -0.337, -0.508, -0.675, -0.845, -1.013, -1.184,
+                        -1.351, -1.522, -1.688, -1.86, -2.028, -2.198, -2.365, -2.536, -2.7, -2.873, -3.04, -3.21,
+                        -3.375, -3.548, -3.712, -3.884, -4.05, -4.221, -4.385, -4.558, -4.72, -4.892, -5.057, -5.229,
+                        -5.391, -5.565, -5.726, -5.898, -6.061, -7.063, -8.059, -9.06, -9.885, -11.032, -12.006,
+                        -12.974, -13.93, -18.889, -24.897)
+_PANDAR64_AZIMUTHS = (-1.042,) * 6 + (1.042, 3.125, 5.208, -5.208, -3.125, -1.042) * 8 + (-1.042,) * 10
+PATTERNS["pandar64"] = _with_width(BeamPattern(
+    "pandar64", _PANDAR64_ELEVATIONS[::-1], 1800, 200.0, 0.3, 1, azimuth_offsets_deg=_PANDAR64_AZIMUTHS[::-1]))
+BUILT_IN_SENSORS = tuple(PATTERNS)
 PATTERN_FILES = (".yaml", ".yml", ".json")
 BEAM_TOLERANCE = 0.25  # a return lies on a beam within this share of the beams' spacing
 
@@ -197,11 +251,6 @@ def get_pattern(name: str) -> BeamPattern:
         raise ValueError(f"unknown LiDAR model '{name}'; known: {sorted(PATTERNS)}, or a pattern file "
                          f"({', '.join(PATTERN_FILES)})")
     return PATTERNS[name]
-
-
-def _image_width(n_azimuth: int) -> int:
-    """The widest divisor of the column count up to 360: the observations' range-image width."""
-    return max(w for w in range(1, min(n_azimuth, 360) + 1) if n_azimuth % w == 0)
 
 
 # Ouster product lines: range (m) at 80 % reflectivity and the least range, from the datasheets.
@@ -397,10 +446,16 @@ def fit_pattern(points: np.ndarray, rings: np.ndarray | None = None) -> tuple[Be
     if fits:  # the fewest beams; of the same beams (a VLP-16 with or without its offsets), the closest
         _, _, _, known, beam = min(fits, key=lambda fit: fit[:3])
         columns = _columns(points, beam)
-        if abs(columns - known.n_azimuth) <= 0.02 * known.n_azimuth:
-            return known, f"{known.name}: every return lies on one of its beams"
-        fitted = replace(known, name=f"{known.name}@{columns}", n_azimuth=columns, image_width=_image_width(columns))
-        return fitted, f"{known.name}'s beams at {columns} columns a revolution"
+        pattern, how = known, f"{known.name}: every return lies on one of its beams"
+        if abs(columns - known.n_azimuth) > 0.02 * known.n_azimuth:
+            pattern = replace(known, name=f"{known.name}@{columns}", n_azimuth=columns,
+                              image_width=_image_width(columns))
+            how = f"{known.name}'s beams at {columns} columns a revolution"
+        phases = _own_phases(points, beam, pattern)
+        if phases is not None:  # its columns lie off the datasheet's grid (a unit's own encoder offset)
+            pattern = replace(pattern, name=f"{pattern.name}-phased", azimuth_offsets_deg=phases)
+            how += ", " + _offset_words(phases)
+        return pattern, how
     origin = _beam_origin(points)
     elevation = _elevations(points, origin)
     beams = np.sort(_beams_of(elevation, rings))
@@ -426,6 +481,19 @@ def fit_pattern(points: np.ndarray, rings: np.ndarray | None = None) -> tuple[Be
     if origin:
         how += f", beams leaving {1e3 * origin:.1f} mm out from the axis"
     return fitted, how + (" (beams from the ring field)" if rings is not None else "")
+
+
+def _own_phases(points: np.ndarray, beam: np.ndarray, pattern: BeamPattern) -> tuple[float, ...] | None:
+    """The beams' azimuth phases read from the scan where they differ from the pattern's own by more
+    than a twentieth of a column (else None): recognised by its beams, a sensor may still start its
+    columns elsewhere, and the range image needs the phase its returns have."""
+    step = 360.0 / pattern.n_azimuth
+    read = np.asarray(_azimuth_offsets(points, beam, pattern.n_beams, pattern.n_azimuth) or (0.0,) * pattern.n_beams)
+    own = np.asarray(pattern.azimuth_offsets_deg or (0.0,) * pattern.n_beams)
+    apart = (read - own + step / 2) % step - step / 2
+    if np.abs(apart).max() <= 0.05 * step:
+        return None
+    return tuple(round(float(o), 5) for o in own + apart)
 
 
 def _offset_words(offsets: tuple[float, ...]) -> str:
