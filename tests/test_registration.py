@@ -187,3 +187,19 @@ def test_dcreg_reads_the_scene_on_a_real_scan_and_refuses_bad_input():
         dcreg_mask(np.eye(6), 1.0)
     with pytest.raises(ValueError, match="6x6"):
         dcreg_mask(np.full((6, 6), np.nan), 10.0)
+
+
+def test_the_eigenvalue_test_means_the_same_on_every_sensor():
+    """The scan's Hessian sums at most max_source_points rows (the source's even thinning), so a
+    128-beam scan of a place weighs as a VLP-16 scan of it: tau needs no per-sensor scale."""
+    mine = make_scene("mine")
+    caster = EmbreeCaster(mine.mesh, threads=1)
+    for x, flagged in ((-30.0, set()), (60.0, {0})):  # the yard, the smooth tunnel (x degenerate)
+        largest = {}
+        for model in ("vlp16", "os0-128", "hdl32e"):
+            points = Lidar(caster, LidarConfig(model=model)).scan(pose_to_matrix(np.array([x, 0.3, 0.85, 0, 0, 0.2])),
+                                                                  np.random.default_rng(0)).points
+            H = scan_hessian(points)
+            assert set(np.flatnonzero(eigen_mask(H, 30.0)[1])) == flagged, model
+            largest[model] = np.linalg.eigvalsh(H)[-1]
+        assert max(largest.values()) < 2 * min(largest.values())  # the same scale (131k rays against 29k)
