@@ -193,7 +193,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--policy", action="append",
                    help="shortest | planner | ppo:<run folder>; repeat (default: shortest and planner)")
     g.add_argument("--scene", type=scene_names, action="append",
-                   help="evaluation variants (default: fork-100 ... fork-109)")
+                   help="evaluation variants, comma-separated or repeated, a range as family-A..B such as "
+                        "bypass-100..149 (default: fork-100..109)")
     g.add_argument("--episodes", type=int, default=50, help="episodes per policy (default 50)")
     g.add_argument("--detector", default="learned", type=map_detector,
                    help="detector of the fusion and the planner's map (default: learned)")

@@ -181,3 +181,11 @@ def test_ids_are_registered_whichever_is_imported_first():
     check = "import gymnasium as gym\nassert gym.spec('l3e/Office-v0').max_episode_steps == 840"
     _loaded_after("import l3e_env\n" + check)
     _loaded_after(check.replace("import gymnasium as gym", "import gymnasium as gym\nimport l3e_env"))
+
+
+def test_a_range_of_scene_variants_is_spelt_once():
+    args = build_parser().parse_args(["policy", "evaluate", "--scene", "bypass-100..102,fork-3"])
+    assert args.scene == [["bypass-100", "bypass-101", "bypass-102", "fork-3"]]
+    for bad in ("bypass-9..3", "bypass-a..3", "volcano-1..2"):
+        with pytest.raises(SystemExit):
+            build_parser().parse_args(["policy", "evaluate", "--scene", bad])

@@ -18,8 +18,20 @@ def scene_name(text: str) -> str:
 
 
 def scene_names(text: str) -> list[str]:
-    """argparse type: comma-separated scene names, each checked as `scene_name` does."""
-    return [scene_name(name.strip()) for name in text.split(",")]
+    """argparse type: comma-separated scene names, each checked as `scene_name` does; 'family-A..B'
+    stands for the variants A to B ('bypass-100..149')."""
+    names = []
+    for part in (p.strip() for p in text.split(",")):
+        family, dash, span = part.rpartition("-")
+        first, dots, last = span.partition("..")
+        if dash and dots:
+            if not (first.isdigit() and last.isdigit() and int(first) <= int(last)):
+                raise argparse.ArgumentTypeError(f"'{part}': a range of variants is family-FIRST..LAST, such as "
+                                                 "bypass-100..149")
+            names += [scene_name(f"{family}-{k}") for k in range(int(first), int(last) + 1)]
+        else:
+            names.append(scene_name(part))
+    return names
 
 
 SENSOR_HELP = ("a built-in LiDAR (vlp16, vlp16-calibrated, hdl32e, vlp32c, os0-128, os<0|1|2>-<32|64|128>, xt32, "
