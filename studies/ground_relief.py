@@ -8,7 +8,12 @@ registered at steps of 0.1 m forward with its ground as built (a plane) and with
 by relief of 3 cm and of 8 cm (scenes.geometry.relief_ground); the ratio of ICP's step to the true
 one is printed, 1.00 being exact, with its standard deviation over the places.
 
-Run: python studies/ground_relief.py [--steps 10]
+The last table drives 40 m of the mine's yard (level poses 0.1 m apart along its route, one scan
+each) and sums the steps that scan-to-scan ICP and KISS-ICP (its authors' defaults, needs
+`pip install -e ".[baselines]"`) register, as a share of the true distance, over the plane and over
+relief: whether the same ground handicaps the point-to-point registration too.
+
+Run: python studies/ground_relief.py [--steps 10] [--yard-steps 400]
 """
 from __future__ import annotations
 
@@ -50,9 +55,36 @@ def step_ratios(mesh: trimesh.Trimesh, x0: float, spacing: float, y: float, step
     return np.array(ratios)
 
 
+def yard_distance_ratios(mesh: trimesh.Trimesh, route: np.ndarray, steps: int) -> tuple[float, float]:
+    """(scan-to-scan ICP, KISS-ICP): registered distance over true distance along `steps` poses of
+    the route 0.1 m apart, heading along it."""
+    from kiss_icp.config import load_config
+    from kiss_icp.kiss_icp import KissICP
+
+    from scenes.geometry import resample_polyline
+
+    xy = resample_polyline(route, 0.1)[: steps + 1, :2]
+    heading = np.arctan2(np.gradient(xy[:, 1]), np.gradient(xy[:, 0]))
+    poses = [planar_pose(x, y, 0.85, h) for (x, y), h in zip(xy, heading)]
+    lidar = Lidar(EmbreeCaster(mesh))
+    rng = np.random.default_rng(0)
+    scans = [lidar.scan(T, rng).points for T in poses]
+    true = float(np.linalg.norm(np.diff(xy, axis=0), axis=1).sum())
+    icp = sum(np.linalg.norm(register(b, a).T_target_source[:3, 3]) for a, b in zip(scans[:-1], scans[1:]))
+    config = load_config(None)
+    config.data.deskew, config.data.max_range = False, lidar.max_range
+    config.mapping.voxel_size = lidar.max_range / 100.0
+    kiss, walked = KissICP(config), []
+    for scan in scans:
+        kiss.register_frame(scan.astype(np.float64), np.zeros(len(scan)))
+        walked.append(kiss.last_pose[:3, 3].copy())
+    return icp / true, float(np.linalg.norm(np.diff(np.array(walked), axis=0), axis=1).sum()) / true
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=10, help="steps measured per place")
+    parser.add_argument("--yard-steps", type=int, default=400, help="steps of 0.1 m driven in the mine's yard")
     args = parser.parse_args()
     print(f"ICP step / true step, mean (std) over {args.steps} places 0.1 m apart in x")
     print(f"{'place':26s}" + "".join(f"{name:>20s}" for name in RELIEFS))
@@ -63,6 +95,12 @@ def main() -> None:
             r = step_ratios(with_ground(mesh, relief), x0, spacing, y, args.steps)
             cells.append(f"{r.mean():.3f} ({r.std():.3f})")
         print(f"{place:26s}" + "".join(f"{c:>20s}" for c in cells), flush=True)
+    mine = make_scene("mine-0")
+    print(f"\nregistered distance / true distance over {args.yard_steps / 10:.0f} m of the mine's yard")
+    print(f"{'ground':20s} {'scan-to-scan ICP':>17s} {'KISS-ICP':>9s}")
+    for name, relief in RELIEFS.items():
+        icp, kiss = yard_distance_ratios(with_ground(mine.mesh, relief), mine.route, args.yard_steps)
+        print(f"{name:20s} {icp:17.3f} {kiss:9.3f}", flush=True)
 
 
 if __name__ == "__main__":
