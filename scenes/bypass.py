@@ -114,17 +114,8 @@ def make_bypass(seed: int = 0, gallery_length: float | None = None, detour: floa
     rich = resample_polyline(np.column_stack([np.array(corners), np.zeros(len(corners))]), 1.0)
     for route in (short_route, rich):  # nothing the clutter put on a route
         _clear(parts, route)
-    return Scene(
-        name=f"bypass-{seed}",
-        mesh=merge(parts),
-        sampling_paths=[short_route, rich],
-        start=(0.0, 0.0, 0.0),
-        goal=(gx, 0.0),
-        routes={"short": short_route, "rich": rich, "main": rich},
-        family="bypass",
-        seed=seed,
-        regions={"corridor": np.array([x0, -half, x1, half]), "detour": np.array([x0, half, x1, top])},
-    )
+    return Scene.two_ways(f"bypass-{seed}", merge(parts), short_route, rich, "bypass", seed,
+                          {"corridor": np.array([x0, -half, x1, half]), "detour": np.array([x0, half, x1, top])})
 
 
 def _clear(parts: list[trimesh.Trimesh], route: np.ndarray, radius: float = 1.0) -> None:

@@ -36,14 +36,5 @@ def make_fork(seed: int = 0, corridor_length: float | None = None, detour: float
     short = resample_polyline(np.array([[0.0, 0, 0], [gx, 0, 0]]), 1.0)
     corners = [[0.0, 0, 0], [2.0, 0, 0], [2.0, detour, 0], [gx - 2, detour, 0], [gx - 2, 0, 0], [gx, 0, 0]]
     rich = resample_polyline(np.array(corners), 1.0)
-    return Scene(
-        name=f"fork-{seed}",
-        mesh=merge(parts),
-        sampling_paths=[short, rich],
-        start=(0.0, 0.0, 0.0),
-        goal=(gx, 0.0),
-        routes={"short": short, "rich": rich, "main": rich},
-        family="fork",
-        seed=seed,
-        regions={"corridor": np.array([x0, -half, x1, half])},
-    )
+    return Scene.two_ways(f"fork-{seed}", merge(parts), short, rich, "fork", seed,
+                          {"corridor": np.array([x0, -half, x1, half])})

@@ -58,6 +58,14 @@ class Scene:
         return cls(name=name, mesh=mesh, sampling_paths=[route], start=(route[0, 0], route[0, 1], heading),
                    goal=route[-1, :2], routes={"main": route}, family=family, seed=seed)
 
+    @classmethod
+    def two_ways(cls, name: str, mesh: trimesh.Trimesh, short: np.ndarray, rich: np.ndarray, family: str, seed: int,
+                 regions: dict[str, np.ndarray]) -> "Scene":
+        """A navigation scene: from the origin facing +x to the end of both routes, a `short` way
+        and a longer `rich` one (the default route); both are sampling paths."""
+        return cls(name=name, mesh=mesh, sampling_paths=[short, rich], start=(0.0, 0.0, 0.0), goal=short[-1, :2],
+                   routes={"short": short, "rich": rich, "main": rich}, family=family, seed=seed, regions=regions)
+
     @property
     def route(self) -> np.ndarray:
         """The default route: 'main' if present, else the first one."""
