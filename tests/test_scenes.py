@@ -228,3 +228,27 @@ def test_a_route_without_floor_under_it_is_named(tmp_path):
                               snap_to_floor=True)  # the 'x y' route set onto the raised floor
     assert np.allclose(snapped.route[:, 2], 1.5)
     assert snap_route_to_floor(trimesh.creation.box([1, 1, 1]), np.array([[9.0, 9, 0]]))[0, 2] == 0  # none there
+
+
+def test_a_bypass_offers_a_long_smooth_gallery_or_a_clear_way_round_at_most_half_as_long_again():
+    from l3e_env.sim.raycast import EmbreeCaster
+    from scenes.bypass import EVALUATION_SEEDS, MAX_DETOUR, TRAINING_SEEDS
+    from scenes.geometry import polyline_length
+
+    assert not set(TRAINING_SEEDS) & set(EVALUATION_SEEDS)
+    lengths = []
+    for seed in (0, 1, 2, 100, 101):
+        scene = make_scene(f"bypass-{seed}")
+        x0, _, x1, _ = scene.regions["corridor"]
+        lengths.append(x1 - x0)
+        short, rich = (polyline_length(scene.routes[k]) for k in ("short", "rich"))
+        assert 1.1 < rich / short <= MAX_DETOUR
+        for route in scene.routes.values():
+            assert np.allclose(route[-1, :2], scene.goal)
+        # nothing stands within 0.6 m of the way round, at the body's height
+        caster = EmbreeCaster(scene.mesh, threads=1)
+        angles = np.linspace(0, 2 * np.pi, 16, endpoint=False)
+        rays = np.column_stack([np.cos(angles), np.sin(angles), np.zeros(16)])
+        for point in scene.routes["rich"][::3]:
+            assert caster.cast(point + (0, 0, 0.5), rays, 5.0).min() > 0.6, (seed, point)
+    assert min(lengths) >= 60 and max(lengths) <= 150 and max(lengths) - min(lengths) > 30
