@@ -10,7 +10,7 @@ import trimesh
 
 from l3e_env.cli.main import main
 from l3e_env.config import LidarConfig
-from l3e_env.experiments.judge import judge_scans, recognise_sensor
+from l3e_env.experiments.judge import format_judgement, judge_scans, recognise_sensor
 from l3e_env.sim.lidar import Lidar
 from l3e_env.sim.patterns import (BUILT_IN_SENSORS, PATTERNS, BeamPattern, PatternError, describe_pattern, fit_pattern,
                                   get_pattern, load_pattern, save_pattern)
@@ -252,6 +252,8 @@ def test_pattern_files_in_the_projects_own_keys_and_as_ouster_metadata(tmp_path)
     ("elevations_deg: [0, 1]\ncolumns: 10\nmax_range: 5\nazimuth_offsets_deg: [0, 400]\n",
      "has an azimuth offset beyond"),
     ("elevations_deg: [0, 1]\ncolums: 10\ncolumns: 10\nmax_range: 5\n", "unknown keys ['colums']"),
+    ("elevations_deg: [0, 1]\ncolumns: 10\nmax_range: 5\n"
+     "lidar_to_sensor: [2, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]\n", "not a rigid 4x4 matrix"),
     ("- 1\n- 2\n", "mapping of keys, not list"),
     ("elevations_deg: [0, 1\n", "not a readable YAML file"),
 ])
@@ -262,6 +264,41 @@ def test_a_broken_pattern_file_is_refused_naming_the_problem(tmp_path, text, pro
         load_pattern(path)
     with pytest.raises(PatternError, match="cannot read"):
         load_pattern(tmp_path / "missing.yaml")
+
+
+def _ouster_metadata(path, pattern: BeamPattern) -> None:
+    """An Ouster metadata JSON (firmware 2.x keys) for `pattern`, with the SDK's sensor frame as
+    its OS1s have it: the lidar frame turned 180 deg about z and lifted 36.18 mm."""
+    path.write_text(json.dumps({
+        "beam_altitude_angles": list(pattern.elevations_deg), "lidar_mode": f"{pattern.n_azimuth}x10",
+        "beam_azimuth_angles": [-a for a in pattern.azimuth_offsets_deg] or [0.0] * pattern.n_beams,
+        "lidar_origin_to_beam_origin_mm": 1e3 * pattern.beam_origin_offset, "prod_line": "OS-1-64",
+        "lidar_to_sensor_transform": [-1, 0, 0, 0, 0, -1, 0, 0, 0, 0, 1, 36.18, 0, 0, 0, 1]}))
+
+
+def test_an_ouster_cloud_is_judged_alike_in_its_lidar_and_its_sdks_sensor_frame(tmp_path, mine, capsys):
+    meta = tmp_path / "os1-meta.json"
+    _ouster_metadata(meta, OUSTER_LIKE)
+    pattern = load_pattern(meta)
+    assert "turned +180 deg about z and shifted +36.2 mm in z" in describe_pattern(pattern)
+    lidar = _scan(mine.mesh, pattern, rng=np.random.default_rng(7)).points
+    to_sensor = np.asarray(pattern.lidar_to_sensor).reshape(4, 4)
+    np.save(tmp_path / "lidar.npy", lidar)
+    np.save(tmp_path / "sensor.npy", (lidar @ to_sensor[:3, :3].T + to_sensor[:3, 3]).astype(np.float32))
+    np.save(tmp_path / "neither.npy", lidar + np.float32([0.0, 0.0, 0.3]))
+    specs = ["scanmc:4", "eigen:30"]
+    # each alone, so that scanmc draws the same children for each (they are seeded by the place in the list)
+    sensor = LidarConfig(model=str(meta))
+    as_lidar, as_sensor, neither = (next(judge_scans([tmp_path / f"{n}.npy"], specs, sensor=sensor))
+                                    for n in ("lidar", "sensor", "neither"))
+    assert as_lidar.frame is None and as_sensor.frame == "read in the SDK's sensor frame, turned into the lidar frame"
+    for spec in specs:
+        assert as_lidar.predictions[spec].known
+        np.testing.assert_array_equal(as_lidar.predictions[spec].mask, as_sensor.predictions[spec].mask)
+        np.testing.assert_allclose(as_lidar.predictions[spec].probabilities,
+                                   as_sensor.predictions[spec].probabilities, atol=1e-3)
+    assert neither.error and "lie on" in neither.error and "sensor frame" in neither.error
+    assert "turned into the lidar frame" in format_judgement(as_sensor)
 
 
 def test_judge_recognises_the_sensor_or_takes_a_pattern_file_for_scanmc(tmp_path, mine, capsys):

@@ -20,7 +20,8 @@ from l3e_env.io.rosbag import BagScan
 from l3e_env.io.scan_files import ScanFileError, read_scan
 from l3e_env.localizability.labels import AXES
 from l3e_env.localizability.registration import RegistrationConfig, RegistrationError, RegistrationResult, scan_hessian
-from l3e_env.sim.patterns import BeamPattern, PatternError, fit_pattern, get_pattern, register_pattern
+from l3e_env.sim.patterns import (BeamPattern, PatternError, fit_pattern, get_pattern, in_lidar_frame,
+                                  register_pattern)
 
 # what each detector's score means, printed under the table
 SCORES = {"learned": "probability that the axis is not localizable (flagged above the model's threshold)",
@@ -40,6 +41,7 @@ class Judgement:
     predictions: dict[str, Prediction]
     error: str | None = None  # the file could not be read, or its points are not a scan: why (nothing judged)
     stamp: float | None = None  # seconds, for a scan read from a bag
+    frame: str | None = None  # how the cloud was turned into its sensor's lidar frame, where it was
 
 
 def judge_points(points: np.ndarray, detectors: list[Detector], registration: RegistrationConfig | None = None,
@@ -58,9 +60,11 @@ def judge_points(points: np.ndarray, detectors: list[Detector], registration: Re
             else d.predict(points, onto_itself, None) for d in detectors}
 
 
-def _judge_source(index: int, source: str | Path | BagScan, detectors: list[Detector], seed: int) -> Judgement:
+def _judge_source(index: int, source: str | Path | BagScan, detectors: list[Detector], seed: int,
+                  pattern: BeamPattern | None = None) -> Judgement:
     """A scan file read, or a bag's scan, and judged; scanmc's children are seeded by the scan's
-    place in the list, so that a scan is judged alike alone or in a worker."""
+    place in the list, so that a scan is judged alike alone or in a worker. A cloud of a sensor whose
+    SDK gives another frame (an Ouster's, `pattern.lidar_to_sensor`) is judged in the lidar frame."""
     if isinstance(source, BagScan):
         name, stamp, points, error = source.name, source.stamp, source.points, source.error
     else:
@@ -78,20 +82,27 @@ def _judge_source(index: int, source: str | Path | BagScan, detectors: list[Dete
     far = out_of_reach(returns)
     if far is not None:
         return Judgement(name, len(returns), dropped, {}, error=f"{name}: {far}", stamp=stamp)
+    frame = None
+    if pattern is not None:
+        try:
+            returns, frame = in_lidar_frame(returns, pattern)
+        except PatternError as exc:
+            return Judgement(name, len(returns), dropped, {}, error=f"{name}: {exc}", stamp=stamp)
     return Judgement(name, len(returns), dropped,
-                     judge_points(returns, detectors, rng=np.random.default_rng([seed, index])), stamp=stamp)
+                     judge_points(returns, detectors, rng=np.random.default_rng([seed, index])), stamp=stamp,
+                     frame=frame)
 
 
 def _judges(specs: list[str], sensor: LidarConfig, seed: int,
-            pattern: BeamPattern | None) -> tuple[list[Detector], int]:
-    """A judging worker's own detectors, and the seed; a pattern recognised from the scans is
-    registered here first, as a spawned worker does not inherit it."""
+            pattern: BeamPattern | None) -> tuple[list[Detector], int, BeamPattern | None]:
+    """A judging worker's own detectors, the seed and the sensor's pattern; a pattern recognised from
+    the scans is registered here first, as a spawned worker does not inherit it."""
     if pattern is not None:
         register_pattern(pattern)
-    return [make_detector(spec, seed=seed, sensor=sensor) for spec in specs], seed
+    return [make_detector(spec, seed=seed, sensor=sensor) for spec in specs], seed, pattern
 
 
-def _judge_job(judges: tuple[list[Detector], int], job: tuple[int, str | BagScan]) -> Judgement:
+def _judge_job(judges: tuple[list[Detector], int, BeamPattern | None], job: tuple[int, str | BagScan]) -> Judgement:
     return _judge_source(*job, *judges)
 
 
@@ -169,7 +180,8 @@ def judge_scans(scans: Iterable[str | Path | BagScan], specs: list[str], sensor:
     sensor = sensor or LidarConfig(model=pattern.name if pattern else LidarConfig().model)
     detectors = [make_detector(spec, seed=seed, sensor=sensor) for spec in specs]  # a bad spec fails here
     jobs = ((i, scan if isinstance(scan, BagScan) else str(scan)) for i, scan in enumerate(scans))
-    yield from ordered_map(_judge_job, jobs, (detectors, seed), _judges, (specs, sensor, seed, pattern), workers)
+    yield from ordered_map(_judge_job, jobs, (detectors, seed, pattern), _judges, (specs, sensor, seed, pattern),
+                           workers)
 
 
 def format_judgement(j: Judgement) -> str:
@@ -177,7 +189,8 @@ def format_judgement(j: Judgement) -> str:
     if j.error:
         return f"{j.error}: not judged"
     names = list(j.predictions)
-    lines = [f"{j.path}: {j.points} points" + (f" ({j.dropped} without a return dropped)" if j.dropped else ""),
+    lines = [f"{j.path}: {j.points} points" + (f" ({j.dropped} without a return dropped)" if j.dropped else "")
+             + (f", {j.frame}" if j.frame else ""),
              f"  {'axis':6s}" + "".join(f"{n:>16s}" for n in names)]
     for a, axis in enumerate(AXES):
         cells = [f"{p.probabilities[a]:15.2f}{'*' if p.mask[a] else ' '}" if p.known else f"{'unknown':>16s}"
@@ -197,7 +210,7 @@ def judgement_record(j: Judgement, sensor: str | None) -> dict:
     where = {"path": j.path} | ({} if j.stamp is None else {"stamp": j.stamp})
     if j.error:
         return where | {"error": j.error}
-    return where | {"points": j.points, "dropped": j.dropped, "sensor": sensor,
+    return where | {"points": j.points, "dropped": j.dropped, "sensor": sensor, "frame": j.frame or "as given",
             "detectors": {name: {"known": p.known,
                                  "scores": [float(v) if np.isfinite(v) else None for v in p.probabilities],
                                  "not_localizable": [a for a, m in zip(AXES, p.mask) if m]}

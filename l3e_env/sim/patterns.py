@@ -36,6 +36,9 @@ class BeamPattern:
     scan_start_deg: float = 180.0  # the azimuth at which a revolution begins (straight behind)
     time_field: str = "time"  # each point's time in a bag, as the sensor's driver names it (TIME_FIELDS)
     beam_vertical_offsets: tuple[float, ...] = ()  # per beam, metres; empty: none
+    # an Ouster's lidar_to_sensor_transform (4x4 row-major, metres): its SDK's clouds come in the
+    # sensor frame, this pattern's beams in the lidar frame; empty: the two are one
+    lidar_to_sensor: tuple[float, ...] = ()
 
     @property
     def n_beams(self) -> int:
@@ -200,7 +203,7 @@ BEAM_TOLERANCE = 0.25  # a return lies on a beam within this share of the beams'
 
 MAX_BEAMS, MAX_COLUMNS = 512, 8192  # beyond any spinning LiDAR's datasheet: a typo, refused before any array is made
 OWN_KEYS = {"elevations_deg", "columns", "max_range", "min_range", "image_width", "azimuth_offsets_deg",
-            "beam_origin_offset", "spin", "scan_start_deg", "time_field", "beam_vertical_offsets"}
+            "beam_origin_offset", "spin", "scan_start_deg", "time_field", "beam_vertical_offsets", "lidar_to_sensor"}
 
 
 def check_pattern(pattern: BeamPattern) -> None:
@@ -226,6 +229,8 @@ def check_pattern(pattern: BeamPattern) -> None:
         problem = f"has {len(pattern.beam_vertical_offsets)} vertical offsets for {pattern.n_beams} beams"
     elif not np.isfinite(pattern.beam_vertical_offsets).all() or not np.isfinite(pattern.beam_origin_offset):
         problem = "holds a beam origin offset that is not a finite number"
+    elif pattern.lidar_to_sensor and not _rigid(pattern.lidar_to_sensor):
+        problem = "has a lidar_to_sensor transform that is not a rigid 4x4 matrix (16 numbers, a rotation and a shift)"
     elif not np.isfinite(pattern.scan_start_deg):
         problem = f"has a scan start of {pattern.scan_start_deg} deg"
     elif pattern.time_field not in TIME_FIELDS:
@@ -234,6 +239,13 @@ def check_pattern(pattern: BeamPattern) -> None:
         problem = f"has image_width {pattern.image_width}, which does not divide its {pattern.n_azimuth} columns"
     if problem:
         raise PatternError(f"beam pattern {pattern.name} {problem}")
+
+
+def _rigid(values: tuple[float, ...]) -> bool:
+    if len(values) != 16 or not np.isfinite(values).all():
+        return False
+    m = np.asarray(values, dtype=np.float64).reshape(4, 4)
+    return bool(np.allclose(m[:3, :3] @ m[:3, :3].T, np.eye(3), atol=1e-6) and np.allclose(m[3], [0, 0, 0, 1]))
 
 
 def register_pattern(pattern: BeamPattern) -> None:
@@ -279,8 +291,14 @@ def _ouster_pattern(name: str, meta: dict) -> BeamPattern:
     far, near = next((r for p, r in _OUSTER_RANGES.items() if product.startswith(p)), (100.0, 0.3))
     # Ouster counts azimuth clockwise from the encoder angle: a beam's offset is the negative
     origin_mm = float(_find(meta, "lidar_origin_to_beam_origin_mm") or 0.0)
+    to_sensor = _find(meta, "lidar_to_sensor_transform")
+    if to_sensor is not None:
+        matrix = np.asarray(to_sensor, dtype=np.float64).reshape(4, 4)
+        matrix[:3, 3] /= 1e3  # Ouster writes the translation in millimetres
+        to_sensor = tuple(float(v) for v in matrix.ravel())
     return BeamPattern(name, tuple(float(a) for a in altitudes), int(columns), far, near, _image_width(int(columns)),
-                       tuple(-float(a) for a in azimuths), origin_mm / 1e3, time_field="t")
+                       tuple(-float(a) for a in azimuths), origin_mm / 1e3, time_field="t",
+                       lidar_to_sensor=to_sensor or ())
 
 
 def _own_pattern(name: str, spec: dict) -> BeamPattern:
@@ -295,7 +313,8 @@ def _own_pattern(name: str, spec: dict) -> BeamPattern:
                        tuple(float(a) for a in spec.get("azimuth_offsets_deg", ())),
                        float(spec.get("beam_origin_offset", 0.0)), _spin(spec.get("spin", "clockwise")),
                        float(spec.get("scan_start_deg", 180.0)), str(spec.get("time_field", "time")),
-                       tuple(float(z) for z in spec.get("beam_vertical_offsets", ())))
+                       tuple(float(z) for z in spec.get("beam_vertical_offsets", ())),
+                       tuple(float(v) for v in np.ravel(spec.get("lidar_to_sensor", ()))))
 
 
 def _spin(text: str) -> bool:
@@ -483,6 +502,29 @@ def fit_pattern(points: np.ndarray, rings: np.ndarray | None = None) -> tuple[Be
     return fitted, how + (" (beams from the ring field)" if rings is not None else "")
 
 
+ON_BEAMS = 0.9  # the share of a scan's returns that lie on the beams when it is read in the right frame
+
+
+def in_lidar_frame(points: np.ndarray, pattern: BeamPattern) -> tuple[np.ndarray, str | None]:
+    """A cloud of `pattern` in its lidar frame, the frame its beams are in, and a note where it came in
+    another. An Ouster SDK's clouds (XYZLut) are in its sensor frame, the lidar frame turned 180 deg
+    about z and lifted 36-38 mm (`lidar_to_sensor`, from the metadata): the frame whose returns lie on
+    the beams is taken; a cloud that lies on them in neither is refused, naming both."""
+    if not pattern.lidar_to_sensor:
+        return points, None
+    to_sensor = np.asarray(pattern.lidar_to_sensor, dtype=np.float64).reshape(4, 4)
+    back = (np.asarray(points, dtype=np.float64) - to_sensor[:3, 3]) @ to_sensor[:3, :3]
+    tolerance = BEAM_TOLERANCE * pattern.spacing_deg()
+    shares = [float(np.mean(pattern.locate(cloud)[2] <= tolerance)) for cloud in (points, back)]
+    if max(shares) < ON_BEAMS:
+        raise PatternError(f"{shares[0]:.0%} of the returns lie on {pattern.name}'s beams as given (its lidar frame) "
+                           f"and {shares[1]:.0%} turned back from its SDK's sensor frame: give one revolution of this "
+                           "sensor in either frame, or the metadata of the sensor that took it")
+    if shares[1] > shares[0]:
+        return back.astype(np.asarray(points).dtype), "read in the SDK's sensor frame, turned into the lidar frame"
+    return points, None
+
+
 def _own_phases(points: np.ndarray, beam: np.ndarray, pattern: BeamPattern) -> tuple[float, ...] | None:
     """The beams' azimuth phases read from the scan where they differ from the pattern's own by more
     than a twentieth of a column (else None): recognised by its beams, a sensor may still start its
@@ -515,6 +557,11 @@ def describe_pattern(pattern: BeamPattern) -> str:
     if pattern.beam_vertical_offsets:
         lines.append(f"  beams leave {1e3 * min(pattern.beam_vertical_offsets):+.1f} to "
                      f"{1e3 * max(pattern.beam_vertical_offsets):+.1f} mm from the axis, across the beam")
+    if pattern.lidar_to_sensor:
+        m = np.asarray(pattern.lidar_to_sensor).reshape(4, 4)
+        turn = np.degrees(np.arctan2(m[1, 0], m[0, 0]))
+        lines.append(f"  its SDK's sensor frame: the lidar frame turned {turn:+.0f} deg about z and shifted "
+                     f"{1e3 * m[2, 3]:+.1f} mm in z (clouds in either frame are read)")
     lines.append(f"  spins {'clockwise' if pattern.clockwise else 'counterclockwise'} seen from above from "
                  f"{pattern.scan_start_deg:g} deg; a recorded bag's point time: {pattern.time_field} "
                  f"({TIME_FIELDS[pattern.time_field][0]})")
@@ -542,6 +589,8 @@ def save_pattern(pattern: BeamPattern, path: str | Path) -> Path:
         spec["scan_start_deg"] = float(pattern.scan_start_deg)
     if pattern.time_field != "time":
         spec["time_field"] = pattern.time_field
+    if pattern.lidar_to_sensor:
+        spec["lidar_to_sensor"] = [round(float(v), 6) for v in pattern.lidar_to_sensor]
     path.parent.mkdir(parents=True, exist_ok=True)
     if path.suffix.lower() == ".json":
         path.write_text(json.dumps(spec, indent=1) + "\n")
