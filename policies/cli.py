@@ -132,8 +132,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     rows = evaluate_policies(out, args.policy or ["shortest", "planner"], list(scenes), args.episodes, args.seed,
                              args.detector, args.cache_dir, args.lam, args.workers, steer_on=args.steer_on,
                              progress=not args.quiet, scene_params={k: v for k, v in scenes.items() if v},
-                             fusion_settings=fusion_settings(args), recovery=args.recovery,
-                             keep_clear=args.keep_clear)
+                             fusion_settings=fusion_settings(args), recovery=args.recovery)
     print(format_rows(rows))
     print(f"routes: {out / 'routes.png'}")
     return 0
@@ -204,10 +203,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--recovery", action=argparse.BooleanOptionalAction,
                    help="a robot blocked for 1 s backs off along its last command reversed for 1 s, then the "
                         "policy acts again (default: a resumed folder's own, else on)")
-    g.add_argument("--keep-clear", dest="keep_clear", action=argparse.BooleanOptionalAction,
-                   help="local avoidance under every policy: a return of the current scan within 0.6 m of the base "
-                        "slows the walk towards it and slides the robot away (default: a resumed folder's own, "
-                        "else on)")
     g.add_argument("--steer-on", dest="steer_on", choices=["estimate", "truth"], default="estimate",
                    help="pose the policies steer on (default: the fused estimate); ATE is measured either way")
     add_fusion_options(g)

@@ -26,7 +26,6 @@ from l3e_env.sim.follower import RouteFollower
 from l3e_env.sim.odometry import odometry_fusion_config
 
 from .context import scene_context
-from .avoidance import KeepClear
 from .observation import PolicyView
 from .planner import Planner, drift_rates, expected_drift_along, route_of
 
@@ -47,7 +46,6 @@ class Episode:
     steps: int
     trajectory: list  # ground-truth (x, y) every 5 steps
     recoveries: int = 0  # times the robot backed off a wedge (with recovery on)
-    kept_clear: int = 0  # steps on which the local avoidance turned the command away from a return
     # m, the planner's drift model summed along the path walked (the evaluation's detector map, the
     # environment's odometry): what the cost model expects of this route, beside final_ate
     expected_drift: float | None = None
@@ -153,7 +151,7 @@ STEER_ON = ("estimate", "truth")
 def run_episode(policy: str, scene: str, seed: int, detector: str = "learned", cache_dir: str | Path | None = None,
                 lam: float = 50.0, backend: str = "graph", steer_on: str = "estimate",
                 scene_params: dict | None = None, fusion_settings: FusionSettings = FusionSettings(),
-                recovery: bool = True, keep_clear: bool = True) -> Episode:
+                recovery: bool = True) -> Episode:
     import torch
 
     torch.set_num_threads(1)
@@ -162,16 +160,12 @@ def run_episode(policy: str, scene: str, seed: int, detector: str = "learned", c
     try:
         steer, planned = make_controller(policy, scene, detector, cache_dir, lam, scene_params, env.config.odometry)
         controller = BackOff(steer)
-        clear = KeepClear(env.config.robot) if keep_clear else None
         _, info = env.reset(seed=seed)
         trail, length, terminated, truncated = [info["T_w_b"][:2, 3]], 0.0, False, False
         while not (terminated or truncated):
             previous = info["T_w_b"][:3, 3]
             pose = info["fused_T_w_b"] if steer_on == "estimate" else info["T_w_b"]
-            action = controller(pose, env.steps)
-            if clear is not None and not controller.recovering:
-                action = clear(action, env.scan.points)
-            _, _, terminated, truncated, info = env.step(action)
+            _, _, terminated, truncated, info = env.step(controller(pose, env.steps))
             if recovery:
                 controller.observe(info["blocked"])
             length += float(np.linalg.norm(info["T_w_b"][:3, 3] - previous))
@@ -184,7 +178,7 @@ def run_episode(policy: str, scene: str, seed: int, detector: str = "learned", c
         expected = expected_drift_along(path, locmap, drift_rates(env.config.odometry))
         return Episode(policy, scene, seed, bool(terminated), avoided_corridor(path, env.scene), final,
                        float(info["running_ate"]), length, env.steps, path.round(2).tolist(), controller.recoveries,
-                       expected, planned, clear.pushes if clear is not None else 0)
+                       expected, planned)
     finally:
         env.close()
 
@@ -206,8 +200,7 @@ def summarize(episodes: list[Episode]) -> list[dict[str, Any]]:
                      "final_ate": float(np.mean([e.final_ate for e in group])),
                      "mean_ate": float(np.mean([e.mean_ate for e in group])),
                      "path_length": float(np.mean([e.path_length for e in group])),
-                     "recoveries": int(sum(e.recoveries for e in group)),
-                     "kept_clear": int(sum(e.kept_clear for e in group))})
+                     "recoveries": int(sum(e.recoveries for e in group))})
     return rows
 
 
@@ -237,13 +230,12 @@ def evaluate_policies(out: str | Path, policies: list[str], scenes: list[str], e
                       workers: int = 1, backend: str = "graph", steer_on: str = "estimate",
                       progress: bool = True, scene_params: dict[str, dict] | None = None,
                       fusion_settings: FusionSettings = FusionSettings(),
-                      recovery: bool | None = None, keep_clear: bool | None = None) -> list[dict[str, Any]]:
+                      recovery: bool | None = None) -> list[dict[str, Any]]:
     """Episode i of every policy runs on scenes[i % len(scenes)] with environment seed seed + i.
     `scene_params`: make_scene's arguments by scene name (a mesh's up axis, scale and route).
     `fusion_settings`: the fusion's (as `FusionSettings` gives them in the environment).
     `recovery`: a wedged robot backs off (BackOff) instead of staying there; None: as the folder's
-    episodes so far, else on. `keep_clear`: the local avoidance (KeepClear) under every policy; None:
-    as the folder's episodes so far (off in a folder from before it existed), else on.
+    episodes so far, else on.
     Writes episodes.jsonl, summary.json, summary.txt, routes.png and drift.png (the drift model's
     expectation of each path against the final error measured) into `out`."""
     from .plots import plot_drift_check, plot_paths
@@ -265,17 +257,12 @@ def evaluate_policies(out: str | Path, policies: list[str], scenes: list[str], e
     held = json.loads(settings_file.read_text()) if settings_file.exists() else None
     if recovery is None:
         recovery = held.get("recovery", True) if held else True
-    if keep_clear is None:
-        keep_clear = held.get("keep_clear", False) if held else True
     jobs = [(p, scenes[i % len(scenes)], seed + i, detector, cache_dir, lam, backend, steer_on,
-             params.get(scenes[i % len(scenes)]), fusion_settings, recovery, keep_clear)
-            for i in range(episodes) for p in policies]
+             params.get(scenes[i % len(scenes)]), fusion_settings, recovery) for i in range(episodes) for p in policies]
     # episodes are appended as they finish; a killed evaluation resumes where it stopped, with the
     # settings it started with
     run = {"detector": detector, "lam": lam, "backend": backend, "steer_on": steer_on,
            **fusion_settings.record(), "recovery": recovery}  # also in summary.json
-    if keep_clear:  # left out when off, so that folders written before it existed resume
-        run["keep_clear"] = True
     settings = dict(run)
     if params:  # left out without a mesh, so that folders written before meshes were taken resume
         settings["scene_params"] = params

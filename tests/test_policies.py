@@ -528,23 +528,3 @@ def test_policy_train_without_the_rl_extra_says_so_before_building_maps(monkeypa
     monkeypatch.setattr("policies.context.scene_context", lambda *a, **k: pytest.fail("a map was built first"))
     assert main(["policy", "train", "--scene", "fork-0", "--out", str(tmp_path / "ppo"), "--quiet"]) == 2
     assert "PPO needs stable-baselines3: pip install -e '.[rl]'" in capsys.readouterr().err
-
-
-def test_keep_clear_slides_away_from_what_the_scan_shows_and_leaves_a_free_walk_alone():
-    from policies.avoidance import KeepClear
-
-    clear = KeepClear()
-    walk = np.array([0.8, 0.0, 0.1], dtype=np.float32)
-    ground = np.column_stack([np.linspace(-5, 5, 50), np.zeros(50), np.full(50, -0.85)])
-    far_wall = np.column_stack([np.linspace(-3, 3, 30), np.full(30, 3.0), np.zeros(30)])
-    np.testing.assert_array_equal(clear(walk, np.vstack([ground, far_wall])), walk)
-    assert clear.pushes == 0
-    left_wall = np.column_stack([np.linspace(-1, 1, 30), np.full(30, 0.45), np.zeros(30)])  # 0.2 m from the side
-    slid = clear(walk, np.vstack([ground, left_wall]))
-    assert slid[1] < -0.5 and slid[0] == pytest.approx(walk[0]) and slid[2] == walk[2]  # pushed right, not slowed
-    corner = np.array([[0.75, 0.2, 0.0]])  # 0.3 m ahead of the base's front, to the left
-    ahead = clear(walk, corner)
-    assert 0 <= ahead[0] < walk[0] and ahead[1] < 0
-    assert clear.pushes == 2
-    with pytest.raises(ValueError, match="positive distance"):
-        KeepClear(margin=0)
