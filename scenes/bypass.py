@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
-from .geometry import box, cylinder, merge, relief_ground, resample_polyline, seed_spread
+from .geometry import box, cylinder, ground_plane, merge, resample_polyline, seed_spread
 from .scene import Scene
 
 TRAINING_SEEDS = range(0, 100)
@@ -57,8 +57,7 @@ def _clutter(rng: np.random.Generator, x0: float, x1: float, y0: float, y1: floa
 
 def make_bypass(seed: int = 0, gallery_length: float | None = None, detour: float | None = None) -> Scene:
     """Start at the origin facing +x, the goal straight ahead beyond a gallery of `gallery_length` m
-    (60-150 m across seeds, unset) whose walls, roof and floor are smooth; the ground outside has the
-    relief of gravel (3-8 cm); the way round runs at y =
+    (60-150 m across seeds, unset) whose walls and roof are smooth; the way round runs at y =
     `detour` m (8-18 m, within the 1.5x bound) between a buttressed wall and a band of pillars,
     boxes and rocks, with a dog-leg or two. The gallery's width and height, the detour's shape and
     the clutter's density vary with the seed."""
@@ -82,9 +81,7 @@ def make_bypass(seed: int = 0, gallery_length: float | None = None, detour: floa
     centres = np.clip(centres, half + 3.0 + lane / 2, None)
     top = float(centres.max() + lane / 2 + 6.0)
     bottom = -half - 6.0
-    relief = float(rng.uniform(0.03, 0.08))  # m: gravel and worn ground outside; the gallery's floor is poured
-    parts = [relief_ground(-APRON - 4, gx + APRON + 4, bottom - 2, top + 2, relief, rng,
-                           flat=[(x0 - 0.5, -half - 0.5, x1 + 0.5, half + 0.5)])]
+    parts = [ground_plane(-APRON - 4, gx + APRON + 4, bottom - 2, top + 2, cell=10)]
     # the gallery: smooth walls and roof
     for sign in (-1, 1):
         parts.append(box(((x0 + x1) / 2, sign * (half + 0.1), height / 2), (length, 0.2, height)))

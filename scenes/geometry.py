@@ -40,7 +40,8 @@ def relief_ground(x0: float, x1: float, y0: float, y1: float, amplitude: float, 
     is a smooth random field of `amplitude` m on `wavelengths` m, level (z = 0) inside the `flat`
     boxes (x0, y0, x1, y1) (a poured floor). A perfect plane is no real ground: its rings lie where
     the sensor's height puts them whatever the sensor's position, and a registration of two scans
-    over it under-reads the step between them (studies/ground_relief.py)."""
+    over it under-reads the step between them (studies/ground_relief.py). The scenes keep the plane:
+    a robot that pitches over relief makes the fused estimate over-read its walk (docs/results.md)."""
     field = smooth_noise(rng, amplitude, wavelengths=wavelengths, waves=24)
     xs = np.linspace(x0, x1, max(2, int(np.ceil((x1 - x0) / cell)) + 1))
     ys = np.linspace(y0, y1, max(2, int(np.ceil((y1 - y0) / cell)) + 1))
