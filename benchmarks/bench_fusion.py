@@ -1,6 +1,7 @@
 """Fusion speed: the iSAM2 update per step over a long run (EKF step as the reference in the
 same run), and environment steps per second with the whole pipeline in the loop (scan,
-learned detector, ICP, iSAM2) against the bare environment.
+learned detector, ICP, iSAM2), with the classifier in the step's process and in one of its own
+(FusionSettings.detector_process), against the bare environment.
 
 Run: python benchmarks/bench_fusion.py [--steps 3000] [--env-steps 300] [--scene mine] [--loads 0,4]
 `--loads`: the environment rows idle and beside N processes that each spin a core (benchmarks/competing_load.py).
@@ -81,16 +82,19 @@ def main() -> None:
         biased = update_times(FusionGraph, args.steps, hessians=True, config=FusionConfig(odometry_bias=axes)) * 1e3
         print(f"iSAM2 update with the legs' {'+'.join(axes)} bias as states: median {np.median(biased):.3f} ms, "
               f"p90 {np.percentile(biased, 90):.3f} ms ({np.median(biased) / np.median(weighed):.2f}x without)")
-    full_rates: dict[int, float] = {}
-    bare_rates: dict[int, float] = {}
+    rows: dict[str, dict[int, float]] = {"scan + learned detector + ICP + iSAM2": {},
+                                         "  the classifier in a process of its own": {},
+                                         "bare environment (scan, no fusion)": {}}
+    settings = [FusionSettings(enabled=True, detector="learned"),
+                FusionSettings(enabled=True, detector="learned", detector_process=True), FusionSettings(enabled=False)]
     for load in loads(args.loads):
         with spinning(load):
-            bare_rates[load] = env_rate(FusionSettings(enabled=False), args.scene, args.env_steps)
-            full_rates[load] = env_rate(FusionSettings(enabled=True, detector="learned"), args.scene, args.env_steps)
+            for row, fusion in zip(rows.values(), settings):
+                row[load] = env_rate(fusion, args.scene, args.env_steps)
     print(f"{args.scene} env, VLP-16, steps/s (ratio: loaded over idle)")
-    print(header(list(full_rates), width=44))
-    print(ratio_row("scan + learned detector + ICP + iSAM2", full_rates, "steps/s", width=44))
-    print(ratio_row("bare environment (scan, no fusion)", bare_rates, "steps/s", width=44))
+    print(header(loads(args.loads), width=44))
+    for name, row in rows.items():
+        print(ratio_row(name, row, "steps/s", width=44))
 
 
 if __name__ == "__main__":

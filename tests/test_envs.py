@@ -155,6 +155,32 @@ def test_a_failing_detector_is_counted_and_the_episode_goes_on():
     env.close()
 
 
+def test_the_classifier_in_a_process_of_its_own_gives_the_same_episode_and_a_dead_one_answers_unknown():
+    runs = []
+    for beside in (False, True):
+        fusion = dict(enabled=True, detector="learned", detector_process=beside)
+        env = NavigationEnv(dict(scene="office", fusion=fusion))
+        _, info = env.reset(seed=0)
+        follow = RouteFollower(env.route)
+        trail = []
+        for _ in range(12):
+            _, _, _, _, info = env.step(follow(info["T_w_b"]))
+            trail.append((info["fused_T_w_b"].copy(), info["localizability_probabilities"].copy()))
+        runs.append(trail)
+        if beside:
+            env.fusion.ahead._process.kill()  # a process that dies: unknown answers, counted; the walk goes on
+            env.fusion.ahead._process.join()
+            for _ in range(3):
+                _, _, _, _, info = env.step(follow(info["T_w_b"]))
+            assert info["fusion_counts"]["detector_errors"] == 3 and not info["localizability_known"]
+        env.close()
+    for (T_inline, p_inline), (T_beside, p_beside) in zip(*runs):
+        np.testing.assert_array_equal(p_inline, p_beside)
+        np.testing.assert_array_equal(T_inline, T_beside)
+    with pytest.raises(ValueError, match="needs the registration"):
+        NavigationEnv(dict(scene="office", fusion=dict(enabled=True, detector="eigen:30", detector_process=True)))
+
+
 def test_a_swept_lidar_turns_each_revolution_with_the_step():
     """lidar={"sweep": True}: the scan after a step is cast over the step's motion, each point from
     where the sensor was when it fired; the one after reset over a revolution standing still."""

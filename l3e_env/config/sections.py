@@ -69,7 +69,9 @@ class FusionSettings:
     attitude: none | tilt | full, the IMU's orientation fused once a second (tilt: roll and pitch,
     which gravity holds; full: with the magnetometer's heading); odometry_bias: the leg odometry's
     biases estimated as fusion states, () or among "yaw" and "z" (see fusion.bias; their prior is the
-    odometry config's). The ICP factor is weighed by the registration's Hessian (fusion.FusionConfig)."""
+    odometry config's); detector_process: a learned detector judges each scan in a process of its
+    own while the step registers it (detection.ahead; the same answers, faster where a core is
+    free). The ICP factor is weighed by the registration's Hessian (fusion.FusionConfig)."""
 
     enabled: bool = False
     detector: str = "learned"
@@ -78,6 +80,7 @@ class FusionSettings:
     deskew: str = "gyro"
     attitude: str = "none"
     odometry_bias: tuple[str, ...] = ()
+    detector_process: bool = False
 
     def record(self) -> dict[str, Any]:
         """The estimator's choices, as written into results.json, sweep.json and a policy evaluation's

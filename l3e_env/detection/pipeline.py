@@ -23,6 +23,7 @@ from l3e_env.sim.imu import ATTITUDE_EVERY, attitude_sigmas
 from l3e_env.sim.lidar import Lidar
 from l3e_env.sim.odometry import odometry_fusion_config, odometry_sigmas
 
+from .ahead import DetectorProcess
 from .detectors import UNKNOWN, Detector, Prediction, make_detector, registration_of, safe_predict
 
 
@@ -83,13 +84,15 @@ class LocalizationPipeline:
         self.steps = 0
 
     def step(self, odom_increment: np.ndarray, registration: RegistrationResult | None, detector_points: np.ndarray,
-             T_w_s: np.ndarray | None, attitude: np.ndarray | None = None) -> StepOutcome:
+             T_w_s: np.ndarray | None, attitude: np.ndarray | None = None,
+             judged: tuple[Prediction, bool] | None = None) -> StepOutcome:
         """`detector_points`: what the detector judges (the new scan, or the classifier's sample of
         it); `T_w_s`: the sensor's pose where a detector needs one (the oracle, a model reading the
         tilt); `attitude`: the IMU's orientation of the body (3x3), fused every ATTITUDE_EVERY steps
-        where the pipeline was built with an attitude mode."""
+        where the pipeline was built with an attitude mode; `judged`: the detector's answer and
+        whether it failed, where it was judged elsewhere (a DetectorProcess)."""
         self.steps += 1
-        pred, failed = safe_predict(self.detector, detector_points, registration, T_w_s)
+        pred, failed = judged or safe_predict(self.detector, detector_points, registration, T_w_s)
         icp, hessian = (registration.in_frame(self.T_b_s) if registration is not None else None) or (None, None)
         sigmas = odometry_sigmas(odom_increment, self.odometry)
         T, report = self.backend.add_step(odom_increment, sigmas, icp, pred.mask, hessian)
@@ -116,6 +119,8 @@ class OnlineFusion:
         self.pipeline = LocalizationPipeline(detector, config.backend,
                                              odometry_fusion_config(odometry, config),
                                              odometry, T_b_s, config.attitude)
+        # the classifier beside the registration, in a process of its own (detection.ahead)
+        self.ahead = DetectorProcess(config.detector, lidar.config, seed) if config.detector_process else None
 
     @property
     def detector(self) -> Detector:
@@ -146,14 +151,22 @@ class OnlineFusion:
              attitude: np.ndarray | None = None) -> dict[str, Any]:
         """`attitude`: the IMU's orientation of the body (3x3), fused every ATTITUDE_EVERY steps
         where `FusionSettings.attitude` asks for it."""
-        out = self.pipeline.step(odom_increment, self.registrar.next(points), points, T_w_b_true @ self.T_b_s,
-                                 attitude)
+        T_w_s = T_w_b_true @ self.T_b_s
+        if self.ahead is not None:
+            self.ahead.submit(points, T_w_s)
+        registration = self.registrar.next(points)
+        judged = self.ahead.result() if self.ahead is not None else None
+        out = self.pipeline.step(odom_increment, registration, points, T_w_s, attitude, judged)
         self.counts["icp_failed"] += not out.icp_used
         self.counts["detector_errors"] += out.detector_failed
         self.counts["unknown"] += not out.prediction.known
         self.counts["fallbacks"] += out.fallback
         self.squared_errors.append(float(np.sum((out.T_w_b[:3, 3] - T_w_b_true[:3, 3]) ** 2)))
         return self._info(out.T_w_b, out.prediction)
+
+    def close(self) -> None:
+        if self.ahead is not None:
+            self.ahead.close()
 
     def _info(self, T: np.ndarray, pred: Prediction) -> dict[str, Any]:
         return {"fused_T_w_b": T.copy(), "localizability_probabilities": pred.probabilities.copy(),

@@ -162,6 +162,8 @@ class NavigationEnv(gym.Env):
         return self._renderer.frame(self.robot.T_w_b, self.scan_world(), np.array(self.trail))
 
     def close(self):
+        if self.fusion is not None:
+            self.fusion.close()
         self.world.close()
 
     # -- helpers ---------------------------------------------------------------------------
