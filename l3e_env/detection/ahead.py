@@ -56,7 +56,13 @@ class DetectorProcess:
         self._process = context.Process(target=_serve, args=(child, spec, sensor, seed), daemon=True)
         self._process.start()
         child.close()
-        kind, said = self._conn.recv()
+        try:
+            kind, said = self._conn.recv()
+        except EOFError:
+            self.close()
+            raise RuntimeError("the detector process ended before it began: a script that makes environments with "
+                               "detector_process must run its top level under `if __name__ == \"__main__\":` (the "
+                               "process imports the script again)") from None
         if kind == "error":
             self.close()
             raise ValueError(f"the detector process could not make '{spec}': {said}")

@@ -115,7 +115,9 @@ class OnlineFusion:
         detector = make_detector(config.detector, lidar, seed)
         if isinstance(registration, dict):
             registration = from_dict(RegistrationConfig, registration)
-        self.registrar = ScanRegistrar(registration or registration_of([detector]))
+        # with the classifier in a process of its own, the target is prepared on one thread: the other core is its
+        self.registrar = ScanRegistrar(registration or registration_of([detector]),
+                                       threads=1 if config.detector_process else None)
         self.pipeline = LocalizationPipeline(detector, config.backend,
                                              odometry_fusion_config(odometry, config),
                                              odometry, T_b_s, config.attitude)
