@@ -95,6 +95,27 @@ def test_planner_avoids_masked_corridor_and_refuses_bad_goals(small_fork):
         Planner(space, None, lam=10.0)
 
 
+def test_the_drift_model_along_a_walked_path_is_the_planners_and_is_checked_against_the_error(small_fork):
+    from policies.evaluation import Episode, drift_correlation
+    from policies.planner import expected_drift_along
+
+    scene, space, _ = small_fork
+    corridor = lambda xy: (np.abs(xy[:, 1]) < 1.5) & (xy[:, 0] > 4) & (xy[:, 0] < 16)  # noqa: E731
+    locmap = synthetic_map(space, corridor)
+    rates = drift_rates()
+    for lam in (0.0, 100.0):  # the same sum along the plan's own path, in and out of the corridor
+        plan = Planner(space, locmap, lam=lam).plan(scene.start[:2], scene.goal)
+        assert expected_drift_along(plan.path, locmap, rates) == pytest.approx(plan.expected_drift, rel=0.05, abs=1e-6)
+    assert expected_drift_along(np.zeros((5, 2)), locmap, rates) == 0.0  # standing still drifts nothing
+
+    def episode(expected: float, final: float) -> Episode:
+        return Episode("p", "s", 0, True, None, final, final, 1.0, 1, [], expected_drift=expected)
+
+    r, n = drift_correlation([episode(e, 2 * e + 0.1) for e in (0.5, 1.0, 2.0, 3.0)] + [episode(None, 9.0)])
+    assert r == pytest.approx(1.0) and n == 4  # an episode without a map's expectation is left out
+    assert drift_correlation([episode(1.0, 1.0), episode(2.0, 0.5)]) == (None, 2)  # too few to say
+
+
 def test_planner_takes_one_cell_squeezes_only_without_a_wider_way():
     from scipy import ndimage
 
