@@ -25,7 +25,7 @@ from l3e_env.envs import NavigationEnv
 from l3e_env.sim.follower import RouteFollower
 from l3e_env.sim.odometry import odometry_fusion_config
 
-from .context import scene_context
+from .context import SceneContext, scene_context
 from .observation import PolicyView
 from .planner import Planner, drift_rates, expected_drift_along, route_of
 
@@ -116,13 +116,15 @@ def _unknown_policy(policy: str) -> ValueError:
 
 
 def make_controller(policy: str, scene: str, detector: str, cache_dir: str | Path | None, lam: float,
-                    scene_params: dict | None = None, odometry: OdometryConfig | None = None
+                    scene_params: dict | None = None, odometry: OdometryConfig | None = None,
+                    context: SceneContext | None = None
                     ) -> tuple[Callable[[np.ndarray, int], np.ndarray], float | None]:
     """A function (T_w_b estimate, step index) -> normalised twist, for one scene, and for a route
     policy the drift its plan is expected to cost (`odometry`: the environment's leg odometry, whose
-    noise model gives the drift rates)."""
+    noise model gives the drift rates; `context`: the scene with `detector`'s map, where the caller
+    holds it)."""
     if policy in ROUTE_POLICIES:
-        ctx = scene_context(scene, detector, cache_dir, build=False, scene_params=scene_params)
+        ctx = context or scene_context(scene, detector, cache_dir, build=False, scene_params=scene_params)
         plan = Planner(ctx.space, ctx.locmap, lam=lam if policy == "planner" else 0.0,
                        odometry=odometry).plan(ctx.scene.start[:2], ctx.scene.goal)
         follower = RouteFollower(route_of(plan, ctx.space))
@@ -158,7 +160,9 @@ def run_episode(policy: str, scene: str, seed: int, detector: str = "learned", c
     env = NavigationEnv(scene=scene, scene_params=scene_params or {},
                         fusion={**asdict(fusion_settings), "enabled": True, "detector": detector, "backend": backend})
     try:
-        steer, planned = make_controller(policy, scene, detector, cache_dir, lam, scene_params, env.config.odometry)
+        ctx = scene_context(scene, detector, cache_dir, build=False, scene_params=scene_params)
+        steer, planned = make_controller(policy, scene, detector, cache_dir, lam, scene_params, env.config.odometry,
+                                         ctx)
         controller = BackOff(steer)
         _, info = env.reset(seed=seed)
         trail, length, terminated, truncated = [info["T_w_b"][:2, 3]], 0.0, False, False
@@ -174,8 +178,7 @@ def run_episode(policy: str, scene: str, seed: int, detector: str = "learned", c
         trail.append(info["T_w_b"][:2, 3])
         path = np.array(trail)
         final = float(np.linalg.norm(info["fused_T_w_b"][:3, 3] - info["T_w_b"][:3, 3]))
-        locmap = scene_context(scene, detector, cache_dir, build=False, scene_params=scene_params).locmap
-        expected = expected_drift_along(path, locmap, drift_rates(env.config.odometry))
+        expected = expected_drift_along(path, ctx.locmap, drift_rates(env.config.odometry))
         return Episode(policy, scene, seed, bool(terminated), avoided_corridor(path, env.scene), final,
                        float(info["running_ate"]), length, env.steps, path.round(2).tolist(), controller.recoveries,
                        expected, planned)

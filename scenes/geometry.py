@@ -33,30 +33,6 @@ def ground_plane(x0: float, x1: float, y0: float, y1: float, z: float = 0.0, cel
     return trimesh.Trimesh(verts, faces, process=False)
 
 
-def relief_ground(x0: float, x1: float, y0: float, y1: float, amplitude: float, rng: np.random.Generator,
-                  wavelengths: tuple[float, float] = (0.5, 4.0), cell: float = 0.3,
-                  flat: list[tuple[float, float, float, float]] = ()) -> trimesh.Trimesh:
-    """Ground with the relief of gravel, dirt or worn asphalt: a heightfield of `cell` m whose height
-    is a smooth random field of `amplitude` m on `wavelengths` m, level (z = 0) inside the `flat`
-    boxes (x0, y0, x1, y1) (a poured floor). A perfect plane is no real ground: its rings lie where
-    the sensor's height puts them whatever the sensor's position, and a registration of two scans
-    over it under-reads the step between them (studies/ground_relief.py). The scenes keep the plane:
-    a robot that pitches over relief makes the fused estimate over-read its walk (docs/results.md)."""
-    field = smooth_noise(rng, amplitude, wavelengths=wavelengths, waves=24)
-    xs = np.linspace(x0, x1, max(2, int(np.ceil((x1 - x0) / cell)) + 1))
-    ys = np.linspace(y0, y1, max(2, int(np.ceil((y1 - y0) / cell)) + 1))
-    gx, gy = np.meshgrid(xs, ys, indexing="ij")
-    verts = np.column_stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)])
-    verts[:, 2] = field(verts)
-    for fx0, fy0, fx1, fy1 in flat:
-        inside = (verts[:, 0] >= fx0) & (verts[:, 0] <= fx1) & (verts[:, 1] >= fy0) & (verts[:, 1] <= fy1)
-        verts[inside, 2] = 0.0
-    idx = np.arange(gx.size).reshape(len(xs), len(ys))
-    a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
-    faces = np.concatenate([np.column_stack([a, b, c]), np.column_stack([a, c, d])])
-    return trimesh.Trimesh(verts, faces, process=False)
-
-
 def cylinder(center_xy: tuple[float, float], radius: float, height: float, z0: float = 0.0) -> trimesh.Trimesh:
     """A vertical cylinder standing on z0."""
     tf = np.eye(4)

@@ -5,7 +5,7 @@ lean and hold the step back (studies/icp_step_bias.py). Gravel, dirt or worn asp
 
 For each place (the fork's pillared route, the mine's yard, the bypass's way round) the same scene is
 registered at steps of 0.1 m forward with its ground as built (a plane) and with the ground replaced
-by relief of 3 cm and of 8 cm (scenes.geometry.relief_ground); the ratio of ICP's step to the true
+by relief of 3 cm and of 8 cm (`relief_ground`); the ratio of ICP's step to the true
 one is printed, 1.00 being exact, with its standard deviation over the places.
 
 The last table drives 40 m of the mine's yard (level poses 0.1 m apart along its route, one scan
@@ -27,11 +27,22 @@ from l3e_env.localizability.registration import register
 from l3e_env.sim.lidar import Lidar
 from l3e_env.sim.raycast import EmbreeCaster
 from scenes import make_scene
-from scenes.geometry import merge, relief_ground
+from scenes.geometry import ground_plane, merge, smooth_noise
 
 # scene, first x, spacing, y of the walk (None: the scene's rich route at that x)
 PLACES = {"fork-0, pillared route": ("fork-0", 12.0, 3.1, 10.0), "mine-0, yard": ("mine-0", -40.0, 3.0, 0.5)}
 RELIEFS = {"plane (as built)": None, "relief 3 cm": 0.03, "relief 8 cm": 0.08}
+
+
+def relief_ground(x0: float, x1: float, y0: float, y1: float, amplitude: float, rng: np.random.Generator,
+                  wavelengths: tuple[float, float] = (0.5, 4.0), cell: float = 0.3) -> trimesh.Trimesh:
+    """Ground with the relief of gravel, dirt or worn asphalt: a grid of `cell` m whose height is a
+    smooth random field of `amplitude` m on `wavelengths` m."""
+    ground = ground_plane(x0, x1, y0, y1, cell=cell)
+    vertices = np.array(ground.vertices)
+    vertices[:, 2] = smooth_noise(rng, amplitude, wavelengths=wavelengths, waves=24)(vertices)
+    ground.vertices = vertices
+    return ground
 
 
 def with_ground(mesh: trimesh.Trimesh, relief: float | None) -> trimesh.Trimesh:
