@@ -154,9 +154,9 @@ def test_judge_cli_reads_a_bag_and_writes_scores_and_a_timeline(tmp_path, rng, c
     assert main(["judge"]) == 2 and main(["judge", "a.npy", "--bag", str(bag)]) == 2
     assert main(["judge", "a.npy", "--topic", "/points"]) == 2
     err = capsys.readouterr().err
-    assert "not both and not neither" in err and "--topic, --every, --start and --end read a bag" in err
+    assert "not both and not neither" in err and "--topic, --every, --start and --end read a recording" in err
     assert main(["judge", "--bag", str(bag), "--start", "5", "--detector", "none"]) == 2
-    assert "no scan in the bag between --start and --end" in capsys.readouterr().err
+    assert "no scan in the recording between --start and --end" in capsys.readouterr().err
     assert main(["judge", "--bag", str(tmp_path / "missing.bag")]) == 2
     assert "missing.bag: no such bag" in capsys.readouterr().err
 

@@ -18,21 +18,31 @@ def _cmd_judge(args: argparse.Namespace) -> int:
 
     from l3e_env.config import LidarConfig
     from l3e_env.experiments.judge import format_judgement, judge_scans, judgement_record, score_legend
-    from l3e_env.io.rosbag import BagError, read_bag, read_path
+    from l3e_env.io.ouster import is_capture, read_capture
+    from l3e_env.io.recorded import RecordingError
+    from l3e_env.io.rosbag import read_bag, read_path
 
     if bool(args.scans) == bool(args.bag):
         print("l3e judge: give scan files or --bag, not both and not neither", file=sys.stderr)
         return 2
     if not args.bag and (args.topic or args.every != 1 or args.start is not None or args.end is not None):
-        print("l3e judge: --topic, --every, --start and --end read a bag: give --bag", file=sys.stderr)
+        print("l3e judge: --topic, --every, --start and --end read a recording: give --bag", file=sys.stderr)
         return 2
     if not args.bag and (args.path_plot or args.pose_topic):
         print("l3e judge: --path-plot and --pose-topic read the path from a bag: give --bag", file=sys.stderr)
         return 2
+    capture = bool(args.bag) and is_capture(args.bag)
+    if capture and (args.topic or args.path_plot or args.pose_topic):
+        print("l3e judge: --topic, --path-plot and --pose-topic read a ROS bag, not an Ouster capture", file=sys.stderr)
+        return 2
+    metadata = args.sensor if args.sensor and args.sensor.lower().endswith(".json") else None
     try:
-        scans = read_bag(args.bag, args.topic, args.every, args.start, args.end) if args.bag else args.scans
+        if capture:
+            scans = read_capture(args.bag, metadata, args.every, args.start, args.end)
+        else:
+            scans = read_bag(args.bag, args.topic, args.every, args.start, args.end) if args.bag else args.scans
         route = read_path(args.bag, args.pose_topic) if args.bag and (args.path_plot or args.pose_topic) else None
-    except BagError as exc:
+    except RecordingError as exc:
         print(f"l3e judge: {exc}", file=sys.stderr)
         return 2
     specs = args.detector or ["learned", "eigen:30", "scanmc"]
@@ -82,7 +92,7 @@ def _cmd_judge(args: argparse.Namespace) -> int:
             return 2
     failed = sum(j.error is not None for j in judgements)
     if not judgements:
-        print("l3e judge: no scan in the bag between --start and --end", file=sys.stderr)
+        print("l3e judge: no scan in the recording between --start and --end", file=sys.stderr)
     elif failed:
         print(f"l3e judge: {failed} of {len(judgements)} scans could not be read or judged", file=sys.stderr)
     return 2 if failed or not judgements else 0
@@ -92,7 +102,9 @@ def _cmd_sensor(args: argparse.Namespace) -> int:
     from l3e_env.experiments.judge import recognise_sensor
     from l3e_env.io.scan_files import ScanFileError, read_scan
     from l3e_env.sim.patterns import PATTERN_FILES, PATTERNS, describe_pattern, get_pattern, save_pattern
-    from l3e_env.io.rosbag import BagError, read_bag
+    from l3e_env.io.ouster import is_capture, read_capture
+    from l3e_env.io.recorded import RecordingError
+    from l3e_env.io.rosbag import read_bag
 
     if bool(args.source) == bool(args.bag):
         print("l3e sensor: give a sensor (name or pattern file), a scan file or --bag, one of them", file=sys.stderr)
@@ -100,11 +112,14 @@ def _cmd_sensor(args: argparse.Namespace) -> int:
     if args.source and (args.source in PATTERNS or args.source.lower().endswith(PATTERN_FILES)):
         pattern, how = get_pattern(args.source), "as given"
     else:
+        recording = args.bag or (args.source if is_capture(args.source) else None)
         try:
-            if not args.bag:
+            if recording is None:
                 read_scan(args.source)  # a file that cannot be read is named here
-            scans = read_bag(args.bag, args.topic) if args.bag else iter([args.source])
-        except (BagError, ScanFileError) as exc:
+                scans = iter([args.source])
+            else:
+                scans = read_capture(recording) if is_capture(recording) else read_bag(recording, args.topic)
+        except (RecordingError, ScanFileError) as exc:
             print(f"l3e sensor: {exc}", file=sys.stderr)
             return 2
         _, pattern, how = recognise_sensor(scans)
@@ -121,13 +136,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("judge", help="judge your own scans (files or a ROS bag): along which axes would "
                                      "scan-to-scan registration fail there")
     p.add_argument("scans", nargs="*", metavar="SCAN",
-                   help="scan files in the sensor's frame: .npy .npz .bin (KITTI) .ply .pcd .xyz .txt .csv")
-    g = p.add_argument_group("a ROS bag instead of files (needs pip install 'l3e[bag]')")
-    g.add_argument("--bag", help="a ROS 1 .bag file or a ROS 2 bag folder (sqlite3 or mcap)")
-    g.add_argument("--topic", help="its sensor_msgs/PointCloud2 topic (default: the only one)")
+                   help="scan files in the sensor's frame: .npy .npz .bin (KITTI) .ply .pcd .xyz .txt .csv, "
+                        "or Ouster captures (.osf .pcap), every scan of them")
+    g = p.add_argument_group("a recording instead of files: a ROS bag (needs pip install 'l3e[bag]') or an "
+                             "Ouster capture (also needs pip install --no-deps ouster-sdk==1.0.1)")
+    g.add_argument("--bag", help="a ROS 1 .bag file, a ROS 2 bag folder (sqlite3 or mcap), or an Ouster .osf or "
+                                 ".pcap (a .pcap's metadata JSON beside it or given as --sensor)")
+    g.add_argument("--topic", help="the bag's sensor_msgs/PointCloud2 topic (default: the only one)")
     g.add_argument("--every", type=int, default=1, help="judge every N-th scan (default 1: all)")
-    g.add_argument("--start", type=float, help="seconds after the bag's start to begin at")
-    g.add_argument("--end", type=float, help="seconds after the bag's start to stop at")
+    g.add_argument("--start", type=float, help="seconds after the recording's start to begin at")
+    g.add_argument("--end", type=float, help="seconds after the recording's start to stop at")
     g.add_argument("--path-plot", help="also draw the judged scans on a map of the bag's path into this image")
     g.add_argument("--pose-topic", help="the path's topic: nav_msgs/Odometry, geometry_msgs/PoseStamped or "
                                         "PoseWithCovarianceStamped (default: the only Odometry topic); it also "
@@ -145,8 +163,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_cmd_judge)
     p = sub.add_parser("sensor", help="show a LiDAR's beam pattern, or recognise it from a scan or a bag and "
                                       "save it as a pattern file for --sensor")
-    p.add_argument("source", nargs="?", help="a sensor name, a pattern file, or a scan file to recognise it from")
-    p.add_argument("--bag", help="recognise it from this ROS bag's first scans")
+    p.add_argument("source", nargs="?", help="a sensor name, a pattern file, a scan file to recognise it from, or "
+                                             "an Ouster capture (.osf .pcap) to read it from the metadata")
+    p.add_argument("--bag", help="recognise it from this ROS bag's first scans (or an Ouster capture's metadata)")
     p.add_argument("--topic", help="the bag's PointCloud2 topic (default: the only one)")
     p.add_argument("--out", help="write the pattern here (.yaml or .json)")
     p.set_defaults(func=_cmd_sensor)

@@ -16,7 +16,8 @@ from l3e_env.core.points import out_of_reach, too_many_points
 from l3e_env.core.workers import ordered_map
 from l3e_env.detection.detectors import (CascadeDetector, Detector, HessianDetector, Prediction, ScanMCDetector,
                                          make_detector, registration_of)
-from l3e_env.io.rosbag import BagScan
+from l3e_env.io.ouster import expand_captures
+from l3e_env.io.recorded import RecordedScan
 from l3e_env.io.scan_files import ScanFileError, read_scan
 from l3e_env.localizability.labels import AXES
 from l3e_env.localizability.registration import RegistrationConfig, RegistrationError, RegistrationResult, scan_hessian
@@ -42,6 +43,7 @@ class Judgement:
     error: str | None = None  # the file could not be read, or its points are not a scan: why (nothing judged)
     stamp: float | None = None  # seconds, for a scan read from a bag
     frame: str | None = None  # how the cloud was turned into its sensor's lidar frame, where it was
+    sensor: str | None = None  # the beam pattern it was judged with, where there was one
 
 
 def judge_points(points: np.ndarray, detectors: list[Detector], registration: RegistrationConfig | None = None,
@@ -60,65 +62,83 @@ def judge_points(points: np.ndarray, detectors: list[Detector], registration: Re
             else d.predict(points, onto_itself, None) for d in detectors}
 
 
-def _judge_source(index: int, source: str | Path | BagScan, detectors: list[Detector], seed: int,
-                  pattern: BeamPattern | None = None) -> Judgement:
-    """A scan file read, or a bag's scan, and judged; scanmc's children are seeded by the scan's
-    place in the list, so that a scan is judged alike alone or in a worker. A cloud of a sensor whose
-    SDK gives another frame (an Ouster's, `pattern.lidar_to_sensor`) is judged in the lidar frame."""
-    if isinstance(source, BagScan):
-        name, stamp, points, error = source.name, source.stamp, source.points, source.error
-    else:
-        name, stamp, error = str(source), None, None
-        try:
-            points = read_scan(source)
-        except ScanFileError as exc:
-            error = str(exc)
-    if error is None and (many := too_many_points(len(points))) is not None:
-        error = f"{name}: {many}"
-    if error is not None:
-        return Judgement(name, 0, 0, {}, error=error, stamp=stamp)
-    kept = np.isfinite(points).all(axis=1) & (np.abs(points).sum(axis=1) > 0)
-    returns, dropped = points[kept], int((~kept).sum())
-    far = out_of_reach(returns)
-    if far is not None:
-        return Judgement(name, len(returns), dropped, {}, error=f"{name}: {far}", stamp=stamp)
-    frame = None
-    if pattern is not None:
-        try:
-            returns, frame = in_lidar_frame(returns, pattern)
-        except PatternError as exc:
-            return Judgement(name, len(returns), dropped, {}, error=f"{name}: {exc}", stamp=stamp)
-    return Judgement(name, len(returns), dropped,
-                     judge_points(returns, detectors, rng=np.random.default_rng([seed, index])), stamp=stamp,
-                     frame=frame)
+class _Panel:
+    """The detectors that judge a run's scans, for the run's sensor and, where the run was not given one,
+    for each other sensor whose metadata a recording carries (captures of several sensors in one run),
+    made when its first scan comes; a pattern is registered first, as a spawned worker does not
+    inherit it."""
+
+    def __init__(self, specs: list[str], sensor: LidarConfig, seed: int, pattern: BeamPattern | None,
+                 given: bool) -> None:
+        self.specs, self.seed, self.pattern, self.given = specs, seed, pattern, given
+        self._detectors: dict[str, list[Detector]] = {}
+        self.detectors(pattern, sensor)  # a bad spec fails here, before any scan is read
+
+    def detectors(self, pattern: BeamPattern | None, sensor: LidarConfig | None = None) -> list[Detector]:
+        key = pattern.name if pattern is not None and needs_sensor(self.specs) else ""
+        if key not in self._detectors:
+            if pattern is not None:
+                register_pattern(pattern)
+            sensor = sensor or LidarConfig(model=pattern.name if pattern is not None else LidarConfig().model)
+            self._detectors[key] = [make_detector(spec, seed=self.seed, sensor=sensor) for spec in self.specs]
+        return self._detectors[key]
+
+    def judge(self, index: int, source: str | Path | RecordedScan) -> Judgement:
+        """A scan file read, or a recording's scan, and judged; scanmc's children are seeded by the
+        scan's place in the list, so that a scan is judged alike alone or in a worker. A cloud of a
+        sensor whose SDK gives another frame (an Ouster's, `pattern.lidar_to_sensor`) is judged in the
+        lidar frame. A recording's own sensor is used where the run was not given one."""
+        pattern = self.pattern
+        if isinstance(source, RecordedScan):
+            name, stamp, points, error, frame = source.name, source.stamp, source.points, source.error, source.frame
+            if source.pattern is not None and not self.given:
+                pattern = source.pattern
+        else:
+            name, stamp, error, frame = str(source), None, None, None
+            try:
+                points = read_scan(source)
+            except ScanFileError as exc:
+                error = str(exc)
+        if error is None and (many := too_many_points(len(points))) is not None:
+            error = f"{name}: {many}"
+        if error is not None:
+            return Judgement(name, 0, 0, {}, error=error, stamp=stamp)
+        kept = np.isfinite(points).all(axis=1) & (np.abs(points).sum(axis=1) > 0)
+        returns, dropped = points[kept], int((~kept).sum())
+        far = out_of_reach(returns)
+        if far is not None:
+            return Judgement(name, len(returns), dropped, {}, error=f"{name}: {far}", stamp=stamp)
+        if pattern is not None:
+            try:
+                returns, note = in_lidar_frame(returns, pattern)
+            except PatternError as exc:
+                return Judgement(name, len(returns), dropped, {}, error=f"{name}: {exc}", stamp=stamp)
+            frame = note or frame
+        predictions = judge_points(returns, self.detectors(pattern), rng=np.random.default_rng([self.seed, index]))
+        return Judgement(name, len(returns), dropped, predictions, stamp=stamp, frame=frame,
+                         sensor=pattern.name if pattern is not None else None)
 
 
-def _judges(specs: list[str], sensor: LidarConfig, seed: int,
-            pattern: BeamPattern | None) -> tuple[list[Detector], int, BeamPattern | None]:
-    """A judging worker's own detectors, the seed and the sensor's pattern; a pattern recognised from
-    the scans is registered here first, as a spawned worker does not inherit it."""
-    if pattern is not None:
-        register_pattern(pattern)
-    return [make_detector(spec, seed=seed, sensor=sensor) for spec in specs], seed, pattern
-
-
-def _judge_job(judges: tuple[list[Detector], int, BeamPattern | None], job: tuple[int, str | BagScan]) -> Judgement:
-    return _judge_source(*job, *judges)
+def _judge_job(panel: _Panel, job: tuple[int, str | RecordedScan]) -> Judgement:
+    return panel.judge(*job)
 
 
 RECOGNITION_TRIES = 5  # readable scans tried: a bag's first revolution may be cut short
 
 
-def recognise_sensor(scans: Iterator[str | Path | BagScan]) -> tuple[Iterator[str | Path | BagScan],
+def recognise_sensor(scans: Iterator[str | Path | RecordedScan]) -> tuple[Iterator[str | Path | RecordedScan],
                                                                      BeamPattern | None, str]:
-    """The beam pattern of the first of the first few readable scans that gives one (`fit_pattern`,
-    with the bag's ring field where it has one), or None where none does; what was found, or why
-    not; and the scans again from the first."""
-    seen: list[str | Path | BagScan] = []
+    """The sensor's beam pattern from the metadata a recording carries (an Ouster capture's), else
+    from the first of the first few readable scans that gives one (`fit_pattern`, with the bag's ring
+    field where it has one), or None where none does; what was found, or why not; and the scans
+    again from the first."""
+    seen: list[str | Path | RecordedScan] = []
     refused: list[str] = []
     for scan in scans:
         seen.append(scan)
-        if isinstance(scan, BagScan):
+        if isinstance(scan, RecordedScan) and scan.pattern is not None:
+            return chain(seen, scans), scan.pattern, f"{scan.pattern.name}, from the metadata of {scan.name}"
+        if isinstance(scan, RecordedScan):
             name, points, rings = scan.name, scan.points, scan.rings
         else:
             name, rings = str(scan), None
@@ -155,10 +175,11 @@ def needs_sensor(specs: list[str]) -> bool:
     return any(spec.partition(":")[0] in ("scanmc", "learned+scanmc") for spec in specs)
 
 
-def judge_scans(scans: Iterable[str | Path | BagScan], specs: list[str], sensor: LidarConfig | None = None,
+def judge_scans(scans: Iterable[str | Path | RecordedScan], specs: list[str], sensor: LidarConfig | None = None,
                 seed: int = 0, workers: int = 1,
                 on_sensor: Callable[[BeamPattern, str], None] | None = None) -> Iterator[Judgement]:
-    """Judge each scan, a file to read or a bag's scan (`read_bag`), with each detector
+    """Judge each scan, a file to read (an Ouster capture read scan by scan, `read_capture`, with the
+    metadata JSON given as `sensor` where there is one) or a recording's scan (`read_bag`), with each detector
     (config.detector_spec.DETECTOR_GRAMMAR; make_detector refuses the oracle,
     which needs a scene), after dropping its points without a return, in the order given,
     `workers` scans at a time. Without `sensor`, a detector that needs one gets the pattern
@@ -167,6 +188,7 @@ def judge_scans(scans: Iterable[str | Path | BagScan], specs: list[str], sensor:
     Judgement with its `error`, and the next one is read."""
     if workers < 1:
         raise ValueError(f"workers must be at least 1, got {workers}")
+    scans = expand_captures(scans, sensor.model if sensor and sensor.model.lower().endswith(".json") else None)
     pattern = None
     if sensor is not None:
         pattern = get_pattern(sensor.model)  # an unknown sensor is named before any file is read
@@ -176,12 +198,12 @@ def judge_scans(scans: Iterable[str | Path | BagScan], specs: list[str], sensor:
             register_pattern(pattern)
         if on_sensor is not None:
             on_sensor(pattern, how)
+    given = sensor is not None
     # a sensor not recognised is taken as the default; scanmc answers unknown for scans not of it
     sensor = sensor or LidarConfig(model=pattern.name if pattern else LidarConfig().model)
-    detectors = [make_detector(spec, seed=seed, sensor=sensor) for spec in specs]  # a bad spec fails here
-    jobs = ((i, scan if isinstance(scan, BagScan) else str(scan)) for i, scan in enumerate(scans))
-    yield from ordered_map(_judge_job, jobs, (detectors, seed, pattern), _judges, (specs, sensor, seed, pattern),
-                           workers)
+    panel = _Panel(specs, sensor, seed, pattern, given)
+    jobs = ((i, scan if isinstance(scan, RecordedScan) else str(scan)) for i, scan in enumerate(scans))
+    yield from ordered_map(_judge_job, jobs, panel, _Panel, (specs, sensor, seed, pattern, given), workers)
 
 
 def format_judgement(j: Judgement) -> str:
@@ -210,7 +232,8 @@ def judgement_record(j: Judgement, sensor: str | None) -> dict:
     where = {"path": j.path} | ({} if j.stamp is None else {"stamp": j.stamp})
     if j.error:
         return where | {"error": j.error}
-    return where | {"points": j.points, "dropped": j.dropped, "sensor": sensor, "frame": j.frame or "as given",
+    return where | {"points": j.points, "dropped": j.dropped, "sensor": j.sensor or sensor,
+                    "frame": j.frame or "as given",
             "detectors": {name: {"known": p.known,
                                  "scores": [float(v) if np.isfinite(v) else None for v in p.probabilities],
                                  "not_localizable": [a for a, m in zip(AXES, p.mask) if m]}

@@ -16,6 +16,7 @@ import numpy as np
 
 from l3e_env.config import OdometryConfig
 from l3e_env.core.transforms import inverse, matrix_to_pose
+from l3e_env.io.recorded import RecordedScan, RecordingError
 from l3e_env.sim.imu import ImuConfig, imu_samples
 from l3e_env.sim.odometry import DeadReckoningCovariance
 from l3e_env.sim.patterns import TIME_FIELDS
@@ -26,17 +27,8 @@ _DATATYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: 
 _FIELD_TYPES = {f"<{kind}": code for code, kind in _DATATYPES.items()}  # the other way, for writing
 
 
-class BagError(ValueError):
+class BagError(RecordingError):
     """A bag or topic that cannot be read as LiDAR scans; the message says why."""
-
-
-@dataclass
-class BagScan:
-    name: str  # "<bag> <topic> #<k>": the k-th message of the topic from `start` (0 at the bag's start)
-    stamp: float  # seconds: the message header's stamp, else the time the bag received it
-    points: np.ndarray | None  # (N, 3) float64, NaN kept (the judge drops them); None where `error`
-    error: str | None = None  # the message could not be read as points: why
-    rings: np.ndarray | None = None  # (N,) the beam of each point, where the cloud has a ring field
 
 
 def _cloud_fields(msg, names: list[str]) -> dict[str, np.ndarray]:
@@ -112,11 +104,11 @@ def _stamp(msg, received: int) -> float:
 
 
 def read_bag(path: str | Path, topic: str | None = None, every: int = 1, start: float | None = None,
-             end: float | None = None) -> Iterator[BagScan]:
+             end: float | None = None) -> Iterator[RecordedScan]:
     """The scans of `topic` (the bag's only PointCloud2 topic if None), every `every`-th message,
     between `start` and `end` seconds after the bag's first message. A bag or topic that cannot
     be read raises BagError here, before any scan is read; a message that cannot be decoded gives a
-    BagScan with its `error`, and the next one is read."""
+    RecordedScan with its `error`, and the next one is read."""
     if every < 1:
         raise BagError(f"every must be at least 1, got {every}")
     path = Path(path)
@@ -143,7 +135,8 @@ def read_bag(path: str | Path, topic: str | None = None, every: int = 1, start: 
     return _scans(reader, connections, f"{path.name} {topic}", every, lo, hi)
 
 
-def _scans(reader, connections: list, prefix: str, every: int, lo: int | None, hi: int | None) -> Iterator[BagScan]:
+def _scans(reader, connections: list, prefix: str, every: int, lo: int | None,
+           hi: int | None) -> Iterator[RecordedScan]:
     try:
         for k, (connection, received, raw) in enumerate(reader.messages(connections, start=lo, stop=hi)):
             if k % every:
@@ -153,9 +146,9 @@ def _scans(reader, connections: list, prefix: str, every: int, lo: int | None, h
                 msg = reader.deserialize(raw, connection.msgtype)
                 stamp = _stamp(msg, received)
                 points, rings = _cloud_arrays(msg, with_rings=True)
-                yield BagScan(name, stamp, points, rings=rings)
+                yield RecordedScan(name, stamp, points, rings=rings)
             except Exception as exc:  # noqa: BLE001 - one bad message is named, the next is read
-                yield BagScan(name, stamp, None, f"{name}: cannot be read as a point cloud: {exc}")
+                yield RecordedScan(name, stamp, None, f"{name}: cannot be read as a point cloud: {exc}")
     finally:
         reader.close()
 

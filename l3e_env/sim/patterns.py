@@ -279,7 +279,8 @@ def _find(tree: dict, key: str):
     return None
 
 
-def _ouster_pattern(name: str, meta: dict) -> BeamPattern:
+def ouster_pattern(name: str, meta: dict) -> BeamPattern:
+    """The beam pattern an Ouster sensor's metadata (its JSON, as a dict) describes."""
     altitudes = _find(meta, "beam_altitude_angles")
     azimuths = _find(meta, "beam_azimuth_angles") or [0.0] * len(altitudes)
     columns = _find(meta, "columns_per_frame")
@@ -345,7 +346,7 @@ def load_pattern(path: str | Path) -> BeamPattern:
     if not isinstance(spec, dict):
         raise PatternError(f"{path}: a beam pattern file holds a mapping of keys, not {type(spec).__name__}")
     try:
-        make = _ouster_pattern if _find(spec, "beam_altitude_angles") else _own_pattern
+        make = ouster_pattern if _find(spec, "beam_altitude_angles") else _own_pattern
         pattern = make(str(path), spec)
     except PatternError:
         raise
@@ -515,12 +516,16 @@ def in_lidar_frame(points: np.ndarray, pattern: BeamPattern) -> tuple[np.ndarray
     to_sensor = np.asarray(pattern.lidar_to_sensor, dtype=np.float64).reshape(4, 4)
     back = (np.asarray(points, dtype=np.float64) - to_sensor[:3, 3]) @ to_sensor[:3, :3]
     tolerance = BEAM_TOLERANCE * pattern.spacing_deg()
-    shares = [float(np.mean(pattern.locate(cloud)[2] <= tolerance)) for cloud in (points, back)]
+    off = [pattern.locate(cloud)[2] for cloud in (points, back)]  # deg from the nearest beam
+    shares = [float(np.mean(o <= tolerance)) for o in off]
     if max(shares) < ON_BEAMS:
         raise PatternError(f"{shares[0]:.0%} of the returns lie on {pattern.name}'s beams as given (its lidar frame) "
                            f"and {shares[1]:.0%} turned back from its SDK's sensor frame: give one revolution of this "
                            "sensor in either frame, or the metadata of the sensor that took it")
-    if shares[1] > shares[0]:
+    # the frames differ by a turn about z, which keeps every elevation, and a lift of a few cm, which
+    # moves each a little: on beams far apart both lie within the tolerance, and the frame whose
+    # returns lie closer to the beams is the lidar frame
+    if np.median(off[1]) < np.median(off[0]):
         return back.astype(np.asarray(points).dtype), "read in the SDK's sensor frame, turned into the lidar frame"
     return points, None
 

@@ -1,0 +1,155 @@
+"""Ouster captures, `.osf` and `.pcap`, read scan by scan through `ouster-sdk` with the capture's
+own metadata (a `.pcap` carries none: its metadata JSON lies beside it or is given). An optional
+dependency installed on its own, without its pins: `pip install --no-deps ouster-sdk==1.0.1` (it
+needs only numpy and rosbags, in l3e[bag]; every release pins rosbags and click to versions older
+than this project's). The SDK's clouds (XYZLut) are in its sensor frame; the scans come out in the
+lidar frame, the frame the beams are in, turned by the metadata's lidar_to_sensor_transform."""
+from __future__ import annotations
+
+import atexit
+import json
+import shutil
+import tempfile
+from collections.abc import Iterable, Iterator
+from itertools import chain
+from pathlib import Path
+
+import numpy as np
+
+from l3e_env.io.recorded import RecordedScan, RecordingError
+from l3e_env.sim.patterns import BeamPattern, PatternError, ouster_pattern
+
+CAPTURES = (".osf", ".pcap")
+INSTALL = "pip install --no-deps ouster-sdk==1.0.1 (beside l3e[bag])"
+TURNED = "read in the SDK's sensor frame, turned into the lidar frame by the capture's metadata"
+
+
+class CaptureError(RecordingError):
+    """An Ouster capture that cannot be read as scans; the message says why."""
+
+
+def is_capture(path: str | Path) -> bool:
+    return Path(path).suffix.lower() in CAPTURES
+
+
+class _SdkLog:
+    """The SDK reports a chunk it cannot decode only in its log, and reads on: the log goes to a
+    file of this process, read after each scan, so that a damaged scan is named, not judged."""
+
+    def __init__(self, core) -> None:
+        folder = tempfile.mkdtemp(prefix="l3e-ouster-")
+        atexit.register(shutil.rmtree, folder, True)
+        self.path = Path(folder) / "sdk.log"
+        core.init_logger("warning", str(self.path))
+        self.read = 0
+
+    def news(self) -> list[str]:
+        """What the SDK logged since the last call, each message once, without its time and level."""
+        if not self.path.exists():
+            return []
+        with self.path.open("rb") as log:
+            log.seek(self.read)
+            text = log.read()
+        self.read += len(text)
+        lines = [line.rsplit("] ", 1)[-1].strip() for line in text.decode("utf-8", "replace").splitlines()]
+        return list(dict.fromkeys(line for line in lines if line))
+
+
+_LOG: _SdkLog | None = None
+
+
+def _sdk():
+    global _LOG
+    try:
+        import ouster.sdk as sdk
+        from ouster.sdk import core
+    except ImportError as exc:
+        raise CaptureError(f"reading Ouster captures needs ouster-sdk: {INSTALL}") from exc
+    if _LOG is None:
+        _LOG = _SdkLog(core)
+    return sdk, core, _LOG
+
+
+def read_capture(path: str | Path, metadata: str | Path | None = None, every: int = 1, start: float | None = None,
+                 end: float | None = None) -> Iterator[RecordedScan]:
+    """The scans of an Ouster capture, every `every`-th, between `start` and `end` seconds after its
+    first scan, as (N, 3) points in the lidar frame with their beams (`rings`) and the sensor's
+    pattern from the metadata (an .osf's own; a .pcap's `metadata` JSON, else the one beside it). A capture that cannot be opened, or holds no scan, raises CaptureError here; a scan the
+    SDK could not decode gives a RecordedScan with its `error`, and the next one is read."""
+    if every < 1:
+        raise CaptureError(f"every must be at least 1, got {every}")
+    path = Path(path)
+    if not path.is_file():
+        raise CaptureError(f"{path}: no such capture")
+    sdk, core, log = _sdk()
+    log.news()
+    try:
+        # an .osf carries its metadata; a .pcap's is the one given, else the SDK's find beside it
+        given = {"meta": [str(metadata)]} if metadata and path.suffix.lower() == ".pcap" else {}
+        source = sdk.open_source(str(path), **given)
+    except Exception as exc:  # noqa: BLE001 - the SDK raises several kinds; name the file and the problem
+        detail = str(exc).rpartition("more details:")[2].strip() or str(exc)
+        hint = (f"; give its metadata JSON with --sensor (the SDK looks for {path.stem}*.json beside it)"
+                if "metadata" in detail.lower() else "")
+        raise CaptureError(f"{path}: cannot be read as an Ouster capture: {detail}{hint}") from exc
+    infos = source.sensor_info
+    if len(infos) != 1:
+        raise CaptureError(f"{path}: holds the scans of {len(infos)} sensors; give a capture of one sensor")
+    info = infos[0]
+    try:
+        pattern = ouster_pattern(path.stem, json.loads(info.to_json_string()))
+    except (PatternError, KeyError, TypeError, ValueError) as exc:
+        raise CaptureError(f"{path}: its metadata does not describe the sensor's beams: {exc}") from exc
+    scans = (frames[0] for frames in source if frames and frames[0] is not None)
+    first = next(scans, None)
+    if first is None:
+        said = log.news()
+        why = (f"the SDK: {'; '.join(said)}; the file is damaged" if said else
+               "the metadata does not match its packets" if path.suffix.lower() == ".pcap" else "the capture is empty")
+        raise CaptureError(f"{path}: holds no scan ({why})")
+    return _scans(chain([first], scans), path, pattern, core.XYZLut(info), core, log, every, start, end)
+
+
+def _scans(scans: Iterator, path: Path, pattern: BeamPattern, lut, core, log: _SdkLog, every: int, start: float | None,
+           end: float | None) -> Iterator[RecordedScan]:
+    to_sensor = np.asarray(pattern.lidar_to_sensor or np.eye(4).ravel(), dtype=np.float64).reshape(4, 4)
+    began = None
+    for k, scan in enumerate(scans):
+        said = log.news()  # the SDK decodes a scan while it is read: what it logged belongs to this one
+        stamps = np.asarray(scan.timestamp)
+        stamp = float(stamps[stamps > 0][0]) * 1e-9 if (stamps > 0).any() else None
+        began = began if began is not None or stamp is None else stamp
+        after = None if stamp is None or began is None else stamp - began
+        if k % every or (start is not None and after is not None and after < start):
+            continue
+        if end is not None and after is not None and after > end:
+            break
+        name = f"{path.name} #{k}"
+        valid = int((np.asarray(scan.status) & 1).sum())  # columns the sensor sent
+        if valid < scan.w:
+            name += f" (a part revolution: {valid} of {scan.w} columns)"
+        if said:
+            yield RecordedScan(name, stamp, None, f"{name}: the SDK could not decode it ({'; '.join(said)}); "
+                                                   "the capture is damaged", pattern=pattern)
+            continue
+        ranges = scan.field(core.ChanField.RANGE)
+        kept = ranges > 0  # no return: the SDK puts it at the beam's origin, not at the lidar's
+        xyz = lut(ranges)[kept].astype(np.float64)
+        points = (xyz - to_sensor[:3, 3]) @ to_sensor[:3, :3]
+        rings = np.nonzero(kept)[0].astype(np.int64)
+        yield RecordedScan(name, stamp, points, rings=rings, pattern=pattern,
+                           frame=TURNED if pattern.lidar_to_sensor else None)
+
+
+def expand_captures(sources: Iterable, metadata: str | Path | None = None) -> Iterator:
+    """The sources with each Ouster capture among them replaced by its scans (one that cannot be
+    read by a RecordedScan naming why), the others as they are."""
+    for source in sources:
+        if isinstance(source, (str, Path)) and is_capture(source):
+            try:
+                yield from read_capture(source, metadata)
+            except CaptureError as exc:
+                yield RecordedScan(str(source), None, None, str(exc))
+        else:
+            yield source
+

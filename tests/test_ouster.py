@@ -1,0 +1,137 @@
+"""Ouster captures (Ouster's own test data, `tests/data/ouster`): read scan by scan through
+ouster-sdk in the lidar frame, damaged ones refused by name, and judged alike by every route in."""
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from l3e_env.cli.main import main
+from l3e_env.config import LidarConfig
+from l3e_env.experiments.judge import judge_scans
+from l3e_env.io.ouster import TURNED, CaptureError, read_capture
+from l3e_env.sim.patterns import get_pattern, in_lidar_frame
+
+DATA = Path(__file__).parent / "data" / "ouster"
+OS0 = DATA / "OS-0-128_v3.0.1_1024x10_20241017_141645.osf"
+OS1_OSF = DATA / "OS-1-128_v2.3.0_1024x10_lb_n3.osf"
+OS1_PCAP = DATA / "OS-1-128_v2.3.0_1024x10_lb_n3.pcap"
+OS0_8 = DATA / "osf_fw_3.2_10scans.osf"
+GOOD = {OS0: (3, 128), OS1_OSF: (3, 128), OS1_PCAP: (3, 128), OS0_8: (10, 8)}
+BROKEN = sorted((DATA / "broken").glob("*.osf"))
+
+
+def _metadata(capture: Path) -> Path:
+    return capture.with_name(capture.stem + "_metadata.json")
+
+
+@pytest.mark.parametrize("capture", list(GOOD), ids=lambda p: p.name)
+def test_every_scan_of_a_capture_is_read_in_the_lidar_frame(capture):
+    count, beams = GOOD[capture]
+    scans = list(read_capture(capture))
+    assert len(scans) == count
+    for scan in scans:
+        assert scan.error is None and scan.pattern.n_beams == beams and scan.frame == TURNED
+        assert len(scan.points) == len(scan.rings) > 1000 and 0 <= scan.rings.min() and scan.rings.max() < beams
+        # the returns lie on the metadata's beams as read, and not once turned back a second time
+        assert in_lidar_frame(scan.points, scan.pattern)[1] is None
+        assert np.mean(scan.pattern.locate(scan.points)[0] == scan.rings) > 0.9  # the beam each came on
+    assert np.diff([s.stamp for s in scans]).min() > 0.03  # seconds, 10 Hz
+
+
+def test_the_same_capture_as_osf_and_pcap_reads_alike():
+    for a, b in zip(read_capture(OS1_OSF), read_capture(OS1_PCAP), strict=True):
+        np.testing.assert_array_equal(a.points, b.points)
+        np.testing.assert_array_equal(a.rings, b.rings)
+        assert a.stamp == b.stamp
+
+
+def test_a_part_revolution_is_named_and_every_every_start_end_pick_scans():
+    first = next(read_capture(OS0))
+    assert "a part revolution: 384 of 1024 columns" in first.name
+    assert [s.name for s in read_capture(OS0_8, every=3)] == [f"{OS0_8.name} #{k}" for k in (0, 3, 6, 9)]
+    assert [s.name for s in read_capture(OS0_8, start=0.25, end=0.55)] == [f"{OS0_8.name} #{k}" for k in (3, 4, 5)]
+
+
+@pytest.mark.parametrize("broken", BROKEN, ids=lambda p: p.name)
+def test_a_damaged_capture_is_refused_by_name(broken):
+    try:
+        scans = list(read_capture(broken))
+    except CaptureError as exc:  # no scan in it at all
+        assert str(broken) in str(exc) and "holds no scan" in str(exc)
+        assert ("damaged" in str(exc)) == (broken.name != "empty_osf.osf")
+        return
+    assert scans and all(s.points is None and "could not decode" in s.error and broken.name in s.error
+                         for s in scans)
+
+
+def test_a_pcap_without_its_metadata_names_the_fix(tmp_path):
+    alone = tmp_path / "capture.pcap"
+    shutil.copy(OS1_PCAP, alone)
+    with pytest.raises(CaptureError, match="give its metadata JSON with --sensor"):
+        read_capture(alone)
+    assert len(list(read_capture(alone, _metadata(OS1_PCAP)))) == 3
+    # another sensor's metadata: its packets are not of that sensor
+    with pytest.raises(CaptureError, match="the metadata does not match its packets"):
+        read_capture(alone, _metadata(OS0))
+    with pytest.raises(CaptureError, match="no such capture"):
+        read_capture(tmp_path / "nothere.osf")
+
+
+def test_without_ouster_sdk_the_install_is_named(monkeypatch):
+    import l3e_env.io.ouster as ouster
+
+    monkeypatch.setitem(__import__("sys").modules, "ouster.sdk", None)
+    monkeypatch.setattr(ouster, "_LOG", None)
+    with pytest.raises(CaptureError, match="pip install --no-deps ouster-sdk"):
+        read_capture(OS0_8)
+
+
+def test_judge_reads_good_captures_and_names_the_broken_beside_them(tmp_path, capsys):
+    out = tmp_path / "judged.json"
+    assert main(["judge", str(OS0_8), *map(str, BROKEN), "--detector", "eigen:30", "--json", str(out)]) == 2
+    records = json.loads(out.read_text())
+    judged = [r for r in records if "error" not in r]
+    assert len(judged) == 10 and all(r["sensor"] == OS0_8.stem and r["frame"] == TURNED for r in judged)
+    refused = [r["path"] for r in records if "error" in r]
+    assert len(refused) == 4 and all(any(b.name in path for path in refused) for b in BROKEN)
+    assert "4 of 14 scans could not be read or judged" in capsys.readouterr().err
+
+
+def _exported(capture: Path, folder: Path, frame: str) -> list[Path]:
+    """The capture's scans written as .npy files, in the lidar frame or turned into the SDK's sensor frame."""
+    paths = []
+    for k, scan in enumerate(read_capture(capture)):
+        points = scan.points
+        if frame == "sensor":
+            to_sensor = np.asarray(scan.pattern.lidar_to_sensor).reshape(4, 4)
+            points = points @ to_sensor[:3, :3].T + to_sensor[:3, 3]
+        paths.append(folder / f"{frame}-{k}.npy")
+        np.save(paths[-1], points)
+    return paths
+
+
+def _decisions(scans, specs, sensor=None) -> list:
+    return [None if j.error else {n: (p.known, tuple(p.mask)) for n, p in j.predictions.items()}
+            for j in judge_scans(scans, specs, sensor)]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("capture", [OS1_OSF, OS0_8], ids=lambda p: p.name)
+def test_every_route_in_gives_the_same_decisions(capture, tmp_path):
+    """.osf, .pcap and exported arrays in either frame (with the metadata as --sensor): one set of
+    decisions by every detector, and scanmc judges every full revolution."""
+    specs = ["learned", "eigen:30", "dcreg:50", "scanmc"]
+    sensor = LidarConfig(model=str(_metadata(capture)))
+    routes = {"capture": _decisions([capture], specs),
+              "capture, its metadata given": _decisions([capture], specs, sensor),
+              "lidar-frame arrays": _decisions(_exported(capture, tmp_path, "lidar"), specs, sensor),
+              "sensor-frame arrays": _decisions(_exported(capture, tmp_path, "sensor"), specs, sensor)}
+    if capture == OS1_OSF:
+        routes["pcap"] = _decisions([OS1_PCAP], specs)
+    first = routes.pop("capture")
+    assert all(d is not None and all(known for known, _ in d.values()) for d in first)
+    for route, decisions in routes.items():
+        assert decisions == first, route
+    assert get_pattern(str(_metadata(capture))).n_beams == GOOD[capture][1]
