@@ -68,3 +68,11 @@ def test_the_readme_is_short_and_its_links_resolve():
     assert targets
     missing = [t for t in targets if "://" not in t and not (ROOT / t).exists()]
     assert not missing, missing
+
+
+def test_ci_installs_what_the_readme_first_command_installs():
+    first = re.search(r"```bash\n(.+?)\n```", (ROOT / "README.md").read_text()).group(1)
+    installs = [step.strip() for step in first.split("&&") if step.strip().startswith("pip install")]
+    ci = (ROOT / ".ci" / "run").read_text()
+    assert len(installs) >= 3
+    assert all(step.replace("pip install", "pip install -q", 1) in ci for step in installs), installs

@@ -135,3 +135,17 @@ def test_every_route_in_gives_the_same_decisions(capture, tmp_path):
     for route, decisions in routes.items():
         assert decisions == first, route
     assert get_pattern(str(_metadata(capture))).n_beams == GOOD[capture][1]
+
+
+def test_the_cli_reads_a_capture_as_a_recording_and_its_sensor(tmp_path, capsys):
+    alone = tmp_path / "capture.pcap"
+    shutil.copy(OS1_PCAP, alone)
+    out = tmp_path / "judged.json"
+    assert main(["judge", "--bag", str(alone), "--sensor", str(_metadata(OS1_PCAP)), "--every", "2",
+                 "--detector", "eigen:30", "--json", str(out)]) == 0
+    assert [r["path"] for r in json.loads(out.read_text())] == ["capture.pcap #0", "capture.pcap #2"]
+    assert main(["judge", "--bag", str(alone), "--topic", "/points"]) == 2
+    assert "not an Ouster capture" in capsys.readouterr().err
+    assert main(["sensor", str(OS0_8)]) == 0
+    said = capsys.readouterr().out
+    assert "8 beams" in said and "2048 columns" in said and "from the metadata" in said

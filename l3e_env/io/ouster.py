@@ -74,8 +74,9 @@ def read_capture(path: str | Path, metadata: str | Path | None = None, every: in
                  end: float | None = None) -> Iterator[RecordedScan]:
     """The scans of an Ouster capture, every `every`-th, between `start` and `end` seconds after its
     first scan, as (N, 3) points in the lidar frame with their beams (`rings`) and the sensor's
-    pattern from the metadata (an .osf's own; a .pcap's `metadata` JSON, else the one beside it). A capture that cannot be opened, or holds no scan, raises CaptureError here; a scan the
-    SDK could not decode gives a RecordedScan with its `error`, and the next one is read."""
+    pattern from the metadata (an .osf's own; a .pcap's `metadata` JSON, else the one beside it). A
+    capture that cannot be opened, or holds no scan, raises CaptureError here; a scan the SDK could
+    not decode gives a RecordedScan with its `error`, and the next one is read."""
     if every < 1:
         raise CaptureError(f"every must be at least 1, got {every}")
     path = Path(path)
