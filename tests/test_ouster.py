@@ -118,7 +118,7 @@ def _decisions(scans, specs, sensor=None) -> list:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("capture", [OS1_OSF, OS0_8], ids=lambda p: p.name)
+@pytest.mark.parametrize("capture", [OS1_OSF, OS0, OS0_8], ids=lambda p: p.name)
 def test_every_route_in_gives_the_same_decisions(capture, tmp_path):
     """.osf, .pcap and exported arrays in either frame (with the metadata as --sensor): one set of
     decisions by every detector, and scanmc judges every full revolution."""
