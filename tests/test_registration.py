@@ -203,3 +203,39 @@ def test_the_eigenvalue_test_means_the_same_on_every_sensor():
             assert set(np.flatnonzero(eigen_mask(H, 30.0)[1])) == flagged, model
             largest[model] = np.linalg.eigvalsh(H)[-1]
         assert max(largest.values()) < 2 * min(largest.values())  # the same scale (131k rays against 29k)
+
+
+GROUND = RegistrationConfig(ground_normals=True)
+
+
+def test_the_ground_plane_is_fitted_under_a_tilted_sensor_and_its_voxels_take_its_normal():
+    tilt = [0, 0, 0, np.radians(4), np.radians(-3), 0]  # the body rolls and pitches over the floor
+    target, _, _ = scan_pair("office", [5, 0, 0.85, *tilt[3:5], 0.3], [0, 0, 0, 0, 0, 0])
+    tgt = PreparedTarget(target, GROUND)
+    up = pose_to_matrix(np.array([0, 0, 0, *tilt[3:5], 0]))[:3, :3].T @ [0, 0, 1]  # the floor's normal, sensor frame
+    assert np.degrees(np.arccos(tgt.ground[:3] @ up)) < 0.3
+    assert abs(tgt.ground[3] + 0.85) < 0.03  # the floor lies 0.85 m below the sensor
+    on = np.abs(tgt.points @ tgt.ground[:3] - tgt.ground[3]) < 0.05
+    assert on.mean() > 0.05 and np.all(tgt.normals[on] == tgt.ground[:3])
+    plain = PreparedTarget(target, RegistrationConfig())
+    assert plain.ground is None and np.array_equal(plain.normals[~on], tgt.normals[~on])
+
+
+def test_ground_normals_recover_steps_beside_walls_and_leave_the_tunnel_axis_free():
+    """Steps of 0.1 m forward on the fork's pillared route: the ground's leaning normals hold the
+    default registration back; with the plane's normal it reads the step (studies/icp_step_bias.py)."""
+    ratios = {}
+    for name, cfg in (("default", RegistrationConfig()), ("ground", GROUND)):
+        steps = []
+        for k, x in enumerate((14.0, 20.0, 26.0, 32.0, 38.0, 44.0)):
+            target, source, _ = scan_pair("fork", [x, 10, 0.85, 0, 0, 0], [0.1, 0, 0, 0, 0, 0], seed=k)
+            res = register(source, target, cfg)
+            assert res.converged
+            steps.append(matrix_to_pose(res.T_target_source)[0] / 0.1)
+        ratios[name] = np.mean(steps)
+    assert abs(ratios["ground"] - 1) < 0.03 and ratios["ground"] - 1 > ratios["default"] - 1 + 0.02, ratios
+    # in a tunnel the ground's plane normal no longer pins x: the Hessian's x information drops
+    target, source, _ = scan_pair("tunnel", [50, 0, 0.85, 0, 0, 0], [0.0, 0.05, 0.0, 0.0, 0.0, 0.01])
+    with_plane, without = register(source, target, GROUND), register(source, target)
+    assert with_plane.converged and with_plane.hessian[0, 0] < 0.5 * without.hessian[0, 0]
+    assert eigen_mask(with_plane.hessian, np.sqrt(np.prod(np.linalg.eigvalsh(with_plane.hessian)[:2])))[1][0]
