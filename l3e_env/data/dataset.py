@@ -32,7 +32,7 @@ from l3e_env.config import LidarConfig, from_dict, plain, settings_changed, to_d
 from l3e_env.core.files import folder_lock, write_atomic
 from l3e_env.core.workers import die_with_parent
 from l3e_env.localizability.labels import AXES, LabelConfig, SamplingError, label_parent, sample_parent_pose
-from l3e_env.localizability.registration import RegistrationConfig, RegistrationError, recorded_registration
+from l3e_env.localizability.registration import RegistrationConfig, RegistrationError
 from l3e_env.sim.lidar import Lidar, get_pattern
 from l3e_env.sim.raycast import EmbreeCaster
 
@@ -416,9 +416,8 @@ class LabelDataset:
 def comparable_settings(manifest: dict[str, Any], key: str) -> dict[str, Any]:
     """A manifest's lidar or registration settings with every option it predates at its default: a
     dataset made before an option existed (the LiDAR's `sweep`) was made as that default makes it."""
-    if key == "registration":
-        return plain(to_dict(recorded_registration(manifest["settings"][key])))
-    return plain(to_dict(from_dict(LidarConfig, manifest["settings"][key])))
+    cls = {"lidar": LidarConfig, "registration": RegistrationConfig}[key]
+    return plain(to_dict(from_dict(cls, manifest["settings"][key])))
 
 
 class DatasetUnion:

@@ -8,7 +8,7 @@ import numpy as np
 
 from l3e_env.config import LidarConfig, from_dict
 from l3e_env.core.workers import ordered_map
-from l3e_env.localizability.registration import RegistrationConfig, RegistrationError, recorded_registration
+from l3e_env.localizability.registration import RegistrationConfig, RegistrationError
 from l3e_env.localizability.scan_mc import ScanEstimate, ScanMCConfig, ScanPatternError, scan_errors
 
 from .dataset import open_datasets
@@ -29,7 +29,7 @@ def open_dataset_scans(folders: list[str], config: ScanMCConfig, seed: int) -> D
     data = open_datasets(folders)
     settings = data.manifest["settings"]
     return DatasetScans(data, from_dict(LidarConfig, settings["lidar"]),
-                        recorded_registration(settings["registration"]), config, seed)
+                        from_dict(RegistrationConfig, settings["registration"]), config, seed)
 
 
 def row_estimate(scans: DatasetScans, row: int) -> ScanEstimate | None:

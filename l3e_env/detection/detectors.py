@@ -15,11 +15,11 @@ from typing import Protocol
 
 import numpy as np
 
-from l3e_env.config import LidarConfig
+from l3e_env.config import LidarConfig, from_dict
 from l3e_env.config.detector_spec import parse_detector
 from l3e_env.localizability.labels import LabelConfig, label_parent
 from l3e_env.localizability.registration import (RegistrationConfig, RegistrationError, RegistrationResult,
-                                                  dcreg_mask, eigen_mask, recorded_registration)
+                                                  dcreg_mask, eigen_mask)
 from l3e_env.localizability.scan_mc import ScanMCConfig, ScanPatternError, scan_errors
 from l3e_env.sim.lidar import Lidar
 
@@ -168,7 +168,7 @@ class LearnedDetector:
         self.name = ("learned-sym" if symmetric else "learned") + (f":{checkpoint}" if checkpoint else "")
         stored = self.classifier.meta.get("registration")
         # the registration its labels were made with: the pipeline runs the same (pipeline.registration_of)
-        self.labelled_with = recorded_registration(stored) if stored is not None else None
+        self.labelled_with = from_dict(RegistrationConfig, stored) if stored is not None else None
         self.classifier.check_settings(lidar_model, dataclasses.asdict(registration or self.labelled_with
                                                                        or RegistrationConfig()))
 

@@ -14,12 +14,13 @@ from tqdm import tqdm
 
 from scenes import TEST_SCENES, is_mesh_path, make_scene, scene_family
 
+from l3e_env.config import from_dict
 from l3e_env.data.dataset import DatasetUnion, LabelDataset, open_datasets, row_thresholds
 from l3e_env.data.scan_estimates import dataset_scan_errors
 from l3e_env.detection.detectors import near_threshold
 from l3e_env.localizability.labels import AXES
-from l3e_env.localizability.registration import (RegistrationError, dcreg_mask, eigen_mask,
-                                                  recorded_registration, scan_hessian)
+from l3e_env.localizability.registration import (RegistrationConfig, RegistrationError, dcreg_mask, eigen_mask,
+                                                  scan_hessian)
 from l3e_env.localizability.scan_mc import ScanMCConfig
 from l3e_env.model.classifier import Classifier
 from l3e_env.model.scores import axis_scores, best_thresholds, format_table, mean_interval, mean_scores, pr_curve
@@ -270,7 +271,7 @@ def run_table3(checkpoints: list[str | Path], dataset: str | Path | list[str | P
 def dataset_hessians(data: LabelDataset | DatasetUnion, rows: np.ndarray, progress: bool = False) -> np.ndarray:
     """(len(rows), 6, 6) Hessians of the scans registered onto themselves with the dataset's own
     registration settings; NaN for a scan too small to register."""
-    config = recorded_registration(data.manifest["settings"]["registration"])
+    config = from_dict(RegistrationConfig, data.manifest["settings"]["registration"])
     out = np.full((len(rows), 6, 6), np.nan)
     for k, i in enumerate(tqdm(rows, desc="Hessians", disable=not progress, leave=False)):
         try:
