@@ -53,15 +53,20 @@ def bias_axes(text: str) -> tuple[str, ...]:
 
 
 def add_fusion_options(parser: argparse.ArgumentParser) -> None:
-    """--odometry-bias, read back by `fusion_settings` (`l3e ate`, `l3e sweep`, `l3e policy evaluate`)."""
+    """--odometry-bias and --ground-normals, read back by `fusion_settings` (`l3e ate`, `l3e sweep`,
+    `l3e policy evaluate`)."""
     parser.add_argument("--odometry-bias", type=bias_axes, default=(), metavar="AXES",
                         help="estimate the leg odometry's per-metre biases as states of the fusion: yaw, z or "
                              "yaw,z (default none; see docs/decisions.md)")
+    parser.add_argument("--ground-normals", action="store_true",
+                        help="the fusion's ICP gives the ground's voxels the fitted plane's normal, which removes "
+                             "most of its step bias beside walls; a registration the classifier's labels were not "
+                             "made with (see docs/fusion.md)")
 
 
 def fusion_settings(args: argparse.Namespace) -> FusionSettings:
     """The options that `add_fusion_options` added."""
-    return FusionSettings(odometry_bias=args.odometry_bias)
+    return FusionSettings(odometry_bias=args.odometry_bias, ground_normals=args.ground_normals)
 
 
 def sensor_name(text: str) -> str:

@@ -52,9 +52,11 @@ def odometry_fusion_config(odometry: OdometryConfig, settings: FusionSettings = 
                            **overrides) -> FusionConfig:
     """The estimator's checked FusionConfig for `settings` (and any other FusionConfig fields), its
     odometry bias states, if any, starting from this noise model's bias spread and wandering by its
-    random walk."""
-    from fusion import FusionConfig, check_config  # GTSAM loads slowly: only where a fusion is made
+    random walk; with `settings.ground_normals`, the ICP residual variance fitted to that registration."""
+    from fusion import GROUND_NORMALS_RESIDUAL_VARIANCE, FusionConfig, check_config  # GTSAM loads slowly
 
+    if settings.ground_normals:
+        overrides = {"icp_residual_variance": GROUND_NORMALS_RESIDUAL_VARIANCE, **overrides}
     return check_config(FusionConfig(odometry_bias_sigmas=(odometry.yaw_bias_std, odometry.z_bias_std),
                                      odometry_bias_walk=(odometry.yaw_bias_walk, odometry.z_bias_walk),
                                      mode=settings.mode, odometry_bias=tuple(settings.odometry_bias), **overrides))
