@@ -240,3 +240,16 @@ def test_ground_normals_recover_steps_beside_walls_and_leave_the_tunnel_axis_fre
     with_plane, without = register(source, target, GROUND), register(source, target)
     assert with_plane.converged and with_plane.hessian[0, 0] < 0.5 * without.hessian[0, 0]
     assert eigen_mask(with_plane.hessian, np.sqrt(np.prod(np.linalg.eigvalsh(with_plane.hessian)[:2])))[1][0]
+
+
+@pytest.mark.slow
+def test_ground_normals_converge_on_an_open_field_where_weakly_held_matches_flip():
+    """On the field's route the ground holds nothing sideways: a few far features decide x, y and yaw,
+    and their matches can flip from one iteration to the next. The registration must settle (the
+    step back uphill is not taken) instead of swinging until it runs out of iterations."""
+    from l3e_env.experiments.ate import record_run, register_sequence
+
+    rec = record_run("field-0", seed=0, progress=False)
+    regs = register_sequence(rec, GROUND, progress=False)
+    converged = [r is not None and r.converged for r in regs]
+    assert np.mean(converged) > 0.97, np.flatnonzero(~np.array(converged))  # without the guard: 0.72

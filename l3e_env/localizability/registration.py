@@ -47,8 +47,9 @@ class RegistrationConfig:
     min_inlier_ratio: float = 0.3  # fewer final correspondences: failed
     # the target's ground voxels take the normal of the plane fitted to the ground's returns, in
     # place of the one from their neighbours, which leans where a neighbourhood reaches across a
-    # wall's foot and holds each step back by 5-10 % beside walls (`studies/icp_step_bias.py`). A
-    # setting of the labels like the others: a classifier labelled without it expects it off.
+    # wall's foot and holds each step back by 5-10 % beside walls (`studies/icp_step_bias.py`). Off:
+    # the labels are made without it (docs/fusion.md says why); the fusion may run it
+    # (FusionSettings.ground_normals)
     ground_normals: bool = False
 
 
@@ -192,12 +193,15 @@ def register(
 
 def _plane_icp(source: np.ndarray, target: PreparedTarget, T: np.ndarray, distance: float,
                config: RegistrationConfig) -> tuple[np.ndarray, int, bool, int, float]:
-    """One stage of Gauss-Newton point-to-plane ICP onto the target's own `normals`, as small_gicp's
-    PLANE_ICP runs it (nearest neighbour within `distance`, T <- T exp(delta), damping 1e-6, stop
-    when the update is under the epsilons): the pose, iterations, whether it converged, the final
-    correspondences and half their squared residuals. Hand-written: small_gicp cannot be handed
-    normals other than its own."""
-    for iteration in range(1, config.max_iterations + 1):
+    """One stage of point-to-plane ICP onto the target's own `normals` (nearest neighbour within
+    `distance`, T <- T exp(delta)): Gauss-Newton as small_gicp's PLANE_ICP (damping 1e-6, stop when
+    the update is under the epsilons), except that a step that turns back on the one before and
+    raises the mean squared residual over its new correspondences is not taken: there a weakly held
+    axis's matches flip back and forth and the pose would swing between two, the better one is kept.
+    Returns the pose, iterations, whether it converged, the final correspondences and half their
+    squared residuals. Hand-written: small_gicp cannot be handed normals other than its own."""
+
+    def linearised(T: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
         moved = source @ T[:3, :3].T + T[:3, 3]
         idx, sq = target.tree.batch_nearest_neighbor_search(moved)
         idx, sq = np.asarray(idx).reshape(-1), np.asarray(sq).reshape(-1)
@@ -205,15 +209,24 @@ def _plane_icp(source: np.ndarray, target: PreparedTarget, T: np.ndarray, distan
         n = target.normals[idx[keep]]
         r = np.einsum("ij,ij->i", n, moved[keep] - target.points[idx[keep]])
         n_local = n @ T[:3, :3]  # rows R^T n: d r / d delta, delta = (v, w) in the source frame
-        J = np.hstack([n_local, np.cross(source[keep], n_local)])
+        cost = float(r @ r) / max(len(r), 1)  # per correspondence: how many there are moves with the pose
+        return cost, np.hstack([n_local, np.cross(source[keep], n_local)]), r
+
+    cost, J, r = linearised(T)
+    before = np.zeros(6)
+    for iteration in range(1, config.max_iterations + 1):
         delta = np.linalg.solve(J.T @ J + 1e-6 * np.eye(6), -J.T @ r)
         step = np.eye(4)
         step[:3, :3], step[:3, 3] = _rotation(delta[3:]), delta[:3]
-        T = T @ step
+        trial = T @ step
+        trial_cost, trial_J, trial_r = linearised(trial)
+        if delta @ before < -0.5 * np.linalg.norm(delta) * np.linalg.norm(before) and trial_cost > cost:
+            return T, iteration, True, len(r), 0.5 * float(r @ r)  # back uphill to where it came from: swinging
+        T, cost, J, r, before = trial, trial_cost, trial_J, trial_r, delta
         small = np.linalg.norm(delta[3:]) < config.rotation_epsilon
         if small and np.linalg.norm(delta[:3]) < config.translation_epsilon:
-            return T, iteration, True, int(keep.sum()), 0.5 * float(r @ r)
-    return T, config.max_iterations, False, int(keep.sum()), 0.5 * float(r @ r)
+            return T, iteration, True, len(r), 0.5 * float(r @ r)
+    return T, config.max_iterations, False, len(r), 0.5 * float(r @ r)
 
 
 def _rotation(w: np.ndarray) -> np.ndarray:
