@@ -17,7 +17,7 @@ the defaults beside them. The pooled RMS is not a good constant: where the detec
 weakly held axis (the field's yaw) its error is ten times that of a well held one (the tunnel's),
 which is why the fusion weighs each step by its Hessian instead.
 
-Run: python studies/icp_step_errors.py [--scenes tunnel-0,office-0,fork-0,field-0] [--tau 110]
+Run: python studies/icp_step_errors.py [--scenes tunnel-0,office-0,fork-0,field-0] [--tau 110] [--ground-normals]
 """
 from __future__ import annotations
 
@@ -25,7 +25,7 @@ import argparse
 
 import numpy as np
 
-from fusion import FusionConfig
+from fusion import GROUND_NORMALS_RESIDUAL_VARIANCE, FusionConfig
 from l3e_env.config import OdometryConfig
 from l3e_env.detection.detectors import EigenvalueDetector
 from l3e_env.experiments.ate import record_run, register_sequence
@@ -35,12 +35,12 @@ from l3e_env.localizability.registration import RegistrationConfig
 from l3e_env.core.transforms import inverse, matrix_to_pose
 
 
-def step_errors(scene: str, tau: float, seed: int) -> tuple[np.ndarray, ...]:
+def step_errors(scene: str, tau: float, seed: int, registration: RegistrationConfig) -> tuple[np.ndarray, ...]:
     """(errors, trusted, odometry sigmas) per registered step of the scene's route, (K, 6) each,
     e' H e / 6 per step (K), and e_i^2 / (v H^-1)_ii per axis (K, 6; NaN where an axis is flagged),
     v the default residual variance."""
     rec = record_run(scene, seed=seed, progress=False)
-    registrations = register_sequence(rec, RegistrationConfig(), progress=False)
+    registrations = register_sequence(rec, registration, progress=False)
     detector, T_b_s = EigenvalueDetector(tau), rec.T_b_s
     errors, trusted, sigmas, quadratic, calibration = [], [], [], [], []
     variance = FusionConfig().icp_residual_variance
@@ -67,11 +67,13 @@ def main() -> None:
     parser.add_argument("--scenes", default="tunnel-0,office-0,fork-0,field-0")
     parser.add_argument("--tau", type=float, default=110.0, help="eigenvalue threshold that decides trust")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--ground-normals", action="store_true", help="register with RegistrationConfig.ground_normals")
     args = parser.parse_args()
+    registration = RegistrationConfig(ground_normals=args.ground_normals)
     print(f"{'':34s}" + "".join(f"{a:>8s}" for a in AXES))
     pooled_sq, pooled_n, fits = np.zeros(6), np.zeros(6), []
     for scene in args.scenes.split(","):
-        errors, trusted, sigmas, quadratic, calibration = step_errors(scene, args.tau, args.seed)
+        errors, trusted, sigmas, quadratic, calibration = step_errors(scene, args.tau, args.seed, registration)
         fits.append(quadratic[trusted.all(axis=1)])
         n = trusted.sum(axis=0)
         squares = np.where(trusted, errors**2, 0.0).sum(axis=0)
@@ -89,8 +91,9 @@ def main() -> None:
     print(row("pooled ICP step error, RMS", np.sqrt(pooled_sq / np.maximum(pooled_n, 1))))
     print(row("FusionConfig.icp_sigmas (fixed)", np.asarray(FusionConfig().icp_sigmas)))
     pooled = np.concatenate(fits)
+    used = GROUND_NORMALS_RESIDUAL_VARIANCE if args.ground_normals else FusionConfig().icp_residual_variance
     print(f"icp_residual_variance: the pooled mean of e' H e / 6 over {len(pooled)} steps is {pooled.mean():.4f} m^2 "
-          f"(default {FusionConfig().icp_residual_variance})")
+          f"(the fusion's: {used})")
 
 
 if __name__ == "__main__":
