@@ -1,21 +1,23 @@
 """The leg odometry's slowly wandering biases as states of the fusion.
 
 Legs drift in heading and height by a rate per metre walked that persists and wanders (a random
-walk per square-root metre). With the rate as a state, the ICP steps that hold yaw (or z) teach
-the fusion the legs' present bias, so the legs stop pulling the heading by a fraction of their
-bias on every step, and keep walking true for a while where the detector masks the scans'
-heading. The stride-scale error is not offered: its estimate learns ICP's own step bias along
-corridors instead (docs/decisions.md).
+walk per square-root metre), and their stride's length is off by a scale. With the rate (or the
+scale) as a state, the ICP steps that hold yaw (z, the step's length) teach the fusion the legs'
+present bias, so the legs stop pulling the heading by a fraction of their bias on every step, and
+keep walking true for a while where the detector masks the scans' axes (a tunnel's length is the
+legs' alone). The scale learns ICP's own step bias with it: it pays with an ICP whose steps are
+true (`RegistrationConfig.ground_normals`), not with one that holds steps back beside walls
+(docs/decisions.md).
 
-Model: the measured increment M = (R, t) walked d = |t| metres; with yaw bias b_yaw (rad/m) and
-z bias b_z (m/m) the true increment is Z(b) = (Rz(-b_yaw d) R, t - b_z d e_z).
+Model: the measured increment M = (R, t) walked d = |t| metres; with yaw bias b_yaw (rad/m), z bias
+b_z (m/m) and scale error b_s the true increment is Z(b) = (Rz(-b_yaw d) R, (1 - b_s) t - b_z d e_z).
 """
 from __future__ import annotations
 
 import gtsam
 import numpy as np
 
-BIAS_AXES = ("yaw", "z")
+BIAS_AXES = ("yaw", "z", "scale")
 # The graph holds one bias state per metre walked, not one per scan: the bias wanders by
 # 0.3 mrad/m over a metre, far below what a metre of ICP steps can tell, and ten times fewer
 # states keep iSAM2's update near the plain graph's cost.
@@ -58,14 +60,16 @@ def corrected_increment(measured: np.ndarray, bias: np.ndarray,
     c, s = np.cos(angle), np.sin(angle)
     Z = np.eye(4)
     Z[:3, :3] = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ M[:3, :3]
-    Z[:3, 3] = t - np.array([0.0, 0.0, rates.get("z", 0.0) * d])
+    Z[:3, 3] = (1.0 - rates.get("scale", 0.0)) * t - np.array([0.0, 0.0, rates.get("z", 0.0) * d])
     down = Z[:3, :3].T @ np.array([0.0, 0.0, -d])  # -d e_z seen from the corrected body frame
     G = np.zeros((6, len(axes)))
     for n, axis in enumerate(axes):
         if axis == "yaw":  # a left turn of the rotation only
             G[:3, n] = down
-        else:  # a shift of the translation only
+        elif axis == "z":  # a shift of the translation only
             G[3:, n] = down
+        else:  # the step shortened along itself
+            G[3:, n] = Z[:3, :3].T @ -t
     return gtsam.Pose3(Z), G
 
 

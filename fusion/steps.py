@@ -23,10 +23,10 @@ class FusionConfig:
     drives by `studies/icp_step_errors.py`. "fixed": the constant `icp_sigmas` (also where a
     step comes without a finite Hessian).
 
-    odometry_bias: which of the leg odometry's per-metre biases ("yaw", "z") are estimated as
-    states of the fusion (see fusion.bias), with their prior spread `odometry_bias_sigmas` (rad/m,
-    m/m) and random walk `odometry_bias_walk` (per square-root metre), both in BIAS_AXES order;
-    none by default."""
+    odometry_bias: which of the leg odometry's biases ("yaw", "z" per metre, "scale" of the
+    stride) are estimated as states of the fusion (see fusion.bias), with their prior spread
+    `odometry_bias_sigmas` (rad/m, m/m, 1) and random walk `odometry_bias_walk` (per square-root
+    metre), both in BIAS_AXES order; none by default."""
 
     mode: str = "mask"
     icp_covariance: str = "hessian"
@@ -37,8 +37,8 @@ class FusionConfig:
     robust_threshold: float = 1.345
     relinearize_threshold: float = 0.01
     odometry_bias: tuple[str, ...] = ()
-    odometry_bias_sigmas: tuple[float, ...] = (0.001, 0.005)
-    odometry_bias_walk: tuple[float, ...] = (0.0003, 0.0005)
+    odometry_bias_sigmas: tuple[float, ...] = (0.001, 0.005, 0.02)
+    odometry_bias_walk: tuple[float, ...] = (0.0003, 0.0005, 0.0001)
 
 
 # the residual variance that `studies/icp_step_errors.py --ground-normals` fits to the registration

@@ -120,14 +120,15 @@ def test_the_hessian_weighs_the_icp_factor_and_the_settings_are_written(walls_ru
 def test_the_legs_bias_as_a_fusion_state_from_the_command_line(walls_run, tmp_path, capsys):
     from l3e_env.cli.main import main
     from l3e_env.config import OdometryConfig
-    from l3e_env.sim.odometry import odometry_fusion_config
+    from l3e_env.sim.odometry import SCALE_WALK, odometry_fusion_config
 
     rec, regs = walls_run
     rec.save(tmp_path / "rec.npz")
     noisy = OdometryConfig(yaw_bias_std=0.004, z_bias_walk=0.002)
     config = odometry_fusion_config(noisy, FusionSettings(odometry_bias=("yaw",)))
-    assert config.odometry_bias == ("yaw",) and config.odometry_bias_sigmas == (0.004, noisy.z_bias_std)
-    assert config.odometry_bias_walk == (noisy.yaw_bias_walk, 0.002)
+    assert config.odometry_bias == ("yaw",)
+    assert config.odometry_bias_sigmas == (0.004, noisy.z_bias_std, noisy.scale_error_std)
+    assert config.odometry_bias_walk == (noisy.yaw_bias_walk, 0.002, SCALE_WALK)
     plain, = fuse_recording(rec, [NoDetector()], regs, progress=False)
     both = odometry_fusion_config(OdometryConfig(), FusionSettings(odometry_bias=("yaw", "z")))
     learnt, = fuse_recording(rec, [NoDetector()], regs, fusion=both, progress=False)

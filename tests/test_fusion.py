@@ -221,7 +221,7 @@ def biased_walk(backend, axes, held_steps=200, blind_steps=100, yaw_bias=0.005, 
     ICP holds every axis for `held_steps`, then yaw and z are masked for `blind_steps` (as where a
     corridor leaves the scans nothing to turn or climb against). Returns the final yaw and height
     errors and the fusion."""
-    config = FusionConfig(odometry_bias=axes, odometry_bias_sigmas=(0.01, 0.02))
+    config = FusionConfig(odometry_bias=axes, odometry_bias_sigmas=(0.01, 0.02, 0.02))
     fusion = BACKENDS[backend](np.eye(4), config)
     truth, step = np.eye(4), pose(0.1, 0.0, 0.0, 0.0)
     odom = pose(0.1, 0.0, 0.1 * z_bias, 0.1 * yaw_bias)
@@ -246,6 +246,25 @@ def test_the_legs_bias_learnt_where_icp_holds_keeps_the_heading_and_height_where
     assert fusion.odometry_bias == pytest.approx([0.005, 0.01], rel=0.1)
 
 
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_the_strides_scale_learnt_where_icp_holds_keeps_the_length_of_a_tunnel(backend):
+    """Legs that over-read each step by 3 %: ICP holds every axis for 20 m, then x is masked for 10 m,
+    as along a tunnel. With the scale as a state the blind stretch is walked at its true length."""
+    def walk(axes):
+        fusion = BACKENDS[backend](np.eye(4), FusionConfig(odometry_bias=axes))
+        truth, step, odom = np.eye(4), pose(0.1), pose(0.103)
+        sigmas = np.array([0.004, 0.004, 0.004, 3e-4, 3e-4, 6e-4])
+        for k in range(300):
+            truth = truth @ step
+            T, _ = fusion.add_step(odom, sigmas, step, np.r_[k >= 200, np.zeros(5, bool)])
+        return abs(T[0, 3] - truth[0, 3]), fusion
+
+    plain, _ = walk(())
+    scaled, fusion = walk(("scale",))
+    assert plain > 0.25  # 10 m blind at 3 % over
+    assert scaled < 0.2 * plain and fusion.odometry_bias == pytest.approx([0.03 / 1.03], rel=0.1)
+
+
 def test_the_filter_matches_the_smoother_with_the_legs_bias():
     """The graph holds one bias state per metre, the filter one per step: the same walk, within 1 mm."""
     *_, graph = biased_walk("graph", ("yaw", "z"), held_steps=100, blind_steps=50)
@@ -264,9 +283,10 @@ def test_the_legs_bias_survives_standing_still_missing_steps_and_refuses_bad_set
     assert "all axes masked" in report.fallback and np.isfinite(T).all()
     T, report = fusion.add_step(None, None, None, None)
     assert "constant-position" in report.fallback and np.isfinite(fusion.odometry_bias).all()
-    for bad in (dict(odometry_bias=("scale",)), dict(odometry_bias=("yaw", "yaw")),
-                dict(odometry_bias=("yaw",), odometry_bias_walk=(0.0, 1e-3)),
-                dict(odometry_bias=("z",), odometry_bias_sigmas=(np.nan, 1e-3))):
+    for bad in (dict(odometry_bias=("roll",)), dict(odometry_bias=("yaw", "yaw")),
+                dict(odometry_bias=("yaw",), odometry_bias_walk=(0.0, 1e-3, 1e-4)),
+                dict(odometry_bias=("z",), odometry_bias_sigmas=(np.nan, 1e-3, 0.02)),
+                dict(odometry_bias=("scale",), odometry_bias_sigmas=(1e-3, 1e-3))):
         with pytest.raises(ValueError, match="odometry_bias"):
             BACKENDS[backend](np.eye(4), FusionConfig(**bad))
 

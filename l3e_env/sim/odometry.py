@@ -48,6 +48,12 @@ class LegOdometry:
         return pose_to_matrix(noisy)
 
 
+# the stride's scale error is constant over an episode here; the fusion's state for it still
+# wanders a little, as a real robot's does with its load and its ground (and a zero walk would make
+# the graph's tie between its states singular)
+SCALE_WALK = 1e-4  # per square-root metre
+
+
 def odometry_fusion_config(odometry: OdometryConfig, settings: FusionSettings = FusionSettings(),
                            **overrides) -> FusionConfig:
     """The estimator's checked FusionConfig for `settings` (and any other FusionConfig fields), its
@@ -57,8 +63,9 @@ def odometry_fusion_config(odometry: OdometryConfig, settings: FusionSettings = 
 
     if settings.ground_normals:
         overrides = {"icp_residual_variance": GROUND_NORMALS_RESIDUAL_VARIANCE, **overrides}
-    return check_config(FusionConfig(odometry_bias_sigmas=(odometry.yaw_bias_std, odometry.z_bias_std),
-                                     odometry_bias_walk=(odometry.yaw_bias_walk, odometry.z_bias_walk),
+    return check_config(FusionConfig(odometry_bias_sigmas=(odometry.yaw_bias_std, odometry.z_bias_std,
+                                                           odometry.scale_error_std),
+                                     odometry_bias_walk=(odometry.yaw_bias_walk, odometry.z_bias_walk, SCALE_WALK),
                                      mode=settings.mode, odometry_bias=tuple(settings.odometry_bias), **overrides))
 
 
