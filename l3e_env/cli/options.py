@@ -40,7 +40,7 @@ SENSOR_HELP = ("a built-in LiDAR (vlp16, vlp16-calibrated, hdl32e, vlp32c, os0-1
 
 
 def bias_axes(text: str) -> tuple[str, ...]:
-    """argparse type: "none", or comma-separated axes among fusion.bias.BIAS_AXES ("yaw", "yaw,z")."""
+    """argparse type: "none", or comma-separated axes among fusion.bias.BIAS_AXES ("yaw", "yaw,z,scale")."""
     from fusion.bias import BIAS_AXES, check_bias_axes
 
     axes = () if text.strip() == "none" else tuple(a.strip() for a in text.split(","))
@@ -56,8 +56,8 @@ def add_fusion_options(parser: argparse.ArgumentParser) -> None:
     """--odometry-bias and --ground-normals, read back by `fusion_settings` (`l3e ate`, `l3e sweep`,
     `l3e policy evaluate`)."""
     parser.add_argument("--odometry-bias", type=bias_axes, default=(), metavar="AXES",
-                        help="estimate the leg odometry's per-metre biases as states of the fusion: yaw, z or "
-                             "yaw,z (default none; see docs/decisions.md)")
+                        help="estimate the leg odometry's biases as states of the fusion: yaw, z (per metre), "
+                             "scale (the stride's), comma-separated (default none; see docs/decisions.md)")
     parser.add_argument("--ground-normals", action="store_true",
                         help="the fusion's ICP gives the ground's voxels the fitted plane's normal, which removes "
                              "most of its step bias beside walls; a registration the classifier's labels were not "

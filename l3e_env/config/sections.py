@@ -68,7 +68,7 @@ class FusionSettings:
     revolution's deskewing takes its rotation from (its translation is the leg odometry's);
     attitude: none | tilt | full, the IMU's orientation fused once a second (tilt: roll and pitch,
     which gravity holds; full: with the magnetometer's heading); odometry_bias: the leg odometry's
-    biases estimated as fusion states, () or among "yaw" and "z" (see fusion.bias; their prior is the
+    biases estimated as fusion states, () or among "yaw", "z" and "scale" (see fusion.bias; their prior is the
     odometry config's); detector_process: a learned detector judges each scan in a process of its
     own while the step registers it (detection.ahead; the same answers, faster where a core is
     free); ground_normals: the fusion's scan-to-scan ICP gives the ground's voxels the fitted
