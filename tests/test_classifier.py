@@ -251,12 +251,19 @@ def test_sensor_or_registration_mismatch_is_a_warning_and_a_match_is_silent(tmp_
         clf.check_settings("vlp16")
         clf.check_settings("vlp16-calibrated")  # the same sensor, its beams' origins calibrated
     assert [str(w.message) for w in caught] == ["the classifier was trained on vlp16 scans and now sees os0-128 scans"]
-    clf.meta["registration"] = {"max_iterations": 15}
+    from dataclasses import asdict
+
+    from l3e_env.localizability.registration import RegistrationConfig
+
+    before = asdict(RegistrationConfig())
+    del before["ground_normals"]  # a checkpoint stored before the option existed: made without it
+    clf.meta["registration"] = before
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        clf.check_settings(registration={"max_iterations": 30})
-        clf.check_settings(registration={"max_iterations": 15})
-    assert len(caught) == 1 and "other registration settings" in str(caught[0].message)
+        clf.check_settings(registration=asdict(RegistrationConfig(max_iterations=30)))
+        clf.check_settings(registration=asdict(RegistrationConfig(ground_normals=True)))
+        clf.check_settings(registration=asdict(RegistrationConfig()))
+    assert len(caught) == 2 and all("other registration settings" in str(w.message) for w in caught)
 
 
 def test_region_rows_split_the_scenes_by_their_named_places():
@@ -658,3 +665,13 @@ def test_one_scan_is_judged_on_one_torch_thread_and_the_threads_are_set_back(mon
         assert seen == [1] and torch.get_num_threads() == 2
     finally:
         torch.set_num_threads(before)
+
+
+def test_the_shipped_model_with_the_default_registration_warns_of_nothing():
+    import warnings
+
+    from l3e_env.detection.detectors import make_detector
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert make_detector("learned").name == "learned"

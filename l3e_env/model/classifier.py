@@ -22,6 +22,7 @@ from torch import nn
 from l3e_env.config import from_dict, plain
 from l3e_env.core.files import write_atomic
 from l3e_env.core.points import out_of_reach
+from l3e_env.localizability.registration import RegistrationConfig
 
 from .constraints import FEATURES, SURFACE_FEATURES, AxisStacker, scan_features, surface_rows
 from .sparse import (DownConv, GatherConv, Level, SubmanifoldConv, UpConv, global_max_pool, int8_products_work,
@@ -505,7 +506,11 @@ class Classifier:
             warnings.warn(f"the classifier was trained on {trained} scans and now sees {lidar_model} scans",
                           stacklevel=2)
         in_use = json.loads(json.dumps(registration)) if registration is not None else None
-        if in_use is not None and self.meta.get("registration") not in (None, in_use):
+        stored = self.meta.get("registration")
+        # settings stored before an option existed were made as its default makes them
+        labelled = None if stored is None else json.loads(json.dumps(dataclasses.asdict(
+            from_dict(RegistrationConfig, stored))))
+        if in_use is not None and labelled not in (None, in_use):
             warnings.warn("the classifier's labels were made with other registration settings than the "
                           "ones in use", stacklevel=2)
 
