@@ -18,9 +18,10 @@ def _cmd_judge(args: argparse.Namespace) -> int:
 
     from l3e_env.config import LidarConfig
     from l3e_env.experiments.judge import format_judgement, judge_scans, judgement_record, score_legend
-    from l3e_env.io.ouster import is_capture, read_capture
+    from l3e_env.io.ouster import is_capture
     from l3e_env.io.recorded import RecordingError
-    from l3e_env.io.rosbag import read_bag, read_path
+    from l3e_env.io.recordings import read_recording
+    from l3e_env.io.rosbag import read_path
 
     if bool(args.scans) == bool(args.bag):
         print("l3e judge: give scan files or --bag, not both and not neither", file=sys.stderr)
@@ -31,16 +32,13 @@ def _cmd_judge(args: argparse.Namespace) -> int:
     if not args.bag and (args.path_plot or args.pose_topic):
         print("l3e judge: --path-plot and --pose-topic read the path from a bag: give --bag", file=sys.stderr)
         return 2
-    capture = bool(args.bag) and is_capture(args.bag)
-    if capture and (args.topic or args.path_plot or args.pose_topic):
+    if args.bag and is_capture(args.bag) and (args.topic or args.path_plot or args.pose_topic):
         print("l3e judge: --topic, --path-plot and --pose-topic read a ROS bag, not an Ouster capture", file=sys.stderr)
         return 2
     metadata = args.sensor if args.sensor and args.sensor.lower().endswith(".json") else None
     try:
-        if capture:
-            scans = read_capture(args.bag, metadata, args.every, args.start, args.end)
-        else:
-            scans = read_bag(args.bag, args.topic, args.every, args.start, args.end) if args.bag else args.scans
+        scans = (read_recording(args.bag, args.topic, args.every, args.start, args.end, metadata) if args.bag
+                 else args.scans)
         route = read_path(args.bag, args.pose_topic) if args.bag and (args.path_plot or args.pose_topic) else None
     except RecordingError as exc:
         print(f"l3e judge: {exc}", file=sys.stderr)
@@ -102,9 +100,9 @@ def _cmd_sensor(args: argparse.Namespace) -> int:
     from l3e_env.experiments.judge import recognise_sensor
     from l3e_env.io.scan_files import ScanFileError, read_scan
     from l3e_env.sim.patterns import PATTERN_FILES, PATTERNS, describe_pattern, get_pattern, save_pattern
-    from l3e_env.io.ouster import is_capture, read_capture
+    from l3e_env.io.ouster import is_capture
     from l3e_env.io.recorded import RecordingError
-    from l3e_env.io.rosbag import read_bag
+    from l3e_env.io.recordings import read_recording
 
     if bool(args.source) == bool(args.bag):
         print("l3e sensor: give a sensor (name or pattern file), a scan file or --bag, one of them", file=sys.stderr)
@@ -118,7 +116,7 @@ def _cmd_sensor(args: argparse.Namespace) -> int:
                 read_scan(args.source)  # a file that cannot be read is named here
                 scans = iter([args.source])
             else:
-                scans = read_capture(recording) if is_capture(recording) else read_bag(recording, args.topic)
+                scans = read_recording(recording, args.topic)
         except (RecordingError, ScanFileError) as exc:
             print(f"l3e sensor: {exc}", file=sys.stderr)
             return 2
