@@ -270,7 +270,7 @@ def test_fusion_in_the_loop_takes_the_imu_attitude_once_a_second_from_a_stream_o
     with pytest.raises(ValueError, match="unknown option.*icp_covariance"):  # the estimator weighs by the Hessian
         NavigationEnv(dict(scene="tunnel", fusion=dict(enabled=True, detector="none", icp_covariance="fixed")))
     with pytest.raises(ValueError, match="odometry_bias takes distinct axes"):
-        NavigationEnv(dict(scene="tunnel", fusion=dict(enabled=True, detector="none", odometry_bias=["scale"])))
+        NavigationEnv(dict(scene="tunnel", fusion=dict(enabled=True, detector="none", odometry_bias=["roll"])))
 
 
 def test_the_odometry_noise_is_the_same_whatever_the_sensor():

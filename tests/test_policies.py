@@ -419,7 +419,7 @@ def test_full_pipeline_evaluation_on_the_small_fork(small_fork, monkeypatch, tmp
                                      cache_dir=cache, steer_on="truth", progress=False)
     with pytest.raises(ValueError, match="odometry_bias takes distinct axes"):
         evaluation.evaluate_policies(tmp_path / "bad", ["shortest"], ["fork-0"], episodes=1, detector="eigen:30",
-                                     cache_dir=cache, fusion_settings=FusionSettings(odometry_bias=("scale",)))
+                                     cache_dir=cache, fusion_settings=FusionSettings(odometry_bias=("roll",)))
     assert not (tmp_path / "bad").exists()
     with pytest.raises(ValueError, match="unknown policy"):
         evaluation.make_controller("wander", "fork-0", "eigen:30", cache, 50.0)
