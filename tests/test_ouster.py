@@ -149,3 +149,10 @@ def test_the_cli_reads_a_capture_as_a_recording_and_its_sensor(tmp_path, capsys)
     assert main(["sensor", str(OS0_8)]) == 0
     said = capsys.readouterr().out
     assert "8 beams" in said and "2048 columns" in said and "from the metadata" in said
+
+
+def test_a_librarys_warning_is_a_line_of_the_commands_own(capsys):
+    assert main(["judge", "--bag", str(OS0_8), "--sensor", str(_metadata(OS0_8)), "--detector", "learned",
+                 "--every", "5"]) == 0
+    err = capsys.readouterr().err
+    assert "l3e judge: warning: the classifier was trained on vlp16 scans" in err and "UserWarning" not in err

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import warnings
 from importlib.metadata import entry_points, version
 
 from . import data, drive, model, scans
@@ -26,8 +27,15 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = resolve(build_parser(), argv)
+
+    def show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+        # a library's warning as a line of the command's own, not Python's with its source line
+        print(f"l3e {args.command}: warning: {message}", file=sys.stderr)
+
     try:
-        status = int(args.func(args))
+        with warnings.catch_warnings():
+            warnings.showwarning = show_warning
+            status = int(args.func(args))
     except (ValueError, RuntimeError, OSError) as exc:
         print(f"l3e {args.command}: error: {exc}", file=sys.stderr)
         return 2
