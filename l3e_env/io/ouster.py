@@ -113,7 +113,6 @@ def read_capture(path: str | Path, metadata: str | Path | None = None, every: in
 
 def _scans(scans: Iterator, path: Path, pattern: BeamPattern, lut, core, log: _SdkLog, every: int, start: float | None,
            end: float | None) -> Iterator[RecordedScan]:
-    to_sensor = np.asarray(pattern.lidar_to_sensor or np.eye(4).ravel(), dtype=np.float64).reshape(4, 4)
     began = None
     for k, scan in enumerate(scans):
         said = log.news()  # the SDK decodes a scan while it is read: what it logged belongs to this one
@@ -135,8 +134,7 @@ def _scans(scans: Iterator, path: Path, pattern: BeamPattern, lut, core, log: _S
             continue
         ranges = scan.field(core.ChanField.RANGE)
         kept = ranges > 0  # no return: the SDK puts it at the beam's origin, not at the lidar's
-        xyz = lut(ranges)[kept].astype(np.float64)
-        points = (xyz - to_sensor[:3, 3]) @ to_sensor[:3, :3]
+        points = pattern.from_sensor_frame(lut(ranges)[kept].astype(np.float64))
         rings = np.nonzero(kept)[0].astype(np.int64)
         yield RecordedScan(name, stamp, points, rings=rings, pattern=pattern,
                            frame=TURNED if pattern.lidar_to_sensor else None)

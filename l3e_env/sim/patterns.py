@@ -40,6 +40,14 @@ class BeamPattern:
     # sensor frame, this pattern's beams in the lidar frame; empty: the two are one
     lidar_to_sensor: tuple[float, ...] = ()
 
+    def from_sensor_frame(self, points: np.ndarray) -> np.ndarray:
+        """(N, 3) points of the SDK's sensor frame in this pattern's lidar frame (as given where the
+        two are one)."""
+        if not self.lidar_to_sensor:
+            return np.asarray(points)
+        to_sensor = np.asarray(self.lidar_to_sensor, dtype=np.float64).reshape(4, 4)
+        return (np.asarray(points, dtype=np.float64) - to_sensor[:3, 3]) @ to_sensor[:3, :3]
+
     @property
     def n_beams(self) -> int:
         return len(self.elevations_deg)
@@ -509,12 +517,11 @@ ON_BEAMS = 0.9  # the share of a scan's returns that lie on the beams when it is
 def in_lidar_frame(points: np.ndarray, pattern: BeamPattern) -> tuple[np.ndarray, str | None]:
     """A cloud of `pattern` in its lidar frame, the frame its beams are in, and a note where it came in
     another. An Ouster SDK's clouds (XYZLut) are in its sensor frame, the lidar frame turned 180 deg
-    about z and lifted 36-38 mm (`lidar_to_sensor`, from the metadata): the frame whose returns lie on
-    the beams is taken; a cloud that lies on them in neither is refused, naming both."""
+    about z and lifted 36-38 mm (`lidar_to_sensor`, from the metadata): the frame whose returns lie
+    closer to the beams is taken; a cloud that lies on them in neither is refused, naming both."""
     if not pattern.lidar_to_sensor:
         return points, None
-    to_sensor = np.asarray(pattern.lidar_to_sensor, dtype=np.float64).reshape(4, 4)
-    back = (np.asarray(points, dtype=np.float64) - to_sensor[:3, 3]) @ to_sensor[:3, :3]
+    back = pattern.from_sensor_frame(points)
     tolerance = BEAM_TOLERANCE * pattern.spacing_deg()
     off = [pattern.locate(cloud)[2] for cloud in (points, back)]  # deg from the nearest beam
     shares = [float(np.mean(o <= tolerance)) for o in off]
