@@ -132,7 +132,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     rows = evaluate_policies(out, args.policy or ["shortest", "planner"], list(scenes), args.episodes, args.seed,
                              args.detector, args.cache_dir, args.lam, args.workers, steer_on=args.steer_on,
                              progress=not args.quiet, scene_params={k: v for k, v in scenes.items() if v},
-                             fusion_settings=fusion_settings(args), recovery=args.recovery)
+                             fusion_settings=fusion_settings(args), recovery=args.recovery, avoid=args.avoid)
     print(format_rows(rows))
     print(f"routes: {out / 'routes.png'}")
     return 0
@@ -203,6 +203,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--recovery", action=argparse.BooleanOptionalAction,
                    help="a robot blocked for 1 s backs off along its last command reversed for 1 s, then the "
                         "policy acts again (default: a resumed folder's own, else on)")
+    g.add_argument("--avoid", action=argparse.BooleanOptionalAction,
+                   help="the policies keep off what the live scan shows ahead (a free heading nearest the one "
+                        "wanted), as a robot's local planner does (default: a resumed folder's own, else on)")
     g.add_argument("--steer-on", dest="steer_on", choices=["estimate", "truth"], default="estimate",
                    help="pose the policies steer on (default: the fused estimate); ATE is measured either way")
     add_fusion_options(g)

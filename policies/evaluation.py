@@ -6,7 +6,9 @@ still measures the fused estimate's error, separating route choice from getting 
 
 Per episode: success (reached the goal within the time limit), whether it took the scene's
 feature-rich route, final and mean position error of the fused estimate against ground truth,
-path length, and (with `recovery`) how often the robot backed off a wedge."""
+path length, and (with `recovery`) how often the robot backed off a wedge. With `avoid` the
+policies keep off what the live scan shows ahead (l3e_env.sim.avoidance), as a robot's local
+planner does, so that an estimate a metre off turns a wall ahead into a detour round it."""
 from __future__ import annotations
 
 import json
@@ -22,6 +24,7 @@ from tqdm import tqdm
 from l3e_env.config import FusionSettings, OdometryConfig, settings_changed
 from l3e_env.core.transforms import yaw_of
 from l3e_env.envs import NavigationEnv
+from l3e_env.sim.avoidance import FreeHeadings
 from l3e_env.sim.follower import RouteFollower
 from l3e_env.sim.odometry import odometry_fusion_config
 
@@ -65,12 +68,12 @@ class BackOff:
         self.recovering = False
         self.last = np.zeros(3, dtype=np.float32)
 
-    def __call__(self, T: np.ndarray, i: int) -> np.ndarray:
+    def __call__(self, T: np.ndarray, i: int, obstacles: np.ndarray | None = None) -> np.ndarray:
         self.recovering = self.backing > 0
         if self.recovering:
             self.backing -= 1
             return -self.last
-        self.last = np.asarray(self.controller(T, i), dtype=np.float32)
+        self.last = np.asarray(self.controller(T, i, obstacles), dtype=np.float32)
         return self.last
 
     def observe(self, blocked: bool) -> None:
@@ -117,18 +120,19 @@ def _unknown_policy(policy: str) -> ValueError:
 
 def make_controller(policy: str, scene: str, detector: str, cache_dir: str | Path | None, lam: float,
                     scene_params: dict | None = None, odometry: OdometryConfig | None = None,
-                    context: SceneContext | None = None
-                    ) -> tuple[Callable[[np.ndarray, int], np.ndarray], float | None]:
-    """A function (T_w_b estimate, step index) -> normalised twist, for one scene, and for a route
-    policy the drift its plan is expected to cost (`odometry`: the environment's leg odometry, whose
-    noise model gives the drift rates; `context`: the scene with `detector`'s map, where the caller
-    holds it)."""
+                    context: SceneContext | None = None, avoid: FreeHeadings | None = None
+                    ) -> tuple[Callable[[np.ndarray, int, np.ndarray | None], np.ndarray], float | None]:
+    """A function (T_w_b estimate, step index, the scan's obstacles or None) -> normalised twist, for
+    one scene, and for a route policy the drift its plan is expected to cost (`odometry`: the
+    environment's leg odometry, whose noise model gives the drift rates; `context`: the scene with
+    `detector`'s map, where the caller holds it; `avoid`: the local layer that keeps off the
+    obstacles, None to follow the policy blind)."""
     if policy in ROUTE_POLICIES:
         ctx = context or scene_context(scene, detector, cache_dir, build=False, scene_params=scene_params)
         plan = Planner(ctx.space, ctx.locmap, lam=lam if policy == "planner" else 0.0,
                        odometry=odometry).plan(ctx.scene.start[:2], ctx.scene.goal)
-        follower = RouteFollower(route_of(plan, ctx.space))
-        return (lambda T, i: follower(T)), plan.expected_drift
+        follower = RouteFollower(route_of(plan, ctx.space), avoid=avoid)
+        return (lambda T, i, obstacles: follower(T, obstacles)), plan.expected_drift
     if policy.startswith("ppo:"):
         from .ppo import PPOPolicy
 
@@ -138,10 +142,12 @@ def make_controller(policy: str, scene: str, detector: str, cache_dir: str | Pat
         view = PolicyView(ctx.space, ctx.locmap, ctx.scene.goal, float(model.meta["fast_env"]["lam"]))
         held = {"action": np.zeros(3, dtype=np.float32)}
 
-        def act(T: np.ndarray, i: int) -> np.ndarray:
+        def act(T: np.ndarray, i: int, obstacles: np.ndarray | None) -> np.ndarray:
             if i % model.action_repeat == 0:
                 held["action"] = model(view(T[0, 3], T[1, 3], yaw_of(T)))
-            return held["action"]
+            if avoid is None or obstacles is None:
+                return held["action"]
+            return avoid.guard(held["action"], obstacles)
 
         return act, None
     raise _unknown_policy(policy)
@@ -153,7 +159,7 @@ STEER_ON = ("estimate", "truth")
 def run_episode(policy: str, scene: str, seed: int, detector: str = "learned", cache_dir: str | Path | None = None,
                 lam: float = 50.0, backend: str = "graph", steer_on: str = "estimate",
                 scene_params: dict | None = None, fusion_settings: FusionSettings = FusionSettings(),
-                recovery: bool = True) -> Episode:
+                recovery: bool = True, avoid: bool = True) -> Episode:
     import torch
 
     torch.set_num_threads(1)
@@ -161,15 +167,18 @@ def run_episode(policy: str, scene: str, seed: int, detector: str = "learned", c
                         fusion={**asdict(fusion_settings), "enabled": True, "detector": detector, "backend": backend})
     try:
         ctx = scene_context(scene, detector, cache_dir, build=False, scene_params=scene_params)
+        local = FreeHeadings() if avoid else None
         steer, planned = make_controller(policy, scene, detector, cache_dir, lam, scene_params, env.config.odometry,
-                                         ctx)
+                                         ctx, local)
         controller = BackOff(steer)
         _, info = env.reset(seed=seed)
         trail, length, terminated, truncated = [info["T_w_b"][:2, 3]], 0.0, False, False
         while not (terminated or truncated):
             previous = info["T_w_b"][:3, 3]
             pose = info["fused_T_w_b"] if steer_on == "estimate" else info["T_w_b"]
-            _, _, terminated, truncated, info = env.step(controller(pose, env.steps))
+            obstacles = None if local is None else \
+                FreeHeadings.obstacles(env.scan.points, env.robot.T_b_s, env.config.robot)
+            _, _, terminated, truncated, info = env.step(controller(pose, env.steps, obstacles))
             if recovery:
                 controller.observe(info["blocked"])
             length += float(np.linalg.norm(info["T_w_b"][:3, 3] - previous))
@@ -233,12 +242,13 @@ def evaluate_policies(out: str | Path, policies: list[str], scenes: list[str], e
                       workers: int = 1, backend: str = "graph", steer_on: str = "estimate",
                       progress: bool = True, scene_params: dict[str, dict] | None = None,
                       fusion_settings: FusionSettings = FusionSettings(),
-                      recovery: bool | None = None) -> list[dict[str, Any]]:
+                      recovery: bool | None = None, avoid: bool | None = None) -> list[dict[str, Any]]:
     """Episode i of every policy runs on scenes[i % len(scenes)] with environment seed seed + i.
     `scene_params`: make_scene's arguments by scene name (a mesh's up axis, scale and route).
     `fusion_settings`: the fusion's (as `FusionSettings` gives them in the environment).
-    `recovery`: a wedged robot backs off (BackOff) instead of staying there; None: as the folder's
-    episodes so far, else on.
+    `recovery`: a wedged robot backs off (BackOff) instead of staying there; `avoid`: the policies
+    keep off the obstacles the scan shows ahead (FreeHeadings); None: as the folder's episodes so
+    far, else on.
     Writes episodes.jsonl, summary.json, summary.txt, routes.png and drift.png (the drift model's
     expectation of each path against the final error measured) into `out`."""
     from .plots import plot_drift_check, plot_paths
@@ -260,12 +270,15 @@ def evaluate_policies(out: str | Path, policies: list[str], scenes: list[str], e
     held = json.loads(settings_file.read_text()) if settings_file.exists() else None
     if recovery is None:
         recovery = held.get("recovery", True) if held else True
+    if avoid is None:
+        avoid = held.get("avoid", True) if held else True
     jobs = [(p, scenes[i % len(scenes)], seed + i, detector, cache_dir, lam, backend, steer_on,
-             params.get(scenes[i % len(scenes)]), fusion_settings, recovery) for i in range(episodes) for p in policies]
+             params.get(scenes[i % len(scenes)]), fusion_settings, recovery, avoid)
+            for i in range(episodes) for p in policies]
     # episodes are appended as they finish; a killed evaluation resumes where it stopped, with the
     # settings it started with
     run = {"detector": detector, "lam": lam, "backend": backend, "steer_on": steer_on,
-           **fusion_settings.record(), "recovery": recovery}  # also in summary.json
+           **fusion_settings.record(), "recovery": recovery, "avoid": avoid}  # also in summary.json
     settings = dict(run)
     if params:  # left out without a mesh, so that folders written before meshes were taken resume
         settings["scene_params"] = params

@@ -436,7 +436,7 @@ def test_back_off_reverses_the_last_command_after_blocked_steps():
     from policies.evaluation import BackOff
 
     commands = iter(np.array([[1.0, 0.5, 0.2], [0.3, 0.0, 0.0], [0.0, 1.0, 0.0]] * 20, dtype=np.float32))
-    back_off = BackOff(lambda T, i: next(commands), after=3, steps=2)
+    back_off = BackOff(lambda T, i, obstacles: next(commands), after=3, steps=2)
     actions = []
     for blocked in [True, True, False, True, True, True, True, True, False, False]:
         actions.append(back_off(np.eye(4), len(actions)))
@@ -449,7 +449,7 @@ def test_back_off_reverses_the_last_command_after_blocked_steps():
     np.testing.assert_allclose(actions[8], [1.0, 0.5, 0.2], rtol=1e-6)  # the next command
     assert back_off.recoveries == 1
     with pytest.raises(ValueError, match="at least 1"):
-        BackOff(lambda T, i: np.zeros(3), after=0)
+        BackOff(lambda T, i, obstacles: np.zeros(3), after=0)
 
 
 def test_policy_commands_are_registered(capsys):
@@ -522,8 +522,10 @@ def test_a_users_mesh_is_driven_by_the_policies(cad_corridor, tmp_path, capsys, 
     assert main([*args, "--route", str(route), "--no-recovery"]) == 2  # the recovery is on by default
     assert "other settings (recovery True, now False)" in capsys.readouterr().err
     assert main([*args, "--route", str(route), "--recovery"]) == 0
+    assert main([*args, "--route", str(route), "--no-avoid"]) == 2  # the local layer too
+    assert "other settings (avoid True, now False)" in capsys.readouterr().err
     settings = json.loads((tmp_path / "ev" / "settings.json").read_text())
-    assert settings.pop("odometry_bias") == [] and settings.pop("recovery") is True
+    assert settings.pop("odometry_bias") == [] and settings.pop("recovery") is True and settings["avoid"] is True
     (tmp_path / "ev" / "settings.json").write_text(json.dumps(settings))  # a folder that does not say its options
     assert main([*args, "--route", str(route)]) == 2
     assert "other settings (odometry_bias None, now [], recovery None, now True)" in capsys.readouterr().err
