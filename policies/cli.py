@@ -106,7 +106,7 @@ def non_negative(text: str) -> float:
 
 def _cmd_train(args: argparse.Namespace) -> int:
     from .context import scene_context
-    from .ppo import TRAIN_VARIANTS, require_sb3, resumed_config, train_ppo
+    from .ppo import TRAIN_VARIANTS, WarmStart, require_sb3, resumed_config, train_ppo
 
     require_sb3()  # before minutes of maps, not after
     scenes = _scenes_with_params(args, tuple(TRAIN_VARIANTS))
@@ -115,7 +115,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
                               scene_params=params) for name, params in scenes.items()]
     config = resumed_config(args.out, lam=args.lam, lateral_drift=args.lateral_drift)
     summary = train_ppo(args.out, contexts, args.detector, args.timesteps, args.seed, args.envs, config,
-                        progress=not args.quiet)
+                        progress=not args.quiet, warm=WarmStart() if args.warm_start else None)
     print(f"{summary['timesteps']} steps; policy: {Path(args.out) / 'policy.pt'}; logs: progress.csv, monitor.csv")
     return 0
 
@@ -180,6 +180,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--scene", type=scene_names, action="append", help="training variants (default: fork-0 ... fork-6)")
     g.add_argument("--detector", default="learned", type=map_detector, help="map detector (default: learned)")
     g.add_argument("--timesteps", type=int, default=300_000, help="decisions of 0.5 s (default 300000)")
+    g.add_argument("--warm-start", action=argparse.BooleanOptionalAction, default=True,
+                   help="a new run first clones the planner's choice (the observation's localizability-aware "
+                        "direction) from noisy walks of every training scene, then PPO goes on from there "
+                        "(default: on; a resumed run goes on from its own weights)")
     g.add_argument("--envs", type=int, default=4, help="environments stepped together (default 4)")
     g.add_argument("--lam", type=non_negative, help="weight of expected drift in the reward (default: a resumed "
                                                     "run's own, else 50)")

@@ -43,7 +43,7 @@ def require_sb3():
     return stable_baselines3
 
 
-POLICY_FILE, STATE_FILE, META_FILE = "policy.pt", "last.pt", "policy.json"
+POLICY_FILE, STATE_FILE, META_FILE, WARM_FILE = "policy.pt", "last.pt", "policy.json", "warm_start.json"
 NET_ARCH = [64, 64]
 PPO_SETTINGS = {"n_steps": 256, "batch_size": 256, "n_epochs": 10, "learning_rate": 3e-4, "gamma": 0.99,
                 "gae_lambda": 0.95, "ent_coef": 0.0}
@@ -92,11 +92,90 @@ def _has_tensorboard() -> bool:
     return importlib.util.find_spec("tensorboard") is not None
 
 
+def teacher_action(obs: np.ndarray) -> np.ndarray:
+    """The planner's choice as a twist: walk towards the observation's localizability-aware path
+    direction (downhill on the planner's cost-to-go) as the route follower walks towards its
+    look-ahead point, forward at the cosine of the turn, turning at 1.5 its angle. A function of
+    the observation alone, so that the network can hold it exactly."""
+    aware = np.asarray(obs, dtype=np.float64)[..., PolicyView.aware]
+    turn = np.arctan2(aware[..., 1], aware[..., 0])
+    return np.stack([np.clip(np.cos(turn), 0.0, 1.0), np.zeros_like(turn), np.clip(1.5 * turn, -1.0, 1.0)],
+                    -1).astype(np.float32)
+
+
+@dataclasses.dataclass
+class WarmStart:
+    """Behaviour cloning before PPO: the teacher (teacher_action) walks every training scene
+    `episodes` times with Gaussian noise of `noise` on its executed twist, so that the states off
+    its path are seen too, each labelled with the teacher's own twist (as DAgger labels them); the
+    network's mean action is fitted to the labels and its value to the discounted returns for
+    `epochs` passes, and its exploration noise starts at `std`. PPO from scratch on the long
+    bypass variants wanders for a million steps; from here it starts at the planner's behaviour."""
+
+    episodes: int = 4
+    noise: float = 0.4
+    epochs: int = 30
+    std: float = 0.2
+
+
+def demonstrations(contexts: list[SceneContext], config: FastEnvConfig, warm: WarmStart, seed: int = 0
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(observations, teacher twists, discounted returns) from the teacher's noisy walks."""
+    rng = np.random.default_rng(seed)
+    observations, actions, returns = [], [], []
+    gamma = PPO_SETTINGS["gamma"]
+    for ctx in contexts:
+        env = MapNavigationEnv([ctx], config)
+        for episode in range(warm.episodes):
+            obs, _ = env.reset(seed=int(rng.integers(2**31)))
+            rewards, done = [], False
+            while not done:
+                label = teacher_action(obs)
+                observations.append(obs), actions.append(label)
+                act = np.clip(label + rng.normal(0.0, warm.noise, 3), -1.0, 1.0)
+                obs, reward, terminated, truncated, _ = env.step(act)
+                rewards.append(reward)
+                done = terminated or truncated
+            to_go, running = np.zeros(len(rewards)), 0.0
+            for k in range(len(rewards) - 1, -1, -1):
+                running = rewards[k] + gamma * running
+                to_go[k] = running
+            returns.append(to_go)
+    return np.array(observations, np.float32), np.array(actions, np.float32), np.concatenate(returns).astype(np.float32)
+
+
+def clone(policy: Any, observations: np.ndarray, actions: np.ndarray, returns: np.ndarray, warm: WarmStart,
+          seed: int = 0) -> float:
+    """Fit an SB3 ActorCriticPolicy's mean action to `actions` and its value to `returns`; returns
+    the final mean squared error of the actions."""
+    import torch
+
+    generator = torch.Generator().manual_seed(seed)
+    obs, act, ret = (torch.as_tensor(a) for a in (observations, actions, returns))
+    optimiser = torch.optim.Adam(policy.parameters(), lr=1e-3)
+    error = float("nan")
+    for _ in range(warm.epochs):
+        order, errors = torch.randperm(len(obs), generator=generator), []
+        for batch in order.split(256):
+            distribution = policy.get_distribution(obs[batch]).distribution
+            action_error = ((distribution.mean - act[batch]) ** 2).mean()
+            value_error = ((policy.predict_values(obs[batch]).squeeze(-1) - ret[batch]) ** 2).mean()
+            optimiser.zero_grad()
+            (action_error + 1e-3 * value_error).backward()
+            optimiser.step()
+            errors.append(action_error.item())
+        error = float(np.mean(errors))
+    with torch.no_grad():
+        policy.log_std.fill_(float(np.log(warm.std)))
+    return error
+
+
 def train_ppo(out: str | Path, contexts: list[SceneContext], detector: str = "learned", timesteps: int = 300_000,
               seed: int = 0, n_envs: int = 4, config: FastEnvConfig | None = None,
-              progress: bool = True) -> dict[str, Any]:
+              progress: bool = True, warm: WarmStart | None = WarmStart()) -> dict[str, Any]:
     """Train (or resume) a PPO policy on the scenes' cached maps (made with `detector`, which
-    evaluation reads back from policy.json); returns the summary written there."""
+    evaluation reads back from policy.json); returns the summary written there. A new run starts
+    from `warm`'s behaviour cloning of the planner's choice (None: from random weights)."""
     sb3 = require_sb3()
     import torch
     from stable_baselines3.common.callbacks import BaseCallback
@@ -125,6 +204,11 @@ def train_ppo(out: str | Path, contexts: list[SceneContext], detector: str = "le
         except (KeyError, RuntimeError, ValueError, TypeError) as exc:
             raise PolicyCheckpointError(f"{last}: not the state of a run of this network ({exc}); train into "
                                         "another folder") from exc
+    elif warm is not None:
+        observations, actions, returns = demonstrations(contexts, config, warm, seed)
+        cloned = clone(model.policy, observations, actions, returns, warm, seed)
+        (out / WARM_FILE).write_text(json.dumps({**dataclasses.asdict(warm), "samples": len(observations),
+                                                 "action_mse": cloned}, indent=2))
     model.set_logger(configure(str(out), ["csv", *(["tensorboard"] if _has_tensorboard() else [])]))
     done = model.num_timesteps
 
@@ -148,8 +232,9 @@ def train_ppo(out: str | Path, contexts: list[SceneContext], detector: str = "le
     # a run resumed on other variants (a curriculum) keeps the record of every stage
     history = run_record(out).get("history", [])
     history.append({"scenes": scenes, "from_timestep": int(done), "to_timestep": int(model.num_timesteps)})
+    warm_record = json.loads((out / WARM_FILE).read_text()) if (out / WARM_FILE).exists() else None
     summary = {"observation": OBSERVATION, "net_arch": NET_ARCH, "scenes": scenes, "detector": detector,
-               "timesteps": int(model.num_timesteps),
+               "timesteps": int(model.num_timesteps), "warm_start": warm_record,
                "seed": seed, "fast_env": plain(dataclasses.asdict(config)), "history": history}
     (out / META_FILE).write_text(json.dumps(summary, indent=2))
     return summary

@@ -263,7 +263,7 @@ def test_policy_train_takes_the_sideways_cost_and_a_resumed_run_keeps_it(tmp_pat
 
     given = []
 
-    def fake_train(out, contexts, detector, timesteps, seed, envs, config, progress):
+    def fake_train(out, contexts, detector, timesteps, seed, envs, config, progress, warm):
         given.append((config.lateral_drift, config.lam))
         (Path(out) / "policy.json").parent.mkdir(parents=True, exist_ok=True)
         (Path(out) / "policy.json").write_text(json.dumps({"fast_env": plain(dataclasses.asdict(config))}))
@@ -346,6 +346,33 @@ def test_ppo_trains_resumes_and_refuses_other_observations(tmp_path, small_fork)
         PPOPolicy(out)
     with pytest.raises(PolicyCheckpointError, match="no policy.pt"):
         PPOPolicy(tmp_path / "nowhere")
+
+
+def test_teacher_walks_the_aware_direction_and_ppo_starts_from_its_clone(tmp_path, small_fork):
+    pytest.importorskip("stable_baselines3")
+    from policies.fastenv import FastEnvConfig
+    from policies.ppo import PPOPolicy, WarmStart, demonstrations, teacher_action, train_ppo
+
+    obs = np.zeros((3, PolicyView.size), dtype=np.float32)
+    obs[:, PolicyView.aware] = [[1.0, 0.0], [0.0, 1.0], [np.cos(-0.3), np.sin(-0.3)]]
+    np.testing.assert_allclose(teacher_action(obs), [[1, 0, 0], [0, 0, 1], [np.cos(0.3), 0, -0.45]], atol=1e-6)
+    scene, space, cache = small_fork
+    contexts = [SceneContext(scene, space, get_map(scene, space, "eigen:30", cache, resolution=4.0))]
+    warm = WarmStart(episodes=2, epochs=300)  # a few samples: more passes
+    observations, actions, returns = demonstrations(contexts, FastEnvConfig(), warm)
+    assert len(observations) == len(actions) == len(returns) > 20 and np.isfinite(returns).all()
+    np.testing.assert_allclose(actions, teacher_action(observations))  # labelled with the teacher's own twist
+    gaps = {}
+    for name, start in (("warm", warm), ("cold", None)):
+        # no PPO step after it: the network as cloned (or as drawn)
+        train_ppo(tmp_path / name, contexts, "eigen:30", timesteps=0, n_envs=1, config=FastEnvConfig(),
+                  progress=False, warm=start)
+        policy = PPOPolicy(tmp_path / name)
+        gaps[name] = float(np.abs(np.array([policy(o) for o in observations[:200]]) - actions[:200]).mean())
+    assert gaps["warm"] < 0.05 and gaps["cold"] > 0.2, gaps
+    record = json.loads((tmp_path / "warm" / "policy.json").read_text())["warm_start"]
+    assert record["samples"] == len(observations) and record["action_mse"] < 0.005
+    assert json.loads((tmp_path / "cold" / "policy.json").read_text())["warm_start"] is None
 
 
 class _Payload:
