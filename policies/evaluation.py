@@ -4,7 +4,9 @@ estimate, the pose the robot believes, so that a policy that walks where localiz
 pays for it in its ATE and may miss the goal; `steer_on="truth"` steers on the true pose and
 still measures the fused estimate's error, separating route choice from getting lost.
 
-Per episode: success (reached the goal within the time limit), whether it took the scene's
+Per episode: success (the true pose within the goal radius where the episode ended: steering on
+the estimate, the robot stops where it believes the goal is, as a robot does, and is judged
+there; steering on the truth, on arrival; within the time limit), whether it took the scene's
 feature-rich route, final and mean position error of the fused estimate against ground truth,
 path length, and (with `recovery`) how often the robot backed off a wedge. With `avoid` the
 policies keep off what the live scan shows ahead (l3e_env.sim.avoidance), as a robot's local
@@ -163,7 +165,8 @@ def run_episode(policy: str, scene: str, seed: int, detector: str = "learned", c
     import torch
 
     torch.set_num_threads(1)
-    env = NavigationEnv(scene=scene, scene_params=scene_params or {},
+    # steering on the estimate the robot stops where it believes the goal is; success is judged there
+    env = NavigationEnv(scene=scene, scene_params=scene_params or {}, arrival=steer_on,
                         fusion={**asdict(fusion_settings), "enabled": True, "detector": detector, "backend": backend})
     try:
         ctx = scene_context(scene, detector, cache_dir, build=False, scene_params=scene_params)
@@ -188,7 +191,8 @@ def run_episode(policy: str, scene: str, seed: int, detector: str = "learned", c
         path = np.array(trail)
         final = float(np.linalg.norm(info["fused_T_w_b"][:3, 3] - info["T_w_b"][:3, 3]))
         expected = expected_drift_along(path, ctx.locmap, drift_rates(env.config.odometry))
-        return Episode(policy, scene, seed, bool(terminated), avoided_corridor(path, env.scene), final,
+        arrived = bool(terminated) and info["distance_to_goal"] <= env.config.goal_radius
+        return Episode(policy, scene, seed, arrived, avoided_corridor(path, env.scene), final,
                        float(info["running_ate"]), length, env.steps, path.round(2).tolist(), controller.recoveries,
                        expected, planned)
     finally:
@@ -277,7 +281,7 @@ def evaluate_policies(out: str | Path, policies: list[str], scenes: list[str], e
             for i in range(episodes) for p in policies]
     # episodes are appended as they finish; a killed evaluation resumes where it stopped, with the
     # settings it started with
-    run = {"detector": detector, "lam": lam, "backend": backend, "steer_on": steer_on,
+    run = {"detector": detector, "lam": lam, "backend": backend, "steer_on": steer_on, "arrival": steer_on,
            **fusion_settings.record(), "recovery": recovery, "avoid": avoid}  # also in summary.json
     settings = dict(run)
     if params:  # left out without a mesh, so that folders written before meshes were taken resume

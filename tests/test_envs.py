@@ -296,3 +296,46 @@ def test_the_odometry_noise_is_the_same_whatever_the_sensor():
         scan_seed1[:100], scan_vlp[:100])
     with pytest.raises(ValueError, match="noise_streams"):  # the option is gone, and named as unknown
         NavigationEnv(dict(scene="tunnel", noise_streams="separate"))
+
+
+@pytest.mark.parametrize("arrival", ["truth", "estimate"])
+def test_an_episode_ends_where_the_pose_that_arrival_names_reaches_the_goal(arrival):
+    """arrival='estimate': the robot stops where it believes the goal is (its fused estimate, here
+    made to run 3 m ahead), and info's distance_to_goal says how far it truly is."""
+    from scenes.geometry import box, ground_plane, merge
+    from scenes.scene import Scene
+
+    route = np.array([[0.0, 0.0, 0.0], [8.0, 0.0, 0.0]])
+    mesh = merge([ground_plane(-5, 15, -6, 6)] + [box((x, 3.0, 1.0), (0.5, 0.5, 2.0)) for x in range(-2, 12, 3)])
+    env = NavigationEnv(dict(scene="posts", arrival=arrival, fusion=dict(enabled=True, detector="none", backend="ekf")),
+                        scene_object=Scene("posts", mesh, [route], (0, 0, 0), (8.0, 0.0), {"main": route}))
+    env.reset(seed=0)
+    fused_step = env.fusion.step
+
+    def ahead(*args, **kwargs):
+        info = fused_step(*args, **kwargs)
+        T = info["fused_T_w_b"].copy()
+        T[0, 3] += 3.0
+        return {**info, "fused_T_w_b": T}
+
+    env.fusion.step = ahead
+    for _ in range(120):
+        _, _, terminated, _, info = env.step(np.array([1.0, 0.0, 0.0]))
+        if terminated:
+            break
+    env.close()
+    assert terminated
+    if arrival == "estimate":
+        assert 0.35 <= np.linalg.norm(info["fused_T_w_b"][:2, 3] - (8.0, 0.0)) <= 0.5  # at the goal, it believes
+        assert info["distance_to_goal"] == pytest.approx(3.5, abs=0.15)  # stopped 3 m short in truth
+    else:
+        assert info["distance_to_goal"] == pytest.approx(1.0, abs=0.15)
+
+
+def test_arrival_on_the_estimate_needs_the_fusion():
+    with pytest.raises(ValueError, match="turn the fusion on"):
+        NavigationEnv(dict(scene="office", arrival="estimate"))
+    with pytest.raises(ValueError, match="arrival must be one of"):
+        NavigationEnv(dict(scene="office", arrival="belief"))
+    with pytest.raises(ValueError, match="stop_radius must be"):
+        NavigationEnv(dict(scene="office", stop_radius=2.0))

@@ -20,6 +20,8 @@ from l3e_env.sim.render import TopDownRenderer
 from l3e_env.sim.robot import Robot
 from l3e_env.sim.world import World
 
+ARRIVAL = ("truth", "estimate")  # EnvConfig.arrival: which pose ends an episode at the goal
+
 
 class NavigationEnv(gym.Env):
     """Observation (Dict):
@@ -31,7 +33,9 @@ class NavigationEnv(gym.Env):
     (default 1 m/s, 0.5 m/s, 1 rad/s); NaN or out-of-range actions raise ValueError.
     Reward: progress_reward x metres gained towards the goal - step_penalty
       - collision_penalty when blocked by geometry + goal_reward on arrival.
-    Terminated on arrival within goal_radius; truncated after max_episode_steps.
+    Terminated on arrival within goal_radius of the true pose, or with `arrival="estimate"` where
+    the fused estimate, the pose the robot believes, comes within stop_radius; truncated after
+    max_episode_steps.
     info: T_w_b (4x4 ground truth), pose (x, y, z, roll, pitch, yaw), odom_T_w_b (dead reckoning),
       blocked, distance_to_goal. The current Scan (points in the sensor frame) is `env.unwrapped.scan`.
       With `fusion.enabled` (see FusionSettings) also: fused_T_w_b (odometry and masked ICP
@@ -51,6 +55,13 @@ class NavigationEnv(gym.Env):
             raise ValueError("pass either an EnvConfig or keyword options, not both")
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
+        if config.arrival not in ARRIVAL:
+            raise ValueError(f"arrival must be one of {ARRIVAL}, got {config.arrival!r}")
+        if not 0 < config.stop_radius <= config.goal_radius:
+            raise ValueError(f"stop_radius must be in (0, goal_radius], got {config.stop_radius}")
+        if config.arrival == "estimate" and not config.fusion.enabled:
+            raise ValueError("arrival 'estimate' ends an episode on the fused estimate: turn the fusion on "
+                             "(fusion.enabled), or use arrival 'truth'")
         self.config, self.render_mode = config, render_mode
         self.scene = scene_object or make_scene(config.scene, **config.scene_params)
         if config.route not in self.scene.routes:
@@ -149,7 +160,10 @@ class NavigationEnv(gym.Env):
         reward = self.config.progress_reward * (self._distance - distance) - self.config.step_penalty
         reward -= self.config.collision_penalty * blocked
         self._distance = distance
-        terminated = distance <= self.config.goal_radius
+        if self.config.arrival == "estimate":  # where the robot believes it is
+            terminated = self._goal_distance(self._fusion_info["fused_T_w_b"]) <= self.config.stop_radius
+        else:
+            terminated = distance <= self.config.goal_radius
         reward += self.config.goal_reward * terminated
         truncated = (not terminated) and self.steps >= self.max_steps
         return self._observation(increment), float(reward), bool(terminated), bool(truncated), self._info(blocked)
@@ -175,8 +189,10 @@ class NavigationEnv(gym.Env):
         T = self.robot.T_w_s
         return self._scan.points @ T[:3, :3].T.astype(np.float32) + T[:3, 3].astype(np.float32)
 
-    def _goal_distance(self) -> float:
-        return float(np.linalg.norm(self.scene.goal - self.robot.T_w_b[:2, 3]))
+    def _goal_distance(self, T_w_b: np.ndarray | None = None) -> float:
+        """From the robot's true pose, or from `T_w_b`, to the goal (m)."""
+        T_w_b = self.robot.T_w_b if T_w_b is None else T_w_b
+        return float(np.linalg.norm(self.scene.goal - T_w_b[:2, 3]))
 
     def _observation(self, increment: np.ndarray) -> dict[str, np.ndarray]:
         ranges = self._scan.range_image(self.width)
