@@ -49,6 +49,12 @@ def plain(x: Any) -> Any:
     return x
 
 
+def with_defaults(cls: type, stored: dict[str, Any]) -> dict[str, Any]:
+    """Stored settings of `cls` in plain form with every option they predate at its default: what
+    was made before an option existed was made as that default makes it."""
+    return plain(to_dict(from_dict(cls, stored)))
+
+
 def settings_changed(before: dict[str, Any], now: dict[str, Any]) -> str:
     """The top-level settings that differ, named for an error message: the old and new values of
     the short ones, the names only of long ones (a mesh's route is a long list)."""

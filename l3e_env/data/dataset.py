@@ -28,7 +28,7 @@ from tqdm import tqdm
 
 from scenes import DATASET_SCENES, check_scene_name, file_sha256, is_mesh_path, make_scene
 
-from l3e_env.config import LidarConfig, from_dict, plain, settings_changed, to_dict
+from l3e_env.config import LidarConfig, from_dict, settings_changed, with_defaults
 from l3e_env.core.files import folder_lock, write_atomic
 from l3e_env.core.workers import die_with_parent
 from l3e_env.localizability.labels import AXES, LabelConfig, SamplingError, label_parent, sample_parent_pose
@@ -416,8 +416,7 @@ class LabelDataset:
 def comparable_settings(manifest: dict[str, Any], key: str) -> dict[str, Any]:
     """A manifest's lidar or registration settings with every option it predates at its default: a
     dataset made before an option existed (the LiDAR's `sweep`) was made as that default makes it."""
-    cls = {"lidar": LidarConfig, "registration": RegistrationConfig}[key]
-    return plain(to_dict(from_dict(cls, manifest["settings"][key])))
+    return with_defaults({"lidar": LidarConfig, "registration": RegistrationConfig}[key], manifest["settings"][key])
 
 
 class DatasetUnion:

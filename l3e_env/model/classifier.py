@@ -8,7 +8,6 @@ the labels were made with, and are refused when they do not match this code.
 from __future__ import annotations
 
 import dataclasses
-import json
 import warnings
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -19,7 +18,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from l3e_env.config import from_dict, plain
+from l3e_env.config import from_dict, plain, with_defaults
 from l3e_env.core.files import write_atomic
 from l3e_env.core.points import out_of_reach
 from l3e_env.localizability.registration import RegistrationConfig
@@ -505,11 +504,9 @@ class Classifier:
         if lidar_model is not None and trained is not None and lidar_model.removesuffix("-calibrated") != trained:
             warnings.warn(f"the classifier was trained on {trained} scans and now sees {lidar_model} scans",
                           stacklevel=2)
-        in_use = json.loads(json.dumps(registration)) if registration is not None else None
+        in_use = plain(registration) if registration is not None else None
         stored = self.meta.get("registration")
-        # settings stored before an option existed were made as its default makes them
-        labelled = None if stored is None else json.loads(json.dumps(dataclasses.asdict(
-            from_dict(RegistrationConfig, stored))))
+        labelled = None if stored is None else with_defaults(RegistrationConfig, stored)
         if in_use is not None and labelled not in (None, in_use):
             warnings.warn("the classifier's labels were made with other registration settings than the "
                           "ones in use", stacklevel=2)
