@@ -4,6 +4,7 @@ Registered with the `l3e` command through the `l3e.commands` entry-point group."
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -12,6 +13,7 @@ import numpy as np
 
 from l3e_env.cli.options import (SENSOR_HELP, add_fusion_options, add_mesh_options, fusion_settings, mesh_options_given,
                                  scene_names, scene_params, sensor_name)
+from l3e_env.config import ATTITUDE_MODES
 from l3e_env.config.detector_spec import DETECTOR_GRAMMAR, MAP_DETECTORS, parse_detector
 from l3e_env.io.mesh_lists import meshes_file
 
@@ -132,7 +134,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     rows = evaluate_policies(out, args.policy or ["shortest", "planner"], list(scenes), args.episodes, args.seed,
                              args.detector, args.cache_dir, args.lam, args.workers, steer_on=args.steer_on,
                              progress=not args.quiet, scene_params={k: v for k, v in scenes.items() if v},
-                             fusion_settings=fusion_settings(args), recovery=args.recovery, avoid=args.avoid)
+                             fusion_settings=dataclasses.replace(fusion_settings(args), attitude=args.attitude),
+                             recovery=args.recovery, avoid=args.avoid)
     print(format_rows(rows))
     print(f"routes: {out / 'routes.png'}")
     return 0
@@ -213,6 +216,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--steer-on", dest="steer_on", choices=["estimate", "truth"], default="estimate",
                    help="pose the policies steer on (default: the fused estimate); ATE is measured either way")
     add_fusion_options(g)
+    g.add_argument("--attitude", choices=ATTITUDE_MODES, default="none",
+                   help="fuse the IMU's orientation once a second: tilt = roll and pitch, which gravity holds, "
+                        "full = with the magnetometer's heading (default: none)")
     g.add_argument("--seed", type=int, default=0)
     g.add_argument("--out", help="output folder (default: l3e_out/policy-eval-<time>)")
     add_mesh_options(g, several=True)

@@ -282,7 +282,8 @@ def evaluate_policies(out: str | Path, policies: list[str], scenes: list[str], e
     # episodes are appended as they finish; a killed evaluation resumes where it stopped, with the
     # settings it started with
     run = {"detector": detector, "lam": lam, "backend": backend, "steer_on": steer_on, "arrival": steer_on,
-           **fusion_settings.record(), "recovery": recovery, "avoid": avoid}  # also in summary.json
+           **fusion_settings.record(), "attitude": fusion_settings.attitude, "recovery": recovery,
+           "avoid": avoid}  # also in summary.json
     settings = dict(run)
     if params:  # left out without a mesh, so that folders written before meshes were taken resume
         settings["scene_params"] = params

@@ -97,7 +97,7 @@ def test_options_come_from_a_yaml_file_the_command_line_and_set_in_that_order(tm
 
     (tmp_path / "ate.yaml").write_text("scene: tunnel\nseed: 3\nodometry-bias: [yaw]\ndetector: [none, 'eigen:30']\n")
     args = resolve(build_parser(), ["ate", "--config", str(tmp_path / "ate.yaml")])
-    assert (args.scene, args.seed, args.odometry_bias, args.detector) == ("tunnel", 3, ("yaw",), ["none", "eigen:30"])
+    assert (args.scene, args.seed, args.odometry_bias, args.detector) == ("tunnel", 3, ["yaw"], ["none", "eigen:30"])
     args = resolve(build_parser(), ["ate", "--config", str(tmp_path / "ate.yaml"), "--seed", "4"])
     assert args.seed == 4 and args.scene == "tunnel"  # the command line wins over the file
     args = resolve(build_parser(), ["ate", "--config", str(tmp_path / "ate.yaml"), "--seed", "4", "--set", "seed=5",
@@ -105,6 +105,19 @@ def test_options_come_from_a_yaml_file_the_command_line_and_set_in_that_order(tm
     assert (args.seed, args.quiet, args.up_axis) == (5, True, "y")  # --set wins over both
     args = resolve(build_parser(), ["train", "--dataset", "d", "--out", "o", "--set", "epochs=2"])
     assert args.epochs == 2 and args.config is None  # train keeps its own --config (a TrainConfig YAML)
+
+
+def test_odometry_bias_axes_are_gathered_from_every_repeat_and_a_file():
+    from l3e_env.cli.option_files import resolve
+    from l3e_env.cli.options import fusion_settings
+
+    args = resolve(build_parser(), ["ate", "--odometry-bias", "yaw", "--odometry-bias", "scale,z"])
+    assert fusion_settings(args).odometry_bias == ("yaw", "scale", "z")
+    args = resolve(build_parser(), ["ate", "--set", "odometry-bias=[yaw, scale]"])
+    assert fusion_settings(args).odometry_bias == ("yaw", "scale")
+    assert fusion_settings(resolve(build_parser(), ["ate"])).odometry_bias == ()
+    with pytest.raises(ValueError, match="names an axis twice"):
+        fusion_settings(resolve(build_parser(), ["ate", "--odometry-bias", "yaw", "--odometry-bias", "yaw"]))
 
 
 @pytest.mark.parametrize("argv, message", [

@@ -65,6 +65,8 @@ def _converted(action: argparse.Action, key: str, value: Any) -> Any:
         if not isinstance(value, bool):
             raise ValueError(f"option {key}: give true or false, got {value!r}")
         return value
+    if isinstance(action, argparse._ExtendAction):  # each item converts to several ("yaw,scale")
+        return [x for v in (value if isinstance(value, list) else [value]) for x in one(v)]
     if isinstance(action, argparse._AppendAction) or action.nargs in ("+", "*") or isinstance(action.nargs, int):
         return [one(v) for v in (value if isinstance(value, list) else [value])]
     if isinstance(value, list) and action.type is not None:
