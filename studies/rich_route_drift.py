@@ -2,9 +2,10 @@
 
 Two parts:
 1. `--drive`: the planner's route followed on the true pose, with the fusion in the loop (the
-   learned detector, the options given), printing every few metres the estimate's error along and
-   across the robot's heading, its heading error, and the share of steps the detector masked each
-   axis. Nothing is masked on the way round; the error is what scan-to-scan ICP and the legs leave.
+   learned detector, the ground plane's normals, the legs' yaw and stride biases as states, the
+   IMU's tilt unless `--attitude none`), printing every few metres the estimate's error along and
+   across the robot's heading, in height and heading, and the share of steps the detector masked
+   each axis. Nothing is masked on the way round; the error is what scan-to-scan ICP and the legs leave.
 2. The registration alone at level poses along a straight stretch of the way round (x from X0 to
    X1 at lane offset Y): one 0.1 m step forward registered, many times, with the mean error per
    step of x (as a ratio), y, roll and yaw and their standard errors. A bias of a millidegree a step
@@ -40,7 +41,9 @@ def step_bias(scene_name: str, y: float, x0: float, x1: float, count: int, groun
     steps = np.array(steps)
     mean, error = steps.mean(0), steps.std(0) / np.sqrt(len(steps))
     print(f"ground normals {ground_normals}: x {mean[0] / 0.1:.4f} +- {error[0] / 0.1:.4f} of the step; "
-          f"y {mean[1] * 1e3:.2f} +- {error[1] * 1e3:.2f} mm; roll {np.degrees(mean[3]) * 1e3:.1f} +- "
+          f"y {mean[1] * 1e3:.2f} +- {error[1] * 1e3:.2f} mm; z {mean[2] * 1e3:.2f} +- {error[2] * 1e3:.2f} mm; "
+          f"pitch {np.degrees(mean[4]) * 1e3:.1f} +- {np.degrees(error[4]) * 1e3:.1f} mdeg; "
+          f"roll {np.degrees(mean[3]) * 1e3:.1f} +- "
           f"{np.degrees(error[3]) * 1e3:.1f} mdeg; yaw {np.degrees(mean[5]) * 1e3:.1f} +- "
           f"{np.degrees(error[5]) * 1e3:.1f} mdeg a step")
 
@@ -63,17 +66,19 @@ def drive(scene_name: str, seed: int, settings: FusionSettings) -> None:
         done = terminated or truncated
         T, F = info["T_w_b"], info["fused_T_w_b"]
         along, across = (T[:3, :3].T @ (F[:3, 3] - T[:3, 3]))[:2]
-        rows.append([*T[:2, 3], along, across, np.degrees(yaw_of(F) - yaw_of(T)), *info["localizability_mask"]])
+        rows.append([*T[:2, 3], along, across, np.degrees(yaw_of(F) - yaw_of(T)), F[2, 3] - T[2, 3],
+                     *info["localizability_mask"]])
     env.close()
     rows = np.array(rows)
     walked = np.r_[0, np.cumsum(np.linalg.norm(np.diff(rows[:, :2], axis=0), axis=1))]
-    print(f"{'walked m':>8s} {'x':>7s} {'y':>6s} {'along':>6s} {'across':>6s} {'yaw deg':>7s}  masked x y z r p yaw")
+    print(f"{'walked m':>8s} {'x':>7s} {'y':>6s} {'along':>6s} {'across':>6s} {'yaw deg':>7s} {'z':>6s}  "
+          "masked x y z r p yaw")
     for k in range(0, len(rows), max(1, len(rows) // 20)):
-        masked = " ".join(f"{m:.1f}" for m in rows[max(0, k - 50):k + 1, 5:].mean(0))
+        masked = " ".join(f"{m:.1f}" for m in rows[max(0, k - 50):k + 1, 6:].mean(0))
         print(f"{walked[k]:8.1f} {rows[k, 0]:7.1f} {rows[k, 1]:6.1f} {rows[k, 2]:6.2f} {rows[k, 3]:6.2f} "
-              f"{rows[k, 4]:7.2f}  {masked}")
+              f"{rows[k, 4]:7.2f} {rows[k, 5]:6.2f}  {masked}")
     print(f"end: {walked[-1]:.1f} m walked, error along {rows[-1, 2]:.2f} m, across {rows[-1, 3]:.2f} m, "
-          f"heading {rows[-1, 4]:.2f} deg")
+          f"height {rows[-1, 5]:.2f} m, heading {rows[-1, 4]:.2f} deg")
 
 
 def main() -> None:
@@ -85,11 +90,14 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=250, help="registrations along the stretch")
     parser.add_argument("--drive", action="store_true", help="also follow the planner's route with the fusion")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--attitude", choices=["none", "tilt"], default="tilt",
+                        help="the IMU's roll and pitch in the drive's fusion (default: tilt)")
     args = parser.parse_args()
     for ground_normals in (False, True):
         step_bias(args.scene, args.y, args.x0, args.x1, args.steps, ground_normals)
     if args.drive:
-        drive(args.scene, args.seed, FusionSettings(ground_normals=True, odometry_bias=("yaw", "scale")))
+        drive(args.scene, args.seed, FusionSettings(ground_normals=True, odometry_bias=("yaw", "scale"),
+                                                    attitude=args.attitude))
 
 
 if __name__ == "__main__":
