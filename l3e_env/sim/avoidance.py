@@ -5,9 +5,9 @@ turn taken a few metres early it faces the block it should have walked round. Na
 keep a local layer that looks at the current scan, which shows the obstacles where they are,
 whatever the estimate believes. This is that layer, kept small: the returns at the base's height
 are the obstacles; a heading is free where a corridor as wide as the base (and a margin) is clear
-for `look` metres; the heading the policy wants is kept where free, else the free heading nearest
-to it is taken (ties going to the side the robot already faces). Hand-written: the navigation
-libraries on the registry (ROS's local planners, nav2) need a ROS install.
+for `look` metres; the heading the policy wants is kept where free, else the free heading that
+turns least from it and from the robot's own heading together is taken. Hand-written: the
+navigation libraries on the registry (ROS's local planners, nav2) need a ROS install.
 """
 from __future__ import annotations
 
@@ -72,7 +72,7 @@ class FreeHeadings:
 
     def guard(self, action: np.ndarray, obstacles: np.ndarray, turn_gain: float = 1.5) -> np.ndarray:
         """A normalised (vx, vy, yaw rate) with its walk forward kept off what is ahead: where the way
-        straight ahead is not clear, the robot turns towards the nearest free heading and slows by
+        straight ahead is not clear, the robot turns towards the free heading `steer` picks and slows by
         its angle's cosine (for policies that give a twist, not a heading)."""
         action = np.asarray(action, dtype=np.float32).copy()
         if action[0] <= 0 or self.free_distance(obstacles, np.zeros(1))[0] >= self.look:
