@@ -25,6 +25,7 @@ from tqdm import tqdm
 
 from l3e_env.config import FusionSettings, OdometryConfig, settings_changed
 from l3e_env.core.transforms import yaw_of
+from l3e_env.core.workers import die_with_parent
 from l3e_env.envs import NavigationEnv
 from l3e_env.sim.avoidance import FreeHeadings
 from l3e_env.sim.follower import RouteFollower
@@ -311,7 +312,7 @@ def evaluate_policies(out: str | Path, policies: list[str], scenes: list[str], e
             bar.update()
 
         if workers > 1 and len(todo) > 1:
-            with get_context("spawn").Pool(workers) as pool:
+            with get_context("spawn").Pool(workers, initializer=die_with_parent) as pool:
                 for e in pool.imap_unordered(_run, todo):
                     record(e)
         else:
