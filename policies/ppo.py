@@ -21,6 +21,7 @@ from tqdm import tqdm
 
 from l3e_env.config import plain
 from l3e_env.core.files import write_atomic
+from l3e_env.sim.follower import walk_towards
 
 from .context import SceneContext
 from .fastenv import FastEnvConfig, MapNavigationEnv
@@ -95,12 +96,11 @@ def _has_tensorboard() -> bool:
 def teacher_action(obs: np.ndarray) -> np.ndarray:
     """The planner's choice as a twist: walk towards the observation's localizability-aware path
     direction (downhill on the planner's cost-to-go) as the route follower walks towards its
-    look-ahead point, forward at the cosine of the turn, turning at 1.5 its angle. A function of
+    look-ahead point (l3e_env.sim.follower.walk_towards). A function of
     the observation alone, so that the network can hold it exactly."""
     aware = np.asarray(obs, dtype=np.float64)[..., PolicyView.aware]
-    turn = np.arctan2(aware[..., 1], aware[..., 0])
-    return np.stack([np.clip(np.cos(turn), 0.0, 1.0), np.zeros_like(turn), np.clip(1.5 * turn, -1.0, 1.0)],
-                    -1).astype(np.float32)
+    forward, turn = walk_towards(np.arctan2(aware[..., 1], aware[..., 0]))
+    return np.stack([forward, np.zeros_like(turn), turn], -1).astype(np.float32)
 
 
 @dataclasses.dataclass
@@ -109,8 +109,9 @@ class WarmStart:
     `episodes` times with Gaussian noise of `noise` on its executed twist, so that the states off
     its path are seen too, each labelled with the teacher's own twist (as DAgger labels them); the
     network's mean action is fitted to the labels and its value to the discounted returns for
-    `epochs` passes, and its exploration noise starts at `std`. PPO from scratch on the long
-    bypass variants wanders for a million steps; from here it starts at the planner's behaviour."""
+    `epochs` passes, and its exploration noise starts at `std`. PPO from random weights on the
+    long bypass variants wandered without learning to arrive; from here it starts at the planner's
+    behaviour."""
 
     episodes: int = 4
     noise: float = 0.4

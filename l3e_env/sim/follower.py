@@ -20,6 +20,15 @@ def route_drive(route: np.ndarray) -> tuple[float, int]:
     return length, round(length / CRUISE_SPEED / RobotConfig.dt)
 
 
+def walk_towards(heading_error: np.ndarray | float, speed: float = CRUISE_SPEED, turn_gain: float = 1.5
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Normalised forward speed and yaw rate that walk towards a heading `heading_error` (rad) off
+    the robot's own: forward at `speed` times the cosine of the turn (none past 90 deg), turning at
+    `turn_gain` times its angle; element-wise."""
+    error = np.asarray(heading_error, dtype=np.float64)
+    return speed * np.clip(np.cos(error), 0.0, 1.0), np.clip(turn_gain * error, -1.0, 1.0)
+
+
 class RouteFollower:
     """Steers towards a point `lookahead` metres further along the route.
 
@@ -52,6 +61,5 @@ class RouteFollower:
         if self.avoid is not None and obstacles is not None:
             heading_error = self.avoid.steer(obstacles, heading_error,
                                              look=min(self.avoid.look, float(np.hypot(local[0], local[1]))))
-        forward = self.speed * float(np.clip(np.cos(heading_error), 0.0, 1.0))
-        turn = float(np.clip(self.turn_gain * heading_error, -1.0, 1.0))
+        forward, turn = walk_towards(heading_error, self.speed, self.turn_gain)
         return np.array([forward, 0.0, turn], dtype=np.float32)
