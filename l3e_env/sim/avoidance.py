@@ -63,7 +63,9 @@ class FreeHeadings:
         `desired` where none is clear (the policy's recovery deals with that)."""
         look = self.look if look is None else look
         desired = float(np.angle(np.exp(1j * desired)))
-        candidates = np.concatenate([[desired], np.arange(-np.pi, np.pi, self.resolution)])
+        if self.free_distance(obstacles, np.array([desired]))[0] >= look:  # the usual case, one heading
+            return desired
+        candidates = np.arange(-np.pi, np.pi, self.resolution)
         free = self.free_distance(obstacles, candidates) >= look
         if not free.any():
             return desired
