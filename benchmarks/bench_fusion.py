@@ -3,6 +3,9 @@ same run), and environment steps per second with the whole pipeline in the loop 
 learned detector, ICP, iSAM2), with the classifier in the step's process and in one of its own
 (FusionSettings.detector_process), against the bare environment.
 
+The legs' bias states with the whole drive smoothed and with the environments' fixed-lag window
+(FusionConfig.smoother_lag): with them iSAM2 revises every later pose where a bias estimate moves.
+
 Run: python benchmarks/bench_fusion.py [--steps 3000] [--env-steps 300] [--scene mine] [--loads 0,4]
 `--loads`: the environment rows idle and beside N processes that each spin a core (benchmarks/competing_load.py).
 """
@@ -16,6 +19,7 @@ import torch
 
 from fusion import EKFFusion, FusionConfig, FusionGraph
 from l3e_env.config import EnvConfig, FusionSettings
+from l3e_env.detection.pipeline import ONLINE_LAG
 from l3e_env.envs.navigation import NavigationEnv
 from l3e_env.sim.follower import RouteFollower
 from l3e_env.core.transforms import pose_to_matrix
@@ -82,6 +86,14 @@ def main() -> None:
         biased = update_times(FusionGraph, args.steps, hessians=True, config=FusionConfig(odometry_bias=axes)) * 1e3
         print(f"iSAM2 update with the legs' {'+'.join(axes)} bias as states: median {np.median(biased):.3f} ms, "
               f"p90 {np.percentile(biased, 90):.3f} ms ({np.median(biased) / np.median(weighed):.2f}x without)")
+    whole = update_times(FusionGraph, args.steps, hessians=True,
+                         config=FusionConfig(odometry_bias=("yaw", "scale"))) * 1e3
+    window = update_times(FusionGraph, args.steps, hessians=True,
+                          config=FusionConfig(odometry_bias=("yaw", "scale"), smoother_lag=ONLINE_LAG)) * 1e3
+    for name, times in (("the whole drive", whole), (f"a {ONLINE_LAG}-step window (the environments')", window)):
+        print(f"iSAM2 update with the legs' yaw+scale bias as states, {name}: median {np.median(times):.3f} ms, "
+              f"last 500 median {np.median(times[-500:]):.3f} ms, max {times.max():.1f} ms")
+    print(f"  window over whole drive, last 500 median: {np.median(window[-500:]) / np.median(whole[-500:]):.2f}x")
     rows: dict[str, dict[int, float]] = {"scan + learned detector + ICP + iSAM2": {},
                                          "  the classifier in a process of its own": {},
                                          "bare environment (scan, no fusion)": {}}

@@ -38,7 +38,11 @@ class FusionGraph:
         self.config = check_config(config or FusionConfig())
         params = gtsam.ISAM2Params()
         params.setRelinearizeThreshold(self.config.relinearize_threshold)
-        self.isam = gtsam.ISAM2(params)
+        self.lag = self.config.smoother_lag
+        # with a lag, the poses that left the window keep the estimate they had when they left
+        self.isam = (gtsam.ISAM2(params) if self.lag is None
+                     else gtsam.IncrementalFixedLagSmoother(float(self.lag), params))
+        self._left: list[np.ndarray] = []
         self.k = 0
         self.estimate = _pose3(T_w_0)
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
@@ -58,11 +62,21 @@ class FusionGraph:
 
     def _update(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, k: int) -> None:
         try:
-            self.isam.update(graph, values)
+            if self.lag is None:
+                self.isam.update(graph, values)
+            else:  # every state the new factors touch is stamped with this step: the bias state in use stays
+                self._keep_leaving(k)
+                self.isam.update(graph, values, {key: float(k) for key in graph.keyVector()})
         except RuntimeError as exc:  # GTSAM's C++ exceptions (IndeterminantLinearSystem, ...) arrive as this
             first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
             raise FusionError(f"fusion step {k}: GTSAM could not solve the graph ({first}); this graph cannot take "
                               f"more steps") from exc
+
+    def _keep_leaving(self, k: int) -> None:
+        """Before the update stamped k: the estimates of the poses it marginalizes (GTSAM's smoother
+        drops the states stamped before k - lag; pose m was last stamped m + 1, by the next step)."""
+        while len(self._left) + 1 < k - self.lag:
+            self._left.append(self.isam.calculateEstimatePose3(len(self._left)).matrix())
 
     def _noise(self, information_project: np.ndarray) -> gtsam.noiseModel.Base:
         """Precisions (6) or an information matrix (6x6), project order; zeros say nothing."""
@@ -155,6 +169,6 @@ class FusionGraph:
         return self.estimate.matrix()
 
     def trajectory(self) -> np.ndarray:
-        """All smoothed poses (k+1, 4, 4)."""
+        """All smoothed poses (k+1, 4, 4); with a lag, those that left the window as they left it."""
         values = self.isam.calculateEstimate()
-        return np.array([values.atPose3(k).matrix() for k in range(self.k + 1)])
+        return np.array(self._left + [values.atPose3(k).matrix() for k in range(len(self._left), self.k + 1)])

@@ -26,7 +26,13 @@ class FusionConfig:
     odometry_bias: which of the leg odometry's biases ("yaw", "z" per metre, "scale" of the
     stride) are estimated as states of the fusion (see fusion.bias), with their prior spread
     `odometry_bias_sigmas` (rad/m, m/m, 1) and random walk `odometry_bias_walk` (per square-root
-    metre), both in BIAS_AXES order; none by default."""
+    metre), both in BIAS_AXES order; none by default.
+
+    smoother_lag: None smooths the whole drive (iSAM2), so that `trajectory()` is the smoothed
+    trajectory; a number of steps keeps only that many poses (and the bias states they use) in an
+    incremental fixed-lag smoother and marginalizes the older ones, which bounds each step's cost
+    for a consumer of the newest estimate alone (an environment): with the odometry bias states,
+    whose revision moves every later pose, the full smoother's step grows with the drive."""
 
     mode: str = "mask"
     icp_covariance: str = "hessian"
@@ -39,6 +45,7 @@ class FusionConfig:
     odometry_bias: tuple[str, ...] = ()
     odometry_bias_sigmas: tuple[float, ...] = (0.001, 0.005, 0.02)
     odometry_bias_walk: tuple[float, ...] = (0.0003, 0.0005, 0.0001)
+    smoother_lag: int | None = None
 
 
 # the residual variance that `studies/icp_step_errors.py --ground-normals` fits to the registration
@@ -54,6 +61,10 @@ def check_config(config: FusionConfig) -> FusionConfig:
         raise ValueError(f"icp_covariance must be one of {ICP_COVARIANCES}, got '{config.icp_covariance}'")
     if not (np.isfinite(config.icp_residual_variance) and config.icp_residual_variance > 0):
         raise ValueError(f"icp_residual_variance must be a positive number, got {config.icp_residual_variance!r}")
+    lag = config.smoother_lag
+    if lag is not None and (isinstance(lag, bool) or not isinstance(lag, int) or lag < 1):
+        raise ValueError(f"smoother_lag must be None (the whole drive) or a number of steps >= 1, "
+                         f"got {lag!r}")
     config.odometry_bias = tuple(config.odometry_bias)
     check_bias_settings(config.odometry_bias, config.odometry_bias_sigmas, config.odometry_bias_walk)
     return config

@@ -291,6 +291,37 @@ def test_the_legs_bias_survives_standing_still_missing_steps_and_refuses_bad_set
             BACKENDS[backend](np.eye(4), FusionConfig(**bad))
 
 
+def test_a_fixed_lag_keeps_the_newest_estimate_of_the_whole_smoother_in_a_bounded_window():
+    """Noisy legs with yaw and z biases, ICP masked on the last third, an IMU's tilt every 10 steps:
+    a 40-step window gives the whole drive's newest estimate at every step, holds no more than its
+    window, and its trajectory keeps every pose (those that left as they left)."""
+    rng = np.random.default_rng(3)
+    sigmas = np.array([0.004, 0.004, 0.004, 3e-4, 3e-4, 6e-4])
+    steps = [(pose(0.1, 0.0, 0.001, 0.0005 + 0.003 * np.sin(k / 20)) @ pose(*(rng.normal(0, 0.003, 3))),
+              pose(0.1, 0.0, 0.0, 0.003 * np.sin(k / 20)) @ pose(*(rng.normal(0, 0.001, 3))), k >= 200)
+             for k in range(300)]
+    runs = {}
+    for lag in (None, 40):
+        graph = FusionGraph(np.eye(4), FusionConfig(odometry_bias=("yaw", "z"), smoother_lag=lag))
+        newest = []
+        for k, (odom, icp, blind) in enumerate(steps):
+            T, _ = graph.add_step(odom, sigmas, icp, np.array([False, False, blind, False, False, blind]))
+            if (k + 1) % 10 == 0:
+                T = graph.add_attitude(np.eye(3), np.array([0.002, 0.002, np.inf]))
+            newest.append(T)
+        runs[lag] = np.array(newest), graph
+    (full, _), (lagged, graph) = runs[None], runs[40]
+    assert np.abs(lagged[:, :3, 3] - full[:, :3, 3]).max() < 0.01
+    assert np.abs(lagged[:, :3, :3] - full[:, :3, :3]).max() < 1e-3
+    assert np.abs(full[-1][:3, 3] - graph.trajectory()[-1][:3, 3]).max() < 0.01
+    assert len(graph.isam.calculateEstimate().keys()) <= 40 + 3 + 5  # the window's poses and bias states
+    trajectory = graph.trajectory()
+    assert len(trajectory) == 301 and np.abs(trajectory[1:251, :3, 3] - full[:250, :3, 3]).max() < 0.02
+    for bad in (0, -5, 2.5, True):
+        with pytest.raises(ValueError, match="smoother_lag"):
+            FusionGraph(np.eye(4), FusionConfig(smoother_lag=bad))
+
+
 def test_robust_kernels_build():
     for kernel in ("huber", "cauchy"):
         graph = FusionGraph(np.eye(4), FusionConfig(robust_kernel=kernel))

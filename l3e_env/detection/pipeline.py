@@ -113,6 +113,9 @@ class LocalizationPipeline:
         return self.backend.trajectory()
 
 
+ONLINE_LAG = 300  # steps (30 s at 10 Hz) the environment's graph keeps before marginalizing
+
+
 class OnlineFusion:
     """The pipeline inside an environment: one run along an episode; `reset` at every episode start."""
 
@@ -125,8 +128,9 @@ class OnlineFusion:
         # with the classifier in a process of its own, the target is prepared on one thread: the other core is its
         self.registrar = ScanRegistrar(fusion_registration(registration or registration_of([detector]), config),
                                        threads=1 if config.detector_process else None)
+        # an environment reports the newest estimate only: the graph keeps a window (bounded cost per step)
         self.pipeline = LocalizationPipeline(detector, config.backend,
-                                             odometry_fusion_config(odometry, config),
+                                             odometry_fusion_config(odometry, config, smoother_lag=ONLINE_LAG),
                                              odometry, T_b_s, config.attitude)
         # the classifier beside the registration, in a process of its own (detection.ahead)
         self.ahead = DetectorProcess(config.detector, lidar.config, seed) if config.detector_process else None
