@@ -115,7 +115,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
     print(f"PPO on {', '.join(scenes)} (fast map environment, {args.detector} maps) -> {Path(args.out).resolve()}")
     contexts = [scene_context(name, args.detector, args.cache_dir, sensor=args.sensor, progress=not args.quiet,
                               scene_params=params) for name, params in scenes.items()]
-    config = resumed_config(args.out, lam=args.lam, lateral_drift=args.lateral_drift)
+    config = resumed_config(args.out, lam=args.lam, lateral_drift=args.lateral_drift, sideways=args.sideways)
     summary = train_ppo(args.out, contexts, args.detector, args.timesteps, args.seed, args.envs, config,
                         progress=not args.quiet, warm=WarmStart() if args.warm_start else None)
     print(f"{summary['timesteps']} steps; policy: {Path(args.out) / 'policy.pt'}; logs: progress.csv, monitor.csv")
@@ -191,8 +191,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--lam", type=non_negative, help="weight of expected drift in the reward (default: a resumed "
                                                     "run's own, else 50)")
     g.add_argument("--lateral-drift", type=non_negative, metavar="M",
-                   help="expected drift charged per metre walked sideways (default: a resumed run's own, else "
-                        "0.015, which halves PPO's final ATE on the fork variants against 0)")
+                   help="expected drift charged per metre walked sideways, with --sideways (default: a resumed "
+                        "run's own, else 0.015)")
+    g.add_argument("--sideways", action=argparse.BooleanOptionalAction, default=None,
+                   help="the policy may walk sideways: its action is (vx, vy, yaw rate) instead of (vx, yaw rate), "
+                        "walking facing its way as the route followers do (default: a resumed run's own, else off)")
     g.add_argument("--seed", type=int, default=0)
     add_mesh_options(g, several=True)
     g.set_defaults(func=_cmd_train)

@@ -31,6 +31,22 @@ from .observation import PolicyView
 from .planner import TIGHT_CLEARANCE
 
 
+def action_layout(sideways: bool) -> tuple[str, ...]:
+    """The names of a policy's action components (each normalised to [-1, 1])."""
+    return ("vx", "vy", "yaw_rate") if sideways else ("vx", "yaw_rate")
+
+
+def as_twist(action: Any, sideways: bool) -> np.ndarray:
+    """A policy's action as the robot's normalised twist (vx, vy, yaw rate), clipped to [-1, 1];
+    a ValueError names an action of the wrong size or with non-finite numbers."""
+    layout = action_layout(sideways)
+    a = np.asarray(action, dtype=np.float64)
+    if a.shape != (len(layout),) or not np.isfinite(a).all():
+        raise ValueError(f"action must be {len(layout)} finite numbers ({', '.join(layout)}), got {action!r}")
+    a = np.clip(a, -1.0, 1.0)
+    return a if sideways else np.array([a[0], 0.0, a[1]])
+
+
 @dataclass
 class FastEnvConfig:
     lam: float = 50.0  # weight of expected drift (m) against metres of progress, as in the planner
@@ -51,6 +67,11 @@ class FastEnvConfig:
     # measured 4 deg. 0.015 halves PPO's drift; the policy then walks facing its way, and on fork-104
     # it wedges a corner against a box, which the evaluation's recovery (BackOff) backs it out of
     lateral_drift: float = 0.015
+    # the policy's action: (vx, yaw rate), walking facing its way as the route followers do, or with
+    # `sideways` (vx, vy, yaw rate). The drift model above prices walking sideways, but a policy
+    # trained with it keeps a small sideways drift in its mean action, which the full pipeline's
+    # estimate pays for over a long route (docs/results.md, "Where the detour should pay")
+    sideways: bool = False
     tight_clearance: float = TIGHT_CLEARANCE  # m, the planner's
     goal_reward: float = 10.0
     # the full pipeline's evaluation stops where the robot's estimate comes this close to the goal: a
@@ -72,7 +93,7 @@ class MapNavigationEnv(gym.Env):
         self.views = [PolicyView(c.space, c.locmap, c.scene.goal, self.config.lam) for c in contexts]
         self.contexts = contexts
         self.observation_space = self.views[0].observation_space
-        self.action_space = spaces.Box(-1.0, 1.0, (3,), dtype=np.float32)
+        self.action_space = spaces.Box(-1.0, 1.0, (len(action_layout(self.config.sideways)),), dtype=np.float32)
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
@@ -89,11 +110,8 @@ class MapNavigationEnv(gym.Env):
         return self.view(self.x, self.y, self.yaw), self._info(False)
 
     def step(self, action):
-        action = np.asarray(action, dtype=np.float64)
-        if action.shape != (3,) or not np.isfinite(action).all():
-            raise ValueError(f"action must be 3 finite numbers (vx, vy, yaw_rate), got {action!r}")
         cfg, robot = self.config, self.config.robot
-        twist = np.clip(action, -1, 1) * np.asarray(robot.max_twist)
+        twist = as_twist(action, cfg.sideways) * np.asarray(robot.max_twist)
         blocked, drift, moved, tight = False, 0.0, 0.0, 0.0
         for _ in range(cfg.action_repeat):
             dx, dy, yaw = planar_motion(self.yaw, twist, robot.dt)  # the simulated robot's own kinematics

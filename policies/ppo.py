@@ -24,7 +24,7 @@ from l3e_env.core.files import write_atomic
 from l3e_env.sim.follower import walk_towards
 
 from .context import SceneContext
-from .fastenv import FastEnvConfig, MapNavigationEnv
+from .fastenv import FastEnvConfig, MapNavigationEnv, action_layout, as_twist
 from .observation import LOOKAHEAD, SECTORS, PolicyView
 
 TRAIN_VARIANTS = [f"fork-{s}" for s in range(7)]
@@ -78,7 +78,7 @@ def run_record(out: str | Path) -> dict[str, Any]:
     return json.loads(meta_file.read_text()) if meta_file.exists() else {}
 
 
-def resumed_config(out: str | Path, **given: float | None) -> FastEnvConfig:
+def resumed_config(out: str | Path, **given: float | bool | None) -> FastEnvConfig:
     """The fast environment's settings for a stage in `out`: each option given wins; one not given
     is the run's own where the folder holds a stage already (so a second stage trains as the first
     did), else the default."""
@@ -93,14 +93,16 @@ def _has_tensorboard() -> bool:
     return importlib.util.find_spec("tensorboard") is not None
 
 
-def teacher_action(obs: np.ndarray) -> np.ndarray:
+def teacher_action(obs: np.ndarray, sideways: bool = False) -> np.ndarray:
     """The planner's choice as a twist: walk towards the observation's localizability-aware path
     direction (downhill on the planner's cost-to-go) as the route follower walks towards its
     look-ahead point (l3e_env.sim.follower.walk_towards). A function of
-    the observation alone, so that the network can hold it exactly."""
+    the observation alone, so that the network can hold it exactly. In the action layout of
+    `sideways` (fastenv.action_layout): the teacher never walks sideways."""
     aware = np.asarray(obs, dtype=np.float64)[..., PolicyView.aware]
     forward, turn = walk_towards(np.arctan2(aware[..., 1], aware[..., 0]))
-    return np.stack([forward, np.zeros_like(turn), turn], -1).astype(np.float32)
+    parts = [forward, np.zeros_like(turn), turn] if sideways else [forward, turn]
+    return np.stack(parts, -1).astype(np.float32)
 
 
 @dataclasses.dataclass
@@ -131,9 +133,9 @@ def demonstrations(contexts: list[SceneContext], config: FastEnvConfig, warm: Wa
             obs, _ = env.reset(seed=int(rng.integers(2**31)))
             rewards, done = [], False
             while not done:
-                label = teacher_action(obs)
+                label = teacher_action(obs, config.sideways)
                 observations.append(obs), actions.append(label)
-                act = np.clip(label + rng.normal(0.0, warm.noise, 3), -1.0, 1.0)
+                act = np.clip(label + rng.normal(0.0, warm.noise, len(label)), -1.0, 1.0)
                 obs, reward, terminated, truncated, _ = env.step(act)
                 rewards.append(reward)
                 done = terminated or truncated
@@ -234,7 +236,8 @@ def train_ppo(out: str | Path, contexts: list[SceneContext], detector: str = "le
     history = run_record(out).get("history", [])
     history.append({"scenes": scenes, "from_timestep": int(done), "to_timestep": int(model.num_timesteps)})
     warm_record = json.loads((out / WARM_FILE).read_text()) if (out / WARM_FILE).exists() else None
-    summary = {"observation": OBSERVATION, "net_arch": NET_ARCH, "scenes": scenes, "detector": detector,
+    summary = {"observation": OBSERVATION, "action": list(action_layout(config.sideways)), "net_arch": NET_ARCH,
+               "scenes": scenes, "detector": detector,
                "timesteps": int(model.num_timesteps), "warm_start": warm_record,
                "seed": seed, "fast_env": plain(dataclasses.asdict(config)), "history": history}
     (out / META_FILE).write_text(json.dumps(summary, indent=2))
@@ -265,8 +268,13 @@ class PPOPolicy:
         if self.meta.get("observation") != json.loads(json.dumps(OBSERVATION)):
             raise PolicyCheckpointError(f"{folder}: trained on observation {self.meta.get('observation')}, this "
                                         f"version gives {OBSERVATION}; retrain it")
+        layouts = {action_layout(sideways): sideways for sideways in (False, True)}
+        if tuple(self.meta.get("action", ())) not in layouts:
+            raise PolicyCheckpointError(f"{folder}: trained with actions {self.meta.get('action')}, this version "
+                                        f"takes {' or '.join(str(list(a)) for a in layouts)}; retrain it")
+        self.sideways = layouts[tuple(self.meta["action"])]
         self.policy = ActorCriticPolicy(spaces.Box(-np.inf, np.inf, (PolicyView.size,), np.float32),
-                                        spaces.Box(-1.0, 1.0, (3,), np.float32), lambda _: 0.0,
+                                        spaces.Box(-1.0, 1.0, (len(self.meta["action"]),), np.float32), lambda _: 0.0,
                                         net_arch=list(self.meta.get("net_arch", NET_ARCH)))
         try:
             self.policy.load_state_dict(_load_tensors(weights))
@@ -276,5 +284,6 @@ class PPOPolicy:
         self.action_repeat = int(self.meta["fast_env"]["action_repeat"])
 
     def __call__(self, obs: np.ndarray) -> np.ndarray:
+        """The normalised twist (vx, vy, yaw rate)."""
         action, _ = self.policy.predict(obs, deterministic=True)
-        return np.clip(np.asarray(action, dtype=np.float32), -1, 1)
+        return as_twist(action, self.sideways).astype(np.float32)

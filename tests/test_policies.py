@@ -12,7 +12,7 @@ import pytest
 from l3e_env.config import FusionSettings, plain, to_dict
 from l3e_env.localizability.registration import RegistrationConfig
 from policies.context import SceneContext, free_space
-from policies.fastenv import MapNavigationEnv
+from policies.fastenv import FastEnvConfig, MapNavigationEnv
 from policies.freespace import FreeSpace, FreeSpaceError, build_free_space, reachable_from
 from policies.locmap import LocalizabilityMap, MapCacheError, MapJudge, build_map, get_map, scene_lidar
 from policies.observation import PolicyView
@@ -199,7 +199,25 @@ def test_learned_map_gives_probabilities(small_fork):
 def fast_env(small_fork):
     scene, space, _ = small_fork
     locmap = synthetic_map(space, lambda xy: (np.abs(xy[:, 1]) < 1.5) & (xy[:, 0] > 4) & (xy[:, 0] < 16))
-    return MapNavigationEnv([SceneContext(scene, space, locmap)])
+    return MapNavigationEnv([SceneContext(scene, space, locmap)], FastEnvConfig(sideways=True))
+
+
+def test_a_policy_walks_facing_its_way_unless_it_may_walk_sideways(fast_env):
+    """By default the action is (vx, yaw rate): the same walk as the twist without vy; an action of
+    the other layout's size is refused by name."""
+    facing = MapNavigationEnv(fast_env.contexts, FastEnvConfig())
+    assert facing.action_space.shape == (2,) and fast_env.action_space.shape == (3,)
+    poses = []
+    for env, action in ((facing, [0.7, 0.4]), (fast_env, [0.7, 0.0, 0.4])):
+        env.reset(seed=0)
+        for _ in range(5):
+            *_, info = env.step(np.array(action))
+        poses.append(info["pose"])
+    np.testing.assert_allclose(poses[0], poses[1])
+    with pytest.raises(ValueError, match=r"2 finite numbers \(vx, yaw_rate\)"):
+        facing.step(np.array([1.0, 0.0, 0.0]))
+    with pytest.raises(ValueError, match=r"3 finite numbers \(vx, vy, yaw_rate\)"):
+        fast_env.step(np.array([1.0, 0.0]))
 
 
 def test_fast_env_rewards_progress_and_penalises_drift(fast_env):
@@ -264,7 +282,7 @@ def test_policy_train_takes_the_sideways_cost_and_a_resumed_run_keeps_it(tmp_pat
     given = []
 
     def fake_train(out, contexts, detector, timesteps, seed, envs, config, progress, warm):
-        given.append((config.lateral_drift, config.lam))
+        given.append((config.lateral_drift, config.lam, config.sideways))
         (Path(out) / "policy.json").parent.mkdir(parents=True, exist_ok=True)
         (Path(out) / "policy.json").write_text(json.dumps({"fast_env": plain(dataclasses.asdict(config))}))
         return {"timesteps": timesteps}
@@ -272,13 +290,14 @@ def test_policy_train_takes_the_sideways_cost_and_a_resumed_run_keeps_it(tmp_pat
     monkeypatch.setattr("policies.ppo.train_ppo", fake_train)
     monkeypatch.setattr("policies.context.scene_context", lambda *args, **kwargs: None)
     run = ["policy", "train", "--scene", "fork-0", "--quiet", "--out"]
-    assert main([*run, str(tmp_path / "a"), "--lateral-drift", "0.015", "--lam", "20"]) == 0
+    assert main([*run, str(tmp_path / "a"), "--lateral-drift", "0.015", "--lam", "20", "--sideways"]) == 0
     assert main([*run, str(tmp_path / "a")]) == 0  # the second stage, resumed
     assert main([*run, str(tmp_path / "a"), "--lam", "30"]) == 0  # a given option wins
     assert main([*run, str(tmp_path / "b"), "--lateral-drift", "0"]) == 0
     assert main([*run, str(tmp_path / "b")]) == 0  # resumed: still without the cost
     assert main([*run, str(tmp_path / "c")]) == 0  # a new run: the defaults
-    assert given == [(0.015, 20.0), (0.015, 20.0), (0.015, 30.0), (0.0, 50.0), (0.0, 50.0), (0.015, 50.0)]
+    assert given == [(0.015, 20.0, True), (0.015, 20.0, True), (0.015, 30.0, True), (0.0, 50.0, False),
+                     (0.0, 50.0, False), (0.015, 50.0, False)]
     for option in ("--lateral-drift", "--lam"):
         for bad in ("-0.1", "nan", "much"):
             with pytest.raises(SystemExit):
@@ -322,7 +341,6 @@ def test_policy_view_sees_the_corridor_ahead(small_fork):
 
 def test_ppo_trains_resumes_and_refuses_other_observations(tmp_path, small_fork):
     pytest.importorskip("stable_baselines3")
-    from policies.fastenv import FastEnvConfig
     from policies.ppo import PolicyCheckpointError, PPOPolicy, train_ppo
 
     scene, space, cache = small_fork
@@ -340,6 +358,11 @@ def test_ppo_trains_resumes_and_refuses_other_observations(tmp_path, small_fork)
     assert action.shape == (3,) and np.all(np.abs(action) <= 1)
     meta = json.loads((out / "policy.json").read_text())
     assert [h["from_timestep"] for h in meta["history"]] == [0, first["timesteps"]]  # both stages recorded
+    assert meta["action"] == ["vx", "yaw_rate"]
+    meta["action"] = ["vx", "vy", "yaw_rate", "pitch_rate"]
+    (out / "policy.json").write_text(json.dumps(meta))
+    with pytest.raises(PolicyCheckpointError, match="trained with actions"):
+        PPOPolicy(out)
     meta["observation"]["size"] = 99
     (out / "policy.json").write_text(json.dumps(meta))
     with pytest.raises(PolicyCheckpointError, match="observation"):
@@ -350,12 +373,13 @@ def test_ppo_trains_resumes_and_refuses_other_observations(tmp_path, small_fork)
 
 def test_teacher_walks_the_aware_direction_and_ppo_starts_from_its_clone(tmp_path, small_fork):
     pytest.importorskip("stable_baselines3")
-    from policies.fastenv import FastEnvConfig
     from policies.ppo import PPOPolicy, WarmStart, demonstrations, teacher_action, train_ppo
 
     obs = np.zeros((3, PolicyView.size), dtype=np.float32)
     obs[:, PolicyView.aware] = [[1.0, 0.0], [0.0, 1.0], [np.cos(-0.3), np.sin(-0.3)]]
-    np.testing.assert_allclose(teacher_action(obs), [[1, 0, 0], [0, 0, 1], [np.cos(0.3), 0, -0.45]], atol=1e-6)
+    np.testing.assert_allclose(teacher_action(obs, sideways=True), [[1, 0, 0], [0, 0, 1], [np.cos(0.3), 0, -0.45]],
+                               atol=1e-6)
+    np.testing.assert_allclose(teacher_action(obs), [[1, 0], [0, 1], [np.cos(0.3), -0.45]], atol=1e-6)
     scene, space, cache = small_fork
     contexts = [SceneContext(scene, space, get_map(scene, space, "eigen:30", cache, resolution=4.0))]
     warm = WarmStart(episodes=2, epochs=300)  # a few samples: more passes
@@ -368,7 +392,9 @@ def test_teacher_walks_the_aware_direction_and_ppo_starts_from_its_clone(tmp_pat
         train_ppo(tmp_path / name, contexts, "eigen:30", timesteps=0, n_envs=1, config=FastEnvConfig(),
                   progress=False, warm=start)
         policy = PPOPolicy(tmp_path / name)
-        gaps[name] = float(np.abs(np.array([policy(o) for o in observations[:200]]) - actions[:200]).mean())
+        twists = np.array([policy(o) for o in observations[:200]])
+        assert not twists[:, 1].any()  # (vx, yaw rate): it never walks sideways
+        gaps[name] = float(np.abs(twists[:, [0, 2]] - actions[:200]).mean())
     assert gaps["warm"] < 0.05 and gaps["cold"] > 0.2, gaps
     record = json.loads((tmp_path / "warm" / "policy.json").read_text())["warm_start"]
     assert record["samples"] == len(observations) and record["action_mse"] < 0.005
@@ -394,13 +420,13 @@ def test_a_crafted_policy_folder_runs_no_code_when_loaded_or_resumed(tmp_path, s
     import zipfile
 
     from l3e_env.cli.main import main
-    from policies.fastenv import FastEnvConfig
     from policies.ppo import OBSERVATION, PolicyCheckpointError, PPOPolicy, train_ppo
 
     marker = tmp_path / "marker"
     folder = tmp_path / "shared-policy"
     folder.mkdir()
-    meta = {"observation": OBSERVATION, "net_arch": [64, 64], "fast_env": {"action_repeat": 1}}
+    meta = {"observation": OBSERVATION, "action": ["vx", "yaw_rate"], "net_arch": [64, 64],
+            "fast_env": {"action_repeat": 1}}
     (folder / "policy.json").write_text(json.dumps(meta))
     payload = base64.b64encode(pickle.dumps(_Payload(marker))).decode()
     with zipfile.ZipFile(folder / "policy.zip", "w") as z:  # SB3's layout: cloudpickled entries in `data`
