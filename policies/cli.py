@@ -191,11 +191,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--lam", type=non_negative, help="weight of expected drift in the reward (default: a resumed "
                                                     "run's own, else 50)")
     g.add_argument("--lateral-drift", type=non_negative, metavar="M",
-                   help="expected drift charged per metre walked sideways, with --sideways (default: a resumed "
-                        "run's own, else 0.015)")
+                   help="expected drift charged per metre walked sideways (default: a resumed run's own, else "
+                        "0.015)")
     g.add_argument("--sideways", action=argparse.BooleanOptionalAction, default=None,
-                   help="the policy may walk sideways: its action is (vx, vy, yaw rate) instead of (vx, yaw rate), "
-                        "walking facing its way as the route followers do (default: a resumed run's own, else off)")
+                   help="the policy's action is the twist (vx, vy, yaw rate); with --no-sideways (vx, yaw rate), "
+                        "walking facing its way as the route followers do (default: a resumed run's own, else on)")
     g.add_argument("--seed", type=int, default=0)
     add_mesh_options(g, several=True)
     g.set_defaults(func=_cmd_train)

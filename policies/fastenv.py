@@ -67,11 +67,9 @@ class FastEnvConfig:
     # measured 4 deg. 0.015 halves PPO's drift; the policy then walks facing its way, and on fork-104
     # it wedges a corner against a box, which the evaluation's recovery (BackOff) backs it out of
     lateral_drift: float = 0.015
-    # the policy's action: (vx, yaw rate), walking facing its way as the route followers do, or with
-    # `sideways` (vx, vy, yaw rate). The drift model above prices walking sideways, but a policy
-    # trained with it keeps a small sideways drift in its mean action, which the full pipeline's
-    # estimate pays for over a long route (docs/results.md, "Where the detour should pay")
-    sideways: bool = False
+    # the policy's action: (vx, vy, yaw rate), or without `sideways` (vx, yaw rate), walking facing
+    # its way as the route followers do (docs/results.md, "Where the detour should pay", says how each did)
+    sideways: bool = True
     tight_clearance: float = TIGHT_CLEARANCE  # m, the planner's
     goal_reward: float = 10.0
     # the full pipeline's evaluation stops where the robot's estimate comes this close to the goal: a

@@ -93,7 +93,7 @@ def _has_tensorboard() -> bool:
     return importlib.util.find_spec("tensorboard") is not None
 
 
-def teacher_action(obs: np.ndarray, sideways: bool = False) -> np.ndarray:
+def teacher_action(obs: np.ndarray, sideways: bool = True) -> np.ndarray:
     """The planner's choice as a twist: walk towards the observation's localizability-aware path
     direction (downhill on the planner's cost-to-go) as the route follower walks towards its
     look-ahead point (l3e_env.sim.follower.walk_towards). A function of

@@ -199,13 +199,13 @@ def test_learned_map_gives_probabilities(small_fork):
 def fast_env(small_fork):
     scene, space, _ = small_fork
     locmap = synthetic_map(space, lambda xy: (np.abs(xy[:, 1]) < 1.5) & (xy[:, 0] > 4) & (xy[:, 0] < 16))
-    return MapNavigationEnv([SceneContext(scene, space, locmap)], FastEnvConfig(sideways=True))
+    return MapNavigationEnv([SceneContext(scene, space, locmap)])
 
 
 def test_a_policy_walks_facing_its_way_unless_it_may_walk_sideways(fast_env):
-    """By default the action is (vx, yaw rate): the same walk as the twist without vy; an action of
-    the other layout's size is refused by name."""
-    facing = MapNavigationEnv(fast_env.contexts, FastEnvConfig())
+    """Without `sideways` the action is (vx, yaw rate): the same walk as the twist without vy; an
+    action of the other layout's size is refused by name."""
+    facing = MapNavigationEnv(fast_env.contexts, FastEnvConfig(sideways=False))
     assert facing.action_space.shape == (2,) and fast_env.action_space.shape == (3,)
     poses = []
     for env, action in ((facing, [0.7, 0.4]), (fast_env, [0.7, 0.0, 0.4])):
@@ -290,14 +290,14 @@ def test_policy_train_takes_the_sideways_cost_and_a_resumed_run_keeps_it(tmp_pat
     monkeypatch.setattr("policies.ppo.train_ppo", fake_train)
     monkeypatch.setattr("policies.context.scene_context", lambda *args, **kwargs: None)
     run = ["policy", "train", "--scene", "fork-0", "--quiet", "--out"]
-    assert main([*run, str(tmp_path / "a"), "--lateral-drift", "0.015", "--lam", "20", "--sideways"]) == 0
+    assert main([*run, str(tmp_path / "a"), "--lateral-drift", "0.015", "--lam", "20"]) == 0
     assert main([*run, str(tmp_path / "a")]) == 0  # the second stage, resumed
     assert main([*run, str(tmp_path / "a"), "--lam", "30"]) == 0  # a given option wins
-    assert main([*run, str(tmp_path / "b"), "--lateral-drift", "0"]) == 0
+    assert main([*run, str(tmp_path / "b"), "--lateral-drift", "0", "--no-sideways"]) == 0
     assert main([*run, str(tmp_path / "b")]) == 0  # resumed: still without the cost
     assert main([*run, str(tmp_path / "c")]) == 0  # a new run: the defaults
     assert given == [(0.015, 20.0, True), (0.015, 20.0, True), (0.015, 30.0, True), (0.0, 50.0, False),
-                     (0.0, 50.0, False), (0.015, 50.0, False)]
+                     (0.0, 50.0, False), (0.015, 50.0, True)]
     for option in ("--lateral-drift", "--lam"):
         for bad in ("-0.1", "nan", "much"):
             with pytest.raises(SystemExit):
@@ -358,7 +358,7 @@ def test_ppo_trains_resumes_and_refuses_other_observations(tmp_path, small_fork)
     assert action.shape == (3,) and np.all(np.abs(action) <= 1)
     meta = json.loads((out / "policy.json").read_text())
     assert [h["from_timestep"] for h in meta["history"]] == [0, first["timesteps"]]  # both stages recorded
-    assert meta["action"] == ["vx", "yaw_rate"]
+    assert meta["action"] == ["vx", "vy", "yaw_rate"]
     meta["action"] = ["vx", "vy", "yaw_rate", "pitch_rate"]
     (out / "policy.json").write_text(json.dumps(meta))
     with pytest.raises(PolicyCheckpointError, match="trained with actions"):
@@ -377,19 +377,20 @@ def test_teacher_walks_the_aware_direction_and_ppo_starts_from_its_clone(tmp_pat
 
     obs = np.zeros((3, PolicyView.size), dtype=np.float32)
     obs[:, PolicyView.aware] = [[1.0, 0.0], [0.0, 1.0], [np.cos(-0.3), np.sin(-0.3)]]
-    np.testing.assert_allclose(teacher_action(obs, sideways=True), [[1, 0, 0], [0, 0, 1], [np.cos(0.3), 0, -0.45]],
+    np.testing.assert_allclose(teacher_action(obs), [[1, 0, 0], [0, 0, 1], [np.cos(0.3), 0, -0.45]], atol=1e-6)
+    np.testing.assert_allclose(teacher_action(obs, sideways=False), [[1, 0], [0, 1], [np.cos(0.3), -0.45]],
                                atol=1e-6)
-    np.testing.assert_allclose(teacher_action(obs), [[1, 0], [0, 1], [np.cos(0.3), -0.45]], atol=1e-6)
     scene, space, cache = small_fork
     contexts = [SceneContext(scene, space, get_map(scene, space, "eigen:30", cache, resolution=4.0))]
     warm = WarmStart(episodes=2, epochs=300)  # a few samples: more passes
-    observations, actions, returns = demonstrations(contexts, FastEnvConfig(), warm)
+    walking = FastEnvConfig(sideways=False)  # (vx, yaw rate)
+    observations, actions, returns = demonstrations(contexts, walking, warm)
     assert len(observations) == len(actions) == len(returns) > 20 and np.isfinite(returns).all()
-    np.testing.assert_allclose(actions, teacher_action(observations))  # labelled with the teacher's own twist
+    np.testing.assert_allclose(actions, teacher_action(observations, sideways=False))  # the teacher's own twist
     gaps = {}
     for name, start in (("warm", warm), ("cold", None)):
         # no PPO step after it: the network as cloned (or as drawn)
-        train_ppo(tmp_path / name, contexts, "eigen:30", timesteps=0, n_envs=1, config=FastEnvConfig(),
+        train_ppo(tmp_path / name, contexts, "eigen:30", timesteps=0, n_envs=1, config=walking,
                   progress=False, warm=start)
         policy = PPOPolicy(tmp_path / name)
         twists = np.array([policy(o) for o in observations[:200]])
