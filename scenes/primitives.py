@@ -14,7 +14,8 @@ def make_primitive(seed: int = 0, kind: str | None = None) -> Scene:
     """One primitive environment; the kind cycles with the seed unless given.
 
     plane: x, y, yaw free; walls (two parallel walls, no roof): along-wall axis free;
-    box_room: all constrained; cylinder_room: yaw free; pipe: along-axis and roll free.
+    box_room: all constrained; cylinder_room: yaw free; pipe (round, the floor too): along-axis and
+    the turn about the axis free, which the sensor below the axis sees as roll and a sideways shift.
     """
     rng = np.random.default_rng(seed + 2000)
     name = f"primitives-{seed}" if kind in (None, KINDS[seed % len(KINDS)]) else f"primitives-{seed}:{kind}"
@@ -41,8 +42,9 @@ def make_primitive(seed: int = 0, kind: str | None = None) -> Scene:
         d = rng.uniform(3, 7)
         s = np.linspace(-150, 150, 61)
         angles = np.linspace(0, 2 * np.pi, 64, endpoint=False)
-        rho, cz = polar_profile("circular", angles, d, d)
-        mesh = sweep(np.column_stack([s, 0 * s, 0 * s]), angles, np.tile(rho, (len(s), 1)), np.full(len(s), cz))
+        rho, _ = polar_profile("circular", angles, d, d)
+        # centred d/2 above the route, so that its floor is round: a turn about its axis is free
+        mesh = sweep(np.column_stack([s, 0 * s, 0 * s]), angles, np.tile(rho, (len(s), 1)), np.full(len(s), d / 2))
         path = np.array([[-30.0, 0, 0], [30.0, 0, 0]])
     else:
         raise ValueError(f"unknown primitive kind '{kind}' (choose from {KINDS})")

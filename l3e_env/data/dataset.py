@@ -31,7 +31,9 @@ from scenes import DATASET_SCENES, check_scene_name, file_sha256, is_mesh_path, 
 from l3e_env.config import LidarConfig, from_dict, settings_changed, with_defaults
 from l3e_env.core.files import folder_lock, write_atomic
 from l3e_env.core.workers import die_with_parent
-from l3e_env.localizability.labels import AXES, LabelConfig, SamplingError, label_parent, sample_parent_pose
+from l3e_env.localizability.labels import (
+    AXES, LABEL_PROTOCOL, LabelConfig, SamplingError, label_parent, protocol_name, sample_parent_pose,
+)
 from l3e_env.localizability.registration import RegistrationConfig, RegistrationError
 from l3e_env.sim.lidar import Lidar, get_pattern
 from l3e_env.sim.raycast import EmbreeCaster
@@ -230,15 +232,35 @@ def _open_folder(out: Path, config: DatasetConfig) -> dict[str, Any]:
     settings = _settings(config)
     if manifest_path.exists():
         manifest = json.loads(manifest_path.read_text())
+        check_protocol(manifest, out, "resume it")
         if _stored_settings(manifest.get("settings") or {}) != settings:
             raise DatasetError(f"{out} holds a dataset made with other settings "
                                f"({settings_changed(manifest.get('settings') or {}, settings)}); choose another folder")
         return manifest
     (out / "shards").mkdir(parents=True, exist_ok=True)
-    manifest = {"format_version": FORMAT_VERSION, "settings": settings, "versions": _versions(), "complete": False,
+    manifest = {"format_version": FORMAT_VERSION, "protocol": LABEL_PROTOCOL, "settings": settings, "versions": _versions(), "complete": False,
                 "created": time.strftime("%Y-%m-%dT%H:%M:%S")}
     _write_json(manifest_path, manifest)
     return manifest
+
+
+def remake_command(manifest: dict[str, Any], folder: Path) -> str:
+    """The command that labels a manifest's scenes and parents again, into a folder beside it."""
+    settings = manifest.get("settings") or {}
+    scenes = ",".join(settings.get("scenes") or ["..."])
+    level = " --preset level" if (settings.get("labels") or {}).get("heading") == "path" else ""
+    return (f"l3e dataset generate --out {folder}-p{LABEL_PROTOCOL}{level} --scenes {scenes} "
+            f"--parents {settings.get('parents_per_scene', '...')} --seed {settings.get('seed', 0)}")
+
+
+def check_protocol(manifest: dict[str, Any], folder: Path, what: str) -> None:
+    """DatasetError naming the protocol and the command that remakes a dataset labelled under
+    another label protocol than this version's."""
+    protocol = manifest.get("protocol", 1)
+    if protocol != LABEL_PROTOCOL:
+        raise DatasetError(f"{folder} was labelled under {protocol_name(protocol)}; this version labels under "
+                           f"{protocol_name(LABEL_PROTOCOL)}, and cannot {what}. Label it again: "
+                           f"{remake_command(manifest, folder)}")
 
 
 def _write_json(path: Path, data: dict) -> None:
@@ -366,6 +388,7 @@ class LabelDataset:
             raise DatasetError(f"{path} cannot be read ({exc}); the dataset is damaged: generate it again") from exc
         if not isinstance(self.manifest, dict) or not self.manifest.get("complete"):
             raise DatasetError(f"{self.folder}: generation has not finished; run the same command again to resume")
+        check_protocol(self.manifest, self.folder, "read it")
         self.arrays = {}
         for k in ARRAYS:
             try:

@@ -47,10 +47,9 @@ class RegistrationConfig:
     min_inlier_ratio: float = 0.3  # fewer final correspondences: failed
     # the target's ground voxels take the normal of the plane fitted to the ground's returns, in
     # place of the one from their neighbours, which leans where a neighbourhood reaches across a
-    # wall's foot and holds each step back by 5-10 % beside walls (`studies/icp_step_bias.py`). Off:
-    # the labels are made without it (docs/fusion.md says why); the fusion may run it
-    # (FusionSettings.ground_normals)
-    ground_normals: bool = False
+    # wall's foot and holds each step back beside walls (docs/decisions.md); a curved floor keeps
+    # its neighbours' normals (GROUND_FLAT)
+    ground_normals: bool = True
 
 
 @dataclass
@@ -93,6 +92,9 @@ GROUND_TILT = np.cos(np.radians(30.0))  # a ground candidate's own normal lies w
 GROUND_BELOW = 0.3  # m: and it lies this far below the sensor at least
 
 
+GROUND_FLAT = 0.85  # the share of ground candidates that the plane must hold: less is a curved floor
+
+
 def ground_plane(points: np.ndarray, normals: np.ndarray) -> np.ndarray | None:
     """The plane n.p = d (as (n, d), n pointing up the sensor's z) of the ground under the sensor,
     fitted by least squares to the voxels below it whose own normals are near vertical and refitted
@@ -100,6 +102,18 @@ def ground_plane(points: np.ndarray, normals: np.ndarray) -> np.ndarray | None:
     low = points[(np.abs(normals[:, 2]) > GROUND_TILT) & (points[:, 2] < -GROUND_BELOW)]
     if len(low) < 30:
         return None
+    plane = _fit_ground(low)
+    if plane is None:
+        return None
+    return plane if np.mean(np.abs(low @ plane[:3] - plane[3]) < GROUND_BAND) >= GROUND_FLAT else None
+
+
+def ground_voxels(points: np.ndarray, plane: np.ndarray) -> np.ndarray:
+    """Which voxels lie on the ground plane (n, d)."""
+    return np.abs(points @ plane[:3] - plane[3]) < GROUND_BAND
+
+
+def _fit_ground(low: np.ndarray) -> np.ndarray | None:
     fit = low[np.abs(low[:, 2] - np.median(low[:, 2])) < 4 * GROUND_BAND]
     for _ in range(3):
         if len(fit) < 30:
@@ -131,9 +145,8 @@ class PreparedTarget:
         if config.ground_normals:
             self.ground = ground_plane(self.points, self.normals)
             if self.ground is not None:
-                on = np.abs(self.points @ self.ground[:3] - self.ground[3]) < GROUND_BAND
                 self.normals = self.normals.copy()
-                self.normals[on] = self.ground[:3]
+                self.normals[ground_voxels(self.points, self.ground)] = self.ground[:3]
 
 
 def prepare_source(points: np.ndarray, config: RegistrationConfig) -> small_gicp.PointCloud:

@@ -21,6 +21,7 @@ from torch import nn
 from l3e_env.config import from_dict, plain, with_defaults
 from l3e_env.core.files import write_atomic
 from l3e_env.core.points import out_of_reach
+from l3e_env.localizability.labels import LABEL_PROTOCOL, protocol_name
 from l3e_env.localizability.registration import RegistrationConfig
 
 from .constraints import FEATURES, SURFACE_FEATURES, AxisStacker, scan_features, surface_rows
@@ -504,6 +505,12 @@ class Classifier:
         if lidar_model is not None and trained is not None and lidar_model.removesuffix("-calibrated") != trained:
             warnings.warn(f"the classifier was trained on {trained} scans and now sees {lidar_model} scans",
                           stacklevel=2)
+        protocol = self.meta.get("protocol", 1)
+        if protocol != LABEL_PROTOCOL:
+            warnings.warn(f"the classifier learnt labels of {protocol_name(protocol)}; this version labels under "
+                          f"{protocol_name(LABEL_PROTOCOL)}: refit it on data labelled now (l3e fit-constraints "
+                          "--checkpoint ... --dataset ...) or train it again", stacklevel=2)
+            return
         in_use = plain(registration) if registration is not None else None
         stored = self.meta.get("registration")
         labelled = None if stored is None else with_defaults(RegistrationConfig, stored)

@@ -211,11 +211,16 @@ def _optimizer(cfg: TrainConfig, model: torch.nn.Module) -> torch.optim.Optimize
     raise TrainingError(f"unknown optimizer '{cfg.optimizer}' (sgd, adamw)")
 
 
-def _meta(cfg: TrainConfig, data: LabelDataset | DatasetUnion) -> dict[str, Any]:
+def _label_meta(data: LabelDataset | DatasetUnion) -> dict[str, Any]:
+    """What a checkpoint records of the labels it learnt: their protocol, sensor and registration."""
     settings = data.manifest["settings"]
-    return {"training": plain(to_dict(cfg)), "lidar": settings["lidar"], "registration": settings["registration"],
-            "labels": settings["labels"], "dataset": {"folder": data.name, "count": len(data),
-                                                      "seed": settings["seed"]}}
+    return {"protocol": data.manifest["protocol"], "lidar": settings["lidar"], "registration": settings["registration"],
+            "labels": settings["labels"]}
+
+
+def _meta(cfg: TrainConfig, data: LabelDataset | DatasetUnion) -> dict[str, Any]:
+    return {"training": plain(to_dict(cfg)), **_label_meta(data),
+            "dataset": {"folder": data.name, "count": len(data), "seed": data.manifest["settings"]["seed"]}}
 
 
 def check_train_config(cfg: TrainConfig) -> None:
@@ -474,7 +479,7 @@ def fit_constraints(checkpoint: str | Path, dataset: str | Path | list[str | Pat
     # the base network's epoch and validation scores describe the network without the layer: kept apart
     kept = {k: v for k, v in _checkpoint_meta(state).items() if k not in ("epoch", "scores")}
     scores = {f"val_{k}": v for k, v in mean_scores(axis_scores(val_labels, val_probs > thresholds)).items()}
-    meta = {**kept, "threshold_beta": beta, "scores": scores,
+    meta = {**kept, **_label_meta(data), "threshold_beta": beta, "scores": scores,
             "constraints": {"base": str(checkpoint), "fitted_rows": int(len(train_rows)),
                             "base_epoch": state.get("epoch"), "base_scores": state.get("scores")}}
     save_checkpoint(out, model, thresholds, meta, {"symmetric_thresholds": [float(t) for t in symmetric]})
