@@ -8,7 +8,7 @@ from .bias import BIAS_AXES
 from .ekf import EKFFusion
 from .graph import FusionError, FusionGraph
 from .metrics import MetricError, ate, ate_aligned, rpe, rpe_pairs, stretch_drift, umeyama, write_kitti, write_tum
-from .steps import (GROUND_NORMALS_RESIDUAL_VARIANCE, ICP_COVARIANCES, FusionConfig, StepReport, check_config,
+from .steps import (ICP_COVARIANCES, FusionConfig, StepReport, check_config,
                     icp_information)
 from .tangent import to_gtsam_order, to_project_order
 
@@ -26,7 +26,7 @@ def make_fusion(backend: str, T_w_0, config: FusionConfig | None = None) -> Fusi
     return BACKENDS[check_backend(backend)](T_w_0, config)
 
 
-__all__ = ["BACKENDS", "BIAS_AXES", "GROUND_NORMALS_RESIDUAL_VARIANCE", "ICP_COVARIANCES", "check_config",
+__all__ = ["BACKENDS", "BIAS_AXES", "ICP_COVARIANCES", "check_config",
            "icp_information",
            "check_backend", "make_fusion", "EKFFusion", "FusionConfig", "FusionError", "FusionGraph",
            "StepReport",

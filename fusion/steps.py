@@ -36,7 +36,8 @@ class FusionConfig:
 
     mode: str = "mask"
     icp_covariance: str = "hessian"
-    icp_residual_variance: float = 0.005  # m^2; GROUND_NORMALS_RESIDUAL_VARIANCE for that registration
+    # m^2: fitted to the registration's steps over the training families (studies/icp_step_errors.py)
+    icp_residual_variance: float = 0.0016
     icp_sigmas: tuple[float, ...] = (0.005, 0.005, 0.005, 0.001, 0.001, 0.001)  # scan-to-scan at 10 Hz
     prior_sigmas: tuple[float, ...] = (1e-3, 1e-3, 1e-3, 1e-4, 1e-4, 1e-4)
     robust_kernel: str | None = None  # None | "huber" | "cauchy"
@@ -46,12 +47,6 @@ class FusionConfig:
     odometry_bias_sigmas: tuple[float, ...] = (0.001, 0.005, 0.02)
     odometry_bias_walk: tuple[float, ...] = (0.0003, 0.0005, 0.0001)
     smoother_lag: int | None = None
-
-
-# the residual variance that `studies/icp_step_errors.py --ground-normals` fits to the registration
-# whose ground voxels take the fitted plane's normal: its steps are closer to the truth than the
-# default registration's for the same Hessian
-GROUND_NORMALS_RESIDUAL_VARIANCE = 0.0016  # m^2
 
 
 def check_config(config: FusionConfig) -> FusionConfig:

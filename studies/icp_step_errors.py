@@ -17,7 +17,7 @@ the defaults beside them. The pooled RMS is not a good constant: where the detec
 weakly held axis (the field's yaw) its error is ten times that of a well held one (the tunnel's),
 which is why the fusion weighs each step by its Hessian instead.
 
-Run: python studies/icp_step_errors.py [--scenes tunnel-0,office-0,fork-0,field-0] [--tau 110] [--ground-normals]
+Run: python studies/icp_step_errors.py [--scenes tunnel-0,office-0,fork-0,field-0] [--tau 110] [--neighbours-normals]
 """
 from __future__ import annotations
 
@@ -25,7 +25,7 @@ import argparse
 
 import numpy as np
 
-from fusion import GROUND_NORMALS_RESIDUAL_VARIANCE, FusionConfig
+from fusion import FusionConfig
 from l3e_env.config import OdometryConfig
 from l3e_env.detection.detectors import EigenvalueDetector
 from l3e_env.experiments.ate import record_run, register_sequence
@@ -67,9 +67,10 @@ def main() -> None:
     parser.add_argument("--scenes", default="tunnel-0,office-0,fork-0,field-0")
     parser.add_argument("--tau", type=float, default=110.0, help="eigenvalue threshold that decides trust")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--ground-normals", action="store_true", help="register with RegistrationConfig.ground_normals")
+    parser.add_argument("--neighbours-normals", action="store_true",
+                        help="register with small_gicp's neighbours' normals on the ground too (ground_normals off)")
     args = parser.parse_args()
-    registration = RegistrationConfig(ground_normals=args.ground_normals)
+    registration = RegistrationConfig(ground_normals=not args.neighbours_normals)
     print(f"{'':34s}" + "".join(f"{a:>8s}" for a in AXES))
     pooled_sq, pooled_n, fits = np.zeros(6), np.zeros(6), []
     for scene in args.scenes.split(","):
@@ -91,7 +92,7 @@ def main() -> None:
     print(row("pooled ICP step error, RMS", np.sqrt(pooled_sq / np.maximum(pooled_n, 1))))
     print(row("FusionConfig.icp_sigmas (fixed)", np.asarray(FusionConfig().icp_sigmas)))
     pooled = np.concatenate(fits)
-    used = GROUND_NORMALS_RESIDUAL_VARIANCE if args.ground_normals else FusionConfig().icp_residual_variance
+    used = FusionConfig().icp_residual_variance
     print(f"icp_residual_variance: the pooled mean of e' H e / 6 over {len(pooled)} steps is {pooled.mean():.4f} m^2 "
           f"(the fusion's: {used})")
 

@@ -34,7 +34,7 @@ def episode(job: tuple[str, str, bool]) -> tuple:
         return twist
 
     ppo.PPOPolicy.__call__ = act  # this worker's process only (one task a process)
-    settings = FusionSettings(ground_normals=True, odometry_bias=("yaw", "scale"), attitude="tilt")
+    settings = FusionSettings(odometry_bias=("yaw", "scale"), attitude="tilt")
     ep = run_episode(f"ppo:{folder}", scene, 0, fusion_settings=settings)
     a = np.array(actions)
     return scene, zero_vy, ep.success, ep.final_ate, ep.path_length, np.abs(a).mean(0), a.mean(0)

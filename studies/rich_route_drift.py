@@ -96,7 +96,7 @@ def main() -> None:
     for ground_normals in (False, True):
         step_bias(args.scene, args.y, args.x0, args.x1, args.steps, ground_normals)
     if args.drive:
-        drive(args.scene, args.seed, FusionSettings(ground_normals=True, odometry_bias=("yaw", "scale"),
+        drive(args.scene, args.seed, FusionSettings(odometry_bias=("yaw", "scale"),
                                                     attitude=args.attitude))
 
 

@@ -170,11 +170,7 @@ def test_a_short_run_stops_after_max_steps(tmp_path):
     assert main(["ate", "--scene", "primitives-1", "--detector", "none", "--max-steps", "20", "--quiet",
                  "--out", str(tmp_path / "ate")]) == 0
     results = json.loads((tmp_path / "ate" / "results.json").read_text())
-    assert results["steps"] == 20 and results["registration"]["ground_normals"] is False
-    assert main(["ate", "--scene", "primitives-1", "--detector", "none", "--max-steps", "20", "--quiet",
-                 "--ground-normals", "--out", str(tmp_path / "ground")]) == 0
-    results = json.loads((tmp_path / "ground" / "results.json").read_text())
-    assert results["registration"]["ground_normals"] is True and results["ground_normals"] is True
+    assert results["steps"] == 20 and results["registration"]["ground_normals"] is True  # the labels' registration
     with pytest.raises(SystemExit):
         main(["record", "--out", str(tmp_path / "r.bag"), "--max-steps", "-3"])
 

@@ -3,7 +3,8 @@ import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
 
-from fusion import GROUND_NORMALS_RESIDUAL_VARIANCE, FusionConfig
+from fusion import FusionConfig
+from l3e_env.localizability.registration import RegistrationConfig
 import l3e_env
 from l3e_env.envs.navigation import NavigationEnv
 from l3e_env.sim.follower import RouteFollower
@@ -119,11 +120,10 @@ def test_os0_128_option_and_async_vector_env():
     envs.close()
 
 
-@pytest.mark.parametrize("odometry_bias,ground_normals", [((), False), (("yaw",), True)])
-def test_fusion_in_the_loop_reports_estimate_mask_and_running_ate(odometry_bias, ground_normals):
+@pytest.mark.parametrize("odometry_bias", [(), ("yaw",)])
+def test_fusion_in_the_loop_reports_estimate_mask_and_running_ate(odometry_bias):
     env = NavigationEnv(dict(scene="tunnel", fusion=dict(enabled=True, detector="eigen:110",
-                                                         odometry_bias=list(odometry_bias),
-                                                         ground_normals=ground_normals)))
+                                                         odometry_bias=list(odometry_bias))))
     _, info = env.reset(seed=0)
     follow = RouteFollower(env.route)
     assert info["running_ate"] == 0.0 and not info["localizability_known"]
@@ -140,9 +140,8 @@ def test_fusion_in_the_loop_reports_estimate_mask_and_running_ate(odometry_bias,
     assert env.fusion.fusion_config.odometry_bias_sigmas[0] == env.config.odometry.yaw_bias_std
     assert env.fusion.fusion_config.odometry_bias == odometry_bias
     assert env.config.fusion.odometry_bias == odometry_bias
-    assert env.fusion.registration.ground_normals == ground_normals  # the ICP with the ground plane's normals
-    assert env.fusion.fusion_config.icp_residual_variance == (GROUND_NORMALS_RESIDUAL_VARIANCE if ground_normals
-                                                              else FusionConfig().icp_residual_variance)
+    assert env.fusion.registration == RegistrationConfig()  # the labels' registration: one everywhere
+    assert env.fusion.fusion_config.icp_residual_variance == FusionConfig().icp_residual_variance
     env.close()
 
 

@@ -53,16 +53,12 @@ def bias_axes(text: str) -> tuple[str, ...]:
 
 
 def add_fusion_options(parser: argparse.ArgumentParser) -> None:
-    """--odometry-bias and --ground-normals, read back by `fusion_settings` (`l3e ate`, `l3e sweep`,
+    """--odometry-bias, read back by `fusion_settings` (`l3e ate`, `l3e sweep`,
     `l3e policy evaluate`)."""
     parser.add_argument("--odometry-bias", type=bias_axes, action="extend", default=[], metavar="AXES",
                         help="estimate the leg odometry's biases as states of the fusion: yaw, z (per metre), "
                              "scale (the stride's), comma-separated or repeated (default none; see "
                              "docs/decisions.md)")
-    parser.add_argument("--ground-normals", action="store_true",
-                        help="the fusion's ICP gives the ground's voxels the fitted plane's normal, which removes "
-                             "most of its step bias beside walls; a registration the classifier's labels were not "
-                             "made with (see docs/fusion.md)")
 
 
 def fusion_settings(args: argparse.Namespace) -> FusionSettings:
@@ -70,7 +66,7 @@ def fusion_settings(args: argparse.Namespace) -> FusionSettings:
     axes = tuple(args.odometry_bias)
     if len(set(axes)) < len(axes):
         raise ValueError(f"--odometry-bias names an axis twice: {', '.join(axes)}")
-    return FusionSettings(odometry_bias=axes, ground_normals=args.ground_normals)
+    return FusionSettings(odometry_bias=axes)
 
 
 def sensor_name(text: str) -> str:

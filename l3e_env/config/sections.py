@@ -71,11 +71,8 @@ class FusionSettings:
     biases estimated as fusion states, () or among "yaw", "z" and "scale" (see fusion.bias; their prior is the
     odometry config's); detector_process: a learned detector judges each scan in a process of its
     own while the step registers it (detection.ahead; the same answers, faster where a core is
-    free); ground_normals: the fusion's scan-to-scan ICP gives the ground's voxels the fitted
-    plane's normal (RegistrationConfig.ground_normals), which removes most of its step bias beside
-    walls, with its factor's information fitted to it (fusion.GROUND_NORMALS_RESIDUAL_VARIANCE): a
-    registration that the shipped classifier's labels were not made with (docs/fusion.md). The ICP
-    factor is weighed by the registration's Hessian (fusion.FusionConfig)."""
+    free). The fusion's ICP is the detectors' registration (the one their labels were made with),
+    its factor weighed by the registration's Hessian (fusion.FusionConfig)."""
 
     enabled: bool = False
     detector: str = "learned"
@@ -85,12 +82,11 @@ class FusionSettings:
     attitude: str = "none"
     odometry_bias: tuple[str, ...] = ()
     detector_process: bool = False
-    ground_normals: bool = False
 
     def record(self) -> dict[str, Any]:
         """The estimator's choices, as written into results.json, sweep.json and a policy evaluation's
         settings."""
-        return {"odometry_bias": list(self.odometry_bias), "ground_normals": self.ground_normals}
+        return {"odometry_bias": list(self.odometry_bias)}
 
 
 @dataclass

@@ -238,8 +238,8 @@ def _open_folder(out: Path, config: DatasetConfig) -> dict[str, Any]:
                                f"({settings_changed(manifest.get('settings') or {}, settings)}); choose another folder")
         return manifest
     (out / "shards").mkdir(parents=True, exist_ok=True)
-    manifest = {"format_version": FORMAT_VERSION, "protocol": LABEL_PROTOCOL, "settings": settings, "versions": _versions(), "complete": False,
-                "created": time.strftime("%Y-%m-%dT%H:%M:%S")}
+    manifest = {"format_version": FORMAT_VERSION, "protocol": LABEL_PROTOCOL, "settings": settings,
+                "versions": _versions(), "complete": False, "created": time.strftime("%Y-%m-%dT%H:%M:%S")}
     _write_json(manifest_path, manifest)
     return manifest
 

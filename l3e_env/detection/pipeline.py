@@ -8,7 +8,6 @@ detector's probabilities and mask, and the running ATE against ground truth.
 """
 from __future__ import annotations
 
-import dataclasses
 import os
 from dataclasses import dataclass
 from typing import Any
@@ -26,12 +25,6 @@ from l3e_env.sim.odometry import odometry_fusion_config, odometry_sigmas
 
 from .ahead import DetectorProcess
 from .detectors import UNKNOWN, Detector, Prediction, make_detector, registration_of, safe_predict
-
-
-def fusion_registration(registration: RegistrationConfig, settings: FusionSettings) -> RegistrationConfig:
-    """The registration the fusion runs: the detectors' (the one their labels were made with), its
-    ground's voxels given the fitted plane's normal where the settings ask (FusionSettings.ground_normals)."""
-    return dataclasses.replace(registration, ground_normals=True) if settings.ground_normals else registration
 
 
 class ScanRegistrar:
@@ -126,7 +119,7 @@ class OnlineFusion:
         if isinstance(registration, dict):
             registration = from_dict(RegistrationConfig, registration)
         # with the classifier in a process of its own, the target is prepared on one thread: the other core is its
-        self.registrar = ScanRegistrar(fusion_registration(registration or registration_of([detector]), config),
+        self.registrar = ScanRegistrar(registration or registration_of([detector]),
                                        threads=1 if config.detector_process else None)
         # an environment reports the newest estimate only: the graph keeps a window (bounded cost per step)
         self.pipeline = LocalizationPipeline(detector, config.backend,

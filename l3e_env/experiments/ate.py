@@ -30,7 +30,7 @@ from l3e_env.core.transforms import inverse
 from l3e_env.core.workers import ordered_map
 from l3e_env.detection.detectors import (UNKNOWN, CascadeDetector, Detector, Prediction, ScanMCDetector, make_detector,
                                          registration_of)
-from l3e_env.detection.pipeline import LocalizationPipeline, ScanRegistrar, fusion_registration
+from l3e_env.detection.pipeline import LocalizationPipeline, ScanRegistrar
 from l3e_env.envs.navigation import NavigationEnv
 from l3e_env.localizability.labels import AXES
 from l3e_env.localizability.registration import RegistrationConfig
@@ -479,7 +479,7 @@ def run_ate(out_dir: str | Path, scene: str, detectors: list[str], sensor: str =
                  else make_scene(scene, **(scene_params or {})))
     lidar = Lidar(EmbreeCaster(scene_obj.mesh), LidarConfig(model=rec.sensor if rec else sensor))
     dets = [make_detector(spec, lidar, seed) for spec in detectors]  # a bad spec fails before the drive
-    registration = fusion_registration(registration_of(dets), fusion_settings)
+    registration = registration_of(dets)
     dets = [RecastScans(d, lidar, seed=seed) if isinstance(d, ScanMCDetector)
             else RecastCascade(d, lidar, seed=seed) if isinstance(d, CascadeDetector) else d for d in dets]
     out.mkdir(parents=True, exist_ok=True)

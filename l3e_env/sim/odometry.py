@@ -58,11 +58,9 @@ def odometry_fusion_config(odometry: OdometryConfig, settings: FusionSettings = 
                            **overrides) -> FusionConfig:
     """The estimator's checked FusionConfig for `settings` (and any other FusionConfig fields), its
     odometry bias states, if any, starting from this noise model's bias spread and wandering by its
-    random walk; with `settings.ground_normals`, the ICP residual variance fitted to that registration."""
-    from fusion import GROUND_NORMALS_RESIDUAL_VARIANCE, FusionConfig, check_config  # GTSAM loads slowly
+    random walk."""
+    from fusion import FusionConfig, check_config  # GTSAM loads slowly
 
-    if settings.ground_normals:
-        overrides = {"icp_residual_variance": GROUND_NORMALS_RESIDUAL_VARIANCE, **overrides}
     return check_config(FusionConfig(odometry_bias_sigmas=(odometry.yaw_bias_std, odometry.z_bias_std,
                                                            odometry.scale_error_std),
                                      odometry_bias_walk=(odometry.yaw_bias_walk, odometry.z_bias_walk, SCALE_WALK),
