@@ -13,8 +13,8 @@ import numpy as np
 import torch
 from bench_classifier import route_scans  # the same route scans as the classifier's benchmark
 
-from l3e_env.detection.detectors import CASCADE_MARGIN, CascadeDetector, LearnedDetector, ScanMCDetector
 from l3e_env.config import LidarConfig
+from l3e_env.detection.detectors import CASCADE_MARGIN, CascadeDetector, LearnedDetector, ScanMCDetector
 
 
 def seconds_per_scan(judge, scans: list[np.ndarray]) -> np.ndarray:

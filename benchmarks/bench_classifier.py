@@ -22,11 +22,19 @@ import time
 import numpy as np
 import torch
 
-from l3e_env.model.classifier import (DEFAULT_CHECKPOINT, Classifier, LocalizabilityNet, ModelConfig, fold_batch_norms,
-                                      load_checkpoint, model_from_checkpoint, model_input)
+from l3e_env.core.transforms import pose_to_matrix
+from l3e_env.model.classifier import (
+    DEFAULT_CHECKPOINT,
+    Classifier,
+    LocalizabilityNet,
+    ModelConfig,
+    fold_batch_norms,
+    load_checkpoint,
+    model_from_checkpoint,
+    model_input,
+)
 from l3e_env.sim.lidar import Lidar
 from l3e_env.sim.raycast import EmbreeCaster
-from l3e_env.core.transforms import pose_to_matrix
 from scenes import make_scene
 from scenes.geometry import polyline_length, resample_polyline
 

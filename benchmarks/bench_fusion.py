@@ -16,15 +16,14 @@ import time
 
 import numpy as np
 import torch
+from competing_load import header, loads, ratio_row, spinning
 
 from fusion import EKFFusion, FusionConfig, FusionGraph
 from l3e_env.config import EnvConfig, FusionSettings
+from l3e_env.core.transforms import pose_to_matrix
 from l3e_env.detection.pipeline import ONLINE_LAG
 from l3e_env.envs.navigation import NavigationEnv
 from l3e_env.sim.follower import RouteFollower
-from l3e_env.core.transforms import pose_to_matrix
-
-from competing_load import header, loads, ratio_row, spinning
 
 
 def update_times(backend, steps: int, seed: int = 0, hessians: bool = False,

@@ -15,12 +15,12 @@ import time
 
 import numpy as np
 
+from l3e_env.core.transforms import pose_to_matrix
 from l3e_env.data.dataset import config_for, generate
 from l3e_env.localizability.labels import LabelConfig, sample_parent_pose
+from l3e_env.localizability.registration import register
 from l3e_env.sim.lidar import Lidar
 from l3e_env.sim.raycast import EmbreeCaster
-from l3e_env.localizability.registration import register
-from l3e_env.core.transforms import pose_to_matrix
 from scenes import make_scene
 
 SCENES = ["tunnel-0", "office-0", "field-0", "mine-0"]

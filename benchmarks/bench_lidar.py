@@ -14,14 +14,13 @@ import time
 from collections.abc import Callable
 
 import numpy as np
+from competing_load import loads, spinning
 
 from l3e_env.config import LidarConfig
 from l3e_env.core.transforms import pose_to_matrix
 from l3e_env.sim.lidar import Lidar, get_pattern
 from l3e_env.sim.raycast import EmbreeCaster, PyBulletCaster
 from scenes import make_scene
-
-from competing_load import loads, spinning
 
 PLACES = {"yard": (-30.0, 0.5, 0.85, 0, 0, 0.3), "tunnel": (50.0, 0.0, 0.85, 0, 0, 0.0),
           "quarry": (115.0, 0.0, 0.85, 0, 0, 1.0)}
@@ -65,14 +64,15 @@ def main() -> None:
                     dirs = np.ascontiguousarray(get_pattern(model).directions() @ T[:3, :3].T.astype(np.float32))
                     origin = T[:3, 3].copy()
 
-                    def raw() -> np.ndarray:
+                    def raw(origin=origin, dirs=dirs, lidar=lidar) -> np.ndarray:
                         return embree.cast(origin, dirs, lidar.max_range)
 
-                    raw_s, scan_s, ratio = paired(raw, lambda: lidar.scan(T, rng), args.repeats)
+                    raw_s, scan_s, ratio = paired(raw, lambda lidar=lidar, T=T: lidar.scan(T, rng), args.repeats)
                     line = (f"{load:4d} {model:8s} {place:7s} {len(dirs):7d} {raw_s * 1e3:6.2f} ms "
                             f"{scan_s * 1e3:6.2f} ms {ratio:6.2f}")
                     if lidar_p is not None:
-                        _, pyb_s, pyb_ratio = paired(raw, lambda: lidar_p.scan(T, rng), max(3, args.repeats // 20))
+                        _, pyb_s, pyb_ratio = paired(raw, lambda lidar_p=lidar_p, T=T: lidar_p.scan(T, rng),
+                                                   max(3, args.repeats // 20))
                         line += f"  {pyb_s * 1e3:10.1f} ms {pyb_ratio:6.3f}"
                     print(line, flush=True)
 

@@ -15,14 +15,13 @@ import time
 
 import numpy as np
 import torch
+from competing_load import header, loads, ratio_row, spinning
 
 from l3e_env.core.transforms import planar_pose
 from l3e_env.model.classifier import Classifier
 from l3e_env.sim.lidar import Lidar
 from l3e_env.sim.raycast import EmbreeCaster
 from scenes import make_scene
-
-from competing_load import header, loads, ratio_row, spinning
 
 
 def _scans(count: int) -> list[np.ndarray]:

@@ -20,10 +20,10 @@ from pathlib import Path
 
 import numpy as np
 import torch
-
 from bench_classifier import latencies_ms, route_scans
-from l3e_env.model.classifier import Classifier
+
 from l3e_env.data.dataset import LabelDataset
+from l3e_env.model.classifier import Classifier
 from l3e_env.model.training import predict_dataset
 
 ROOT = Path(__file__).resolve().parent.parent

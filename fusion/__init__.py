@@ -8,8 +8,7 @@ from .bias import BIAS_AXES
 from .ekf import EKFFusion
 from .graph import FusionError, FusionGraph
 from .metrics import MetricError, ate, ate_aligned, rpe, rpe_pairs, stretch_drift, umeyama, write_kitti, write_tum
-from .steps import (ICP_COVARIANCES, FusionConfig, StepReport, check_config,
-                    icp_information)
+from .steps import ICP_COVARIANCES, FusionConfig, StepReport, check_config, icp_information
 from .tangent import to_gtsam_order, to_project_order
 
 BACKENDS = {"graph": FusionGraph, "ekf": EKFFusion}

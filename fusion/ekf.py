@@ -15,7 +15,13 @@ from filterpy.kalman import ExtendedKalmanFilter
 
 from .bias import bias_prior, corrected_increment
 from .steps import (
-    FusionConfig, StepReport, check_attitude, check_config, check_odometry_sigmas, icp_information, resolve_step,
+    FusionConfig,
+    StepReport,
+    check_attitude,
+    check_config,
+    check_odometry_sigmas,
+    icp_information,
+    resolve_step,
 )
 from .tangent import GTSAM_FROM_PROJECT, to_gtsam_order
 

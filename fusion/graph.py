@@ -11,7 +11,13 @@ import numpy as np
 
 from .bias import BIAS_KNOT_METRES, bias_prior, corrected_increment, odometry_bias_factor
 from .steps import (
-    FusionConfig, StepReport, check_attitude, check_config, check_odometry_sigmas, icp_information, resolve_step,
+    FusionConfig,
+    StepReport,
+    check_attitude,
+    check_config,
+    check_odometry_sigmas,
+    icp_information,
+    resolve_step,
 )
 from .tangent import to_gtsam_order
 

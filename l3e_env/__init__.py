@@ -4,11 +4,12 @@ Importing the package registers the Gymnasium ids (`l3e/Tunnel-v0`, ...) as soon
 imported, before or after, and loads nothing heavier: the simulation's modules load when a name of
 theirs is first used (`l3e_env.Lidar`), so that `l3e --help` and short commands start fast."""
 import sys
+from collections.abc import Sequence
 from importlib import import_module
 from importlib.abc import Loader, MetaPathFinder
 from importlib.machinery import ModuleSpec, PathFinder
 from types import ModuleType
-from typing import Any, Sequence
+from typing import Any
 
 from l3e_env.core.threads import PACKAGE_THREAD_ENV, settle_process_threads
 

@@ -11,8 +11,16 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from l3e_env.cli.options import (SENSOR_HELP, add_fusion_options, add_mesh_options, fusion_settings, mesh_options_given,
-                                 scene_names, scene_params, sensor_name)
+from l3e_env.cli.options import (
+    SENSOR_HELP,
+    add_fusion_options,
+    add_mesh_options,
+    fusion_settings,
+    mesh_options_given,
+    scene_names,
+    scene_params,
+    sensor_name,
+)
 from l3e_env.config import ATTITUDE_MODES
 from l3e_env.config.detector_spec import DETECTOR_GRAMMAR, MAP_DETECTORS, parse_detector
 from l3e_env.io.mesh_lists import meshes_file
@@ -52,7 +60,7 @@ def _cmd_map(args: argparse.Namespace) -> int:
                             progress=not args.quiet, scene_params=params, workers=args.workers)
         figure = out / f"{ctx.scene.name}-{args.detector.replace(':', '')}.png"
         plot_locmap(figure, ctx.scene, ctx.locmap, ctx.space)
-        share = " ".join(f"{a} {100 * v:.0f}%" for a, v in zip("x y z roll pitch yaw".split(),
+        share = " ".join(f"{a} {100 * v:.0f}%" for a, v in zip(["x", "y", "z", "roll", "pitch", "yaw"],
                                                                   ctx.locmap.masked.mean(axis=(0, 1))))
         print(f"{ctx.scene.name}: {len(ctx.locmap.positions)} positions x {len(ctx.locmap.yaws)} headings, "
               f"masked: {share}{_estimated_share(ctx.locmap, args.detector)} ({time.perf_counter() - t0:.0f} s) "

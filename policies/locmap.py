@@ -3,6 +3,7 @@ level body poses (x, y, yaw bins) covering a scene's free space, cached on disk 
 detector and grid."""
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
@@ -174,10 +175,8 @@ class MapJudge:
                 return self.classifier.probabilities(scans, np.asarray(poses)), estimated
             except ScanError:  # judge one by one; a scan that cannot be judged stays NaN
                 for i, (scan, T) in enumerate(zip(scans, poses)):
-                    try:
+                    with contextlib.suppress(ScanError):
                         out[i] = self.classifier.probabilities([scan], T[None])[0]
-                    except ScanError:
-                        pass
                 return out, estimated
         for i, (T, rng) in enumerate(zip(poses, rngs)):
             # the children come from the pose's own rng, so a map does not depend on the order of its poses

@@ -105,7 +105,7 @@ def teacher_action(obs: np.ndarray, sideways: bool = True) -> np.ndarray:
     return np.stack(parts, -1).astype(np.float32)
 
 
-@dataclasses.dataclass
+@dataclasses.dataclass(frozen=True)
 class WarmStart:
     """Behaviour cloning before PPO: the teacher (teacher_action) walks every training scene
     `episodes` times with Gaussian noise of `noise` on its executed twist, so that the states off
@@ -129,7 +129,7 @@ def demonstrations(contexts: list[SceneContext], config: FastEnvConfig, warm: Wa
     gamma = PPO_SETTINGS["gamma"]
     for ctx in contexts:
         env = MapNavigationEnv([ctx], config)
-        for episode in range(warm.episodes):
+        for _ in range(warm.episodes):
             obs, _ = env.reset(seed=int(rng.integers(2**31)))
             rewards, done = [], False
             while not done:

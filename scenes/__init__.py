@@ -1,8 +1,16 @@
 """Procedural and imported scenes (geometry only, trimesh): meshes, sampling paths, routes."""
 from .mesh_io import file_sha256, is_mesh_path, load_mesh, load_route, scene_from_mesh
 from .registry import (
-    DATASET_SCENES, HELDOUT_SCENES, TEST_SCENES, TRAIN_SCENES, VALIDATION_SCENES, canonical_scene_name,
-    check_scene_name, list_scenes, make_scene, scene_family,
+    DATASET_SCENES,
+    HELDOUT_SCENES,
+    TEST_SCENES,
+    TRAIN_SCENES,
+    VALIDATION_SCENES,
+    canonical_scene_name,
+    check_scene_name,
+    list_scenes,
+    make_scene,
+    scene_family,
 )
 from .scene import Scene, SceneError, validate_mesh
 

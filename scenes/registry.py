@@ -1,8 +1,8 @@
 """Scene names, seeded variants and the split of environments into training and test."""
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 from .bypass import make_bypass
 from .cave import make_cave

@@ -52,7 +52,7 @@ class Scene:
             raise SceneError(f"scene '{self.name}': start or goal is not finite")
 
     @classmethod
-    def along_route(cls, name: str, mesh: trimesh.Trimesh, route: np.ndarray, family: str, seed: int) -> "Scene":
+    def along_route(cls, name: str, mesh: trimesh.Trimesh, route: np.ndarray, family: str, seed: int) -> Scene:
         """A scene whose one route is also its sampling path; the robot starts facing along it."""
         heading = float(np.arctan2(route[1, 1] - route[0, 1], route[1, 0] - route[0, 0]))
         return cls(name=name, mesh=mesh, sampling_paths=[route], start=(route[0, 0], route[0, 1], heading),
@@ -60,7 +60,7 @@ class Scene:
 
     @classmethod
     def two_ways(cls, name: str, mesh: trimesh.Trimesh, short: np.ndarray, rich: np.ndarray, family: str, seed: int,
-                 regions: dict[str, np.ndarray]) -> "Scene":
+                 regions: dict[str, np.ndarray]) -> Scene:
         """A navigation scene: from the origin facing +x to the end of both routes, a `short` way
         and a longer `rich` one (the default route); both are sampling paths."""
         return cls(name=name, mesh=mesh, sampling_paths=[short, rich], start=(0.0, 0.0, 0.0), goal=short[-1, :2],

@@ -18,14 +18,14 @@ from unittest import mock
 
 import numpy as np
 
-from l3e_env.experiments import ate as experiment
 from l3e_env.config import FusionSettings, LidarConfig, OdometryConfig
 from l3e_env.detection.detectors import make_detector
+from l3e_env.experiments import ate as experiment
+from l3e_env.localizability.registration import RegistrationConfig
 from l3e_env.sim.imu import attitude_sigmas
 from l3e_env.sim.lidar import Lidar
 from l3e_env.sim.odometry import odometry_fusion_config
 from l3e_env.sim.raycast import EmbreeCaster
-from l3e_env.localizability.registration import RegistrationConfig
 from scenes import make_scene
 
 

@@ -28,12 +28,12 @@ import time
 
 import numpy as np
 
+from l3e_env.core.transforms import inverse, matrix_to_pose, planar_pose
+from l3e_env.localizability.registration import RegistrationConfig, register
 from l3e_env.sim.imu import StepGyro
 from l3e_env.sim.lidar import DESKEW_STEPS, Lidar, deskew, deskew_motion
 from l3e_env.sim.odometry import LegOdometry
 from l3e_env.sim.raycast import make_caster
-from l3e_env.localizability.registration import RegistrationConfig, register
-from l3e_env.core.transforms import inverse, matrix_to_pose, planar_pose
 from scenes import make_scene
 
 DT = 0.1  # s, one revolution a step

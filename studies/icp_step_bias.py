@@ -25,7 +25,13 @@ import numpy as np
 
 from l3e_env.core.transforms import matrix_to_pose, planar_pose
 from l3e_env.localizability.registration import (
-    PreparedTarget, RegistrationConfig, _plane_icp, ground_plane, ground_voxels, prepare_source, register,
+    PreparedTarget,
+    RegistrationConfig,
+    _plane_icp,
+    ground_plane,
+    ground_voxels,
+    prepare_source,
+    register,
 )
 from l3e_env.sim.lidar import Lidar
 from l3e_env.sim.raycast import make_caster

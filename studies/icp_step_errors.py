@@ -27,12 +27,12 @@ import numpy as np
 
 from fusion import FusionConfig
 from l3e_env.config import OdometryConfig
+from l3e_env.core.transforms import inverse, matrix_to_pose
 from l3e_env.detection.detectors import EigenvalueDetector
 from l3e_env.experiments.ate import record_run, register_sequence
 from l3e_env.localizability.labels import AXES
-from l3e_env.sim.odometry import odometry_sigmas
 from l3e_env.localizability.registration import RegistrationConfig
-from l3e_env.core.transforms import inverse, matrix_to_pose
+from l3e_env.sim.odometry import odometry_sigmas
 
 
 def step_errors(scene: str, tau: float, seed: int, registration: RegistrationConfig) -> tuple[np.ndarray, ...]:

@@ -27,10 +27,10 @@ import argparse
 
 import numpy as np
 
-from l3e_env.model.classifier import Classifier, up_vector
 from l3e_env.data.dataset import error_ratios, open_datasets
 from l3e_env.experiments.table3 import split_rows
 from l3e_env.localizability.labels import AXES
+from l3e_env.model.classifier import Classifier, up_vector
 from l3e_env.model.scores import auroc, axis_scores, best_thresholds, mean_scores
 from l3e_env.model.training import predict_dataset
 

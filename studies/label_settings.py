@@ -11,11 +11,11 @@ import time
 
 import numpy as np
 
+from l3e_env.core.transforms import pose_to_matrix
 from l3e_env.localizability.labels import LabelConfig, registration_error
+from l3e_env.localizability.registration import PreparedTarget, RegistrationConfig, register
 from l3e_env.sim.lidar import Lidar
 from l3e_env.sim.raycast import EmbreeCaster
-from l3e_env.localizability.registration import PreparedTarget, RegistrationConfig, register
-from l3e_env.core.transforms import pose_to_matrix
 from scenes import make_scene
 
 POSES = [("tunnel-0", (50, 0, 0.85, 0, 0, 0), "tunnel axis x"), ("office-0", (5, 0, 0.85, 0, 0, 0.3), "nothing"),

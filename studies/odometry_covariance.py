@@ -14,8 +14,8 @@ import argparse
 import numpy as np
 
 from l3e_env.config import OdometryConfig
-from l3e_env.sim.odometry import DeadReckoningCovariance, LegOdometry, odometry_sigmas
 from l3e_env.core.transforms import adjoint, inverse, matrix_to_pose, planar_pose
+from l3e_env.sim.odometry import DeadReckoningCovariance, LegOdometry, odometry_sigmas
 
 
 def main() -> None:

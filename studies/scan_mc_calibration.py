@@ -18,8 +18,8 @@ import time
 import numpy as np
 
 from l3e_env.data.dataset import open_datasets, row_thresholds
-from l3e_env.localizability.labels import AXES
 from l3e_env.data.scan_estimates import dataset_scan_errors
+from l3e_env.localizability.labels import AXES
 from l3e_env.localizability.scan_mc import ScanMCConfig
 from l3e_env.model.scores import axis_scores, mean_scores
 from l3e_env.model.training import split_indices

@@ -27,14 +27,14 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from l3e_env.core.workers import ordered_map
 from l3e_env.data.dataset import open_datasets, row_thresholds
-from l3e_env.localizability.labels import AXES
-from l3e_env.sim.patterns import get_pattern
 from l3e_env.data.scan_estimates import DatasetScans, open_dataset_scans, row_estimate
+from l3e_env.localizability.labels import AXES
 from l3e_env.localizability.scan_mc import ScanMCConfig
 from l3e_env.model.scores import axis_scores, mean_scores
 from l3e_env.model.training import split_indices
-from l3e_env.core.workers import ordered_map
+from l3e_env.sim.patterns import get_pattern
 from scenes import TEST_SCENES, TRAIN_SCENES, VALIDATION_SCENES
 
 NEAR = 0.5  # |log(label error / threshold)| under this: a scan near its threshold

@@ -19,13 +19,13 @@ from pathlib import Path
 import numpy as np
 
 from l3e_env.config import LidarConfig
+from l3e_env.core.transforms import pose_to_matrix
 from l3e_env.localizability.labels import AXES, LabelConfig, label_parent
+from l3e_env.localizability.registration import RegistrationConfig
+from l3e_env.localizability.scan_mc import ScanMCConfig, scan_errors
 from l3e_env.sim.lidar import Lidar
 from l3e_env.sim.patterns import PATTERNS, fit_pattern, load_pattern, register_pattern
 from l3e_env.sim.raycast import EmbreeCaster
-from l3e_env.localizability.registration import RegistrationConfig
-from l3e_env.localizability.scan_mc import ScanMCConfig, scan_errors
-from l3e_env.core.transforms import pose_to_matrix
 from scenes import make_scene
 
 OUSTER_LIKE = """elevations_deg: {from: -21.1, to: 21.1, beams: 64}

@@ -4,13 +4,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from scenes.geometry import box, ground_plane, merge
-from scenes.scene import Scene
-
 from l3e_env.config import RobotConfig
 from l3e_env.core.transforms import planar_pose
 from l3e_env.sim.avoidance import FreeHeadings
 from l3e_env.sim.follower import RouteFollower
+from scenes.geometry import box, ground_plane, merge
+from scenes.scene import Scene
 
 
 def wall_across(x: float, y0: float, y1: float) -> np.ndarray:

@@ -9,20 +9,49 @@ import numpy as np
 import pytest
 import torch
 
-from l3e_env.model.classifier import (CHECKPOINT_VERSION, DEFAULT_CHECKPOINT, SYMMETRIES, CheckpointError, Classifier,
-                                      LocalizabilityNet, ModelConfig, ScanError, check_scan, fold_batch_norms,
-                                      load_checkpoint, model_from_checkpoint, model_input, model_probabilities,
-                                      one_per_voxel, quantize_int8, sample_points, save_checkpoint, up_vector)
+from l3e_env.core.transforms import pose_to_matrix
 from l3e_env.data.dataset import DatasetError, LabelDataset, config_for, error_ratios, generate, open_datasets
-from l3e_env.localizability.labels import LABEL_PROTOCOL, LabelConfig
 from l3e_env.detection.detectors import LearnedDetector, make_detector
+from l3e_env.localizability.labels import LABEL_PROTOCOL, LabelConfig
+from l3e_env.model.classifier import (
+    CHECKPOINT_VERSION,
+    DEFAULT_CHECKPOINT,
+    SYMMETRIES,
+    CheckpointError,
+    Classifier,
+    LocalizabilityNet,
+    ModelConfig,
+    ScanError,
+    canonical_view,
+    check_scan,
+    fold_batch_norms,
+    load_checkpoint,
+    model_from_checkpoint,
+    model_input,
+    model_probabilities,
+    one_per_voxel,
+    quantize_int8,
+    sample_points,
+    save_checkpoint,
+    symmetry_view,
+    up_vector,
+)
 from l3e_env.model.scores import auroc, axis_scores, best_thresholds, format_table, mean_interval, mean_scores, pr_curve
 from l3e_env.model.sparse import GatherConv, int8_products_work, int8_residual_block, voxelize
-from l3e_env.model.classifier import canonical_view, symmetry_view
-from l3e_env.model.training import (SWAP_LABELS, TrainConfig, TrainingError, augment, balanced_pool,
-                                    calibrate_symmetric, predict_dataset, scaled, split_indices, train, _resumable,
-                                    training_targets)
-from l3e_env.core.transforms import pose_to_matrix
+from l3e_env.model.training import (
+    SWAP_LABELS,
+    TrainConfig,
+    TrainingError,
+    _resumable,
+    augment,
+    balanced_pool,
+    calibrate_symmetric,
+    predict_dataset,
+    scaled,
+    split_indices,
+    train,
+    training_targets,
+)
 
 SMALL = ModelConfig(points=600, channels=(8, 8, 16, 16), pointnet_channels=(16, 32), head=(16, 16, 16, 16))
 
@@ -57,7 +86,7 @@ def test_learned_detector_answers_unknown_to_an_unjudgeable_scan(tmp_path, rng):
     assert not det.predict(np.full((500, 3), np.nan, np.float32)).known
     good = det.predict(_scan(rng))
     assert good.known and good.probabilities.shape == (6,)
-    assert ((0 < good.probabilities) & (good.probabilities < 1)).all()
+    assert ((good.probabilities > 0) & (good.probabilities < 1)).all()
 
 
 def test_a_scan_is_judged_the_same_alone_or_in_a_batch(tmp_path, rng):
@@ -523,11 +552,11 @@ def test_fine_tuning_starts_from_the_given_weights(tiny_dataset, tmp_path):
 
 def test_evaluate_writes_table_curves_and_results(tiny_dataset, tmp_path, monkeypatch):
     from l3e_env.experiments import table3
-    from l3e_env.experiments.table3 import run_table3
+    from l3e_env.experiments.table3 import Table3Options, run_table3
 
     train(tiny_dataset, tmp_path / "run", _train_cfg(), progress=False)
     res = run_table3([tmp_path / "run" / "model.pt"], tiny_dataset, tmp_path / "eval",
-                   others=[tiny_dataset, tiny_dataset], progress=False, eigen=[1e9], by_family=True)
+                     Table3Options(others=[tiny_dataset, tiny_dataset], eigen=[1e9], by_family=True), progress=False)
     eigen = res.models.pop("eigen:1e+09")
     (name, model), = res.models.items()
     assert set(eigen["splits"]) == set(model["splits"]) and eigen["splits"]["valid"]["unregistrable"] == 0
@@ -556,8 +585,8 @@ def test_evaluate_writes_table_curves_and_results(tiny_dataset, tmp_path, monkey
         return scene
 
     monkeypatch.setattr(table3, "make_scene", tunnel_as_one_region)
-    drawn = run_table3([tmp_path / "run" / "model.pt"], tiny_dataset, tmp_path / "eval-test", progress=False,
-                     by_family=True, by_region=True, draws=3)
+    drawn = run_table3([tmp_path / "run" / "model.pt"], tiny_dataset, tmp_path / "eval-test",
+                       Table3Options(by_family=True, by_region=True, draws=3), progress=False)
     splits = drawn.models[name]["splits"]
     assert set(splits) == {"train", "valid", "test", "tunnel of test", "field of test", "anywhere of tunnel-0"}
     region, family = ({k: v for k, v in splits[c].items() if k != "dataset"} for c in ("anywhere of tunnel-0",
@@ -571,7 +600,8 @@ def test_evaluate_writes_table_curves_and_results(tiny_dataset, tmp_path, monkey
     assert len(splits["valid"]["draws"]["mean_f1"]) == 3 and "draws" not in splits["tunnel of test"]
     assert "over 3 draws of the points" in drawn.table
     with pytest.raises(ValueError, match="draws must be at least 1"):
-        run_table3([tmp_path / "run" / "model.pt"], tiny_dataset, tmp_path / "eval-none", progress=False, draws=0)
+        run_table3([tmp_path / "run" / "model.pt"], tiny_dataset, tmp_path / "eval-none", Table3Options(draws=0),
+                   progress=False)
     rows = split_indices(data, ["tunnel-0"])
     expected = axis_scores(data.labels[rows], predict_dataset(clf.model, data, rows) > clf.thresholds)
     assert splits["test"]["count"] == 8 and splits["tunnel of test"]["count"] == 4
@@ -586,8 +616,8 @@ def test_evaluate_writes_table_curves_and_results(tiny_dataset, tmp_path, monkey
     valid_y, valid_p = _valid_predictions(tmp_path / "run" / "model.pt", tiny_dataset)
     assert point["thresholds"] == pytest.approx(best_thresholds(valid_y, valid_p, beta=1.0).tolist())
     assert "F1-best validation thresholds" in res.table and set(point["splits"]) == set(model["splits"])
-    sym = run_table3([tmp_path / "run" / "model.pt"], tiny_dataset, tmp_path / "eval-sym", progress=False,
-                   symmetric=True)
+    sym = run_table3([tmp_path / "run" / "model.pt"], tiny_dataset, tmp_path / "eval-sym",
+                     Table3Options(symmetric=True), progress=False)
     assert sym.results["symmetric"] and sym.table.startswith("probabilities averaged over the eight")
     stored = Classifier.load(tmp_path / "run" / "model.pt", symmetric=True).thresholds
     assert sym.models[name]["thresholds"] == pytest.approx(stored.tolist())

@@ -6,15 +6,35 @@ import numpy as np
 import pytest
 import torch
 
-from l3e_env.model.classifier import (Classifier, LocalizabilityNet, ModelConfig, load_checkpoint,
-                                      model_from_checkpoint, model_probabilities)
-from l3e_env.model.constraints import (AxisStacker, fit_stacker, hessian_features, scan_features, smallest_eigenvector,
-                                       surface_rows, voxel_hessian)
 from l3e_env.data.dataset import LabelDataset
+from l3e_env.model.classifier import (
+    Classifier,
+    LocalizabilityNet,
+    ModelConfig,
+    load_checkpoint,
+    model_from_checkpoint,
+    model_probabilities,
+)
+from l3e_env.model.constraints import (
+    AxisStacker,
+    fit_stacker,
+    hessian_features,
+    scan_features,
+    smallest_eigenvector,
+    surface_rows,
+    voxel_hessian,
+)
 from l3e_env.model.scores import auroc, axis_scores, mean_scores
 from l3e_env.model.sparse import voxelize
-from l3e_env.model.training import (TrainConfig, TrainingError, fit_constraints, network_parts, predict_dataset,
-                                    split_indices, train)
+from l3e_env.model.training import (
+    TrainConfig,
+    TrainingError,
+    fit_constraints,
+    network_parts,
+    predict_dataset,
+    split_indices,
+    train,
+)
 
 SMALL = ModelConfig(points=600, channels=(8, 8, 16, 16), head=(16, 16, 16, 16))
 

@@ -3,12 +3,12 @@ import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
 
-from fusion import FusionConfig
-from l3e_env.localizability.registration import RegistrationConfig
 import l3e_env
-from l3e_env.envs.navigation import NavigationEnv
-from l3e_env.sim.follower import RouteFollower
+from fusion import FusionConfig
 from l3e_env.core.transforms import inverse
+from l3e_env.envs.navigation import NavigationEnv
+from l3e_env.localizability.registration import RegistrationConfig
+from l3e_env.sim.follower import RouteFollower
 
 
 def run(env, seed, steps=15):

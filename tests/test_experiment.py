@@ -5,13 +5,23 @@ import pytest
 
 from l3e_env.config import FusionSettings, LidarConfig
 from l3e_env.detection.detectors import DCRegDetector, EigenvalueDetector, NoDetector, make_detector
-from l3e_env.experiments.ate import (RecastCascade, RecastScans, Recording, file_stem, fuse_recording,
-                                     format_seed_table, format_table, record_run, register_sequence, run_ate,
-                                     summarize_seeds)
+from l3e_env.experiments.ate import (
+    RecastCascade,
+    RecastScans,
+    Recording,
+    file_stem,
+    format_seed_table,
+    format_table,
+    fuse_recording,
+    record_run,
+    register_sequence,
+    run_ate,
+    summarize_seeds,
+)
 from l3e_env.localizability.labels import AXES
+from l3e_env.localizability.registration import RegistrationConfig
 from l3e_env.sim.lidar import Lidar
 from l3e_env.sim.raycast import EmbreeCaster
-from l3e_env.localizability.registration import RegistrationConfig
 from scenes import make_scene
 
 
@@ -374,8 +384,8 @@ def test_a_swept_recording_is_deskewed_by_its_odometry_and_gyro_before_it_is_fus
 
     import trimesh
 
-    from l3e_env.experiments.ate import deskewed
     from l3e_env.core.transforms import pose_to_matrix
+    from l3e_env.experiments.ate import deskewed
 
     room = trimesh.creation.box(extents=(10.0, 6.0, 4.0))
     lidar = Lidar(EmbreeCaster(room), LidarConfig(range_noise_std=0.0))
@@ -432,10 +442,9 @@ def test_a_recording_is_saved_whole_and_a_damaged_one_is_named(walls_run, tmp_pa
 
 
 def test_the_drift_of_each_region_is_its_own_and_the_table_shows_it():
-    from scenes import make_scene
-
     from l3e_env.core.transforms import pose_to_matrix
     from l3e_env.experiments.ate import format_table, region_drift, regions_inside
+    from scenes import make_scene
 
     mine = make_scene("mine")
     xs = np.arange(-20.0, 40.0, 0.5)  # 20 m of yard, 40 m of tunnel, no quarry

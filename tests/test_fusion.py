@@ -5,8 +5,20 @@ import gtsam
 import numpy as np
 import pytest
 
-from fusion import (BACKENDS, FusionConfig, FusionError, FusionGraph, MetricError, ate, ate_aligned, icp_information,
-                    rpe, to_gtsam_order, to_project_order, umeyama)
+from fusion import (
+    BACKENDS,
+    FusionConfig,
+    FusionError,
+    FusionGraph,
+    MetricError,
+    ate,
+    ate_aligned,
+    icp_information,
+    rpe,
+    to_gtsam_order,
+    to_project_order,
+    umeyama,
+)
 
 
 def pose(x=0.0, y=0.0, z=0.0, yaw=0.0):
@@ -37,7 +49,7 @@ def drive(mode, mask_x, steps=200, backend="graph", hessian=None, config=None):
     truth, est = [np.eye(4)], [np.eye(4)]
     odom_sigmas = np.array([0.05, 0.05, 0.05, 0.01, 0.01, 0.01])  # legs: less certain than ICP
     mask = np.array([mask_x, False, False, False, False, False])
-    for k in range(steps):
+    for _ in range(steps):
         step = pose(0.1, 0.0, 0.0, 0.002)
         truth.append(truth[-1] @ step)
         odom = pose(0.105, 0.0, 0.0, 0.002 + 0.001)

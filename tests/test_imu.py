@@ -4,8 +4,8 @@ import pytest
 from scipy.interpolate import CubicSpline
 from scipy.spatial.transform import Rotation
 
-from l3e_env.sim.imu import GRAVITY, ImuConfig, StepGyro, attitude_readings, attitude_sigmas, imu_samples
 from l3e_env.core.transforms import pose_to_matrix
+from l3e_env.sim.imu import GRAVITY, ImuConfig, StepGyro, attitude_readings, attitude_sigmas, imu_samples
 
 
 def _circle(t: np.ndarray, radius: float = 5.0, rate: float = 0.2) -> list[np.ndarray]:

@@ -6,14 +6,13 @@ import numpy as np
 import pytest
 import trimesh
 
-from scenes import SceneError
+from l3e_env.core.transforms import matrix_to_pose, pose_to_matrix
 from l3e_env.data.dataset import DatasetError, LabelDataset, config_for, generate, label_statistics
 from l3e_env.localizability.labels import LabelConfig, SamplingError, label_parent, sample_parent_pose
+from l3e_env.localizability.registration import RegistrationConfig
 from l3e_env.sim.lidar import Lidar
 from l3e_env.sim.raycast import EmbreeCaster
-from l3e_env.localizability.registration import RegistrationConfig
-from l3e_env.core.transforms import matrix_to_pose, pose_to_matrix
-from scenes import Scene, make_scene
+from scenes import Scene, SceneError, make_scene
 
 FAST = LabelConfig(children=30)
 
@@ -70,7 +69,7 @@ def test_an_icp_that_holds_still_along_a_free_axis_labels_it_non_localizable():
     error is its own offset, 0.1 m * sqrt(2/pi) = 0.080 m on average, under the paper's 0.1 m
     threshold and over this protocol's 0.04 m (docs/decisions.md)."""
     res = labels_at("primitives-0", [0, 0, 0.85, 0, 0, 0], children=60)
-    assert (0.06 < res.errors[:2]).all() and (res.errors[:2] < 0.1).all(), res.errors
+    assert (res.errors[:2] > 0.06).all() and (res.errors[:2] < 0.1).all(), res.errors
     assert res.labels[:2].tolist() == [1, 1]
     assert (res.errors[:2] < LabelConfig(thresholds=(0.1, 0.1, 0.1, 2, 2, 2)).threshold_vector()[:2]).all()
 
@@ -172,8 +171,8 @@ def test_resuming_with_other_settings_or_reading_unfinished_data_is_refused(tmp_
 def test_a_users_mesh_is_labelled_resumed_by_its_own_bytes_and_scored(cad_corridor, tmp_path, capsys, monkeypatch):
     """`l3e dataset generate --scenes corridor.obj --route ...` and then `l3e evaluate --other` alone:
     how the shipped model does on a user's own scene, without the training data."""
-    from l3e_env.model.classifier import load_checkpoint
     from l3e_env.cli.main import main
+    from l3e_env.model.classifier import load_checkpoint
 
     mesh, route = cad_corridor
     out, args = tmp_path / "d", ["--up-axis", "y", "--scale", "0.001", "--parents", "2", "--children", "5",
@@ -326,7 +325,7 @@ def test_two_runs_into_one_dataset_folder_are_refused_by_name(tmp_path):
     from l3e_env.data.dataset import config_for, generate
 
     cfg = config_for(None, scenes=["tunnel-0"], parents_per_scene=1, labels={"children": 4})
-    with folder_lock(tmp_path / "d"):  # a run already writing there
-        with pytest.raises(FolderBusyError, match=f"{tmp_path / 'd'}: another run \\(pid {os.getpid()}\\)"):
-            generate(tmp_path / "d", cfg, workers=1, progress=False)
+    busy = f"{tmp_path / 'd'}: another run \\(pid {os.getpid()}\\)"
+    with folder_lock(tmp_path / "d"), pytest.raises(FolderBusyError, match=busy):  # a run already writing there
+        generate(tmp_path / "d", cfg, workers=1, progress=False)
     assert generate(tmp_path / "d", cfg, workers=1, progress=False)["count"] == 1  # free again: it runs

@@ -5,9 +5,9 @@ import pytest
 import trimesh
 
 from l3e_env.config import LidarConfig
+from l3e_env.core.transforms import pose_to_matrix
 from l3e_env.sim.lidar import BeamPattern, Lidar, get_pattern, register_pattern
 from l3e_env.sim.raycast import PYBULLET_MAX_RAYS, EmbreeCaster, PyBulletCaster
-from l3e_env.core.transforms import pose_to_matrix
 from scenes import make_scene
 
 
@@ -183,8 +183,8 @@ def test_a_swept_revolution_deskewed_with_its_motion_lies_on_the_walls_seen_from
 def test_the_deskewing_motion_is_the_mean_of_the_odometry_s_last_steps():
     """Rotations averaged on SO(3), translations arithmetically, over the last DESKEW_STEPS only;
     a gyro's rotation replaces the odometry's."""
-    from l3e_env.sim.lidar import DESKEW_STEPS, deskew_motion
     from l3e_env.core.transforms import matrix_to_pose, pose_to_matrix
+    from l3e_env.sim.lidar import DESKEW_STEPS, deskew_motion
 
     assert DESKEW_STEPS == 2
     np.testing.assert_array_equal(deskew_motion([]), np.eye(4))

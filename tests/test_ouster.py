@@ -33,7 +33,7 @@ def test_every_scan_of_a_capture_is_read_in_the_lidar_frame(capture):
     assert len(scans) == count
     for scan in scans:
         assert scan.error is None and scan.pattern.n_beams == beams and scan.frame == TURNED
-        assert len(scan.points) == len(scan.rings) > 1000 and 0 <= scan.rings.min() and scan.rings.max() < beams
+        assert len(scan.points) == len(scan.rings) > 1000 and scan.rings.min() >= 0 and scan.rings.max() < beams
         # the returns lie on the metadata's beams as read, and not once turned back a second time
         assert in_lidar_frame(scan.points, scan.pattern)[1] is None
         assert np.mean(scan.pattern.locate(scan.points)[0] == scan.rings) > 0.9  # the beam each came on

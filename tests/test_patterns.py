@@ -10,13 +10,22 @@ import trimesh
 
 from l3e_env.cli.main import main
 from l3e_env.config import LidarConfig
-from l3e_env.experiments.judge import format_judgement, judge_scans, recognise_sensor
-from l3e_env.sim.lidar import Lidar
-from l3e_env.sim.patterns import (BUILT_IN_SENSORS, PATTERNS, BeamPattern, PatternError, describe_pattern, fit_pattern,
-                                  get_pattern, load_pattern, save_pattern)
-from l3e_env.sim.raycast import EmbreeCaster, PyBulletCaster
-from l3e_env.localizability.scan_mc import range_image_mesh
 from l3e_env.core.transforms import pose_to_matrix
+from l3e_env.experiments.judge import format_judgement, judge_scans, recognise_sensor
+from l3e_env.localizability.scan_mc import range_image_mesh
+from l3e_env.sim.lidar import Lidar
+from l3e_env.sim.patterns import (
+    BUILT_IN_SENSORS,
+    PATTERNS,
+    BeamPattern,
+    PatternError,
+    describe_pattern,
+    fit_pattern,
+    get_pattern,
+    load_pattern,
+    save_pattern,
+)
+from l3e_env.sim.raycast import EmbreeCaster, PyBulletCaster
 
 # a 64-beam Ouster-like sensor: beams on the OS0-128's grid spacing, staggered azimuths, beams
 # leaving 27 mm out from the axis

@@ -7,17 +7,22 @@ import pytest
 import trimesh
 
 from l3e_env.config import LidarConfig
+from l3e_env.core.transforms import pose_to_matrix
 from l3e_env.data.dataset import LabelDataset, row_thresholds
+from l3e_env.data.scan_estimates import dataset_scan_errors
 from l3e_env.detection.detectors import make_detector
 from l3e_env.localizability.labels import LabelConfig
+from l3e_env.localizability.registration import RegistrationConfig, RegistrationError
+from l3e_env.localizability.scan_mc import (
+    ScanMCConfig,
+    ScanPatternError,
+    beams_and_columns,
+    range_image_mesh,
+    scan_errors,
+)
+from l3e_env.model.scores import axis_scores
 from l3e_env.sim.lidar import Lidar
 from l3e_env.sim.raycast import EmbreeCaster
-from l3e_env.localizability.registration import RegistrationConfig, RegistrationError
-from l3e_env.data.scan_estimates import dataset_scan_errors
-from l3e_env.localizability.scan_mc import (ScanMCConfig, ScanPatternError, beams_and_columns, range_image_mesh,
-                                            scan_errors)
-from l3e_env.model.scores import axis_scores
-from l3e_env.core.transforms import pose_to_matrix
 
 SENSOR = np.eye(4)
 SENSOR[2, 3] = 1.0
@@ -86,7 +91,7 @@ def test_the_mesh_goes_on_behind_depth_jumps_and_past_the_field_of_view():
     assert len(true) > 200 and np.isnan(seen).all()
     true, seen = _child_ranges(filled, scene, sideways, shadowed)
     # about half of them now return, at or a little beyond the wall: the farthest surface nearby
-    assert np.isfinite(seen).mean() > 0.4 and 0.99 < np.nanmin(seen / true) and np.nanmax(seen / true) < 1.05
+    assert np.isfinite(seen).mean() > 0.4 and np.nanmin(seen / true) > 0.99 and np.nanmax(seen / true) < 1.05
     pitched = pose_to_matrix(np.array([0.0, 0.0, 0.0, 0.0, np.deg2rad(5.0), 0.0]))
     for mesh, low, high in ((plain, 0.8, 0.86), (filled, 0.9, 1.0)):
         true, seen = _child_ranges(mesh, scene, pitched)
@@ -148,9 +153,10 @@ def test_the_detector_flags_the_corridor_and_answers_unknown_to_a_bad_scan(rng):
 
 
 def test_evaluate_scores_the_scan_estimate_the_same_with_any_number_of_workers(tiny_dataset, tmp_path):
-    from l3e_env.experiments.table3 import run_table3
+    from l3e_env.experiments.table3 import Table3Options, run_table3
 
-    res = run_table3([], None, tmp_path / "eval", others=[tiny_dataset], progress=False, scan_mc=3, workers=2)
+    res = run_table3([], None, tmp_path / "eval", Table3Options(others=[tiny_dataset], scan_mc=3, workers=2),
+                     progress=False)
     column = f"all of {Path(tiny_dataset).name}"
     scored = res.models["scanmc:3"]["splits"][column]
     data = LabelDataset(tiny_dataset)
@@ -163,10 +169,10 @@ def test_evaluate_scores_the_scan_estimate_the_same_with_any_number_of_workers(t
     few, _ = dataset_scan_errors([str(tiny_dataset)], np.arange(3), ScanMCConfig(children=3), workers=2)
     assert np.array_equal(few, direct[:3])  # one chunk with two workers asked: judged here
     with pytest.raises(ValueError, match="give a checkpoint"):
-        run_table3([], tiny_dataset, tmp_path / "no-checkpoint", progress=False, scan_mc=3)
+        run_table3([], tiny_dataset, tmp_path / "no-checkpoint", Table3Options(scan_mc=3), progress=False)
     for bad in ({"scan_mc": -1}, {"scan_mc": 3, "workers": 0}):
         with pytest.raises(ValueError, match="scan estimate needs"):
-            run_table3([], None, tmp_path / "bad", others=[tiny_dataset], progress=False, **bad)
+            run_table3([], None, tmp_path / "bad", Table3Options(others=[tiny_dataset], **bad), progress=False)
     with pytest.raises(ValueError, match="at least one child"):
         scan_errors(data.scan(0), LidarConfig(), RegistrationConfig(), LabelConfig(), ScanMCConfig(children=0),
                     np.random.default_rng(0))
@@ -269,11 +275,11 @@ def test_cascade_detector_asks_the_estimate_only_where_the_classifier_is_unsure(
 
 
 def test_evaluate_scores_the_cascade_from_the_classifier_and_the_estimate(tiny_dataset, tmp_path):
+    from l3e_env.experiments.table3 import Table3Options, run_table3
     from l3e_env.model.classifier import DEFAULT_CHECKPOINT
-    from l3e_env.experiments.table3 import run_table3
 
-    res = run_table3([DEFAULT_CHECKPOINT], None, tmp_path / "eval", others=[tiny_dataset], progress=False, scan_mc=3,
-                   cascade=[0.0, 100.0])
+    res = run_table3([DEFAULT_CHECKPOINT], None, tmp_path / "eval",
+                     Table3Options(others=[tiny_dataset], scan_mc=3, cascade=[0.0, 100.0]), progress=False)
     column = f"all of {Path(tiny_dataset).name}"
     model = next(name for name in res.models if "scanmc" not in name)
     never, always = (res.models[f"{model}+scanmc:{m}"]["splits"][column] for m in ("0", "100"))
@@ -290,9 +296,11 @@ def test_evaluate_scores_the_cascade_from_the_classifier_and_the_estimate(tiny_d
     assert (tmp_path / "eval" / "cascade.png").stat().st_size > 10_000
     for bad in ({"scan_mc": 0, "cascade": [1.0]}, {"scan_mc": 3, "cascade": [-1.0]}):
         with pytest.raises(ValueError, match="cascade"):
-            run_table3([DEFAULT_CHECKPOINT], None, tmp_path / "bad", others=[tiny_dataset], progress=False, **bad)
+            run_table3([DEFAULT_CHECKPOINT], None, tmp_path / "bad", Table3Options(others=[tiny_dataset], **bad),
+                       progress=False)
     with pytest.raises(ValueError, match="cascade"):
-        run_table3([], None, tmp_path / "bad", others=[tiny_dataset], progress=False, scan_mc=3, cascade=[1.0])
+        run_table3([], None, tmp_path / "bad", Table3Options(others=[tiny_dataset], scan_mc=3, cascade=[1.0]),
+                   progress=False)
 
 
 def test_random_checks_move_from_the_first_detector_to_the_second_with_their_share():

@@ -2,9 +2,21 @@ import numpy as np
 import pytest
 import trimesh
 
+from scenes import (
+    TEST_SCENES,
+    TRAIN_SCENES,
+    VALIDATION_SCENES,
+    Scene,
+    SceneError,
+    check_scene_name,
+    list_scenes,
+    load_mesh,
+    load_route,
+    make_scene,
+    scene_family,
+    scene_from_mesh,
+)
 from scenes.mesh_io import snap_route_to_floor
-from scenes import (TEST_SCENES, TRAIN_SCENES, VALIDATION_SCENES, Scene, SceneError, check_scene_name, list_scenes,
-                    load_mesh, load_route, make_scene, scene_family, scene_from_mesh)
 
 
 @pytest.mark.parametrize("name", list_scenes())

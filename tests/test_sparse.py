@@ -2,8 +2,18 @@
 import pytest
 import torch
 
-from l3e_env.model.sparse import (OFFSETS_2, OFFSETS_3, DownConv, Level, SubmanifoldConv, UpConv, _int8_rows,
-                                  global_max_pool, int8_products_work, voxelize)
+from l3e_env.model.sparse import (
+    OFFSETS_2,
+    OFFSETS_3,
+    DownConv,
+    Level,
+    SubmanifoldConv,
+    UpConv,
+    _int8_rows,
+    global_max_pool,
+    int8_products_work,
+    voxelize,
+)
 
 
 def _sparse_grid(seed: int, size: int = 6, fill: float = 0.3, batch: int = 2, channels: int = 3):

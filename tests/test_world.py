@@ -3,9 +3,9 @@ import pytest
 import trimesh
 
 from l3e_env.config import OdometryConfig
+from l3e_env.core.transforms import inverse, matrix_to_pose, planar_pose, pose_to_matrix
 from l3e_env.sim.odometry import DeadReckoningCovariance, LegOdometry
 from l3e_env.sim.robot import Robot, SpawnError
-from l3e_env.core.transforms import inverse, matrix_to_pose, planar_pose, pose_to_matrix
 from l3e_env.sim.world import World
 from scenes import Scene
 from scenes.geometry import box, ground_plane, merge

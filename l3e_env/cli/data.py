@@ -4,8 +4,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-
-from .options import (scene_names, SENSOR_HELP, sensor_name, add_mesh_options, dataset_scenes)
+from .options import SENSOR_HELP, add_mesh_options, dataset_scenes, scene_names, sensor_name
 
 
 def _cmd_dataset_generate(args: argparse.Namespace) -> int:

@@ -7,10 +7,20 @@ import time
 from pathlib import Path
 
 from l3e_env.config import ATTITUDE_MODES
-from l3e_env.config.detector_spec import DETECTOR_GRAMMAR, detector_spec
+from l3e_env.config.detector_spec import DEFAULT_ATE_DETECTORS, DETECTOR_GRAMMAR, detector_spec
 
-from .options import (SENSOR_HELP, add_fusion_options, add_max_steps, add_mesh_options, float_list, fusion_settings,
-                      mesh_options_given, scene_name, scene_params, sensor_name)
+from .options import (
+    SENSOR_HELP,
+    add_fusion_options,
+    add_max_steps,
+    add_mesh_options,
+    float_list,
+    fusion_settings,
+    mesh_options_given,
+    scene_name,
+    scene_params,
+    sensor_name,
+)
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
@@ -35,10 +45,9 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 
 def _cmd_scenes(args: argparse.Namespace) -> int:
-    from scenes import TEST_SCENES, TRAIN_SCENES, VALIDATION_SCENES, list_scenes, make_scene
-
     from l3e_env.config import RobotConfig
     from l3e_env.sim.follower import route_drive
+    from scenes import TEST_SCENES, TRAIN_SCENES, VALIDATION_SCENES, list_scenes, make_scene
 
     names = args.names or list_scenes()
     for name in names:
@@ -76,7 +85,7 @@ def _cmd_ate(args: argparse.Namespace) -> int:
         print("l3e ate: --seeds is 1 or more drives, and a recording is one drive", file=sys.stderr)
         return 2
     print(f"writing the experiment into {out.resolve()}")
-    detectors = args.detector or ["none", "eigen:30", "eigen:110", "oracle"]
+    detectors = args.detector or list(DEFAULT_ATE_DETECTORS)
     options = dict(sensor=args.sensor, progress=not args.quiet, backend=args.backend, scene_params=params,
                    workers=args.workers, attitude=args.attitude, fusion_settings=fusion_settings(args),
                    max_steps=args.max_steps, baselines=args.baseline, frontends=args.frontend)
@@ -115,11 +124,10 @@ def _cmd_record(args: argparse.Namespace) -> int:
     if not args.imu_rate >= 0:
         print(f"l3e record: --imu-rate must be 0 (no IMU) or more, got {args.imu_rate}", file=sys.stderr)
         return 2
-    from scenes import make_scene
-
     from l3e_env.io.rosbag import bag_size_bound
     from l3e_env.sim.follower import route_drive
     from l3e_env.sim.patterns import get_pattern
+    from scenes import make_scene
 
     pattern = get_pattern(args.sensor)
     scene = make_scene(args.scene, **params)  # built once: the size estimate and the drive share it
@@ -190,7 +198,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("ate", help="drive a route once, fuse with each detector, compare ATE")
     p.add_argument("--scene", type=scene_name, default="mine")
     p.add_argument("--detector", action="append", type=detector_spec,
-                   help=f"{DETECTOR_GRAMMAR}; repeat for several")
+                   help=f"{DETECTOR_GRAMMAR}; repeat for several (default: {', '.join(DEFAULT_ATE_DETECTORS)})")
     p.add_argument("--backend", choices=["graph", "ekf"], default="graph", help="iSAM2 smoother or filterpy EKF")
     p.add_argument("--baseline", action="append", choices=["kiss-icp", "genz-icp"],
                    help="also run this external LiDAR odometry on the drive's scans, with its authors' defaults, as a "

@@ -6,8 +6,6 @@ import time
 from pathlib import Path
 
 
-
-
 def _cmd_train(args: argparse.Namespace) -> int:
     from l3e_env.config import from_dict, load_yaml
     from l3e_env.model.training import TrainConfig, train
@@ -57,15 +55,16 @@ def _asdict(cfg) -> dict:
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
+    from l3e_env.experiments.table3 import Table3Options, run_table3
     from l3e_env.model.classifier import DEFAULT_CHECKPOINT
-    from l3e_env.experiments.table3 import run_table3
 
     out = Path(args.out or f"l3e_out/evaluate-{time.strftime('%Y%m%d-%H%M%S')}")
     args.out = str(out)  # the resolved options are written beside it
-    results = run_table3(args.checkpoint or [DEFAULT_CHECKPOINT], args.dataset, out, others=args.other,
-                       progress=not args.quiet, symmetric=args.symmetric, eigen=args.eigen, int8=not args.float32,
-                       by_family=args.by_family, by_region=args.by_region, scan_mc=args.scan_mc, workers=args.workers,
-                       draws=args.draws, cascade=args.cascade, dcreg=args.dcreg)
+    options = Table3Options(others=args.other or [], symmetric=args.symmetric, eigen=args.eigen or [],
+                            dcreg=args.dcreg or [], int8=not args.float32, by_family=args.by_family,
+                            by_region=args.by_region, scan_mc=args.scan_mc, workers=args.workers, draws=args.draws,
+                            cascade=args.cascade or [])
+    results = run_table3(args.checkpoint or [DEFAULT_CHECKPOINT], args.dataset, out, options, progress=not args.quiet)
     print(results.table)
     print("written: " + ", ".join(map(str, results.written)))
     return 0

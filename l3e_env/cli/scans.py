@@ -6,10 +6,9 @@ import json
 import sys
 from pathlib import Path
 
-
 from l3e_env.config.detector_spec import DETECTOR_GRAMMAR, detector_spec
 
-from .options import (sensor_name)
+from .options import sensor_name
 
 
 def _cmd_judge(args: argparse.Namespace) -> int:
@@ -98,11 +97,11 @@ def _cmd_judge(args: argparse.Namespace) -> int:
 
 def _cmd_sensor(args: argparse.Namespace) -> int:
     from l3e_env.experiments.judge import recognise_sensor
-    from l3e_env.io.scan_files import ScanFileError, read_scan
-    from l3e_env.sim.patterns import PATTERN_FILES, PATTERNS, describe_pattern, get_pattern, save_pattern
     from l3e_env.io.ouster import is_capture
     from l3e_env.io.recorded import RecordingError
     from l3e_env.io.recordings import read_recording
+    from l3e_env.io.scan_files import ScanFileError, read_scan
+    from l3e_env.sim.patterns import PATTERN_FILES, PATTERNS, describe_pattern, get_pattern, save_pattern
 
     if bool(args.source) == bool(args.bag):
         print("l3e sensor: give a sensor (name or pattern file), a scan file or --bag, one of them", file=sys.stderr)

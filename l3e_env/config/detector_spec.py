@@ -6,6 +6,9 @@ from dataclasses import dataclass
 
 # The one grammar of detector specs: every command's --detector, the environments' fusion.detector and the
 # policy maps' detectors are parsed by `parse_detector`.
+# `l3e ate`'s table without --detector: the project's learned detector beside no mask, the
+# eigenvalue test at a low and a high threshold (docs/decisions.md) and the labels' own truth
+DEFAULT_ATE_DETECTORS = ("none", "learned", "eigen:30", "eigen:110", "oracle")
 DETECTOR_GRAMMAR = ("none | eigen:<tau> | dcreg:<kappa> | oracle[:M] | scanmc[:M] | learned[-sym][:checkpoint] | "
                     "learned+scanmc[:margin]")
 DETECTOR_KINDS = ("none", "eigen", "dcreg", "oracle", "scanmc", "learned", "learned-sym", "learned+scanmc")

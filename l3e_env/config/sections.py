@@ -9,8 +9,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 
-
-
 @dataclass
 class LidarConfig:
     """Sensor model and noise. Ranges in metres; a miss produces no point."""
@@ -57,7 +55,7 @@ class OdometryConfig:
     scale_error_std: float = 0.02  # constant stride-length scale error per episode
 
 
-@dataclass
+@dataclass(frozen=True)
 class FusionSettings:
     """The fusion that l3e_env runs, in the environments' loop (`EnvConfig.fusion`, off by default: it
     costs ICP and a detector per step), in `l3e ate`, `l3e sweep` and the policies' evaluation; the

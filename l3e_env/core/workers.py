@@ -7,9 +7,10 @@ from __future__ import annotations
 
 import sys
 from collections import deque
+from collections.abc import Callable, Iterable, Iterator, Sized
 from itertools import chain, islice
 from multiprocessing import get_context
-from typing import Any, Callable, Iterable, Iterator, Sized, TypeVar
+from typing import Any, TypeVar
 
 Job = TypeVar("Job")
 Result = TypeVar("Result")

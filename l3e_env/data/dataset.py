@@ -11,32 +11,39 @@ not depend on the number of workers or on which shards a killed run had finished
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import re
 import time
 import zipfile
+from collections.abc import Callable, Iterator
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from functools import cached_property
 from importlib import metadata
 from pathlib import Path
-from typing import Any, BinaryIO, Callable, Iterator
+from typing import Any, BinaryIO
 
 import numpy as np
 from tqdm import tqdm
-
-from scenes import DATASET_SCENES, check_scene_name, file_sha256, is_mesh_path, make_scene
 
 from l3e_env.config import LidarConfig, from_dict, settings_changed, with_defaults
 from l3e_env.core.files import folder_lock, write_atomic
 from l3e_env.core.workers import die_with_parent
 from l3e_env.localizability.labels import (
-    AXES, LABEL_PROTOCOL, LabelConfig, SamplingError, label_parent, protocol_name, sample_parent_pose,
+    AXES,
+    LABEL_PROTOCOL,
+    LabelConfig,
+    SamplingError,
+    label_parent,
+    protocol_name,
+    sample_parent_pose,
 )
 from l3e_env.localizability.registration import RegistrationConfig, RegistrationError
 from l3e_env.sim.lidar import Lidar, get_pattern
 from l3e_env.sim.raycast import EmbreeCaster
+from scenes import DATASET_SCENES, check_scene_name, file_sha256, is_mesh_path, make_scene
 
 FORMAT_VERSION = 1
 ARRAYS = ("points", "offsets", "poses", "errors", "labels", "scene", "children_failed")
@@ -193,10 +200,8 @@ def _stored_settings(stored: dict[str, Any]) -> dict[str, Any]:
 def _versions() -> dict[str, str]:
     out = {}
     for pkg in ("l3e", "numpy", "small_gicp", "embreex", "trimesh", "pybullet"):
-        try:
+        with contextlib.suppress(metadata.PackageNotFoundError):
             out[pkg] = metadata.version(pkg)
-        except metadata.PackageNotFoundError:
-            pass
     return out
 
 

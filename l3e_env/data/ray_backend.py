@@ -7,7 +7,8 @@ from __future__ import annotations
 import os
 import shutil
 import tempfile
-from typing import Any, Callable, Iterator
+from collections.abc import Callable, Iterator
+from typing import Any
 
 
 def run_with_ray(run_shard: Callable[[Any, Any], dict], config: Any, todo: list, workers: int,

@@ -10,6 +10,7 @@ in this process, to the bit. A process that dies answers UNKNOWN, counted as a d
 """
 from __future__ import annotations
 
+import contextlib
 from multiprocessing import get_context
 from multiprocessing.connection import Connection
 from typing import Any
@@ -89,10 +90,8 @@ class DetectorProcess:
         return Prediction(probabilities, mask, known), failed
 
     def close(self) -> None:
-        try:
+        with contextlib.suppress(OSError, ValueError):
             self._conn.send(None)
-        except (OSError, ValueError):
-            pass
         self._process.join(timeout=5)
         if self._process.is_alive():
             self._process.terminate()

@@ -18,8 +18,13 @@ import numpy as np
 from l3e_env.config import LidarConfig, from_dict
 from l3e_env.config.detector_spec import parse_detector
 from l3e_env.localizability.labels import LabelConfig, label_parent
-from l3e_env.localizability.registration import (RegistrationConfig, RegistrationError, RegistrationResult,
-                                                  dcreg_mask, eigen_mask)
+from l3e_env.localizability.registration import (
+    RegistrationConfig,
+    RegistrationError,
+    RegistrationResult,
+    dcreg_mask,
+    eigen_mask,
+)
 from l3e_env.localizability.scan_mc import ScanMCConfig, ScanPatternError, scan_errors
 from l3e_env.sim.lidar import Lidar
 

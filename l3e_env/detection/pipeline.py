@@ -15,10 +15,14 @@ from typing import Any
 import numpy as np
 
 from fusion import FusionConfig, check_backend, make_fusion
-
 from l3e_env.config import FusionSettings, OdometryConfig, from_dict
-from l3e_env.localizability.registration import (PreparedTarget, RegistrationConfig, RegistrationError,
-                                                 RegistrationResult, register)
+from l3e_env.localizability.registration import (
+    PreparedTarget,
+    RegistrationConfig,
+    RegistrationError,
+    RegistrationResult,
+    register,
+)
 from l3e_env.sim.imu import ATTITUDE_EVERY, attitude_sigmas
 from l3e_env.sim.lidar import Lidar
 from l3e_env.sim.odometry import odometry_fusion_config, odometry_sigmas

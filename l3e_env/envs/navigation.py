@@ -7,9 +7,6 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from scenes import Scene, make_scene
-from scenes.geometry import polyline_length
-
 from l3e_env.config import EnvConfig, from_dict
 from l3e_env.core.transforms import inverse, matrix_to_pose
 from l3e_env.sim.imu import StepAttitude, StepGyro
@@ -19,6 +16,8 @@ from l3e_env.sim.raycast import make_caster
 from l3e_env.sim.render import TopDownRenderer
 from l3e_env.sim.robot import Robot
 from l3e_env.sim.world import World
+from scenes import Scene, make_scene
+from scenes.geometry import polyline_length
 
 ARRIVAL = ("truth", "estimate")  # EnvConfig.arrival: which pose ends an episode at the goal
 

@@ -12,24 +12,38 @@ import json
 import re
 import time
 import zipfile
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import small_gicp
 from tqdm import tqdm
 
-from fusion import (FusionConfig, MetricError, ate, ate_aligned, check_backend, rpe, stretch_drift, write_kitti,
-                    write_tum)
-from scenes import Scene, SceneError, canonical_scene_name, file_sha256, is_mesh_path, make_scene
-
+from fusion import (
+    FusionConfig,
+    MetricError,
+    ate,
+    ate_aligned,
+    check_backend,
+    rpe,
+    stretch_drift,
+    write_kitti,
+    write_tum,
+)
 from l3e_env.config import EnvConfig, FusionSettings, LidarConfig, OdometryConfig, RobotConfig, to_dict
 from l3e_env.core.files import write_atomic
 from l3e_env.core.transforms import inverse
 from l3e_env.core.workers import ordered_map
-from l3e_env.detection.detectors import (UNKNOWN, CascadeDetector, Detector, Prediction, ScanMCDetector, make_detector,
-                                         registration_of)
+from l3e_env.detection.detectors import (
+    UNKNOWN,
+    CascadeDetector,
+    Detector,
+    Prediction,
+    ScanMCDetector,
+    make_detector,
+    registration_of,
+)
 from l3e_env.detection.pipeline import LocalizationPipeline, ScanRegistrar
 from l3e_env.envs.navigation import NavigationEnv
 from l3e_env.localizability.labels import AXES
@@ -39,6 +53,7 @@ from l3e_env.sim.imu import StepGyro, attitude_readings, attitude_sigmas
 from l3e_env.sim.lidar import DESKEW_SOURCES, Lidar, Scan, deskew, deskew_motion, get_pattern
 from l3e_env.sim.odometry import odometry_fusion_config
 from l3e_env.sim.raycast import EmbreeCaster
+from scenes import Scene, SceneError, canonical_scene_name, file_sha256, is_mesh_path, make_scene
 
 from .baselines import BASELINES, BaselineRun, check_baselines, run_baseline
 
@@ -77,7 +92,7 @@ class Recording:
         ))
 
     @classmethod
-    def load(cls, path: str | Path) -> "Recording":
+    def load(cls, path: str | Path) -> Recording:
         """RecordingError naming the file where it is missing, cut short or not a recording."""
         try:
             with np.load(path, allow_pickle=False) as z:

@@ -15,7 +15,6 @@ from l3e_env.envs.navigation import NavigationEnv  # noqa: E402
 from l3e_env.sim.follower import RouteFollower  # noqa: E402
 from l3e_env.sim.render import wall_points  # noqa: E402
 
-
 ROUTE_SHOTS = {"20pct": 0.2, "50pct": 0.5, "80pct": 0.8}  # scan pictures on a route without named places
 
 

@@ -14,15 +14,21 @@ import numpy as np
 from l3e_env.config import LidarConfig
 from l3e_env.core.points import out_of_reach, too_many_points
 from l3e_env.core.workers import ordered_map
-from l3e_env.detection.detectors import (CascadeDetector, Detector, HessianDetector, Prediction, ScanMCDetector,
-                                         make_detector, registration_of)
+from l3e_env.detection.detectors import (
+    CascadeDetector,
+    Detector,
+    HessianDetector,
+    Prediction,
+    ScanMCDetector,
+    make_detector,
+    registration_of,
+)
 from l3e_env.io.ouster import expand_captures
 from l3e_env.io.recorded import RecordedScan
 from l3e_env.io.scan_files import ScanFileError, read_scan
 from l3e_env.localizability.labels import AXES
 from l3e_env.localizability.registration import RegistrationConfig, RegistrationError, RegistrationResult, scan_hessian
-from l3e_env.sim.patterns import (BeamPattern, PatternError, fit_pattern, get_pattern, in_lidar_frame,
-                                  register_pattern)
+from l3e_env.sim.patterns import BeamPattern, PatternError, fit_pattern, get_pattern, in_lidar_frame, register_pattern
 
 # what each detector's score means, printed under the table
 SCORES = {"learned": "probability that the axis is not localizable (flagged above the model's threshold)",

@@ -3,28 +3,32 @@ detector they replace, on the train, validation and test splits (and on whole da
 sensor or of unseen families), with PR curves per axis."""
 from __future__ import annotations
 
-from dataclasses import dataclass
-
+import contextlib
 import json
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from tqdm import tqdm
 
-from scenes import TEST_SCENES, is_mesh_path, make_scene, scene_family
-
 from l3e_env.config import from_dict
 from l3e_env.data.dataset import DatasetUnion, LabelDataset, open_datasets, row_thresholds
 from l3e_env.data.scan_estimates import dataset_scan_errors
 from l3e_env.detection.detectors import near_threshold
 from l3e_env.localizability.labels import AXES
-from l3e_env.localizability.registration import (RegistrationConfig, RegistrationError, dcreg_mask, eigen_mask,
-                                                  scan_hessian)
+from l3e_env.localizability.registration import (
+    RegistrationConfig,
+    RegistrationError,
+    dcreg_mask,
+    eigen_mask,
+    scan_hessian,
+)
 from l3e_env.localizability.scan_mc import ScanMCConfig
 from l3e_env.model.classifier import Classifier
 from l3e_env.model.scores import axis_scores, best_thresholds, format_table, mean_interval, mean_scores, pr_curve
 from l3e_env.model.training import predict_dataset, split_indices
+from scenes import TEST_SCENES, is_mesh_path, make_scene, scene_family
 
 
 def model_name(classifier: Classifier, path: Path, taken: set[str]) -> str:
@@ -88,184 +92,279 @@ class Table3Result:
         return self.results["models"]
 
 
+@dataclass
+class Table3Options:
+    """What `run_table3` scores beside the checkpoints, and how.
+
+    others: datasets scored whole (another sensor, scene families the model never saw: column 'all
+    of <folder>'). symmetric: probabilities averaged over the eight mirror/swap views, with the
+    thresholds chosen for them. eigen: thresholds tau of the eigenvalue detector, scored on the first
+    checkpoint's splits from each scan's own Hessian (`scan_hessian`); a scan too small to register
+    flags nothing, as the detector's UNKNOWN does. dcreg: condition ratio thresholds kappa of DCReg's
+    detection (registration.dcreg_mask), scored alike. int8: the ResUNet's convolutions as deployed
+    (Classifier.load); False scores them in float32. by_family: each scene family of the test split
+    and of an `others` dataset, where it holds several, also gets a column of its own ('mine of
+    test'): a mean over families of unlike difficulty hides which one a model fails on. by_region: the
+    same for each named region of a scene there ('tunnel of mine-0'). scan_mc: children of the scan's
+    own Monte-Carlo estimate (scan_mc.py), scored on the first checkpoint's splits but its training
+    split (up to M registrations a scan, over `workers` processes); the estimates are saved in
+    scan_mc.npz. draws: each checkpoint also scored on that many draws of the points it reads from a
+    scan (seeds 0 ... draws-1; the table is draw 0's): which 4000 points a scan gives moves a split's
+    mean F1 by a few hundredths, as much as some differences between models. cascade: margins
+    (log-odds) of the first checkpoint checked by the scan estimate where it is unsure
+    (detectors.CascadeDetector), scored from the same probabilities and estimates; it needs scan_mc.
+    """
+
+    others: list[str | Path] = field(default_factory=list)
+    symmetric: bool = False
+    eigen: list[float] = field(default_factory=list)
+    dcreg: list[float] = field(default_factory=list)
+    int8: bool = True
+    by_family: bool = False
+    by_region: bool = False
+    scan_mc: int = 0
+    workers: int = 1
+    draws: int = 1
+    cascade: list[float] = field(default_factory=list)
+
+    def check(self, checkpoints: list[str | Path], dataset: Any) -> None:
+        """ValueError for a combination no run can score, before anything is read or written."""
+        if not dataset and not self.others:
+            raise ValueError("nothing to score: give the training dataset(s) (--dataset, scored by split), other "
+                             "datasets (--other, scored whole), or both")
+        if dataset and not checkpoints:
+            raise ValueError("a dataset is split by a checkpoint's training and validation scenes: give a "
+                             "checkpoint, or score the dataset whole as an other")
+        if self.draws < 1:
+            raise ValueError(f"draws must be at least 1 (the table's own draw), got {self.draws}")
+        if self.cascade and not (self.scan_mc and checkpoints):
+            raise ValueError("the cascade checks a checkpoint's unsure scans with the scan estimate: give a "
+                             "checkpoint and --scan-mc M")
+        if any(not m >= 0 for m in self.cascade):
+            raise ValueError(f"a cascade's margin is a log-odds distance >= 0, got {self.cascade}")
+        if self.scan_mc < 0 or self.workers < 1:
+            raise ValueError(f"the scan estimate needs 0 (none) or more children and at least one worker, got "
+                             f"{self.scan_mc} and {self.workers}")
+
+
+Split = tuple[LabelDataset | DatasetUnion, np.ndarray]  # a dataset and the rows of it scored
+
+
+class Scoreboard:
+    """The table being filled: scores, 95% intervals and results.json's entries per model (or
+    detector) and column, the PR curves of the checkpoints; a split's family and region columns are
+    found once and shared by every model."""
+
+    def __init__(self, results: dict[str, Any], others: dict[str, LabelDataset], options: Table3Options):
+        self.results, self.others, self.options = results, others, options
+        self.table: dict[str, dict[str, dict[str, np.ndarray]]] = {}
+        self.curves: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = {}
+        self.intervals: dict[tuple[str, str], dict[str, tuple[float, float]]] = {}
+        self._columns: dict[str, dict[str, np.ndarray]] = {}
+
+    def add_model(self, name: str, entry: dict[str, Any]) -> None:
+        self.table[name] = {}
+        self.results["models"][name] = {**entry, "splits": {}}
+
+    def columns(self, split: str, ds: LabelDataset | DatasetUnion, rows: np.ndarray) -> dict[str, np.ndarray]:
+        """Column name -> positions in `rows` of each family (of a split of several) and of each
+        region, for a test or `others` split, as asked."""
+        if split != "test" and split not in self.others:
+            return {}
+        if split not in self._columns:  # the same rows for every model: scenes are built once
+            parts = family_rows(ds, rows) if self.options.by_family else {}
+            name = split.removeprefix("all of ")
+            columns = {f"{f} of {name}": at for f, at in parts.items()} if len(parts) > 1 else {}
+            self._columns[split] = {**columns, **(region_rows(ds, rows) if self.options.by_region else {})}
+        return self._columns[split]
+
+    def score(self, name: str, split: str, ds: LabelDataset | DatasetUnion, rows: np.ndarray, predicted: np.ndarray,
+              **fields: Any) -> None:
+        """The split's scores, and those of each of its families and regions where asked."""
+        parts = {split: np.arange(len(rows)), **self.columns(split, ds, rows)}
+        for column, subset in parts.items():
+            y = ds.labels[rows[subset]]
+            self.table[name][column] = scores = axis_scores(y, predicted[subset])
+            self.intervals[name, column] = mean_interval(y, predicted[subset])
+            self.results["models"][name]["splits"][column] = {
+                "count": len(subset), "dataset": ds.name, "sensor": ds.manifest["sensor"],
+                **(fields if column == split else {}), "mean": mean_scores(scores),
+                "mean_95_interval": self.intervals[name, column],
+                **{k: np.asarray(v).tolist() for k, v in scores.items()}}
+
+
+@dataclass
+class ScanEstimates:
+    """The scan estimate's errors, children drawn and decisions per split it judged."""
+    errors: dict[str, np.ndarray] = field(default_factory=dict)
+    drawn: dict[str, np.ndarray] = field(default_factory=dict)
+    judged: dict[str, np.ndarray] = field(default_factory=dict)
+
+
 def run_table3(checkpoints: list[str | Path], dataset: str | Path | list[str | Path] | None, out_dir: str | Path,
-             others: list[str | Path] | None = None, progress: bool = True, symmetric: bool = False,
-             eigen: list[float] | None = None, int8: bool = True, by_family: bool = False,
-             by_region: bool = False, scan_mc: int = 0, workers: int = 1, draws: int = 1,
-             cascade: list[float] | None = None, dcreg: list[float] | None = None) -> Table3Result:
+               options: Table3Options | None = None, progress: bool = True) -> Table3Result:
     """Score each checkpoint on its own train/validation split and on the test families of the
-    dataset, and on every scan of each of `others` (a dataset of another sensor, or of scene
-    families the model never saw: column 'all of <folder>'); writes table.txt, results.json and
-    pr_curves.png (and cascade.png with `cascade`) into out_dir and returns the results, with the
-    table's text and the files written. `symmetric`: probabilities averaged over the
-    eight mirror/swap views, with the thresholds chosen for them. `eigen`: thresholds tau of the
-    eigenvalue detector, scored on the first checkpoint's splits from each scan's own Hessian
-    (`scan_hessian`); a scan too small to register flags nothing, as the detector's UNKNOWN does.
-    `dcreg`: condition ratio thresholds kappa of DCReg's detection (registration.dcreg_mask), scored
-    alike.
-    `int8`: the ResUNet's convolutions as deployed (Classifier.load); False scores them in float32.
-    `by_family`: each scene family of the test split and of an `others` dataset, where it holds
-    several, also gets a column of its own ('mine of test', 'yard of rooms48'): a mean over families
-    of unlike difficulty hides which one a model fails on. `by_region`: the same for each named
-    region of a scene there ('yard of mine-0', 'tunnel of mine-0', 'quarry of mine-0'). Without
-    `dataset` only `others` are scored: how a model does on a user's own scenes needs no training
-    data. `scan_mc`: children of the scan's own Monte-Carlo estimate (scan_mc.py), scored on the
-    first checkpoint's splits but its training split (up to M registrations a scan, over `workers`
-    processes); the estimates are saved in scan_mc.npz. `draws`: each checkpoint also scored on that
-    many draws of the points it reads from a scan (seeds 0 ... draws-1; the table is draw 0's):
-    which 4000 points a scan gives moves a split's mean F1 by a few hundredths, as much as some of
-    the differences between models. `cascade`: margins (log-odds) of the first checkpoint checked by
-    the scan estimate where it is unsure (detectors.CascadeDetector), scored from the same
-    probabilities and estimates; it needs `scan_mc`."""
-    if not dataset and not others:
-        raise ValueError("nothing to score: give the training dataset(s) (--dataset, scored by split), other "
-                         "datasets (--other, scored whole), or both")
-    if dataset and not checkpoints:
-        raise ValueError("a dataset is split by a checkpoint's training and validation scenes: give a checkpoint, "
-                         "or score the dataset whole as an other")
-    if draws < 1:
-        raise ValueError(f"draws must be at least 1 (the table's own draw), got {draws}")
-    if cascade and not (scan_mc and checkpoints):
-        raise ValueError("the cascade checks a checkpoint's unsure scans with the scan estimate: give a checkpoint "
-                         "and --scan-mc M")
-    if any(not m >= 0 for m in cascade or []):
-        raise ValueError(f"a cascade's margin is a log-odds distance >= 0, got {cascade}")
-    if scan_mc < 0 or workers < 1:
-        raise ValueError(f"the scan estimate needs 0 (none) or more children and at least one worker, got "
-                         f"{scan_mc} and {workers}")
+    dataset, and on every scan of each of `options.others` (see Table3Options for the detectors
+    beside them); writes table.txt, results.json and pr_curves.png (and cascade.png with a cascade)
+    into out_dir and returns the results, with the table's text and the files written. Without
+    `dataset` only the others are scored: how a model does on a user's own scenes needs no training
+    data."""
+    options = options or Table3Options()
+    options.check(checkpoints, dataset)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     data = open_datasets(dataset) if dataset else None
+    board = Scoreboard({"dataset": data.name if data is not None else None,
+                        "test_scenes": test_scenes_in(data) if data is not None else [],
+                        "symmetric": options.symmetric, "int8": options.int8, "models": {}},
+                       other_columns(options.others), options)
+    first_splits = score_checkpoints(board, checkpoints, data, progress)
+    score_hessian_detectors(board, first_splits, progress)
+    estimates = score_scan_estimate(board, first_splits, out, progress)
+    score_cascades(board, first_splits, estimates, out)
+    text = table_text(board, estimates)
+    written = write_table3(board, text, out)
+    return Table3Result(board.results, text, written)
+
+
+def other_columns(others: list[str | Path]) -> dict[str, LabelDataset]:
+    """Each other dataset under its column's name ('all of <name>', the folder where two share a name)."""
     extra: dict[str, LabelDataset] = {}
-    for d in map(LabelDataset, others or []):
+    for d in map(LabelDataset, others):
         extra[f"all of {d.name}" if f"all of {d.name}" not in extra else f"all of {d.folder}"] = d
-    test_scenes = test_scenes_in(data) if data is not None else []
-    table: dict[str, dict[str, dict[str, np.ndarray]]] = {}
-    curves: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = {}
-    intervals: dict[tuple[str, str], dict[str, tuple[float, float]]] = {}
-    results: dict[str, Any] = {"dataset": data.name if data is not None else None, "test_scenes": test_scenes,
-                               "symmetric": symmetric, "int8": int8, "models": {}}
+    return extra
 
-    built_columns: dict[str, dict[str, np.ndarray]] = {}
 
-    def part_columns(split: str, ds: LabelDataset | DatasetUnion, rows: np.ndarray) -> dict[str, np.ndarray]:
-        """Column name -> positions in `rows` of each family (of a split of several) and of each
-        region, for a test or `others` split, as asked."""
-        if split != "test" and split not in extra:
-            return {}
-        if split not in built_columns:  # the same rows for every model: scenes are built once
-            parts = family_rows(ds, rows) if by_family else {}
-            name = split.removeprefix("all of ")
-            columns = {f"{f} of {name}": at for f, at in parts.items()} if len(parts) > 1 else {}
-            built_columns[split] = {**columns, **(region_rows(ds, rows) if by_region else {})}
-        return built_columns[split]
-
-    def score(name: str, split: str, ds: LabelDataset | DatasetUnion, rows: np.ndarray, predicted: np.ndarray,
-              **fields: Any) -> None:
-        """The split's scores, and those of each of its families and regions where asked."""
-        parts = {split: np.arange(len(rows)), **part_columns(split, ds, rows)}
-        for column, subset in parts.items():
-            y = ds.labels[rows[subset]]
-            table[name][column] = scores = axis_scores(y, predicted[subset])
-            intervals[name, column] = mean_interval(y, predicted[subset])
-            results["models"][name]["splits"][column] = {
-                "count": len(subset), "dataset": ds.name, "sensor": ds.manifest["sensor"],
-                **(fields if column == split else {}), "mean": mean_scores(scores),
-                "mean_95_interval": intervals[name, column], **{k: np.asarray(v).tolist() for k, v in scores.items()}}
-
-    # the detectors without a checkpoint (eigen, scanmc) are scored on the first checkpoint's splits, or the others
-    first_splits: dict[str, tuple[LabelDataset | DatasetUnion, np.ndarray]] = {} if checkpoints else {
-        column: (d, np.arange(len(d))) for column, d in extra.items()}
+def score_checkpoints(board: Scoreboard, checkpoints: list[str | Path], data: LabelDataset | DatasetUnion | None,
+                      progress: bool) -> dict[str, Split]:
+    """Every checkpoint scored on its own splits and the others; returns the first one's splits, on
+    which the detectors without a checkpoint are scored (the others' alone without a checkpoint)."""
+    options = board.options
+    first_splits: dict[str, Split] = {} if checkpoints else {
+        column: (d, np.arange(len(d))) for column, d in board.others.items()}
     for path in map(Path, checkpoints):
-        clf = Classifier.load(path, symmetric=symmetric, int8=int8)
-        name = model_name(clf, path, set(table))
+        clf = Classifier.load(path, symmetric=options.symmetric, int8=options.int8)
+        name = model_name(clf, path, set(board.table))
         splits = {} if data is None else {
             split: (data, rows) for split, rows in split_rows(data, clf.meta["training"]).items()}
-        splits.update({column: (d, np.arange(len(d))) for column, d in extra.items()})
+        splits.update({column: (d, np.arange(len(d))) for column, d in board.others.items()})
         splits = {split: (ds, rows) for split, (ds, rows) in splits.items() if len(rows)}
         first_splits = first_splits or splits
-        table[name], curves[name] = {}, {}
-        results["models"][name] = {"checkpoint": str(path), "thresholds": clf.thresholds.tolist(), "splits": {}}
+        board.add_model(name, {"checkpoint": str(path), "thresholds": clf.thresholds.tolist()})
+        board.curves[name] = {}
         for split, (ds, rows) in splits.items():
             if progress:
                 print(f"{name}: {split} ({len(rows)} scans)")
-            probs = predict_dataset(clf.model, ds, rows, progress=progress, symmetric=symmetric)
-            curves[name][split] = (ds.labels[rows], probs)
-            score(name, split, ds, rows, probs > clf.thresholds)
-            if draws > 1:
-                results["models"][name]["splits"][split]["draws"] = draw_scores(
-                    clf, ds, rows, probs, draws, progress, symmetric)
-        if "valid" in curves[name]:
-            parts = {split: part_columns(split, *splits[split]) for split in curves[name]}
-            results["models"][name]["f1_operating_point"] = f1_operating_point(curves[name], parts)
-    hessians = {}
-    if eigen or dcreg:  # one Hessian per scan serves every tau and kappa
-        hessians = {split: dataset_hessians(ds, rows, progress) for split, (ds, rows) in first_splits.items()}
-    for kind, mask_of, values in (("eigen", eigen_mask, eigen or []), ("dcreg", dcreg_mask, dcreg or [])):
+            probs = predict_dataset(clf.model, ds, rows, progress=progress, symmetric=options.symmetric)
+            board.curves[name][split] = (ds.labels[rows], probs)
+            board.score(name, split, ds, rows, probs > clf.thresholds)
+            if options.draws > 1:
+                board.results["models"][name]["splits"][split]["draws"] = draw_scores(
+                    clf, ds, rows, probs, options.draws, progress, options.symmetric)
+        if "valid" in board.curves[name]:
+            parts = {split: board.columns(split, *splits[split]) for split in board.curves[name]}
+            board.results["models"][name]["f1_operating_point"] = f1_operating_point(board.curves[name], parts)
+    return first_splits
+
+
+def score_hessian_detectors(board: Scoreboard, first_splits: dict[str, Split], progress: bool) -> None:
+    """The eigenvalue test and DCReg at each of their thresholds; one Hessian per scan serves all."""
+    eigen, dcreg = board.options.eigen, board.options.dcreg
+    if not (eigen or dcreg):
+        return
+    hessians = {split: dataset_hessians(ds, rows, progress) for split, (ds, rows) in first_splits.items()}
+    for kind, mask_of, values in (("eigen", eigen_mask, eigen), ("dcreg", dcreg_mask, dcreg)):
         for value in values:
             name = f"{kind}:{value:g}"
-            table[name], results["models"][name] = {}, {"tau" if kind == "eigen" else "kappa": value, "splits": {}}
+            board.add_model(name, {"tau" if kind == "eigen" else "kappa": value})
             for split, (ds, rows) in first_splits.items():
                 known = np.isfinite(hessians[split]).all(axis=(1, 2))
                 predicted = np.zeros((len(rows), 6), bool)
                 predicted[known] = [mask_of(H, value)[1] for H in hessians[split][known]]
-                score(name, split, ds, rows, predicted, unregistrable=int((~known).sum()))
-    if scan_mc:
-        estimates, drawn, judged = {}, {}, {}
-        name = f"scanmc:{scan_mc}"
-        table[name], results["models"][name] = {}, {"children": scan_mc, "splits": {}}
-        for split, (ds, rows) in first_splits.items():
-            if split == "train":
-                continue
-            if progress:
-                print(f"{name}: {split} ({len(rows)} scans)")
-            estimates[split], drawn[split] = dataset_scan_errors([str(p.folder) for p in ds.parts], rows,
-                                                                 ScanMCConfig(children=scan_mc), workers=workers,
-                                                                 progress=progress)
-            known = np.isfinite(estimates[split]).all(axis=1)
-            judged[split] = np.where(known[:, None], estimates[split] > row_thresholds(ds)[rows], False)
-            score(name, split, ds, rows, judged[split], unjudged=int((~known).sum()),
-                  mean_children=float(drawn[split][known].mean()) if known.any() else 0.0)
-        np.savez(out / "scan_mc.npz", **{split.replace(" ", "_"): e for split, e in estimates.items()},
-                 **{f"children_{split.replace(' ', '_')}": n for split, n in drawn.items()})
-        first = next(iter(curves), "")  # the cascade was refused above without a checkpoint
-        for margin in cascade or []:
-            thresholds = np.asarray(results["models"][first]["thresholds"])
-            name = f"{first}+scanmc:{margin:g}"
-            table[name], results["models"][name] = {}, {"margin": margin, "children": scan_mc, "splits": {}}
-            for split in estimates:
-                ds, rows = first_splits[split]
-                checked = near_threshold(curves[first][split][1], thresholds, margin)
-                predicted = np.where(checked[:, None], judged[split], curves[first][split][1] > thresholds)
-                score(name, split, ds, rows, predicted, checked=float(checked.mean()))
-        if cascade:
-            thresholds = np.asarray(results["models"][first]["thresholds"])
-            results["cascade_random_checks"] = {
-                split: random_checks(first_splits[split][0].labels[first_splits[split][1]],
-                                     curves[first][split][1] > thresholds, judged[split]) for split in estimates}
-            plot_cascade(results, first, scan_mc, out / "cascade.png")
-    text = (format_table(table, intervals=intervals) + format_f1_operating_points(results["models"])
-            + format_draws(results["models"], draws))
-    if scan_mc:
-        scored = results["models"][f"scanmc:{scan_mc}"]["splits"]
-        text += f"\nscanmc:{scan_mc} children drawn a scan (mean): " + ", ".join(
-            f"{split} {scored[split]['mean_children']:.1f}" for split in drawn if scored[split]["mean_children"]) + "\n"
-    for name, model in results["models"].items():
+                board.score(name, split, ds, rows, predicted, unregistrable=int((~known).sum()))
+
+
+def score_scan_estimate(board: Scoreboard, first_splits: dict[str, Split], out: Path,
+                        progress: bool) -> ScanEstimates:
+    """`scanmc:M` on every split but the training one; its estimates saved in scan_mc.npz."""
+    children, found = board.options.scan_mc, ScanEstimates()
+    if not children:
+        return found
+    name = f"scanmc:{children}"
+    board.add_model(name, {"children": children})
+    for split, (ds, rows) in first_splits.items():
+        if split == "train":
+            continue
+        if progress:
+            print(f"{name}: {split} ({len(rows)} scans)")
+        found.errors[split], found.drawn[split] = dataset_scan_errors(
+            [str(p.folder) for p in ds.parts], rows, ScanMCConfig(children=children), workers=board.options.workers,
+            progress=progress)
+        known = np.isfinite(found.errors[split]).all(axis=1)
+        found.judged[split] = np.where(known[:, None], found.errors[split] > row_thresholds(ds)[rows], False)
+        board.score(name, split, ds, rows, found.judged[split], unjudged=int((~known).sum()),
+                    mean_children=float(found.drawn[split][known].mean()) if known.any() else 0.0)
+    np.savez(out / "scan_mc.npz", **{split.replace(" ", "_"): e for split, e in found.errors.items()},
+             **{f"children_{split.replace(' ', '_')}": n for split, n in found.drawn.items()})
+    return found
+
+
+def score_cascades(board: Scoreboard, first_splits: dict[str, Split], estimates: ScanEstimates, out: Path) -> None:
+    """The first checkpoint checked by the scan estimate within each margin, against random checks of
+    as many scans (cascade.png)."""
+    margins = board.options.cascade
+    if not margins:
+        return
+    first = next(iter(board.curves))  # the cascade was refused without a checkpoint
+    thresholds = np.asarray(board.results["models"][first]["thresholds"])
+    for margin in margins:
+        name = f"{first}+scanmc:{margin:g}"
+        board.add_model(name, {"margin": margin, "children": board.options.scan_mc})
+        for split in estimates.errors:
+            ds, rows = first_splits[split]
+            probs = board.curves[first][split][1]
+            checked = near_threshold(probs, thresholds, margin)
+            predicted = np.where(checked[:, None], estimates.judged[split], probs > thresholds)
+            board.score(name, split, ds, rows, predicted, checked=float(checked.mean()))
+    board.results["cascade_random_checks"] = {
+        split: random_checks(first_splits[split][0].labels[first_splits[split][1]],
+                             board.curves[first][split][1] > thresholds, estimates.judged[split])
+        for split in estimates.errors}
+    plot_cascade(board.results, first, board.options.scan_mc, out / "cascade.png")
+
+
+def table_text(board: Scoreboard, estimates: ScanEstimates) -> str:
+    """The table with its intervals, the F1-operating points, the draws, the scan estimate's children
+    and the cascades' shares of scans checked."""
+    options, models = board.options, board.results["models"]
+    text = (format_table(board.table, intervals=board.intervals) + format_f1_operating_points(models)
+            + format_draws(models, options.draws))
+    if options.scan_mc:
+        scored = models[f"scanmc:{options.scan_mc}"]["splits"]
+        text += f"\nscanmc:{options.scan_mc} children drawn a scan (mean): " + ", ".join(
+            f"{split} {scored[split]['mean_children']:.1f}" for split in estimates.drawn
+            if scored[split]["mean_children"]) + "\n"
+    for name, model in models.items():
         if "margin" in model:  # a cascade, and random checks of as many scans as it checked
-            random = results["cascade_random_checks"]
-            text += f"{name}: share of scans checked by scanmc:{scan_mc}: " + ", ".join(
+            random = board.results["cascade_random_checks"]
+            text += f"{name}: share of scans checked by scanmc:{options.scan_mc}: " + ", ".join(
                 f"{split} {r['checked']:.2f} (F1 of random checks that many: "
                 f"{np.interp(r['checked'], random[split]['share'], random[split]['mean_f1']):.3f})"
                 for split, r in model["splits"].items() if "checked" in r) + "\n"
-    if symmetric:
+    if options.symmetric:
         text = "probabilities averaged over the eight mirror/swap views of each scan\n" + text
+    return text
+
+
+def write_table3(board: Scoreboard, text: str, out: Path) -> list[Path]:
+    """table.txt, results.json and pr_curves.png (cascade.png is written with the cascades)."""
     (out / "table.txt").write_text(text + "\n")
-    (out / "results.json").write_text(json.dumps(results, indent=1, default=_nan_safe))
-    plot_pr_curves(curves, {n: np.asarray(r["thresholds"]) for n, r in results["models"].items() if n in curves},
+    (out / "results.json").write_text(json.dumps(board.results, indent=1, default=_nan_safe))
+    models = board.results["models"]
+    plot_pr_curves(board.curves, {n: np.asarray(r["thresholds"]) for n, r in models.items() if n in board.curves},
                    out / "pr_curves.png")
-    written = [out / name for name in ("table.txt", "results.json", "pr_curves.png",
-                                       *(["cascade.png"] if cascade else []))]
-    return Table3Result(results, text, written)
+    return [out / name for name in ("table.txt", "results.json", "pr_curves.png",
+                                    *(["cascade.png"] if board.options.cascade else []))]
 
 
 def dataset_hessians(data: LabelDataset | DatasetUnion, rows: np.ndarray, progress: bool = False) -> np.ndarray:
@@ -274,10 +373,8 @@ def dataset_hessians(data: LabelDataset | DatasetUnion, rows: np.ndarray, progre
     config = from_dict(RegistrationConfig, data.manifest["settings"]["registration"])
     out = np.full((len(rows), 6, 6), np.nan)
     for k, i in enumerate(tqdm(rows, desc="Hessians", disable=not progress, leave=False)):
-        try:
+        with contextlib.suppress(RegistrationError):
             out[k] = scan_hessian(data.scan(int(i)), config)
-        except RegistrationError:
-            pass
     return out
 
 

@@ -6,10 +6,11 @@ their beam rings, leg odometry, ground truth and the sensor's mounting, for one'
 odometry or SLAM to run on the same scenes."""
 from __future__ import annotations
 
-from collections.abc import Iterator
-from dataclasses import dataclass
+import contextlib
 import os
 import shutil
+from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -364,10 +365,8 @@ class BagRecorder:
 
     def abort(self) -> None:
         """Drop the unfinished bag: a drive that failed or was stopped leaves nothing half-written."""
-        try:
+        with contextlib.suppress(Exception):  # the writer may be in any state; the folder goes regardless
             self.writer.close()
-        except Exception:  # noqa: BLE001 - the writer may be in any state; the folder goes regardless
-            pass
         _remove(self.folder)
 
     def close(self) -> Path:

@@ -7,7 +7,6 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-
 from l3e_env.core.transforms import inverse, matrix_to_pose, pose_to_matrix
 from l3e_env.sim.lidar import Lidar
 from l3e_env.sim.raycast import RayCaster

@@ -9,10 +9,11 @@ from __future__ import annotations
 
 import dataclasses
 import warnings
+from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 import numpy as np
 import torch
@@ -25,8 +26,17 @@ from l3e_env.localizability.labels import LABEL_PROTOCOL, protocol_name
 from l3e_env.localizability.registration import RegistrationConfig
 
 from .constraints import FEATURES, SURFACE_FEATURES, AxisStacker, scan_features, surface_rows
-from .sparse import (DownConv, GatherConv, Level, SubmanifoldConv, UpConv, global_max_pool, int8_products_work,
-                     int8_residual_block, voxelize)
+from .sparse import (
+    DownConv,
+    GatherConv,
+    Level,
+    SubmanifoldConv,
+    UpConv,
+    global_max_pool,
+    int8_products_work,
+    int8_residual_block,
+    voxelize,
+)
 
 CHECKPOINT_FORMAT = "l3e-classifier"
 CHECKPOINT_VERSION = 1

@@ -20,13 +20,24 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from scenes import TRAIN_SCENES, VALIDATION_SCENES, canonical_scene_name, scene_family
-
 from l3e_env.config import dump_yaml, plain, settings_changed, to_dict
 from l3e_env.data.dataset import DatasetUnion, LabelDataset, error_ratios, open_datasets
+from scenes import TRAIN_SCENES, VALIDATION_SCENES, canonical_scene_name, scene_family
 
-from .classifier import (SWAP_LABELS, SYMMETRIES, CheckpointError, LocalizabilityNet, ModelConfig, load_checkpoint,
-                         model_from_checkpoint, model_input, model_probabilities, save_checkpoint, up_tensor, up_vector)
+from .classifier import (
+    SWAP_LABELS,
+    SYMMETRIES,
+    CheckpointError,
+    LocalizabilityNet,
+    ModelConfig,
+    load_checkpoint,
+    model_from_checkpoint,
+    model_input,
+    model_probabilities,
+    save_checkpoint,
+    up_tensor,
+    up_vector,
+)
 from .constraints import FEATURES, fit_stacker
 from .scores import axis_scores, best_thresholds, mean_scores
 

@@ -3,13 +3,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from scenes.geometry import polyline_length, resample_polyline
-
 from l3e_env.config import RobotConfig
 from l3e_env.core.transforms import inverse
+from scenes.geometry import polyline_length, resample_polyline
 
 from .avoidance import FreeHeadings
-
 
 CRUISE_SPEED = 1.0  # m/s, the robot stand-in's top forward speed (RobotConfig.max_twist)
 

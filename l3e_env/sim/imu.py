@@ -15,7 +15,7 @@ from l3e_env.config import ATTITUDE_MODES
 GRAVITY = 9.81
 
 
-@dataclass
+@dataclass(frozen=True)
 class ImuConfig:
     """Rate and noise of the IMU, as a MEMS unit of a legged robot's class (noise densities per
     sqrt(Hz), bias random walks per sqrt(s))."""

@@ -85,7 +85,7 @@ class PyBulletCaster:
         self.client, self.mask, self.threads = client, collision_mask, threads
 
     @classmethod
-    def for_mesh(cls, mesh: trimesh.Trimesh) -> "PyBulletCaster":
+    def for_mesh(cls, mesh: trimesh.Trimesh) -> PyBulletCaster:
         """A caster with its own DIRECT client holding only `mesh` (for tests and benchmarks)."""
         pb = import_pybullet()
         client = pb.connect(pb.DIRECT)

@@ -1,13 +1,14 @@
 """The PyBullet world: the static scene as a concave mesh and the robot's collision box."""
 from __future__ import annotations
 
+import contextlib
+
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from scenes import Scene
-
 from l3e_env.config import RobotConfig
 from l3e_env.core.quiet import import_pybullet
+from scenes import Scene
 
 from .raycast import PyBulletCaster, add_static_mesh
 
@@ -37,10 +38,8 @@ class World:
         self.client = -1
 
     def __del__(self) -> None:  # best effort; explicit close() is preferred
-        try:
+        with contextlib.suppress(Exception):
             self.close()
-        except Exception:
-            pass
 
     def in_collision(self, T_w_b: np.ndarray, tolerance: float = 0.005) -> bool:
         """Whether the robot's base box at T_w_b penetrates the scene."""
