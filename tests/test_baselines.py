@@ -72,10 +72,10 @@ def test_a_missing_package_or_an_unknown_baseline_is_named_before_anything_runs(
 def test_kiss_icp_and_genz_icp_rows_in_the_ate_table(tmp_path):
     pytest.importorskip("kiss_icp")
     pytest.importorskip("genz_icp")
-    from l3e_env.experiments.ate import run_ate
+    from l3e_env.experiments.ate import AteOptions, run_ate
 
-    run = run_ate(tmp_path, "office", ["none", "eigen:30"], max_steps=40, progress=False,
-                  baselines=["kiss-icp", "genz-icp"], frontends=["icp", "genz-icp"])
+    run = run_ate(tmp_path, "office", ["none", "eigen:30"], AteOptions(
+        max_steps=40, baselines=["kiss-icp", "genz-icp"], frontends=["icp", "genz-icp"]), progress=False)
     names = [r["detector"] for r in run.rows]
     assert names == ["odometry only", "none", "eigen:30", "none @genz-icp", "eigen:30 @genz-icp", "kiss-icp",
                      "genz-icp"]

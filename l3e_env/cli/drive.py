@@ -73,7 +73,7 @@ def _cmd_envs(args: argparse.Namespace) -> int:
 
 
 def _cmd_ate(args: argparse.Namespace) -> int:
-    from l3e_env.experiments.ate import run_ate, run_ate_seeds
+    from l3e_env.experiments.ate import AteOptions, run_ate, run_ate_seeds
     from l3e_env.sim.lidar import DESKEW_STEPS
 
     # a recording holds its scene's route, axes and scale: a mesh given with it is where the mesh moved to
@@ -86,17 +86,18 @@ def _cmd_ate(args: argparse.Namespace) -> int:
         return 2
     print(f"writing the experiment into {out.resolve()}")
     detectors = args.detector or list(DEFAULT_ATE_DETECTORS)
-    options = dict(sensor=args.sensor, progress=not args.quiet, backend=args.backend, scene_params=params,
-                   workers=args.workers, attitude=args.attitude, fusion_settings=fusion_settings(args),
-                   max_steps=args.max_steps, baselines=args.baseline, frontends=args.frontend)
+    options = AteOptions(sensor=args.sensor, seed=args.seed, recording=args.recording, backend=args.backend,
+                         scene_params=params, workers=args.workers, deskew=args.deskew, attitude=args.attitude,
+                         fusion_settings=fusion_settings(args), max_steps=args.max_steps,
+                         baselines=args.baseline or [], frontends=args.frontend or ["icp"])
     if args.seeds > 1:
         seeds = range(args.seed, args.seed + args.seeds)
-        done = run_ate_seeds(out, args.scene, detectors, seeds, on_drive=lambda seed, run: print(
-            f"drive {seed - args.seed + 1} of {args.seeds} (seed {seed})\n{run.table()}"), **options)
+        done = run_ate_seeds(out, args.scene, detectors, seeds, options, on_drive=lambda seed, run: print(
+            f"drive {seed - args.seed + 1} of {args.seeds} (seed {seed})\n{run.table()}"), progress=not args.quiet)
         print(done.table())
         print("written: " + ", ".join(map(str, done.written)))
         return 0
-    run = run_ate(out, args.scene, detectors, seed=args.seed, recording=args.recording, deskew=args.deskew, **options)
+    run = run_ate(out, args.scene, detectors, options, progress=not args.quiet)
     print(run.table())
     if run.swept:
         turn = "the gyro's rotation over it" if args.deskew == "gyro" else "the odometry's rotation"

@@ -435,19 +435,65 @@ class AteSeeds:
         return format_seed_table(self.summary)
 
 
+@dataclass
+class AteOptions:
+    """How `l3e ate` drives and fuses.
+
+    sensor, seed: the drive's LiDAR and seed. recording: a saved drive to fuse again (its own scene is
+    used; the scene given matters only as the new path of a recorded mesh that has moved).
+    scene_params: make_scene's arguments (a mesh scene's up axis, scale and route). workers: processes
+    that judge the route with scanmc before the fusion (the same judgements as one). deskew: where a
+    swept recording's deskewing takes its rotation from (sim.lidar.DESKEW_SOURCES). attitude: the
+    IMU's orientation in the fusion ("none", "tilt" or "full"); with it, a row "odometry + attitude"
+    follows odometry alone. fusion_settings: every fusion's (the biases' prior from the default
+    OdometryConfig, as the drive's). max_steps: a shorter drive. baselines: external LiDAR odometries
+    (experiments.baselines: kiss-icp, genz-icp) run on the drive's scans as recorded (a swept drive's
+    with their firing times, which they deskew themselves), each a row after the fusion's; their
+    settings go into results.json, and one that fails says so in its row. frontends: the LiDAR front
+    ends whose steps the fusion takes ("icp": scan-to-scan ICP; or a baseline's name: its relative
+    motions with the ICP's information, BaselineRun.registrations); every detector is fused with each,
+    the rows of a front end other than ICP named "<detector> @<front end>"."""
+
+    sensor: str = "vlp16"
+    seed: int = 0
+    recording: str | Path | None = None
+    backend: str = "graph"
+    scene_params: dict | None = None
+    workers: int = 1
+    deskew: str = "gyro"
+    attitude: str = "none"
+    fusion_settings: FusionSettings = FusionSettings()
+    max_steps: int | None = None
+    baselines: list[str] = field(default_factory=list)
+    frontends: list[str] = field(default_factory=lambda: ["icp"])
+
+    def check(self) -> None:
+        """ValueError naming a setting no drive can use (and a missing baseline package), before the drive."""
+        if self.workers < 1:
+            raise ValueError(f"workers must be at least 1, got {self.workers}")
+        if self.deskew not in DESKEW_SOURCES:
+            raise ValueError(f"deskew must be one of {DESKEW_SOURCES}, got {self.deskew!r}")
+        attitude_sigmas(self.attitude)
+        if not self.frontends or any(f != "icp" and f not in BASELINES for f in self.frontends):
+            raise ValueError(f"front ends: icp or one of {', '.join(BASELINES)}, got {self.frontends}")
+        check_baselines([*self.baselines, *(f for f in self.frontends if f != "icp")])
+
+
 def run_ate_seeds(out_dir: str | Path, scene: str, detectors: list[str], seeds: range,
-                  on_drive: Callable[[int, AteRun], None] | None = None, **options) -> AteSeeds:
+                  options: AteOptions | None = None, on_drive: Callable[[int, AteRun], None] | None = None,
+                  progress: bool = True) -> AteSeeds:
     """`run_ate` on one drive per seed, each into `out_dir/seed-<seed>`, then the summary over them
     (`summarize_seeds`) into seeds.json and seeds.png; `on_drive(seed, run)` sees each drive as it ends.
-    `options`: run_ate's (not a recording: that is one drive)."""
+    `options`: run_ate's (not a recording: that is one drive; their seed is each drive's)."""
+    options = options or AteOptions()
     if len(seeds) < 1:
         raise ValueError("give one seed or more")
-    if options.get("recording"):
+    if options.recording:
         raise ValueError("a recording is one drive: drive several seeds without it")
     out = Path(out_dir)
     runs = {}
     for seed in seeds:
-        runs[seed] = run_ate(out / f"seed-{seed}", scene, detectors, seed=seed, **options)
+        runs[seed] = run_ate(out / f"seed-{seed}", scene, detectors, replace(options, seed=seed), progress)
         if on_drive is not None:
             on_drive(seed, runs[seed])
     summary = summarize_seeds({seed: run.rows for seed, run in runs.items()})
@@ -458,119 +504,147 @@ def run_ate_seeds(out_dir: str | Path, scene: str, detectors: list[str], seeds: 
     return AteSeeds(out, runs, summary, [out / "seeds.json", out / "seeds.png"])
 
 
-def run_ate(out_dir: str | Path, scene: str, detectors: list[str], sensor: str = "vlp16", seed: int = 0,
-                   recording: str | Path | None = None, progress: bool = True, backend: str = "graph",
-                   scene_params: dict | None = None, workers: int = 1, deskew: str = "gyro",
-                   attitude: str = "none", fusion_settings: FusionSettings = FusionSettings(),
-                   max_steps: int | None = None, baselines: list[str] | None = None,
-                   frontends: list[str] | None = None) -> AteRun:
-    """The `l3e ate` command as a function: writes everything to out_dir and returns the rows.
-    `scene_params` go to make_scene (a mesh scene's up axis, scale and route). With a `recording`,
-    its own scene is used; `scene` matters only as the new path of a recorded mesh that has moved.
-    `workers` processes judge the route with scanmc before the fusion (the same judgements as one).
-    `deskew`: where a swept recording's deskewing takes its rotation from ("gyro" or "odometry").
-    `attitude`: the IMU's orientation in the fusion ("none", "tilt" or "full"); with it, a row
-    "odometry + attitude" follows odometry alone. `fusion_settings`: every fusion's (the biases' prior
-    from the default OdometryConfig, as the drive's). `baselines`: external LiDAR odometries
-    (experiments.baselines: kiss-icp, genz-icp) run on the drive's scans as recorded (a swept drive's
-    with their firing times, which they deskew themselves), each a row after the fusion's; their
-    settings go into results.json, and one that fails says so in its row. `frontends`: the LiDAR front
-    ends whose steps the fusion takes ("icp", the default: scan-to-scan ICP; or a baseline's name: its
-    relative motions with the ICP's information, BaselineRun.registrations); every detector is fused
-    with each, the rows of a front end other than ICP named "<detector> @<front end>"."""
-    if workers < 1:
-        raise ValueError(f"workers must be at least 1, got {workers}")
-    if deskew not in DESKEW_SOURCES:
-        raise ValueError(f"deskew must be one of {DESKEW_SOURCES}, got {deskew!r}")
-    attitude_sigmas(attitude)  # a bad mode fails before the drive
-    frontends = frontends or ["icp"]
-    if any(f != "icp" and f not in BASELINES for f in frontends):
-        raise ValueError(f"front ends: icp or one of {', '.join(BASELINES)}, got {frontends}")
-    check_baselines([*(baselines or []), *(f for f in frontends if f != "icp")])  # and so does a missing package
-    fusion = odometry_fusion_config(OdometryConfig(), fusion_settings)
+@dataclass
+class AteDrive:
+    """One drive's inputs: the scene, its LiDAR, the recording (deskewed where swept, `raw` as
+    recorded) and the detectors (made for it)."""
+    scene: Scene
+    lidar: Lidar
+    rec: Recording
+    raw: Recording
+    detectors: list[Detector]
+    registration: RegistrationConfig
+
+
+def run_ate(out_dir: str | Path, scene: str, detectors: list[str], options: AteOptions | None = None,
+            progress: bool = True) -> AteRun:
+    """The `l3e ate` command as a function: drives (or loads) the route, registers its scans, fuses
+    them with every detector and front end, scores each row against the truth and writes everything
+    to out_dir; returns the rows."""
+    options = options or AteOptions()
+    options.check()
+    fusion = odometry_fusion_config(OdometryConfig(), options.fusion_settings)
     out = Path(out_dir)
-    rec = Recording.load(recording) if recording else None
+    drive = prepare_drive(out, scene, detectors, options, progress)
+    t0 = time.perf_counter()
+    regs = register_sequence(drive.rec, drive.registration, progress)
+    icp_seconds = time.perf_counter() - t0
+    ahead = judge_ahead(drive, options.workers, progress)
+    dets = drive.detectors
+    if options.attitude != "none":
+        dets, ahead = [OdometryAttitude(), *dets], [0.0, *ahead]
+    runs = {name: run_baseline(name, drive.raw.scans, drive.raw.ground_truth[0], drive.raw.T_b_s,
+                               get_pattern(drive.raw.sensor) if drive.raw.sweep else None, progress=progress)
+            for name in dict.fromkeys([*(f for f in options.frontends if f != "icp"), *options.baselines])}
+    fused, lost = fuse_frontends(drive.rec, dets, ahead, regs, runs, fusion, options, progress)
+    results, rows = score_rows(drive, dets, fused, lost, runs, options)
+    summary = {"scene": drive.rec.scene, "sensor": drive.rec.sensor, "seed": drive.rec.seed,
+               "swept": drive.raw.sweep, "deskew": options.deskew if drive.raw.sweep else None,
+               "backend": options.backend, "attitude": options.attitude, **options.fusion_settings.record(),
+               "steps": len(drive.rec.odometry), "icp_seconds": round(icp_seconds, 1),
+               "icp_failed_or_not_converged": sum(r is None or not r.converged for r in regs),
+               "registration": to_dict(drive.registration), "frontends": options.frontends,
+               "baselines": {name: {"config": run.config, "seconds": round(run.seconds, 2), "error": run.error}
+                             for name, run in runs.items()},
+               "rows": rows}
+    written = write_ate(out, summary, drive, results)
+    return AteRun(out, rows, drive.raw.sweep, written)
+
+
+def prepare_drive(out: Path, scene: str, specs: list[str], options: AteOptions, progress: bool) -> AteDrive:
+    """The scene (a recording's own, or `scene`), its LiDAR and the detectors (a bad spec fails before
+    the drive), then the drive itself, recorded into out/recording.npz where none was given."""
+    rec = Recording.load(options.recording) if options.recording else None
     scene_obj = (make_scene(rec.scene_file(moved_to=scene), **rec.scene_params) if rec
-                 else make_scene(scene, **(scene_params or {})))
-    lidar = Lidar(EmbreeCaster(scene_obj.mesh), LidarConfig(model=rec.sensor if rec else sensor))
-    dets = [make_detector(spec, lidar, seed) for spec in detectors]  # a bad spec fails before the drive
+                 else make_scene(scene, **(options.scene_params or {})))
+    lidar = Lidar(EmbreeCaster(scene_obj.mesh), LidarConfig(model=rec.sensor if rec else options.sensor))
+    dets = [make_detector(spec, lidar, options.seed) for spec in specs]
     registration = registration_of(dets)
-    dets = [RecastScans(d, lidar, seed=seed) if isinstance(d, ScanMCDetector)
-            else RecastCascade(d, lidar, seed=seed) if isinstance(d, CascadeDetector) else d for d in dets]
+    dets = [RecastScans(d, lidar, seed=options.seed) if isinstance(d, ScanMCDetector)
+            else RecastCascade(d, lidar, seed=options.seed) if isinstance(d, CascadeDetector) else d for d in dets]
     out.mkdir(parents=True, exist_ok=True)
     if rec is None:
-        rec = record_run(scene, sensor, seed, progress, scene_params, scene_object=scene_obj, max_steps=max_steps)
+        rec = record_run(scene, options.sensor, options.seed, progress, options.scene_params, scene_object=scene_obj,
+                         max_steps=options.max_steps)
         rec.save(out / "recording.npz")
-    raw, swept, rec = rec, rec.sweep, deskewed(rec, deskew)
-    t0 = time.perf_counter()
-    regs = register_sequence(rec, registration, progress)
-    icp_seconds = time.perf_counter() - t0
-    ahead = [0.0] * len(dets)  # seconds of judging ahead, counted in the detector's time
-    poses = [T @ rec.T_b_s for T in rec.ground_truth[1:]]  # call k of the fusion is at the pose of scan k + 1
-    for i, det in enumerate(dets):
+    return AteDrive(scene_obj, lidar, deskewed(rec, options.deskew), rec, dets, registration)
+
+
+def judge_ahead(drive: AteDrive, workers: int, progress: bool) -> list[float]:
+    """The scan estimates of the route judged over `workers` processes before the fusion; returns the
+    seconds each detector spent so (counted in its time)."""
+    ahead = [0.0] * len(drive.detectors)
+    poses = [T @ drive.rec.T_b_s for T in drive.rec.ground_truth[1:]]  # call k of the fusion is at scan k + 1's pose
+    for i, det in enumerate(drive.detectors):
         t0 = time.perf_counter()
         if isinstance(det, RecastScans) and workers > 1:
-            det.judge_ahead(poses, scene_obj, workers, progress)
+            det.judge_ahead(poses, drive.scene, workers, progress)
         elif isinstance(det, RecastCascade) and workers > 1:
-            det.judge_ahead([rec.detector_input(k + 1) for k in range(len(poses))], poses, scene_obj, workers, progress)
+            det.judge_ahead([drive.rec.detector_input(k + 1) for k in range(len(poses))], poses, drive.scene, workers,
+                            progress)
         ahead[i] = time.perf_counter() - t0
-    if attitude != "none":
-        dets, ahead = [OdometryAttitude(), *dets], [0.0, *ahead]
-    external: dict[str, dict] = {}
-    runs: dict[str, BaselineRun] = {}
-    for name in dict.fromkeys([*(f for f in frontends if f != "icp"), *(baselines or [])]):
-        runs[name] = run = run_baseline(name, raw.scans, raw.ground_truth[0], raw.T_b_s,
-                                        get_pattern(raw.sensor) if swept else None, progress=progress)
-        external[name] = {"config": run.config, "seconds": round(run.seconds, 2), "error": run.error}
-    fused, lost = [], []  # lost: rows of a front end whose odometry failed
-    for frontend in frontends:
+    return ahead
+
+
+def fuse_frontends(rec: Recording, dets: list, ahead: list[float], regs: list, runs: dict[str, BaselineRun],
+                   fusion: FusionConfig, options: AteOptions, progress: bool) -> tuple[list, list[tuple[str, str]]]:
+    """Every detector fused with every front end's steps; returns the results and, for a front end
+    whose odometry failed, its rows' names with the error."""
+    fused, lost = [], []
+    for frontend in options.frontends:
         if frontend != "icp" and runs[frontend].error is not None:
             lost += [(f"{det.name} @{frontend}", runs[frontend].error) for det in dets]
             continue
         steps = regs if frontend == "icp" else runs[frontend].registrations(regs)
-        by_front = fuse_recording(rec, dets, steps, fusion=fusion, progress=progress, backend=backend,
-                                  attitude=attitude)
+        by_front = fuse_recording(rec, dets, steps, fusion=fusion, progress=progress, backend=options.backend,
+                                  attitude=options.attitude)
         for result, seconds, det in zip(by_front, ahead, dets):
             result.seconds += seconds
             result.name = det.name if frontend == "icp" else f"{det.name} @{frontend}"
         fused += by_front
+    return fused, lost
+
+
+def score_rows(drive: AteDrive, dets: list, fused: list, lost: list[tuple[str, str]], runs: dict[str, BaselineRun],
+               options: AteOptions) -> tuple[list, list[dict]]:
+    """The results (odometry only first, the fusions, the baselines alone) and the table's rows with
+    each one's drift inside each named region; a failed row says why."""
+    rec, scene = drive.rec, drive.scene
     results = [odometry_only(rec)] + fused
-    inside = regions_inside(rec.ground_truth, scene_obj)
+    inside = regions_inside(rec.ground_truth, scene)
     rows = [{**r.row(), **region_drift(r.trajectory, rec.ground_truth, inside)} for r in results]
-    for det, row in zip(dets * len(frontends), rows[1:]):
+    for det, row in zip(dets * len(options.frontends), rows[1:]):
         if isinstance(det, RecastCascade):  # what the estimate cost it: steps it was asked, scans it judged
             row.update(checked_steps=det.cascade.checked, judged_steps=det.judged_steps)
-    rows += [failed_row(name, error, scene_obj) for name, error in lost]
-    for name in baselines or []:
+    rows += [failed_row(name, error, scene) for name, error in lost]
+    for name in options.baselines:
         run = runs[name]
-        if run.error is None:
-            steps = len(rec.odometry)
-            results.append(_scored(name, run.trajectory, rec.ground_truth, np.zeros((steps, 6), bool),
-                                   np.full((steps, 6), np.nan), run.seconds, 0, 0))
-            rows.append({**results[-1].row(), **region_drift(run.trajectory, rec.ground_truth, inside)})
-        else:
-            rows.append(failed_row(name, run.error, scene_obj))
-    failed = sum(r is None or not r.converged for r in regs)
-    summary = {"scene": rec.scene, "sensor": rec.sensor, "seed": rec.seed,
-               "swept": swept,
-               "deskew": deskew if swept else None, "backend": backend, "attitude": attitude,
-               **fusion_settings.record(), "steps": len(rec.odometry), "icp_seconds": round(icp_seconds, 1),
-               "icp_failed_or_not_converged": failed, "registration": to_dict(registration), "frontends": frontends,
-               "baselines": external,
-               "rows": rows}
+        if run.error is not None:
+            rows.append(failed_row(name, run.error, scene))
+            continue
+        steps = len(rec.odometry)
+        results.append(_scored(name, run.trajectory, rec.ground_truth, np.zeros((steps, 6), bool),
+                               np.full((steps, 6), np.nan), run.seconds, 0, 0))
+        rows.append({**results[-1].row(), **region_drift(run.trajectory, rec.ground_truth, inside)})
+    return results, rows
+
+
+def write_ate(out: Path, summary: dict, drive: AteDrive, results: list) -> list[Path]:
+    """results.json, the trajectories' and timeline's plots, a map per row and the trajectories as
+    files; returns what was written (the recording first, where the drive made one)."""
     (out / "results.json").write_text(json.dumps(summary, indent=1))
     from .ate_plots import plot_map, plot_timeline, plot_trajectories
 
-    plot_trajectories(out / "trajectories.png", scene_obj, rec, results)
+    plot_trajectories(out / "trajectories.png", drive.scene, drive.rec, results)
     plot_timeline(out / "timeline.png", results[1:])
     maps = []
     for r in results[1:]:
-        maps += plot_map(out / f"map_{file_stem(r.name)}", rec, r.trajectory)
+        maps += plot_map(out / f"map_{file_stem(r.name)}", drive.rec, r.trajectory)
     written = [out / "results.json", out / "trajectories.png", out / "timeline.png", *maps,
-               *write_trajectories(out / "trajectories", rec.ground_truth, results)]
+               *write_trajectories(out / "trajectories", drive.rec.ground_truth, results)]
     if (out / "recording.npz").exists():
         written.insert(0, out / "recording.npz")
-    return AteRun(out, rows, swept, written)
+    return written
 
 
 def regions_inside(ground_truth: np.ndarray, scene: Scene) -> dict[str, np.ndarray]:
