@@ -243,6 +243,42 @@ def format_rows(rows: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
+def finished_episodes(log: Path) -> dict[tuple[str, str, int], Episode]:
+    """The episodes a folder's log holds, by (policy, scene, seed); a line cut by a kill is skipped."""
+    done = {}
+    if log.exists():
+        for line in log.read_text().splitlines():
+            try:
+                e = Episode(**json.loads(line))
+            except (json.JSONDecodeError, TypeError):
+                continue
+            done[(e.policy, e.scene, e.seed)] = e
+    return done
+
+
+def run_episodes(jobs: list[tuple], done: dict[tuple[str, str, int], Episode], log: Path, workers: int,
+                 progress: bool) -> None:
+    """The jobs not yet `done`, over `workers` processes, each episode appended to the log (and to
+    `done`) as it finishes."""
+    todo = [j for j in jobs if j[:3] not in done]
+    bar = tqdm(total=len(jobs), initial=len(jobs) - len(todo), desc="episodes", unit="ep", disable=not progress)
+    with open(log, "a") as f:
+        def record(e: Episode) -> None:
+            done[(e.policy, e.scene, e.seed)] = e
+            f.write(json.dumps(asdict(e)) + "\n")
+            f.flush()
+            bar.update()
+
+        if workers > 1 and len(todo) > 1:
+            with get_context("spawn").Pool(workers, initializer=die_with_parent) as pool:
+                for e in pool.imap_unordered(_run, todo):
+                    record(e)
+        else:
+            for job in todo:
+                record(_run(job))
+    bar.close()
+
+
 def evaluate_policies(out: str | Path, policies: list[str], scenes: list[str], episodes: int = 50, seed: int = 0,
                       detector: str = "learned", cache_dir: str | Path | None = None, lam: float = 50.0,
                       workers: int = 1, backend: str = "graph", steer_on: str = "estimate",
@@ -294,32 +330,9 @@ def evaluate_policies(out: str | Path, policies: list[str], scenes: list[str], e
                          "use another folder")
     settings_file.write_text(json.dumps(settings))
     log = out / "episodes.jsonl"
-    done = {}
-    if log.exists():
-        for line in log.read_text().splitlines():
-            try:
-                e = Episode(**json.loads(line))
-            except (json.JSONDecodeError, TypeError):
-                continue  # a line cut by the kill
-            done[(e.policy, e.scene, e.seed)] = e
-    todo = [j for j in jobs if j[:3] not in done]
+    done = finished_episodes(log)
     t0 = time.perf_counter()
-    bar = tqdm(total=len(jobs), initial=len(jobs) - len(todo), desc="episodes", unit="ep", disable=not progress)
-    with open(log, "a") as f:
-        def record(e: Episode) -> None:
-            done[(e.policy, e.scene, e.seed)] = e
-            f.write(json.dumps(asdict(e)) + "\n")
-            f.flush()
-            bar.update()
-
-        if workers > 1 and len(todo) > 1:
-            with get_context("spawn").Pool(workers, initializer=die_with_parent) as pool:
-                for e in pool.imap_unordered(_run, todo):
-                    record(e)
-        else:
-            for job in todo:
-                record(_run(job))
-    bar.close()
+    run_episodes(jobs, done, log, workers, progress)
     results = [done[j[:3]] for j in jobs]
     rows = summarize(results)
     r, paired = drift_correlation(results)

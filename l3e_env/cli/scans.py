@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -11,38 +10,27 @@ from l3e_env.config.detector_spec import DETECTOR_GRAMMAR, detector_spec
 from .options import sensor_name
 
 
-def _cmd_judge(args: argparse.Namespace) -> int:
-
-    import numpy as np
-
-    from l3e_env.config import LidarConfig
-    from l3e_env.experiments.judge import format_judgement, judge_scans, judgement_record, score_legend
+def _judge_usage_problem(args: argparse.Namespace) -> str | None:
+    """What is wrong with the combination of `l3e judge`'s options, or None."""
     from l3e_env.io.ouster import is_capture
-    from l3e_env.io.recorded import RecordingError
-    from l3e_env.io.recordings import read_recording
-    from l3e_env.io.rosbag import read_path
 
     if bool(args.scans) == bool(args.bag):
-        print("l3e judge: give scan files or --bag, not both and not neither", file=sys.stderr)
-        return 2
+        return "give scan files or --bag, not both and not neither"
     if not args.bag and (args.topic or args.every != 1 or args.start is not None or args.end is not None):
-        print("l3e judge: --topic, --every, --start and --end read a recording: give --bag", file=sys.stderr)
-        return 2
+        return "--topic, --every, --start and --end read a recording: give --bag"
     if not args.bag and (args.path_plot or args.pose_topic):
-        print("l3e judge: --path-plot and --pose-topic read the path from a bag: give --bag", file=sys.stderr)
-        return 2
+        return "--path-plot and --pose-topic read the path from a bag: give --bag"
     if args.bag and is_capture(args.bag) and (args.topic or args.path_plot or args.pose_topic):
-        print("l3e judge: --topic, --path-plot and --pose-topic read a ROS bag, not an Ouster capture", file=sys.stderr)
-        return 2
-    metadata = args.sensor if args.sensor and args.sensor.lower().endswith(".json") else None
-    try:
-        scans = (read_recording(args.bag, args.topic, args.every, args.start, args.end, metadata) if args.bag
-                 else args.scans)
-        route = read_path(args.bag, args.pose_topic) if args.bag and (args.path_plot or args.pose_topic) else None
-    except RecordingError as exc:
-        print(f"l3e judge: {exc}", file=sys.stderr)
-        return 2
-    specs = args.detector or ["learned", "eigen:30", "scanmc"]
+        return "--topic, --path-plot and --pose-topic read a ROS bag, not an Ouster capture"
+    return None
+
+
+def _judge_all(args: argparse.Namespace, scans, specs: list[str]) -> tuple[list, str | None]:
+    """Every scan judged and printed as it is (an unreadable one named, and the next one read); returns
+    the judgements and the sensor the scans were read as."""
+    from l3e_env.config import LidarConfig
+    from l3e_env.experiments.judge import format_judgement, judge_scans
+
     sensor = [args.sensor]
 
     def recognised(pattern, how: str) -> None:
@@ -54,36 +42,64 @@ def _cmd_judge(args: argparse.Namespace) -> int:
             sensor[0] = pattern.name
             print(f"sensor: {how} (give --sensor to choose it)", flush=True)
 
-    judgements = []  # printed as each scan is judged; an unreadable scan is named and the next one read
+    judgements = []
     for j in judge_scans(scans, specs, LidarConfig(model=args.sensor) if args.sensor else None, seed=args.seed,
                          workers=args.workers, on_sensor=recognised):
         judgements.append(j)
         stamp = "" if j.stamp is None else f"[t = {j.stamp:.3f} s] "
         print(stamp + format_judgement(j), file=sys.stderr if j.error else sys.stdout, flush=True)
+    return judgements, sensor[0]
+
+
+def _judge_path_plot(args: argparse.Namespace, judgements: list, where, route) -> None:
+    """The flags along the bag's path; ValueError where it cannot be drawn."""
+    import numpy as np
+
+    from l3e_env.experiments.judge_plots import plot_path
+
+    off = int((~np.isfinite(where).all(axis=1)).sum())
+    if off:
+        print(f"l3e judge: {off} scans lie outside the time of {route.topic}'s poses and are left off the map",
+              file=sys.stderr)
+    plot_path(judgements, where, route.positions, args.path_plot, f"{Path(args.bag).name} on {route.topic}")
+    print(f"written: {args.path_plot}")
+
+
+def _cmd_judge(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from l3e_env.experiments.judge import score_legend, write_judgements
+    from l3e_env.io.recorded import RecordingError
+    from l3e_env.io.recordings import read_recording
+    from l3e_env.io.rosbag import read_path
+
+    problem = _judge_usage_problem(args)
+    if problem:
+        print(f"l3e judge: {problem}", file=sys.stderr)
+        return 2
+    metadata = args.sensor if args.sensor and args.sensor.lower().endswith(".json") else None
+    try:
+        scans = (read_recording(args.bag, args.topic, args.every, args.start, args.end, metadata) if args.bag
+                 else args.scans)
+        route = read_path(args.bag, args.pose_topic) if args.bag and (args.path_plot or args.pose_topic) else None
+    except RecordingError as exc:
+        print(f"l3e judge: {exc}", file=sys.stderr)
+        return 2
+    specs = args.detector or ["learned", "eigen:30", "scanmc"]
+    judgements, sensor = _judge_all(args, scans, specs)
     print("scores ('*' flagged):\n" + score_legend(specs))
     where = None if route is None else route.at(np.array([j.stamp for j in judgements], dtype=np.float64))
     if args.json:
-        records = [judgement_record(j, sensor[0]) for j in judgements]
-        for record, position in zip(records, [] if where is None else where):
-            record["position"] = [float(v) for v in position] if np.isfinite(position).all() else None
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps(records, indent=1) + "\n")
-        print(f"written: {args.json}")
-    if args.plot and any(j.predictions for j in judgements):
+        print(f"written: {write_judgements(args.json, judgements, sensor, where)}")
+    judged = any(j.predictions for j in judgements)
+    if args.plot and judged:
         from l3e_env.experiments.judge_plots import plot_timeline
 
         plot_timeline(judgements, args.plot)
         print(f"written: {args.plot}")
-    if args.path_plot and any(j.predictions for j in judgements):
-        from l3e_env.experiments.judge_plots import plot_path
-
-        off = int((~np.isfinite(where).all(axis=1)).sum())
-        if off:
-            print(f"l3e judge: {off} scans lie outside the time of {route.topic}'s poses and are left off the map",
-                  file=sys.stderr)
+    if args.path_plot and judged:
         try:
-            plot_path(judgements, where, route.positions, args.path_plot, f"{Path(args.bag).name} on {route.topic}")
-            print(f"written: {args.path_plot}")
+            _judge_path_plot(args, judgements, where, route)
         except ValueError as exc:
             print(f"l3e judge: {exc}", file=sys.stderr)
             return 2

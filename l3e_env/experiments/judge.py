@@ -4,6 +4,7 @@ the driver writes it; points that are NaN, infinite or at the origin (no return,
 clouds keep them) are dropped and counted."""
 from __future__ import annotations
 
+import json
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from itertools import chain
@@ -244,6 +245,19 @@ def judgement_record(j: Judgement, sensor: str | None) -> dict:
                                  "scores": [float(v) if np.isfinite(v) else None for v in p.probabilities],
                                  "not_localizable": [a for a, m in zip(AXES, p.mask) if m]}
                           for name, p in j.predictions.items()}}
+
+
+def write_judgements(path: str | Path, judgements: list[Judgement], sensor: str | None,
+                     where: np.ndarray | None = None) -> Path:
+    """The judgements as a JSON list (judgement_record), each with its `where` position on the
+    recording's path (null off the path's time) where a path was read."""
+    records = [judgement_record(j, sensor) for j in judgements]
+    for record, position in zip(records, [] if where is None else where):
+        record["position"] = [float(v) for v in position] if np.isfinite(position).all() else None
+    out = Path(path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(records, indent=1) + "\n")
+    return out
 
 
 def score_legend(specs: list[str]) -> str:
