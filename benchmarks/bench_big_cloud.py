@@ -6,6 +6,7 @@ kernel's accounting of that process and of any it started).
 
 Run: python benchmarks/bench_big_cloud.py [--detector eigen:30]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -31,8 +32,9 @@ print("RESULT", code, time.perf_counter() - t0, peak / 1024)
 def _run(path: Path, detector: str) -> tuple[int, float, float]:
     """(exit code, seconds, peak MiB) of `l3e judge path --detector detector` in a fresh process."""
     t0 = time.perf_counter()
-    out = subprocess.run([sys.executable, "-c", CHILD, "judge", str(path), "--detector", detector],
-                         capture_output=True, text=True)
+    out = subprocess.run(
+        [sys.executable, "-c", CHILD, "judge", str(path), "--detector", detector], capture_output=True, text=True
+    )
     wall = time.perf_counter() - t0
     line = next((ln for ln in out.stdout.splitlines() if ln.startswith("RESULT")), None)
     if line is None:
@@ -55,9 +57,11 @@ def main() -> None:
     rng = np.random.default_rng(1)
     rows = {}
     with tempfile.TemporaryDirectory() as tmp:
-        for name, points in (("one VLP-16 revolution", scan),
-                             ("1 M points", np.tile(scan, (1_000_000 // len(scan) + 1, 1))[:1_000_000]),
-                             ("10 M points", rng.uniform(-60, 60, (10_000_000, 3)).astype(np.float32))):
+        for name, points in (
+            ("one VLP-16 revolution", scan),
+            ("1 M points", np.tile(scan, (1_000_000 // len(scan) + 1, 1))[:1_000_000]),
+            ("10 M points", rng.uniform(-60, 60, (10_000_000, 3)).astype(np.float32)),
+        ):
             path = Path(tmp) / "cloud.npy"
             np.save(path, points.astype(np.float32))
             del points
@@ -65,8 +69,10 @@ def main() -> None:
             rows[name] = {"exit": code, "seconds": round(seconds, 1), "peak_mib": round(peak)}
     reference = rows["one VLP-16 revolution"]
     for name, row in rows.items():
-        print(f"{name:22s} exit {row['exit']}  {row['seconds']:6.1f} s ({row['seconds'] / reference['seconds']:.1f}x)  "
-              f"peak {row['peak_mib']:6d} MiB ({row['peak_mib'] / reference['peak_mib']:.1f}x)")
+        print(
+            f"{name:22s} exit {row['exit']}  {row['seconds']:6.1f} s ({row['seconds'] / reference['seconds']:.1f}x)  "
+            f"peak {row['peak_mib']:6d} MiB ({row['peak_mib'] / reference['peak_mib']:.1f}x)"
+        )
     print(json.dumps(rows))
 
 

@@ -4,6 +4,7 @@ process: the cascade pays for the estimate only on the scans where the classifie
 
 Run: python benchmarks/bench_cascade.py [--scans 40] [--margin 1] [--threads 2]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -37,16 +38,22 @@ def main() -> None:
     learned, scan_mc = LearnedDetector(), ScanMCDetector(LidarConfig())
     cascade = CascadeDetector(learned, scan_mc, args.margin)
     learned.predict(scans[0])  # warm
-    rows = {"scanmc (reference)": seconds_per_scan(scan_mc.judge, scans),
-            cascade.name: seconds_per_scan(cascade.judge, scans),
-            "learned": seconds_per_scan(lambda points, rng: learned.predict(points), scans)}
+    rows = {
+        "scanmc (reference)": seconds_per_scan(scan_mc.judge, scans),
+        cascade.name: seconds_per_scan(cascade.judge, scans),
+        "learned": seconds_per_scan(lambda points, rng: learned.predict(points), scans),
+    }
     reference = rows["scanmc (reference)"].mean()
-    print(f"{len(scans)} scans along the mine route; the cascade checked {cascade.checked} of them "
-          f"({cascade.checked / len(scans):.0%})")
+    print(
+        f"{len(scans)} scans along the mine route; the cascade checked {cascade.checked} of them "
+        f"({cascade.checked / len(scans):.0%})"
+    )
     print(f"{'detector':24s} {'mean ms':>9s} {'median ms':>10s} {'max ms':>9s} {'x scanmc':>9s}")
     for name, t in rows.items():
-        print(f"{name:24s} {1e3 * t.mean():9.1f} {1e3 * np.median(t):10.1f} {1e3 * t.max():9.1f} "
-              f"{t.mean() / reference:9.3f}")
+        print(
+            f"{name:24s} {1e3 * t.mean():9.1f} {1e3 * np.median(t):10.1f} {1e3 * t.max():9.1f} "
+            f"{t.mean() / reference:9.3f}"
+        )
 
 
 if __name__ == "__main__":

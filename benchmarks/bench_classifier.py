@@ -13,6 +13,7 @@ slows every row alike; the last column is each row's speed relative to the FCGF-
 
 Run: python benchmarks/bench_classifier.py [--checkpoint PATH] [--scans 60] [--threads 2]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -72,14 +73,17 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--checkpoint", help="default: the shipped model")
     parser.add_argument("--scans", type=int, default=60)
-    parser.add_argument("--threads", type=int, default=2,
-                        help="torch's threads outside predict, which runs one scan on one thread")
+    parser.add_argument(
+        "--threads", type=int, default=2, help="torch's threads outside predict, which runs one scan on one thread"
+    )
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     scans = route_scans(args.scans)
     clf = Classifier.load(args.checkpoint)
-    rows = [("shipped ResUNet (scan -> mask)", clf.predict),
-            ("the same in float32", Classifier.load(args.checkpoint, int8=False).predict)]
+    rows = [
+        ("shipped ResUNet (scan -> mask)", clf.predict),
+        ("the same in float32", Classifier.load(args.checkpoint, int8=False).predict),
+    ]
     if clf.model.stacker is not None:  # the same network without the constraint layer's Hessian
         network = copy.deepcopy(clf.model)
         network.stacker = None
@@ -89,9 +93,11 @@ def main() -> None:
     symmetric = Classifier.load(args.checkpoint, symmetric=True)
     rows.append(("the same, 8 mirror/swap views", symmetric.predict))
     rng = np.random.default_rng(0)
-    for label, cfg in [("PointNet baseline", ModelConfig(architecture="pointnet")),
-                       ("ResUNet on 2000 voxels' points", ModelConfig(sampling="voxels", points=2000)),
-                       ("ResUNet at FCGF width", ModelConfig(channels=(32, 64, 128, 256)))]:
+    for label, cfg in [
+        ("PointNet baseline", ModelConfig(architecture="pointnet")),
+        ("ResUNet on 2000 voxels' points", ModelConfig(sampling="voxels", points=2000)),
+        ("ResUNet at FCGF width", ModelConfig(channels=(32, 64, 128, 256))),
+    ]:
         model = fold_batch_norms(LocalizabilityNet(cfg))  # as Classifier.load runs a model
 
         def run(s, model=model, cfg=cfg):
@@ -100,14 +106,18 @@ def main() -> None:
 
         rows.append((label, run))
     times = latencies_ms([fn for _, fn in rows], scans)
-    print(f"{len(scans)} VLP-16 scans along the mine route, predict on one torch thread ({args.threads} for "
-          "batches), "
-          f"median {np.median([len(s) for s in scans]):.0f} points per scan")
+    print(
+        f"{len(scans)} VLP-16 scans along the mine route, predict on one torch thread ({args.threads} for "
+        "batches), "
+        f"median {np.median([len(s) for s in scans]):.0f} points per scan"
+    )
     reference = np.median(times[-1])  # the FCGF-width ResUNet, the issue's starting point
     print(f"{'model':32s} {'median ms':>10s} {'p90 ms':>8s} {'paper 28 ms / ours':>20s} {'FCGF width / ours':>18s}")
     for (label, _), ms in zip(rows, times):
-        print(f"{label:32s} {np.median(ms):10.1f} {np.percentile(ms, 90):8.1f} {PAPER_MS / np.median(ms):19.2f}x"
-              f" {reference / np.median(ms):17.2f}x")
+        print(
+            f"{label:32s} {np.median(ms):10.1f} {np.percentile(ms, 90):8.1f} {PAPER_MS / np.median(ms):19.2f}x"
+            f" {reference / np.median(ms):17.2f}x"
+        )
 
 
 if __name__ == "__main__":

@@ -3,6 +3,7 @@ measured in the same run as the reference.
 
 Run: python benchmarks/bench_env.py [--scene mine] [--steps 1000]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -39,8 +40,10 @@ def main() -> None:
         env.lidar.scan(T, rng)
     scan = (time.perf_counter() - t1) / 200
     step = elapsed / actions
-    print(f"{args.scene} / {args.sensor}: {actions / elapsed:.0f} steps/s ({step * 1e3:.2f} ms per step, "
-          f"{scan * 1e3:.2f} ms of it a scan alone; scan share {scan / step:.2f})")
+    print(
+        f"{args.scene} / {args.sensor}: {actions / elapsed:.0f} steps/s ({step * 1e3:.2f} ms per step, "
+        f"{scan * 1e3:.2f} ms of it a scan alone; scan share {scan / step:.2f})"
+    )
 
 
 if __name__ == "__main__":

@@ -9,6 +9,7 @@ The legs' bias states with the whole drive smoothed and with the environments' f
 Run: python benchmarks/bench_fusion.py [--steps 3000] [--env-steps 300] [--scene mine] [--loads 0,4]
 `--loads`: the environment rows idle and beside N processes that each spin a core (benchmarks/competing_load.py).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -26,8 +27,9 @@ from l3e_env.envs.navigation import NavigationEnv
 from l3e_env.sim.follower import RouteFollower
 
 
-def update_times(backend, steps: int, seed: int = 0, hessians: bool = False,
-                 config: FusionConfig | None = None) -> np.ndarray:
+def update_times(
+    backend, steps: int, seed: int = 0, hessians: bool = False, config: FusionConfig | None = None
+) -> np.ndarray:
     """Seconds per add_step along a winding 3-D run with noisy odometry, ICP and random masks;
     with `hessians`, each ICP step comes with a point-to-plane Hessian (its information then
     enters as a full square-root model instead of the fixed diagonal)."""
@@ -74,30 +76,51 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     isam = update_times(FusionGraph, args.steps) * 1e3
     ekf = update_times(EKFFusion, args.steps) * 1e3
-    print(f"iSAM2 update over {args.steps} steps: median {np.median(isam):.3f} ms, "
-          f"p90 {np.percentile(isam, 90):.3f} ms, "
-          f"last 500 median {np.median(isam[-500:]):.3f} ms (target <= 1 ms)")
+    print(
+        f"iSAM2 update over {args.steps} steps: median {np.median(isam):.3f} ms, "
+        f"p90 {np.percentile(isam, 90):.3f} ms, "
+        f"last 500 median {np.median(isam[-500:]):.3f} ms (target <= 1 ms)"
+    )
     print(f"EKF step (reference): median {np.median(ekf):.3f} ms; iSAM2 / EKF {np.median(isam) / np.median(ekf):.2f}x")
     weighed = update_times(FusionGraph, args.steps, hessians=True) * 1e3
-    print(f"iSAM2 update with each step's Hessian as the ICP information: median {np.median(weighed):.3f} ms "
-          f"({np.median(weighed) / np.median(isam):.2f}x the fixed sigmas')")
+    print(
+        f"iSAM2 update with each step's Hessian as the ICP information: median {np.median(weighed):.3f} ms "
+        f"({np.median(weighed) / np.median(isam):.2f}x the fixed sigmas')"
+    )
     for axes in (("yaw",), ("yaw", "z")):
         biased = update_times(FusionGraph, args.steps, hessians=True, config=FusionConfig(odometry_bias=axes)) * 1e3
-        print(f"iSAM2 update with the legs' {'+'.join(axes)} bias as states: median {np.median(biased):.3f} ms, "
-              f"p90 {np.percentile(biased, 90):.3f} ms ({np.median(biased) / np.median(weighed):.2f}x without)")
-    whole = update_times(FusionGraph, args.steps, hessians=True,
-                         config=FusionConfig(odometry_bias=("yaw", "scale"))) * 1e3
-    window = update_times(FusionGraph, args.steps, hessians=True,
-                          config=FusionConfig(odometry_bias=("yaw", "scale"), smoother_lag=ONLINE_LAG)) * 1e3
+        print(
+            f"iSAM2 update with the legs' {'+'.join(axes)} bias as states: median {np.median(biased):.3f} ms, "
+            f"p90 {np.percentile(biased, 90):.3f} ms ({np.median(biased) / np.median(weighed):.2f}x without)"
+        )
+    whole = (
+        update_times(FusionGraph, args.steps, hessians=True, config=FusionConfig(odometry_bias=("yaw", "scale"))) * 1e3
+    )
+    window = (
+        update_times(
+            FusionGraph,
+            args.steps,
+            hessians=True,
+            config=FusionConfig(odometry_bias=("yaw", "scale"), smoother_lag=ONLINE_LAG),
+        )
+        * 1e3
+    )
     for name, times in (("the whole drive", whole), (f"a {ONLINE_LAG}-step window (the environments')", window)):
-        print(f"iSAM2 update with the legs' yaw+scale bias as states, {name}: median {np.median(times):.3f} ms, "
-              f"last 500 median {np.median(times[-500:]):.3f} ms, max {times.max():.1f} ms")
+        print(
+            f"iSAM2 update with the legs' yaw+scale bias as states, {name}: median {np.median(times):.3f} ms, "
+            f"last 500 median {np.median(times[-500:]):.3f} ms, max {times.max():.1f} ms"
+        )
     print(f"  window over whole drive, last 500 median: {np.median(window[-500:]) / np.median(whole[-500:]):.2f}x")
-    rows: dict[str, dict[int, float]] = {"scan + learned detector + ICP + iSAM2": {},
-                                         "  the classifier in a process of its own": {},
-                                         "bare environment (scan, no fusion)": {}}
-    settings = [FusionSettings(enabled=True, detector="learned"),
-                FusionSettings(enabled=True, detector="learned", detector_process=True), FusionSettings(enabled=False)]
+    rows: dict[str, dict[int, float]] = {
+        "scan + learned detector + ICP + iSAM2": {},
+        "  the classifier in a process of its own": {},
+        "bare environment (scan, no fusion)": {},
+    }
+    settings = [
+        FusionSettings(enabled=True, detector="learned"),
+        FusionSettings(enabled=True, detector="learned", detector_process=True),
+        FusionSettings(enabled=False),
+    ]
     for load in loads(args.loads):
         with spinning(load):
             for row, fusion in zip(rows.values(), settings):

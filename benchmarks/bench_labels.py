@@ -6,6 +6,7 @@ scan with `register(child, parent)`, which prepares the parent (downsampling, no
 again for every child. Measured: the dataset generator (parent prepared once, strided source,
 worker processes). Peak memory is the largest resident set of a worker.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -52,17 +53,24 @@ def main() -> None:
     parser.add_argument("--workers", type=int, default=2)
     args = parser.parse_args()
     ref = straightforward(args.reference_parents, args.children)
-    cfg = config_for(None, scenes=SCENES, parents_per_scene=max(1, args.parents // len(SCENES)), shard_size=1,
-                     labels={"children": args.children})
+    cfg = config_for(
+        None,
+        scenes=SCENES,
+        parents_per_scene=max(1, args.parents // len(SCENES)),
+        shard_size=1,
+        labels={"children": args.children},
+    )
     n = cfg.parents_per_scene * len(SCENES)
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
         generate(tmp, cfg, workers=args.workers, progress=False)
         fast = (time.perf_counter() - t0) / n
     peak_mb = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
-    print(f"M = {args.children}: straightforward {1 / ref:.2f} parents/s ({ref:.2f} s each, 1 process); "
-          f"generator {1 / fast:.2f} parents/s with {args.workers} workers over {n} parents; "
-          f"speed-up {ref / fast:.2f}x; peak worker memory {peak_mb:.0f} MB")
+    print(
+        f"M = {args.children}: straightforward {1 / ref:.2f} parents/s ({ref:.2f} s each, 1 process); "
+        f"generator {1 / fast:.2f} parents/s with {args.workers} workers over {n} parents; "
+        f"speed-up {ref / fast:.2f}x; peak worker memory {peak_mb:.0f} MB"
+    )
 
 
 if __name__ == "__main__":

@@ -7,6 +7,7 @@ and `EmbreeCaster.cast` on precomputed world directions (the same caster, so the
 take turns call by call, so that a phase of a noisy machine hits both alike; the ratio is the median
 of the per-pair ratios. `--pybullet` adds PyBullet's scan against the same raw cast.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -22,8 +23,11 @@ from l3e_env.sim.lidar import Lidar, get_pattern
 from l3e_env.sim.raycast import EmbreeCaster, PyBulletCaster
 from scenes import make_scene
 
-PLACES = {"yard": (-30.0, 0.5, 0.85, 0, 0, 0.3), "tunnel": (50.0, 0.0, 0.85, 0, 0, 0.0),
-          "quarry": (115.0, 0.0, 0.85, 0, 0, 1.0)}
+PLACES = {
+    "yard": (-30.0, 0.5, 0.85, 0, 0, 0.3),
+    "tunnel": (50.0, 0.0, 0.85, 0, 0, 0.0),
+    "quarry": (115.0, 0.0, 0.85, 0, 0, 1.0),
+}
 
 
 def paired(reference: Callable[[], object], measured: Callable[[], object], repeats: int) -> tuple[float, float, float]:
@@ -51,8 +55,10 @@ def main() -> None:
     pybullet = PyBulletCaster.for_mesh(scene.mesh) if args.pybullet else None
     rng = np.random.default_rng(0)
     print(f"Embree on {embree.threads} threads; ratio = raw cast / scan, median over {args.repeats} pairs")
-    print(f"{'load':>4s} {'sensor':8s} {'place':7s} {'rays':>7s} {'raw cast':>9s} {'scan':>9s} {'ratio':>6s}"
-          + ("  pybullet scan  ratio" if pybullet else ""))
+    print(
+        f"{'load':>4s} {'sensor':8s} {'place':7s} {'rays':>7s} {'raw cast':>9s} {'scan':>9s} {'ratio':>6s}"
+        + ("  pybullet scan  ratio" if pybullet else "")
+    )
     for load in loads(args.loads):
         with spinning(load):
             for model in ("vlp16", "os0-128"):
@@ -68,11 +74,14 @@ def main() -> None:
                         return embree.cast(origin, dirs, lidar.max_range)
 
                     raw_s, scan_s, ratio = paired(raw, lambda lidar=lidar, T=T: lidar.scan(T, rng), args.repeats)
-                    line = (f"{load:4d} {model:8s} {place:7s} {len(dirs):7d} {raw_s * 1e3:6.2f} ms "
-                            f"{scan_s * 1e3:6.2f} ms {ratio:6.2f}")
+                    line = (
+                        f"{load:4d} {model:8s} {place:7s} {len(dirs):7d} {raw_s * 1e3:6.2f} ms "
+                        f"{scan_s * 1e3:6.2f} ms {ratio:6.2f}"
+                    )
                     if lidar_p is not None:
-                        _, pyb_s, pyb_ratio = paired(raw, lambda lidar_p=lidar_p, T=T: lidar_p.scan(T, rng),
-                                                   max(3, args.repeats // 20))
+                        _, pyb_s, pyb_ratio = paired(
+                            raw, lambda lidar_p=lidar_p, T=T: lidar_p.scan(T, rng), max(3, args.repeats // 20)
+                        )
                         line += f"  {pyb_s * 1e3:10.1f} ms {pyb_ratio:6.3f}"
                     print(line, flush=True)
 

@@ -8,6 +8,7 @@ alternates the rows on the same scans.
 
 Run: python benchmarks/bench_load.py [--scans 20] [--loads 0,2,4]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -30,8 +31,10 @@ def _scans(count: int) -> list[np.ndarray]:
     lidar = Lidar(EmbreeCaster(scene.mesh))
     route = scene.sampling_paths[0]
     picks = np.linspace(0, len(route) - 1, count).astype(int)
-    return [lidar.scan(planar_pose(*route[k][:2], route[k][2] + 0.85, 0.3), np.random.default_rng(int(k))).points
-            for k in picks]
+    return [
+        lidar.scan(planar_pose(*route[k][:2], route[k][2] + 0.85, 0.3), np.random.default_rng(int(k))).points
+        for k in picks
+    ]
 
 
 def _median_ms(call, scans: list[np.ndarray], repeats: int = 2) -> float:

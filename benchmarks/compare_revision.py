@@ -8,6 +8,7 @@ under another name; its imports are relative, so it runs its own code throughout
 
 Run: python benchmarks/compare_revision.py REV [--scans 40] [--runs 4] [--dataset FOLDER ...]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -56,8 +57,10 @@ def main() -> None:
         print(f"{args.rev} against the working tree, {len(scans)} mine-route scans, {args.threads} threads")
         for run in range(args.runs):
             ms = latencies_ms([then.predict, now.predict], scans)
-            print(f"run {run}: median ms {np.median(ms[0]):.1f} then, {np.median(ms[1]):.1f} now; "
-                  f"median per-scan ratio now / then {np.median(ms[1] / ms[0]):.3f}")
+            print(
+                f"run {run}: median ms {np.median(ms[0]):.1f} then, {np.median(ms[1]):.1f} now; "
+                f"median per-scan ratio now / then {np.median(ms[1] / ms[0]):.3f}"
+            )
         for folder in args.dataset:
             data = LabelDataset(folder)
             rows = np.arange(len(data))
@@ -65,8 +68,10 @@ def main() -> None:
             p_now = predict_dataset(now.model, data, rows, batch_size=1)
             moved = np.abs(p_now - p_then)
             changed = int(((p_now > now.thresholds) != (p_then > then.thresholds)).sum())
-            print(f"{folder}: {len(rows)} scans, probabilities moved by at most {moved.max():.5f} (99th percentile "
-                  f"{np.quantile(moved, 0.99):.5f}); {changed} of {moved.size} decisions changed")
+            print(
+                f"{folder}: {len(rows)} scans, probabilities moved by at most {moved.max():.5f} (99th percentile "
+                f"{np.quantile(moved, 0.99):.5f}); {changed} of {moved.size} decisions changed"
+            )
 
 
 if __name__ == "__main__":

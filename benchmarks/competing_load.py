@@ -4,6 +4,7 @@ benchmark, so that a figure can be read idle and beside the work a robot's compu
 `spinning(n)` holds the load for a block; `loads(text)` parses the usual `--loads 0,4`; `ratio_row`
 formats one row of figures by load with the loaded-over-idle ratios.
 """
+
 from __future__ import annotations
 
 import multiprocessing as mp

@@ -4,6 +4,7 @@ Imports nothing from the rest of the project. Axis order in every public array i
 project's (x, y, z, roll, pitch, yaw); `fusion.tangent` is the one place that converts to
 GTSAM's rotation-first tangent order.
 """
+
 from .bias import BIAS_AXES
 from .ekf import EKFFusion
 from .graph import FusionError, FusionGraph
@@ -25,11 +26,28 @@ def make_fusion(backend: str, T_w_0, config: FusionConfig | None = None) -> Fusi
     return BACKENDS[check_backend(backend)](T_w_0, config)
 
 
-__all__ = ["BACKENDS", "BIAS_AXES", "ICP_COVARIANCES", "check_config",
-           "icp_information",
-           "check_backend", "make_fusion", "EKFFusion", "FusionConfig", "FusionError", "FusionGraph",
-           "StepReport",
-           "MetricError", "ate", "ate_aligned", "rpe", "rpe_pairs", "stretch_drift", "umeyama", "write_kitti",
-           "write_tum",
-           "to_gtsam_order",
-           "to_project_order"]
+__all__ = [
+    "BACKENDS",
+    "BIAS_AXES",
+    "ICP_COVARIANCES",
+    "check_config",
+    "icp_information",
+    "check_backend",
+    "make_fusion",
+    "EKFFusion",
+    "FusionConfig",
+    "FusionError",
+    "FusionGraph",
+    "StepReport",
+    "MetricError",
+    "ate",
+    "ate_aligned",
+    "rpe",
+    "rpe_pairs",
+    "stretch_drift",
+    "umeyama",
+    "write_kitti",
+    "write_tum",
+    "to_gtsam_order",
+    "to_project_order",
+]

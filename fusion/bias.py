@@ -12,6 +12,7 @@ true (`RegistrationConfig.ground_normals`), not with one that holds steps back b
 Model: the measured increment M = (R, t) walked d = |t| metres; with yaw bias b_yaw (rad/m), z bias
 b_z (m/m) and scale error b_s the true increment is Z(b) = (Rz(-b_yaw d) R, (1 - b_s) t - b_z d e_z).
 """
+
 from __future__ import annotations
 
 import gtsam
@@ -37,19 +38,22 @@ def check_bias_settings(axes: tuple[str, ...], sigmas: tuple[float, ...], walk: 
     for name, values in (("odometry_bias_sigmas", sigmas), ("odometry_bias_walk", walk)):
         v = np.asarray(values, dtype=np.float64)
         if v.shape != (len(BIAS_AXES),) or not (np.isfinite(v).all() and (v > 0).all()):
-            raise ValueError(f"{name} must be {len(BIAS_AXES)} positive numbers ({', '.join(BIAS_AXES)}), "
-                             f"got {values!r}")
+            raise ValueError(
+                f"{name} must be {len(BIAS_AXES)} positive numbers ({', '.join(BIAS_AXES)}), got {values!r}"
+            )
 
 
-def bias_prior(axes: tuple[str, ...], sigmas: tuple[float, ...],
-               walk: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
+def bias_prior(
+    axes: tuple[str, ...], sigmas: tuple[float, ...], walk: tuple[float, ...]
+) -> tuple[np.ndarray, np.ndarray]:
     """The spread and the walk (both BIAS_AXES order) of the estimated axes, in their order."""
     pick = [BIAS_AXES.index(a) for a in axes]
     return np.asarray(sigmas, dtype=np.float64)[pick], np.asarray(walk, dtype=np.float64)[pick]
 
 
-def corrected_increment(measured: np.ndarray, bias: np.ndarray,
-                        axes: tuple[str, ...]) -> tuple[gtsam.Pose3, np.ndarray]:
+def corrected_increment(
+    measured: np.ndarray, bias: np.ndarray, axes: tuple[str, ...]
+) -> tuple[gtsam.Pose3, np.ndarray]:
     """Z(b) for the measured 4x4 increment, and its Jacobian G (6 x len(axes), GTSAM's
     rotation-first order) in the right perturbation: Z(b + db) = Z(b) Exp(G db)."""
     M = np.asarray(measured, dtype=np.float64)
@@ -73,8 +77,14 @@ def corrected_increment(measured: np.ndarray, bias: np.ndarray,
     return gtsam.Pose3(Z), G
 
 
-def odometry_bias_factor(measured: np.ndarray, key_prev: int, key_cur: int, key_bias: int,
-                         noise: gtsam.noiseModel.Base, axes: tuple[str, ...]) -> gtsam.CustomFactor:
+def odometry_bias_factor(
+    measured: np.ndarray,
+    key_prev: int,
+    key_cur: int,
+    key_bias: int,
+    noise: gtsam.noiseModel.Base,
+    axes: tuple[str, ...],
+) -> gtsam.CustomFactor:
     """The leg odometry's between-factor with its bias corrected: error Log(Z(b)^-1 X_prev^-1 X_cur).
     A Python factor because GTSAM has no between-factor whose measurement depends on another
     variable (its IMU factors model accelerometers and gyros, not legs)."""

@@ -7,6 +7,7 @@ filter's partial update). A filter cannot revise old poses: `trajectory()` is th
 filtered estimates, which is what a robot has online. With `FusionConfig.odometry_bias` the
 legs' biases (fusion.bias) join the state after the two poses.
 """
+
 from __future__ import annotations
 
 import gtsam
@@ -35,18 +36,23 @@ class EKFFusion:
             raise ValueError("the EKF backend has no robust kernel; use the graph backend for that")
         self.T = gtsam.Pose3(np.asarray(T_w_0, dtype=np.float64))
         self.bias_axes = self.config.odometry_bias
-        spread, self._walk = bias_prior(self.bias_axes, self.config.odometry_bias_sigmas,
-                                        self.config.odometry_bias_walk)
+        spread, self._walk = bias_prior(
+            self.bias_axes, self.config.odometry_bias_sigmas, self.config.odometry_bias_walk
+        )
         self.odometry_bias = np.zeros(len(self.bias_axes))
         # the newest pose's error (GTSAM order), then the biases'
         self.P = np.diag(np.concatenate([to_gtsam_order(np.asarray(self.config.prior_sigmas)), spread]) ** 2)
         self.poses = [self.T.matrix()]
         self.k = 0
 
-    def add_step(self, odom_T_prev_cur: np.ndarray | None, odom_sigmas: np.ndarray | None,
-                 icp_T_prev_cur: np.ndarray | None = None,
-                 non_localizable: np.ndarray | None = None,
-                 icp_hessian: np.ndarray | None = None) -> tuple[np.ndarray, StepReport]:
+    def add_step(
+        self,
+        odom_T_prev_cur: np.ndarray | None,
+        odom_sigmas: np.ndarray | None,
+        icp_T_prev_cur: np.ndarray | None = None,
+        non_localizable: np.ndarray | None = None,
+        icp_hessian: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, StepReport]:
         step = resolve_step(self.config.mode, odom_T_prev_cur, icp_T_prev_cur, non_localizable)
         nb = len(self.bias_axes)
         G = np.zeros((6, nb))  # how the motion moves with the biases
@@ -83,8 +89,15 @@ class EKFFusion:
         self.poses.append(self.T.matrix())
         return self.T.matrix(), step.report()
 
-    def _partial_update(self, ekf: ExtendedKalmanFilter, prev: gtsam.Pose3, pred: gtsam.Pose3, icp: gtsam.Pose3,
-                        mask_project: np.ndarray, information_project: np.ndarray) -> None:
+    def _partial_update(
+        self,
+        ekf: ExtendedKalmanFilter,
+        prev: gtsam.Pose3,
+        pred: gtsam.Pose3,
+        icp: gtsam.Pose3,
+        mask_project: np.ndarray,
+        information_project: np.ndarray,
+    ) -> None:
         """ICP measures T_prev^-1 T_cur; residual Log(rel_pred^-1 icp) ~ d_cur - Ad(rel^-1) d_prev.
         The localizable rows' covariance is the inverse of their block of the information (a
         floor of 1e-9 keeps an unheld direction among them finite and all but ignored)."""

@@ -4,6 +4,7 @@ A masked axis gets zero information in the ICP factor's noise model (its rows an
 registration's Hessian, or of the fixed diagonal), so the factor says nothing along it and the
 odometry alone decides there. This is the L3E use of the mask.
 """
+
 from __future__ import annotations
 
 import gtsam
@@ -46,8 +47,9 @@ class FusionGraph:
         params.setRelinearizeThreshold(self.config.relinearize_threshold)
         self.lag = self.config.smoother_lag
         # with a lag, the poses that left the window keep the estimate they had when they left
-        self.isam = (gtsam.ISAM2(params) if self.lag is None
-                     else gtsam.IncrementalFixedLagSmoother(float(self.lag), params))
+        self.isam = (
+            gtsam.ISAM2(params) if self.lag is None else gtsam.IncrementalFixedLagSmoother(float(self.lag), params)
+        )
         self._left: list[np.ndarray] = []
         self.k = 0
         self.estimate = _pose3(T_w_0)
@@ -56,8 +58,9 @@ class FusionGraph:
         graph.add(gtsam.PriorFactorPose3(0, self.estimate, prior))
         values.insert(0, self.estimate)
         self.bias_axes = self.config.odometry_bias
-        spread, self._walk = bias_prior(self.bias_axes, self.config.odometry_bias_sigmas,
-                                        self.config.odometry_bias_walk)
+        spread, self._walk = bias_prior(
+            self.bias_axes, self.config.odometry_bias_sigmas, self.config.odometry_bias_walk
+        )
         self.odometry_bias = np.zeros(len(self.bias_axes))
         self._knot, self._walked = 0, 0.0
         if self.bias_axes:
@@ -75,8 +78,9 @@ class FusionGraph:
                 self.isam.update(graph, values, {key: float(k) for key in graph.keyVector()})
         except RuntimeError as exc:  # GTSAM's C++ exceptions (IndeterminantLinearSystem, ...) arrive as this
             first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-            raise FusionError(f"fusion step {k}: GTSAM could not solve the graph ({first}); this graph cannot take "
-                              f"more steps") from exc
+            raise FusionError(
+                f"fusion step {k}: GTSAM could not solve the graph ({first}); this graph cannot take more steps"
+            ) from exc
 
     def _keep_leaving(self, k: int) -> None:
         """Before the update stamped k: the estimates of the poses it marginalizes (GTSAM's smoother
@@ -127,8 +131,11 @@ class FusionGraph:
             precision = 1.0 / np.maximum(check_odometry_sigmas(odom_sigmas), 1e-9) ** 2
             if self.bias_axes:
                 odometry = corrected_increment(odom_T_prev_cur, self.odometry_bias, self.bias_axes)[0]
-                graph.add(odometry_bias_factor(odom_T_prev_cur, i, j, bias_key(self._knot), self._noise(precision),
-                                               self.bias_axes))
+                graph.add(
+                    odometry_bias_factor(
+                        odom_T_prev_cur, i, j, bias_key(self._knot), self._noise(precision), self.bias_axes
+                    )
+                )
             else:
                 odometry = _pose3(odom_T_prev_cur)
                 graph.add(gtsam.BetweenFactorPose3(i, j, odometry, self._noise(precision)))
@@ -138,8 +145,11 @@ class FusionGraph:
         if not has_odom and not has_icp:
             weak = gtsam.noiseModel.Isotropic.Sigma(6, 1.0)
             graph.add(gtsam.BetweenFactorPose3(i, j, gtsam.Pose3(), weak))
-        guess = self.estimate.compose(odometry) if odometry is not None else (
-            self.estimate.compose(_pose3(icp_T_prev_cur)) if has_icp else self.estimate)
+        guess = (
+            self.estimate.compose(odometry)
+            if odometry is not None
+            else (self.estimate.compose(_pose3(icp_T_prev_cur)) if has_icp else self.estimate)
+        )
         values.insert(j, guess)
         self._update(graph, values, j)
         self.k = j
@@ -155,8 +165,11 @@ class FusionGraph:
         if self._walked < BIAS_KNOT_METRES:
             return
         walk = gtsam.noiseModel.Diagonal.Sigmas(self._walk * np.sqrt(self._walked))
-        graph.add(gtsam.BetweenFactorVector(bias_key(self._knot), bias_key(self._knot + 1),
-                                            np.zeros(len(self.bias_axes)), walk))
+        graph.add(
+            gtsam.BetweenFactorVector(
+                bias_key(self._knot), bias_key(self._knot + 1), np.zeros(len(self.bias_axes)), walk
+            )
+        )
         self._knot, self._walked = self._knot + 1, 0.0
         values.insert(bias_key(self._knot), self.odometry_bias)
 

@@ -1,4 +1,5 @@
 """Trajectory metrics (pure numpy): ATE without and with SE(3) alignment, RPE, drift over stretches."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -98,8 +99,10 @@ def stretch_drift(estimate: np.ndarray, ground_truth: np.ndarray, inside: np.nda
     E, G = np.asarray(estimate, dtype=np.float64), np.asarray(ground_truth, dtype=np.float64)
     inside = np.asarray(inside, dtype=bool)
     if E.shape != G.shape or E.ndim != 3 or E.shape[1:] != (4, 4) or inside.shape != (len(G),):
-        raise MetricError(f"stretch_drift needs two (N, 4, 4) pose arrays and an (N,) mask, got {E.shape}, "
-                          f"{G.shape} and {inside.shape}")
+        raise MetricError(
+            f"stretch_drift needs two (N, 4, 4) pose arrays and an (N,) mask, got {E.shape}, "
+            f"{G.shape} and {inside.shape}"
+        )
     edges = np.diff(np.concatenate([[0], inside.astype(np.int8), [0]]))
     drift = distance = 0.0
     inv = np.linalg.inv
@@ -108,7 +111,7 @@ def stretch_drift(estimate: np.ndarray, ground_truth: np.ndarray, inside: np.nda
             continue
         err = inv(inv(G[i]) @ G[j]) @ (inv(E[i]) @ E[j])
         drift += float(np.linalg.norm(err[:3, 3]))
-        distance += float(np.linalg.norm(np.diff(G[i:j + 1, :3, 3], axis=0), axis=1).sum())
+        distance += float(np.linalg.norm(np.diff(G[i : j + 1, :3, 3], axis=0), axis=1).sum())
     return drift, distance
 
 

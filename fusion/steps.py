@@ -1,4 +1,5 @@
 """What one fusion step uses, decided the same way by every backend (graph and filter)."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -58,8 +59,7 @@ def check_config(config: FusionConfig) -> FusionConfig:
         raise ValueError(f"icp_residual_variance must be a positive number, got {config.icp_residual_variance!r}")
     lag = config.smoother_lag
     if lag is not None and (isinstance(lag, bool) or not isinstance(lag, int) or lag < 1):
-        raise ValueError(f"smoother_lag must be None (the whole drive) or a number of steps >= 1, "
-                         f"got {lag!r}")
+        raise ValueError(f"smoother_lag must be None (the whole drive) or a number of steps >= 1, got {lag!r}")
     config.odometry_bias = tuple(config.odometry_bias)
     check_bias_settings(config.odometry_bias, config.odometry_bias_sigmas, config.odometry_bias_walk)
     return config
@@ -115,16 +115,21 @@ def check_attitude(R_w_b: np.ndarray, sigmas: np.ndarray) -> tuple[np.ndarray, n
     as if it were one."""
     R = np.asarray(R_w_b, dtype=np.float64)
     s = np.asarray(sigmas, dtype=np.float64)
-    if R.shape != (3, 3) or not np.isfinite(R).all() or not np.allclose(R.T @ R, np.eye(3), atol=1e-6) \
-            or np.linalg.det(R) < 0:
+    if (
+        R.shape != (3, 3)
+        or not np.isfinite(R).all()
+        or not np.allclose(R.T @ R, np.eye(3), atol=1e-6)
+        or np.linalg.det(R) < 0
+    ):
         raise ValueError(f"an attitude must be a finite 3x3 rotation matrix, got {R_w_b!r}")
     if s.shape != (3,) or np.isnan(s).any() or not (s > 0).all():
         raise ValueError(f"attitude sigmas must be 3 positive numbers (inf: not measured), got {sigmas!r}")
     return R, 1.0 / s**2
 
 
-def resolve_step(mode: str, odom_T_prev_cur: np.ndarray | None, icp_T_prev_cur: np.ndarray | None,
-                 non_localizable: np.ndarray | None) -> StepInputs:
+def resolve_step(
+    mode: str, odom_T_prev_cur: np.ndarray | None, icp_T_prev_cur: np.ndarray | None, non_localizable: np.ndarray | None
+) -> StepInputs:
     """Apply the mode (mask: drop the flagged axes; full: keep every axis; drop: drop the ICP
     factor when any axis is flagged) and the documented fallbacks: missing odometry with every
     ICP axis masked keeps the ICP factor whole; with neither, the caller adds a weak

@@ -2,6 +2,7 @@
 
 Project order: (x, y, z, roll, pitch, yaw). GTSAM Pose3 tangent order: (rx, ry, rz, tx, ty, tz).
 """
+
 from __future__ import annotations
 
 import numpy as np

@@ -3,6 +3,7 @@
 Importing the package registers the Gymnasium ids (`l3e/Tunnel-v0`, ...) as soon as Gymnasium is
 imported, before or after, and loads nothing heavier: the simulation's modules load when a name of
 theirs is first used (`l3e_env.Lidar`), so that `l3e --help` and short commands start fast."""
+
 import sys
 from collections.abc import Sequence
 from importlib import import_module
@@ -30,8 +31,12 @@ settle_process_threads(PACKAGE_THREAD_ENV)  # OpenMP threads that sleep when idl
 def _register(registration: ModuleType) -> None:
     for env_id, (scene, steps) in ENV_IDS.items():
         if env_id not in registration.registry:
-            registration.register(id=env_id, entry_point="l3e_env.envs.navigation:NavigationEnv",
-                                  kwargs={"scene": scene}, max_episode_steps=steps)
+            registration.register(
+                id=env_id,
+                entry_point="l3e_env.envs.navigation:NavigationEnv",
+                kwargs={"scene": scene},
+                max_episode_steps=steps,
+            )
 
 
 class _RegisterWithGymnasium(MetaPathFinder):
@@ -68,9 +73,15 @@ else:
     sys.meta_path.insert(0, _RegisterWithGymnasium())
 
 _LAZY = {
-    "EnvConfig": "l3e_env.config", "LidarConfig": "l3e_env.config", "OdometryConfig": "l3e_env.config",
-    "RobotConfig": "l3e_env.config", "Lidar": "l3e_env.sim.lidar", "Scan": "l3e_env.sim.lidar",
-    "BeamPattern": "l3e_env.sim.lidar", "PATTERNS": "l3e_env.sim.lidar", "register_pattern": "l3e_env.sim.lidar",
+    "EnvConfig": "l3e_env.config",
+    "LidarConfig": "l3e_env.config",
+    "OdometryConfig": "l3e_env.config",
+    "RobotConfig": "l3e_env.config",
+    "Lidar": "l3e_env.sim.lidar",
+    "Scan": "l3e_env.sim.lidar",
+    "BeamPattern": "l3e_env.sim.lidar",
+    "PATTERNS": "l3e_env.sim.lidar",
+    "register_pattern": "l3e_env.sim.lidar",
 }
 
 
@@ -80,5 +91,15 @@ def __getattr__(name: str) -> Any:
     raise AttributeError(f"module 'l3e_env' has no attribute '{name}'")
 
 
-__all__ = ["EnvConfig", "LidarConfig", "OdometryConfig", "RobotConfig", "Lidar", "Scan", "BeamPattern", "PATTERNS",
-           "register_pattern", "ENV_IDS"]
+__all__ = [
+    "EnvConfig",
+    "LidarConfig",
+    "OdometryConfig",
+    "RobotConfig",
+    "Lidar",
+    "Scan",
+    "BeamPattern",
+    "PATTERNS",
+    "register_pattern",
+    "ENV_IDS",
+]

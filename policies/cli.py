@@ -1,6 +1,7 @@
 """`l3e policy ...`: localizability maps, planning, PPO training and evaluation of navigation policies.
 
 Registered with the `l3e` command through the `l3e.commands` entry-point group."""
+
 from __future__ import annotations
 
 import argparse
@@ -41,8 +42,10 @@ def _scenes_with_params(args: argparse.Namespace, default: tuple[str, ...] = ("f
         return {**{name: {} for name in names}, **listed}
     names = [canonical_scene_name(s) for group in args.scene or [list(default)] for s in group]
     if len(names) > 1 and mesh_options_given(args):
-        raise ValueError("--route, --up-axis and --scale describe one mesh: give it as the only --scene, or list "
-                         "several meshes in a --meshes file")
+        raise ValueError(
+            "--route, --up-axis and --scale describe one mesh: give it as the only --scene, or list "
+            "several meshes in a --meshes file"
+        )
     return {name: scene_params(args, name) for name in names}
 
 
@@ -56,15 +59,27 @@ def _cmd_map(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     for name, params in scenes.items():
         t0 = time.perf_counter()
-        ctx = scene_context(name, args.detector, args.cache_dir, sensor=args.sensor, resolution=args.resolution,
-                            progress=not args.quiet, scene_params=params, workers=args.workers)
+        ctx = scene_context(
+            name,
+            args.detector,
+            args.cache_dir,
+            sensor=args.sensor,
+            resolution=args.resolution,
+            progress=not args.quiet,
+            scene_params=params,
+            workers=args.workers,
+        )
         figure = out / f"{ctx.scene.name}-{args.detector.replace(':', '')}.png"
         plot_locmap(figure, ctx.scene, ctx.locmap, ctx.space)
-        share = " ".join(f"{a} {100 * v:.0f}%" for a, v in zip(["x", "y", "z", "roll", "pitch", "yaw"],
-                                                                  ctx.locmap.masked.mean(axis=(0, 1))))
-        print(f"{ctx.scene.name}: {len(ctx.locmap.positions)} positions x {len(ctx.locmap.yaws)} headings, "
-              f"masked: {share}{_estimated_share(ctx.locmap, args.detector)} ({time.perf_counter() - t0:.0f} s) "
-              f"-> {figure}")
+        share = " ".join(
+            f"{a} {100 * v:.0f}%"
+            for a, v in zip(["x", "y", "z", "roll", "pitch", "yaw"], ctx.locmap.masked.mean(axis=(0, 1)))
+        )
+        print(
+            f"{ctx.scene.name}: {len(ctx.locmap.positions)} positions x {len(ctx.locmap.yaws)} headings, "
+            f"masked: {share}{_estimated_share(ctx.locmap, args.detector)} ({time.perf_counter() - t0:.0f} s) "
+            f"-> {figure}"
+        )
     return 0
 
 
@@ -87,18 +102,33 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     args.out = str(out)  # the resolved options are written beside it
     out.mkdir(parents=True, exist_ok=True)
     for name, params in scenes.items():
-        ctx = scene_context(name, args.detector, args.cache_dir, sensor=args.sensor, progress=not args.quiet,
-                            scene_params=params, workers=args.workers)
+        ctx = scene_context(
+            name,
+            args.detector,
+            args.cache_dir,
+            sensor=args.sensor,
+            progress=not args.quiet,
+            scene_params=params,
+            workers=args.workers,
+        )
         start = np.array(args.start, dtype=float) if args.start else ctx.scene.start[:2]
         goal = np.array(args.goal, dtype=float) if args.goal else ctx.scene.goal
-        plans = {"shortest": Planner(ctx.space, ctx.locmap, lam=0.0).plan(start, goal),
-                 f"planner (lambda {args.lam:g})": Planner(ctx.space, ctx.locmap, lam=args.lam).plan(start, goal)}
+        plans = {
+            "shortest": Planner(ctx.space, ctx.locmap, lam=0.0).plan(start, goal),
+            f"planner (lambda {args.lam:g})": Planner(ctx.space, ctx.locmap, lam=args.lam).plan(start, goal),
+        }
         for label, plan in plans.items():
-            print(f"{ctx.scene.name} {label:22s} length {plan.length:6.1f} m, "
-                  f"expected drift {plan.expected_drift:5.2f} m")
+            print(
+                f"{ctx.scene.name} {label:22s} length {plan.length:6.1f} m, expected drift {plan.expected_drift:5.2f} m"
+            )
         figure = out / f"{ctx.scene.name}-plans.png"
-        plot_paths(figure, ctx.scene, {k: v.path for k, v in plans.items()}, ctx.space,
-                   title=f"{ctx.scene.name}: shortest path and localizability-aware plan ({args.detector} map)")
+        plot_paths(
+            figure,
+            ctx.scene,
+            {k: v.path for k, v in plans.items()},
+            ctx.space,
+            title=f"{ctx.scene.name}: shortest path and localizability-aware plan ({args.detector} map)",
+        )
         print(f"  -> {figure}")
     return 0
 
@@ -121,11 +151,24 @@ def _cmd_train(args: argparse.Namespace) -> int:
     require_sb3()  # before minutes of maps, not after
     scenes = _scenes_with_params(args, tuple(TRAIN_VARIANTS))
     print(f"PPO on {', '.join(scenes)} (fast map environment, {args.detector} maps) -> {Path(args.out).resolve()}")
-    contexts = [scene_context(name, args.detector, args.cache_dir, sensor=args.sensor, progress=not args.quiet,
-                              scene_params=params) for name, params in scenes.items()]
+    contexts = [
+        scene_context(
+            name, args.detector, args.cache_dir, sensor=args.sensor, progress=not args.quiet, scene_params=params
+        )
+        for name, params in scenes.items()
+    ]
     config = resumed_config(args.out, lam=args.lam, lateral_drift=args.lateral_drift, sideways=args.sideways)
-    summary = train_ppo(args.out, contexts, args.detector, args.timesteps, args.seed, args.envs, config,
-                        progress=not args.quiet, warm=WarmStart() if args.warm_start else None)
+    summary = train_ppo(
+        args.out,
+        contexts,
+        args.detector,
+        args.timesteps,
+        args.seed,
+        args.envs,
+        config,
+        progress=not args.quiet,
+        warm=WarmStart() if args.warm_start else None,
+    )
     print(f"{summary['timesteps']} steps; policy: {Path(args.out) / 'policy.pt'}; logs: progress.csv, monitor.csv")
     return 0
 
@@ -137,13 +180,27 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     scenes = _scenes_with_params(args, tuple(EVAL_VARIANTS))
     out = Path(args.out or f"l3e_out/policy-eval-{time.strftime('%Y%m%d-%H%M%S')}")
     args.out = str(out)  # the resolved options are written beside it
-    print(f"{args.episodes} episodes per policy on {', '.join(scenes)}, full pipeline ({args.detector} detector) "
-          f"-> {out.resolve()}")
-    rows = evaluate_policies(out, args.policy or ["shortest", "planner"], list(scenes), args.episodes, args.seed,
-                             args.detector, args.cache_dir, args.lam, args.workers, steer_on=args.steer_on,
-                             progress=not args.quiet, scene_params={k: v for k, v in scenes.items() if v},
-                             fusion_settings=dataclasses.replace(fusion_settings(args), attitude=args.attitude),
-                             recovery=args.recovery, avoid=args.avoid)
+    print(
+        f"{args.episodes} episodes per policy on {', '.join(scenes)}, full pipeline ({args.detector} detector) "
+        f"-> {out.resolve()}"
+    )
+    rows = evaluate_policies(
+        out,
+        args.policy or ["shortest", "planner"],
+        list(scenes),
+        args.episodes,
+        args.seed,
+        args.detector,
+        args.cache_dir,
+        args.lam,
+        args.workers,
+        steer_on=args.steer_on,
+        progress=not args.quiet,
+        scene_params={k: v for k, v in scenes.items() if v},
+        fusion_settings=dataclasses.replace(fusion_settings(args), attitude=args.attitude),
+        recovery=args.recovery,
+        avoid=args.avoid,
+    )
     print(format_rows(rows))
     print(f"routes: {out / 'routes.png'}")
     return 0
@@ -162,15 +219,18 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("policy", help="navigation: localizability maps, planner, PPO training and evaluation")
     psub = p.add_subparsers(dest="policy_command", required=True)
     common = argparse.ArgumentParser(add_help=False)
-    common.add_argument("--cache-dir", dest="cache_dir",
-                        help="map cache (default: $L3E_CACHE/maps or ~/.cache/l3e/maps)")
+    common.add_argument(
+        "--cache-dir", dest="cache_dir", help="map cache (default: $L3E_CACHE/maps or ~/.cache/l3e/maps)"
+    )
     common.add_argument("--sensor", type=sensor_name, default="vlp16", help=SENSOR_HELP)
     common.add_argument("--quiet", action="store_true", help="no progress bars")
     g = psub.add_parser("map", parents=[common], help="build (or load) and plot localizability maps")
-    g.add_argument("--scene", type=scene_names, action="append",
-                   help="scene names, comma-separated or repeated (default: fork)")
-    g.add_argument("--detector", default="learned", type=map_detector,
-                   help=f"{DETECTOR_GRAMMAR}, not none (default: learned)")
+    g.add_argument(
+        "--scene", type=scene_names, action="append", help="scene names, comma-separated or repeated (default: fork)"
+    )
+    g.add_argument(
+        "--detector", default="learned", type=map_detector, help=f"{DETECTOR_GRAMMAR}, not none (default: learned)"
+    )
     g.add_argument("--resolution", type=float, default=2.0, help="metres between mapped positions (default 2)")
     g.add_argument("--out", help="folder for the plots (default: l3e_out/maps)")
     g.add_argument("--workers", type=int, default=1, help="processes that build a map not yet cached")
@@ -191,45 +251,85 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--scene", type=scene_names, action="append", help="training variants (default: fork-0 ... fork-6)")
     g.add_argument("--detector", default="learned", type=map_detector, help="map detector (default: learned)")
     g.add_argument("--timesteps", type=int, default=300_000, help="decisions of 0.5 s (default 300000)")
-    g.add_argument("--warm-start", action=argparse.BooleanOptionalAction, default=True,
-                   help="a new run first clones the planner's choice (the observation's localizability-aware "
-                        "direction) from noisy walks of every training scene, then PPO goes on from there "
-                        "(default: on; a resumed run goes on from its own weights)")
+    g.add_argument(
+        "--warm-start",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="a new run first clones the planner's choice (the observation's localizability-aware "
+        "direction) from noisy walks of every training scene, then PPO goes on from there "
+        "(default: on; a resumed run goes on from its own weights)",
+    )
     g.add_argument("--envs", type=int, default=4, help="environments stepped together (default 4)")
-    g.add_argument("--lam", type=non_negative, help="weight of expected drift in the reward (default: a resumed "
-                                                    "run's own, else 50)")
-    g.add_argument("--lateral-drift", type=non_negative, metavar="M",
-                   help="expected drift charged per metre walked sideways (default: a resumed run's own, else "
-                        "0.015)")
-    g.add_argument("--sideways", action=argparse.BooleanOptionalAction, default=None,
-                   help="the policy's action is the twist (vx, vy, yaw rate); with --no-sideways (vx, yaw rate), "
-                        "walking facing its way as the route followers do (default: a resumed run's own, else on)")
+    g.add_argument(
+        "--lam",
+        type=non_negative,
+        help="weight of expected drift in the reward (default: a resumed run's own, else 50)",
+    )
+    g.add_argument(
+        "--lateral-drift",
+        type=non_negative,
+        metavar="M",
+        help="expected drift charged per metre walked sideways (default: a resumed run's own, else 0.015)",
+    )
+    g.add_argument(
+        "--sideways",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="the policy's action is the twist (vx, vy, yaw rate); with --no-sideways (vx, yaw rate), "
+        "walking facing its way as the route followers do (default: a resumed run's own, else on)",
+    )
     g.add_argument("--seed", type=int, default=0)
     add_mesh_options(g, several=True)
     g.set_defaults(func=_cmd_train)
     g = psub.add_parser("evaluate", parents=[common], help="seeded full-pipeline episodes: success, route, ATE, length")
-    g.add_argument("--policy", action="append",
-                   help="shortest | planner | ppo:<run folder>; repeat (default: shortest and planner)")
-    g.add_argument("--scene", type=scene_names, action="append",
-                   help="evaluation variants, comma-separated or repeated, a range as family-A..B such as "
-                        "bypass-100..149 (default: fork-100..109)")
+    g.add_argument(
+        "--policy",
+        action="append",
+        help="shortest | planner | ppo:<run folder>; repeat (default: shortest and planner)",
+    )
+    g.add_argument(
+        "--scene",
+        type=scene_names,
+        action="append",
+        help="evaluation variants, comma-separated or repeated, a range as family-A..B such as "
+        "bypass-100..149 (default: fork-100..109)",
+    )
     g.add_argument("--episodes", type=int, default=50, help="episodes per policy (default 50)")
-    g.add_argument("--detector", default="learned", type=map_detector,
-                   help="detector of the fusion and the planner's map (default: learned)")
+    g.add_argument(
+        "--detector",
+        default="learned",
+        type=map_detector,
+        help="detector of the fusion and the planner's map (default: learned)",
+    )
     g.add_argument("--lam", type=float, default=50.0, help="the planner's drift weight (default 50)")
     g.add_argument("--workers", type=int, default=1, help="episodes run in parallel processes")
-    g.add_argument("--recovery", action=argparse.BooleanOptionalAction,
-                   help="a robot blocked for 1 s backs off along its last command reversed for 1 s, then the "
-                        "policy acts again (default: a resumed folder's own, else on)")
-    g.add_argument("--avoid", action=argparse.BooleanOptionalAction,
-                   help="the policies keep off what the live scan shows ahead (a free heading nearest the one "
-                        "wanted), as a robot's local planner does (default: a resumed folder's own, else on)")
-    g.add_argument("--steer-on", dest="steer_on", choices=["estimate", "truth"], default="estimate",
-                   help="pose the policies steer on (default: the fused estimate); ATE is measured either way")
+    g.add_argument(
+        "--recovery",
+        action=argparse.BooleanOptionalAction,
+        help="a robot blocked for 1 s backs off along its last command reversed for 1 s, then the "
+        "policy acts again (default: a resumed folder's own, else on)",
+    )
+    g.add_argument(
+        "--avoid",
+        action=argparse.BooleanOptionalAction,
+        help="the policies keep off what the live scan shows ahead (a free heading nearest the one "
+        "wanted), as a robot's local planner does (default: a resumed folder's own, else on)",
+    )
+    g.add_argument(
+        "--steer-on",
+        dest="steer_on",
+        choices=["estimate", "truth"],
+        default="estimate",
+        help="pose the policies steer on (default: the fused estimate); ATE is measured either way",
+    )
     add_fusion_options(g)
-    g.add_argument("--attitude", choices=ATTITUDE_MODES, default="none",
-                   help="fuse the IMU's orientation once a second: tilt = roll and pitch, which gravity holds, "
-                        "full = with the magnetometer's heading (default: none)")
+    g.add_argument(
+        "--attitude",
+        choices=ATTITUDE_MODES,
+        default="none",
+        help="fuse the IMU's orientation once a second: tilt = roll and pitch, which gravity holds, "
+        "full = with the magnetometer's heading (default: none)",
+    )
     g.add_argument("--seed", type=int, default=0)
     g.add_argument("--out", help="output folder (default: l3e_out/policy-eval-<time>)")
     add_mesh_options(g, several=True)

@@ -1,4 +1,5 @@
 """One scene made ready for navigation: its free space and localizability map, both cached."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -23,26 +24,54 @@ class SceneContext:
     locmap: LocalizabilityMap | None
 
 
-def free_space(scene: Scene, cache_dir: str | Path | None = None, resolution: float = 0.5,
-               robot: RobotConfig | None = None, progress: bool = False) -> FreeSpace:
+def free_space(
+    scene: Scene,
+    cache_dir: str | Path | None = None,
+    resolution: float = 0.5,
+    robot: RobotConfig | None = None,
+    progress: bool = False,
+) -> FreeSpace:
     """The free space reachable from the scene's start, cached beside the maps."""
     robot = robot or RobotConfig()
-    key = {"scene": scene.name, "faces": int(len(scene.mesh.faces)), "bounds": scene.bounds.round(3).tolist(),
-           "start": scene.start.round(3).tolist(), "resolution": resolution, "robot": to_dict(robot)}
+    key = {
+        "scene": scene.name,
+        "faces": int(len(scene.mesh.faces)),
+        "bounds": scene.bounds.round(3).tolist(),
+        "start": scene.start.round(3).tolist(),
+        "resolution": resolution,
+        "robot": to_dict(robot),
+    }
     path = Path(cache_dir or default_cache_dir()) / f"{scene.name}-free-{settings_digest(key)}.npz"
     if path.exists():
         with np.load(path) as z:
             return FreeSpace(z["origin"], float(z["resolution"]), z["free"], z["ground"], z["clearance"])
     space = reachable_from(build_free_space(scene, resolution, robot, progress=progress), scene.start[:2])
     path.parent.mkdir(parents=True, exist_ok=True)
-    write_atomic(path, lambda fh: np.savez(fh, origin=space.origin, resolution=space.resolution, free=space.free,
-                                           ground=space.ground, clearance=space.clearance))
+    write_atomic(
+        path,
+        lambda fh: np.savez(
+            fh,
+            origin=space.origin,
+            resolution=space.resolution,
+            free=space.free,
+            ground=space.ground,
+            clearance=space.clearance,
+        ),
+    )
     return space
 
 
-def scene_context(name: str, detector: str | None = "learned", cache_dir: str | Path | None = None,
-                  build: bool = True, sensor: str = "vlp16", resolution: float = MAP_RESOLUTION,
-                  progress: bool = False, scene_params: dict | None = None, workers: int = 1) -> SceneContext:
+def scene_context(
+    name: str,
+    detector: str | None = "learned",
+    cache_dir: str | Path | None = None,
+    build: bool = True,
+    sensor: str = "vlp16",
+    resolution: float = MAP_RESOLUTION,
+    progress: bool = False,
+    scene_params: dict | None = None,
+    workers: int = 1,
+) -> SceneContext:
     """Scene, free space and (unless detector is None) its localizability map, built by `workers`
     processes where it is not cached; `scene_params` go to make_scene (a mesh scene's up axis,
     scale and route)."""
@@ -50,6 +79,15 @@ def scene_context(name: str, detector: str | None = "learned", cache_dir: str | 
     space = free_space(scene, cache_dir, progress=progress)
     locmap = None
     if detector is not None:
-        locmap = get_map(scene, space, detector, cache_dir, build=build, resolution=resolution,
-                         lidar=LidarConfig(model=sensor), progress=progress, workers=workers)
+        locmap = get_map(
+            scene,
+            space,
+            detector,
+            cache_dir,
+            build=build,
+            resolution=resolution,
+            lidar=LidarConfig(model=sensor),
+            progress=progress,
+            workers=workers,
+        )
     return SceneContext(scene, space, locmap)

@@ -11,6 +11,7 @@ feature-rich route, final and mean position error of the fused estimate against 
 path length, and (with `recovery`) how often the robot backed off a wedge. With `avoid` the
 policies keep off what the live scan shows ahead (l3e_env.sim.avoidance), as a robot's local
 planner does, so that an estimate a metre off turns a wall ahead into a detour round it."""
+
 from __future__ import annotations
 
 import json
@@ -122,10 +123,17 @@ def _unknown_policy(policy: str) -> ValueError:
     return ValueError(f"unknown policy '{policy}'; use one of {', '.join(POLICY_KINDS)}")
 
 
-def make_controller(policy: str, scene: str, detector: str, cache_dir: str | Path | None, lam: float,
-                    scene_params: dict | None = None, odometry: OdometryConfig | None = None,
-                    context: SceneContext | None = None, avoid: FreeHeadings | None = None
-                    ) -> tuple[Callable[[np.ndarray, int, np.ndarray | None], np.ndarray], float | None]:
+def make_controller(
+    policy: str,
+    scene: str,
+    detector: str,
+    cache_dir: str | Path | None,
+    lam: float,
+    scene_params: dict | None = None,
+    odometry: OdometryConfig | None = None,
+    context: SceneContext | None = None,
+    avoid: FreeHeadings | None = None,
+) -> tuple[Callable[[np.ndarray, int, np.ndarray | None], np.ndarray], float | None]:
     """A function (T_w_b estimate, step index, the scan's obstacles or None) -> normalised twist, for
     one scene, and for a route policy the drift its plan is expected to cost (`odometry`: the
     environment's leg odometry, whose noise model gives the drift rates; `context`: the scene with
@@ -133,16 +141,18 @@ def make_controller(policy: str, scene: str, detector: str, cache_dir: str | Pat
     obstacles, None to follow the policy blind)."""
     if policy in ROUTE_POLICIES:
         ctx = context or scene_context(scene, detector, cache_dir, build=False, scene_params=scene_params)
-        plan = Planner(ctx.space, ctx.locmap, lam=lam if policy == "planner" else 0.0,
-                       odometry=odometry).plan(ctx.scene.start[:2], ctx.scene.goal)
+        plan = Planner(ctx.space, ctx.locmap, lam=lam if policy == "planner" else 0.0, odometry=odometry).plan(
+            ctx.scene.start[:2], ctx.scene.goal
+        )
         follower = RouteFollower(route_of(plan, ctx.space), avoid=avoid)
         return (lambda T, i, obstacles: follower(T, obstacles)), plan.expected_drift
     if policy.startswith("ppo:"):
         from .ppo import PPOPolicy
 
         model = PPOPolicy(policy.partition(":")[2])
-        ctx = scene_context(scene, model.meta.get("detector", detector), cache_dir, build=False,
-                            scene_params=scene_params)
+        ctx = scene_context(
+            scene, model.meta.get("detector", detector), cache_dir, build=False, scene_params=scene_params
+        )
         view = PolicyView(ctx.space, ctx.locmap, ctx.scene.goal, float(model.meta["fast_env"]["lam"]))
         held = {"action": np.zeros(3, dtype=np.float32)}
 
@@ -160,29 +170,45 @@ def make_controller(policy: str, scene: str, detector: str, cache_dir: str | Pat
 STEER_ON = ("estimate", "truth")
 
 
-def run_episode(policy: str, scene: str, seed: int, detector: str = "learned", cache_dir: str | Path | None = None,
-                lam: float = 50.0, backend: str = "graph", steer_on: str = "estimate",
-                scene_params: dict | None = None, fusion_settings: FusionSettings = FusionSettings(),
-                recovery: bool = True, avoid: bool = True) -> Episode:
+def run_episode(
+    policy: str,
+    scene: str,
+    seed: int,
+    detector: str = "learned",
+    cache_dir: str | Path | None = None,
+    lam: float = 50.0,
+    backend: str = "graph",
+    steer_on: str = "estimate",
+    scene_params: dict | None = None,
+    fusion_settings: FusionSettings = FusionSettings(),
+    recovery: bool = True,
+    avoid: bool = True,
+) -> Episode:
     import torch
 
     torch.set_num_threads(1)
     # steering on the estimate the robot stops where it believes the goal is; success is judged there
-    env = NavigationEnv(scene=scene, scene_params=scene_params or {}, arrival=steer_on,
-                        fusion={**asdict(fusion_settings), "enabled": True, "detector": detector, "backend": backend})
+    env = NavigationEnv(
+        scene=scene,
+        scene_params=scene_params or {},
+        arrival=steer_on,
+        fusion={**asdict(fusion_settings), "enabled": True, "detector": detector, "backend": backend},
+    )
     try:
         ctx = scene_context(scene, detector, cache_dir, build=False, scene_params=scene_params)
         local = FreeHeadings() if avoid else None
-        steer, planned = make_controller(policy, scene, detector, cache_dir, lam, scene_params, env.config.odometry,
-                                         ctx, local)
+        steer, planned = make_controller(
+            policy, scene, detector, cache_dir, lam, scene_params, env.config.odometry, ctx, local
+        )
         controller = BackOff(steer)
         _, info = env.reset(seed=seed)
         trail, length, terminated, truncated = [info["T_w_b"][:2, 3]], 0.0, False, False
         while not (terminated or truncated):
             previous = info["T_w_b"][:3, 3]
             pose = info["fused_T_w_b"] if steer_on == "estimate" else info["T_w_b"]
-            obstacles = None if local is None else \
-                FreeHeadings.obstacles(env.scan.points, env.robot.T_b_s, env.config.robot)
+            obstacles = (
+                None if local is None else FreeHeadings.obstacles(env.scan.points, env.robot.T_b_s, env.config.robot)
+            )
             _, _, terminated, truncated, info = env.step(controller(pose, env.steps, obstacles))
             if recovery:
                 controller.observe(info["blocked"])
@@ -194,9 +220,21 @@ def run_episode(policy: str, scene: str, seed: int, detector: str = "learned", c
         final = float(np.linalg.norm(info["fused_T_w_b"][:3, 3] - info["T_w_b"][:3, 3]))
         expected = expected_drift_along(path, ctx.locmap, drift_rates(env.config.odometry))
         arrived = bool(terminated) and info["distance_to_goal"] <= env.config.goal_radius
-        return Episode(policy, scene, seed, arrived, avoided_corridor(path, env.scene), final,
-                       float(info["running_ate"]), length, env.steps, path.round(2).tolist(), controller.recoveries,
-                       expected, planned)
+        return Episode(
+            policy,
+            scene,
+            seed,
+            arrived,
+            avoided_corridor(path, env.scene),
+            final,
+            float(info["running_ate"]),
+            length,
+            env.steps,
+            path.round(2).tolist(),
+            controller.recoveries,
+            expected,
+            planned,
+        )
     finally:
         env.close()
 
@@ -211,14 +249,19 @@ def summarize(episodes: list[Episode]) -> list[dict[str, Any]]:
         group = [e for e in episodes if e.policy == name]
         marked = [e.rich_route for e in group if e.rich_route is not None]
         expected = [e.expected_drift for e in group if e.expected_drift is not None]
-        rows.append({"policy": name, "episodes": len(group),
-                     "success": float(np.mean([e.success for e in group])),
-                     "rich_route": float(np.mean(marked)) if marked else None,
-                     "expected_drift": float(np.mean(expected)) if expected else None,
-                     "final_ate": float(np.mean([e.final_ate for e in group])),
-                     "mean_ate": float(np.mean([e.mean_ate for e in group])),
-                     "path_length": float(np.mean([e.path_length for e in group])),
-                     "recoveries": int(sum(e.recoveries for e in group))})
+        rows.append(
+            {
+                "policy": name,
+                "episodes": len(group),
+                "success": float(np.mean([e.success for e in group])),
+                "rich_route": float(np.mean(marked)) if marked else None,
+                "expected_drift": float(np.mean(expected)) if expected else None,
+                "final_ate": float(np.mean([e.final_ate for e in group])),
+                "mean_ate": float(np.mean([e.mean_ate for e in group])),
+                "path_length": float(np.mean([e.path_length for e in group])),
+                "recoveries": int(sum(e.recoveries for e in group)),
+            }
+        )
     return rows
 
 
@@ -232,14 +275,18 @@ def drift_correlation(episodes: list[Episode]) -> tuple[float | None, int]:
 
 
 def format_rows(rows: list[dict[str, Any]]) -> str:
-    head = f"{'policy':28s} {'episodes':>8s} {'success':>8s} {'rich route':>10s} {'expected':>9s} {'final ATE':>10s} " \
-           f"{'mean ATE':>9s} {'path [m]':>9s} {'backed off':>10s}"
+    head = (
+        f"{'policy':28s} {'episodes':>8s} {'success':>8s} {'rich route':>10s} {'expected':>9s} {'final ATE':>10s} "
+        f"{'mean ATE':>9s} {'path [m]':>9s} {'backed off':>10s}"
+    )
     lines = [head, "-" * len(head)]
     for r in rows:
         rich = "n/a" if r["rich_route"] is None else f"{r['rich_route']:.0%}"
         expected = "n/a" if r.get("expected_drift") is None else f"{r['expected_drift']:.2f}"
-        lines.append(f"{r['policy'][:28]:28s} {r['episodes']:8d} {r['success']:8.0%} {rich:>10s} {expected:>9s} "
-                     f"{r['final_ate']:10.2f} {r['mean_ate']:9.2f} {r['path_length']:9.1f} {r['recoveries']:10d}")
+        lines.append(
+            f"{r['policy'][:28]:28s} {r['episodes']:8d} {r['success']:8.0%} {rich:>10s} {expected:>9s} "
+            f"{r['final_ate']:10.2f} {r['mean_ate']:9.2f} {r['path_length']:9.1f} {r['recoveries']:10d}"
+        )
     return "\n".join(lines)
 
 
@@ -256,13 +303,15 @@ def finished_episodes(log: Path) -> dict[tuple[str, str, int], Episode]:
     return done
 
 
-def run_episodes(jobs: list[tuple], done: dict[tuple[str, str, int], Episode], log: Path, workers: int,
-                 progress: bool) -> None:
+def run_episodes(
+    jobs: list[tuple], done: dict[tuple[str, str, int], Episode], log: Path, workers: int, progress: bool
+) -> None:
     """The jobs not yet `done`, over `workers` processes, each episode appended to the log (and to
     `done`) as it finishes."""
     todo = [j for j in jobs if j[:3] not in done]
     bar = tqdm(total=len(jobs), initial=len(jobs) - len(todo), desc="episodes", unit="ep", disable=not progress)
     with open(log, "a") as f:
+
         def record(e: Episode) -> None:
             done[(e.policy, e.scene, e.seed)] = e
             f.write(json.dumps(asdict(e)) + "\n")
@@ -279,12 +328,24 @@ def run_episodes(jobs: list[tuple], done: dict[tuple[str, str, int], Episode], l
     bar.close()
 
 
-def evaluate_policies(out: str | Path, policies: list[str], scenes: list[str], episodes: int = 50, seed: int = 0,
-                      detector: str = "learned", cache_dir: str | Path | None = None, lam: float = 50.0,
-                      workers: int = 1, backend: str = "graph", steer_on: str = "estimate",
-                      progress: bool = True, scene_params: dict[str, dict] | None = None,
-                      fusion_settings: FusionSettings = FusionSettings(),
-                      recovery: bool | None = None, avoid: bool | None = None) -> list[dict[str, Any]]:
+def evaluate_policies(
+    out: str | Path,
+    policies: list[str],
+    scenes: list[str],
+    episodes: int = 50,
+    seed: int = 0,
+    detector: str = "learned",
+    cache_dir: str | Path | None = None,
+    lam: float = 50.0,
+    workers: int = 1,
+    backend: str = "graph",
+    steer_on: str = "estimate",
+    progress: bool = True,
+    scene_params: dict[str, dict] | None = None,
+    fusion_settings: FusionSettings = FusionSettings(),
+    recovery: bool | None = None,
+    avoid: bool | None = None,
+) -> list[dict[str, Any]]:
     """Episode i of every policy runs on scenes[i % len(scenes)] with environment seed seed + i.
     `scene_params`: make_scene's arguments by scene name (a mesh's up axis, scale and route).
     `fusion_settings`: the fusion's (as `FusionSettings` gives them in the environment).
@@ -314,20 +375,44 @@ def evaluate_policies(out: str | Path, policies: list[str], scenes: list[str], e
         recovery = held.get("recovery", True) if held else True
     if avoid is None:
         avoid = held.get("avoid", True) if held else True
-    jobs = [(p, scenes[i % len(scenes)], seed + i, detector, cache_dir, lam, backend, steer_on,
-             params.get(scenes[i % len(scenes)]), fusion_settings, recovery, avoid)
-            for i in range(episodes) for p in policies]
+    jobs = [
+        (
+            p,
+            scenes[i % len(scenes)],
+            seed + i,
+            detector,
+            cache_dir,
+            lam,
+            backend,
+            steer_on,
+            params.get(scenes[i % len(scenes)]),
+            fusion_settings,
+            recovery,
+            avoid,
+        )
+        for i in range(episodes)
+        for p in policies
+    ]
     # episodes are appended as they finish; a killed evaluation resumes where it stopped, with the
     # settings it started with
-    run = {"detector": detector, "lam": lam, "backend": backend, "steer_on": steer_on, "arrival": steer_on,
-           **fusion_settings.record(), "attitude": fusion_settings.attitude, "recovery": recovery,
-           "avoid": avoid}  # also in summary.json
+    run = {
+        "detector": detector,
+        "lam": lam,
+        "backend": backend,
+        "steer_on": steer_on,
+        "arrival": steer_on,
+        **fusion_settings.record(),
+        "attitude": fusion_settings.attitude,
+        "recovery": recovery,
+        "avoid": avoid,
+    }  # also in summary.json
     settings = dict(run)
     if params:  # left out without a mesh, so that folders written before meshes were taken resume
         settings["scene_params"] = params
     if held is not None and held != settings:
-        raise ValueError(f"{out} holds episodes run with other settings ({settings_changed(held, settings)}); "
-                         "use another folder")
+        raise ValueError(
+            f"{out} holds episodes run with other settings ({settings_changed(held, settings)}); use another folder"
+        )
     settings_file.write_text(json.dumps(settings))
     log = out / "episodes.jsonl"
     done = finished_episodes(log)
@@ -337,21 +422,44 @@ def evaluate_policies(out: str | Path, policies: list[str], scenes: list[str], e
     rows = summarize(results)
     r, paired = drift_correlation(results)
     check = {"pearson_r": r, "episodes": paired}
-    (out / "summary.json").write_text(json.dumps({"rows": rows, "drift_check": check, "scenes": scenes,
-                                                  "episodes": episodes, "seed": seed, **run,
-                                                  "seconds": round(time.perf_counter() - t0, 1)}, indent=2))
-    words = "n/a (fewer than three episodes or no spread)" if r is None else \
-        f"Pearson r = {r:.2f} over {paired} episodes"
+    (out / "summary.json").write_text(
+        json.dumps(
+            {
+                "rows": rows,
+                "drift_check": check,
+                "scenes": scenes,
+                "episodes": episodes,
+                "seed": seed,
+                **run,
+                "seconds": round(time.perf_counter() - t0, 1),
+            },
+            indent=2,
+        )
+    )
+    words = (
+        "n/a (fewer than three episodes or no spread)" if r is None else f"Pearson r = {r:.2f} over {paired} episodes"
+    )
     (out / "summary.txt").write_text(format_rows(rows) + f"\nexpected drift against final ATE: {words}\n")
-    plot_drift_check(out / "drift.png", {p: (np.array([e.expected_drift for e in results if e.policy == p
-                                                        and e.expected_drift is not None]),
-                                             np.array([e.final_ate for e in results if e.policy == p
-                                                       and e.expected_drift is not None])) for p in policies}, r)
+    plot_drift_check(
+        out / "drift.png",
+        {
+            p: (
+                np.array([e.expected_drift for e in results if e.policy == p and e.expected_drift is not None]),
+                np.array([e.final_ate for e in results if e.policy == p and e.expected_drift is not None]),
+            )
+            for p in policies
+        },
+        r,
+    )
     first = scenes[0]
     ctx = scene_context(first, None, cache_dir, scene_params=params.get(first))
-    plot_paths(out / "routes.png", ctx.scene, {p: [np.array(e.trajectory) for e in results if e.policy == p and
-                                                   e.scene == first] for p in policies}, ctx.space,
-               title=f"{first}: routes taken (episodes on this variant)")
+    plot_paths(
+        out / "routes.png",
+        ctx.scene,
+        {p: [np.array(e.trajectory) for e in results if e.policy == p and e.scene == first] for p in policies},
+        ctx.space,
+        title=f"{first}: routes taken (episodes on this variant)",
+    )
     return rows
 
 

@@ -14,6 +14,7 @@ The expected drift penalises steps taken where the detector will mask axes, weig
 the odometry drifts along them; the fused estimate's actual error is only known with the full
 pipeline, too slow to train on here, and its expectation is what this term is.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -140,6 +141,12 @@ class MapNavigationEnv(gym.Env):
         return self.view(self.x, self.y, self.yaw), float(reward), terminated, truncated, self._info(blocked)
 
     def _info(self, blocked: bool) -> dict[str, Any]:
-        return {"scene": self.contexts[self.k].scene.name, "pose": (self.x, self.y, self.yaw), "blocked": blocked,
-                "expected_drift": self.expected_drift, "path_length": self.length,
-                "tight_length": self.tight_length, "distance_to_go": self.to_go}
+        return {
+            "scene": self.contexts[self.k].scene.name,
+            "pose": (self.x, self.y, self.yaw),
+            "blocked": blocked,
+            "expected_drift": self.expected_drift,
+            "path_length": self.length,
+            "tight_length": self.tight_length,
+            "distance_to_go": self.to_go,
+        }

@@ -1,5 +1,6 @@
 """Where the robot can stand: a 2-D grid of a scene's free space, made with the robot's own
 ground and collision checks so that planned cells are cells the simulated robot can occupy."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -42,8 +43,12 @@ class FreeSpace:
 
     def inside(self, index: np.ndarray) -> np.ndarray:
         index = np.asarray(index)
-        return (index[..., 0] >= 0) & (index[..., 1] >= 0) & (index[..., 0] < self.shape[0]) \
+        return (
+            (index[..., 0] >= 0)
+            & (index[..., 1] >= 0)
+            & (index[..., 0] < self.shape[0])
             & (index[..., 1] < self.shape[1])
+        )
 
     def is_free(self, xy: np.ndarray) -> np.ndarray:
         """Whether world points (..., 2) fall in free cells (False off the grid)."""
@@ -57,8 +62,9 @@ class FreeSpace:
         """(K, 2) world x, y of every free cell."""
         return self.center(np.argwhere(self.free))
 
-    def ray_distances(self, xy: np.ndarray, angles: np.ndarray, max_range: float,
-                      step: float | None = None) -> np.ndarray:
+    def ray_distances(
+        self, xy: np.ndarray, angles: np.ndarray, max_range: float, step: float | None = None
+    ) -> np.ndarray:
         """Distance from `xy` to the first blocked cell along each world angle, capped at max_range."""
         step = step or self.resolution / 2
         r = np.arange(step, max_range + 1e-9, step)
@@ -77,8 +83,13 @@ def grid_axes(scene: Scene, resolution: float) -> tuple[np.ndarray, np.ndarray, 
     return np.array([xs[0], ys[0]]), xs, ys
 
 
-def build_free_space(scene: Scene, resolution: float = 0.5, robot: RobotConfig | None = None,
-                     z_ref: float | None = None, progress: bool = False) -> FreeSpace:
+def build_free_space(
+    scene: Scene,
+    resolution: float = 0.5,
+    robot: RobotConfig | None = None,
+    z_ref: float | None = None,
+    progress: bool = False,
+) -> FreeSpace:
     """Test every cell with the simulated robot: ground under its feet near the start's floor
     level, and no penetration of its base box at yaw 0 or 90 degrees."""
     if not resolution > 0:
@@ -101,8 +112,10 @@ def build_free_space(scene: Scene, resolution: float = 0.5, robot: RobotConfig |
     finally:
         world.close()
     if not free.any():
-        raise FreeSpaceError(f"scene '{scene.name}' has no cell where the robot can stand at floor level "
-                             f"{z_ref:.2f} m (grid {len(xs)} x {len(ys)} at {resolution} m)")
+        raise FreeSpaceError(
+            f"scene '{scene.name}' has no cell where the robot can stand at floor level "
+            f"{z_ref:.2f} m (grid {len(xs)} x {len(ys)} at {resolution} m)"
+        )
     clearance = ndimage.distance_transform_edt(free) * resolution
     return FreeSpace(origin, float(resolution), free, ground, clearance)
 
@@ -112,9 +125,12 @@ def reachable_from(space: FreeSpace, xy: np.ndarray) -> FreeSpace:
     scene, behind walls, is of no use to a robot starting there and costs map time."""
     idx = space.index(xy)
     if not space.is_free(xy):
-        raise FreeSpaceError(f"({xy[0]:.2f}, {xy[1]:.2f}) is not in the free space: inside an obstacle, off the "
-                             f"ground or outside the grid")
+        raise FreeSpaceError(
+            f"({xy[0]:.2f}, {xy[1]:.2f}) is not in the free space: inside an obstacle, off the "
+            f"ground or outside the grid"
+        )
     labels, _ = ndimage.label(space.free, structure=np.ones((3, 3)))
     free = labels == labels[idx[0], idx[1]]
-    return FreeSpace(space.origin, space.resolution, free, space.ground,
-                     ndimage.distance_transform_edt(free) * space.resolution)
+    return FreeSpace(
+        space.origin, space.resolution, free, space.ground, ndimage.distance_transform_edt(free) * space.resolution
+    )

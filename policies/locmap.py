@@ -1,6 +1,7 @@
 """Localizability maps: a detector (learned, eigen, oracle or scanmc) evaluated over a grid of
 level body poses (x, y, yaw bins) covering a scene's free space, cached on disk by scene, sensor,
 detector and grid."""
+
 from __future__ import annotations
 
 import contextlib
@@ -90,8 +91,13 @@ class LocalizabilityMap:
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         meta = np.array(json.dumps(plain({**self.meta, "format": MAP_FORMAT, "scene": self.scene})))
-        arrays = {"positions": self.positions, "yaws": self.yaws, "probabilities": self.probabilities,
-                  "thresholds": self.thresholds, "meta": meta}
+        arrays = {
+            "positions": self.positions,
+            "yaws": self.yaws,
+            "probabilities": self.probabilities,
+            "thresholds": self.thresholds,
+            "meta": meta,
+        }
         if self.estimated is not None:
             arrays["estimated"] = self.estimated
         write_atomic(path, lambda fh: np.savez_compressed(fh, **arrays))
@@ -165,8 +171,7 @@ class MapJudge:
     def __call__(self, poses: list[np.ndarray], rngs: list[np.random.Generator]) -> np.ndarray:
         return self.judge_poses(poses, rngs)[0]
 
-    def judge_poses(self, poses: list[np.ndarray],
-                    rngs: list[np.random.Generator]) -> tuple[np.ndarray, np.ndarray]:
+    def judge_poses(self, poses: list[np.ndarray], rngs: list[np.random.Generator]) -> tuple[np.ndarray, np.ndarray]:
         """(n, 6) probabilities, and (n,) whether the scan's Monte-Carlo estimate judged each pose."""
         out, estimated = np.full((len(poses), 6), np.nan), np.zeros(len(poses), dtype=bool)
         if self.kind == "learned":
@@ -197,15 +202,26 @@ class MapJudge:
         return out, estimated
 
 
-def map_settings(scene: Scene, free: FreeSpace, resolution: float, yaw_bins: int, judge: MapJudge,
-                 robot: RobotConfig, seed: int) -> dict[str, Any]:
+def map_settings(
+    scene: Scene, free: FreeSpace, resolution: float, yaw_bins: int, judge: MapJudge, robot: RobotConfig, seed: int
+) -> dict[str, Any]:
     """Everything a map depends on; its hash names the cache file. The registration is in it
     because eigen and oracle maps run ICP, so a new ICP setting must not reuse their old maps."""
-    return {"format": MAP_FORMAT, "scene": scene.name, "scene_faces": int(len(scene.mesh.faces)),
-            "scene_bounds": scene.bounds.round(3).tolist(), "free_space_resolution": free.resolution,
-            "free_cells": int(free.free.sum()), "resolution": float(resolution), "yaw_bins": int(yaw_bins),
-            "detector": judge.identity, "lidar": to_dict(judge.lidar.config), "robot": to_dict(robot),
-            "registration": to_dict(RegistrationConfig()), "seed": int(seed)}
+    return {
+        "format": MAP_FORMAT,
+        "scene": scene.name,
+        "scene_faces": int(len(scene.mesh.faces)),
+        "scene_bounds": scene.bounds.round(3).tolist(),
+        "free_space_resolution": free.resolution,
+        "free_cells": int(free.free.sum()),
+        "resolution": float(resolution),
+        "yaw_bins": int(yaw_bins),
+        "detector": judge.identity,
+        "lidar": to_dict(judge.lidar.config),
+        "robot": to_dict(robot),
+        "registration": to_dict(RegistrationConfig()),
+        "seed": int(seed),
+    }
 
 
 def settings_digest(settings: dict[str, Any]) -> str:
@@ -244,9 +260,18 @@ def _judge_batch(judge: MapJudge, job: tuple[list[np.ndarray], list[list[int]]])
     return judge.judge_poses(poses, [np.random.default_rng(s) for s in seeds])
 
 
-def build_map(scene: Scene, free: FreeSpace, judge: MapJudge, resolution: float = 1.0, yaw_bins: int = 4,
-              robot: RobotConfig | None = None, seed: int = 0, batch: int = 8,
-              progress: bool = False, workers: int = 1) -> LocalizabilityMap:
+def build_map(
+    scene: Scene,
+    free: FreeSpace,
+    judge: MapJudge,
+    resolution: float = 1.0,
+    yaw_bins: int = 4,
+    robot: RobotConfig | None = None,
+    seed: int = 0,
+    batch: int = 8,
+    progress: bool = False,
+    workers: int = 1,
+) -> LocalizabilityMap:
     """Judge every (position, yaw) with the body level on the floor; `workers` processes judge
     batches of poses side by side (each pose has its own seed, so the map is the same)."""
     robot = robot or RobotConfig()
@@ -260,28 +285,52 @@ def build_map(scene: Scene, free: FreeSpace, judge: MapJudge, resolution: float 
     poses = [(n, k) for n in range(len(cells)) for k in range(yaw_bins)]
     probabilities = np.full((len(cells), yaw_bins, 6), np.nan)
     estimated = np.zeros((len(cells), yaw_bins), dtype=bool)
-    chunks = [poses[start:start + batch] for start in range(0, len(poses), batch)]
-    jobs = [([planar_pose(*positions[n], free.ground[tuple(cells[n])] + robot.standing_height, yaws[k]) @ T_b_s
-              for n, k in chunk], [[seed, n, k] for n, k in chunk]) for chunk in chunks]
-    judged = ordered_map(_judge_batch, jobs, judge, _map_judge,
-                         (judge.spec, scene.mesh, judge.lidar.config, judge.seed, judge.step), workers)
-    judged = list(tqdm(judged, total=len(jobs), desc=f"{judge.spec} map of {scene.name}", unit="batch",
-                       disable=not progress))
+    chunks = [poses[start : start + batch] for start in range(0, len(poses), batch)]
+    jobs = [
+        (
+            [
+                planar_pose(*positions[n], free.ground[tuple(cells[n])] + robot.standing_height, yaws[k]) @ T_b_s
+                for n, k in chunk
+            ],
+            [[seed, n, k] for n, k in chunk],
+        )
+        for chunk in chunks
+    ]
+    judged = ordered_map(
+        _judge_batch,
+        jobs,
+        judge,
+        _map_judge,
+        (judge.spec, scene.mesh, judge.lidar.config, judge.seed, judge.step),
+        workers,
+    )
+    judged = list(
+        tqdm(judged, total=len(jobs), desc=f"{judge.spec} map of {scene.name}", unit="batch", disable=not progress)
+    )
     for chunk, (p, by_estimate) in zip(chunks, judged):
         for (n, k), row, e in zip(chunk, p, by_estimate):
             probabilities[n, k], estimated[n, k] = row, e
-    return LocalizabilityMap(scene.name, positions, yaws, probabilities, judge.thresholds.copy(), settings,
-                             estimated)
+    return LocalizabilityMap(scene.name, positions, yaws, probabilities, judge.thresholds.copy(), settings, estimated)
 
 
 def scene_lidar(scene: Scene, lidar: LidarConfig | None = None) -> Lidar:
     return Lidar(make_caster("embree", scene.mesh), lidar or LidarConfig())
 
 
-def get_map(scene: Scene, free: FreeSpace, detector: str = "learned", cache_dir: str | Path | None = None,
-            build: bool = True, resolution: float = 1.0, yaw_bins: int = 4, lidar: LidarConfig | None = None,
-            robot: RobotConfig | None = None, seed: int = 0, progress: bool = False,
-            workers: int = 1) -> LocalizabilityMap:
+def get_map(
+    scene: Scene,
+    free: FreeSpace,
+    detector: str = "learned",
+    cache_dir: str | Path | None = None,
+    build: bool = True,
+    resolution: float = 1.0,
+    yaw_bins: int = 4,
+    lidar: LidarConfig | None = None,
+    robot: RobotConfig | None = None,
+    seed: int = 0,
+    progress: bool = False,
+    workers: int = 1,
+) -> LocalizabilityMap:
     """The cached map for these settings; built (by `workers` processes) and cached when missing if
     `build`, else MapCacheError."""
     robot = robot or RobotConfig()
@@ -294,8 +343,10 @@ def get_map(scene: Scene, free: FreeSpace, detector: str = "learned", cache_dir:
             raise MapCacheError(f"{path}: cached with other settings than the ones asked for; delete it to rebuild")
         return cached
     if not build:
-        raise MapCacheError(f"no {detector} localizability map of scene '{scene.name}' cached for these settings "
-                            f"({path}); make it with `l3e policy map --scene {scene.name} --detector {detector}`")
+        raise MapCacheError(
+            f"no {detector} localizability map of scene '{scene.name}' cached for these settings "
+            f"({path}); make it with `l3e policy map --scene {scene.name} --detector {detector}`"
+        )
     result = build_map(scene, free, judge, resolution, yaw_bins, robot, seed, progress=progress, workers=workers)
     result.save(path)
     return result

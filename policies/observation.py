@@ -1,6 +1,7 @@
 """What a learned navigation policy sees, computed the same way in fast training and in the
 full pipeline: the goal, free-space ranges and the localizability map's drift ahead, all from
 the free-space grid and the cached map at the robot's (estimated) planar pose."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -95,9 +96,17 @@ class PolicyView:
         values = self.drift_rate(pts, np.repeat(world[:, None], len(ahead), axis=1)) / self.scale
         reach = ahead[None, :] <= ranges[:, None] + 1e-9  # drift beyond a wall is not on the way
         drift_ahead = np.where(reach.any(1), (values * reach).sum(1) / np.maximum(reach.sum(1), 1), 0.0)
-        obs = np.concatenate([np.clip(goal_b / GOAL_SCALE, -1, 1), [min(np.linalg.norm(d) / GOAL_SCALE, 1.0)],
-                              [np.cos(path), np.sin(path)], ranges / RANGE, drift_ahead,
-                              [self.drift_rate(xy, yaw) / self.scale], [np.cos(aware), np.sin(aware)]])
+        obs = np.concatenate(
+            [
+                np.clip(goal_b / GOAL_SCALE, -1, 1),
+                [min(np.linalg.norm(d) / GOAL_SCALE, 1.0)],
+                [np.cos(path), np.sin(path)],
+                ranges / RANGE,
+                drift_ahead,
+                [self.drift_rate(xy, yaw) / self.scale],
+                [np.cos(aware), np.sin(aware)],
+            ]
+        )
         return obs.astype(np.float32)
 
 
@@ -107,7 +116,7 @@ def _downhill_headings(to_go: np.ndarray) -> np.ndarray:
     steps = [(dx, dy) for dx in (-1, 0, 1) for dy in (-1, 0, 1) if dx or dy]
     padded = np.pad(to_go, 1, constant_values=np.inf)
     nx, ny = to_go.shape
-    around = np.stack([padded[1 + dx:1 + dx + nx, 1 + dy:1 + dy + ny] for dx, dy in steps])
+    around = np.stack([padded[1 + dx : 1 + dx + nx, 1 + dy : 1 + dy + ny] for dx, dy in steps])
     best = np.argmin(around, axis=0)
     headings = np.array([np.arctan2(dy, dx) for dx, dy in steps])[best]
     closer = np.take_along_axis(around, best[None], 0)[0] < to_go

@@ -6,6 +6,7 @@ detector masks (the map's `masked`, interpolated over yaw bins), and along those
 follows leg odometry, whose error grows per metre at the rates k_i of `drift_rates`. The
 shortest-path planner is the same search with lambda = 0.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -30,8 +31,9 @@ class PlanningError(ValueError):
     """No path: the start or goal is blocked, off the grid, or the goal cannot be reached."""
 
 
-def drift_rates(odometry: OdometryConfig | None = None, step_length: float = 0.1,
-                lever_arm: float = 10.0) -> np.ndarray:
+def drift_rates(
+    odometry: OdometryConfig | None = None, step_length: float = 0.1, lever_arm: float = 10.0
+) -> np.ndarray:
     """Metres of position error per metre walked while one axis (x, y, z, roll, pitch, yaw) is
     left to leg odometry, from its noise model (l3e_env.sim.odometry.LegOdometry):
     - systematic parts grow linearly: the stride-scale error (x), the z and yaw biases; their
@@ -44,14 +46,16 @@ def drift_rates(odometry: OdometryConfig | None = None, step_length: float = 0.1
     """
     c = odometry or OdometryConfig()
     mean_abs, walk = np.sqrt(2 / np.pi), np.sqrt(step_length)
-    return np.array([
-        mean_abs * c.scale_error_std + c.trans_noise_per_m * walk,
-        c.trans_noise_per_m * walk,
-        mean_abs * c.z_bias_std + c.z_noise_per_m * walk,
-        lever_arm * c.rp_noise_per_m * walk,
-        lever_arm * c.rp_noise_per_m * walk,
-        lever_arm * (mean_abs * c.yaw_bias_std + c.yaw_noise_per_m * walk),
-    ])
+    return np.array(
+        [
+            mean_abs * c.scale_error_std + c.trans_noise_per_m * walk,
+            c.trans_noise_per_m * walk,
+            mean_abs * c.z_bias_std + c.z_noise_per_m * walk,
+            lever_arm * c.rp_noise_per_m * walk,
+            lever_arm * c.rp_noise_per_m * walk,
+            lever_arm * (mean_abs * c.yaw_bias_std + c.yaw_noise_per_m * walk),
+        ]
+    )
 
 
 @dataclass
@@ -65,9 +69,17 @@ class Plan:
 class Planner:
     """Dijkstra on the 8-connected free cells (scipy's csgraph), with heading-dependent edge costs."""
 
-    def __init__(self, space: FreeSpace, locmap: LocalizabilityMap | None = None, lam: float = 50.0,
-                 odometry: OdometryConfig | None = None, clearance: float = 0.75, clearance_weight: float = 1.0,
-                 tight_clearance: float = TIGHT_CLEARANCE, tight_weight: float = 10.0):
+    def __init__(
+        self,
+        space: FreeSpace,
+        locmap: LocalizabilityMap | None = None,
+        lam: float = 50.0,
+        odometry: OdometryConfig | None = None,
+        clearance: float = 0.75,
+        clearance_weight: float = 1.0,
+        tight_clearance: float = TIGHT_CLEARANCE,
+        tight_weight: float = 10.0,
+    ):
         if lam > 0 and locmap is None:
             raise ValueError("a localizability-aware plan (lam > 0) needs a localizability map")
         self.space, self.locmap, self.lam = space, locmap, float(lam)
@@ -112,8 +124,9 @@ class Planner:
         if not self.space.inside(idx):
             raise PlanningError(f"{what} ({xy[0]:.2f}, {xy[1]:.2f}) is outside the scene's grid")
         if not self.space.free[idx[0], idx[1]]:
-            raise PlanningError(f"{what} ({xy[0]:.2f}, {xy[1]:.2f}) is inside an obstacle or where the robot "
-                                f"cannot stand")
+            raise PlanningError(
+                f"{what} ({xy[0]:.2f}, {xy[1]:.2f}) is inside an obstacle or where the robot cannot stand"
+            )
         return int(self.ids[idx[0], idx[1]])
 
     def cost_to_go(self, goal: np.ndarray) -> np.ndarray:
@@ -128,8 +141,10 @@ class Planner:
         s, g = self._node(start, "start"), self._node(goal, "goal")
         dist, pred = dijkstra(self.graph, indices=s, return_predecessors=True)
         if not np.isfinite(dist[g]):
-            raise PlanningError(f"the goal ({goal[0]:.2f}, {goal[1]:.2f}) cannot be reached from the start "
-                                f"({start[0]:.2f}, {start[1]:.2f}) through free space")
+            raise PlanningError(
+                f"the goal ({goal[0]:.2f}, {goal[1]:.2f}) cannot be reached from the start "
+                f"({start[0]:.2f}, {start[1]:.2f}) through free space"
+            )
         nodes = [g]
         while nodes[-1] != s:
             nodes.append(int(pred[nodes[-1]]))
@@ -162,5 +177,13 @@ def route_of(plan: Plan, space: FreeSpace) -> np.ndarray:
     return np.column_stack([plan.path, z])
 
 
-__all__ = ["Plan", "Planner", "PlanningError", "FreeSpaceError", "TIGHT_CLEARANCE", "drift_rates",
-           "expected_drift_along", "route_of"]
+__all__ = [
+    "Plan",
+    "Planner",
+    "PlanningError",
+    "FreeSpaceError",
+    "TIGHT_CLEARANCE",
+    "drift_rates",
+    "expected_drift_along",
+    "route_of",
+]

@@ -9,6 +9,7 @@ observes, so that a policy of another observation layout is refused by name. Wei
 tensors and read with torch's weights-only loader, so that loading a policy folder never runs code
 from it; stable-baselines3's own zip files, whose loader unpickles what they hold, are neither
 written nor read."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -46,8 +47,15 @@ def require_sb3():
 
 POLICY_FILE, STATE_FILE, META_FILE, WARM_FILE = "policy.pt", "last.pt", "policy.json", "warm_start.json"
 NET_ARCH = [64, 64]
-PPO_SETTINGS = {"n_steps": 256, "batch_size": 256, "n_epochs": 10, "learning_rate": 3e-4, "gamma": 0.99,
-                "gae_lambda": 0.95, "ent_coef": 0.0}
+PPO_SETTINGS = {
+    "n_steps": 256,
+    "batch_size": 256,
+    "n_epochs": 10,
+    "learning_rate": 3e-4,
+    "gamma": 0.99,
+    "gae_lambda": 0.95,
+    "ent_coef": 0.0,
+}
 
 
 def _save_tensors(path: Path, tensors: dict[str, Any]) -> None:
@@ -68,8 +76,14 @@ def _load_tensors(path: Path) -> dict[str, Any]:
 
 def _save_state(model: Any, path: Path) -> None:
     """What resuming needs: the policy's weights, its optimiser's state and the steps taken."""
-    _save_tensors(path, {"policy": model.policy.state_dict(), "optimizer": model.policy.optimizer.state_dict(),
-                         "num_timesteps": int(model.num_timesteps)})
+    _save_tensors(
+        path,
+        {
+            "policy": model.policy.state_dict(),
+            "optimizer": model.policy.optimizer.state_dict(),
+            "num_timesteps": int(model.num_timesteps),
+        },
+    )
 
 
 def run_record(out: str | Path) -> dict[str, Any]:
@@ -121,8 +135,9 @@ class WarmStart:
     std: float = 0.2
 
 
-def demonstrations(contexts: list[SceneContext], config: FastEnvConfig, warm: WarmStart, seed: int = 0
-                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def demonstrations(
+    contexts: list[SceneContext], config: FastEnvConfig, warm: WarmStart, seed: int = 0
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(observations, teacher twists, discounted returns) from the teacher's noisy walks."""
     rng = np.random.default_rng(seed)
     observations, actions, returns = [], [], []
@@ -147,8 +162,9 @@ def demonstrations(contexts: list[SceneContext], config: FastEnvConfig, warm: Wa
     return np.array(observations, np.float32), np.array(actions, np.float32), np.concatenate(returns).astype(np.float32)
 
 
-def clone(policy: Any, observations: np.ndarray, actions: np.ndarray, returns: np.ndarray, warm: WarmStart,
-          seed: int = 0) -> float:
+def clone(
+    policy: Any, observations: np.ndarray, actions: np.ndarray, returns: np.ndarray, warm: WarmStart, seed: int = 0
+) -> float:
     """Fit an SB3 ActorCriticPolicy's mean action to `actions` and its value to `returns`; returns
     the final mean squared error of the actions."""
     import torch
@@ -173,9 +189,17 @@ def clone(policy: Any, observations: np.ndarray, actions: np.ndarray, returns: n
     return error
 
 
-def train_ppo(out: str | Path, contexts: list[SceneContext], detector: str = "learned", timesteps: int = 300_000,
-              seed: int = 0, n_envs: int = 4, config: FastEnvConfig | None = None,
-              progress: bool = True, warm: WarmStart | None = WarmStart()) -> dict[str, Any]:
+def train_ppo(
+    out: str | Path,
+    contexts: list[SceneContext],
+    detector: str = "learned",
+    timesteps: int = 300_000,
+    seed: int = 0,
+    n_envs: int = 4,
+    config: FastEnvConfig | None = None,
+    progress: bool = True,
+    warm: WarmStart | None = WarmStart(),
+) -> dict[str, Any]:
     """Train (or resume) a PPO policy on the scenes' cached maps (made with `detector`, which
     evaluation reads back from policy.json); returns the summary written there. A new run starts
     from `warm`'s behaviour cloning of the planner's choice (None: from random weights)."""
@@ -205,13 +229,15 @@ def train_ppo(out: str | Path, contexts: list[SceneContext], detector: str = "le
             model.policy.optimizer.load_state_dict(state["optimizer"])
             model.num_timesteps = int(state["num_timesteps"])
         except (KeyError, RuntimeError, ValueError, TypeError) as exc:
-            raise PolicyCheckpointError(f"{last}: not the state of a run of this network ({exc}); train into "
-                                        "another folder") from exc
+            raise PolicyCheckpointError(
+                f"{last}: not the state of a run of this network ({exc}); train into another folder"
+            ) from exc
     elif warm is not None:
         observations, actions, returns = demonstrations(contexts, config, warm, seed)
         cloned = clone(model.policy, observations, actions, returns, warm, seed)
-        (out / WARM_FILE).write_text(json.dumps({**dataclasses.asdict(warm), "samples": len(observations),
-                                                 "action_mse": cloned}, indent=2))
+        (out / WARM_FILE).write_text(
+            json.dumps({**dataclasses.asdict(warm), "samples": len(observations), "action_mse": cloned}, indent=2)
+        )
     model.set_logger(configure(str(out), ["csv", *(["tensorboard"] if _has_tensorboard() else [])]))
     done = model.num_timesteps
 
@@ -236,10 +262,18 @@ def train_ppo(out: str | Path, contexts: list[SceneContext], detector: str = "le
     history = run_record(out).get("history", [])
     history.append({"scenes": scenes, "from_timestep": int(done), "to_timestep": int(model.num_timesteps)})
     warm_record = json.loads((out / WARM_FILE).read_text()) if (out / WARM_FILE).exists() else None
-    summary = {"observation": OBSERVATION, "action": list(action_layout(config.sideways)), "net_arch": NET_ARCH,
-               "scenes": scenes, "detector": detector,
-               "timesteps": int(model.num_timesteps), "warm_start": warm_record,
-               "seed": seed, "fast_env": plain(dataclasses.asdict(config)), "history": history}
+    summary = {
+        "observation": OBSERVATION,
+        "action": list(action_layout(config.sideways)),
+        "net_arch": NET_ARCH,
+        "scenes": scenes,
+        "detector": detector,
+        "timesteps": int(model.num_timesteps),
+        "warm_start": warm_record,
+        "seed": seed,
+        "fast_env": plain(dataclasses.asdict(config)),
+        "history": history,
+    }
     (out / META_FILE).write_text(json.dumps(summary, indent=2))
     return summary
 
@@ -257,25 +291,36 @@ class PPOPolicy:
         folder = path.parent if path.is_file() else path
         weights, meta_path = folder / POLICY_FILE, folder / META_FILE
         if not weights.exists() or not meta_path.exists():
-            old = " (its policy.zip is not read: loading it could run code from it; train the policy again)" \
-                if (folder / "policy.zip").exists() else ""
-            raise PolicyCheckpointError(f"{folder}: no {POLICY_FILE} with {META_FILE} beside it{old} (train one with "
-                                        "`l3e policy train`)")
+            old = (
+                " (its policy.zip is not read: loading it could run code from it; train the policy again)"
+                if (folder / "policy.zip").exists()
+                else ""
+            )
+            raise PolicyCheckpointError(
+                f"{folder}: no {POLICY_FILE} with {META_FILE} beside it{old} (train one with `l3e policy train`)"
+            )
         try:
             self.meta = json.loads(meta_path.read_text())
         except (OSError, ValueError) as exc:
             raise PolicyCheckpointError(f"{meta_path}: cannot be read ({exc})") from exc
         if self.meta.get("observation") != json.loads(json.dumps(OBSERVATION)):
-            raise PolicyCheckpointError(f"{folder}: trained on observation {self.meta.get('observation')}, this "
-                                        f"version gives {OBSERVATION}; retrain it")
+            raise PolicyCheckpointError(
+                f"{folder}: trained on observation {self.meta.get('observation')}, this "
+                f"version gives {OBSERVATION}; retrain it"
+            )
         layouts = {action_layout(sideways): sideways for sideways in (False, True)}
         if tuple(self.meta.get("action", ())) not in layouts:
-            raise PolicyCheckpointError(f"{folder}: trained with actions {self.meta.get('action')}, this version "
-                                        f"takes {' or '.join(str(list(a)) for a in layouts)}; retrain it")
+            raise PolicyCheckpointError(
+                f"{folder}: trained with actions {self.meta.get('action')}, this version "
+                f"takes {' or '.join(str(list(a)) for a in layouts)}; retrain it"
+            )
         self.sideways = layouts[tuple(self.meta["action"])]
-        self.policy = ActorCriticPolicy(spaces.Box(-np.inf, np.inf, (PolicyView.size,), np.float32),
-                                        spaces.Box(-1.0, 1.0, (len(self.meta["action"]),), np.float32), lambda _: 0.0,
-                                        net_arch=list(self.meta.get("net_arch", NET_ARCH)))
+        self.policy = ActorCriticPolicy(
+            spaces.Box(-np.inf, np.inf, (PolicyView.size,), np.float32),
+            spaces.Box(-1.0, 1.0, (len(self.meta["action"]),), np.float32),
+            lambda _: 0.0,
+            net_arch=list(self.meta.get("net_arch", NET_ARCH)),
+        )
         try:
             self.policy.load_state_dict(_load_tensors(weights))
         except (RuntimeError, TypeError, ValueError) as exc:

@@ -1,4 +1,5 @@
 """Procedural and imported scenes (geometry only, trimesh): meshes, sampling paths, routes."""
+
 from .mesh_io import file_sha256, is_mesh_path, load_mesh, load_route, scene_from_mesh
 from .registry import (
     DATASET_SCENES,
@@ -15,7 +16,22 @@ from .registry import (
 from .scene import Scene, SceneError, validate_mesh
 
 __all__ = [
-    "Scene", "SceneError", "make_scene", "check_scene_name", "canonical_scene_name", "list_scenes", "scene_family",
-    "load_mesh", "load_route", "file_sha256", "scene_from_mesh", "is_mesh_path", "validate_mesh",
-    "TRAIN_SCENES", "VALIDATION_SCENES", "TEST_SCENES", "HELDOUT_SCENES", "DATASET_SCENES",
+    "Scene",
+    "SceneError",
+    "make_scene",
+    "check_scene_name",
+    "canonical_scene_name",
+    "list_scenes",
+    "scene_family",
+    "load_mesh",
+    "load_route",
+    "file_sha256",
+    "scene_from_mesh",
+    "is_mesh_path",
+    "validate_mesh",
+    "TRAIN_SCENES",
+    "VALIDATION_SCENES",
+    "TEST_SCENES",
+    "HELDOUT_SCENES",
+    "DATASET_SCENES",
 ]

@@ -7,6 +7,7 @@ the detour's, which the seeds spread.
 Seeds 0-99 are for training (maps, PPO), 100 and up for evaluation (EVALUATION_SEEDS): the two
 never share a layout.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -21,8 +22,9 @@ MAX_DETOUR = 1.5  # the way round is at most this many times the short way's len
 APRON = 8.0  # m of open, structured ground before the gallery and after it
 
 
-def _face(rng: np.random.Generator, x0: float, x1: float, y: float, depth: float, facing: int,
-          height: float) -> list[trimesh.Trimesh]:
+def _face(
+    rng: np.random.Generator, x0: float, x1: float, y: float, depth: float, facing: int, height: float
+) -> list[trimesh.Trimesh]:
     """A wall along x at `y` whose face (towards `facing` = +1 or -1 in y) is broken by buttresses
     and recesses every 2-6 m, so that walking along it holds every axis."""
     parts = [box(((x0 + x1) / 2, y - facing * depth / 2, height / 2), (x1 - x0, depth, height))]
@@ -35,8 +37,9 @@ def _face(rng: np.random.Generator, x0: float, x1: float, y: float, depth: float
     return parts
 
 
-def _clutter(rng: np.random.Generator, x0: float, x1: float, y0: float, y1: float, density: float
-             ) -> list[trimesh.Trimesh]:
+def _clutter(
+    rng: np.random.Generator, x0: float, x1: float, y0: float, y1: float, density: float
+) -> list[trimesh.Trimesh]:
     """Pillars, boxes and low rocks scattered in the band y0..y1, about `density` per metre of x."""
     parts = []
     for x in np.sort(rng.uniform(x0, x1, int(density * (x1 - x0)))):
@@ -111,8 +114,15 @@ def make_bypass(seed: int = 0, gallery_length: float | None = None, detour: floa
     rich = resample_polyline(np.column_stack([np.array(corners), np.zeros(len(corners))]), 1.0)
     for route in (short_route, rich):  # nothing the clutter put on a route
         _clear(parts, route)
-    return Scene.two_ways(f"bypass-{seed}", merge(parts), short_route, rich, "bypass", seed,
-                          {"corridor": np.array([x0, -half, x1, half]), "detour": np.array([x0, half, x1, top])})
+    return Scene.two_ways(
+        f"bypass-{seed}",
+        merge(parts),
+        short_route,
+        rich,
+        "bypass",
+        seed,
+        {"corridor": np.array([x0, -half, x1, half]), "detour": np.array([x0, half, x1, top])},
+    )
 
 
 def _clear(parts: list[trimesh.Trimesh], route: np.ndarray, radius: float = 1.0) -> None:

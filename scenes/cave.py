@@ -1,4 +1,5 @@
 """Caves: noise-displaced tubes whose radius swells into chambers."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -7,8 +8,9 @@ from .geometry import resample_polyline, smooth_noise, sweep
 from .scene import Scene
 
 
-def _wander(rng: np.random.Generator, length: float, step: float = 1.0, turn: float = 0.08,
-            slope: float = 0.06) -> np.ndarray:
+def _wander(
+    rng: np.random.Generator, length: float, step: float = 1.0, turn: float = 0.08, slope: float = 0.06
+) -> np.ndarray:
     """A smooth random ground path: heading and grade follow filtered random walks."""
     n = int(length / step) + 1
     heading = np.cumsum(np.convolve(rng.normal(0, turn, n), np.ones(8) / 8, mode="same"))

@@ -3,6 +3,7 @@
 In a round smooth room yaw slides and in a rough one nothing does; a model that has seen only
 tubes and boxy rooms has no idea which, so training needs rooms on both sides of that line.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -31,8 +32,10 @@ def make_chamber(seed: int = 0, roughness: float | None = None, radius: float | 
     cap = box((-0.3, 0.0, 2.0), (0.6, 4.0, 4.0))  # the narrow start is closed too
     inner = (s > 0.15 * length) & (s < 0.85 * length)
     middle = length / 2
-    paths = [resample_polyline(path[inner], 1.0),
-             resample_polyline(np.array([[middle, -0.5 * radius, 0], [middle, 0.5 * radius, 0]]), 1.0)]
+    paths = [
+        resample_polyline(path[inner], 1.0),
+        resample_polyline(np.array([[middle, -0.5 * radius, 0], [middle, 0.5 * radius, 0]]), 1.0),
+    ]
     return Scene(
         name=f"chamber-{seed}",
         mesh=merge([wall, cap]),

@@ -1,4 +1,5 @@
 """Open field: a large flat plane; x, y and yaw are unobservable away from structures."""
+
 from __future__ import annotations
 
 import numpy as np

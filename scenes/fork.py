@@ -1,4 +1,5 @@
 """Fork: two ways from start to goal, a short featureless corridor and a longer rich route."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -36,5 +37,6 @@ def make_fork(seed: int = 0, corridor_length: float | None = None, detour: float
     short = resample_polyline(np.array([[0.0, 0, 0], [gx, 0, 0]]), 1.0)
     corners = [[0.0, 0, 0], [2.0, 0, 0], [2.0, detour, 0], [gx - 2, detour, 0], [gx - 2, 0, 0], [gx, 0, 0]]
     rich = resample_polyline(np.array(corners), 1.0)
-    return Scene.two_ways(f"fork-{seed}", merge(parts), short, rich, "fork", seed,
-                          {"corridor": np.array([x0, -half, x1, half])})
+    return Scene.two_ways(
+        f"fork-{seed}", merge(parts), short, rich, "fork", seed, {"corridor": np.array([x0, -half, x1, half])}
+    )

@@ -2,6 +2,7 @@
 smooth (shotcrete) to blocky (fresh drill-and-blast). Roughness is what decides whether ICP can
 slide along a tunnel, so training needs tunnels on both sides of that line, not only smooth ones.
 """
+
 from __future__ import annotations
 
 import numpy as np

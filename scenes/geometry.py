@@ -1,4 +1,5 @@
 """Mesh-building helpers shared by the procedural scene families."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -40,8 +41,9 @@ def cylinder(center_xy: tuple[float, float], radius: float, height: float, z0: f
     return trimesh.creation.cylinder(radius=radius, height=height, sections=24, transform=tf)
 
 
-def smooth_noise(rng: np.random.Generator, amplitude: float, wavelengths: tuple[float, float] = (1.5, 6.0),
-                 waves: int = 12):
+def smooth_noise(
+    rng: np.random.Generator, amplitude: float, wavelengths: tuple[float, float] = (1.5, 6.0), waves: int = 12
+):
     """A smooth random scalar field R^3 -> R (sum of random plane waves), for rock-like walls."""
     dirs = rng.normal(size=(waves, 3))
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)

@@ -8,6 +8,7 @@ regular are drawn too, so that the seeds span open plains, corridors, forests, y
 tubes and every mixture of them: geometry varied enough that a model learns what the parts
 constrain rather than which family a scan comes from.
 """
+
 from __future__ import annotations
 
 import numpy as np

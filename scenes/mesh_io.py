@@ -1,4 +1,5 @@
 """Import user meshes (OBJ, STL, PLY, GLB) as scenes, validated."""
+
 from __future__ import annotations
 
 import hashlib
@@ -12,8 +13,11 @@ import trimesh
 from .geometry import polyline_length, resample_polyline
 from .scene import Scene, SceneError, validate_mesh
 
-UP_AXES = {"z": np.eye(3), "y": np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]]),
-           "x": np.array([[0, 0, -1.0], [0, 1, 0], [1, 0, 0]])}
+UP_AXES = {
+    "z": np.eye(3),
+    "y": np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]]),
+    "x": np.array([[0, 0, -1.0], [0, 1, 0], [1, 0, 0]]),
+}
 FORMATS = (".obj", ".stl", ".ply", ".glb", ".gltf", ".off")
 
 
@@ -47,8 +51,10 @@ def load_mesh(path: str | Path, up_axis: str = "z", scale: float = 1.0) -> trime
     if isinstance(loaded, trimesh.Scene) or not isinstance(loaded, trimesh.Trimesh):
         raise SceneError(f"{path}: file holds no triangle mesh")
     if len(loaded.faces) == 0:
-        raise SceneError(f"{path}: no triangles could be read from it: the file is damaged, or it is not a "
-                         f"{path.suffix[1:].upper()} file")
+        raise SceneError(
+            f"{path}: no triangles could be read from it: the file is damaged, or it is not a "
+            f"{path.suffix[1:].upper()} file"
+        )
     validate_mesh(loaded, str(path))
     tf = np.eye(4)
     tf[:3, :3] = UP_AXES[up_axis] * scale
@@ -91,13 +97,16 @@ def check_route_length(route: np.ndarray, where: str) -> None:
     length = polyline_length(route[:, :2])
     hint = "if the mesh and route are in millimetres, give scale 0.001 (--scale 0.001)"
     if length < MIN_ROUTE_M:
-        raise SceneError(f"{where} is {length:.2f} m long on the floor: give waypoints at least {MIN_ROUTE_M} m apart "
-                         "(two identical waypoints make no route)")
+        raise SceneError(
+            f"{where} is {length:.2f} m long on the floor: give waypoints at least {MIN_ROUTE_M} m apart "
+            "(two identical waypoints make no route)"
+        )
     if length > MAX_ROUTE_M:
         raise SceneError(f"{where} is {length / 1000:.0f} km long: {hint}")
     if length > LONG_ROUTE_M:
-        warnings.warn(f"{where} is {length / 1000:.1f} km long, a drive of about {length / 0.1:,.0f} steps: {hint}",
-                      stacklevel=3)
+        warnings.warn(
+            f"{where} is {length / 1000:.1f} km long, a drive of about {length / 0.1:,.0f} steps: {hint}", stacklevel=3
+        )
 
 
 FLOOR_BELOW_M = 0.5  # a waypoint lies on the floor, or at most this far above it
@@ -113,9 +122,11 @@ def check_route_on_floor(mesh: trimesh.Trimesh, route: np.ndarray, where: str) -
     missing = np.flatnonzero(below > 1.0 + FLOOR_BELOW_M)
     if len(missing):
         shown = ", ".join(f"({route[k, 0]:.1f}, {route[k, 1]:.1f}, {route[k, 2]:.1f})" for k in missing[:3])
-        raise SceneError(f"{where}: {len(missing)} of its {len(route)} points have no floor within {FLOOR_BELOW_M} m "
-                         f"under them, e.g. {shown} m: give each waypoint's height on the floor ('x y z' lines) or "
-                         "let --snap-route set it, and check that --up-axis and --scale are the mesh file's")
+        raise SceneError(
+            f"{where}: {len(missing)} of its {len(route)} points have no floor within {FLOOR_BELOW_M} m "
+            f"under them, e.g. {shown} m: give each waypoint's height on the floor ('x y z' lines) or "
+            "let --snap-route set it, and check that --up-axis and --scale are the mesh file's"
+        )
 
 
 SNAP_REACH_M = 2.0  # snapping looks for the floor from this far above a waypoint down to FLOOR_BELOW_M under it
@@ -158,13 +169,21 @@ def scene_from_mesh(
         paths = [snap_route_to_floor(mesh, p) for p in paths]
     (x0, y0, z0), (x1, y1, z1) = mesh.bounds
     for p in paths:  # a route in other units or axes than the mesh: say so here, not as "no ground" later
-        outside = p[(p[:, 0] < x0 - 0.5) | (p[:, 0] > x1 + 0.5) | (p[:, 1] < y0 - 0.5) | (p[:, 1] > y1 + 0.5)
-                    | (p[:, 2] < z0 - 0.5) | (p[:, 2] > z1 + 0.5)]
+        outside = p[
+            (p[:, 0] < x0 - 0.5)
+            | (p[:, 0] > x1 + 0.5)
+            | (p[:, 1] < y0 - 0.5)
+            | (p[:, 1] > y1 + 0.5)
+            | (p[:, 2] < z0 - 0.5)
+            | (p[:, 2] > z1 + 0.5)
+        ]
         if len(outside):
             x, y, z = outside[0]
-            raise SceneError(f"{path}: route point ({x:.1f}, {y:.1f}, {z:.1f}) m lies outside the mesh's extent "
-                             f"(x {x0:.1f} to {x1:.1f}, y {y0:.1f} to {y1:.1f}, z {z0:.1f} to {z1:.1f} m): are the "
-                             "route's units and axes those of the mesh file (--scale, --up-axis)?")
+            raise SceneError(
+                f"{path}: route point ({x:.1f}, {y:.1f}, {z:.1f}) m lies outside the mesh's extent "
+                f"(x {x0:.1f} to {x1:.1f}, y {y0:.1f} to {y1:.1f}, z {z0:.1f} to {z1:.1f} m): are the "
+                "route's units and axes those of the mesh file (--scale, --up-axis)?"
+            )
     for i, p in enumerate(paths):
         check_route_length(p, f"{path}: route {i}")
         check_route_on_floor(mesh, p, f"{path}: route {i}")

@@ -1,4 +1,5 @@
 """The paper's main field test: an outdoor yard, a long smooth mine tunnel, a quarry cavern."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -14,8 +15,14 @@ def make_mine(seed: int = 0, tunnel_length: float = 100.0, tunnel_width: float =
     yard = 45.0
     height = tunnel_width
     parts = [ground_plane(-yard, 0.5, -30, 30, cell=15)]
-    for cx, cy, sx, sy, sz in [(-32, -9, 8, 5, 4), (-20, 10, 6, 4, 3), (-12, -8, 6, 2.5, 2.6), (-27, 12, 3, 6, 5),
-                               (-6, 9, 2.5, 6, 2.6), (-40, 3, 4, 4, 3)]:
+    for cx, cy, sx, sy, sz in [
+        (-32, -9, 8, 5, 4),
+        (-20, 10, 6, 4, 3),
+        (-12, -8, 6, 2.5, 2.6),
+        (-27, 12, 3, 6, 5),
+        (-6, 9, 2.5, 6, 2.6),
+        (-40, 3, 4, 4, 3),
+    ]:
         j = rng.uniform(-1, 1, 2) if seed else np.zeros(2)
         parts.append(box((cx + j[0], cy + j[1], sz / 2), (sx, sy, sz), yaw=rng.uniform(-0.3, 0.3) if seed else 0.0))
     # cliff face around the portal opening (rectangular opening of the tunnel's width and height)
@@ -46,8 +53,11 @@ def make_mine(seed: int = 0, tunnel_length: float = 100.0, tunnel_width: float =
         "tunnel": np.array([0.0, -half, tunnel_length, half]),
         "quarry": np.array([tunnel_length + 6, -cavern_r, tunnel_length + cavern_len, cavern_r]),
     }
-    paths = [route, resample_polyline(np.array([[-30.0, -3, 0], [-30, 4, 0], [-10, 3, 0], [-10, -3, 0]]), 1.0),
-             resample_polyline(np.array([[tunnel_length + 8, -6, 0], [tunnel_length + 20, 6, 0]]), 1.0)]
+    paths = [
+        route,
+        resample_polyline(np.array([[-30.0, -3, 0], [-30, 4, 0], [-10, 3, 0], [-10, -3, 0]]), 1.0),
+        resample_polyline(np.array([[tunnel_length + 8, -6, 0], [tunnel_length + 20, 6, 0]]), 1.0),
+    ]
     return Scene(
         name=f"mine-{seed}",
         mesh=merge(parts),

@@ -1,4 +1,5 @@
 """Office floor: a corridor with rooms behind doors and an open hall; mostly localizable."""
+
 from __future__ import annotations
 
 import numpy as np

@@ -5,6 +5,7 @@ There are no walls; what holds the sensor is thin structure: columns every few m
 rows of columns and the long pipes (y, z, roll, pitch, yaw), the ground. Across seeds the bays run
 from short (every axis held) to long and bare (x held by little more than the next column).
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -51,9 +52,13 @@ def make_piperack(seed: int = 0, bay: float | None = None, length: float | None 
     # clutter beside the walkway: pumps, skids, valves (none on some seeds)
     for _ in range(int(rng.poisson(rng.uniform(0, 1.2) * length / 10))):
         side = rng.choice([-1, 1])
-        parts.append(box((rng.uniform(0, length), side * rng.uniform(1.5, half + 3), 0.5),
-                         (rng.uniform(0.5, 2.5), rng.uniform(0.5, 1.5), rng.uniform(0.5, 2.0)),
-                         yaw=rng.uniform(0, np.pi)))
+        parts.append(
+            box(
+                (rng.uniform(0, length), side * rng.uniform(1.5, half + 3), 0.5),
+                (rng.uniform(0.5, 2.5), rng.uniform(0.5, 1.5), rng.uniform(0.5, 2.0)),
+                yaw=rng.uniform(0, np.pi),
+            )
+        )
     route = resample_polyline(np.array([[0.0, 0.0, 0.0], [length, 0.0, 0.0]]), 1.0)
     return Scene(
         name=f"piperack-{seed}",

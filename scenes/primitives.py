@@ -1,4 +1,5 @@
 """Geometric primitives as in the paper's dataset: planes, walls, boxes, cylinders, pipes."""
+
 from __future__ import annotations
 
 import numpy as np

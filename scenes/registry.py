@@ -1,4 +1,5 @@
 """Scene names, seeded variants and the split of environments into training and test."""
+
 from __future__ import annotations
 
 from collections.abc import Callable
@@ -90,10 +91,28 @@ def check_scene_name(name: str) -> str:
 # Pipe racks are held out as well: a family unlike every training one (no tube, no room, no plain),
 # so that "a family never seen" stays measured beside the mine (HELDOUT_SCENES, a dataset of its own).
 GALLERIES = [f"gallery-{s}" for s in range(8)]
-TRAIN_SCENES = [f"tunnel-{s}" for s in range(4)] + [f"primitives-{s}" for s in range(5)] + [
-    "field-0", "field-1", "office-0", "office-1", "office-2", "fork-0", "fork-1", *GALLERIES,
-    "cave-0", "cave-1", "cave-2", "cave-3", "chamber-0", "chamber-1", "chamber-2", "chamber-3",
-]
+TRAIN_SCENES = (
+    [f"tunnel-{s}" for s in range(4)]
+    + [f"primitives-{s}" for s in range(5)]
+    + [
+        "field-0",
+        "field-1",
+        "office-0",
+        "office-1",
+        "office-2",
+        "fork-0",
+        "fork-1",
+        *GALLERIES,
+        "cave-0",
+        "cave-1",
+        "cave-2",
+        "cave-3",
+        "chamber-0",
+        "chamber-1",
+        "chamber-2",
+        "chamber-3",
+    ]
+)
 VALIDATION_SCENES = ["tunnel-7", "primitives-7", "office-5", "field-3", "gallery-9", "cave-5", "chamber-5"]
 TEST_SCENES = ["mine-0", "mine-1", "mine-2"]
 HELDOUT_SCENES = [f"piperack-{s}" for s in range(6)]

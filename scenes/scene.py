@@ -1,4 +1,5 @@
 """The Scene container: a triangle mesh plus the paths that say where a robot may stand."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -55,16 +56,41 @@ class Scene:
     def along_route(cls, name: str, mesh: trimesh.Trimesh, route: np.ndarray, family: str, seed: int) -> Scene:
         """A scene whose one route is also its sampling path; the robot starts facing along it."""
         heading = float(np.arctan2(route[1, 1] - route[0, 1], route[1, 0] - route[0, 0]))
-        return cls(name=name, mesh=mesh, sampling_paths=[route], start=(route[0, 0], route[0, 1], heading),
-                   goal=route[-1, :2], routes={"main": route}, family=family, seed=seed)
+        return cls(
+            name=name,
+            mesh=mesh,
+            sampling_paths=[route],
+            start=(route[0, 0], route[0, 1], heading),
+            goal=route[-1, :2],
+            routes={"main": route},
+            family=family,
+            seed=seed,
+        )
 
     @classmethod
-    def two_ways(cls, name: str, mesh: trimesh.Trimesh, short: np.ndarray, rich: np.ndarray, family: str, seed: int,
-                 regions: dict[str, np.ndarray]) -> Scene:
+    def two_ways(
+        cls,
+        name: str,
+        mesh: trimesh.Trimesh,
+        short: np.ndarray,
+        rich: np.ndarray,
+        family: str,
+        seed: int,
+        regions: dict[str, np.ndarray],
+    ) -> Scene:
         """A navigation scene: from the origin facing +x to the end of both routes, a `short` way
         and a longer `rich` one (the default route); both are sampling paths."""
-        return cls(name=name, mesh=mesh, sampling_paths=[short, rich], start=(0.0, 0.0, 0.0), goal=short[-1, :2],
-                   routes={"short": short, "rich": rich, "main": rich}, family=family, seed=seed, regions=regions)
+        return cls(
+            name=name,
+            mesh=mesh,
+            sampling_paths=[short, rich],
+            start=(0.0, 0.0, 0.0),
+            goal=short[-1, :2],
+            routes={"short": short, "rich": rich, "main": rich},
+            family=family,
+            seed=seed,
+            regions=regions,
+        )
 
     @property
     def route(self) -> np.ndarray:

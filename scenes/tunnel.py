@@ -1,4 +1,5 @@
 """Long smooth tunnels: the textbook case of a non-localizable axis along the tunnel."""
+
 from __future__ import annotations
 
 import numpy as np

@@ -4,6 +4,7 @@ An open plane is the textbook non-localizable place, and a model that has only s
 learns "much ground = degenerate". Whether x, y and yaw are constrained depends on how many
 distinct structures are in range, so training needs open ground on both sides of that line.
 """
+
 from __future__ import annotations
 
 import numpy as np

@@ -11,6 +11,7 @@ ICP and the odometry with the attitude alone, the same registrations and reading
 Run: python studies/attitude_correlation.py [--seeds 0,1,2,3,4] [--factors 1,3,7.74]
      (13 min on 2 cores for the defaults; per drive and row the ATE in metres, then the means)
 """
+
 from __future__ import annotations
 
 import argparse
@@ -40,13 +41,15 @@ def drive_ates(seed: int, factors: list[float], scene, lidar: Lidar) -> dict[str
         ates[f"{r.name}, no attitude"] = r.ate
     for mode in ("tilt", "full"):
         for factor in factors:
+
             def scaled(m: str, config=None, factor: float = factor) -> np.ndarray | None:
                 sigmas = attitude_sigmas(m, config)
                 return None if sigmas is None else sigmas * factor
 
             with mock.patch.object(experiment, "attitude_sigmas", scaled):
-                rows = experiment.fuse_recording(rec, [experiment.OdometryAttitude(), *detectors], regs, fusion=fusion,
-                                           progress=False, attitude=mode)
+                rows = experiment.fuse_recording(
+                    rec, [experiment.OdometryAttitude(), *detectors], regs, fusion=fusion, progress=False, attitude=mode
+                )
             for r in rows:
                 ates[f"{r.name}, {mode} x{factor:g}"] = r.ate
     return ates

@@ -21,6 +21,7 @@ by about the half revolution's turn at the path's ends, not by the sum of the st
 
 Run: python studies/deskew_step_error.py [--steps 300]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -55,8 +56,12 @@ def scripted_path(start: np.ndarray, steps: int, weaving: bool) -> list[np.ndarr
 
 def step_errors(scans: list[np.ndarray], truth: list[np.ndarray], config: RegistrationConfig) -> np.ndarray:
     """ICP step - true step of every consecutive pair, (steps, 6) in project order."""
-    return np.array([matrix_to_pose(inverse(step) @ register(after, before, config).T_target_source)
-                     for before, after, step in zip(scans, scans[1:], truth)])
+    return np.array(
+        [
+            matrix_to_pose(inverse(step) @ register(after, before, config).T_target_source)
+            for before, after, step in zip(scans, scans[1:], truth)
+        ]
+    )
 
 
 def main() -> None:
@@ -74,26 +79,37 @@ def main() -> None:
         static = [lidar.scan(T, rng).points for T in poses]
         swept = [lidar.scan(poses[0], rng, start=poses[0]).points]  # the first revolution standing
         swept += [lidar.scan(after, rng, start=before).points for before, after in zip(poses, poses[1:])]
-        recent = [odo[max(0, k + 1 - DESKEW_STEPS): k + 1] for k in range(len(odo))]  # each step's last steps
+        recent = [odo[max(0, k + 1 - DESKEW_STEPS) : k + 1] for k in range(len(odo))]  # each step's last steps
         averaged = [deskew_motion(steps) for steps in recent]
         gyro = StepGyro(rng=np.random.default_rng(2))  # the sensor's own rotation: no mounting to turn it by
-        inertial = [deskew_motion(steps, gyro.measure(a[:3, :3], b[:3, :3], DT))
-                    for steps, a, b in zip(recent, poses, poses[1:])]
+        inertial = [
+            deskew_motion(steps, gyro.measure(a[:3, :3], b[:3, :3], DT))
+            for steps, a, b in zip(recent, poses, poses[1:])
+        ]
         cases = {"static": static, "swept, as they are": swept}
-        for name, motions in (("deskewed, the step's odometry", odo),
-                              (f"deskewed, odometry of {DESKEW_STEPS} steps", averaged),
-                              ("deskewed, gyro and odometry", inertial),
-                              ("deskewed, the true motion", truth)):
+        for name, motions in (
+            ("deskewed, the step's odometry", odo),
+            (f"deskewed, odometry of {DESKEW_STEPS} steps", averaged),
+            ("deskewed, gyro and odometry", inertial),
+            ("deskewed, the true motion", truth),
+        ):
             cases[name] = swept[:1] + [deskew(s, m, lidar.pattern) for s, m in zip(swept[1:], motions)]
         print(f"\n{'weaving' if weaving else 'steady'} path, {args.steps} steps: mean |ICP step - true step|")
-        print(f"{'scans':34s} {'x mm':>6s} {'y mm':>6s} {'z mm':>6s} {'roll':>6s} {'pitch':>6s} {'yaw mdeg':>8s} "
-              f"{'summed yaw':>12s}")
+        print(
+            f"{'scans':34s} {'x mm':>6s} {'y mm':>6s} {'z mm':>6s} {'roll':>6s} {'pitch':>6s} {'yaw mdeg':>8s} "
+            f"{'summed yaw':>12s}"
+        )
         for name, scans in cases.items():
             errors = step_errors(scans, truth, config)
             size = np.abs(errors).mean(axis=0)
-            print(f"{name:34s} " + " ".join(f"{1e3 * size[i]:6.2f}" for i in range(3)) + " "
-                  + " ".join(f"{1e3 * np.degrees(size[i]):6.1f}" for i in (3, 4, 5))
-                  + f" {np.degrees(errors[:, 5].sum()):8.2f} deg", flush=True)
+            print(
+                f"{name:34s} "
+                + " ".join(f"{1e3 * size[i]:6.2f}" for i in range(3))
+                + " "
+                + " ".join(f"{1e3 * np.degrees(size[i]):6.1f}" for i in (3, 4, 5))
+                + f" {np.degrees(errors[:, 5].sum()):8.2f} deg",
+                flush=True,
+            )
         print(f"({time.perf_counter() - t0:.0f} s)")
 
 

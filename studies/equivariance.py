@@ -10,6 +10,7 @@ decisions that agree with the stored scan's and the mean absolute change of the 
 reference in the same run is the stored scan judged twice (agreement 1, change 0). `--frame` also
 scores each checkpoint with its model reading that frame (ModelConfig.frame; the thresholds as stored).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -20,8 +21,11 @@ import torch
 from l3e_env.data.dataset import open_datasets
 from l3e_env.model.classifier import Classifier, model_input
 
-VIEWS = {"turned 180 deg": np.float32([-1, -1, 1]), "mirrored x-z": np.float32([1, -1, 1]),
-         "mirrored y-z": np.float32([-1, 1, 1])}
+VIEWS = {
+    "turned 180 deg": np.float32([-1, -1, 1]),
+    "mirrored x-z": np.float32([1, -1, 1]),
+    "mirrored y-z": np.float32([-1, 1, 1]),
+}
 
 
 def probabilities(clf: Classifier, scans: list[np.ndarray], sign: np.ndarray | None, seed: int = 0) -> np.ndarray:

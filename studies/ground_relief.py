@@ -15,6 +15,7 @@ relief: whether the same ground handicaps the point-to-point registration too.
 
 Run: python studies/ground_relief.py [--steps 10] [--yard-steps 400]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -34,8 +35,16 @@ PLACES = {"fork-0, pillared route": ("fork-0", 12.0, 3.1, 10.0), "mine-0, yard":
 RELIEFS = {"plane (as built)": None, "relief 3 cm": 0.03, "relief 8 cm": 0.08}
 
 
-def relief_ground(x0: float, x1: float, y0: float, y1: float, amplitude: float, rng: np.random.Generator,
-                  wavelengths: tuple[float, float] = (0.5, 4.0), cell: float = 0.3) -> trimesh.Trimesh:
+def relief_ground(
+    x0: float,
+    x1: float,
+    y0: float,
+    y1: float,
+    amplitude: float,
+    rng: np.random.Generator,
+    wavelengths: tuple[float, float] = (0.5, 4.0),
+    cell: float = 0.3,
+) -> trimesh.Trimesh:
     """Ground with the relief of gravel, dirt or worn asphalt: a grid of `cell` m whose height is a
     smooth random field of `amplitude` m on `wavelengths` m."""
     ground = ground_plane(x0, x1, y0, y1, cell=cell)

@@ -16,6 +16,7 @@ and the registration as configured (`RegistrationConfig()`, the default).
 
 Run: python studies/icp_step_bias.py [--steps 12] [--families tunnel,mine,...]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -37,8 +38,24 @@ from l3e_env.sim.lidar import Lidar
 from l3e_env.sim.raycast import make_caster
 from scenes import make_scene
 
-FAMILIES = ("office", "cave", "mine", "fork", "gallery", "yard", "chamber", "piperack", "layout", "bypass",
-            "field", "tunnel", "primitives-1", "primitives-2", "primitives-3", "primitives-4")
+FAMILIES = (
+    "office",
+    "cave",
+    "mine",
+    "fork",
+    "gallery",
+    "yard",
+    "chamber",
+    "piperack",
+    "layout",
+    "bypass",
+    "field",
+    "tunnel",
+    "primitives-1",
+    "primitives-2",
+    "primitives-3",
+    "primitives-4",
+)
 KINDS = ("neighbours", "ground", "true", "default")
 
 

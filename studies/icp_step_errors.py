@@ -19,6 +19,7 @@ which is why the fusion weighs each step by its Hessian instead.
 
 Run: python studies/icp_step_errors.py [--scenes tunnel-0,office-0,fork-0,field-0] [--tau 110] [--neighbours-normals]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -67,8 +68,11 @@ def main() -> None:
     parser.add_argument("--scenes", default="tunnel-0,office-0,fork-0,field-0")
     parser.add_argument("--tau", type=float, default=110.0, help="eigenvalue threshold that decides trust")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--neighbours-normals", action="store_true",
-                        help="register with small_gicp's neighbours' normals on the ground too (ground_normals off)")
+    parser.add_argument(
+        "--neighbours-normals",
+        action="store_true",
+        help="register with small_gicp's neighbours' normals on the ground too (ground_normals off)",
+    )
     args = parser.parse_args()
     registration = RegistrationConfig(ground_normals=not args.neighbours_normals)
     print(f"{'':34s}" + "".join(f"{a:>8s}" for a in AXES))
@@ -81,8 +85,7 @@ def main() -> None:
         pooled_sq, pooled_n = pooled_sq + squares, pooled_n + n
         with np.errstate(invalid="ignore", divide="ignore"):
             mean = np.where(trusted, errors, 0.0).sum(axis=0) / n
-            print(f"{scene} ({len(errors)} steps; trusted share " + " ".join(f"{s:.2f}" for s in n / len(errors))
-                  + ")")
+            print(f"{scene} ({len(errors)} steps; trusted share " + " ".join(f"{s:.2f}" for s in n / len(errors)) + ")")
             print(row("  ICP step error, mean", mean))
             print(row("  ICP step error, RMS", np.sqrt(squares / n)))
         print(row("  leg odometry sigma, median", np.median(sigmas, axis=0)))
@@ -93,8 +96,10 @@ def main() -> None:
     print(row("FusionConfig.icp_sigmas (fixed)", np.asarray(FusionConfig().icp_sigmas)))
     pooled = np.concatenate(fits)
     used = FusionConfig().icp_residual_variance
-    print(f"icp_residual_variance: the pooled mean of e' H e / 6 over {len(pooled)} steps is {pooled.mean():.4f} m^2 "
-          f"(the fusion's: {used})")
+    print(
+        f"icp_residual_variance: the pooled mean of e' H e / 6 over {len(pooled)} steps is {pooled.mean():.4f} m^2 "
+        f"(the fusion's: {used})"
+    )
 
 
 if __name__ == "__main__":

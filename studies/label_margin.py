@@ -21,6 +21,7 @@ the mean F1 it would score with x and y exact and its other axes as they are (wh
 cost the mean); and, as a model-free score, the AUROC of the sensor's tilt from the vertical (what
 an IMU knows) per axis.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -95,41 +96,64 @@ def main() -> None:
         for sigma in [0.0, *sigmas]:
             f1, means = noisy_scores(ratios, sigma, args.draws, rng)
             label = "exact estimate (reference)" if sigma == 0 else f"estimate, sigma {sigma:.2f}"
-            print(f"  {label:24s}" + "".join(f"{v:7.2f}" for v in f1) +
-                  f"   F1 {means['f1']:.3f} accuracy {means['accuracy']:.3f}")
-        print(f"  mean F1 falls to {TARGET_F1} at sigma {sigma_at(curves[split], TARGET_F1):.2f} "
-              f"(the estimate within a factor {np.exp(sigma_at(curves[split], TARGET_F1)):.2f}, one sigma)")
+            print(
+                f"  {label:24s}"
+                + "".join(f"{v:7.2f}" for v in f1)
+                + f"   F1 {means['f1']:.3f} accuracy {means['accuracy']:.3f}"
+            )
+        print(
+            f"  mean F1 falls to {TARGET_F1} at sigma {sigma_at(curves[split], TARGET_F1):.2f} "
+            f"(the estimate within a factor {np.exp(sigma_at(curves[split], TARGET_F1)):.2f}, one sigma)"
+        )
 
         probs = predict_dataset(clf.model, data, rows, progress=True)
         flagged = probs > clf.thresholds
         stored = axis_scores(labels, flagged)
         own = axis_scores(labels, probs > best_thresholds(labels, probs))
         model_f1[split] = mean_scores(stored)["f1"]
-        print(f"  {'model, stored thresh.':24s}" + "".join(f"{v:7.2f}" for v in stored["f1"]) +
-              f"   F1 {model_f1[split]:.3f} accuracy {mean_scores(stored)['accuracy']:.3f}")
-        print(f"  {'model, best for split':24s}" + "".join(f"{v:7.2f}" for v in own["f1"]) +
-              f"   F1 {mean_scores(own)['f1']:.3f} accuracy {mean_scores(own)['accuracy']:.3f}")
+        print(
+            f"  {'model, stored thresh.':24s}"
+            + "".join(f"{v:7.2f}" for v in stored["f1"])
+            + f"   F1 {model_f1[split]:.3f} accuracy {mean_scores(stored)['accuracy']:.3f}"
+        )
+        print(
+            f"  {'model, best for split':24s}"
+            + "".join(f"{v:7.2f}" for v in own["f1"])
+            + f"   F1 {mean_scores(own)['f1']:.3f} accuracy {mean_scores(own)['accuracy']:.3f}"
+        )
         print(f"  {'model AUROC':24s}" + "".join(f"{auroc(labels[:, a], probs[:, a]):7.2f}" for a in range(6)))
         exact_xy = flagged.copy()
         exact_xy[:, :2] = labels[:, :2]
-        print(f"  {'model, x and y exact':24s}" + "".join(f"{v:7.2f}" for v in axis_scores(labels, exact_xy)["f1"]) +
-              f"   F1 {mean_scores(axis_scores(labels, exact_xy))['f1']:.3f}")
+        print(
+            f"  {'model, x and y exact':24s}"
+            + "".join(f"{v:7.2f}" for v in axis_scores(labels, exact_xy)["f1"])
+            + f"   F1 {mean_scores(axis_scores(labels, exact_xy))['f1']:.3f}"
+        )
         tilt = tilt_all[rows]
-        print(f"  {'sensor tilt AUROC':24s}" + "".join(f"{auroc(labels[:, a], tilt):7.2f}" for a in range(6)) +
-              f"   median tilt {np.median(tilt):.1f} deg")
-        print(f"  the model's mean F1 equals that of an estimate with sigma "
-              f"{sigma_at(curves[split], model_f1[split]):.2f}")
+        print(
+            f"  {'sensor tilt AUROC':24s}"
+            + "".join(f"{auroc(labels[:, a], tilt):7.2f}" for a in range(6))
+            + f"   median tilt {np.median(tilt):.1f} deg"
+        )
+        print(
+            f"  the model's mean F1 equals that of an estimate with sigma "
+            f"{sigma_at(curves[split], model_f1[split]):.2f}"
+        )
         false_flags, misses = flagged & ~labels, ~flagged & labels
-        print(f"  false flags {false_flags.sum()}, of them {(false_flags & (ratios < 0.5)).sum()} on errors under half "
-              f"the threshold; misses {misses.sum()}, of them {(misses & (ratios <= 1.25)).sum()} within 1.25x")
+        print(
+            f"  false flags {false_flags.sum()}, of them {(false_flags & (ratios < 0.5)).sum()} on errors under half "
+            f"the threshold; misses {misses.sum()}, of them {(misses & (ratios <= 1.25)).sum()} within 1.25x"
+        )
 
     if args.plot:
         import matplotlib
+
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
+
         fig, ax = plt.subplots(figsize=(6, 4))
         for split, curve in curves.items():
-            line, = ax.plot(SIGMA_GRID, curve, label=f"{split}: noisy estimate of the error")
+            (line,) = ax.plot(SIGMA_GRID, curve, label=f"{split}: noisy estimate of the error")
             ax.axhline(model_f1[split], color=line.get_color(), ls="--", lw=1, label=f"{split}: model")
         ax.axhline(TARGET_F1, color="k", ls=":", lw=1, label=f"target {TARGET_F1}")
         ax.set_xlabel("sigma of ln(estimated error / true mean error)")

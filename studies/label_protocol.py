@@ -11,6 +11,7 @@ The table counts, per axis, the positives under p1 and p2 and how many labels th
 
 Run: python studies/label_protocol.py [--parents 8] [--children 60] [--scenes tunnel-0,...]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -31,13 +32,31 @@ from l3e_env.sim.lidar import Lidar
 from l3e_env.sim.raycast import EmbreeCaster
 from scenes import make_scene
 
-SCENES = ("tunnel-0", "field-0", "office-0", "cave-0", "primitives-0", "primitives-1", "primitives-3",
-          "primitives-4", "gallery-0", "chamber-0", "fork-0", "mine-0", "piperack-0")
+SCENES = (
+    "tunnel-0",
+    "field-0",
+    "office-0",
+    "cave-0",
+    "primitives-0",
+    "primitives-1",
+    "primitives-3",
+    "primitives-4",
+    "gallery-0",
+    "chamber-0",
+    "fork-0",
+    "mine-0",
+    "piperack-0",
+)
 PAPER = LabelConfig(thresholds=(0.1, 0.1, 0.1, 2.0, 2.0, 2.0))
 
 
-def parent_errors(lidar: Lidar, T_w_p: np.ndarray, rng: np.random.Generator, config: LabelConfig,
-                  registrations: list[RegistrationConfig]) -> np.ndarray:
+def parent_errors(
+    lidar: Lidar,
+    T_w_p: np.ndarray,
+    rng: np.random.Generator,
+    config: LabelConfig,
+    registrations: list[RegistrationConfig],
+) -> np.ndarray:
     """(registrations, 6) mean absolute errors over the same children."""
     parent = lidar.scan(T_w_p, rng)
     targets = [PreparedTarget(parent.points, r) for r in registrations]
@@ -46,9 +65,14 @@ def parent_errors(lidar: Lidar, T_w_p: np.ndarray, rng: np.random.Generator, con
         T_p_c = pose_to_matrix(rng.normal(0, 1, 6) * sigma)
         child = lidar.scan(T_w_p @ T_p_c, rng)
         try:
-            row = [registration_error(register(prepare_source(child.points, r), t, r, with_hessian=False)
-                                      .T_target_source, T_p_c, config.error_frame)
-                   for r, t in zip(registrations, targets)]
+            row = [
+                registration_error(
+                    register(prepare_source(child.points, r), t, r, with_hessian=False).T_target_source,
+                    T_p_c,
+                    config.error_frame,
+                )
+                for r, t in zip(registrations, targets)
+            ]
         except RegistrationError:
             continue
         errors.append(row)
@@ -82,10 +106,15 @@ def main() -> None:
         p1, thr, p2 = (np.array(a) for a in (p1, thr, p2))
         counts = np.array([p1.sum(0), p2.sum(0), (p1 != thr).sum(0), (thr != p2).sum(0)])
         total += counts
-        print(f"{name:14s} " + "  ".join(f"{AXES[i]} {counts[0, i]}->{counts[1, i]} ({counts[2, i]}, {counts[3, i]})"
-                                         for i in range(6)), flush=True)
-    print(f"{'all':14s} " + "  ".join(f"{AXES[i]} {total[0, i]}->{total[1, i]} ({total[2, i]}, {total[3, i]})"
-                                      for i in range(6)))
+        print(
+            f"{name:14s} "
+            + "  ".join(f"{AXES[i]} {counts[0, i]}->{counts[1, i]} ({counts[2, i]}, {counts[3, i]})" for i in range(6)),
+            flush=True,
+        )
+    print(
+        f"{'all':14s} "
+        + "  ".join(f"{AXES[i]} {total[0, i]}->{total[1, i]} ({total[2, i]}, {total[3, i]})" for i in range(6))
+    )
 
 
 if __name__ == "__main__":

@@ -12,6 +12,7 @@ The reference in the same run is the stored labels scored against themselves (1.
 --translation repeats the comparison with other x/y/z label thresholds (both draws relabelled
 from their stored mean errors), to see which threshold gives labels that repeat.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -71,26 +72,34 @@ def main() -> None:
         np.savez(args.out, rows=rows, stored=data.errors[rows], again=errors, thresholds=thresholds)
     first, second = data.labels[rows][ok], (errors[ok] > thresholds).astype(np.uint8)
 
-    print(f"{args.dataset}: {ok.sum()} parents of {args.scenes} relabelled with M = {children} "
-          f"in {seconds:.0f} s ({(~ok).sum()} could not be registered)")
+    print(
+        f"{args.dataset}: {ok.sum()} parents of {args.scenes} relabelled with M = {children} "
+        f"in {seconds:.0f} s ({(~ok).sum()} could not be registered)"
+    )
     same = mean_scores(axis_scores(first, first))
     scores = axis_scores(first, second)
     means = mean_scores(scores)
     print(f"{'axis':6s} {'pos 1st':>8s} {'pos 2nd':>8s} {'accuracy':>9s} {'F1':>6s} {'error corr':>11s}")
     for a, axis in enumerate(AXES):
         corr = np.corrcoef(data.errors[rows][ok, a], errors[ok, a])[0, 1]
-        print(f"{axis:6s} {first[:, a].sum():8d} {second[:, a].sum():8d} {scores['accuracy'][a]:9.3f} "
-              f"{scores['f1'][a]:6.3f} {corr:11.3f}")
-    print(f"mean   accuracy {means['accuracy']:.3f} F1 {means['f1']:.3f}  (reference, stored vs stored: "
-          f"accuracy {same['accuracy']:.3f} F1 {same['f1']:.3f}; ratio F1 {means['f1'] / same['f1']:.2f})")
+        print(
+            f"{axis:6s} {first[:, a].sum():8d} {second[:, a].sum():8d} {scores['accuracy'][a]:9.3f} "
+            f"{scores['f1'][a]:6.3f} {corr:11.3f}"
+        )
+    print(
+        f"mean   accuracy {means['accuracy']:.3f} F1 {means['f1']:.3f}  (reference, stored vs stored: "
+        f"accuracy {same['accuracy']:.3f} F1 {same['f1']:.3f}; ratio F1 {means['f1'] / same['f1']:.2f})"
+    )
     for t in filter(None, args.translation.split(",")):
         other = thresholds.copy()
         other[:3] = float(t)
         a, b = data.errors[rows][ok] > other, errors[ok] > other
         s = axis_scores(a, b)
         m = mean_scores(s)
-        print(f"x/y/z threshold {float(t):.3f} m: positives {a[:, :3].sum(0)} / {b[:, :3].sum(0)}, "
-              f"F1 x/y/z {np.round(s['f1'][:3], 3)}, mean over axes accuracy {m['accuracy']:.3f} F1 {m['f1']:.3f}")
+        print(
+            f"x/y/z threshold {float(t):.3f} m: positives {a[:, :3].sum(0)} / {b[:, :3].sum(0)}, "
+            f"F1 x/y/z {np.round(s['f1'][:3], 3)}, mean over axes accuracy {m['accuracy']:.3f} F1 {m['f1']:.3f}"
+        )
 
 
 if __name__ == "__main__":

@@ -4,6 +4,7 @@ Run: python studies/label_settings.py [--children 40]
 Each row registers M children to one parent with one registration setting and prints the mean
 error (m, deg), the labels (1 = not localizable), ICP time per child and non-converged runs.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -18,13 +19,22 @@ from l3e_env.sim.lidar import Lidar
 from l3e_env.sim.raycast import EmbreeCaster
 from scenes import make_scene
 
-POSES = [("tunnel-0", (50, 0, 0.85, 0, 0, 0), "tunnel axis x"), ("office-0", (5, 0, 0.85, 0, 0, 0.3), "nothing"),
-         ("field-0", (40, 0, 0.85, 0, 0, 0), "x, y, yaw"), ("mine-0", (-30, 0.5, 0.85, 0, 0, 0), "yard: nothing"),
-         ("mine-0", (50, 0, 0.85, 0, 0, 0), "tunnel: x"), ("mine-0", (115, 0, 0.85, 0, 0, 0), "quarry")]
+POSES = [
+    ("tunnel-0", (50, 0, 0.85, 0, 0, 0), "tunnel axis x"),
+    ("office-0", (5, 0, 0.85, 0, 0, 0.3), "nothing"),
+    ("field-0", (40, 0, 0.85, 0, 0, 0), "x, y, yaw"),
+    ("mine-0", (-30, 0.5, 0.85, 0, 0, 0), "yard: nothing"),
+    ("mine-0", (50, 0, 0.85, 0, 0, 0), "tunnel: x"),
+    ("mine-0", (115, 0, 0.85, 0, 0, 0), "quarry"),
+]
 SETTINGS = {
-    "single 1.0 m, 30 it, 0.25 m voxels, all points": dict(max_correspondence_distance=(1.0,), max_iterations=30,
-                                                           downsampling_resolution=0.25, max_source_points=0,
-                                                           num_neighbors=10),
+    "single 1.0 m, 30 it, 0.25 m voxels, all points": dict(
+        max_correspondence_distance=(1.0,),
+        max_iterations=30,
+        downsampling_resolution=0.25,
+        max_source_points=0,
+        num_neighbors=10,
+    ),
     "coarse-to-fine 2.0/0.5 m, 15 it, 0.3 m, 10 nb": dict(downsampling_resolution=0.3, num_neighbors=10),
     "coarse-to-fine 2.0/0.5 m, 15 it, 0.15 m, 10 nb": dict(num_neighbors=10),
     "default: 2.0/0.5 m, 15 it, 0.15 m, 20 nb, 1000 pts": dict(),
@@ -60,9 +70,11 @@ def main() -> None:
                     errs.append(registration_error(res.T_target_source, T_pc, frame))
                 e = np.mean(errs, axis=0)
                 shown = np.concatenate([e[:3], np.degrees(e[3:])])
-                print(f"  {scene:9s} x={pose[0]:5.0f}  error {np.array2string(shown, precision=2, floatmode='fixed')}  "
-                      f"labels {(e > thr).astype(int)}  (expected {expected})  {t / args.children * 1e3:5.1f} ms/ICP  "
-                      f"{bad} not converged")
+                print(
+                    f"  {scene:9s} x={pose[0]:5.0f}  error {np.array2string(shown, precision=2, floatmode='fixed')}  "
+                    f"labels {(e > thr).astype(int)}  (expected {expected})  {t / args.children * 1e3:5.1f} ms/ICP  "
+                    f"{bad} not converged"
+                )
 
 
 if __name__ == "__main__":

@@ -7,6 +7,7 @@ A 10 Hz walk at 1 m/s, straight and on a 5 m circle, is dead-reckoned by `LegOdo
 its axes) is the reference the propagated standard deviations are printed against, beside a model
 that takes each step's noise (`odometry_sigmas`) as white.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -40,8 +41,11 @@ def main() -> None:
             error = np.eye(4)
             error[:3, :3] = T_odom[:3, :3] @ T_true[:3, :3].T
             ends.append(np.r_[T_odom[:3, 3] - T_true[:3, 3], matrix_to_pose(error)[3:]])
-        rows = (("drift's spread", np.std(ends, axis=0)), ("propagated", np.sqrt(np.diag(P))),
-                ("white steps only", np.sqrt(np.diag(rotate @ white @ rotate.T))))
+        rows = (
+            ("drift's spread", np.std(ends, axis=0)),
+            ("propagated", np.sqrt(np.diag(P))),
+            ("white steps only", np.sqrt(np.diag(rotate @ white @ rotate.T))),
+        )
         for label, values in rows:
             print(f"{name:12s} {label:22s}" + "".join(f"{v:8.3f}" for v in values))
 

@@ -6,6 +6,7 @@ error and path length.
 Run: python studies/ppo_sideways.py --policy runs/ppo-bypass --scene bypass-100 --scene bypass-101
 (the fusion options of docs/results.md's bypass table; two episodes at a time)
 """
+
 from __future__ import annotations
 
 import argparse
@@ -49,8 +50,10 @@ def main() -> None:
     print(f"{'scene':11s} {'vy':>6s} {'success':>7s} {'final m':>7s} {'path m':>7s}  mean |vx vy wz|   mean vx vy wz")
     with get_context("spawn").Pool(2, maxtasksperchild=1) as pool:
         for scene, zero, ok, final, path, size, mean in pool.imap(episode, jobs):
-            print(f"{scene:11s} {'zero' if zero else 'own':>6s} {str(ok):>7s} {final:7.2f} {path:7.1f}  "
-                  f"{np.round(size, 3)}  {np.round(mean, 3)}")
+            print(
+                f"{scene:11s} {'zero' if zero else 'own':>6s} {str(ok):>7s} {final:7.2f} {path:7.1f}  "
+                f"{np.round(size, 3)}  {np.round(mean, 3)}"
+            )
 
 
 if __name__ == "__main__":

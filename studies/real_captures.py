@@ -9,6 +9,7 @@ which each pair of detectors agrees; then the shipped classifier's decisions kep
 turned 180 deg about z (a degenerate axis is degenerate whichever way the sensor faces), against the
 scan judged twice (the reference in the same run, 100%).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -23,14 +24,16 @@ from l3e_env.io.ouster import read_capture
 from l3e_env.localizability.labels import AXES
 
 DATA = Path(__file__).resolve().parents[1] / "tests" / "data" / "ouster"
-CAPTURES = ["OS-1-128_v2.3.0_1024x10_lb_n3.osf", "OS-0-128_v3.0.1_1024x10_20241017_141645.osf",
-            "osf_fw_3.2_10scans.osf"]
+CAPTURES = [
+    "OS-1-128_v2.3.0_1024x10_lb_n3.osf",
+    "OS-0-128_v3.0.1_1024x10_20241017_141645.osf",
+    "osf_fw_3.2_10scans.osf",
+]
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--detector", action="append", help="detector specs (default: learned, eigen:30, dcreg:50, "
-                                                        "scanmc)")
+    ap.add_argument("--detector", action="append", help="detector specs (default: learned, eigen:30, dcreg:50, scanmc)")
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
     specs = args.detector or ["learned", "eigen:30", "dcreg:50", "scanmc"]
@@ -45,11 +48,16 @@ def main() -> None:
             flags = np.sum([p.mask for p in known], axis=0) if known else np.zeros(6, int)
             unknown = len(judged) - len(known)
             cells.append("/".join(str(int(f)) for f in flags) + (f" ({unknown} unknown)" if unknown else ""))
-            masks.setdefault(name, []).extend(p.mask if p.known else np.full(6, np.nan) for p in
-                                              (j.predictions[name] for j in judged))
+            masks.setdefault(name, []).extend(
+                p.mask if p.known else np.full(6, np.nan) for p in (j.predictions[name] for j in judged)
+            )
         print(f"| {capture} | {len(judged)} | " + " | ".join(cells) + " |")
-    print(f"\nflagged axes counted {'/'.join(AXES)}\n\n| agreement | " + " | ".join(masks) + " |\n|---|"
-          + "---|" * len(masks))
+    print(
+        f"\nflagged axes counted {'/'.join(AXES)}\n\n| agreement | "
+        + " | ".join(masks)
+        + " |\n|---|"
+        + "---|" * len(masks)
+    )
     for a in masks:
         row = []
         for b in masks:
@@ -70,8 +78,10 @@ def main() -> None:
             kept += int((a.mask == b.mask).sum())
             twice += int((a.mask == again.mask).sum())
             total += len(AXES)
-    print(f"\nlearned under a 180 deg turn: {kept}/{total} axis decisions kept ({kept / total:.1%}); "
-          f"judged twice: {twice}/{total}")
+    print(
+        f"\nlearned under a 180 deg turn: {kept}/{total} axis decisions kept ({kept / total:.1%}); "
+        f"judged twice: {twice}/{total}"
+    )
 
 
 if __name__ == "__main__":

@@ -17,6 +17,7 @@ children every time (no stages, no calibration). Two tables follow.
    estimate) = a + b x openness per axis, least absolute deviations, fitted on the training scans
    only, scored on all three splits.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -47,7 +48,7 @@ def _raw_rows(scans: DatasetScans, rows: np.ndarray) -> list[tuple[np.ndarray, f
     for row in rows:
         children = np.full((scans.config.children, 6), np.nan)
         if (found := row_estimate(scans, row)) is not None:  # seeded by the row, as dataset_scan_errors is
-            children[:len(found.child_errors)] = found.child_errors
+            children[: len(found.child_errors)] = found.child_errors
         part, at = scans.data.locate(int(row))
         out.append((children, 1.0 - len(part.scan(at)) / (pattern.n_beams * pattern.n_azimuth)))
     return out
@@ -56,7 +57,7 @@ def _raw_rows(scans: DatasetScans, rows: np.ndarray) -> list[tuple[np.ndarray, f
 def raw_estimates(folders: list[str], rows: np.ndarray, children: int, workers: int) -> tuple[np.ndarray, np.ndarray]:
     """(rows, children, 6) raw child errors and (rows,) openness, over `workers` processes."""
     config = ScanMCConfig(children=children, settle=0.0, calibration=(1.0,) * 6)
-    chunks = [rows[i:i + 4] for i in range(0, len(rows), 4)]
+    chunks = [rows[i : i + 4] for i in range(0, len(rows), 4)]
     found: list[tuple[np.ndarray, float]] = []
     with tqdm(total=len(rows), desc=f"{children} children a scan", leave=False) as bar:
         for part in ordered_map(_raw_rows, chunks, None, open_dataset_scans, (folders, config, 0), workers):
@@ -87,9 +88,11 @@ def main() -> None:
     warnings.filterwarnings("ignore", "Mean of empty slice")  # a scan none of whose children registered
     data = open_datasets(args.dataset)
     names = data.manifest["scenes"]
-    rows = {split: split_indices(data, [s for s in scenes if s in names])
-            for split, scenes in (("train", TRAIN_SCENES), ("valid", VALIDATION_SCENES), ("test", TEST_SCENES))}
-    rows["train"] = np.sort(np.random.default_rng(0).permutation(rows["train"])[:args.scans])
+    rows = {
+        split: split_indices(data, [s for s in scenes if s in names])
+        for split, scenes in (("train", TRAIN_SCENES), ("valid", VALIDATION_SCENES), ("test", TEST_SCENES))
+    }
+    rows["train"] = np.sort(np.random.default_rng(0).permutation(rows["train"])[: args.scans])
     cache = Path(args.cache) if args.cache else None
     if cache is not None and cache.exists():
         stored = np.load(cache)
@@ -99,18 +102,26 @@ def main() -> None:
         t0 = time.perf_counter()
         found = {s: raw_estimates(args.dataset, r, args.children, args.workers) for s, r in rows.items()}
         children, openness = {s: f[0] for s, f in found.items()}, {s: f[1] for s, f in found.items()}
-        print(f"{sum(map(len, rows.values()))} scans, {args.children} children each: "
-              f"{time.perf_counter() - t0:.0f} s on {args.workers} workers")
+        print(
+            f"{sum(map(len, rows.values()))} scans, {args.children} children each: "
+            f"{time.perf_counter() - t0:.0f} s on {args.workers} workers"
+        )
         if cache is not None:
-            np.savez(cache, **{f"{s}_children": c for s, c in children.items()},
-                     **{f"{s}_openness": o for s, o in openness.items()})
+            np.savez(
+                cache,
+                **{f"{s}_children": c for s, c in children.items()},
+                **{f"{s}_openness": o for s, o in openness.items()},
+            )
     calibration = np.asarray(ScanMCConfig.calibration)
     labels = data.manifest["settings"]["labels"]  # one dict, or one per dataset of a union
     label_children = min(s["children"] for s in (labels if isinstance(labels, list) else [labels]))
     thresholds = row_thresholds(data)
 
-    print("\n1. Scans near the threshold: log(label / estimate x calibration "
-          + " ".join(f"{c:.2f}" for c in calibration) + ")")
+    print(
+        "\n1. Scans near the threshold: log(label / estimate x calibration "
+        + " ".join(f"{c:.2f}" for c in calibration)
+        + ")"
+    )
     print("split  axis    scans  bias   spread  estimate MC  label MC  rest")
     for split, r in (("valid", rows["valid"]), ("test", rows["test"])):
         kids = children[split]
@@ -127,8 +138,10 @@ def main() -> None:
             own = np.median(relative[m, a] / np.sqrt(n[m, 0]))
             label = np.median(relative[m, a]) / np.sqrt(label_children)
             rest = np.sqrt(max(spread**2 - own**2 - label**2, 0.0))
-            print(f"{split:6s} {axis:6s} {m.sum():6d}  {np.median(ratio[m, a]):+.2f}  {spread:6.2f}  {own:11.2f}  "
-                  f"{label:8.2f}  {rest:4.2f}")
+            print(
+                f"{split:6s} {axis:6s} {m.sum():6d}  {np.median(ratio[m, a]):+.2f}  {spread:6.2f}  {own:11.2f}  "
+                f"{label:8.2f}  {rest:4.2f}"
+            )
 
     train = children["train"]
     known = np.isfinite(np.nanmean(train, axis=1)).all(axis=1)  # scans with a registered child
@@ -136,8 +149,10 @@ def main() -> None:
     log_ratio = np.log(data.errors[rows["train"][known]] / estimate)
     constant = np.exp(np.median(log_ratio, axis=0))
     line = np.array([least_absolute_line(openness["train"][known], log_ratio[:, a]) for a in range(6)])
-    print("\n2. Openness: mean share of the grid with no return: "
-          + ", ".join(f"{s} {openness[s].mean():.3f}" for s in rows))
+    print(
+        "\n2. Openness: mean share of the grid with no return: "
+        + ", ".join(f"{s} {openness[s].mean():.3f}" for s in rows)
+    )
     print("axis    corr(openness, log label/estimate) on train  constant  a     b")
     for a, axis in enumerate(AXES):
         corr = np.corrcoef(openness["train"][known], log_ratio[:, a])[0, 1]
@@ -151,8 +166,10 @@ def main() -> None:
             flags = (estimate * factor > thresholds[r])[ok]
             scores = axis_scores(data.labels[r][ok], flags)
             means = mean_scores(scores)
-            print(f"{split:6s} {name:11s}  {means['accuracy']:.3f}     {means['f1']:.3f}  "
-                  + " ".join(f"{f:.2f}" for f in scores["f1"]))
+            print(
+                f"{split:6s} {name:11s}  {means['accuracy']:.3f}     {means['f1']:.3f}  "
+                + " ".join(f"{f:.2f}" for f in scores["f1"])
+            )
 
 
 if __name__ == "__main__":

@@ -9,6 +9,7 @@ estimated by scanmc with all `--children` drawn: with the sensor's exact pattern
 pattern unstaggered, and with the pattern `fit_pattern` recognises from the scan and its rings.
 The label's mean error in the same run is the reference each estimate is read against.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -63,10 +64,19 @@ def main() -> None:
         for pattern in (exact, unstaggered, fitted):
             register_pattern(pattern)
         print(f"{x:6.0f} {'label (200 children)':24s}" + "".join(f"{e:8.3f}" for e in label.errors))
-        for name, model in (("exact pattern", exact.name), ("unstaggered", "unstaggered"),
-                            ("recognised from the scan", fitted.name)):
-            errors = scan_errors(scan.points.astype(np.float64), LidarConfig(model=model), registration, labels,
-                                 config, np.random.default_rng(2)).errors
+        for name, model in (
+            ("exact pattern", exact.name),
+            ("unstaggered", "unstaggered"),
+            ("recognised from the scan", fitted.name),
+        ):
+            errors = scan_errors(
+                scan.points.astype(np.float64),
+                LidarConfig(model=model),
+                registration,
+                labels,
+                config,
+                np.random.default_rng(2),
+            ).errors
             print(f"{'':6s} {name:24s}" + "".join(f"{e:8.3f}" for e in errors))
         print(f"{'':6s} (recognised: {how})")
         PATTERNS.pop(fitted.name)  # each pose's scan is recognised afresh

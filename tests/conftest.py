@@ -27,8 +27,9 @@ def rng():
 def tiny_dataset(tmp_path_factory):
     """Twelve labelled parents in three scenes, for training and evaluation tests."""
     out = tmp_path_factory.mktemp("tiny")
-    cfg = config_for(None, scenes=["tunnel-0", "office-0", "field-0"], parents_per_scene=4, shard_size=2,
-                     labels={"children": 8})
+    cfg = config_for(
+        None, scenes=["tunnel-0", "office-0", "field-0"], parents_per_scene=4, shard_size=2, labels={"children": 8}
+    )
     generate(out, cfg, workers=1, progress=False)
     return out
 

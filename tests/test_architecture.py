@@ -1,5 +1,6 @@
 """The layers that pyproject.toml's import-linter contracts keep (docs/architecture.md), and the docs
 that build without a broken link."""
+
 from __future__ import annotations
 
 import os
@@ -17,8 +18,14 @@ PACKAGES = ("scenes", "fusion", "l3e_env", "policies")
 
 def lint_imports(root: Path) -> subprocess.CompletedProcess:
     env = {**os.environ, "PYTHONPATH": str(root)}
-    return subprocess.run([str(Path(sys.executable).with_name("lint-imports")), "--no-cache"], cwd=root, env=env,
-                          capture_output=True, text=True, timeout=300)
+    return subprocess.run(
+        [str(Path(sys.executable).with_name("lint-imports")), "--no-cache"],
+        cwd=root,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
 
 
 def test_the_import_contracts_hold():
@@ -27,12 +34,15 @@ def test_the_import_contracts_hold():
     assert "0 broken" in out.stdout and " kept" in out.stdout
 
 
-@pytest.mark.parametrize("module, line, broken", [
-    ("l3e_env/sim/render.py", "from l3e_env.model import sparse", ["no torch", "layers"]),
-    ("l3e_env/localizability/labels.py", "from l3e_env.detection import detectors", ["no torch", "layers"]),
-    ("fusion/metrics.py", "import scenes", ["fusion imports nothing"]),
-    ("l3e_env/experiments/demo.py", "import policies", ["nothing imports policies"]),
-])
+@pytest.mark.parametrize(
+    "module, line, broken",
+    [
+        ("l3e_env/sim/render.py", "from l3e_env.model import sparse", ["no torch", "layers"]),
+        ("l3e_env/localizability/labels.py", "from l3e_env.detection import detectors", ["no torch", "layers"]),
+        ("fusion/metrics.py", "import scenes", ["fusion imports nothing"]),
+        ("l3e_env/experiments/demo.py", "import policies", ["nothing imports policies"]),
+    ],
+)
 def test_the_contracts_catch_an_import_against_the_layers(tmp_path, module, line, broken):
     for name in PACKAGES:
         shutil.copytree(ROOT / name, tmp_path / name, ignore=shutil.ignore_patterns("*.pt", "__pycache__"))
@@ -47,9 +57,14 @@ def test_the_contracts_catch_an_import_against_the_layers(tmp_path, module, line
 
 def test_the_docs_build_strictly(tmp_path):
     """Every page listed, every link and anchor found (`mkdocs build --strict`)."""
-    out = subprocess.run([str(Path(sys.executable).with_name("mkdocs")), "build", "--strict", "--site-dir",
-                          str(tmp_path / "site")], cwd=ROOT, capture_output=True, text=True, timeout=300,
-                         env={**os.environ, "NO_MKDOCS_2_WARNING": "1"})
+    out = subprocess.run(
+        [str(Path(sys.executable).with_name("mkdocs")), "build", "--strict", "--site-dir", str(tmp_path / "site")],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env={**os.environ, "NO_MKDOCS_2_WARNING": "1"},
+    )
     assert out.returncode == 0, out.stdout + out.stderr
     assert (tmp_path / "site" / "index.html").is_file()
 
@@ -57,8 +72,9 @@ def test_the_docs_build_strictly(tmp_path):
 def test_the_cli_reference_is_current():
     from l3e_env.cli.reference import cli_reference
 
-    assert (ROOT / "docs" / "cli.md").read_text() == cli_reference(), \
+    assert (ROOT / "docs" / "cli.md").read_text() == cli_reference(), (
         "docs/cli.md is stale: python -m l3e_env.cli.reference > docs/cli.md"
+    )
 
 
 def test_the_readme_is_short_and_its_links_resolve():

@@ -1,4 +1,5 @@
 """The local layer that keeps a policy steering on a wrong estimate off what the scan shows."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -62,10 +63,14 @@ def test_obstacles_are_the_returns_at_the_bases_height():
     robot = RobotConfig()
     T_b_s = planar_pose(*robot.lidar_offset, 0.0)
     sensor_z = robot.lidar_offset[2]
-    points = np.array([[2.0, 0.0, -robot.standing_height - sensor_z],  # the floor
-                       [2.0, 0.5, -robot.standing_height - sensor_z + 0.1],  # a pebble
-                       [2.0, 1.0, -sensor_z],  # at the base's centre height
-                       [3.0, 0.0, 2.0]])  # a roof
+    points = np.array(
+        [
+            [2.0, 0.0, -robot.standing_height - sensor_z],  # the floor
+            [2.0, 0.5, -robot.standing_height - sensor_z + 0.1],  # a pebble
+            [2.0, 1.0, -sensor_z],  # at the base's centre height
+            [3.0, 0.0, 2.0],
+        ]
+    )  # a roof
     np.testing.assert_allclose(FreeHeadings.obstacles(points, T_b_s, robot), [[2.0, 1.0]])
 
 

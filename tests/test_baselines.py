@@ -1,4 +1,5 @@
 """External odometries on a drive: frames handled once, failures kept in their rows, missing packages named."""
+
 import numpy as np
 import pytest
 
@@ -40,7 +41,7 @@ def test_an_exact_odometry_gives_the_true_body_trajectory_through_the_mounting(m
     assert min(s.min() for s in odometry.stamps) >= 0 and max(s.max() for s in odometry.stamps) <= 1
     odometry.k = 0
     run_baseline("kiss-icp", scans, gt[0], T_b_s, None, progress=False)  # one instant a scan: no times
-    assert all(len(s) == 0 for s in odometry.stamps[len(scans):])
+    assert all(len(s) == 0 for s in odometry.stamps[len(scans) :])
 
 
 def test_a_failing_or_diverging_odometry_is_reported_not_raised(monkeypatch):
@@ -74,11 +75,23 @@ def test_kiss_icp_and_genz_icp_rows_in_the_ate_table(tmp_path):
     pytest.importorskip("genz_icp")
     from l3e_env.experiments.ate import AteOptions, run_ate
 
-    run = run_ate(tmp_path, "office", ["none", "eigen:30"], AteOptions(
-        max_steps=40, baselines=["kiss-icp", "genz-icp"], frontends=["icp", "genz-icp"]), progress=False)
+    run = run_ate(
+        tmp_path,
+        "office",
+        ["none", "eigen:30"],
+        AteOptions(max_steps=40, baselines=["kiss-icp", "genz-icp"], frontends=["icp", "genz-icp"]),
+        progress=False,
+    )
     names = [r["detector"] for r in run.rows]
-    assert names == ["odometry only", "none", "eigen:30", "none @genz-icp", "eigen:30 @genz-icp", "kiss-icp",
-                     "genz-icp"]
+    assert names == [
+        "odometry only",
+        "none",
+        "eigen:30",
+        "none @genz-icp",
+        "eigen:30 @genz-icp",
+        "kiss-icp",
+        "genz-icp",
+    ]
     assert all(r["ate_m"] is not None and np.isfinite(r["ate_m"]) for r in run.rows)
     assert "kiss-icp" in run.table() and (tmp_path / "trajectories" / "kiss-icp.tum").exists()
     import json

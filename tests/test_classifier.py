@@ -1,4 +1,5 @@
 """The classifier: input checks, checkpoints, batching, scores and thresholds, resumable training."""
+
 import copy
 import dataclasses
 import json
@@ -68,13 +69,20 @@ def _checkpoint(path, architecture="resunet", seed=0, symmetric_thresholds=None)
     return path
 
 
-@pytest.mark.parametrize("bad, words", [
-    (np.zeros((0, 3)), "0 points"), (np.zeros((49, 3)), "49 points"), (np.zeros((100, 2)), "shape"),
-    (np.array([[np.nan, 0, 0]] + [[1, 2, 3]] * 99), "1 point with NaN"),
-    (np.array([[30000.0, 0, 0]] + [[1000, 2000, 300]] * 99),
-     "reach 30000 m from the sensor, beyond 1000 m .a scan in millimetres"),
-    (np.array([[4.2e5, 5.3e6, 300]] * 100), "not in the sensor's frame"),
-])
+@pytest.mark.parametrize(
+    "bad, words",
+    [
+        (np.zeros((0, 3)), "0 points"),
+        (np.zeros((49, 3)), "49 points"),
+        (np.zeros((100, 2)), "shape"),
+        (np.array([[np.nan, 0, 0]] + [[1, 2, 3]] * 99), "1 point with NaN"),
+        (
+            np.array([[30000.0, 0, 0]] + [[1000, 2000, 300]] * 99),
+            "reach 30000 m from the sensor, beyond 1000 m .a scan in millimetres",
+        ),
+        (np.array([[4.2e5, 5.3e6, 300]] * 100), "not in the sensor's frame"),
+    ],
+)
 def test_scans_the_classifier_cannot_judge_are_named(bad, words):
     with pytest.raises(ScanError, match=words):
         check_scan(bad)
@@ -307,8 +315,11 @@ def test_region_rows_split_the_scenes_by_their_named_places():
     xy = [(-20, 0), (50, 0), (120, 0), (200, 0), (10, 0), (0, 40), (5, 5)]  # yard, tunnel, quarry, none; ...
     poses = np.tile(np.eye(4), (len(xy), 1, 1))
     poses[:, :2, 3] = xy
-    data = SimpleNamespace(manifest={"scenes": ["mine-0", "fork-0", "tunnel-0"]}, poses=poses,
-                           arrays={"scene": np.array([0, 0, 0, 0, 1, 1, 2])})
+    data = SimpleNamespace(
+        manifest={"scenes": ["mine-0", "fork-0", "tunnel-0"]},
+        poses=poses,
+        arrays={"scene": np.array([0, 0, 0, 0, 1, 1, 2])},
+    )
     found = region_rows(data, np.arange(len(xy)))
     assert list(found) == ["yard of mine-0", "tunnel of mine-0", "quarry of mine-0", "corridor of fork-0"]
     assert [at.tolist() for at in found.values()] == [[0], [1], [2], [4]]
@@ -365,8 +376,10 @@ def test_pr_curve_and_thresholds_match_brute_force(rng):
     t = best_thresholds(y, p)
     f1_at = axis_scores(y, p > t)["f1"]
     for a in range(6):
-        brute = max(axis_scores(y[:, a:a + 1].repeat(6, 1), (p[:, a:a + 1] > c).repeat(6, 1))["f1"][0]
-                    for c in np.unique(np.r_[0.0, p[:, a]]) - 1e-9)
+        brute = max(
+            axis_scores(y[:, a : a + 1].repeat(6, 1), (p[:, a : a + 1] > c).repeat(6, 1))["f1"][0]
+            for c in np.unique(np.r_[0.0, p[:, a]]) - 1e-9
+        )
         assert f1_at[a] == pytest.approx(brute)
 
 
@@ -441,20 +454,32 @@ def test_a_gravity_model_reads_the_tilt_and_refuses_to_guess_without_it(tiny_dat
     with pytest.raises(ValueError, match="tilt"):  # a caller that gives no pose is told, not guessed for
         det.predict(scan)
     # symmetric inference turns the up vector with each view: mirrored scan and pose, same answer
-    probs = [model_probabilities(clf.model, [torch.from_numpy(s)], True, u[None])[0]
-             for s, u in [(scan, up_vector(T)), (scan * np.float32([1, -1, 1]), up_vector(T) * [1, -1, 1])]]
+    probs = [
+        model_probabilities(clf.model, [torch.from_numpy(s)], True, u[None])[0]
+        for s, u in [(scan, up_vector(T)), (scan * np.float32([1, -1, 1]), up_vector(T) * [1, -1, 1])]
+    ]
     assert np.allclose(*probs, atol=1e-5)
     data = LabelDataset(tiny_dataset)  # predictions on a dataset read each parent's tilt from its pose
     sampled = [sample_points(data.scan(i), SMALL.points, np.random.default_rng([0, i])) for i in range(3)]
-    expected = [model_probabilities(clf.model, [pts], False, up_vector(data.poses[i])[None])[0]
-                for i, pts in enumerate(sampled)]
+    expected = [
+        model_probabilities(clf.model, [pts], False, up_vector(data.poses[i])[None])[0] for i, pts in enumerate(sampled)
+    ]
     assert np.allclose(predict_dataset(clf.model, data, np.arange(3)), expected, atol=1e-6)
 
 
 def _train_cfg(**kw):
-    return TrainConfig(**{"model": SMALL, "epochs": 2, "samples_per_epoch": 8, "batch_size": 4,
-                          "train_scenes": ["tunnel-0", "field-0"], "validation_scenes": ["office-0"],
-                          "threads": 1, **kw})
+    return TrainConfig(
+        **{
+            "model": SMALL,
+            "epochs": 2,
+            "samples_per_epoch": 8,
+            "batch_size": 4,
+            "train_scenes": ["tunnel-0", "field-0"],
+            "validation_scenes": ["office-0"],
+            "threads": 1,
+            **kw,
+        }
+    )
 
 
 def test_settings_no_run_can_use_are_refused_before_the_folder(tiny_dataset, tmp_path):
@@ -478,17 +503,20 @@ def test_scale_augmentation_draws_factors_log_uniformly_within_its_range(rng):
 
 @pytest.mark.parametrize("group_dro,scale", [(0.0, 1.0), (0.5, 1.3)])
 def test_a_killed_run_resumes_to_the_same_model(tiny_dataset, tmp_path, group_dro, scale):
-    whole = train(tiny_dataset, tmp_path / "whole", _train_cfg(group_dro=group_dro, scale_augment=scale),
-                  progress=False)
+    whole = train(
+        tiny_dataset, tmp_path / "whole", _train_cfg(group_dro=group_dro, scale_augment=scale), progress=False
+    )
     cfg = _train_cfg(group_dro=group_dro, scale_augment=scale)
     cfg.epochs = 1
     train(tiny_dataset, tmp_path / "cut", cfg, progress=False)
     cfg.epochs = 2  # the 'kill' came after epoch 1; the same command with the full epoch count resumes
     with pytest.raises(TrainingError, match=r"other settings \(seed 0, now 3\)"):
-        train(tiny_dataset, tmp_path / "cut", _train_cfg(seed=3, group_dro=group_dro, scale_augment=scale),
-              progress=False)
-    resumed = train(tiny_dataset, tmp_path / "cut", _train_cfg(group_dro=group_dro, scale_augment=scale),
-                    progress=False)
+        train(
+            tiny_dataset, tmp_path / "cut", _train_cfg(seed=3, group_dro=group_dro, scale_augment=scale), progress=False
+        )
+    resumed = train(
+        tiny_dataset, tmp_path / "cut", _train_cfg(group_dro=group_dro, scale_augment=scale), progress=False
+    )
     assert {k: v for k, v in resumed.items() if k != "seconds"} == {k: v for k, v in whole.items() if k != "seconds"}
     log = [json.loads(line) for line in (tmp_path / "cut" / "log.jsonl").read_text().splitlines()]
     assert [r["epoch"] for r in log] == [1, 2]
@@ -505,14 +533,20 @@ def test_a_killed_run_resumes_to_the_same_model(tiny_dataset, tmp_path, group_dr
 
 def test_datasets_are_read_as_one_with_scenes_matched_by_name(tiny_dataset, tmp_path):
     other = tmp_path / "other"
-    generate(other, config_for(None, scenes=["field-0", "tunnel-7"], parents_per_scene=2, shard_size=2, seed=4,
-                               labels={"children": 8}), workers=1, progress=False)
+    generate(
+        other,
+        config_for(
+            None, scenes=["field-0", "tunnel-7"], parents_per_scene=2, shard_size=2, seed=4, labels={"children": 8}
+        ),
+        workers=1,
+        progress=False,
+    )
     a, b = LabelDataset(tiny_dataset), LabelDataset(other)
     union = open_datasets([tiny_dataset, other])
     assert len(union) == len(a) + len(b) and union.name == f"{a.name}+{b.name}"
     assert union.manifest["scenes"] == ["tunnel-0", "office-0", "field-0", "tunnel-7"]
     np.testing.assert_array_equal(union.scan(len(a) + 1), b.scan(1))
-    np.testing.assert_array_equal(union.labels[len(a):], b.labels)
+    np.testing.assert_array_equal(union.labels[len(a) :], b.labels)
     np.testing.assert_array_equal(union.poses[len(a) + 1], b.poses[1])
     assert union.poses.shape == (len(union), 4, 4) and np.allclose(union.poses[:, 3], [0, 0, 0, 1])
     assert union.manifest["count"] == len(union) and union.manifest["settings"]["seed"] == [0, 4]
@@ -520,8 +554,19 @@ def test_datasets_are_read_as_one_with_scenes_matched_by_name(tiny_dataset, tmp_
     assert len(field) == 4 + 2 and field[-2:].tolist() == [len(a), len(a) + 1]
     assert split_indices(union, ["tunnel-7"]).tolist() == [len(a) + 2, len(a) + 3]
     os0 = tmp_path / "os0"
-    generate(os0, config_for(None, scenes=["field-0"], parents_per_scene=1, shard_size=1, labels={"children": 4},
-                             lidar={"model": "os0-128"}), workers=1, progress=False)
+    generate(
+        os0,
+        config_for(
+            None,
+            scenes=["field-0"],
+            parents_per_scene=1,
+            shard_size=1,
+            labels={"children": 4},
+            lidar={"model": "os0-128"},
+        ),
+        workers=1,
+        progress=False,
+    )
     with pytest.raises(DatasetError, match="lidar settings .*model 'vlp16', now 'os0-128'"):
         open_datasets([tiny_dataset, os0])
     older = tmp_path / "older"  # made before the LiDAR's `sweep` option existed: as its default makes it
@@ -541,8 +586,10 @@ def test_fine_tuning_starts_from_the_given_weights(tiny_dataset, tmp_path):
     base = tmp_path / "base" / "model.pt"
     start = _train_cfg(init=str(base), learning_rate=0.0, epochs=1)  # no step: the weights stay the base's
     train(tiny_dataset, tmp_path / "tuned", start, progress=False)
-    weights = [dict(model_from_checkpoint(load_checkpoint(p)).named_parameters())
-               for p in (base, tmp_path / "tuned" / "model.pt")]
+    weights = [
+        dict(model_from_checkpoint(load_checkpoint(p)).named_parameters())
+        for p in (base, tmp_path / "tuned" / "model.pt")
+    ]
     assert all(torch.equal(weights[0][k], weights[1][k]) for k in weights[0])  # batch-norm statistics may move
     assert torch.load(tmp_path / "base" / "last.pt", weights_only=True)["training"]["init"] is None
     other = dataclasses.replace(_train_cfg(init=str(base)), model=dataclasses.replace(SMALL, channels=(8, 8, 16, 24)))
@@ -555,10 +602,15 @@ def test_evaluate_writes_table_curves_and_results(tiny_dataset, tmp_path, monkey
     from l3e_env.experiments.table3 import Table3Options, run_table3
 
     train(tiny_dataset, tmp_path / "run", _train_cfg(), progress=False)
-    res = run_table3([tmp_path / "run" / "model.pt"], tiny_dataset, tmp_path / "eval",
-                     Table3Options(others=[tiny_dataset, tiny_dataset], eigen=[1e9], by_family=True), progress=False)
+    res = run_table3(
+        [tmp_path / "run" / "model.pt"],
+        tiny_dataset,
+        tmp_path / "eval",
+        Table3Options(others=[tiny_dataset, tiny_dataset], eigen=[1e9], by_family=True),
+        progress=False,
+    )
     eigen = res.models.pop("eigen:1e+09")
-    (name, model), = res.models.items()
+    ((name, model),) = res.models.items()
     assert set(eigen["splits"]) == set(model["splits"]) and eigen["splits"]["valid"]["unregistrable"] == 0
     data = LabelDataset(tiny_dataset)
     rows = split_indices(data, ["office-0"])  # the validation scene: an enormous tau flags every axis
@@ -585,23 +637,35 @@ def test_evaluate_writes_table_curves_and_results(tiny_dataset, tmp_path, monkey
         return scene
 
     monkeypatch.setattr(table3, "make_scene", tunnel_as_one_region)
-    drawn = run_table3([tmp_path / "run" / "model.pt"], tiny_dataset, tmp_path / "eval-test",
-                       Table3Options(by_family=True, by_region=True, draws=3), progress=False)
+    drawn = run_table3(
+        [tmp_path / "run" / "model.pt"],
+        tiny_dataset,
+        tmp_path / "eval-test",
+        Table3Options(by_family=True, by_region=True, draws=3),
+        progress=False,
+    )
     splits = drawn.models[name]["splits"]
     assert set(splits) == {"train", "valid", "test", "tunnel of test", "field of test", "anywhere of tunnel-0"}
-    region, family = ({k: v for k, v in splits[c].items() if k != "dataset"} for c in ("anywhere of tunnel-0",
-                                                                                    "tunnel of test"))
+    region, family = (
+        {k: v for k, v in splits[c].items() if k != "dataset"} for c in ("anywhere of tunnel-0", "tunnel of test")
+    )
     assert json.dumps(region, sort_keys=True) == json.dumps(family, sort_keys=True)  # NaN F1 where no positive
     test_rows = split_indices(data, ["field-0", "tunnel-0"])
     assert splits["test"]["draws"]["mean_f1"][0] == pytest.approx(splits["test"]["mean"]["f1"], nan_ok=True)
-    again = mean_scores(axis_scores(data.labels[test_rows],
-                                    predict_dataset(clf.model, data, test_rows, seed=2) > clf.thresholds))
+    again = mean_scores(
+        axis_scores(data.labels[test_rows], predict_dataset(clf.model, data, test_rows, seed=2) > clf.thresholds)
+    )
     assert splits["test"]["draws"]["mean_accuracy"][2] == pytest.approx(again["accuracy"])
     assert len(splits["valid"]["draws"]["mean_f1"]) == 3 and "draws" not in splits["tunnel of test"]
     assert "over 3 draws of the points" in drawn.table
     with pytest.raises(ValueError, match="draws must be at least 1"):
-        run_table3([tmp_path / "run" / "model.pt"], tiny_dataset, tmp_path / "eval-none", Table3Options(draws=0),
-                   progress=False)
+        run_table3(
+            [tmp_path / "run" / "model.pt"],
+            tiny_dataset,
+            tmp_path / "eval-none",
+            Table3Options(draws=0),
+            progress=False,
+        )
     rows = split_indices(data, ["tunnel-0"])
     expected = axis_scores(data.labels[rows], predict_dataset(clf.model, data, rows) > clf.thresholds)
     assert splits["test"]["count"] == 8 and splits["tunnel of test"]["count"] == 4
@@ -616,8 +680,13 @@ def test_evaluate_writes_table_curves_and_results(tiny_dataset, tmp_path, monkey
     valid_y, valid_p = _valid_predictions(tmp_path / "run" / "model.pt", tiny_dataset)
     assert point["thresholds"] == pytest.approx(best_thresholds(valid_y, valid_p, beta=1.0).tolist())
     assert "F1-best validation thresholds" in res.table and set(point["splits"]) == set(model["splits"])
-    sym = run_table3([tmp_path / "run" / "model.pt"], tiny_dataset, tmp_path / "eval-sym",
-                     Table3Options(symmetric=True), progress=False)
+    sym = run_table3(
+        [tmp_path / "run" / "model.pt"],
+        tiny_dataset,
+        tmp_path / "eval-sym",
+        Table3Options(symmetric=True),
+        progress=False,
+    )
     assert sym.results["symmetric"] and sym.table.startswith("probabilities averaged over the eight")
     stored = Classifier.load(tmp_path / "run" / "model.pt", symmetric=True).thresholds
     assert sym.models[name]["thresholds"] == pytest.approx(stored.tolist())
@@ -645,7 +714,8 @@ def test_training_stores_symmetric_thresholds_and_calibrate_adds_them_to_older_c
     done = torch.load(tmp_path / "old.pt", weights_only=True)
     assert done["symmetric_thresholds"] == pytest.approx(expected.tolist(), abs=1e-5)
     assert {k: v for k, v in done.items() if k != "state_dict"} == {
-        k: v for k, v in torch.load(model, weights_only=True).items() if k != "state_dict"}
+        k: v for k, v in torch.load(model, weights_only=True).items() if k != "state_dict"
+    }
     assert all(torch.equal(done["state_dict"][k], state["state_dict"][k]) for k in state["state_dict"])
 
 
@@ -690,8 +760,9 @@ def test_one_scan_is_judged_on_one_torch_thread_and_the_threads_are_set_back(mon
     clf = Classifier.load()
     seen = []
     real = clf.probabilities
-    monkeypatch.setattr(clf, "probabilities", lambda scans, poses=None: seen.append(torch.get_num_threads())
-                        or real(scans, poses))
+    monkeypatch.setattr(
+        clf, "probabilities", lambda scans, poses=None: seen.append(torch.get_num_threads()) or real(scans, poses)
+    )
     before = torch.get_num_threads()
     torch.set_num_threads(2)
     try:

@@ -9,26 +9,31 @@ from l3e_env.cli.options import scene_params
 
 
 def test_help_lists_the_subcommands():
-    out = subprocess.run([sys.executable, "-m", "l3e_env.cli.main", "--help"], capture_output=True, text=True,
-                         check=True).stdout
+    out = subprocess.run(
+        [sys.executable, "-m", "l3e_env.cli.main", "--help"], capture_output=True, text=True, check=True
+    ).stdout
     for cmd in ("demo", "scenes", "envs", "dataset", "train", "evaluate", "ate", "sweep"):
         assert cmd in out
 
 
 def test_evaluate_reads_other_datasets_under_both_names():
-    args = build_parser().parse_args(["evaluate", "--checkpoint", "m.pt", "--dataset", "d", "--other-sensor", "os0",
-                                      "--other", "rooms"])
+    args = build_parser().parse_args(
+        ["evaluate", "--checkpoint", "m.pt", "--dataset", "d", "--other-sensor", "os0", "--other", "rooms"]
+    )
     assert args.other == ["os0", "rooms"]
 
 
-@pytest.mark.parametrize("argv", [
-    ["scenes", "volcano"],
-    ["ate", "--scene", "volcano", "--out", "{out}"],
-    ["demo", "--scene", "volcano", "--out", "{out}"],
-    ["sweep", "--scene", "tunnel", "--scene", "volcano", "--out", "{out}"],
-    ["dataset", "generate", "--scenes", "tunnel-0,volcano-1", "--out", "{out}"],
-    ["policy", "plan", "--scene", "fork-0,volcano", "--out", "{out}"],
-])
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["scenes", "volcano"],
+        ["ate", "--scene", "volcano", "--out", "{out}"],
+        ["demo", "--scene", "volcano", "--out", "{out}"],
+        ["sweep", "--scene", "tunnel", "--scene", "volcano", "--out", "{out}"],
+        ["dataset", "generate", "--scenes", "tunnel-0,volcano-1", "--out", "{out}"],
+        ["policy", "plan", "--scene", "fork-0,volcano", "--out", "{out}"],
+    ],
+)
 def test_unknown_scene_is_refused_before_anything_is_written(argv, tmp_path, capsys):
     out = tmp_path / "out"
     with pytest.raises(SystemExit) as exit_info:
@@ -55,8 +60,17 @@ def test_mesh_options_apply_to_mesh_scenes_only(tmp_path, capsys):
     # more routes: the first is driven, all are paths to sample labels along
     (tmp_path / "r1.txt").write_text("0.1 0.1\n0.5 0.1\n")
     (tmp_path / "r2.txt").write_text("0.1 0.2\n0.1 0.6\n")
-    args = build_parser().parse_args(["ate", "--scene", str(tmp_path / "hall.obj"), "--route", str(tmp_path / "r1.txt"),
-                                      "--route", str(tmp_path / "r2.txt")])
+    args = build_parser().parse_args(
+        [
+            "ate",
+            "--scene",
+            str(tmp_path / "hall.obj"),
+            "--route",
+            str(tmp_path / "r1.txt"),
+            "--route",
+            str(tmp_path / "r2.txt"),
+        ]
+    )
     paths = scene_params(args)["sampling_paths"]
     assert [p[-1][:2] for p in paths] == [[0.5, 0.1], [0.1, 0.6]]
 
@@ -72,13 +86,19 @@ def test_sweep_thresholds_must_be_numbers(capsys):
 def test_demo_drives_the_mine_and_writes_pictures(tmp_path, capsys):
     assert main(["demo", "--out", str(tmp_path), "--quiet"]) == 0
     names = {p.name for p in tmp_path.iterdir()}
-    assert {"path_topdown.png", "scan_yard.png", "scan_tunnel.png", "scan_quarry.png", "config.yaml",
-            "localizability.png"} <= names
+    assert {
+        "path_topdown.png",
+        "scan_yard.png",
+        "scan_tunnel.png",
+        "scan_quarry.png",
+        "config.yaml",
+        "localizability.png",
+    } <= names
     out = capsys.readouterr().out
     assert "flagged non-localizable by the learned detector" in out and "tunnel" in out
     assert all((tmp_path / n).stat().st_size > 10_000 for n in names if n.endswith(".png"))
     assert main(["judge", str(tmp_path / "scan_tunnel.npy"), "--detector", "eigen:30"]) == 0  # the README's
-    assert "scan_tunnel.npy" in capsys.readouterr().out                                       # quickstart
+    assert "scan_tunnel.npy" in capsys.readouterr().out  # quickstart
 
 
 def test_record_options_give_the_imu_asked_for():
@@ -86,8 +106,11 @@ def test_record_options_give_the_imu_asked_for():
 
     default = record_imu(build_parser().parse_args(["record", "--out", "a.bag"]))
     assert default.footfall_accel > 0 and default.orientation and default.rate == 200.0
-    quiet = record_imu(build_parser().parse_args(["record", "--out", "a.bag", "--no-imu-footfalls",
-                                                  "--no-imu-orientation", "--imu-rate", "100"]))
+    quiet = record_imu(
+        build_parser().parse_args(
+            ["record", "--out", "a.bag", "--no-imu-footfalls", "--no-imu-orientation", "--imu-rate", "100"]
+        )
+    )
     assert quiet.footfall_accel == 0.0 and not quiet.orientation and quiet.rate == 100.0
     assert record_imu(build_parser().parse_args(["record", "--out", "a.bag", "--imu-rate", "0"])) is None
 
@@ -100,8 +123,22 @@ def test_options_come_from_a_yaml_file_the_command_line_and_set_in_that_order(tm
     assert (args.scene, args.seed, args.odometry_bias, args.detector) == ("tunnel", 3, ["yaw"], ["none", "eigen:30"])
     args = resolve(build_parser(), ["ate", "--config", str(tmp_path / "ate.yaml"), "--seed", "4"])
     assert args.seed == 4 and args.scene == "tunnel"  # the command line wins over the file
-    args = resolve(build_parser(), ["ate", "--config", str(tmp_path / "ate.yaml"), "--seed", "4", "--set", "seed=5",
-                                    "--set", "quiet=true", "--set", "up-axis=y"])
+    args = resolve(
+        build_parser(),
+        [
+            "ate",
+            "--config",
+            str(tmp_path / "ate.yaml"),
+            "--seed",
+            "4",
+            "--set",
+            "seed=5",
+            "--set",
+            "quiet=true",
+            "--set",
+            "up-axis=y",
+        ],
+    )
     assert (args.seed, args.quiet, args.up_axis) == (5, True, "y")  # --set wins over both
     args = resolve(build_parser(), ["train", "--dataset", "d", "--out", "o", "--set", "epochs=2"])
     assert args.epochs == 2 and args.config is None  # train keeps its own --config (a TrainConfig YAML)
@@ -120,20 +157,25 @@ def test_odometry_bias_axes_are_gathered_from_every_repeat_and_a_file():
         fusion_settings(resolve(build_parser(), ["ate", "--odometry-bias", "yaw", "--odometry-bias", "yaw"]))
 
 
-@pytest.mark.parametrize("argv, message", [
-    (["ate", "--set", "bogus=1"], "l3e ate has no option 'bogus'"),
-    (["ate", "--set", "seeds"], "give KEY=VALUE"),
-    (["ate", "--set", "detector=[none, 'foo']"], "option detector: unknown detector 'foo'"),
-    (["ate", "--set", "backend=slam"], "option backend: 'slam' is not one of"),
-    (["ate", "--set", "scene=no-such-family"], "option scene"),
-    (["ate", "--set", "quiet=maybe"], "option quiet: give true or false"),
-    (["ate", "--config", "CONFIG"], "give a YAML mapping of option names to values, not a list"),
-    (["ate", "--config", "MISSING"], "cannot read the options"),
-])
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["ate", "--set", "bogus=1"], "l3e ate has no option 'bogus'"),
+        (["ate", "--set", "seeds"], "give KEY=VALUE"),
+        (["ate", "--set", "detector=[none, 'foo']"], "option detector: unknown detector 'foo'"),
+        (["ate", "--set", "backend=slam"], "option backend: 'slam' is not one of"),
+        (["ate", "--set", "scene=no-such-family"], "option scene"),
+        (["ate", "--set", "quiet=maybe"], "option quiet: give true or false"),
+        (["ate", "--config", "CONFIG"], "give a YAML mapping of option names to values, not a list"),
+        (["ate", "--config", "MISSING"], "cannot read the options"),
+    ],
+)
 def test_a_bad_option_file_or_pair_is_refused_by_name_before_anything_runs(tmp_path, capsys, argv, message):
     (tmp_path / "list.yaml").write_text("[1, 2]\n")
-    argv = [str(tmp_path / "list.yaml") if a == "CONFIG" else str(tmp_path / "none.yaml") if a == "MISSING" else a
-            for a in argv]
+    argv = [
+        str(tmp_path / "list.yaml") if a == "CONFIG" else str(tmp_path / "none.yaml") if a == "MISSING" else a
+        for a in argv
+    ]
     with pytest.raises(SystemExit) as exit_info:
         main(argv)
     assert exit_info.value.code == 2 and message in capsys.readouterr().err
@@ -155,11 +197,13 @@ def test_a_run_writes_its_resolved_options_and_they_run_it_again(tmp_path, capsy
 def test_version_and_no_pybullet_banner_in_a_command_s_output():
     from importlib.metadata import version
 
-    out = subprocess.run([sys.executable, "-m", "l3e_env.cli.main", "--version"], capture_output=True, text=True,
-                         check=True)
+    out = subprocess.run(
+        [sys.executable, "-m", "l3e_env.cli.main", "--version"], capture_output=True, text=True, check=True
+    )
     assert out.stdout.strip() == f"l3e {version('l3e')}"
-    out = subprocess.run([sys.executable, "-m", "l3e_env.cli.main", "scenes", "tunnel"], capture_output=True,
-                         text=True, check=True)
+    out = subprocess.run(
+        [sys.executable, "-m", "l3e_env.cli.main", "scenes", "tunnel"], capture_output=True, text=True, check=True
+    )
     assert out.stdout.startswith("tunnel-0 (tunnel, seed 0)") and "pybullet build time" not in out.stdout + out.stderr
     assert "its route 108 m, a drive of about 108 s (1080 steps)" in out.stdout  # what a drive there will cost
 
@@ -167,8 +211,23 @@ def test_version_and_no_pybullet_banner_in_a_command_s_output():
 def test_a_short_run_stops_after_max_steps(tmp_path):
     import json
 
-    assert main(["ate", "--scene", "primitives-1", "--detector", "none", "--max-steps", "20", "--quiet",
-                 "--out", str(tmp_path / "ate")]) == 0
+    assert (
+        main(
+            [
+                "ate",
+                "--scene",
+                "primitives-1",
+                "--detector",
+                "none",
+                "--max-steps",
+                "20",
+                "--quiet",
+                "--out",
+                str(tmp_path / "ate"),
+            ]
+        )
+        == 0
+    )
     results = json.loads((tmp_path / "ate" / "results.json").read_text())
     assert results["steps"] == 20 and results["registration"]["ground_normals"] is True  # the labels' registration
     with pytest.raises(SystemExit):
@@ -177,8 +236,12 @@ def test_a_short_run_stops_after_max_steps(tmp_path):
 
 def _loaded_after(code: str) -> set[str]:
     """The modules (and their top-level packages) that a fresh interpreter has loaded after running `code`."""
-    out = subprocess.run([sys.executable, "-c", f"{code}\nimport sys\nprint(' '.join(sys.modules))"],
-                         capture_output=True, text=True, check=True).stdout
+    out = subprocess.run(
+        [sys.executable, "-c", f"{code}\nimport sys\nprint(' '.join(sys.modules))"],
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout
     return set(out.split()) | {name.split(".")[0] for name in out.split()}
 
 

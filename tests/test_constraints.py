@@ -1,4 +1,5 @@
 """The scan's point-to-plane Hessian and the constraint layer fitted over the network's logits."""
+
 import dataclasses
 import itertools
 
@@ -192,8 +193,15 @@ def test_a_constraint_model_saves_loads_and_refuses_a_pointnet(tmp_path, rng):
 
 
 def test_fit_constraints_fits_on_training_scenes_and_keeps_the_network(tiny_dataset, tmp_path):
-    cfg = TrainConfig(model=SMALL, epochs=1, samples_per_epoch=8, batch_size=4, threads=1,
-                      train_scenes=["tunnel-0", "field-0"], validation_scenes=["office-0"])
+    cfg = TrainConfig(
+        model=SMALL,
+        epochs=1,
+        samples_per_epoch=8,
+        batch_size=4,
+        threads=1,
+        train_scenes=["tunnel-0", "field-0"],
+        validation_scenes=["office-0"],
+    )
     train(tiny_dataset, tmp_path / "run", cfg, progress=False)
     base = Classifier.load(tmp_path / "run" / "model.pt")
     out = tmp_path / "new" / "c.pt"  # a folder that does not exist yet
@@ -221,9 +229,12 @@ def test_fit_constraints_fits_on_training_scenes_and_keeps_the_network(tiny_data
     with pytest.raises(TrainingError, match="fit-constraints"):  # the layer is never trained with the network
         train(tiny_dataset, tmp_path / "bad", dataclasses.replace(cfg, model=fitted.model.config), progress=False)
     # but a checkpoint with the layer is fine-tuned from: its network, the layer left to be fitted again
-    tuned = train(tiny_dataset, tmp_path / "tuned", dataclasses.replace(cfg, init=str(out), learning_rate=0.0),
-                  progress=False)
-    weights, start = (dict(model_from_checkpoint(load_checkpoint(p)).named_parameters())
-                      for p in (tmp_path / "tuned" / "model.pt", tmp_path / "run" / "model.pt"))
+    tuned = train(
+        tiny_dataset, tmp_path / "tuned", dataclasses.replace(cfg, init=str(out), learning_rate=0.0), progress=False
+    )
+    weights, start = (
+        dict(model_from_checkpoint(load_checkpoint(p)).named_parameters())
+        for p in (tmp_path / "tuned" / "model.pt", tmp_path / "run" / "model.pt")
+    )
     assert not any(k.startswith("stacker.") for k in weights) and "best_epoch" in tuned
     assert weights.keys() == start.keys() and all(torch.equal(w, weights[k]) for k, w in start.items())

@@ -122,8 +122,9 @@ def test_os0_128_option_and_async_vector_env():
 
 @pytest.mark.parametrize("odometry_bias", [(), ("yaw",)])
 def test_fusion_in_the_loop_reports_estimate_mask_and_running_ate(odometry_bias):
-    env = NavigationEnv(dict(scene="tunnel", fusion=dict(enabled=True, detector="eigen:110",
-                                                         odometry_bias=list(odometry_bias))))
+    env = NavigationEnv(
+        dict(scene="tunnel", fusion=dict(enabled=True, detector="eigen:110", odometry_bias=list(odometry_bias)))
+    )
     _, info = env.reset(seed=0)
     follow = RouteFollower(env.route)
     assert info["running_ate"] == 0.0 and not info["localizability_known"]
@@ -197,8 +198,11 @@ def test_a_swept_lidar_turns_each_revolution_with_the_step():
     swept = env.scan
     still = env.lidar.scan(env.robot.T_w_s)  # the same pose's revolution without the motion
     assert swept.times is not None and len(swept) > 0.9 * len(still)
-    common, i, j = np.intersect1d(swept.beam.astype(np.int64) * 10000 + swept.column,
-                                  still.beam.astype(np.int64) * 10000 + still.column, return_indices=True)
+    common, i, j = np.intersect1d(
+        swept.beam.astype(np.int64) * 10000 + swept.column,
+        still.beam.astype(np.int64) * 10000 + still.column,
+        return_indices=True,
+    )
     moved = np.linalg.norm(swept.points[i] - still.points[j], axis=1)
     early = swept.times[i] < 0.02  # fired near the step's start, where the pose was furthest from the end's
     assert np.median(moved[early]) > 0.05 and np.median(moved[swept.times[i] > 0.098]) < 0.01
@@ -210,9 +214,11 @@ def test_a_swept_lidar_turns_each_revolution_with_the_step():
 def test_fusion_in_the_loop_deskews_a_swept_lidar_with_the_odometry_and_gyro(source):
     """The gyro draws from a stream of its own: the drive, its scans and its odometry are the same
     whichever deskews, and only the fused points differ."""
+
     def drive(deskew: str):
-        env = NavigationEnv(dict(scene="tunnel", lidar=dict(sweep=True),
-                                 fusion=dict(enabled=True, detector="eigen:110", deskew=deskew)))
+        env = NavigationEnv(
+            dict(scene="tunnel", lidar=dict(sweep=True), fusion=dict(enabled=True, detector="eigen:110", deskew=deskew))
+        )
         _, info = env.reset(seed=0)
         follow, fused = RouteFollower(env.route), []
         step = env.fusion.step
@@ -244,9 +250,15 @@ def test_fusion_in_the_loop_takes_the_imu_attitude_once_a_second_from_a_stream_o
     """The attitude's draws leave the drive as it was. With every ICP axis flagged (a threshold
     no eigenvalue reaches) the fusion has the odometry alone, whose roll and pitch drift 1.9 deg
     here; with the attitude its tilt stays near the unit's error (0.3 deg)."""
+
     def drive(attitude: str, steps: int = 40):
-        env = NavigationEnv(dict(scene="tunnel", odometry=dict(rp_noise_per_m=0.2),
-                                 fusion=dict(enabled=True, detector="eigen:1e12", attitude=attitude)))
+        env = NavigationEnv(
+            dict(
+                scene="tunnel",
+                odometry=dict(rp_noise_per_m=0.2),
+                fusion=dict(enabled=True, detector="eigen:1e12", attitude=attitude),
+            )
+        )
         _, info = env.reset(seed=0)
         follow = RouteFollower(env.route)
         for _ in range(steps):
@@ -275,6 +287,7 @@ def test_fusion_in_the_loop_takes_the_imu_attitude_once_a_second_from_a_stream_o
 def test_the_odometry_noise_is_the_same_whatever_the_sensor():
     """The odometry and the LiDAR draw from streams of their own: the drive's odometry is the same for
     any sensor or sweep setting, and the scans still differ from seed to seed."""
+
     def drive(seed: int = 0, **lidar):
         env = NavigationEnv(dict(scene="tunnel", lidar=lidar))
         _, info = env.reset(seed=seed)
@@ -291,8 +304,11 @@ def test_the_odometry_noise_is_the_same_whatever_the_sensor():
     np.testing.assert_array_equal(odom_os0, odom_vlp)
     np.testing.assert_array_equal(odom_swept, odom_vlp)
     odom_seed1, scan_seed1 = drive(seed=1)
-    assert not np.array_equal(odom_seed1, odom_vlp) and len(scan_seed1) and not np.array_equal(
-        scan_seed1[:100], scan_vlp[:100])
+    assert (
+        not np.array_equal(odom_seed1, odom_vlp)
+        and len(scan_seed1)
+        and not np.array_equal(scan_seed1[:100], scan_vlp[:100])
+    )
     with pytest.raises(ValueError, match="noise_streams"):  # the option is gone, and named as unknown
         NavigationEnv(dict(scene="tunnel", noise_streams="separate"))
 
@@ -306,8 +322,10 @@ def test_an_episode_ends_where_the_pose_that_arrival_names_reaches_the_goal(arri
 
     route = np.array([[0.0, 0.0, 0.0], [8.0, 0.0, 0.0]])
     mesh = merge([ground_plane(-5, 15, -6, 6)] + [box((x, 3.0, 1.0), (0.5, 0.5, 2.0)) for x in range(-2, 12, 3)])
-    env = NavigationEnv(dict(scene="posts", arrival=arrival, fusion=dict(enabled=True, detector="none", backend="ekf")),
-                        scene_object=Scene("posts", mesh, [route], (0, 0, 0), (8.0, 0.0), {"main": route}))
+    env = NavigationEnv(
+        dict(scene="posts", arrival=arrival, fusion=dict(enabled=True, detector="none", backend="ekf")),
+        scene_object=Scene("posts", mesh, [route], (0, 0, 0), (8.0, 0.0), {"main": route}),
+    )
     env.reset(seed=0)
     fused_step = env.fusion.step
 

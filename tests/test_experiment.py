@@ -45,8 +45,12 @@ def test_masking_the_wall_axis_beats_full_icp(walls_run, tmp_path):
     fulls, masked = [full.ate], [eigen.ate]
     for seed in (1, 2):
         other = record_run("primitives-1", seed=seed, progress=False)
-        f, e = fuse_recording(other, [NoDetector(), EigenvalueDetector(tau)],
-                              register_sequence(other, RegistrationConfig(), progress=False), progress=False)
+        f, e = fuse_recording(
+            other,
+            [NoDetector(), EigenvalueDetector(tau)],
+            register_sequence(other, RegistrationConfig(), progress=False),
+            progress=False,
+        )
         fulls.append(f.ate)
         masked.append(e.ate)
     assert np.mean(masked) < np.mean(fulls)
@@ -62,19 +66,33 @@ def test_masking_the_wall_axis_beats_full_icp(walls_run, tmp_path):
 def test_ate_from_a_recording_writes_results_and_figures(walls_run, tmp_path):
     rec, _ = walls_run
     rec.save(tmp_path / "rec.npz")
-    run = run_ate(tmp_path / "out", "mine", ["eigen:30", "none"], AteOptions(recording=tmp_path / "rec.npz"),
-                  progress=False)  # the recording's scene, not the argument, is used
+    run = run_ate(
+        tmp_path / "out", "mine", ["eigen:30", "none"], AteOptions(recording=tmp_path / "rec.npz"), progress=False
+    )  # the recording's scene, not the argument, is used
     rows = run.rows
     assert all(path.is_file() for path in run.written) and not run.swept
-    tracks = {f"{stem}.{kind}" for stem in ("ground_truth", "odometry_only", "eigen_30", "none")
-              for kind in ("tum", "kitti")}
-    assert {p.name for p in run.written} == {"results.json", "trajectories.png", "timeline.png", "map_eigen_30.png",
-                                            "map_eigen_30.ply", "map_none.png", "map_none.ply", *tracks}
+    tracks = {
+        f"{stem}.{kind}" for stem in ("ground_truth", "odometry_only", "eigen_30", "none") for kind in ("tum", "kitti")
+    }
+    assert {p.name for p in run.written} == {
+        "results.json",
+        "trajectories.png",
+        "timeline.png",
+        "map_eigen_30.png",
+        "map_eigen_30.ply",
+        "map_none.png",
+        "map_none.ply",
+        *tracks,
+    }
     evo_file = pytest.importorskip("evo.tools.file_interface")
     evo_metrics = pytest.importorskip("evo.core.metrics")
     ape = evo_metrics.APE(evo_metrics.PoseRelation.translation_part)
-    ape.process_data((evo_file.read_tum_trajectory_file(tmp_path / "out" / "trajectories" / "ground_truth.tum"),
-                      evo_file.read_tum_trajectory_file(tmp_path / "out" / "trajectories" / "none.tum")))
+    ape.process_data(
+        (
+            evo_file.read_tum_trajectory_file(tmp_path / "out" / "trajectories" / "ground_truth.tum"),
+            evo_file.read_tum_trajectory_file(tmp_path / "out" / "trajectories" / "none.tum"),
+        )
+    )
     none_row = next(r for r in run.rows if r["detector"] == "none")
     assert ape.get_statistic(evo_metrics.StatisticsType.rmse) == pytest.approx(none_row["ate_m"], abs=1e-3)
     kitti = evo_file.read_kitti_poses_file(tmp_path / "out" / "trajectories" / "none.kitti")
@@ -93,13 +111,28 @@ def test_the_imu_attitude_joins_every_detector_alike_and_adds_its_own_reference_
     from l3e_env.cli.main import main
 
     rec, regs = walls_run
-    plain, = fuse_recording(rec, [NoDetector()], regs, progress=False)
+    (plain,) = fuse_recording(rec, [NoDetector()], regs, progress=False)
     held, again = fuse_recording(rec, [NoDetector(), NoDetector()], regs, progress=False, attitude="full")
     np.testing.assert_array_equal(held.trajectory, again.trajectory)  # the same readings for every detector
     assert np.abs(held.trajectory - plain.trajectory).max() > 1e-6
     rec.save(tmp_path / "rec.npz")
-    assert main(["ate", "--recording", str(tmp_path / "rec.npz"), "--detector", "none", "--attitude", "tilt",
-                 "--out", str(tmp_path / "out"), "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "ate",
+                "--recording",
+                str(tmp_path / "rec.npz"),
+                "--detector",
+                "none",
+                "--attitude",
+                "tilt",
+                "--out",
+                str(tmp_path / "out"),
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     summary = json.loads((tmp_path / "out" / "results.json").read_text())
     assert summary["attitude"] == "tilt"
     assert [r["detector"] for r in summary["rows"]] == ["odometry only", "odometry + attitude", "none"]
@@ -113,16 +146,23 @@ def test_the_hessian_weighs_the_icp_factor_and_the_settings_are_written(walls_ru
 
     rec, regs = walls_run
     rec.save(tmp_path / "rec.npz")
-    fixed, = fuse_recording(rec, [NoDetector()], regs, fusion=FusionConfig(icp_covariance="fixed"), progress=False)
-    weighed, = fuse_recording(rec, [NoDetector()], regs, progress=False)
+    (fixed,) = fuse_recording(rec, [NoDetector()], regs, fusion=FusionConfig(icp_covariance="fixed"), progress=False)
+    (weighed,) = fuse_recording(rec, [NoDetector()], regs, progress=False)
     assert weighed.ate != pytest.approx(fixed.ate, rel=1e-3)  # the library's fixed sigmas are another estimator
     rows = run_ate(tmp_path / "out", "mine", ["none"], AteOptions(recording=tmp_path / "rec.npz"), progress=False).rows
     assert rows[1]["ate_m"] == round(weighed.ate, 3)  # rows are rounded
     assert json.loads((tmp_path / "out" / "results.json").read_text())["odometry_bias"] == []
     from l3e_env.experiments.tau_sweep import run_sweep
 
-    swept = run_sweep(tmp_path / "sweep", ["primitives-1"], taus=(1e12,), references=("none",),
-                      recordings={"primitives-1": str(tmp_path / "rec.npz")}, progress=False, kappas=(1e15,))
+    swept = run_sweep(
+        tmp_path / "sweep",
+        ["primitives-1"],
+        taus=(1e12,),
+        references=("none",),
+        recordings={"primitives-1": str(tmp_path / "rec.npz")},
+        progress=False,
+        kappas=(1e15,),
+    )
     row = swept["primitives-1"]
     assert row["odometry_bias"] == [] and row["none"] == pytest.approx(weighed.ate, rel=1e-9)
     assert row["eigen_ate"][0] == pytest.approx(row["odometry only"], rel=1e-6)  # every axis flagged: the legs alone
@@ -142,20 +182,36 @@ def test_the_legs_bias_as_a_fusion_state_from_the_command_line(walls_run, tmp_pa
     assert config.odometry_bias == ("yaw",)
     assert config.odometry_bias_sigmas == (0.004, noisy.z_bias_std, noisy.scale_error_std)
     assert config.odometry_bias_walk == (noisy.yaw_bias_walk, 0.002, SCALE_WALK)
-    plain, = fuse_recording(rec, [NoDetector()], regs, progress=False)
+    (plain,) = fuse_recording(rec, [NoDetector()], regs, progress=False)
     both = odometry_fusion_config(OdometryConfig(), FusionSettings(odometry_bias=("yaw", "z")))
-    learnt, = fuse_recording(rec, [NoDetector()], regs, fusion=both, progress=False)
+    (learnt,) = fuse_recording(rec, [NoDetector()], regs, fusion=both, progress=False)
     assert np.abs(learnt.trajectory - plain.trajectory).max() > 1e-6
-    assert main(["ate", "--recording", str(tmp_path / "rec.npz"), "--detector", "none", "--odometry-bias", "yaw,z",
-                 "--out", str(tmp_path / "out"), "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "ate",
+                "--recording",
+                str(tmp_path / "rec.npz"),
+                "--detector",
+                "none",
+                "--odometry-bias",
+                "yaw,z",
+                "--out",
+                str(tmp_path / "out"),
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     summary = json.loads((tmp_path / "out" / "results.json").read_text())
     assert summary["odometry_bias"] == ["yaw", "z"] and summary["rows"][1]["ate_m"] == round(learnt.ate, 3)
     with pytest.raises(SystemExit):
         main(["ate", "--recording", str(tmp_path / "rec.npz"), "--odometry-bias", "roll", "--quiet"])
     assert "expected none or distinct axes among yaw, z, scale" in capsys.readouterr().err
     with pytest.raises(ValueError, match="odometry_bias takes distinct axes"):
-        run_ate(tmp_path / "bad", "mine", ["none"],
-                AteOptions(fusion_settings=FusionSettings(odometry_bias=("yaw", "yaw"))))
+        run_ate(
+            tmp_path / "bad", "mine", ["none"], AteOptions(fusion_settings=FusionSettings(odometry_bias=("yaw", "yaw")))
+        )
     assert not (tmp_path / "bad").exists()
 
 
@@ -168,14 +224,42 @@ def test_a_swept_recording_says_so_when_replayed(walls_run, tmp_path, capsys):
     assert not rec.sweep
     replace(rec, sweep=True).save(tmp_path / "swept.npz")
     assert Recording.load(tmp_path / "swept.npz").sweep
-    assert main(["ate", "--recording", str(tmp_path / "swept.npz"), "--detector", "none", "--quiet",
-                 "--out", str(tmp_path / "out")]) == 0
+    assert (
+        main(
+            [
+                "ate",
+                "--recording",
+                str(tmp_path / "swept.npz"),
+                "--detector",
+                "none",
+                "--quiet",
+                "--out",
+                str(tmp_path / "out"),
+            ]
+        )
+        == 0
+    )
     summary = json.loads((tmp_path / "out" / "results.json").read_text())
     assert summary["swept"] and summary["deskew"] == "gyro"
     out = capsys.readouterr().out
     assert "swept over the robot's motion; each was deskewed" in out and "the gyro's rotation" in out
-    assert main(["ate", "--recording", str(tmp_path / "swept.npz"), "--detector", "none", "--quiet",
-                 "--deskew", "odometry", "--out", str(tmp_path / "legs")]) == 0
+    assert (
+        main(
+            [
+                "ate",
+                "--recording",
+                str(tmp_path / "swept.npz"),
+                "--detector",
+                "none",
+                "--quiet",
+                "--deskew",
+                "odometry",
+                "--out",
+                str(tmp_path / "legs"),
+            ]
+        )
+        == 0
+    )
     assert json.loads((tmp_path / "legs" / "results.json").read_text())["deskew"] == "odometry"
     assert "with the odometry's rotation" in capsys.readouterr().out
     with pytest.raises(ValueError, match="deskew must be one of"):
@@ -185,10 +269,12 @@ def test_a_swept_recording_says_so_when_replayed(walls_run, tmp_path, capsys):
 def test_scanmc_in_a_replay_judges_scans_cast_again_at_the_true_poses(walls_run, tmp_path):
     rec, _ = walls_run  # two parallel walls: x (along them) is degenerate, nothing else
     rec.save(tmp_path / "rec.npz")
-    run_ate(tmp_path / "out", "ignored", ["scanmc:4"], AteOptions(recording=tmp_path / "rec.npz", workers=2),
-            progress=False)
-    (row,) = [r for r in json.loads((tmp_path / "out" / "results.json").read_text())["rows"]
-              if r["detector"] == "scanmc:4"]
+    run_ate(
+        tmp_path / "out", "ignored", ["scanmc:4"], AteOptions(recording=tmp_path / "rec.npz", workers=2), progress=False
+    )
+    (row,) = [
+        r for r in json.loads((tmp_path / "out" / "results.json").read_text())["rows"] if r["detector"] == "scanmc:4"
+    ]
     assert row["unknown_steps"] == row["detector_errors"] == 0  # the recording's thinned scans would all be unknown
     assert row["flagged_x"] > 0.8 and max(row[f"flagged_{a}"] for a in AXES[1:]) < 0.2
 
@@ -239,8 +325,9 @@ def test_the_cascade_in_a_replay_checks_only_unsure_steps_alike_in_workers(walls
         return [detector.predict(points, None, T) for points, T in zip(samples, poses)]
 
     def cascade(margin: float) -> RecastCascade:
-        return RecastCascade(CascadeDetector(learned, ScanMCDetector(lidar.config, children=3), margin), lidar,
-                             stride=4)
+        return RecastCascade(
+            CascadeDetector(learned, ScanMCDetector(lidar.config, children=3), margin), lidar, stride=4
+        )
 
     sure = cascade(0.0)  # never unsure: the classifier on the recorded samples
     assert all(np.array_equal(a.probabilities, b.probabilities) for a, b in zip(replay(sure), replay(learned)))
@@ -254,8 +341,9 @@ def test_the_cascade_in_a_replay_checks_only_unsure_steps_alike_in_workers(walls
     ahead.judge_ahead(samples, poses, scene, workers=2, progress=False)
     assert ahead.recast._ahead.keys() == {0, 4, 8}
     shared = replay(ahead)
-    assert not ahead.recast._ahead and all(np.array_equal(a.probabilities, b.probabilities)
-                                           for a, b in zip(alone, shared))
+    assert not ahead.recast._ahead and all(
+        np.array_equal(a.probabilities, b.probabilities) for a, b in zip(alone, shared)
+    )
     with pytest.raises(ValueError, match="true sensor pose"):
         unsure.predict(samples[0])
 
@@ -266,14 +354,34 @@ def test_a_users_mesh_and_route_are_driven_and_replayed(cad_corridor, tmp_path, 
 
     mesh, route = cad_corridor
     out = tmp_path / "ate"
-    assert main(["ate", "--scene", str(mesh), "--route", str(route),
-                 "--up-axis", "y", "--scale", "0.001", "--detector", "eigen:30", "--out", str(out), "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "ate",
+                "--scene",
+                str(mesh),
+                "--route",
+                str(route),
+                "--up-axis",
+                "y",
+                "--scale",
+                "0.001",
+                "--detector",
+                "eigen:30",
+                "--out",
+                str(out),
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     first = json.loads((out / "results.json").read_text())["rows"]
     rec = Recording.load(out / "recording.npz")
     assert rec.scene_params["up_axis"] == "y" and len(rec.ground_truth) > 50
     assert rec.ground_truth[-1][0, 3] > 7.0 and abs(rec.ground_truth[-1][1, 3]) < 0.3  # along the corridor
-    again = run_ate(tmp_path / "again", "ignored", ["eigen:30"], AteOptions(recording=out / "recording.npz"),
-                    progress=False).rows  # rebuilt from the recording's mesh path and parameters
+    again = run_ate(
+        tmp_path / "again", "ignored", ["eigen:30"], AteOptions(recording=out / "recording.npz"), progress=False
+    ).rows  # rebuilt from the recording's mesh path and parameters
     assert again[1]["ate_m"] == first[1]["ate_m"]
     # the mesh moved: the recording names its old path, and takes the new one as the scene
     moved = mesh.rename(tmp_path / "moved.obj")
@@ -322,8 +430,10 @@ def test_a_bad_detector_fails_before_the_drive(spec, message, tmp_path, monkeypa
 def test_a_tau_is_reported_only_when_it_is_as_good_as_the_reference_everywhere():
     from l3e_env.experiments.tau_sweep import beaten_everywhere
 
-    results = {"tunnel": {"taus": [30.0, 110.0], "eigen_ate": [5.0, 1.0], "learned": 1.2},
-               "field": {"taus": [30.0, 110.0], "eigen_ate": [0.5, 3.0], "learned": 0.6}}
+    results = {
+        "tunnel": {"taus": [30.0, 110.0], "eigen_ate": [5.0, 1.0], "learned": 1.2},
+        "field": {"taus": [30.0, 110.0], "eigen_ate": [0.5, 3.0], "learned": 0.6},
+    }
     assert beaten_everywhere(results) == []
     results["field"]["eigen_ate"][1] = 0.6
     assert beaten_everywhere(results) == [110.0]
@@ -336,14 +446,21 @@ def test_detector_names_become_flat_file_names():
 
 
 def _row(name: str, ate: float, tunnel_pct: float | None = None) -> dict:
-    return {"detector": name, "ate_m": ate, "ate_aligned_m": ate / 2, "drift_tunnel_m": tunnel_pct,
-            "drift_tunnel_pct": tunnel_pct}
+    return {
+        "detector": name,
+        "ate_m": ate,
+        "ate_aligned_m": ate / 2,
+        "drift_tunnel_m": tunnel_pct,
+        "drift_tunnel_pct": tunnel_pct,
+    }
 
 
 def test_several_drives_summarised_per_detector_and_against_odometry_on_the_same_drive():
-    runs = {3: [_row("odometry only", 2.0, 4.0), _row("learned", 1.0, 1.0)],
-            4: [_row("odometry only", 4.0, 6.0), _row("learned", 3.0)],  # a drive that never entered the tunnel
-            5: [_row("odometry only", 3.0, 5.0), _row("learned", 1.5, 2.0)]}
+    runs = {
+        3: [_row("odometry only", 2.0, 4.0), _row("learned", 1.0, 1.0)],
+        4: [_row("odometry only", 4.0, 6.0), _row("learned", 3.0)],  # a drive that never entered the tunnel
+        5: [_row("odometry only", 3.0, 5.0), _row("learned", 1.5, 2.0)],
+    }
     odometry, learned = summarize_seeds(runs)
     assert learned["seeds"] == [3, 4, 5] and learned["ate_m"] == [1.0, 3.0, 1.5]
     assert learned["ate_mean_m"] == pytest.approx(11 / 6, abs=1e-3)
@@ -365,8 +482,27 @@ def test_ate_over_several_seeds_drives_each_and_writes_the_summary(tmp_path, cap
     from l3e_env.cli.main import main
 
     out = tmp_path / "ate"
-    assert main(["ate", "--scene", "primitives-1", "--detector", "none", "--detector", "eigen:30", "--seed", "7",
-                 "--seeds", "2", "--quiet", "--out", str(out)]) == 0
+    assert (
+        main(
+            [
+                "ate",
+                "--scene",
+                "primitives-1",
+                "--detector",
+                "none",
+                "--detector",
+                "eigen:30",
+                "--seed",
+                "7",
+                "--seeds",
+                "2",
+                "--quiet",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     summary = json.loads((out / "seeds.json").read_text())
     assert [r["detector"] for r in summary] == ["odometry only", "none", "eigen:30"]
     first = json.loads((out / "seed-7" / "results.json").read_text())["rows"]
@@ -376,7 +512,6 @@ def test_ate_over_several_seeds_drives_each_and_writes_the_summary(tmp_path, cap
     assert "over 2 drives (seeds 7-8)" in capsys.readouterr().out
     assert main(["ate", "--recording", "r.npz", "--seeds", "2"]) == 2
     assert "a recording is one drive" in capsys.readouterr().err
-
 
 
 def test_a_swept_recording_is_deskewed_by_its_odometry_and_gyro_before_it_is_fused():
@@ -459,7 +594,15 @@ def test_the_drift_of_each_region_is_its_own_and_the_table_shows_it():
     assert drift["drift_yard_m"] == pytest.approx(0.0, abs=1e-9) and drift["drift_tunnel_m"] == pytest.approx(3.9)
     assert drift["drift_tunnel_pct"] == pytest.approx(100 * 3.9 / 39.0)  # x = 0 is the yard's, the tunnel's from 0.5
     assert drift["drift_quarry_m"] is None and drift["drift_quarry_pct"] is None
-    row = {"detector": "none", "ate_m": 1.0, "ate_aligned_m": None, "rpe_m": 0.1, "rpe_deg": 0.1, "seconds": 1.0,
-           **{f"flagged_{a}": 0.0 for a in ("x", "y", "z", "roll", "pitch", "yaw")}, **drift}
+    row = {
+        "detector": "none",
+        "ate_m": 1.0,
+        "ate_aligned_m": None,
+        "rpe_m": 0.1,
+        "rpe_deg": 0.1,
+        "seconds": 1.0,
+        **{f"flagged_{a}": 0.0 for a in ("x", "y", "z", "roll", "pitch", "yaw")},
+        **drift,
+    }
     table = format_table([row])
     assert "drift tunnel" in table and "3.90 m  10.0%" in table and table.splitlines()[-1].endswith("-")

@@ -96,14 +96,17 @@ def test_the_registrations_hessian_weighs_each_axis_as_it_is_held_without_a_mask
     is dropped from the Hessian's information as from the fixed one."""
     hessian = tunnel_hessian(np.eye(6)[0])
     truth, weighed, *_ = drive("mask", mask_x=False, backend=backend, hessian=hessian)
-    _, stalled, *_ = drive("mask", mask_x=False, backend=backend,
-                           config=FusionConfig(icp_covariance="fixed"), hessian=hessian)
+    _, stalled, *_ = drive(
+        "mask", mask_x=False, backend=backend, config=FusionConfig(icp_covariance="fixed"), hessian=hessian
+    )
     assert abs(weighed[-1][0, 3] - 1.05 * truth[-1][0, 3]) < 0.3
     assert stalled[-1][0, 3] < 0.5 * truth[-1][0, 3]
     information = icp_information(FusionConfig(), np.full((6, 6), 3.0), np.array([1, 0, 0, 0, 0, 1], bool))
     assert not information[[0, 5]].any() and not information[:, [0, 5]].any() and (information[1:5, 1:5] > 0).all()
-    np.testing.assert_allclose(icp_information(FusionConfig(), np.full((6, 6), np.nan), np.zeros(6, bool)),
-                               np.diag(1.0 / np.asarray(FusionConfig().icp_sigmas) ** 2))  # no Hessian: fixed
+    np.testing.assert_allclose(
+        icp_information(FusionConfig(), np.full((6, 6), np.nan), np.zeros(6, bool)),
+        np.diag(1.0 / np.asarray(FusionConfig().icp_sigmas) ** 2),
+    )  # no Hessian: fixed
     # rounding leaves a free direction a hair below zero; with every other axis masked the factor is diagonal
     graph = BACKENDS[backend](np.eye(4))
     almost = np.diag([-1e-12, 1e6, 1e6, 1e6, 1e6, 1e6])
@@ -111,8 +114,9 @@ def test_the_registrations_hessian_weighs_each_axis_as_it_is_held_without_a_mask
     assert report.icp_used and np.isfinite(T).all()
     coupled = np.eye(6)  # a tunnel step with x, y and z masked: the rotations held together
     coupled[3:, 3:] = [[1.6e5, 9.7e4, -7.5e5], [9.7e4, 1.9e7, 2.5e5], [-7.5e5, 2.5e5, 1.4e7]]
-    T, report = graph.add_step(pose(0.1), np.full(6, 0.01), pose(0.1), np.r_[np.ones(3, bool), np.zeros(3, bool)],
-                               coupled)
+    T, report = graph.add_step(
+        pose(0.1), np.full(6, 0.01), pose(0.1), np.r_[np.ones(3, bool), np.zeros(3, bool)], coupled
+    )
     assert report.icp_used and report.masked_axes == 3 and np.isfinite(T).all()
     for bad in (FusionConfig(icp_covariance="adaptive"), FusionConfig(icp_residual_variance=0.0)):
         with pytest.raises(ValueError, match="icp_covariance|icp_residual_variance"):
@@ -208,8 +212,11 @@ def test_the_bias_factors_jacobians_match_numerical_differences():
     assert np.degrees(gtsam.Rot3(measured[:3, :3]).between(Z.rotation()).yaw()) < 0  # a positive bias over-reads
     for n in range(2):
         step = 1e-6 * np.eye(2)[n]
-        np.testing.assert_allclose(gtsam.Pose3.Logmap(Z.between(corrected_increment(measured, bias + step, axes)[0]))
-                                   / 1e-6, G[:, n], atol=1e-8)
+        np.testing.assert_allclose(
+            gtsam.Pose3.Logmap(Z.between(corrected_increment(measured, bias + step, axes)[0])) / 1e-6,
+            G[:, n],
+            atol=1e-8,
+        )
     X_prev = gtsam.Pose3(gtsam.Rot3.RzRyRx(0.1, 0.2, 0.3), np.array([1.0, 2.0, 3.0]))
     X_cur = X_prev.compose(gtsam.Pose3(gtsam.Rot3.RzRyRx(0.02, -0.01, 0.12), np.array([0.11, 0.0, 0.02])))
     factor = odometry_bias_factor(measured, 0, 1, 2, gtsam.noiseModel.Unit.Create(6), axes)
@@ -262,6 +269,7 @@ def test_the_legs_bias_learnt_where_icp_holds_keeps_the_heading_and_height_where
 def test_the_strides_scale_learnt_where_icp_holds_keeps_the_length_of_a_tunnel(backend):
     """Legs that over-read each step by 3 %: ICP holds every axis for 20 m, then x is masked for 10 m,
     as along a tunnel. With the scale as a state the blind stretch is walked at its true length."""
+
     def walk(axes):
         fusion = BACKENDS[backend](np.eye(4), FusionConfig(odometry_bias=axes))
         truth, step, odom = np.eye(4), pose(0.1), pose(0.103)
@@ -295,10 +303,13 @@ def test_the_legs_bias_survives_standing_still_missing_steps_and_refuses_bad_set
     assert "all axes masked" in report.fallback and np.isfinite(T).all()
     T, report = fusion.add_step(None, None, None, None)
     assert "constant-position" in report.fallback and np.isfinite(fusion.odometry_bias).all()
-    for bad in (dict(odometry_bias=("roll",)), dict(odometry_bias=("yaw", "yaw")),
-                dict(odometry_bias=("yaw",), odometry_bias_walk=(0.0, 1e-3, 1e-4)),
-                dict(odometry_bias=("z",), odometry_bias_sigmas=(np.nan, 1e-3, 0.02)),
-                dict(odometry_bias=("scale",), odometry_bias_sigmas=(1e-3, 1e-3))):
+    for bad in (
+        dict(odometry_bias=("roll",)),
+        dict(odometry_bias=("yaw", "yaw")),
+        dict(odometry_bias=("yaw",), odometry_bias_walk=(0.0, 1e-3, 1e-4)),
+        dict(odometry_bias=("z",), odometry_bias_sigmas=(np.nan, 1e-3, 0.02)),
+        dict(odometry_bias=("scale",), odometry_bias_sigmas=(1e-3, 1e-3)),
+    ):
         with pytest.raises(ValueError, match="odometry_bias"):
             BACKENDS[backend](np.eye(4), FusionConfig(**bad))
 
@@ -309,9 +320,14 @@ def test_a_fixed_lag_keeps_the_newest_estimate_of_the_whole_smoother_in_a_bounde
     window, and its trajectory keeps every pose (those that left as they left)."""
     rng = np.random.default_rng(3)
     sigmas = np.array([0.004, 0.004, 0.004, 3e-4, 3e-4, 6e-4])
-    steps = [(pose(0.1, 0.0, 0.001, 0.0005 + 0.003 * np.sin(k / 20)) @ pose(*(rng.normal(0, 0.003, 3))),
-              pose(0.1, 0.0, 0.0, 0.003 * np.sin(k / 20)) @ pose(*(rng.normal(0, 0.001, 3))), k >= 200)
-             for k in range(300)]
+    steps = [
+        (
+            pose(0.1, 0.0, 0.001, 0.0005 + 0.003 * np.sin(k / 20)) @ pose(*(rng.normal(0, 0.003, 3))),
+            pose(0.1, 0.0, 0.0, 0.003 * np.sin(k / 20)) @ pose(*(rng.normal(0, 0.001, 3))),
+            k >= 200,
+        )
+        for k in range(300)
+    ]
     runs = {}
     for lag in (None, 40):
         graph = FusionGraph(np.eye(4), FusionConfig(odometry_bias=("yaw", "z"), smoother_lag=lag))
@@ -367,8 +383,11 @@ def test_fusion_imports_nothing_of_the_project():
     for path in Path(__file__).parents[1].joinpath("fusion").glob("*.py"):
         tree = ast.parse(path.read_text())
         names = {a.name.split(".")[0] for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
-        names |= {n.module.split(".")[0] for n in ast.walk(tree)
-                  if isinstance(n, ast.ImportFrom) and n.module and n.level == 0}
+        names |= {
+            n.module.split(".")[0]
+            for n in ast.walk(tree)
+            if isinstance(n, ast.ImportFrom) and n.module and n.level == 0
+        }
         assert not names & {"l3e_env", "scenes", "policies"}, path
 
 

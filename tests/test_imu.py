@@ -1,4 +1,5 @@
 """The IMU read off the drive's poses: true to the motion, integrable back to the poses, noisy as configured."""
+
 import numpy as np
 import pytest
 from scipy.interpolate import CubicSpline
@@ -10,8 +11,10 @@ from l3e_env.sim.imu import GRAVITY, ImuConfig, StepGyro, attitude_readings, att
 
 def _circle(t: np.ndarray, radius: float = 5.0, rate: float = 0.2) -> list[np.ndarray]:
     """Walking a circle anticlockwise, facing along it, at `rate` rad/s, on a floor that rises gently."""
-    return [pose_to_matrix([radius * np.sin(rate * s), radius * (1 - np.cos(rate * s)), 0.5 + 0.02 * s,
-                            0.0, 0.0, rate * s]) for s in t]
+    return [
+        pose_to_matrix([radius * np.sin(rate * s), radius * (1 - np.cos(rate * s)), 0.5 + 0.02 * s, 0.0, 0.0, rate * s])
+        for s in t
+    ]
 
 
 def test_a_circle_reads_its_turn_rate_and_centripetal_acceleration_plus_gravity():
@@ -28,8 +31,19 @@ def test_integrating_the_noise_free_imu_returns_to_the_poses():
     """Strapdown integration from the first pose and the spline's own start velocity stays
     within a centimetre of a 10 s drive that turns, climbs and pitches."""
     stamps = np.arange(0.0, 10.01, 0.1)
-    poses = [pose_to_matrix([3 * np.sin(0.3 * s), s + 0.5 * np.sin(s), 0.3 * np.sin(0.5 * s),
-                             0.05 * np.sin(s), 0.08 * np.sin(0.7 * s), 0.4 * s]) for s in stamps]
+    poses = [
+        pose_to_matrix(
+            [
+                3 * np.sin(0.3 * s),
+                s + 0.5 * np.sin(s),
+                0.3 * np.sin(0.5 * s),
+                0.05 * np.sin(s),
+                0.08 * np.sin(0.7 * s),
+                0.4 * s,
+            ]
+        )
+        for s in stamps
+    ]
     imu = imu_samples(stamps, poses, ImuConfig(rate=400.0))
     dt = 1.0 / 400.0
     R, p = poses[0][:3, :3].copy(), poses[0][:3, 3].copy()
@@ -73,13 +87,15 @@ def test_the_orientation_is_the_body_s_own_off_by_errors_that_wander_and_return(
     long = np.arange(0.0, 3000.0, 1.0)
     still = [pose_to_matrix([0.0, 0.0, 0.5, 0.0, 0.0, 1.0])] * len(long)
     config = ImuConfig(rate=20.0, orientation_time=10.0)
-    error = (Rotation.from_matrix(still[0][:3, :3]).inv() * Rotation.from_quat(
-        imu_samples(long, still, config, rng).orientation)).as_rotvec()
+    error = (
+        Rotation.from_matrix(still[0][:3, :3]).inv()
+        * Rotation.from_quat(imu_samples(long, still, config, rng).orientation)
+    ).as_rotvec()
     np.testing.assert_allclose(error.std(axis=0), config.orientation_sigmas(), rtol=0.2)
     heading = error[:, 2]
     lag = int(10.0 * config.rate)  # one correlation time apart: e^-1 of the spread shared
     assert np.corrcoef(heading[:-lag], heading[lag:])[0, 1] == pytest.approx(np.exp(-1), abs=0.12)
-    assert abs(np.corrcoef(heading[:-20 * lag], heading[20 * lag:])[0, 1]) < 0.15
+    assert abs(np.corrcoef(heading[: -20 * lag], heading[20 * lag :])[0, 1]) < 0.15
 
 
 def test_the_step_rate_attitude_is_the_body_s_own_off_by_the_orientation_s_errors(rng):
@@ -141,13 +157,14 @@ def test_one_footfall_every_third_of_a_second_while_walking_and_none_at_rest():
     short = ImuConfig(jolt_time=0.005, gyro_noise=0.0, accel_noise=0.0, gyro_bias_walk=0.0, accel_bias_walk=0.0)
     vertical = imu_samples(stamps, _walk_then_stand(stamps), short, np.random.default_rng(4)).accel[:, 2] - GRAVITY
     high = np.abs(vertical) > 0.5 * 0.7 * short.footfall_accel
-    onsets = np.flatnonzero(high[1:] & ~np.convolve(high, np.ones(20), "full")[:len(high) - 1].astype(bool))
+    onsets = np.flatnonzero(high[1:] & ~np.convolve(high, np.ones(20), "full")[: len(high) - 1].astype(bool))
     assert len(onsets) == 27  # 9 s of walking at 3 Hz
     assert np.allclose(np.diff(onsets) / short.rate, 1.0 / short.footfall_rate, atol=0.011)
     at_rest = [pose_to_matrix([1.0, 2.0, 0.5, 0.0, 0.0, 0.3])] * len(stamps)
-    np.testing.assert_array_equal(imu_samples(stamps, at_rest, ImuConfig(), np.random.default_rng(5)).accel,
-                                  imu_samples(stamps, at_rest, ImuConfig(footfall_accel=0.0),
-                                              np.random.default_rng(5)).accel)
+    np.testing.assert_array_equal(
+        imu_samples(stamps, at_rest, ImuConfig(), np.random.default_rng(5)).accel,
+        imu_samples(stamps, at_rest, ImuConfig(footfall_accel=0.0), np.random.default_rng(5)).accel,
+    )
 
 
 def test_the_step_gyro_reads_the_step_s_turn_off_by_its_integrated_noise_and_bias():

@@ -1,4 +1,5 @@
 """`l3e judge`: scan files of every format read alike, and judged by the detectors."""
+
 import json
 
 import numpy as np
@@ -20,9 +21,11 @@ def _corridor_scan(rng) -> np.ndarray:
 
 
 def _write_pcd(path, points: np.ndarray, binary: bool) -> None:
-    header = (f"# .PCD v0.7\nVERSION 0.7\nFIELDS x y z intensity\nSIZE 4 4 4 4\nTYPE F F F F\nCOUNT 1 1 1 1\n"
-              f"WIDTH {len(points)}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {len(points)}\n"
-              f"DATA {'binary' if binary else 'ascii'}\n")
+    header = (
+        f"# .PCD v0.7\nVERSION 0.7\nFIELDS x y z intensity\nSIZE 4 4 4 4\nTYPE F F F F\nCOUNT 1 1 1 1\n"
+        f"WIDTH {len(points)}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {len(points)}\n"
+        f"DATA {'binary' if binary else 'ascii'}\n"
+    )
     table = np.c_[points, np.arange(len(points))].astype(np.float32)
     with open(path, "wb") as f:
         f.write(header.encode())
@@ -54,18 +57,27 @@ def test_a_broken_or_unknown_scan_file_is_named(tmp_path):
     np.savez(tmp_path / "two.npz", a=np.zeros((3, 3)), b=np.zeros((3, 3)))
     np.zeros(7, np.float32).tofile(tmp_path / "odd.bin")
     (tmp_path / "stub.bin").write_bytes(b"abc")  # under one float: np.fromfile reads it as no points
-    (tmp_path / "cut.pcd").write_bytes(b"FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nPOINTS 100\nDATA binary\n"
-                                       + b"\0" * 40)
+    (tmp_path / "cut.pcd").write_bytes(
+        b"FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nPOINTS 100\nDATA binary\n" + b"\0" * 40
+    )
     (tmp_path / "packed.pcd").write_bytes(b"FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nPOINTS 1\nDATA binary_compressed\n")
     _write_pcd(tmp_path / "half.pcd", np.ones((20, 3)), binary=False)
     lines = (tmp_path / "half.pcd").read_bytes().splitlines(keepends=True)
     (tmp_path / "half.pcd").write_bytes(b"".join(lines[:-10]))  # ten rows of twenty: cut short
     np.save(tmp_path / "rows.npy", np.zeros((3, 500)))
-    cases = {"broken.npy": "cannot be read as numpy", "flat.npy": r"shape \(10, 2\)", "two.npz": "name the points",
-             "half.pcd": "the PCD header says 20 points and the file holds 10 rows",
-             "rows.npy": r"shape \(3, 500\): a scan is \(N, 3\) or \(N, 4\), one point a row.*points.T",
-             "odd.bin": "KITTI", "stub.bin": "3 bytes", "cut.pcd": "cut short", "packed.pcd": "ascii or binary",
-             "scan.las": "unknown scan format", "missing.npy": "no such file"}
+    cases = {
+        "broken.npy": "cannot be read as numpy",
+        "flat.npy": r"shape \(10, 2\)",
+        "two.npz": "name the points",
+        "half.pcd": "the PCD header says 20 points and the file holds 10 rows",
+        "rows.npy": r"shape \(3, 500\): a scan is \(N, 3\) or \(N, 4\), one point a row.*points.T",
+        "odd.bin": "KITTI",
+        "stub.bin": "3 bytes",
+        "cut.pcd": "cut short",
+        "packed.pcd": "ascii or binary",
+        "scan.las": "unknown scan format",
+        "missing.npy": "no such file",
+    }
     for name, message in cases.items():
         with pytest.raises(ScanFileError, match=message) as info:
             read_scan(tmp_path / name)
@@ -77,8 +89,9 @@ def test_a_corridor_scan_is_judged_free_along_its_axis_and_no_return_points_are_
     with_gaps = np.r_[points, np.full((5, 3), np.nan), np.zeros((3, 3))]  # an organised cloud's empty returns
     _write_pcd(tmp_path / "corridor.pcd", with_gaps, binary=True)
     np.save(tmp_path / "empty.npy", np.zeros((0, 3)))
-    first, empty = judge_scans([tmp_path / "corridor.pcd", tmp_path / "empty.npy"],
-                               ["eigen:30", "scanmc:8", "learned", "none"])  # a generator: unpacked
+    first, empty = judge_scans(
+        [tmp_path / "corridor.pcd", tmp_path / "empty.npy"], ["eigen:30", "scanmc:8", "learned", "none"]
+    )  # a generator: unpacked
     assert first.points == len(points) and first.dropped == 8
     scanmc, eigen = first.predictions["scanmc:8"], first.predictions["eigen:30"]
     assert scanmc.known and scanmc.mask.tolist() == [True, False, False, False, False, False]
@@ -105,11 +118,26 @@ def test_the_judge_command_prints_and_writes_the_scores(tmp_path, rng, capsys):
     assert saved[0]["sensor"] is None  # no detector asked here simulates the sensor
     np.save(tmp_path / "few.npy", _corridor_scan(rng)[:20])
     assert main(["judge", str(tmp_path / "few.npy"), "--detector", "eigen:30", "--json", str(out)]) == 0
-    assert json.loads(out.read_text())[0]["detectors"]["eigen:30"] == {"known": False, "scores": [None] * 6,
-                                                                       "not_localizable": []}
+    assert json.loads(out.read_text())[0]["detectors"]["eigen:30"] == {
+        "known": False,
+        "scores": [None] * 6,
+        "not_localizable": [],
+    }
     # a file that cannot be read is named, and the ones after it are still judged and saved
-    assert main(["judge", str(tmp_path / "nothing.pcd"), str(tmp_path / "corridor.npy"), "--detector", "none",
-                 "--json", str(out)]) == 2
+    assert (
+        main(
+            [
+                "judge",
+                str(tmp_path / "nothing.pcd"),
+                str(tmp_path / "corridor.npy"),
+                "--detector",
+                "none",
+                "--json",
+                str(out),
+            ]
+        )
+        == 2
+    )
     captured = capsys.readouterr()
     assert "nothing.pcd: no such file" in captured.err and "1 of 2 scans could not be read or judged" in captured.err
     assert "none: localizable along every axis" in captured.out
@@ -117,8 +145,21 @@ def test_the_judge_command_prints_and_writes_the_scores(tmp_path, rng, capsys):
     assert "no such file" in saved[0]["error"] and saved[1]["detectors"]["none"]["known"]
     # a scan in millimetres is not judged by any detector, and says why
     np.save(tmp_path / "millimetres.npy", _corridor_scan(rng) * 1000)
-    assert main(["judge", str(tmp_path / "millimetres.npy"), "--detector", "eigen:30", "--detector", "learned",
-                 "--json", str(out)]) == 2
+    assert (
+        main(
+            [
+                "judge",
+                str(tmp_path / "millimetres.npy"),
+                "--detector",
+                "eigen:30",
+                "--detector",
+                "learned",
+                "--json",
+                str(out),
+            ]
+        )
+        == 2
+    )
     assert "a scan in millimetres, or not in the sensor's frame?): not judged" in capsys.readouterr().err
     assert "beyond 1000 m" in json.loads(out.read_text())[0]["error"]
 
@@ -146,14 +187,16 @@ def test_the_cascade_judges_a_file_with_the_estimate_where_it_is_unsure(tmp_path
 
     points = _corridor_scan(rng)
     np.save(tmp_path / "corridor.npy", points)
-    (judged,) = judge_scans([tmp_path / "corridor.npy"], ["learned+scanmc:100", "learned+scanmc:0", "learned"],
-                            LidarConfig())
+    (judged,) = judge_scans(
+        [tmp_path / "corridor.npy"], ["learned+scanmc:100", "learned+scanmc:0", "learned"], LidarConfig()
+    )
     checked = judged.predictions["learned+scanmc:100"]  # always unsure: the estimate, seeded by the file's place
     estimate = make_detector("scanmc", sensor=LidarConfig()).judge(points, np.random.default_rng([0, 0]))
     assert checked.known and checked.mask.tolist() == [True] + [False] * 5
     assert np.array_equal(checked.probabilities, estimate.probabilities)
-    assert np.array_equal(judged.predictions["learned+scanmc:0"].probabilities,
-                          judged.predictions["learned"].probabilities)  # never unsure: the classifier alone
+    assert np.array_equal(
+        judged.predictions["learned+scanmc:0"].probabilities, judged.predictions["learned"].probabilities
+    )  # never unsure: the classifier alone
     assert needs_sensor(["learned+scanmc"]) and not needs_sensor(["learned"])
     assert "learned+scanmc: the classifier's probability where it is sure" in score_legend(["learned+scanmc:1"])
 
@@ -163,7 +206,7 @@ def test_a_cloud_larger_than_any_revolution_is_refused_by_name_before_any_work(t
 
     big = tmp_path / "map.npy"
     np.save(big, np.random.default_rng(0).uniform(-50, 50, (MAX_REVOLUTION_POINTS + 1, 3)).astype(np.float32))
-    judged, = judge_scans([big], ["eigen:30", "scanmc:4"])
+    (judged,) = judge_scans([big], ["eigen:30", "scanmc:4"])
     assert judged.error and "more than any spinning LiDAR returns in one revolution" in judged.error
     assert "accumulated map" in judged.error and not judged.predictions
     assert main(["judge", str(big), "--detector", "learned"]) == 2

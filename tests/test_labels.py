@@ -21,8 +21,9 @@ def labels_at(scene_name, pose, children=30, seed=0, registration=None):
     scene = make_scene(scene_name)
     lidar = Lidar(EmbreeCaster(scene.mesh, threads=1))
     cfg = LabelConfig(children=children)
-    return label_parent(lidar, pose_to_matrix(np.array(pose)), np.random.default_rng(seed), cfg,
-                        registration or RegistrationConfig())
+    return label_parent(
+        lidar, pose_to_matrix(np.array(pose)), np.random.default_rng(seed), cfg, registration or RegistrationConfig()
+    )
 
 
 def test_straight_tunnel_flags_its_axis_only():
@@ -45,11 +46,14 @@ def test_open_plane_flags_x_y_and_yaw():
     assert res.labels.tolist() == [1, 1, 0, 0, 0, 1], res.errors
 
 
-@pytest.mark.parametrize("scene, pose, free", [
-    ("primitives-1", [0, 0, 0.85, 0, 0, 0], [1, 0, 0, 0, 0, 0]),  # two parallel walls: the axis along them
-    ("primitives-2", [0, 0, 0.85, 0, 0, 0.3], [0, 0, 0, 0, 0, 0]),  # a closed room
-    ("primitives-3", [0, 0, 0.85, 0, 0, 0], [0, 0, 0, 0, 0, 1]),  # a round room: yaw
-])
+@pytest.mark.parametrize(
+    "scene, pose, free",
+    [
+        ("primitives-1", [0, 0, 0.85, 0, 0, 0], [1, 0, 0, 0, 0, 0]),  # two parallel walls: the axis along them
+        ("primitives-2", [0, 0, 0.85, 0, 0, 0.3], [0, 0, 0, 0, 0, 0]),  # a closed room
+        ("primitives-3", [0, 0, 0.85, 0, 0, 0], [0, 0, 0, 0, 0, 1]),  # a round room: yaw
+    ],
+)
 def test_the_analytic_primitives_are_labelled_as_their_geometry_says(scene, pose, free):
     res = labels_at(scene, pose)
     assert res.labels.tolist() == free, res.errors
@@ -114,8 +118,9 @@ def test_statistics_count_the_64_combinations():
 
 
 def small_config(**kw):
-    return config_for(None, scenes=["tunnel-0", "office-0"], parents_per_scene=3, shard_size=2,
-                      labels={"children": 12}, **kw)
+    return config_for(
+        None, scenes=["tunnel-0", "office-0"], parents_per_scene=3, shard_size=2, labels={"children": 12}, **kw
+    )
 
 
 def test_same_seed_same_dataset_whatever_the_workers_and_after_a_resume(tmp_path):
@@ -175,22 +180,42 @@ def test_a_users_mesh_is_labelled_resumed_by_its_own_bytes_and_scored(cad_corrid
     from l3e_env.model.classifier import load_checkpoint
 
     mesh, route = cad_corridor
-    out, args = tmp_path / "d", ["--up-axis", "y", "--scale", "0.001", "--parents", "2", "--children", "5",
-                                 "--workers", "1", "--quiet"]
-    assert main(["dataset", "generate", "--out", str(out), "--scenes", f"{mesh},office-0", "--route", str(route),
-                 *args]) == 0
+    out, args = (
+        tmp_path / "d",
+        ["--up-axis", "y", "--scale", "0.001", "--parents", "2", "--children", "5", "--workers", "1", "--quiet"],
+    )
+    assert (
+        main(["dataset", "generate", "--out", str(out), "--scenes", f"{mesh},office-0", "--route", str(route), *args])
+        == 0
+    )
     data = LabelDataset(out)
     assert data.manifest["scenes"] == [str(mesh.resolve()), "office-0"]
-    assert sorted(p.name for p in (out / "shards").glob("*.npz")) == ["mesh0-corridor-00000.npz",
-                                                                       "office-0-00000.npz"]
+    assert sorted(p.name for p in (out / "shards").glob("*.npz")) == ["mesh0-corridor-00000.npz", "office-0-00000.npz"]
     mesh_rows = np.flatnonzero(np.asarray(data.arrays["scene"]) == 0)
     assert len(mesh_rows) == 2
     ground = data.poses[mesh_rows][:, :3, 3]  # sampled along the route: 1-8 m down the corridor, on its floor
     assert (ground[:, 0] > 0.5).all() and (ground[:, 0] < 8.5).all() and (np.abs(ground[:, 1]) < 1.7).all()
     assert (np.abs(ground[:, 2] - 0.85) < 1.2).all()
     capsys.readouterr()
-    assert main(["evaluate", "--other", str(out), "--by-family", "--by-region", "--out", str(tmp_path / "ev"),
-                 "--scan-mc", "3", "--cascade", "1", "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "evaluate",
+                "--other",
+                str(out),
+                "--by-family",
+                "--by-region",
+                "--out",
+                str(tmp_path / "ev"),
+                "--scan-mc",
+                "3",
+                "--cascade",
+                "1",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     lines = capsys.readouterr().out.splitlines()
     written = next(line for line in lines if line.startswith("written: "))  # the cascade's figure among the others
     assert written.endswith(str(tmp_path / "ev" / "cascade.png"))
@@ -202,32 +227,53 @@ def test_a_users_mesh_is_labelled_resumed_by_its_own_bytes_and_scored(cad_corrid
     # a training config names the mesh relative to the folder it runs in; the checkpoint, for good
     monkeypatch.chdir(mesh.parent)
     Path("split.yaml").write_text("train_scenes: [corridor.obj]\nvalidation_scenes: [office-0]\nsamples_per_epoch: 4\n")
-    assert main(["train", "--dataset", str(out), "--out", "run", "--config", "split.yaml", "--epochs", "1",
-                 "--quiet"]) == 0
+    assert (
+        main(["train", "--dataset", str(out), "--out", "run", "--config", "split.yaml", "--epochs", "1", "--quiet"])
+        == 0
+    )
     assert load_checkpoint("run/model.pt")["training"]["train_scenes"] == [str(mesh.resolve())]
     assert np.isfinite(json.loads(Path("run/log.jsonl").read_text())["train_loss"])  # 4 samples: still one batch
     # the same command resumes; another route, or the mesh file edited, is another dataset
-    assert main(["dataset", "generate", "--out", str(out), "--scenes", f"{mesh},office-0", "--route", str(route),
-                 *args]) == 0
+    assert (
+        main(["dataset", "generate", "--out", str(out), "--scenes", f"{mesh},office-0", "--route", str(route), *args])
+        == 0
+    )
     np.savetxt(tmp_path / "other.csv", [[1000.0, 0, 0], [6000, 0, 0]])
-    assert main(["dataset", "generate", "--out", str(out), "--scenes", f"{mesh},office-0", "--route",
-                 str(tmp_path / "other.csv"), *args]) == 2
+    assert (
+        main(
+            [
+                "dataset",
+                "generate",
+                "--out",
+                str(out),
+                "--scenes",
+                f"{mesh},office-0",
+                "--route",
+                str(tmp_path / "other.csv"),
+                *args,
+            ]
+        )
+        == 2
+    )
     assert "other settings (scene_params)" in capsys.readouterr().err
     mesh.write_text(mesh.read_text() + "# edited\n")
-    assert main(["dataset", "generate", "--out", str(out), "--scenes", f"{mesh},office-0", "--route", str(route),
-                 *args]) == 2
+    assert (
+        main(["dataset", "generate", "--out", str(out), "--scenes", f"{mesh},office-0", "--route", str(route), *args])
+        == 2
+    )
     assert "other settings (mesh_sha256)" in capsys.readouterr().err
     # a mesh needs its route, one mesh a dataset, mesh options a mesh; all refused before the folder
-    for scenes, extra, message in [(str(mesh), [], "give its route"),
-                                   (f"{mesh},{mesh}", ["--route", str(route)], "one mesh file in --scenes"),
-                                   ("office-0", ["--route", str(route)], "only for a scene given as a mesh")]:
+    for scenes, extra, message in [
+        (str(mesh), [], "give its route"),
+        (f"{mesh},{mesh}", ["--route", str(route)], "one mesh file in --scenes"),
+        ("office-0", ["--route", str(route)], "only for a scene given as a mesh"),
+    ]:
         assert main(["dataset", "generate", "--out", str(tmp_path / "no"), "--scenes", scenes, *extra]) == 2
         assert message in capsys.readouterr().err
     assert not (tmp_path / "no").exists()
 
 
-def test_several_meshes_are_labelled_from_a_list_with_their_own_routes_axes_and_scales(cad_corridor, tmp_path,
-                                                                                        capsys):
+def test_several_meshes_are_labelled_from_a_list_with_their_own_routes_axes_and_scales(cad_corridor, tmp_path, capsys):
     from l3e_env.cli.main import main
 
     mesh, route = cad_corridor  # y up, millimetres
@@ -238,11 +284,30 @@ def test_several_meshes_are_labelled_from_a_list_with_their_own_routes_axes_and_
     z_up.export(folder / "plain.stl")
     np.savetxt(folder / "plain.txt", [[1.0, 0], [8, 0]])
     listing = folder / "list.yaml"
-    listing.write_text(f"- mesh: {mesh}\n  route: [{route}]\n  up_axis: y\n  scale: 0.001\n"
-                       "- mesh: plain.stl\n  route: plain.txt\n")  # relative to the list's folder
+    listing.write_text(
+        f"- mesh: {mesh}\n  route: [{route}]\n  up_axis: y\n  scale: 0.001\n- mesh: plain.stl\n  route: plain.txt\n"
+    )  # relative to the list's folder
     out = tmp_path / "d"
-    assert main(["dataset", "generate", "--out", str(out), "--meshes", str(listing), "--parents", "2",
-                 "--children", "5", "--workers", "1", "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "dataset",
+                "generate",
+                "--out",
+                str(out),
+                "--meshes",
+                str(listing),
+                "--parents",
+                "2",
+                "--children",
+                "5",
+                "--workers",
+                "1",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     data = LabelDataset(out)
     assert data.manifest["scenes"] == [str(mesh.resolve()), str((folder / "plain.stl").resolve())]
     scene = np.asarray(data.arrays["scene"])
@@ -251,15 +316,20 @@ def test_several_meshes_are_labelled_from_a_list_with_their_own_routes_axes_and_
         assert len(ground) == 2 and (ground[:, 0] > 0.5).all() and (ground[:, 0] < 8.5).all()
         assert (np.abs(ground[:, 1]) < 1.7).all() and (np.abs(ground[:, 2] - 0.85) < 1.2).all()
     # a malformed list is named, and refused before the folder
-    for text, message in [("mesh: a.obj", "give a list of meshes"), ("- mesh: plain.stl", "give 'mesh'"),
-                          ("- mesh: plain.stl\n  route: plain.txt\n  units: mm", "unknown keys"),
-                          ("- mesh: plain.stl\n  route: plain.txt\n  scale: mm", "mesh 1: scale is metres"),
-                          ("- mesh: plain.stl\n  route: missing.txt", "route file not found")]:
+    for text, message in [
+        ("mesh: a.obj", "give a list of meshes"),
+        ("- mesh: plain.stl", "give 'mesh'"),
+        ("- mesh: plain.stl\n  route: plain.txt\n  units: mm", "unknown keys"),
+        ("- mesh: plain.stl\n  route: plain.txt\n  scale: mm", "mesh 1: scale is metres"),
+        ("- mesh: plain.stl\n  route: missing.txt", "route file not found"),
+    ]:
         listing.write_text(text)
         assert main(["dataset", "generate", "--out", str(tmp_path / "no"), "--meshes", str(listing)]) == 2
         assert message in capsys.readouterr().err
-    assert main(["dataset", "generate", "--out", str(tmp_path / "no"), "--meshes", str(listing), "--route",
-                 str(route)]) == 2
+    assert (
+        main(["dataset", "generate", "--out", str(tmp_path / "no"), "--meshes", str(listing), "--route", str(route)])
+        == 2
+    )
     assert "give no other mesh scene" in capsys.readouterr().err
     assert not (tmp_path / "no").exists()
 
@@ -312,8 +382,9 @@ def test_a_damaged_dataset_names_the_file_that_is_damaged(tiny_dataset, tmp_path
     (copy / "manifest.json").write_text('{"complete": tr')
     with pytest.raises(DatasetError, match="manifest.json cannot be read"):
         LabelDataset(copy)
-    cfg = config_for(None, scenes=["tunnel-0", "office-0", "field-0"], parents_per_scene=4, shard_size=2,
-                     labels={"children": 8})
+    cfg = config_for(
+        None, scenes=["tunnel-0", "office-0", "field-0"], parents_per_scene=4, shard_size=2, labels={"children": 8}
+    )
     shard = sorted((copy / "shards").glob("*.npz"))[0]
     shard.write_bytes(shard.read_bytes()[:100])
     with pytest.raises(DatasetError, match=f"shard {shard} is unreadable.*delete it and run again"):

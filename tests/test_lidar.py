@@ -15,11 +15,14 @@ def exact(model="vlp16"):
     return LidarConfig(model=model, range_noise_std=0.0)
 
 
-@pytest.mark.parametrize("scene_name,pose", [
-    ("mine", (-30.0, 0.5, 0.85, 0.0, 0.0, 0.3)),
-    ("mine", (40.0, 0.3, 0.85, 0.05, -0.03, 0.1)),
-    ("office", (5.0, 0.0, 0.85, 0.0, 0.1, 1.0)),
-])
+@pytest.mark.parametrize(
+    "scene_name,pose",
+    [
+        ("mine", (-30.0, 0.5, 0.85, 0.0, 0.0, 0.3)),
+        ("mine", (40.0, 0.3, 0.85, 0.05, -0.03, 0.1)),
+        ("office", (5.0, 0.0, 0.85, 0.0, 0.1, 1.0)),
+    ],
+)
 def test_embree_and_pybullet_agree_to_a_tenth_of_a_millimetre(scene_name, pose):
     scene = make_scene(scene_name)
     T = pose_to_matrix(np.array(pose))
@@ -140,8 +143,14 @@ def test_a_swept_revolution_lies_on_the_walls_once_each_point_is_put_where_it_wa
     while the pose at the revolution's end puts some of them centimetres off. `os-staggered`: an
     OS0-128 whose beams fire 27 mm out from the axis, staggered in azimuth."""
     if model == "os-staggered":
-        register_pattern(dataclasses.replace(get_pattern("os0-128"), name=model, beam_origin_offset=0.027,
-                                             azimuth_offsets_deg=tuple(np.tile([-4.2, -1.4, 1.4, 4.2], 32))))
+        register_pattern(
+            dataclasses.replace(
+                get_pattern("os0-128"),
+                name=model,
+                beam_origin_offset=0.027,
+                azimuth_offsets_deg=tuple(np.tile([-4.2, -1.4, 1.4, 4.2], 32)),
+            )
+        )
     room = trimesh.creation.box(extents=(10.0, 6.0, 4.0))
     lidar = Lidar(EmbreeCaster(room), exact(model))
     start = pose_to_matrix([0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
@@ -162,8 +171,9 @@ def test_a_swept_revolution_deskewed_with_its_motion_lies_on_the_walls_seen_from
     which way the sensor spins and where a revolution begins."""
     from l3e_env.sim.lidar import deskew
 
-    pattern = dataclasses.replace(get_pattern("vlp16"), name=f"vlp16-{clockwise}-{start_deg}", clockwise=clockwise,
-                                  scan_start_deg=start_deg)
+    pattern = dataclasses.replace(
+        get_pattern("vlp16"), name=f"vlp16-{clockwise}-{start_deg}", clockwise=clockwise, scan_start_deg=start_deg
+    )
     register_pattern(pattern)
     room = trimesh.creation.box(extents=(10.0, 6.0, 4.0))
     lidar = Lidar(EmbreeCaster(room), exact(pattern.name))
@@ -172,8 +182,11 @@ def test_a_swept_revolution_deskewed_with_its_motion_lies_on_the_walls_seen_from
     np.testing.assert_allclose(pattern.firing_share(swept.points) * 0.1, swept.times, atol=1e-6)
     ring = swept.beam == 7  # column 450 looks left (90 deg), column 0 ahead
     left, ahead = (swept.times[ring & (swept.column == c)][0] for c in (450, 0))
-    assert (left, ahead) == ((pytest.approx(0.025), pytest.approx(0.05)) if clockwise else
-                             (pytest.approx(0.0, abs=1e-6), pytest.approx(0.075)))
+    assert (left, ahead) == (
+        (pytest.approx(0.025), pytest.approx(0.05))
+        if clockwise
+        else (pytest.approx(0.0, abs=1e-6), pytest.approx(0.075))
+    )
     straight = deskew(swept.points, np.linalg.inv(start) @ end, pattern)
     assert straight.dtype == np.float32
     assert _off_the_box(straight.astype(np.float64) @ end[:3, :3].T + end[:3, 3]).max() < 2e-3
@@ -188,8 +201,11 @@ def test_the_deskewing_motion_is_the_mean_of_the_odometry_s_last_steps():
 
     assert DESKEW_STEPS == 2
     np.testing.assert_array_equal(deskew_motion([]), np.eye(4))
-    steps = [pose_to_matrix([5.0, 0, 0, 0, 0, 1.0]), pose_to_matrix([0.10, 0.02, 0, 0, 0, 0.1]),
-             pose_to_matrix([0.14, 0.0, 0.01, 0, 0.02, 0.3])]
+    steps = [
+        pose_to_matrix([5.0, 0, 0, 0, 0, 1.0]),
+        pose_to_matrix([0.10, 0.02, 0, 0, 0, 0.1]),
+        pose_to_matrix([0.14, 0.0, 0.01, 0, 0.02, 0.3]),
+    ]
     mean = matrix_to_pose(deskew_motion(steps))  # the first step is too old to count
     np.testing.assert_allclose(mean, [0.12, 0.01, 0.005, 0.0, 0.01, 0.2], atol=1e-3)
     np.testing.assert_allclose(deskew_motion(steps[1:2]), steps[1], atol=1e-12)
@@ -198,5 +214,8 @@ def test_the_deskewing_motion_is_the_mean_of_the_odometry_s_last_steps():
     np.testing.assert_allclose(inertial, [0.12, 0.01, 0.005, 0.01, 0.0, 0.25], atol=1e-3)
     np.testing.assert_allclose(deskew_motion([], gyro)[:3, :3], gyro)
     mounting = pose_to_matrix([0.1, 0.0, 0.3, 0, 0, 0.2])  # the sensor's motion: the body's, carried through it
-    np.testing.assert_allclose(deskew_motion(steps, gyro, mounting=mounting),
-                               np.linalg.inv(mounting) @ deskew_motion(steps, gyro) @ mounting, atol=1e-12)
+    np.testing.assert_allclose(
+        deskew_motion(steps, gyro, mounting=mounting),
+        np.linalg.inv(mounting) @ deskew_motion(steps, gyro) @ mounting,
+        atol=1e-12,
+    )

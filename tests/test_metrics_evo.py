@@ -1,4 +1,5 @@
 """Our ATE and RPE against evo's APE and RPE on TUM files (evo is GPL-3.0: test-only)."""
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation

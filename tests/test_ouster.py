@@ -1,5 +1,6 @@
 """Ouster captures (Ouster's own test data, `tests/data/ouster`): read scan by scan through
 ouster-sdk in the lidar frame, damaged ones refused by name, and judged alike by every route in."""
+
 import json
 import shutil
 from pathlib import Path
@@ -62,8 +63,7 @@ def test_a_damaged_capture_is_refused_by_name(broken):
         assert str(broken) in str(exc) and "holds no scan" in str(exc)
         assert ("damaged" in str(exc)) == (broken.name != "empty_osf.osf")
         return
-    assert scans and all(s.points is None and "could not decode" in s.error and broken.name in s.error
-                         for s in scans)
+    assert scans and all(s.points is None and "could not decode" in s.error and broken.name in s.error for s in scans)
 
 
 def test_a_pcap_without_its_metadata_names_the_fix(tmp_path):
@@ -113,8 +113,10 @@ def _exported(capture: Path, folder: Path, frame: str) -> list[Path]:
 
 
 def _decisions(scans, specs, sensor=None) -> list:
-    return [None if j.error else {n: (p.known, tuple(p.mask)) for n, p in j.predictions.items()}
-            for j in judge_scans(scans, specs, sensor)]
+    return [
+        None if j.error else {n: (p.known, tuple(p.mask)) for n, p in j.predictions.items()}
+        for j in judge_scans(scans, specs, sensor)
+    ]
 
 
 @pytest.mark.slow
@@ -124,10 +126,12 @@ def test_every_route_in_gives_the_same_decisions(capture, tmp_path):
     decisions by every detector, and scanmc judges every full revolution."""
     specs = ["learned", "eigen:30", "dcreg:50", "scanmc"]
     sensor = LidarConfig(model=str(_metadata(capture)))
-    routes = {"capture": _decisions([capture], specs),
-              "capture, its metadata given": _decisions([capture], specs, sensor),
-              "lidar-frame arrays": _decisions(_exported(capture, tmp_path, "lidar"), specs, sensor),
-              "sensor-frame arrays": _decisions(_exported(capture, tmp_path, "sensor"), specs, sensor)}
+    routes = {
+        "capture": _decisions([capture], specs),
+        "capture, its metadata given": _decisions([capture], specs, sensor),
+        "lidar-frame arrays": _decisions(_exported(capture, tmp_path, "lidar"), specs, sensor),
+        "sensor-frame arrays": _decisions(_exported(capture, tmp_path, "sensor"), specs, sensor),
+    }
     if capture == OS1_OSF:
         routes["pcap"] = _decisions([OS1_PCAP], specs)
     first = routes.pop("capture")
@@ -141,8 +145,24 @@ def test_the_cli_reads_a_capture_as_a_recording_and_its_sensor(tmp_path, capsys)
     alone = tmp_path / "capture.pcap"
     shutil.copy(OS1_PCAP, alone)
     out = tmp_path / "judged.json"
-    assert main(["judge", "--bag", str(alone), "--sensor", str(_metadata(OS1_PCAP)), "--every", "2",
-                 "--detector", "eigen:30", "--json", str(out)]) == 0
+    assert (
+        main(
+            [
+                "judge",
+                "--bag",
+                str(alone),
+                "--sensor",
+                str(_metadata(OS1_PCAP)),
+                "--every",
+                "2",
+                "--detector",
+                "eigen:30",
+                "--json",
+                str(out),
+            ]
+        )
+        == 0
+    )
     assert [r["path"] for r in json.loads(out.read_text())] == ["capture.pcap #0", "capture.pcap #2"]
     assert main(["judge", "--bag", str(alone), "--topic", "/points"]) == 2
     assert "not an Ouster capture" in capsys.readouterr().err
@@ -152,7 +172,9 @@ def test_the_cli_reads_a_capture_as_a_recording_and_its_sensor(tmp_path, capsys)
 
 
 def test_a_librarys_warning_is_a_line_of_the_commands_own(capsys):
-    assert main(["judge", "--bag", str(OS0_8), "--sensor", str(_metadata(OS0_8)), "--detector", "learned",
-                 "--every", "5"]) == 0
+    assert (
+        main(["judge", "--bag", str(OS0_8), "--sensor", str(_metadata(OS0_8)), "--detector", "learned", "--every", "5"])
+        == 0
+    )
     err = capsys.readouterr().err
     assert "l3e judge: warning: the classifier was trained on vlp16 scans" in err and "UserWarning" not in err

@@ -1,5 +1,6 @@
 """Beam patterns: Ouster-style offsets simulated and read back, pattern files, and the sensor
 recognised from a scan's own points, as `l3e judge` does for scans of another LiDAR."""
+
 import dataclasses
 import json
 import re
@@ -29,8 +30,16 @@ from l3e_env.sim.raycast import EmbreeCaster, PyBulletCaster
 
 # a 64-beam Ouster-like sensor: beams on the OS0-128's grid spacing, staggered azimuths, beams
 # leaving 27 mm out from the axis
-OUSTER_LIKE = BeamPattern("ouster-like", tuple(np.linspace(-22.5, 22.5, 64)), 512, 60.0, 0.3, 256,
-                          tuple(np.tile([-4.2, -1.4, 1.4, 4.2], 16)), 0.027)
+OUSTER_LIKE = BeamPattern(
+    "ouster-like",
+    tuple(np.linspace(-22.5, 22.5, 64)),
+    512,
+    60.0,
+    0.3,
+    256,
+    tuple(np.tile([-4.2, -1.4, 1.4, 4.2], 16)),
+    0.027,
+)
 POSE = pose_to_matrix(np.array([40.0, 0.3, 0.85, 0.05, -0.03, 0.1]))
 
 
@@ -97,14 +106,18 @@ def test_a_vlp16s_cloud_is_recognised_with_or_without_its_calibrations_vertical_
     beam, column, off = calibrated.locate(points)
     assert (beam == np.repeat(np.arange(16), 1800)).all() and (column == np.tile(np.arange(1800), 16)).all()
     assert off.max() < 1e-4
-    np.testing.assert_allclose(calibrated.origins() + 6.0 * calibrated.directions(), _driver_points(
-        np.full((16, 1800), 6.0), calibrated, [z / 1e3 for z in offsets]), atol=1e-5)
+    np.testing.assert_allclose(
+        calibrated.origins() + 6.0 * calibrated.directions(),
+        _driver_points(np.full((16, 1800), 6.0), calibrated, [z / 1e3 for z in offsets]),
+        atol=1e-5,
+    )
     # from the axis, the leg's returns on the outer beams lie 0.8 deg off: more than the quarter spacing
     assert PATTERNS["vlp16"].locate(points)[2].max() > 0.25 * PATTERNS["vlp16"].spacing_deg()
     assert fit_pattern(_driver_points(distance, calibrated, [0.0] * 16))[0] is PATTERNS["vlp16"]
     # with no near return both fit; the one whose beams the returns lie on is taken
-    assert fit_pattern(_driver_points(np.full((16, 1800), 6.0), calibrated, [z / 1e3 for z in offsets]))[0] \
-        is calibrated
+    assert (
+        fit_pattern(_driver_points(np.full((16, 1800), 6.0), calibrated, [z / 1e3 for z in offsets]))[0] is calibrated
+    )
     assert "-11.2 to +11.2 mm from the axis, across the beam" in describe_pattern(calibrated)
 
 
@@ -178,8 +191,16 @@ def test_an_ouster_cloud_without_a_ring_field_and_a_grid_off_the_x_axis_are_read
     """A 128-beam Ouster's cloud without its ring field: beams 15.2 mm out, staggered by +-1.4 and
     +-4.2 deg, fitted as from the metadata; a 32-beam sensor (an XT32's beams at 1800 columns) whose
     columns start 0.07 deg round."""
-    ouster = BeamPattern("ouster", tuple(np.linspace(-45, 45, 128)), 1024, 50.0, 0.3, 256,
-                         tuple(np.tile([4.23, 1.41, -1.41, -4.23], 32)), 0.0152)
+    ouster = BeamPattern(
+        "ouster",
+        tuple(np.linspace(-45, 45, 128)),
+        1024,
+        50.0,
+        0.3,
+        256,
+        tuple(np.tile([4.23, 1.41, -1.41, -4.23], 32)),
+        0.0152,
+    )
     pattern, how = fit_pattern(_scan(mine.mesh, ouster, rng=np.random.default_rng(2)).points)
     assert pattern.name == "fitted-128x1024" and "15.2 mm" in how, how
     np.testing.assert_allclose(pattern.elevations_deg, ouster.elevations_deg, atol=0.005)
@@ -213,23 +234,46 @@ def test_pattern_files_in_the_projects_own_keys_and_as_ouster_metadata(tmp_path)
     assert pattern.name == str(own) and pattern.n_beams == 32 and pattern.elevations_deg[-1] == 15.0
     assert pattern.n_azimuth == 2000 and pattern.image_width == 250 and pattern.beam_origin_offset == 0
     listed = tmp_path / "listed.json"
-    listed.write_text(json.dumps({"elevations_deg": [-10, 0, 10], "columns": 360, "max_range": 30,
-                                  "azimuth_offsets_deg": [1, 0, -1], "beam_origin_offset": 0.01}))
+    listed.write_text(
+        json.dumps(
+            {
+                "elevations_deg": [-10, 0, 10],
+                "columns": 360,
+                "max_range": 30,
+                "azimuth_offsets_deg": [1, 0, -1],
+                "beam_origin_offset": 0.01,
+            }
+        )
+    )
     assert load_pattern(listed).azimuth_offsets_deg == (1.0, 0.0, -1.0)
     velodyne = tmp_path / "velodyne.yaml"
-    velodyne.write_text("elevations_deg: [-10, 0, 10]\ncolumns: 360\nmax_range: 30\n"
-                        "beam_vertical_offsets: [0.01, 0, -0.01]\n")
+    velodyne.write_text(
+        "elevations_deg: [-10, 0, 10]\ncolumns: 360\nmax_range: 30\nbeam_vertical_offsets: [0.01, 0, -0.01]\n"
+    )
     assert load_pattern(velodyne).beam_vertical_offsets == (0.01, 0.0, -0.01)
     calibrated = PATTERNS["vlp16-calibrated"]
-    assert load_pattern(save_pattern(calibrated, tmp_path / "vlp16.yaml")).beam_vertical_offsets == \
-        calibrated.beam_vertical_offsets
+    assert (
+        load_pattern(save_pattern(calibrated, tmp_path / "vlp16.yaml")).beam_vertical_offsets
+        == calibrated.beam_vertical_offsets
+    )
     altitudes, azimuths = list(np.linspace(21.1, -21.1, 64)), [3.1, 0.9, -1.2, -3.3] * 16
-    legacy = {"prod_line": "OS-1-64", "lidar_mode": "2048x10", "beam_altitude_angles": altitudes,
-              "beam_azimuth_angles": azimuths, "lidar_origin_to_beam_origin_mm": 15.806}
-    nested = {"sensor_info": {"prod_line": "OS-1-64"}, "config_params": {"lidar_mode": "1024x10"},
-              "lidar_data_format": {"columns_per_frame": 2048},
-              "beam_intrinsics": {"beam_altitude_angles": altitudes, "beam_azimuth_angles": azimuths,
-                                  "lidar_origin_to_beam_origin_mm": 15.806}}
+    legacy = {
+        "prod_line": "OS-1-64",
+        "lidar_mode": "2048x10",
+        "beam_altitude_angles": altitudes,
+        "beam_azimuth_angles": azimuths,
+        "lidar_origin_to_beam_origin_mm": 15.806,
+    }
+    nested = {
+        "sensor_info": {"prod_line": "OS-1-64"},
+        "config_params": {"lidar_mode": "1024x10"},
+        "lidar_data_format": {"columns_per_frame": 2048},
+        "beam_intrinsics": {
+            "beam_altitude_angles": altitudes,
+            "beam_azimuth_angles": azimuths,
+            "lidar_origin_to_beam_origin_mm": 15.806,
+        },
+    }
     for i, meta in enumerate((legacy, nested)):
         path = tmp_path / f"os1-{i}.json"
         path.write_text(json.dumps(meta))
@@ -241,31 +285,49 @@ def test_pattern_files_in_the_projects_own_keys_and_as_ouster_metadata(tmp_path)
         del PATTERNS[str(path)]
 
 
-@pytest.mark.parametrize("text,problem", [
-    ("columns: 10\nmax_range: 5\n", "lacks 'elevations_deg'"),
-    ("elevations_deg: [0, 1]\ncolumns: ten\nmax_range: 5\n", "not a number"),
-    ("elevations_deg: [0, 1]\ncolumns: 10\nmax_range: 5\nazimuth_offsets_deg: [1]\n", "1 azimuth offsets for 2 beams"),
-    ("elevations_deg: [0, 1]\ncolumns: 10\nmax_range: 5\nimage_width: 3\n", "does not divide its 10 columns"),
-    ("elevations_deg: [0, 1]\ncolumns: 10\nmax_range: 5\nbeam_vertical_offsets: [0.01]\n",
-     "1 vertical offsets for 2 beams"),
-    ("elevations_deg: [0, 1]\ncolumns: 10\nmax_range: 5\nbeam_vertical_offsets: [0.01, .nan]\n",
-     "beam origin offset that is not a finite number"),
-    ("elevations_deg: [0, 1]\ncolumns: 10\nmax_range: 0\n", "max_range > min_range"),
-    ("elevations_deg: [0, 1]\ncolumns: 10\nmax_range: 5\nspin: sideways\n", "spin is 'clockwise' or"),
-    ("elevations_deg: [0, 1]\ncolumns: 10\nmax_range: 5\nscan_start_deg: .nan\n", "scan start of nan deg"),
-    ("elevations_deg: [0, 1]\ncolumns: 10\nmax_range: 5\ntime_field: stamp\n", "time_field 'stamp'; it is one of"),
-    ("elevations_deg: [0, 1]\ncolumns: 100000000\nmax_range: 5\n", "100000000 columns; spinning LiDARs have at most"),
-    ("elevations_deg: {from: -10, to: 10, beams: 100000}\ncolumns: 10\nmax_range: 5\n", "100000 beams"),
-    ("elevations_deg: [0, 200]\ncolumns: 10\nmax_range: 5\n", "a beam at 200 deg elevation"),
-    ("elevations_deg: [0, 1, 1]\ncolumns: 10\nmax_range: 5\n", "two beams at the same elevation"),
-    ("elevations_deg: [0, 1]\ncolumns: 10\nmax_range: 5\nazimuth_offsets_deg: [0, 400]\n",
-     "has an azimuth offset beyond"),
-    ("elevations_deg: [0, 1]\ncolums: 10\ncolumns: 10\nmax_range: 5\n", "unknown keys ['colums']"),
-    ("elevations_deg: [0, 1]\ncolumns: 10\nmax_range: 5\n"
-     "lidar_to_sensor: [2, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]\n", "not a rigid 4x4 matrix"),
-    ("- 1\n- 2\n", "mapping of keys, not list"),
-    ("elevations_deg: [0, 1\n", "not a readable YAML file"),
-])
+@pytest.mark.parametrize(
+    "text,problem",
+    [
+        ("columns: 10\nmax_range: 5\n", "lacks 'elevations_deg'"),
+        ("elevations_deg: [0, 1]\ncolumns: ten\nmax_range: 5\n", "not a number"),
+        (
+            "elevations_deg: [0, 1]\ncolumns: 10\nmax_range: 5\nazimuth_offsets_deg: [1]\n",
+            "1 azimuth offsets for 2 beams",
+        ),
+        ("elevations_deg: [0, 1]\ncolumns: 10\nmax_range: 5\nimage_width: 3\n", "does not divide its 10 columns"),
+        (
+            "elevations_deg: [0, 1]\ncolumns: 10\nmax_range: 5\nbeam_vertical_offsets: [0.01]\n",
+            "1 vertical offsets for 2 beams",
+        ),
+        (
+            "elevations_deg: [0, 1]\ncolumns: 10\nmax_range: 5\nbeam_vertical_offsets: [0.01, .nan]\n",
+            "beam origin offset that is not a finite number",
+        ),
+        ("elevations_deg: [0, 1]\ncolumns: 10\nmax_range: 0\n", "max_range > min_range"),
+        ("elevations_deg: [0, 1]\ncolumns: 10\nmax_range: 5\nspin: sideways\n", "spin is 'clockwise' or"),
+        ("elevations_deg: [0, 1]\ncolumns: 10\nmax_range: 5\nscan_start_deg: .nan\n", "scan start of nan deg"),
+        ("elevations_deg: [0, 1]\ncolumns: 10\nmax_range: 5\ntime_field: stamp\n", "time_field 'stamp'; it is one of"),
+        (
+            "elevations_deg: [0, 1]\ncolumns: 100000000\nmax_range: 5\n",
+            "100000000 columns; spinning LiDARs have at most",
+        ),
+        ("elevations_deg: {from: -10, to: 10, beams: 100000}\ncolumns: 10\nmax_range: 5\n", "100000 beams"),
+        ("elevations_deg: [0, 200]\ncolumns: 10\nmax_range: 5\n", "a beam at 200 deg elevation"),
+        ("elevations_deg: [0, 1, 1]\ncolumns: 10\nmax_range: 5\n", "two beams at the same elevation"),
+        (
+            "elevations_deg: [0, 1]\ncolumns: 10\nmax_range: 5\nazimuth_offsets_deg: [0, 400]\n",
+            "has an azimuth offset beyond",
+        ),
+        ("elevations_deg: [0, 1]\ncolums: 10\ncolumns: 10\nmax_range: 5\n", "unknown keys ['colums']"),
+        (
+            "elevations_deg: [0, 1]\ncolumns: 10\nmax_range: 5\n"
+            "lidar_to_sensor: [2, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]\n",
+            "not a rigid 4x4 matrix",
+        ),
+        ("- 1\n- 2\n", "mapping of keys, not list"),
+        ("elevations_deg: [0, 1\n", "not a readable YAML file"),
+    ],
+)
 def test_a_broken_pattern_file_is_refused_naming_the_problem(tmp_path, text, problem):
     path = tmp_path / "sensor.yaml"
     path.write_text(text)
@@ -278,11 +340,18 @@ def test_a_broken_pattern_file_is_refused_naming_the_problem(tmp_path, text, pro
 def _ouster_metadata(path, pattern: BeamPattern) -> None:
     """An Ouster metadata JSON (firmware 2.x keys) for `pattern`, with the SDK's sensor frame as
     its OS1s have it: the lidar frame turned 180 deg about z and lifted 36.18 mm."""
-    path.write_text(json.dumps({
-        "beam_altitude_angles": list(pattern.elevations_deg), "lidar_mode": f"{pattern.n_azimuth}x10",
-        "beam_azimuth_angles": [-a for a in pattern.azimuth_offsets_deg] or [0.0] * pattern.n_beams,
-        "lidar_origin_to_beam_origin_mm": 1e3 * pattern.beam_origin_offset, "prod_line": "OS-1-64",
-        "lidar_to_sensor_transform": [-1, 0, 0, 0, 0, -1, 0, 0, 0, 0, 1, 36.18, 0, 0, 0, 1]}))
+    path.write_text(
+        json.dumps(
+            {
+                "beam_altitude_angles": list(pattern.elevations_deg),
+                "lidar_mode": f"{pattern.n_azimuth}x10",
+                "beam_azimuth_angles": [-a for a in pattern.azimuth_offsets_deg] or [0.0] * pattern.n_beams,
+                "lidar_origin_to_beam_origin_mm": 1e3 * pattern.beam_origin_offset,
+                "prod_line": "OS-1-64",
+                "lidar_to_sensor_transform": [-1, 0, 0, 0, 0, -1, 0, 0, 0, 0, 1, 36.18, 0, 0, 0, 1],
+            }
+        )
+    )
 
 
 def test_an_ouster_cloud_is_judged_alike_in_its_lidar_and_its_sdks_sensor_frame(tmp_path, mine, capsys):
@@ -298,14 +367,16 @@ def test_an_ouster_cloud_is_judged_alike_in_its_lidar_and_its_sdks_sensor_frame(
     specs = ["scanmc:4", "eigen:30"]
     # each alone, so that scanmc draws the same children for each (they are seeded by the place in the list)
     sensor = LidarConfig(model=str(meta))
-    as_lidar, as_sensor, neither = (next(judge_scans([tmp_path / f"{n}.npy"], specs, sensor=sensor))
-                                    for n in ("lidar", "sensor", "neither"))
+    as_lidar, as_sensor, neither = (
+        next(judge_scans([tmp_path / f"{n}.npy"], specs, sensor=sensor)) for n in ("lidar", "sensor", "neither")
+    )
     assert as_lidar.frame is None and as_sensor.frame == "read in the SDK's sensor frame, turned into the lidar frame"
     for spec in specs:
         assert as_lidar.predictions[spec].known
         np.testing.assert_array_equal(as_lidar.predictions[spec].mask, as_sensor.predictions[spec].mask)
-        np.testing.assert_allclose(as_lidar.predictions[spec].probabilities,
-                                   as_sensor.predictions[spec].probabilities, atol=1e-3)
+        np.testing.assert_allclose(
+            as_lidar.predictions[spec].probabilities, as_sensor.predictions[spec].probabilities, atol=1e-3
+        )
     assert neither.error and "lie on" in neither.error and "sensor frame" in neither.error
     assert "turned into the lidar frame" in format_judgement(as_sensor)
 
@@ -319,9 +390,11 @@ def test_judge_recognises_the_sensor_or_takes_a_pattern_file_for_scanmc(tmp_path
     # the sensor's own file gives its exact beams: the same children see the same scan mesh but for
     # the staggered azimuths and beam origins, so the scores agree closely, not exactly
     spec = tmp_path / "ouster.yaml"
-    spec.write_text(f"elevations_deg: {[float(e) for e in OUSTER_LIKE.elevations_deg]}\ncolumns: 512\nmax_range: 60\n"
-                    f"min_range: 0.3\nazimuth_offsets_deg: {[float(a) for a in OUSTER_LIKE.azimuth_offsets_deg]}\n"
-                    "beam_origin_offset: 0.027\n")
+    spec.write_text(
+        f"elevations_deg: {[float(e) for e in OUSTER_LIKE.elevations_deg]}\ncolumns: 512\nmax_range: 60\n"
+        f"min_range: 0.3\nazimuth_offsets_deg: {[float(a) for a in OUSTER_LIKE.azimuth_offsets_deg]}\n"
+        "beam_origin_offset: 0.027\n"
+    )
     [given] = judge_scans([tmp_path / "scan.npy"], ["scanmc:4"], LidarConfig(model=str(spec)), workers=2)
     a, b = auto.predictions["scanmc:4"].probabilities, given.predictions["scanmc:4"].probabilities
     assert given.predictions["scanmc:4"].known and np.abs(a - b).max() < 0.15
@@ -380,7 +453,12 @@ def test_a_recognised_sensor_is_saved_as_a_pattern_file_and_read_back(tmp_path, 
         np.testing.assert_allclose(back.elevations_deg, OUSTER_LIKE.elevations_deg, atol=1e-6)
         assert back.azimuth_offsets_deg == OUSTER_LIKE.azimuth_offsets_deg
         assert (back.n_azimuth, back.image_width, back.beam_origin_offset, back.max_range, back.min_range) == (
-            512, 256, 0.027, 60.0, 0.3)
+            512,
+            256,
+            0.027,
+            60.0,
+            0.3,
+        )
         assert back.clockwise and back.scan_start_deg == 180.0  # a Velodyne's spin, from behind
         assert back.time_field == "time"
         spun = dataclasses.replace(OUSTER_LIKE, clockwise=False, scan_start_deg=90.0, time_field="t")
@@ -404,16 +482,40 @@ def test_a_drive_recorded_with_a_pattern_file_is_judged_with_its_sensor_recognis
     spec = tmp_path / "ouster.yaml"
     save_pattern(OUSTER_LIKE, spec)
     bag = tmp_path / "walls.bag"
-    assert main(["record", "--scene", "primitives-1", "--sensor", str(spec), "--out", str(bag), "--imu-rate", "0",
-                 "--still", "0", "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "record",
+                "--scene",
+                "primitives-1",
+                "--sensor",
+                str(spec),
+                "--out",
+                str(bag),
+                "--imu-rate",
+                "0",
+                "--still",
+                "0",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     capsys.readouterr()
     PATTERNS.pop(str(spec))  # judged as in a process of its own, which has not read the file
-    assert main(["judge", "--bag", str(bag), "--every", "300", "--detector", "scanmc:4", "--json",
-                 str(tmp_path / "j.json")]) == 0
+    assert (
+        main(
+            ["judge", "--bag", str(bag), "--every", "300", "--detector", "scanmc:4", "--json", str(tmp_path / "j.json")]
+        )
+        == 0
+    )
     printed = capsys.readouterr().out
-    found = re.search(r"sensor: fitted to the scan: 64 beams over -22\.5 to 22\.5 deg, 512 columns, beams staggered in "
-                      r"azimuth by -0\.02 to 0\.02 deg, beams leaving "
-                      r"(\d+\.\d) mm out from the axis \(beams from the ring field\)", printed)
+    found = re.search(
+        r"sensor: fitted to the scan: 64 beams over -22\.5 to 22\.5 deg, 512 columns, beams staggered in "
+        r"azimuth by -0\.02 to 0\.02 deg, beams leaving "
+        r"(\d+\.\d) mm out from the axis \(beams from the ring field\)",
+        printed,
+    )
     assert found and abs(float(found.group(1)) - 27.0) <= 0.5, printed[:400]
     judged = json.loads((tmp_path / "j.json").read_text())
     assert len(judged) == 2 and all(j["detectors"]["scanmc:4"]["known"] for j in judged)

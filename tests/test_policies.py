@@ -1,5 +1,6 @@
 """Navigation: free space, localizability maps and their cache, the planner, the fast PPO
 environment, PPO checkpoints and full-pipeline episodes, on a small fork."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -240,8 +241,9 @@ def test_fast_env_rewards_progress_and_penalises_drift(fast_env):
     assert info["expected_drift"] == pytest.approx(12 * drift_rates()[0], rel=0.15)
     # the reward is progress minus lam times that drift (plus the goal, minus step penalties)
     cfg = fast_env.config
-    expected = (info["path_length"] - cfg.lam * info["expected_drift"] + cfg.goal_reward
-                - cfg.step_penalty * fast_env.decisions)
+    expected = (
+        info["path_length"] - cfg.lam * info["expected_drift"] + cfg.goal_reward - cfg.step_penalty * fast_env.decisions
+    )
     assert total == pytest.approx(expected, abs=1.0)
 
 
@@ -296,8 +298,14 @@ def test_policy_train_takes_the_sideways_cost_and_a_resumed_run_keeps_it(tmp_pat
     assert main([*run, str(tmp_path / "b"), "--lateral-drift", "0", "--no-sideways"]) == 0
     assert main([*run, str(tmp_path / "b")]) == 0  # resumed: still without the cost
     assert main([*run, str(tmp_path / "c")]) == 0  # a new run: the defaults
-    assert given == [(0.015, 20.0, True), (0.015, 20.0, True), (0.015, 30.0, True), (0.0, 50.0, False),
-                     (0.0, 50.0, False), (0.015, 50.0, True)]
+    assert given == [
+        (0.015, 20.0, True),
+        (0.015, 20.0, True),
+        (0.015, 30.0, True),
+        (0.0, 50.0, False),
+        (0.0, 50.0, False),
+        (0.015, 50.0, True),
+    ]
     for option in ("--lateral-drift", "--lam"):
         for bad in ("-0.1", "nan", "much"):
             with pytest.raises(SystemExit):
@@ -378,8 +386,7 @@ def test_teacher_walks_the_aware_direction_and_ppo_starts_from_its_clone(tmp_pat
     obs = np.zeros((3, PolicyView.size), dtype=np.float32)
     obs[:, PolicyView.aware] = [[1.0, 0.0], [0.0, 1.0], [np.cos(-0.3), np.sin(-0.3)]]
     np.testing.assert_allclose(teacher_action(obs), [[1, 0, 0], [0, 0, 1], [np.cos(0.3), 0, -0.45]], atol=1e-6)
-    np.testing.assert_allclose(teacher_action(obs, sideways=False), [[1, 0], [0, 1], [np.cos(0.3), -0.45]],
-                               atol=1e-6)
+    np.testing.assert_allclose(teacher_action(obs, sideways=False), [[1, 0], [0, 1], [np.cos(0.3), -0.45]], atol=1e-6)
     scene, space, cache = small_fork
     contexts = [SceneContext(scene, space, get_map(scene, space, "eigen:30", cache, resolution=4.0))]
     warm = WarmStart(episodes=2, epochs=300)  # a few samples: more passes
@@ -390,8 +397,9 @@ def test_teacher_walks_the_aware_direction_and_ppo_starts_from_its_clone(tmp_pat
     gaps = {}
     for name, start in (("warm", warm), ("cold", None)):
         # no PPO step after it: the network as cloned (or as drawn)
-        train_ppo(tmp_path / name, contexts, "eigen:30", timesteps=0, n_envs=1, config=walking,
-                  progress=False, warm=start)
+        train_ppo(
+            tmp_path / name, contexts, "eigen:30", timesteps=0, n_envs=1, config=walking, progress=False, warm=start
+        )
         policy = PPOPolicy(tmp_path / name)
         twists = np.array([policy(o) for o in observations[:200]])
         assert not twists[:, 1].any()  # (vx, yaw rate): it never walks sideways
@@ -426,16 +434,36 @@ def test_a_crafted_policy_folder_runs_no_code_when_loaded_or_resumed(tmp_path, s
     marker = tmp_path / "marker"
     folder = tmp_path / "shared-policy"
     folder.mkdir()
-    meta = {"observation": OBSERVATION, "action": ["vx", "yaw_rate"], "net_arch": [64, 64],
-            "fast_env": {"action_repeat": 1}}
+    meta = {
+        "observation": OBSERVATION,
+        "action": ["vx", "yaw_rate"],
+        "net_arch": [64, 64],
+        "fast_env": {"action_repeat": 1},
+    }
     (folder / "policy.json").write_text(json.dumps(meta))
     payload = base64.b64encode(pickle.dumps(_Payload(marker))).decode()
     with zipfile.ZipFile(folder / "policy.zip", "w") as z:  # SB3's layout: cloudpickled entries in `data`
         z.writestr("data", json.dumps({"policy_class": {":type:": "<class>", ":serialized:": payload}}))
     with pytest.raises(PolicyCheckpointError, match="policy.zip is not read"):
         PPOPolicy(folder)
-    assert main(["policy", "evaluate", "--policy", f"ppo:{folder}", "--scene", "fork-0", "--episodes", "1",
-                 "--out", str(tmp_path / "ev"), "--quiet"]) == 2
+    assert (
+        main(
+            [
+                "policy",
+                "evaluate",
+                "--policy",
+                f"ppo:{folder}",
+                "--scene",
+                "fork-0",
+                "--episodes",
+                "1",
+                "--out",
+                str(tmp_path / "ev"),
+                "--quiet",
+            ]
+        )
+        == 2
+    )
     (folder / "policy.pt").write_bytes(pickle.dumps(_Payload(marker), protocol=2))
     with pytest.raises(PolicyCheckpointError, match="cannot be read as policy weights"):
         PPOPolicy(folder)
@@ -453,10 +481,19 @@ def test_full_pipeline_evaluation_on_the_small_fork(small_fork, monkeypatch, tmp
     scene, space, cache = small_fork
     monkeypatch.setattr("policies.context.make_scene", lambda name: scene)
     monkeypatch.setattr("l3e_env.envs.navigation.make_scene", lambda name, **kw: scene)
-    rows = evaluation.evaluate_policies(tmp_path, ["shortest", "planner"], ["fork-0"], episodes=1, detector="eigen:30",
-                                        cache_dir=cache, lam=200.0, progress=False)
-    shortest, planner = (evaluation.Episode(**json.loads(line))
-                         for line in (tmp_path / "episodes.jsonl").read_text().splitlines())
+    rows = evaluation.evaluate_policies(
+        tmp_path,
+        ["shortest", "planner"],
+        ["fork-0"],
+        episodes=1,
+        detector="eigen:30",
+        cache_dir=cache,
+        lam=200.0,
+        progress=False,
+    )
+    shortest, planner = (
+        evaluation.Episode(**json.loads(line)) for line in (tmp_path / "episodes.jsonl").read_text().splitlines()
+    )
     assert shortest.success and planner.success
     assert not shortest.rich_route and planner.rich_route
     assert planner.path_length > shortest.path_length
@@ -465,15 +502,38 @@ def test_full_pipeline_evaluation_on_the_small_fork(small_fork, monkeypatch, tmp
     assert (tmp_path / "routes.png").stat().st_size > 10_000 and "rich route" in (tmp_path / "summary.txt").read_text()
     # a second run (or one after a kill) reuses the finished episodes
     monkeypatch.setattr(evaluation, "_run", lambda job: pytest.fail(f"episode {job[:3]} ran again"))
-    again = evaluation.evaluate_policies(tmp_path, ["shortest", "planner"], ["fork-0"], episodes=1,
-                                         detector="eigen:30", cache_dir=cache, lam=200.0, progress=False)
+    again = evaluation.evaluate_policies(
+        tmp_path,
+        ["shortest", "planner"],
+        ["fork-0"],
+        episodes=1,
+        detector="eigen:30",
+        cache_dir=cache,
+        lam=200.0,
+        progress=False,
+    )
     assert again == rows
     with pytest.raises(ValueError, match="holds episodes run with"):
-        evaluation.evaluate_policies(tmp_path, ["shortest"], ["fork-0"], episodes=1, detector="eigen:30",
-                                     cache_dir=cache, steer_on="truth", progress=False)
+        evaluation.evaluate_policies(
+            tmp_path,
+            ["shortest"],
+            ["fork-0"],
+            episodes=1,
+            detector="eigen:30",
+            cache_dir=cache,
+            steer_on="truth",
+            progress=False,
+        )
     with pytest.raises(ValueError, match="odometry_bias takes distinct axes"):
-        evaluation.evaluate_policies(tmp_path / "bad", ["shortest"], ["fork-0"], episodes=1, detector="eigen:30",
-                                     cache_dir=cache, fusion_settings=FusionSettings(odometry_bias=("roll",)))
+        evaluation.evaluate_policies(
+            tmp_path / "bad",
+            ["shortest"],
+            ["fork-0"],
+            episodes=1,
+            detector="eigen:30",
+            cache_dir=cache,
+            fusion_settings=FusionSettings(odometry_bias=("roll",)),
+        )
     assert not (tmp_path / "bad").exists()
     with pytest.raises(ValueError, match="unknown policy"):
         evaluation.make_controller("wander", "fork-0", "eigen:30", cache, 50.0)
@@ -481,8 +541,9 @@ def test_full_pipeline_evaluation_on_the_small_fork(small_fork, monkeypatch, tmp
     monkeypatch.setattr(evaluation, "scene_context", lambda *a, **k: pytest.fail("a map was looked up first"))
     for policy, message in (("wander", "unknown policy"), (f"ppo:{tmp_path / 'none'}", "none: no policy.pt")):
         with pytest.raises((ValueError, RuntimeError), match=message):
-            evaluation.evaluate_policies(tmp_path / "bad", ["shortest", policy], ["fork-0"], episodes=1,
-                                         detector="eigen:30", cache_dir=cache)
+            evaluation.evaluate_policies(
+                tmp_path / "bad", ["shortest", policy], ["fork-0"], episodes=1, detector="eigen:30", cache_dir=cache
+            )
     assert not (tmp_path / "bad").exists()
 
 
@@ -527,8 +588,19 @@ def test_a_users_mesh_is_mapped_and_planned(tmp_path, capsys):
         part.apply_translation(offset)
     trimesh.util.concatenate(parts).export(tmp_path / "corridor.stl")
     (tmp_path / "route.txt").write_text("5 0\n55 0\n")
-    mesh_args = ["--scene", str(tmp_path / "corridor.stl"), "--route", str(tmp_path / "route.txt"),
-                 "--detector", "eigen:30", "--cache-dir", str(tmp_path / "cache"), "--out", str(tmp_path), "--quiet"]
+    mesh_args = [
+        "--scene",
+        str(tmp_path / "corridor.stl"),
+        "--route",
+        str(tmp_path / "route.txt"),
+        "--detector",
+        "eigen:30",
+        "--cache-dir",
+        str(tmp_path / "cache"),
+        "--out",
+        str(tmp_path),
+        "--quiet",
+    ]
     assert main(["policy", "map", "--resolution", "4", *mesh_args]) == 0
     assert (tmp_path / "corridor-eigen30.png").stat().st_size > 10_000
     masked = capsys.readouterr().out.split("masked:")[1]
@@ -540,8 +612,9 @@ def test_a_users_mesh_is_mapped_and_planned(tmp_path, capsys):
     # several meshes from a list, each with its own route: the same corridor, and a copy of it
     (tmp_path / "copy").mkdir()
     (tmp_path / "copy" / "tube.stl").write_bytes((tmp_path / "corridor.stl").read_bytes())
-    (tmp_path / "list.yaml").write_text("- mesh: corridor.stl\n  route: route.txt\n"
-                                        "- mesh: copy/tube.stl\n  route: [route.txt]\n")
+    (tmp_path / "list.yaml").write_text(
+        "- mesh: corridor.stl\n  route: route.txt\n- mesh: copy/tube.stl\n  route: [route.txt]\n"
+    )
     listed = ["--meshes", str(tmp_path / "list.yaml"), "--resolution", "4", *mesh_args[4:]]
     assert main(["policy", "map", *listed]) == 0
     printed = [line for line in capsys.readouterr().out.splitlines() if "masked:" in line]
@@ -558,11 +631,31 @@ def test_a_users_mesh_is_driven_by_the_policies(cad_corridor, tmp_path, capsys, 
 
     mesh, route = cad_corridor
     monkeypatch.chdir(mesh.parent)  # the mesh given by a relative path
-    args = ["policy", "evaluate", "--scene", mesh.name, "--up-axis", "y", "--scale", "0.001", "--episodes", "1",
-            "--detector", "eigen:30", "--cache-dir", str(tmp_path / "cache"), "--out", str(tmp_path / "ev"), "--quiet"]
+    args = [
+        "policy",
+        "evaluate",
+        "--scene",
+        mesh.name,
+        "--up-axis",
+        "y",
+        "--scale",
+        "0.001",
+        "--episodes",
+        "1",
+        "--detector",
+        "eigen:30",
+        "--cache-dir",
+        str(tmp_path / "cache"),
+        "--out",
+        str(tmp_path / "ev"),
+        "--quiet",
+    ]
     assert main([*args, "--route", str(route)]) == 0
-    (episode,) = [json.loads(line) for line in (tmp_path / "ev" / "episodes.jsonl").read_text().splitlines()
-                  if json.loads(line)["policy"] == "shortest"]
+    (episode,) = [
+        json.loads(line)
+        for line in (tmp_path / "ev" / "episodes.jsonl").read_text().splitlines()
+        if json.loads(line)["policy"] == "shortest"
+    ]
     assert episode["success"] and episode["rich_route"] is None and 6.0 < episode["path_length"] < 9.0
     assert episode["trajectory"][-1][0] > 7.0  # driven along the corridor, in metres
     assert episode["scene"] == str(mesh.resolve())  # named for good, as datasets and recordings name it

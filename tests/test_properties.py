@@ -1,6 +1,7 @@
 """Property-based tests of the input boundaries users reach: each states what the project promises for any
 input of its kind (a clear error of a named type, or a finite answer), and hypothesis searches for a
 counter-example."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -19,8 +20,13 @@ SMALL = settings(max_examples=40, deadline=None, suppress_health_check=[HealthCh
 
 
 @SMALL
-@given(array=hnp.arrays(st.sampled_from([np.float32, np.float64, np.int16, np.uint8]),
-                        hnp.array_shapes(min_dims=1, max_dims=3, max_side=6), elements=st.integers(0, 100)))
+@given(
+    array=hnp.arrays(
+        st.sampled_from([np.float32, np.float64, np.int16, np.uint8]),
+        hnp.array_shapes(min_dims=1, max_dims=3, max_side=6),
+        elements=st.integers(0, 100),
+    )
+)
 def test_any_npy_array_reads_as_points_or_is_refused_by_name(tmp_path, array):
     path = tmp_path / "scan.npy"
     np.save(path, array)

@@ -174,11 +174,14 @@ def _cube_room(rng, half=4.0, n=6000):  # six walls: nothing slides
     return points, normals
 
 
-@pytest.mark.parametrize("surface, expected", [
-    (_cylinder, [True, False, False, True, False, False]),
-    (_plane, [True, True, False, False, False, True]),
-    (_cube_room, [False] * 6),
-])
+@pytest.mark.parametrize(
+    "surface, expected",
+    [
+        (_cylinder, [True, False, False, True, False, False]),
+        (_plane, [True, True, False, False, False, True]),
+        (_cube_room, [False] * 6),
+    ],
+)
 def test_dcreg_flags_the_axes_that_slide_on_surfaces_whose_degeneracy_is_known(surface, expected, rng):
     H = _point_to_plane_hessian(*surface(rng))
     scores, mask = dcreg_mask(H, 10.0)
@@ -206,8 +209,11 @@ def test_the_eigenvalue_test_means_the_same_on_every_sensor():
     for x, flagged in ((-30.0, set()), (60.0, {0})):  # the yard, the smooth tunnel (x degenerate)
         largest = {}
         for model in ("vlp16", "os0-128", "hdl32e"):
-            points = Lidar(caster, LidarConfig(model=model)).scan(pose_to_matrix(np.array([x, 0.3, 0.85, 0, 0, 0.2])),
-                                                                  np.random.default_rng(0)).points
+            points = (
+                Lidar(caster, LidarConfig(model=model))
+                .scan(pose_to_matrix(np.array([x, 0.3, 0.85, 0, 0, 0.2])), np.random.default_rng(0))
+                .points
+            )
             H = scan_hessian(points)
             assert set(np.flatnonzero(eigen_mask(H, 30.0)[1])) == flagged, model
             largest[model] = np.linalg.eigvalsh(H)[-1]

@@ -1,4 +1,5 @@
 """`l3e judge --bag`: LiDAR scans read from ROS 1 and ROS 2 bags, judged as the same scans in files."""
+
 import dataclasses
 import json
 
@@ -31,21 +32,36 @@ def _cloud(store, points: np.ndarray, stamp: float, *, dtype="<f4", height=1, pa
     types = store.types
     size = np.dtype(dtype).itemsize
     codes = {"<f4": 7, ">f4": 7, "<f8": 8, ">f8": 8}
-    layout = np.dtype({"names": list(fields) + ["intensity"], "formats": [dtype] * (len(fields) + 1),
-                       "offsets": [i * size for i in range(len(fields) + 1)], "itemsize": (len(fields) + 2) * size})
+    layout = np.dtype(
+        {
+            "names": list(fields) + ["intensity"],
+            "formats": [dtype] * (len(fields) + 1),
+            "offsets": [i * size for i in range(len(fields) + 1)],
+            "itemsize": (len(fields) + 2) * size,
+        }
+    )
     table = np.zeros(len(points), dtype=layout)
     for i, name in enumerate(fields):
         table[name] = points[:, i]
     width = len(points) // height
     rows = np.zeros((height, width * layout.itemsize + pad), np.uint8)
-    rows[:, :width * layout.itemsize] = table.view(np.uint8).reshape(height, -1)
+    rows[:, : width * layout.itemsize] = table.view(np.uint8).reshape(height, -1)
     time = types["builtin_interfaces/msg/Time"](sec=int(stamp), nanosec=int(round(stamp % 1 * 1e9)))
     header = types["std_msgs/msg/Header"](**({"seq": 0} if store is ROS1 else {}), stamp=time, frame_id="lidar")
     return types[CLOUD](
-        header=header, height=height, width=width, is_bigendian=dtype.startswith(">"), is_dense=False,
-        fields=[types["sensor_msgs/msg/PointField"](name=n, offset=i * size, datatype=codes[dtype], count=1)
-                for i, n in enumerate(list(fields) + ["intensity"])],
-        point_step=layout.itemsize, row_step=rows.shape[1], data=rows.ravel())
+        header=header,
+        height=height,
+        width=width,
+        is_bigendian=dtype.startswith(">"),
+        is_dense=False,
+        fields=[
+            types["sensor_msgs/msg/PointField"](name=n, offset=i * size, datatype=codes[dtype], count=1)
+            for i, n in enumerate(list(fields) + ["intensity"])
+        ],
+        point_step=layout.itemsize,
+        row_step=rows.shape[1],
+        data=rows.ravel(),
+    )
 
 
 def _corridor_lidar() -> Lidar:
@@ -59,13 +75,14 @@ def _corridor_scans(rng, n: int) -> list[np.ndarray]:
     return [lidar.scan(np.eye(4), rng).points.astype(np.float32).astype(np.float64) for _ in range(n)]
 
 
-def _write_bag(path, scans: list[np.ndarray], ros2: bool = False, broken: int | None = None,
-               second_cloud: bool = False) -> None:
+def _write_bag(
+    path, scans: list[np.ndarray], ros2: bool = False, broken: int | None = None, second_cloud: bool = False
+) -> None:
     """`scans` on /velodyne_points at 10 Hz from t = 100 s (the scan at `broken` has no z field),
     and a string topic beside them."""
     store = ROS2 if ros2 else ROS1
     serialize = store.serialize_cdr if ros2 else store.serialize_ros1
-    with (Writer2(path, version=9) if ros2 else Writer1(path)) as writer:
+    with Writer2(path, version=9) if ros2 else Writer1(path) as writer:
         clouds = writer.add_connection("/velodyne_points", CLOUD, typestore=store)
         notes = writer.add_connection("/notes", "std_msgs/msg/String", typestore=store)
         other = writer.add_connection("/front/points", CLOUD, typestore=store) if second_cloud else None
@@ -73,8 +90,9 @@ def _write_bag(path, scans: list[np.ndarray], ros2: bool = False, broken: int | 
             t = 100.0 + 0.1 * k
             msg = _cloud(store, points, t, fields="xy" if k == broken else "xyz")
             writer.write(clouds, int(t * 1e9), serialize(msg, CLOUD))
-            writer.write(notes, int(t * 1e9) + 1, serialize(store.types["std_msgs/msg/String"](data="hi"),
-                                                               "std_msgs/msg/String"))
+            writer.write(
+                notes, int(t * 1e9) + 1, serialize(store.types["std_msgs/msg/String"](data="hi"), "std_msgs/msg/String")
+            )
             if other is not None:
                 writer.write(other, int(t * 1e9) + 2, serialize(msg, CLOUD))
 
@@ -234,15 +252,48 @@ def test_judge_places_a_bags_scans_on_its_path_and_draws_the_map(tmp_path, rng, 
         writer(lidar.scan(T, rng), {"T_w_b": T, "odom_T_w_b": T_odom, "T_b_s": np.eye(4)})
     writer.close()
     out, plot = tmp_path / "j.json", tmp_path / "map.png"
-    assert main(["judge", "--bag", str(bag), "--every", "2", "--detector", "eigen:30", "--json", str(out),
-                 "--path-plot", str(plot)]) == 0
+    assert (
+        main(
+            [
+                "judge",
+                "--bag",
+                str(bag),
+                "--every",
+                "2",
+                "--detector",
+                "eigen:30",
+                "--json",
+                str(out),
+                "--path-plot",
+                str(plot),
+            ]
+        )
+        == 0
+    )
     assert "written: " + str(plot) in capsys.readouterr().out and plot.read_bytes()[:4] == b"\x89PNG"
     saved = json.loads(out.read_text())
     np.testing.assert_allclose([r["position"] for r in saved], [odom[k][:3, 3] for k in (0, 2, 4)], atol=1e-9)
-    assert main(["judge", "--bag", str(bag), "--every", "2", "--detector", "none", "--json", str(out),
-                 "--pose-topic", "/ground_truth"]) == 0
-    np.testing.assert_allclose([r["position"] for r in json.loads(out.read_text())],
-                               [truth[k][:3, 3] for k in (0, 2, 4)], atol=1e-9)
+    assert (
+        main(
+            [
+                "judge",
+                "--bag",
+                str(bag),
+                "--every",
+                "2",
+                "--detector",
+                "none",
+                "--json",
+                str(out),
+                "--pose-topic",
+                "/ground_truth",
+            ]
+        )
+        == 0
+    )
+    np.testing.assert_allclose(
+        [r["position"] for r in json.loads(out.read_text())], [truth[k][:3, 3] for k in (0, 2, 4)], atol=1e-9
+    )
     path = read_path(bag)
     assert path.topic == "/odom" and len(path.stamps) == 5
     halfway = path.at(np.array([1.05, 0.5, 1.45]))  # between the first two poses, before and after the path
@@ -278,8 +329,10 @@ def test_a_bag_recorder_refuses_to_overwrite_and_clears_a_killed_drive(tmp_path,
     six = tmp_path / "six.bag"
     writer = BagRecorder(six, imu=ImuConfig(orientation=False))
     for x in (0.0, 0.5):
-        writer(_corridor_lidar().scan(np.eye(4), rng), {"T_w_b": planar_pose(x, 0, 0, 0),
-                                                        "odom_T_w_b": planar_pose(x, 0, 0, 0), "T_b_s": np.eye(4)})
+        writer(
+            _corridor_lidar().scan(np.eye(4), rng),
+            {"T_w_b": planar_pose(x, 0, 0, 0), "odom_T_w_b": planar_pose(x, 0, 0, 0), "T_b_s": np.eye(4)},
+        )
     writer.close()
     assert all(m.orientation_covariance[0] == -1 for m in _messages(six, "/imu"))  # REP 145: none
 
@@ -348,8 +401,9 @@ def test_record_cli_writes_a_drive_that_judge_reads_back(tmp_path, capsys):
     # the robot first stands for 3 s: an initialiser averaging /imu there sees gravity alone, level
     moved = np.linalg.norm(recording.ground_truth[:, :3, 3] - recording.ground_truth[0, :3, 3], axis=1)
     assert moved[:30].max() < 0.01 and moved[40] > 0.5
-    at_rest = np.array([[m.linear_acceleration.x, m.linear_acceleration.y, m.linear_acceleration.z]
-                        for m in imu[:500]]).mean(axis=0)  # its first 2.5 s
+    at_rest = np.array(
+        [[m.linear_acceleration.x, m.linear_acceleration.y, m.linear_acceleration.z] for m in imu[:500]]
+    ).mean(axis=0)  # its first 2.5 s
     assert np.degrees(np.arctan2(np.linalg.norm(at_rest[:2]), at_rest[2])) < 1.0
 
 
@@ -378,7 +432,9 @@ def test_a_failed_or_stopped_record_leaves_no_half_written_bag(tmp_path, monkeyp
 def test_record_says_how_large_the_bag_may_grow_before_driving(tmp_path, capsys):
     import re
 
-    assert main(["record", "--scene", "primitives-1", "--out", str(tmp_path / "short.bag"), "--max-steps", "5",
-                 "--quiet"]) == 0
+    assert (
+        main(["record", "--scene", "primitives-1", "--out", str(tmp_path / "short.bag"), "--max-steps", "5", "--quiet"])
+        == 0
+    )
     said = re.search(r"recording about 6 scans of vlp16: the bag's scans take up to (\d+) MiB", capsys.readouterr().out)
     assert said and (tmp_path / "short.bag").stat().st_size <= 1.1 * int(said.group(1)) * 2**20

@@ -1,4 +1,5 @@
 """The scan's own Monte-Carlo estimate: its range-image mesh, and errors that follow the geometry."""
+
 import warnings
 from pathlib import Path
 
@@ -81,7 +82,7 @@ def test_the_mesh_goes_on_behind_depth_jumps_and_past_the_field_of_view():
     scan = _scan(scene)
     plain = range_image_mesh(scan.points, scan.pattern)
     filled = range_image_mesh(scan.points, scan.pattern, shadow_deg=3.0, beyond_deg=4.0)
-    np.testing.assert_array_equal(filled.faces[:len(plain.faces)], plain.faces)
+    np.testing.assert_array_equal(filled.faces[: len(plain.faces)], plain.faces)
     sideways = pose_to_matrix(np.array([0.0, 0.3, 0.0, 0.0, 0.0, 0.0]))
 
     def shadowed(p: np.ndarray) -> np.ndarray:  # the far wall, behind the pillar from the scan's pose
@@ -101,18 +102,29 @@ def test_the_mesh_goes_on_behind_depth_jumps_and_past_the_field_of_view():
 def test_a_long_corridor_is_free_along_its_axis_and_a_room_is_not(rng):
     corridor, room = _box([200, 4, 3]), _box([10, 7, 3])
     config = ScanMCConfig(children=6)
-    along = scan_errors(_scan(corridor, rng).points, LidarConfig(), RegistrationConfig(), LabelConfig(), config,
-                        rng).errors
+    along = scan_errors(
+        _scan(corridor, rng).points, LidarConfig(), RegistrationConfig(), LabelConfig(), config, rng
+    ).errors
     held = scan_errors(_scan(room, rng).points, LidarConfig(), RegistrationConfig(), LabelConfig(), config, rng).errors
     thresholds = LabelConfig().threshold_vector()
     assert along[0] > 2 * thresholds[0] and along[1] < thresholds[1] and along[5] < thresholds[5]
     assert (held < thresholds).all()
-    scaled = scan_errors(_scan(room, np.random.default_rng(1)).points, LidarConfig(), RegistrationConfig(),
-                         LabelConfig(), ScanMCConfig(children=6, calibration=(2.0,) * 6, settle=0),
-                         np.random.default_rng(2)).errors
-    plain = scan_errors(_scan(room, np.random.default_rng(1)).points, LidarConfig(), RegistrationConfig(),
-                        LabelConfig(), ScanMCConfig(children=6, calibration=(1.0,) * 6, settle=0),
-                        np.random.default_rng(2)).errors
+    scaled = scan_errors(
+        _scan(room, np.random.default_rng(1)).points,
+        LidarConfig(),
+        RegistrationConfig(),
+        LabelConfig(),
+        ScanMCConfig(children=6, calibration=(2.0,) * 6, settle=0),
+        np.random.default_rng(2),
+    ).errors
+    plain = scan_errors(
+        _scan(room, np.random.default_rng(1)).points,
+        LidarConfig(),
+        RegistrationConfig(),
+        LabelConfig(),
+        ScanMCConfig(children=6, calibration=(1.0,) * 6, settle=0),
+        np.random.default_rng(2),
+    ).errors
     assert scaled == pytest.approx(2 * plain)
 
 
@@ -130,7 +142,7 @@ def test_children_stop_once_every_axis_is_settled_and_are_the_same_draws(rng):
     raw = every.child_errors
     assert raw.shape[1] == 6 and 8 <= len(raw) <= 16
     assert every.errors == pytest.approx(raw.mean(axis=0) * np.array(ScanMCConfig.calibration))
-    assert np.array_equal(raw[:len(settled.child_errors)], settled.child_errors)
+    assert np.array_equal(raw[: len(settled.child_errors)], settled.child_errors)
     with pytest.raises(ValueError, match="at least one child"):
         scan_errors(*args, ScanMCConfig(first=0), rng)
     with pytest.raises(ValueError, match="settle must be >= 0"):
@@ -145,8 +157,7 @@ def test_the_detector_flags_the_corridor_and_answers_unknown_to_a_bad_scan(rng):
     for bad in (np.zeros((0, 3)), np.full((3000, 3), np.nan), rng.normal(size=(3000, 3)) * 5):
         assert not detector.predict(bad).known
     with pytest.raises(RegistrationError, match="NaN"):
-        scan_errors(np.full((3000, 3), np.nan), LidarConfig(), RegistrationConfig(), LabelConfig(), ScanMCConfig(),
-                    rng)
+        scan_errors(np.full((3000, 3), np.nan), LidarConfig(), RegistrationConfig(), LabelConfig(), ScanMCConfig(), rng)
     for spec in ("scanmc:0", "scanmc:x"):
         with pytest.raises(ValueError, match="number of children"):
             make_detector(spec)
@@ -155,8 +166,9 @@ def test_the_detector_flags_the_corridor_and_answers_unknown_to_a_bad_scan(rng):
 def test_evaluate_scores_the_scan_estimate_the_same_with_any_number_of_workers(tiny_dataset, tmp_path):
     from l3e_env.experiments.table3 import Table3Options, run_table3
 
-    res = run_table3([], None, tmp_path / "eval", Table3Options(others=[tiny_dataset], scan_mc=3, workers=2),
-                     progress=False)
+    res = run_table3(
+        [], None, tmp_path / "eval", Table3Options(others=[tiny_dataset], scan_mc=3, workers=2), progress=False
+    )
     column = f"all of {Path(tiny_dataset).name}"
     scored = res.models["scanmc:3"]["splits"][column]
     data = LabelDataset(tiny_dataset)
@@ -174,8 +186,14 @@ def test_evaluate_scores_the_scan_estimate_the_same_with_any_number_of_workers(t
         with pytest.raises(ValueError, match="scan estimate needs"):
             run_table3([], None, tmp_path / "bad", Table3Options(others=[tiny_dataset], **bad), progress=False)
     with pytest.raises(ValueError, match="at least one child"):
-        scan_errors(data.scan(0), LidarConfig(), RegistrationConfig(), LabelConfig(), ScanMCConfig(children=0),
-                    np.random.default_rng(0))
+        scan_errors(
+            data.scan(0),
+            LidarConfig(),
+            RegistrationConfig(),
+            LabelConfig(),
+            ScanMCConfig(children=0),
+            np.random.default_rng(0),
+        )
 
 
 def test_map_judges_of_the_estimate_and_the_oracle_read_each_pose_by_itself(rng):
@@ -278,8 +296,13 @@ def test_evaluate_scores_the_cascade_from_the_classifier_and_the_estimate(tiny_d
     from l3e_env.experiments.table3 import Table3Options, run_table3
     from l3e_env.model.classifier import DEFAULT_CHECKPOINT
 
-    res = run_table3([DEFAULT_CHECKPOINT], None, tmp_path / "eval",
-                     Table3Options(others=[tiny_dataset], scan_mc=3, cascade=[0.0, 100.0]), progress=False)
+    res = run_table3(
+        [DEFAULT_CHECKPOINT],
+        None,
+        tmp_path / "eval",
+        Table3Options(others=[tiny_dataset], scan_mc=3, cascade=[0.0, 100.0]),
+        progress=False,
+    )
     column = f"all of {Path(tiny_dataset).name}"
     model = next(name for name in res.models if "scanmc" not in name)
     never, always = (res.models[f"{model}+scanmc:{m}"]["splits"][column] for m in ("0", "100"))
@@ -296,11 +319,17 @@ def test_evaluate_scores_the_cascade_from_the_classifier_and_the_estimate(tiny_d
     assert (tmp_path / "eval" / "cascade.png").stat().st_size > 10_000
     for bad in ({"scan_mc": 0, "cascade": [1.0]}, {"scan_mc": 3, "cascade": [-1.0]}):
         with pytest.raises(ValueError, match="cascade"):
-            run_table3([DEFAULT_CHECKPOINT], None, tmp_path / "bad", Table3Options(others=[tiny_dataset], **bad),
-                       progress=False)
+            run_table3(
+                [DEFAULT_CHECKPOINT],
+                None,
+                tmp_path / "bad",
+                Table3Options(others=[tiny_dataset], **bad),
+                progress=False,
+            )
     with pytest.raises(ValueError, match="cascade"):
-        run_table3([], None, tmp_path / "bad", Table3Options(others=[tiny_dataset], scan_mc=3, cascade=[1.0]),
-                   progress=False)
+        run_table3(
+            [], None, tmp_path / "bad", Table3Options(others=[tiny_dataset], scan_mc=3, cascade=[1.0]), progress=False
+        )
 
 
 def test_random_checks_move_from_the_first_detector_to_the_second_with_their_share():

@@ -100,10 +100,18 @@ def test_a_route_file_is_read_in_the_mesh_files_axes_and_units(tmp_path):
     np.testing.assert_allclose(scene.start, [1, 0.5, 0])  # at the route's first point, facing along it
     np.testing.assert_allclose(scene.goal, [4, 2.5])
     with pytest.raises(SceneError, match=r"route point \(1000.0, 500.0, 0.0\) m lies outside the mesh's extent"):
-        scene_from_mesh(tmp_path / "hall.obj", up_axis="y", scale=0.001,  # the route read without its scale
-                        sampling_paths=[load_route(tmp_path / "route.csv", up_axis="y")])
-    for text, message in [("1 2 3\n", "two or more"), ("1 2 3 4\n5 6 7 8\n", "two or more"),
-                          ("0 0 0\nnan 1 0\n", "NaN"), ("v 0 0 0\nv 1 0 0\n", "not a table")]:
+        scene_from_mesh(
+            tmp_path / "hall.obj",
+            up_axis="y",
+            scale=0.001,  # the route read without its scale
+            sampling_paths=[load_route(tmp_path / "route.csv", up_axis="y")],
+        )
+    for text, message in [
+        ("1 2 3\n", "two or more"),
+        ("1 2 3 4\n5 6 7 8\n", "two or more"),
+        ("0 0 0\nnan 1 0\n", "NaN"),
+        ("v 0 0 0\nv 1 0 0\n", "not a table"),
+    ]:
         (tmp_path / "bad.txt").write_text(text)
         with pytest.raises(SceneError, match=message):
             load_route(tmp_path / "bad.txt")
@@ -182,7 +190,8 @@ def test_layouts_span_bare_plains_to_furnished_and_tunnelled_walks():
         walk = layout.route
         assert _horizontal_clearance(layout, walk[::6], height=0.85).min() > 0.5  # the walk stays walkable
         raised = layout.mesh.triangles_center[:, 2] - np.interp(
-            layout.mesh.triangles_center[:, 0], walk[:, 0], walk[:, 2])
+            layout.mesh.triangles_center[:, 0], walk[:, 0], walk[:, 2]
+        )
         furnished.append(int((raised > 1.0).sum()))
         walled = np.isfinite(_horizontal_clearance(layout, walk[::4], max_range=8.0)).mean(axis=1)
         tunnels += bool(walled.max() > 0.6)  # walls within 8 m all round but along the walk: a tunnel
@@ -230,14 +239,18 @@ def test_a_route_without_floor_under_it_is_named(tmp_path):
     wall.apply_translation([5, -2.1, 1.5])  # from the ground to above the floor
     trimesh.util.concatenate([floor, wall]).export(tmp_path / "platform.obj")
     np.savetxt(tmp_path / "xy.csv", [[1.0, 0], [8, 0]], delimiter=",")
-    with pytest.raises(SceneError, match=r"route 0: 8 of its 8 points have no floor within 0.5 m under them, "
-                                         r"e.g. \(1.0, 0.0, 0.0\).* or let --snap-route set it"):
+    with pytest.raises(
+        SceneError,
+        match=r"route 0: 8 of its 8 points have no floor within 0.5 m under them, "
+        r"e.g. \(1.0, 0.0, 0.0\).* or let --snap-route set it",
+    ):
         scene_from_mesh(tmp_path / "platform.obj", sampling_paths=[load_route(tmp_path / "xy.csv")])
     np.savetxt(tmp_path / "xyz.csv", [[1.0, 0, 1.5], [8, 0, 1.5]], delimiter=",")
     scene = scene_from_mesh(tmp_path / "platform.obj", sampling_paths=[load_route(tmp_path / "xyz.csv")])
     assert scene.route[0, 2] == 1.5
-    snapped = scene_from_mesh(tmp_path / "platform.obj", sampling_paths=[load_route(tmp_path / "xy.csv")],
-                              snap_to_floor=True)  # the 'x y' route set onto the raised floor
+    snapped = scene_from_mesh(
+        tmp_path / "platform.obj", sampling_paths=[load_route(tmp_path / "xy.csv")], snap_to_floor=True
+    )  # the 'x y' route set onto the raised floor
     assert np.allclose(snapped.route[:, 2], 1.5)
     assert snap_route_to_floor(trimesh.creation.box([1, 1, 1]), np.array([[9.0, 9, 0]]))[0, 2] == 0  # none there
 

@@ -1,4 +1,5 @@
 """The pure-PyTorch sparse convolutions against torch's dense Conv3d on a small grid."""
+
 import pytest
 import torch
 
@@ -55,8 +56,9 @@ def test_submanifold_conv_matches_dense_conv3d(order: str):
         conv.bias.copy_(sconv.bias)
     level = Level(coords, 1)
     out_s, out_d = sconv(feats, level), conv(dense)
-    (gx, gw, gb), (gxd, gwd, gbd) = _compare(out_s, out_d, coords, [sconv.weight, sconv.bias],
-                                             [conv.weight, conv.bias], (feats, dense))
+    (gx, gw, gb), (gxd, gwd, gbd) = _compare(
+        out_s, out_d, coords, [sconv.weight, sconv.bias], [conv.weight, conv.bias], (feats, dense)
+    )
     assert torch.allclose(gx, _at(gxd, coords), atol=1e-10)
     for k, (dx, dy, dz) in enumerate(OFFSETS_3.tolist()):
         assert torch.allclose(gw[k], gwd[:, :, dx + 1, dy + 1, dz + 1].T, atol=1e-10)
@@ -169,8 +171,16 @@ def test_int8_rows_are_the_features_rounded_with_the_empty_row_last():
 
 def test_kernel_maps_read_off_the_coarser_level_equal_the_searched_ones():
     g = torch.Generator().manual_seed(5)
-    coords = torch.unique(torch.cat([torch.randint(0, 3, (600, 1), generator=g),  # three scans
-                                     torch.randint(-9, 9, (600, 3), generator=g)], dim=1), dim=0)
+    coords = torch.unique(
+        torch.cat(
+            [
+                torch.randint(0, 3, (600, 1), generator=g),  # three scans
+                torch.randint(-9, 9, (600, 3), generator=g),
+            ],
+            dim=1,
+        ),
+        dim=0,
+    )
     searched = [Level(coords, 1)]
     derived = [Level(coords, 1)]
     for _ in range(3):

@@ -19,8 +19,10 @@ def test_the_package_makes_openmp_threads_sleep_unless_the_user_chose():
 
 
 def test_the_command_also_gives_numpy_one_blas_thread_before_numpy_loads():
-    code = ("import sys; import l3e_env.cli; assert 'numpy' not in sys.modules\n"
-            "import os; print(os.environ['OMP_WAIT_POLICY'], os.environ['OPENBLAS_NUM_THREADS'])")
+    code = (
+        "import sys; import l3e_env.cli; assert 'numpy' not in sys.modules\n"
+        "import os; print(os.environ['OMP_WAIT_POLICY'], os.environ['OPENBLAS_NUM_THREADS'])"
+    )
     assert _environment_after(code).split() == ["PASSIVE", "1"]
     assert _environment_after(code, OPENBLAS_NUM_THREADS="2").split() == ["PASSIVE", "2"]
 

@@ -1,4 +1,5 @@
 """ordered_map: the same results in the same order from spawned workers as from the caller."""
+
 import operator
 import os
 
@@ -49,7 +50,8 @@ def test_a_killed_run_leaves_no_worker_behind(tmp_path):
         "    with ProcessPoolExecutor(2, initializer=die_with_parent) as pool:\n"
         "        pids = set(pool.map(pid, range(8)))\n"
         "        print(' '.join(map(str, pids)), flush=True)\n"
-        "        list(pool.map(nap, range(2)))\n")
+        "        list(pool.map(nap, range(2)))\n"
+    )
     run = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True)
     workers = [int(p) for p in run.stdout.readline().split()]
     assert workers and all(Path(f"/proc/{p}").exists() for p in workers)

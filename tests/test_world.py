@@ -97,8 +97,12 @@ def test_dead_reckoning_covariance_matches_the_spread_of_simulated_walks():
             T_odom, T_true = T_odom @ odometry.measure(T_true, T_true @ step), T_true @ step
         # the error as the covariance states it: position in the odometry frame, rotation about its axes
         rotation = T_odom[:3, :3] @ T_true[:3, :3].T
-        ends.append(np.r_[T_odom[:3, 3] - T_true[:3, 3], matrix_to_pose(np.block([[rotation, np.zeros((3, 1))],
-                                                                                  [np.zeros((1, 3)), 1.0]]))[3:]])
+        ends.append(
+            np.r_[
+                T_odom[:3, 3] - T_true[:3, 3],
+                matrix_to_pose(np.block([[rotation, np.zeros((3, 1))], [np.zeros((1, 3)), 1.0]]))[3:],
+            ]
+        )
     spread = np.std(ends, axis=0)
     np.testing.assert_allclose(np.sqrt(np.diag(P)), spread, rtol=0.2)
     assert np.allclose(P, P.T) and np.linalg.eigvalsh(P).min() > 0

@@ -1,4 +1,5 @@
 """Labelled datasets: `l3e dataset generate` and `l3e dataset stats`."""
+
 from __future__ import annotations
 
 import argparse
@@ -20,13 +21,18 @@ def _cmd_dataset_generate(args: argparse.Namespace) -> int:
         "labels": {"children": args.children} if args.children else None,
     }
     config = config_for(args.preset, **overrides)
-    print(f"dataset -> {Path(args.out).resolve()}: {len(config.scenes)} scenes x {config.parents_per_scene} parents, "
-          f"M = {config.labels.children}, {config.lidar.model}, seed {config.seed}, "
-          f"{args.workers} workers ({args.backend})")
-    manifest = generate(args.out, config, workers=args.workers, backend=args.backend, ray_address=args.address,
-                        progress=not args.quiet)
-    print(f"{manifest['count']} labelled parents, {len(manifest['failures'])} failed "
-          f"({manifest['generation_seconds_last_run']} s this run)")
+    print(
+        f"dataset -> {Path(args.out).resolve()}: {len(config.scenes)} scenes x {config.parents_per_scene} parents, "
+        f"M = {config.labels.children}, {config.lidar.model}, seed {config.seed}, "
+        f"{args.workers} workers ({args.backend})"
+    )
+    manifest = generate(
+        args.out, config, workers=args.workers, backend=args.backend, ray_address=args.address, progress=not args.quiet
+    )
+    print(
+        f"{manifest['count']} labelled parents, {len(manifest['failures'])} failed "
+        f"({manifest['generation_seconds_last_run']} s this run)"
+    )
     for failure in manifest["failures"][:3]:
         print(f"  failed: {failure['scene']} parent {failure['parent']}: {failure['reason']}")
     print(format_statistics(manifest["statistics"]))
@@ -37,8 +43,10 @@ def _cmd_dataset_stats(args: argparse.Namespace) -> int:
     from l3e_env.data.dataset import LabelDataset, format_statistics
 
     data = LabelDataset(args.folder)
-    print(f"{args.folder}: {len(data)} parents, sensor {data.manifest['sensor']}, "
-          f"scenes {', '.join(data.manifest['scenes'])}")
+    print(
+        f"{args.folder}: {len(data)} parents, sensor {data.manifest['sensor']}, "
+        f"scenes {', '.join(data.manifest['scenes'])}"
+    )
     print(format_statistics(data.manifest["statistics"]))
     return 0
 
@@ -48,11 +56,18 @@ def register(sub: argparse._SubParsersAction) -> None:
     dsub = p.add_subparsers(dest="dataset_command", required=True)
     g = dsub.add_parser("generate", help="generate or resume a labelled dataset")
     g.add_argument("--out", required=True, help="dataset folder (an unfinished one is resumed)")
-    g.add_argument("--preset", choices=["small", "paper", "level"], default="small",
-                   help="small: a first look; paper: the paper's protocol; level: operating poses "
-                        "(level, heading along or across the paths)")
-    g.add_argument("--scenes", type=scene_names,
-                   help="comma-separated scene names (overrides the preset); one may be a mesh file, with --route")
+    g.add_argument(
+        "--preset",
+        choices=["small", "paper", "level"],
+        default="small",
+        help="small: a first look; paper: the paper's protocol; level: operating poses "
+        "(level, heading along or across the paths)",
+    )
+    g.add_argument(
+        "--scenes",
+        type=scene_names,
+        help="comma-separated scene names (overrides the preset); one may be a mesh file, with --route",
+    )
     g.add_argument("--parents", type=int, help="parents per scene")
     g.add_argument("--children", type=int, help="M, children per parent (paper: 200)")
     g.add_argument("--sensor", type=sensor_name, help=SENSOR_HELP)

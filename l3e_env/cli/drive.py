@@ -1,4 +1,5 @@
 """Driving the scenes: the demo, scene and environment lists, ATE experiments, ROS bag recording, the tau sweep."""
+
 from __future__ import annotations
 
 import argparse
@@ -30,8 +31,16 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     out = Path(args.out or f"l3e_out/demo-{time.strftime('%Y%m%d-%H%M%S')}")
     args.out = str(out)  # the resolved options are written beside it
     print(f"writing the demo into {out.resolve()}")
-    result = run_demo(out, scene=args.scene, sensor=args.sensor, seed=args.seed, progress=not args.quiet,
-                      checkpoint=args.checkpoint, scene_params=params, max_steps=args.max_steps)
+    result = run_demo(
+        out,
+        scene=args.scene,
+        sensor=args.sensor,
+        seed=args.seed,
+        progress=not args.quiet,
+        checkpoint=args.checkpoint,
+        scene_params=params,
+        max_steps=args.max_steps,
+    )
     print(f"{result['steps']} steps, goal {'reached' if result['reached_goal'] else 'NOT reached'}")
     from l3e_env.localizability.labels import AXES
 
@@ -86,14 +95,33 @@ def _cmd_ate(args: argparse.Namespace) -> int:
         return 2
     print(f"writing the experiment into {out.resolve()}")
     detectors = args.detector or list(DEFAULT_ATE_DETECTORS)
-    options = AteOptions(sensor=args.sensor, seed=args.seed, recording=args.recording, backend=args.backend,
-                         scene_params=params, workers=args.workers, deskew=args.deskew, attitude=args.attitude,
-                         fusion_settings=fusion_settings(args), max_steps=args.max_steps,
-                         baselines=args.baseline or [], frontends=args.frontend or ["icp"])
+    options = AteOptions(
+        sensor=args.sensor,
+        seed=args.seed,
+        recording=args.recording,
+        backend=args.backend,
+        scene_params=params,
+        workers=args.workers,
+        deskew=args.deskew,
+        attitude=args.attitude,
+        fusion_settings=fusion_settings(args),
+        max_steps=args.max_steps,
+        baselines=args.baseline or [],
+        frontends=args.frontend or ["icp"],
+    )
     if args.seeds > 1:
         seeds = range(args.seed, args.seed + args.seeds)
-        done = run_ate_seeds(out, args.scene, detectors, seeds, options, on_drive=lambda seed, run: print(
-            f"drive {seed - args.seed + 1} of {args.seeds} (seed {seed})\n{run.table()}"), progress=not args.quiet)
+        done = run_ate_seeds(
+            out,
+            args.scene,
+            detectors,
+            seeds,
+            options,
+            on_drive=lambda seed, run: print(
+                f"drive {seed - args.seed + 1} of {args.seeds} (seed {seed})\n{run.table()}"
+            ),
+            progress=not args.quiet,
+        )
         print(done.table())
         print("written: " + ", ".join(map(str, done.written)))
         return 0
@@ -101,9 +129,11 @@ def _cmd_ate(args: argparse.Namespace) -> int:
     print(run.table())
     if run.swept:
         turn = "the gyro's rotation over it" if args.deskew == "gyro" else "the odometry's rotation"
-        print("the recording's scans are swept over the robot's motion; each was deskewed with the leg "
-              f"odometry's mean motion over its last {DESKEW_STEPS} steps, with {turn}, before it was judged "
-              "and registered")
+        print(
+            "the recording's scans are swept over the robot's motion; each was deskewed with the leg "
+            f"odometry's mean motion over its last {DESKEW_STEPS} steps, with {turn}, before it was judged "
+            "and registered"
+        )
     return 0
 
 
@@ -113,8 +143,11 @@ def record_imu(args: argparse.Namespace):
 
     if not args.imu_rate:
         return None
-    return ImuConfig(rate=args.imu_rate, orientation=args.imu_orientation,
-                     footfall_accel=ImuConfig.footfall_accel if args.imu_footfalls else 0.0)
+    return ImuConfig(
+        rate=args.imu_rate,
+        orientation=args.imu_orientation,
+        footfall_accel=ImuConfig.footfall_accel if args.imu_footfalls else 0.0,
+    )
 
 
 def _cmd_record(args: argparse.Namespace) -> int:
@@ -147,9 +180,18 @@ def _cmd_record(args: argparse.Namespace) -> int:
         print(f"l3e record: {exc}", file=sys.stderr)
         return 2
     try:
-        rec = record_run(args.scene, args.sensor, args.seed, progress=not args.quiet, scene_params=params,
-                         scene_object=scene, on_step=bag, sweep=args.sweep, max_steps=args.max_steps,
-                         still=args.still)
+        rec = record_run(
+            args.scene,
+            args.sensor,
+            args.seed,
+            progress=not args.quiet,
+            scene_params=params,
+            scene_object=scene,
+            on_step=bag,
+            sweep=args.sweep,
+            max_steps=args.max_steps,
+            still=args.still,
+        )
         written = bag.close()
     except BaseException:
         bag.abort()  # no half-written bag beside the name
@@ -170,12 +212,20 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
     print(f"writing the sweep into {out.resolve()}")
     taus = args.taus or DEFAULT_TAUS
     recordings = dict(r.split("=", 1) for r in args.recording or [])
-    results = run_sweep(out, args.scene or ["tunnel", "field", "office"], taus, recordings=recordings,
-                        progress=not args.quiet, fusion_settings=fusion_settings(args),
-                        kappas=DEFAULT_KAPPAS if args.kappas is None else tuple(args.kappas))
+    results = run_sweep(
+        out,
+        args.scene or ["tunnel", "field", "office"],
+        taus,
+        recordings=recordings,
+        progress=not args.quiet,
+        fusion_settings=fusion_settings(args),
+        kappas=DEFAULT_KAPPAS if args.kappas is None else tuple(args.kappas),
+    )
     best = beaten_everywhere(results, "learned")
-    print("taus at least as good as the learned detector in every scene: " + (", ".join(f"{t:g}" for t in best)
-                                                                             if best else "none"))
+    print(
+        "taus at least as good as the learned detector in every scene: "
+        + (", ".join(f"{t:g}" for t in best) if best else "none")
+    )
     print(f"plot: {out / 'tau_sweep.png'}")
     return 0
 
@@ -198,38 +248,69 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_cmd_envs)
     p = sub.add_parser("ate", help="drive a route once, fuse with each detector, compare ATE")
     p.add_argument("--scene", type=scene_name, default="mine")
-    p.add_argument("--detector", action="append", type=detector_spec,
-                   help=f"{DETECTOR_GRAMMAR}; repeat for several (default: {', '.join(DEFAULT_ATE_DETECTORS)})")
+    p.add_argument(
+        "--detector",
+        action="append",
+        type=detector_spec,
+        help=f"{DETECTOR_GRAMMAR}; repeat for several (default: {', '.join(DEFAULT_ATE_DETECTORS)})",
+    )
     p.add_argument("--backend", choices=["graph", "ekf"], default="graph", help="iSAM2 smoother or filterpy EKF")
-    p.add_argument("--baseline", action="append", choices=["kiss-icp", "genz-icp"],
-                   help="also run this external LiDAR odometry on the drive's scans, with its authors' defaults, as a "
-                        "row of its own; repeat for both (needs pip install 'l3e[baselines]')")
-    p.add_argument("--frontend", action="append", choices=["icp", "kiss-icp", "genz-icp"],
-                   help="the LiDAR steps the fusion takes: scan-to-scan ICP (default) or an external odometry's "
-                        "relative motions, masked by the detectors and fused with the legs alike; repeat to fuse every "
-                        "detector with each (rows '<detector> @<front end>')")
+    p.add_argument(
+        "--baseline",
+        action="append",
+        choices=["kiss-icp", "genz-icp"],
+        help="also run this external LiDAR odometry on the drive's scans, with its authors' defaults, as a "
+        "row of its own; repeat for both (needs pip install 'l3e[baselines]')",
+    )
+    p.add_argument(
+        "--frontend",
+        action="append",
+        choices=["icp", "kiss-icp", "genz-icp"],
+        help="the LiDAR steps the fusion takes: scan-to-scan ICP (default) or an external odometry's "
+        "relative motions, masked by the detectors and fused with the legs alike; repeat to fuse every "
+        "detector with each (rows '<detector> @<front end>')",
+    )
     p.add_argument("--sensor", type=sensor_name, default="vlp16", help=SENSOR_HELP)
     p.add_argument("--seed", type=int, default=0)
     add_max_steps(p)
-    p.add_argument("--seeds", type=int, default=1,
-                   help="drive N times, seeds --seed ... --seed + N - 1, and summarise each detector's ATE over them")
+    p.add_argument(
+        "--seeds",
+        type=int,
+        default=1,
+        help="drive N times, seeds --seed ... --seed + N - 1, and summarise each detector's ATE over them",
+    )
     p.add_argument("--recording", help="evaluate a saved recording.npz instead of driving again")
-    p.add_argument("--deskew", choices=["gyro", "odometry"], default="gyro",
-                   help="a swept recording's scans are deskewed with the leg odometry's motion, turned by the "
-                        "gyro's rotation (default) or the odometry's own")
-    p.add_argument("--attitude", choices=ATTITUDE_MODES, default="none",
-                   help="fuse the IMU's orientation once a second: tilt = roll and pitch, which gravity holds "
-                        "(no heading: underground a magnetometer reads the rock), full = with the magnetometer's "
-                        "heading; adds a row of the odometry fused with it alone (default: none)")
+    p.add_argument(
+        "--deskew",
+        choices=["gyro", "odometry"],
+        default="gyro",
+        help="a swept recording's scans are deskewed with the leg odometry's motion, turned by the "
+        "gyro's rotation (default) or the odometry's own",
+    )
+    p.add_argument(
+        "--attitude",
+        choices=ATTITUDE_MODES,
+        default="none",
+        help="fuse the IMU's orientation once a second: tilt = roll and pitch, which gravity holds "
+        "(no heading: underground a magnetometer reads the rock), full = with the magnetometer's "
+        "heading; adds a row of the odometry fused with it alone (default: none)",
+    )
     add_fusion_options(p)
     p.add_argument("--out", help="output folder (default: l3e_out/ate-<scene>-<time>)")
-    p.add_argument("--workers", type=int, default=1,
-                   help="processes that judge the route with scanmc before the fusion (default 1)")
+    p.add_argument(
+        "--workers",
+        type=int,
+        default=1,
+        help="processes that judge the route with scanmc before the fusion (default 1)",
+    )
     p.add_argument("--quiet", action="store_true")
     add_mesh_options(p)
     p.set_defaults(func=_cmd_ate)
-    p = sub.add_parser("record", help="drive a route once and write it as a ROS bag: full scans, leg odometry, "
-                                      "ground truth (needs pip install 'l3e[bag]')")
+    p = sub.add_parser(
+        "record",
+        help="drive a route once and write it as a ROS bag: full scans, leg odometry, "
+        "ground truth (needs pip install 'l3e[bag]')",
+    )
     p.add_argument("--out", required=True, help="the bag: a .bag file (ROS 1), or a folder with --ros2")
     p.add_argument("--ros2", action="store_true", help="write a ROS 2 bag (sqlite3) instead of ROS 1")
     p.add_argument("--scene", type=scene_name, default="mine")
@@ -238,25 +319,46 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_max_steps(p)
     p.add_argument("--recording", help="also save the drive as a recording.npz for l3e ate --recording")
     p.add_argument("--imu-rate", type=float, default=200.0, help="rate of /imu in Hz (default 200; 0: no IMU)")
-    p.add_argument("--imu-orientation", action=argparse.BooleanOptionalAction, default=True,
-                   help="write a nine-axis unit's orientation in /imu (default), or none as a six-axis unit")
-    p.add_argument("--sweep", action=argparse.BooleanOptionalAction, default=True,
-                   help="sweep each revolution over the step's motion and write each point's time, as a spinning "
-                        "sensor on a moving robot does (default), or take each revolution at one pose")
-    p.add_argument("--still", type=float, default=3.0, metavar="SECONDS",
-                   help="the robot first stands still this long, so that a LiDAR-inertial odometry's IMU initialiser "
-                        "sees gravity alone (default 3 s, DLIO's calibration time; FAST-LIO needs less; 0: none)")
-    p.add_argument("--imu-footfalls", action=argparse.BooleanOptionalAction, default=True,
-                   help="jolt /imu at each footfall while walking, as a legged robot's body rings (default), or not")
+    p.add_argument(
+        "--imu-orientation",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="write a nine-axis unit's orientation in /imu (default), or none as a six-axis unit",
+    )
+    p.add_argument(
+        "--sweep",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="sweep each revolution over the step's motion and write each point's time, as a spinning "
+        "sensor on a moving robot does (default), or take each revolution at one pose",
+    )
+    p.add_argument(
+        "--still",
+        type=float,
+        default=3.0,
+        metavar="SECONDS",
+        help="the robot first stands still this long, so that a LiDAR-inertial odometry's IMU initialiser "
+        "sees gravity alone (default 3 s, DLIO's calibration time; FAST-LIO needs less; 0: none)",
+    )
+    p.add_argument(
+        "--imu-footfalls",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="jolt /imu at each footfall while walking, as a legged robot's body rings (default), or not",
+    )
     p.add_argument("--quiet", action="store_true")
     add_mesh_options(p)
     p.set_defaults(func=_cmd_record)
-    p = sub.add_parser("sweep", help="ATE against the eigenvalue threshold in several scenes, with the learned "
-                                     "detector as reference")
+    p = sub.add_parser(
+        "sweep", help="ATE against the eigenvalue threshold in several scenes, with the learned detector as reference"
+    )
     p.add_argument("--scene", type=scene_name, action="append", help="repeat; default tunnel, field, office")
     p.add_argument("--taus", type=float_list, help="comma-separated thresholds (default 10 ... 300)")
-    p.add_argument("--kappas", type=float_list,
-                   help="comma-separated condition ratio thresholds of DCReg, swept beside tau (default 3 ... 1000)")
+    p.add_argument(
+        "--kappas",
+        type=float_list,
+        help="comma-separated condition ratio thresholds of DCReg, swept beside tau (default 3 ... 1000)",
+    )
     p.add_argument("--recording", action="append", help="SCENE=recording.npz to skip driving that scene")
     add_fusion_options(p)
     p.add_argument("--out", help="output folder (default: l3e_out/sweep-<time>)")

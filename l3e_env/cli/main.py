@@ -1,5 +1,6 @@
 """The `l3e` command line: a thin layer over library functions that return results. Each command
 group's module adds its parsers (`register`) and handlers."""
+
 from __future__ import annotations
 
 import argparse

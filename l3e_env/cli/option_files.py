@@ -5,6 +5,7 @@ beside a file), so that `l3e COMMAND --config that.yaml` runs it again.
 Keys are the option names of `l3e COMMAND --help`, without the leading dashes (`seeds`, `odometry-bias`
 or `odometry_bias`). Precedence: `--set` over the command line over `--config` over the defaults. A YAML
 file is read with `yaml.safe_load`: it cannot run code."""
+
 from __future__ import annotations
 
 import argparse
@@ -32,17 +33,28 @@ def add_option_files(parser: argparse.ArgumentParser) -> None:
         own = any(a.dest == "config" for a in leaf._actions)
         g = leaf.add_argument_group("options from a file")
         if not own:
-            g.add_argument("--config", metavar="FILE.yaml",
-                           help="take the options from this YAML mapping of option names to values (the "
-                                "options.yaml a run writes); the command line wins over it")
-        g.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                       help="set one option (KEY as in --help, without the dashes; VALUE in YAML); repeat")
+            g.add_argument(
+                "--config",
+                metavar="FILE.yaml",
+                help="take the options from this YAML mapping of option names to values (the "
+                "options.yaml a run writes); the command line wins over it",
+            )
+        g.add_argument(
+            "--set",
+            action="append",
+            default=[],
+            metavar="KEY=VALUE",
+            help="set one option (KEY as in --help, without the dashes; VALUE in YAML); repeat",
+        )
         leaf.set_defaults(_parser=leaf, _options_file=not own)
 
 
 def _actions(leaf: argparse.ArgumentParser) -> dict[str, argparse.Action]:
-    return {a.dest: a for a in leaf._actions if a.dest not in RESERVED and a.dest != argparse.SUPPRESS
-            and not a.dest.startswith("_")}
+    return {
+        a.dest: a
+        for a in leaf._actions
+        if a.dest not in RESERVED and a.dest != argparse.SUPPRESS and not a.dest.startswith("_")
+    }
 
 
 def _converted(action: argparse.Action, key: str, value: Any) -> Any:
@@ -50,6 +62,7 @@ def _converted(action: argparse.Action, key: str, value: Any) -> Any:
     an option not given, as the defaults have it."""
     if value is None:
         return None
+
     def one(v: Any) -> Any:
         if isinstance(v, str) and action.type is not None:
             try:
@@ -60,8 +73,7 @@ def _converted(action: argparse.Action, key: str, value: Any) -> Any:
             raise ValueError(f"option {key}: {v!r} is not one of {list(action.choices)}")
         return v
 
-    if isinstance(action, (argparse._StoreTrueAction, argparse._StoreFalseAction,
-                           argparse.BooleanOptionalAction)):
+    if isinstance(action, (argparse._StoreTrueAction, argparse._StoreFalseAction, argparse.BooleanOptionalAction)):
         if not isinstance(value, bool):
             raise ValueError(f"option {key}: give true or false, got {value!r}")
         return value
@@ -82,8 +94,10 @@ def _mapping(leaf: argparse.ArgumentParser, values: dict[str, Any], where: str) 
     for raw, value in values.items():
         key = str(raw).replace("-", "_")
         if key not in actions:
-            raise ValueError(f"{where}: {leaf.prog} has no option '{raw}' (its options: "
-                             f"{', '.join(sorted(k.replace('_', '-') for k in actions))})")
+            raise ValueError(
+                f"{where}: {leaf.prog} has no option '{raw}' (its options: "
+                f"{', '.join(sorted(k.replace('_', '-') for k in actions))})"
+            )
         out[key] = _converted(actions[key], str(raw), value)
     return out
 
@@ -156,6 +170,8 @@ def write_resolved(args: argparse.Namespace) -> Path | None:
     if getattr(args, "_parser", None) is None or not out or not Path(out).exists():
         return None
     path = Path(out) / OPTIONS_FILE if Path(out).is_dir() else Path(f"{out}.{OPTIONS_FILE}")
-    path.write_text(f"# l3e {args._parser.prog.removeprefix('l3e ')} --config {path.name}\n"
-                    + yaml.safe_dump(resolved_options(args), sort_keys=False))
+    path.write_text(
+        f"# l3e {args._parser.prog.removeprefix('l3e ')} --config {path.name}\n"
+        + yaml.safe_dump(resolved_options(args), sort_keys=False)
+    )
     return path

@@ -1,4 +1,5 @@
 """Argument types and option groups that several commands share."""
+
 from __future__ import annotations
 
 import argparse
@@ -26,17 +27,19 @@ def scene_names(text: str) -> list[str]:
         first, dots, last = span.partition("..")
         if dash and dots:
             if not (first.isdigit() and last.isdigit() and int(first) <= int(last)):
-                raise argparse.ArgumentTypeError(f"'{part}': a range of variants is family-FIRST..LAST, such as "
-                                                 "bypass-100..149")
+                raise argparse.ArgumentTypeError(
+                    f"'{part}': a range of variants is family-FIRST..LAST, such as bypass-100..149"
+                )
             names += [scene_name(f"{family}-{k}") for k in range(int(first), int(last) + 1)]
         else:
             names.append(scene_name(part))
     return names
 
 
-SENSOR_HELP = ("a built-in LiDAR (vlp16, vlp16-calibrated, hdl32e, vlp32c, os0-128, os<0|1|2>-<32|64|128>, xt32, "
-               "pandar64) or a beam pattern file (.yaml/.json, or an Ouster metadata .json)")
-
+SENSOR_HELP = (
+    "a built-in LiDAR (vlp16, vlp16-calibrated, hdl32e, vlp32c, os0-128, os<0|1|2>-<32|64|128>, xt32, "
+    "pandar64) or a beam pattern file (.yaml/.json, or an Ouster metadata .json)"
+)
 
 
 def bias_axes(text: str) -> tuple[str, ...]:
@@ -47,18 +50,25 @@ def bias_axes(text: str) -> tuple[str, ...]:
     try:
         check_bias_axes(axes)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected none or distinct axes among {', '.join(BIAS_AXES)} "
-                                         f"separated by commas, got {text!r}") from None
+        raise argparse.ArgumentTypeError(
+            f"expected none or distinct axes among {', '.join(BIAS_AXES)} separated by commas, got {text!r}"
+        ) from None
     return axes
 
 
 def add_fusion_options(parser: argparse.ArgumentParser) -> None:
     """--odometry-bias, read back by `fusion_settings` (`l3e ate`, `l3e sweep`,
     `l3e policy evaluate`)."""
-    parser.add_argument("--odometry-bias", type=bias_axes, action="extend", default=[], metavar="AXES",
-                        help="estimate the leg odometry's biases as states of the fusion: yaw, z (per metre), "
-                             "scale (the stride's), comma-separated or repeated (default none; see "
-                             "docs/decisions.md)")
+    parser.add_argument(
+        "--odometry-bias",
+        type=bias_axes,
+        action="extend",
+        default=[],
+        metavar="AXES",
+        help="estimate the leg odometry's biases as states of the fusion: yaw, z (per metre), "
+        "scale (the stride's), comma-separated or repeated (default none; see "
+        "docs/decisions.md)",
+    )
 
 
 def fusion_settings(args: argparse.Namespace) -> FusionSettings:
@@ -93,23 +103,37 @@ def add_mesh_options(parser: argparse.ArgumentParser, several: bool = False) -> 
     `several`, also --meshes, a YAML list of meshes with their own."""
     g = parser.add_argument_group("a scene given as a mesh file (OBJ, STL, PLY, GLB, glTF, OFF)")
     if several:
-        g.add_argument("--meshes", help="YAML list of mesh scenes: mesh, route (a file or a list), up_axis, scale; "
-                                        "paths relative to the YAML's folder (they join the scenes given)")
-    g.add_argument("--route", action="append",
-                   help="text file of waypoints on the floor, one 'x y z' per line, in the mesh's axes and units "
-                        "(needed to drive a mesh); repeat for more paths: the first is the one driven, and labels "
-                        "are sampled along all of them (the galleries of a mine)")
+        g.add_argument(
+            "--meshes",
+            help="YAML list of mesh scenes: mesh, route (a file or a list), up_axis, scale; "
+            "paths relative to the YAML's folder (they join the scenes given)",
+        )
+    g.add_argument(
+        "--route",
+        action="append",
+        help="text file of waypoints on the floor, one 'x y z' per line, in the mesh's axes and units "
+        "(needed to drive a mesh); repeat for more paths: the first is the one driven, and labels "
+        "are sampled along all of them (the galleries of a mine)",
+    )
     g.add_argument("--up-axis", dest="up_axis", choices=["x", "y", "z"], help="the mesh's up axis (default z)")
     g.add_argument("--scale", type=float, help="metres per mesh unit (default 1; 0.001 for millimetres)")
-    g.add_argument("--snap-route", dest="snap_route", action="store_true", default=None,
-                   help="set each waypoint's height to the floor under it (the first upward-facing surface within "
-                        "2 m above it down to 0.5 m below): for 'x y' routes over a raised or uneven floor")
+    g.add_argument(
+        "--snap-route",
+        dest="snap_route",
+        action="store_true",
+        default=None,
+        help="set each waypoint's height to the floor under it (the first upward-facing surface within "
+        "2 m above it down to 0.5 m below): for 'x y' routes over a raised or uneven floor",
+    )
 
 
 def mesh_options_given(args: argparse.Namespace) -> list[str]:
     """The mesh options set on the command line, as spelt there."""
-    return [f"--{n.replace('_', '-')}" for n in ("route", "up_axis", "scale", "snap_route")
-            if getattr(args, n, None) is not None]
+    return [
+        f"--{n.replace('_', '-')}"
+        for n in ("route", "up_axis", "scale", "snap_route")
+        if getattr(args, n, None) is not None
+    ]
 
 
 def scene_params(args: argparse.Namespace, scene: str | None = None) -> dict:
@@ -121,15 +145,21 @@ def scene_params(args: argparse.Namespace, scene: str | None = None) -> dict:
     given = mesh_options_given(args)
     if not is_mesh_path(scene):
         if given:
-            raise ValueError(f"{', '.join(given)} {'is' if len(given) == 1 else 'are'} only for a scene given as "
-                             f"a mesh file, not for '{scene}'")
+            raise ValueError(
+                f"{', '.join(given)} {'is' if len(given) == 1 else 'are'} only for a scene given as "
+                f"a mesh file, not for '{scene}'"
+            )
         return {}
     if args.route is None:
         raise ValueError(f"to drive or label the mesh {scene}, give its route: --route FILE (waypoints on its floor)")
     up_axis, scale = args.up_axis or "z", 1.0 if args.scale is None else args.scale
     routes = [load_route(path, up_axis, scale) for path in args.route]
-    return {"up_axis": up_axis, "scale": scale, "sampling_paths": [route.tolist() for route in routes],
-            **({"snap_to_floor": True} if getattr(args, "snap_route", None) else {})}
+    return {
+        "up_axis": up_axis,
+        "scale": scale,
+        "sampling_paths": [route.tolist() for route in routes],
+        **({"snap_to_floor": True} if getattr(args, "snap_route", None) else {}),
+    }
 
 
 def dataset_scenes(args: argparse.Namespace) -> tuple[list[str] | None, dict[str, dict]]:
@@ -143,15 +173,15 @@ def dataset_scenes(args: argparse.Namespace) -> tuple[list[str] | None, dict[str
         listed = meshes_file(args.meshes, args.scenes or [], mesh_options_given(args))
         return [*(args.scenes or []), *listed], listed
     if len(meshes) > 1:
-        raise ValueError(f"one mesh file in --scenes, as --route gives one mesh's route; got {', '.join(meshes)} "
-                         "(list several meshes with their routes in a --meshes file)")
+        raise ValueError(
+            f"one mesh file in --scenes, as --route gives one mesh's route; got {', '.join(meshes)} "
+            "(list several meshes with their routes in a --meshes file)"
+        )
     if not meshes:
         scene_params(args, (args.scenes or ["the preset's scenes"])[0])  # refuses stray mesh options
         return args.scenes, {}
     params = scene_params(args, meshes[0])
     return [canonical_scene_name(s) for s in args.scenes], {canonical_scene_name(meshes[0]): params}
-
-
 
 
 def positive_int(text: str) -> int:
@@ -167,5 +197,9 @@ def positive_int(text: str) -> int:
 
 def add_max_steps(parser: argparse.ArgumentParser) -> None:
     """--max-steps: a short drive (`l3e demo`, `l3e ate`, `l3e record`)."""
-    parser.add_argument("--max-steps", type=positive_int, dest="max_steps",
-                        help="stop the drive after this many steps of 0.1 s (a short run; default: the route's end)")
+    parser.add_argument(
+        "--max-steps",
+        type=positive_int,
+        dest="max_steps",
+        help="stop the drive after this many steps of 0.1 s (a short run; default: the route's end)",
+    )

@@ -1,5 +1,6 @@
 """The CLI reference page (docs/cli.md), made from the parsers themselves so that it cannot drift:
 `python -m l3e_env.cli.reference > docs/cli.md`; the test suite checks that the page is current."""
+
 from __future__ import annotations
 
 import argparse

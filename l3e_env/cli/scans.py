@@ -1,4 +1,5 @@
 """One's own scans: `l3e judge` and `l3e sensor`."""
+
 from __future__ import annotations
 
 import argparse
@@ -36,15 +37,24 @@ def _judge_all(args: argparse.Namespace, scans, specs: list[str]) -> tuple[list,
     def recognised(pattern, how: str) -> None:
         if pattern is None:
             sensor[0] = LidarConfig().model
-            print(f"sensor: {how}; scanmc takes it as a {LidarConfig().model} and answers unknown for scans of "
-                  "another (give --sensor: a name, a pattern file or an Ouster's metadata JSON)", flush=True)
+            print(
+                f"sensor: {how}; scanmc takes it as a {LidarConfig().model} and answers unknown for scans of "
+                "another (give --sensor: a name, a pattern file or an Ouster's metadata JSON)",
+                flush=True,
+            )
         else:
             sensor[0] = pattern.name
             print(f"sensor: {how} (give --sensor to choose it)", flush=True)
 
     judgements = []
-    for j in judge_scans(scans, specs, LidarConfig(model=args.sensor) if args.sensor else None, seed=args.seed,
-                         workers=args.workers, on_sensor=recognised):
+    for j in judge_scans(
+        scans,
+        specs,
+        LidarConfig(model=args.sensor) if args.sensor else None,
+        seed=args.seed,
+        workers=args.workers,
+        on_sensor=recognised,
+    ):
         judgements.append(j)
         stamp = "" if j.stamp is None else f"[t = {j.stamp:.3f} s] "
         print(stamp + format_judgement(j), file=sys.stderr if j.error else sys.stdout, flush=True)
@@ -59,8 +69,10 @@ def _judge_path_plot(args: argparse.Namespace, judgements: list, where, route) -
 
     off = int((~np.isfinite(where).all(axis=1)).sum())
     if off:
-        print(f"l3e judge: {off} scans lie outside the time of {route.topic}'s poses and are left off the map",
-              file=sys.stderr)
+        print(
+            f"l3e judge: {off} scans lie outside the time of {route.topic}'s poses and are left off the map",
+            file=sys.stderr,
+        )
     plot_path(judgements, where, route.positions, args.path_plot, f"{Path(args.bag).name} on {route.topic}")
     print(f"written: {args.path_plot}")
 
@@ -79,8 +91,9 @@ def _cmd_judge(args: argparse.Namespace) -> int:
         return 2
     metadata = args.sensor if args.sensor and args.sensor.lower().endswith(".json") else None
     try:
-        scans = (read_recording(args.bag, args.topic, args.every, args.start, args.end, metadata) if args.bag
-                 else args.scans)
+        scans = (
+            read_recording(args.bag, args.topic, args.every, args.start, args.end, metadata) if args.bag else args.scans
+        )
         route = read_path(args.bag, args.pose_topic) if args.bag and (args.path_plot or args.pose_topic) else None
     except RecordingError as exc:
         print(f"l3e judge: {exc}", file=sys.stderr)
@@ -146,38 +159,66 @@ def _cmd_sensor(args: argparse.Namespace) -> int:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("judge", help="judge your own scans (files or a ROS bag): along which axes would "
-                                     "scan-to-scan registration fail there")
-    p.add_argument("scans", nargs="*", metavar="SCAN",
-                   help="scan files in the sensor's frame: .npy .npz .bin (KITTI) .ply .pcd .xyz .txt .csv, "
-                        "or Ouster captures (.osf .pcap), every scan of them")
-    g = p.add_argument_group("a recording instead of files: a ROS bag (needs pip install 'l3e[bag]') or an "
-                             "Ouster capture (also needs pip install --no-deps ouster-sdk==1.0.1)")
-    g.add_argument("--bag", help="a ROS 1 .bag file, a ROS 2 bag folder (sqlite3 or mcap), or an Ouster .osf or "
-                                 ".pcap (a .pcap's metadata JSON beside it or given as --sensor)")
+    p = sub.add_parser(
+        "judge",
+        help="judge your own scans (files or a ROS bag): along which axes would scan-to-scan registration fail there",
+    )
+    p.add_argument(
+        "scans",
+        nargs="*",
+        metavar="SCAN",
+        help="scan files in the sensor's frame: .npy .npz .bin (KITTI) .ply .pcd .xyz .txt .csv, "
+        "or Ouster captures (.osf .pcap), every scan of them",
+    )
+    g = p.add_argument_group(
+        "a recording instead of files: a ROS bag (needs pip install 'l3e[bag]') or an "
+        "Ouster capture (also needs pip install --no-deps ouster-sdk==1.0.1)"
+    )
+    g.add_argument(
+        "--bag",
+        help="a ROS 1 .bag file, a ROS 2 bag folder (sqlite3 or mcap), or an Ouster .osf or "
+        ".pcap (a .pcap's metadata JSON beside it or given as --sensor)",
+    )
     g.add_argument("--topic", help="the bag's sensor_msgs/PointCloud2 topic (default: the only one)")
     g.add_argument("--every", type=int, default=1, help="judge every N-th scan (default 1: all)")
     g.add_argument("--start", type=float, help="seconds after the recording's start to begin at")
     g.add_argument("--end", type=float, help="seconds after the recording's start to stop at")
     g.add_argument("--path-plot", help="also draw the judged scans on a map of the bag's path into this image")
-    g.add_argument("--pose-topic", help="the path's topic: nav_msgs/Odometry, geometry_msgs/PoseStamped or "
-                                        "PoseWithCovarianceStamped (default: the only Odometry topic); it also "
-                                        "writes each scan's position into --json")
-    p.add_argument("--detector", action="append", type=detector_spec,
-                   help=f"{DETECTOR_GRAMMAR} (not oracle: it needs a scene); repeat for several (default: learned, "
-                        "eigen:30 and scanmc)")
-    p.add_argument("--sensor", type=sensor_name,
-                   help="the LiDAR that took the scans, for scanmc's beams: vlp16, os0-128 or a beam pattern file "
-                        "(.yaml/.json, or an Ouster metadata .json); default: recognised from the scans")
+    g.add_argument(
+        "--pose-topic",
+        help="the path's topic: nav_msgs/Odometry, geometry_msgs/PoseStamped or "
+        "PoseWithCovarianceStamped (default: the only Odometry topic); it also "
+        "writes each scan's position into --json",
+    )
+    p.add_argument(
+        "--detector",
+        action="append",
+        type=detector_spec,
+        help=f"{DETECTOR_GRAMMAR} (not oracle: it needs a scene); repeat for several (default: learned, "
+        "eigen:30 and scanmc)",
+    )
+    p.add_argument(
+        "--sensor",
+        type=sensor_name,
+        help="the LiDAR that took the scans, for scanmc's beams: vlp16, os0-128 or a beam pattern file "
+        "(.yaml/.json, or an Ouster metadata .json); default: recognised from the scans",
+    )
     p.add_argument("--seed", type=int, default=0, help="seed of scanmc's children")
     p.add_argument("--workers", type=int, default=1, help="scans judged side by side in processes (default 1)")
     p.add_argument("--json", help="also write the scores here")
     p.add_argument("--plot", help="also draw the flagged axes scan by scan (over time for a bag) into this image")
     p.set_defaults(func=_cmd_judge)
-    p = sub.add_parser("sensor", help="show a LiDAR's beam pattern, or recognise it from a scan or a bag and "
-                                      "save it as a pattern file for --sensor")
-    p.add_argument("source", nargs="?", help="a sensor name, a pattern file, a scan file to recognise it from, or "
-                                             "an Ouster capture (.osf .pcap) to read it from the metadata")
+    p = sub.add_parser(
+        "sensor",
+        help="show a LiDAR's beam pattern, or recognise it from a scan or a bag and "
+        "save it as a pattern file for --sensor",
+    )
+    p.add_argument(
+        "source",
+        nargs="?",
+        help="a sensor name, a pattern file, a scan file to recognise it from, or "
+        "an Ouster capture (.osf .pcap) to read it from the metadata",
+    )
     p.add_argument("--bag", help="recognise it from this ROS bag's first scans (or an Ouster capture's metadata)")
     p.add_argument("--topic", help="the bag's PointCloud2 topic (default: the only one)")
     p.add_argument("--out", help="write the pattern here (.yaml or .json)")

@@ -3,6 +3,7 @@
 Defaults are the paper's values or documented choices; every artefact dumps the config that
 made it (see `dump_yaml`).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field

@@ -1,4 +1,5 @@
 """Config dataclasses to and from dicts and YAML, and the comparison of stored settings."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -58,6 +59,7 @@ def with_defaults(cls: type, stored: dict[str, Any]) -> dict[str, Any]:
 def settings_changed(before: dict[str, Any], now: dict[str, Any]) -> str:
     """The top-level settings that differ, named for an error message: the old and new values of
     the short ones, the names only of long ones (a mesh's route is a long list)."""
+
     def shown(key: str) -> str:
         old, new = repr(before.get(key)), repr(now.get(key))
         return key if len(old) + len(new) > 80 else f"{key} {old}, now {new}"

@@ -1,4 +1,5 @@
 """Atomic file writes: a reader, or a resumed job, never sees half a file; and one writer a folder."""
+
 from __future__ import annotations
 
 import fcntl
@@ -25,7 +26,6 @@ def write_atomic(path: str | Path, write: Callable[[BinaryIO], None]) -> None:
         raise
 
 
-
 class FolderBusyError(RuntimeError):
     """Another run is writing into the folder."""
 
@@ -43,8 +43,9 @@ def folder_lock(folder: str | Path) -> Iterator[None]:
         except BlockingIOError:
             fh.seek(0)
             holder = fh.read().strip() or "another process"
-            raise FolderBusyError(f"{folder}: another run (pid {holder}) is writing into it; wait for it to end or "
-                                  "choose another folder") from None
+            raise FolderBusyError(
+                f"{folder}: another run (pid {holder}) is writing into it; wait for it to end or choose another folder"
+            ) from None
         fh.seek(0)
         fh.truncate()
         fh.write(str(os.getpid()))

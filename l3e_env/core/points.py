@@ -1,4 +1,5 @@
 """Plausibility checks of point clouds that every reader of scans shares."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -17,9 +18,11 @@ def too_many_points(count: int) -> str | None:
     """Why a cloud of `count` points cannot be one revolution (more than MAX_REVOLUTION_POINTS), or None."""
     if count <= MAX_REVOLUTION_POINTS:
         return None
-    return (f"it holds {count:,} points, more than any spinning LiDAR returns in one revolution (at most "
-            f"{MAX_REVOLUTION_POINTS:,} are judged): an accumulated map or several revolutions; give one "
-            "revolution in the sensor's frame")
+    return (
+        f"it holds {count:,} points, more than any spinning LiDAR returns in one revolution (at most "
+        f"{MAX_REVOLUTION_POINTS:,} are judged): an accumulated map or several revolutions; give one "
+        "revolution in the sensor's frame"
+    )
 
 
 def out_of_reach(points: np.ndarray) -> str | None:
@@ -28,5 +31,7 @@ def out_of_reach(points: np.ndarray) -> str | None:
     reach = float(np.sqrt(np.einsum("ij,ij->i", points, points).max())) if len(points) else 0.0
     if reach <= MAX_SCAN_RANGE_M:
         return None
-    return (f"its points reach {reach:.0f} m from the sensor, beyond {MAX_SCAN_RANGE_M:.0f} m "
-            f"(a scan in millimetres, or not in the sensor's frame?)")
+    return (
+        f"its points reach {reach:.0f} m from the sensor, beyond {MAX_SCAN_RANGE_M:.0f} m "
+        f"(a scan in millimetres, or not in the sensor's frame?)"
+    )

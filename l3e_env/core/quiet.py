@@ -1,6 +1,7 @@
 """PyBullet without its build banner: the C library prints "pybullet build time: ..." to standard error
 when it is imported, into every command's output. Hand-written: pybullet has no switch for it, so the
 banner is sent to /dev/null at the file-descriptor level while the module loads."""
+
 from __future__ import annotations
 
 import os

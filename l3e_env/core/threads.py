@@ -12,6 +12,7 @@ OpenMP's default wait policy and OpenBLAS's threads both spin.
   on one BLAS thread in any process, without touching the process's own setting.
 The classifier runs each scan on one torch thread (`Classifier.predict`), so it has no team to wait for.
 """
+
 from __future__ import annotations
 
 import os

@@ -1,4 +1,5 @@
 """SE(3) helpers in the project's axis order (x, y, z, roll, pitch, yaw)."""
+
 from __future__ import annotations
 
 import numpy as np

@@ -3,6 +3,7 @@
 cannot cross a process boundary; every worker builds its own once from picklable settings, and
 the results come back in the order of the jobs, so a run gives the same output with any number
 of workers."""
+
 from __future__ import annotations
 
 import sys
@@ -51,8 +52,14 @@ def _run(job: Any) -> Any:
     return work(obj, job)
 
 
-def ordered_map(work: Callable[[Any, Job], Result], jobs: Iterable[Job], local: Any, build: Callable[..., Any],
-                args: tuple, workers: int = 1) -> Iterator[Result]:
+def ordered_map(
+    work: Callable[[Any, Job], Result],
+    jobs: Iterable[Job],
+    local: Any,
+    build: Callable[..., Any],
+    args: tuple,
+    workers: int = 1,
+) -> Iterator[Result]:
     """work(obj, job) for each job, in order. With one worker (or one job) `obj` is the caller's
     `local`, or `build(*args)` made here when `local` is None (a caller that does not hold one);
     with more, each of `workers` spawned processes uses its own `build(*args)`. `work`

@@ -9,6 +9,7 @@ Layout of a dataset folder:
 Parent i of a scene always uses the generator seeded by (seed, scene index, i), so the labels do
 not depend on the number of workers or on which shards a killed run had finished.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -65,14 +66,21 @@ class DatasetConfig:
 
 PRESETS: dict[str, dict[str, Any]] = {
     # minutes on 2 cores: for tests, CI and a first look
-    "small": {"scenes": ["tunnel-0", "office-0", "field-0", "primitives-3"], "parents_per_scene": 6,
-              "labels": {"children": 50}},
+    "small": {
+        "scenes": ["tunnel-0", "office-0", "field-0", "primitives-3"],
+        "parents_per_scene": 6,
+        "labels": {"children": 50},
+    },
     # the paper's protocol on every environment of the split (M = 200)
     "paper": {"scenes": DATASET_SCENES, "parents_per_scene": 150},
     # operating poses on the same environments: level within a few degrees, sensor at the
     # robot's height, heading along the path or across it (another seed: other positions)
-    "level": {"scenes": DATASET_SCENES, "parents_per_scene": 16, "seed": 1,
-              "labels": {"parent_sigma": [0.3, 0.3, 0.05, 3.0, 3.0, 15.0], "heading": "path"}},
+    "level": {
+        "scenes": DATASET_SCENES,
+        "parents_per_scene": 16,
+        "seed": 1,
+        "labels": {"parent_sigma": [0.3, 0.3, 0.05, 3.0, 3.0, 15.0], "heading": "path"},
+    },
 }
 
 
@@ -169,8 +177,9 @@ def _write_atomic(path: Path, write: Callable[[BinaryIO], None]) -> None:
     try:
         write_atomic(path, write)
     except OSError as exc:
-        raise DatasetError(f"cannot write {path} ({exc.strerror or exc}); finished shards are kept, "
-                           "run again to resume") from exc
+        raise DatasetError(
+            f"cannot write {path} ({exc.strerror or exc}); finished shards are kept, run again to resume"
+        ) from exc
 
 
 def _settings(config: DatasetConfig, meshes: dict[str, str] | None = None) -> dict[str, Any]:
@@ -210,19 +219,26 @@ def check_dataset_config(config: DatasetConfig) -> None:
     folder, its manifest or any worker exists."""
     for name in config.scenes:
         check_scene_name(name)
-    problems = [f"scene_params are given for '{name}', which is not among the scenes"
-                for name in config.scene_params if name not in config.scenes]
+    problems = [
+        f"scene_params are given for '{name}', which is not among the scenes"
+        for name in config.scene_params
+        if name not in config.scenes
+    ]
     for name in filter(is_mesh_path, config.scenes):
         if not config.scene_params.get(name, {}).get("sampling_paths"):
             problems.append(f"the mesh {name} has no route to sample parents along (--route FILE)")
         else:  # a broken mesh or route fails here, not in every worker
             make_scene(name, **config.scene_params[name])
-    problems += [f"{name} must be {rule}, got {value}" for name, value, ok, rule in [
-        ("scenes", config.scenes, len(config.scenes) > 0, "at least one scene"),
-        ("parents_per_scene", config.parents_per_scene, config.parents_per_scene >= 1, "at least 1"),
-        ("shard_size", config.shard_size, config.shard_size >= 1, "at least 1"),
-        ("labels.children", config.labels.children, config.labels.children >= 1, "at least 1"),
-    ] if not ok]
+    problems += [
+        f"{name} must be {rule}, got {value}"
+        for name, value, ok, rule in [
+            ("scenes", config.scenes, len(config.scenes) > 0, "at least one scene"),
+            ("parents_per_scene", config.parents_per_scene, config.parents_per_scene >= 1, "at least 1"),
+            ("shard_size", config.shard_size, config.shard_size >= 1, "at least 1"),
+            ("labels.children", config.labels.children, config.labels.children >= 1, "at least 1"),
+        ]
+        if not ok
+    ]
     try:
         get_pattern(config.lidar.model)
     except ValueError as exc:
@@ -239,12 +255,20 @@ def _open_folder(out: Path, config: DatasetConfig) -> dict[str, Any]:
         manifest = json.loads(manifest_path.read_text())
         check_protocol(manifest, out, "resume it")
         if _stored_settings(manifest.get("settings") or {}) != settings:
-            raise DatasetError(f"{out} holds a dataset made with other settings "
-                               f"({settings_changed(manifest.get('settings') or {}, settings)}); choose another folder")
+            raise DatasetError(
+                f"{out} holds a dataset made with other settings "
+                f"({settings_changed(manifest.get('settings') or {}, settings)}); choose another folder"
+            )
         return manifest
     (out / "shards").mkdir(parents=True, exist_ok=True)
-    manifest = {"format_version": FORMAT_VERSION, "protocol": LABEL_PROTOCOL, "settings": settings,
-                "versions": _versions(), "complete": False, "created": time.strftime("%Y-%m-%dT%H:%M:%S")}
+    manifest = {
+        "format_version": FORMAT_VERSION,
+        "protocol": LABEL_PROTOCOL,
+        "settings": settings,
+        "versions": _versions(),
+        "complete": False,
+        "created": time.strftime("%Y-%m-%dT%H:%M:%S"),
+    }
     _write_json(manifest_path, manifest)
     return manifest
 
@@ -254,8 +278,10 @@ def remake_command(manifest: dict[str, Any], folder: Path) -> str:
     settings = manifest.get("settings") or {}
     scenes = ",".join(settings.get("scenes") or ["..."])
     level = " --preset level" if (settings.get("labels") or {}).get("heading") == "path" else ""
-    return (f"l3e dataset generate --out {folder}-p{LABEL_PROTOCOL}{level} --scenes {scenes} "
-            f"--parents {settings.get('parents_per_scene', '...')} --seed {settings.get('seed', 0)}")
+    return (
+        f"l3e dataset generate --out {folder}-p{LABEL_PROTOCOL}{level} --scenes {scenes} "
+        f"--parents {settings.get('parents_per_scene', '...')} --seed {settings.get('seed', 0)}"
+    )
 
 
 def check_protocol(manifest: dict[str, Any], folder: Path, what: str) -> None:
@@ -263,9 +289,11 @@ def check_protocol(manifest: dict[str, Any], folder: Path, what: str) -> None:
     another label protocol than this version's."""
     protocol = manifest.get("protocol", 1)
     if protocol != LABEL_PROTOCOL:
-        raise DatasetError(f"{folder} was labelled under {protocol_name(protocol)}; this version labels under "
-                           f"{protocol_name(LABEL_PROTOCOL)}, and cannot {what}. Label it again: "
-                           f"{remake_command(manifest, folder)}")
+        raise DatasetError(
+            f"{folder} was labelled under {protocol_name(protocol)}; this version labels under "
+            f"{protocol_name(LABEL_PROTOCOL)}, and cannot {what}. Label it again: "
+            f"{remake_command(manifest, folder)}"
+        )
 
 
 def _write_json(path: Path, data: dict) -> None:
@@ -273,8 +301,12 @@ def _write_json(path: Path, data: dict) -> None:
 
 
 def generate(
-    out_dir: str | Path, config: DatasetConfig, workers: int = 2, backend: str = "local",
-    ray_address: str | None = None, progress: bool = True,
+    out_dir: str | Path,
+    config: DatasetConfig,
+    workers: int = 2,
+    backend: str = "local",
+    ray_address: str | None = None,
+    progress: bool = True,
 ) -> dict[str, Any]:
     """Generate (or resume) a dataset; returns the manifest. Finished shards are never redone."""
     out = Path(out_dir)
@@ -283,14 +315,16 @@ def generate(
         return _generate(out, config, workers, backend, ray_address, progress)
 
 
-def _generate(out: Path, config: DatasetConfig, workers: int, backend: str, ray_address: str | None,
-              progress: bool) -> dict[str, Any]:
+def _generate(
+    out: Path, config: DatasetConfig, workers: int, backend: str, ray_address: str | None, progress: bool
+) -> dict[str, Any]:
     manifest = _open_folder(out, config)
     todo = [s for s in _shards(config) if not (out / "shards" / f"{s[0]}.npz").exists()]
     total = config.parents_per_scene * len(config.scenes)
     done_before = total - sum(s[3] - s[2] for s in todo)
-    bar = tqdm(total=total, initial=done_before, desc="labelling parents", unit="parent", disable=not progress,
-               smoothing=0.05)
+    bar = tqdm(
+        total=total, initial=done_before, desc="labelling parents", unit="parent", disable=not progress, smoothing=0.05
+    )
     t0 = time.perf_counter()
     for result in _execute(config, todo, workers, backend, ray_address):
         _write_atomic(out / "shards" / f"{result['shard']}.npz", lambda fh, r=result: np.savez(fh, **r))
@@ -344,14 +378,16 @@ def consolidate(out: Path, config: DatasetConfig, manifest: dict[str, Any]) -> d
     for name, arr in arrays.items():
         _write_atomic(out / f"{name}.npy", lambda fh, a=arr: np.save(fh, a))
     failures = [f for p in parts for f in json.loads(str(p["failures"]))]
-    manifest.update({
-        "complete": True,
-        "count": int(len(lengths)),
-        "failures": failures,
-        "statistics": label_statistics(arrays["labels"]),
-        "scenes": config.scenes,
-        "sensor": config.lidar.model,
-    })
+    manifest.update(
+        {
+            "complete": True,
+            "count": int(len(lengths)),
+            "failures": failures,
+            "statistics": label_statistics(arrays["labels"]),
+            "scenes": config.scenes,
+            "sensor": config.lidar.model,
+        }
+    )
     return manifest
 
 
@@ -399,8 +435,9 @@ class LabelDataset:
             try:
                 self.arrays[k] = np.load(self.folder / f"{k}.npy", mmap_mode="r", allow_pickle=False)
             except (OSError, ValueError, EOFError) as exc:
-                raise DatasetError(f"{self.folder / f'{k}.npy'} cannot be read ({exc}); the dataset is damaged: "
-                                   "generate it again") from exc
+                raise DatasetError(
+                    f"{self.folder / f'{k}.npy'} cannot be read ({exc}); the dataset is damaged: generate it again"
+                ) from exc
 
     def __len__(self) -> int:
         return len(self.arrays["labels"])
@@ -459,17 +496,27 @@ class DatasetUnion:
             for key in ("lidar", "registration"):
                 ours, theirs = comparable_settings(first, key), comparable_settings(part.manifest, key)
                 if theirs != ours:
-                    raise DatasetError(f"{part.folder} and {self.parts[0].folder} differ in their {key} settings "
-                                       f"({settings_changed(ours, theirs)}): they cannot be trained on together")
+                    raise DatasetError(
+                        f"{part.folder} and {self.parts[0].folder} differ in their {key} settings "
+                        f"({settings_changed(ours, theirs)}): they cannot be trained on together"
+                    )
         names: list[str] = []
         for part in self.parts:
             names += [s for s in part.manifest["scenes"] if s not in names]
-        scene = [np.array([names.index(s) for s in p.manifest["scenes"]], dtype=np.int16)[np.asarray(p.arrays["scene"])]
-                 for p in self.parts]
+        scene = [
+            np.array([names.index(s) for s in p.manifest["scenes"]], dtype=np.int16)[np.asarray(p.arrays["scene"])]
+            for p in self.parts
+        ]
         self.folder = self.parts[0].folder
-        self.manifest = {**first, "scenes": names, "settings": {
-            **first["settings"], "labels": [p.manifest["settings"]["labels"] for p in self.parts],
-            "seed": [p.manifest["settings"]["seed"] for p in self.parts]}}
+        self.manifest = {
+            **first,
+            "scenes": names,
+            "settings": {
+                **first["settings"],
+                "labels": [p.manifest["settings"]["labels"] for p in self.parts],
+                "seed": [p.manifest["settings"]["seed"] for p in self.parts],
+            },
+        }
         self.arrays = {"scene": np.concatenate(scene)}
         self._starts = np.cumsum([0] + [len(p) for p in self.parts])
         self.manifest.update(count=len(self), statistics=label_statistics(self.labels))

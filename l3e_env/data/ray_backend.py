@@ -2,6 +2,7 @@
 
 The jobs, seeds and shard files are those of the local backend, so both give identical data.
 """
+
 from __future__ import annotations
 
 import os
@@ -11,8 +12,9 @@ from collections.abc import Callable, Iterator
 from typing import Any
 
 
-def run_with_ray(run_shard: Callable[[Any, Any], dict], config: Any, todo: list, workers: int,
-                 address: str | None) -> Iterator[dict]:
+def run_with_ray(
+    run_shard: Callable[[Any, Any], dict], config: Any, todo: list, workers: int, address: str | None
+) -> Iterator[dict]:
     """`run_shard(config, shard)` for each shard of `todo` as Ray tasks, results as they finish (the local
     backend's function is passed in, so that this module needs nothing of the dataset's)."""
     try:

@@ -8,6 +8,7 @@ a process can, on a machine with a core to spare (`FusionSettings.detector_proce
 crosses a pipe (about 0.3 MB for a VLP-16 revolution); the answers are the same as the detector's
 in this process, to the bit. A process that dies answers UNKNOWN, counted as a detector error.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -50,8 +51,10 @@ class DetectorProcess:
 
     def __init__(self, spec: str, sensor: LidarConfig, seed: int = 0):
         if not runs_in_a_process(spec):
-            raise ValueError(f"detector '{spec}' needs the registration or the scene; only {PROCESS_DETECTORS} "
-                             "judge in a process of their own")
+            raise ValueError(
+                f"detector '{spec}' needs the registration or the scene; only {PROCESS_DETECTORS} "
+                "judge in a process of their own"
+            )
         context = get_context("spawn")
         self._conn, child = context.Pipe()
         self._process = context.Process(target=_serve, args=(child, spec, sensor, seed), daemon=True)
@@ -61,9 +64,11 @@ class DetectorProcess:
             kind, said = self._conn.recv()
         except EOFError:
             self.close()
-            raise RuntimeError("the detector process ended before it began: a script that makes environments with "
-                               "detector_process must run its top level under `if __name__ == \"__main__\":` (the "
-                               "process imports the script again)") from None
+            raise RuntimeError(
+                "the detector process ended before it began: a script that makes environments with "
+                'detector_process must run its top level under `if __name__ == "__main__":` (the '
+                "process imports the script again)"
+            ) from None
         if kind == "error":
             self.close()
             raise ValueError(f"the detector process could not make '{spec}': {said}")

@@ -6,6 +6,7 @@ Every detector maps one scan (and, where it needs it, the registration of that s
 the previous one, or the true pose) to six probabilities of non-localizability and a mask,
 in (x, y, z, roll, pitch, yaw) order, 1/True = not localizable.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -39,8 +40,9 @@ class Prediction:
 class Detector(Protocol):
     name: str
 
-    def predict(self, points: np.ndarray, registration: RegistrationResult | None = None,
-                T_w_s: np.ndarray | None = None) -> Prediction: ...
+    def predict(
+        self, points: np.ndarray, registration: RegistrationResult | None = None, T_w_s: np.ndarray | None = None
+    ) -> Prediction: ...
 
 
 UNKNOWN = Prediction(np.full(6, np.nan), np.zeros(6, dtype=bool), known=False)
@@ -103,8 +105,14 @@ class OracleDetector:
     """Monte-Carlo labels computed at the true sensor pose with M children (fewer than the
     paper's 200 to keep a route affordable), re-evaluated every `stride` calls and held between."""
 
-    def __init__(self, lidar: Lidar, children: int = 20, stride: int = 5, seed: int = 0,
-                 registration: RegistrationConfig | None = None):
+    def __init__(
+        self,
+        lidar: Lidar,
+        children: int = 20,
+        stride: int = 5,
+        seed: int = 0,
+        registration: RegistrationConfig | None = None,
+    ):
         self.lidar, self.stride, self.seed = lidar, stride, seed
         self.labels = LabelConfig(children=children)
         self.registration = registration or RegistrationConfig()
@@ -134,8 +142,14 @@ class ScanMCDetector:
     of the ratio r of each estimated error to its label threshold (0.5 at the threshold), not
     calibrated probabilities."""
 
-    def __init__(self, lidar: LidarConfig, children: int = ScanMCConfig.children, seed: int = 0,
-                 registration: RegistrationConfig | None = None, labels: LabelConfig | None = None):
+    def __init__(
+        self,
+        lidar: LidarConfig,
+        children: int = ScanMCConfig.children,
+        seed: int = 0,
+        registration: RegistrationConfig | None = None,
+        labels: LabelConfig | None = None,
+    ):
         self.lidar, self.seed = lidar, seed
         self.config = ScanMCConfig(children=children)
         self.registration = registration or RegistrationConfig()
@@ -165,8 +179,13 @@ class LearnedDetector:
 
     name = "learned"
 
-    def __init__(self, checkpoint: str | None = None, lidar_model: str | None = None,
-                 registration: RegistrationConfig | None = None, symmetric: bool = False):
+    def __init__(
+        self,
+        checkpoint: str | None = None,
+        lidar_model: str | None = None,
+        registration: RegistrationConfig | None = None,
+        symmetric: bool = False,
+    ):
         from l3e_env.model.classifier import Classifier  # torch is imported only when a learned detector is made
 
         self.classifier = Classifier.load(checkpoint, symmetric=symmetric)
@@ -174,8 +193,9 @@ class LearnedDetector:
         stored = self.classifier.meta.get("registration")
         # the registration its labels were made with: the pipeline runs the same (pipeline.registration_of)
         self.labelled_with = from_dict(RegistrationConfig, stored) if stored is not None else None
-        self.classifier.check_settings(lidar_model, dataclasses.asdict(registration or self.labelled_with
-                                                                       or RegistrationConfig()))
+        self.classifier.check_settings(
+            lidar_model, dataclasses.asdict(registration or self.labelled_with or RegistrationConfig())
+        )
 
     def predict(self, points, registration=None, T_w_s=None) -> Prediction:
         from l3e_env.model.classifier import ScanError
@@ -237,8 +257,9 @@ class CascadeDetector:
         """One scan; the estimate, where it is asked, draws its children from `rng`."""
         return self._judged(points, rng, T_w_s)[0]
 
-    def scores_at_half(self, points: np.ndarray, rng: np.random.Generator,
-                       T_w_s: np.ndarray | None = None) -> tuple[np.ndarray, bool]:
+    def scores_at_half(
+        self, points: np.ndarray, rng: np.random.Generator, T_w_s: np.ndarray | None = None
+    ) -> tuple[np.ndarray, bool]:
         """`judge`'s six scores on one scale, flagged above 0.5 whichever judge judged: the classifier's
         probabilities moved so that its thresholds sit at 0.5 (sigmoid of the log-odds over them), the
         estimate's r / (1 + r) as they are; NaN for a scan neither can judge. And whether the estimate
@@ -250,8 +271,9 @@ class CascadeDetector:
             return pred.probabilities, True
         return 1 / (1 + np.exp(-log_odds_over_threshold(pred.probabilities, self.learned.classifier.thresholds))), False
 
-    def _judged(self, points: np.ndarray, rng: np.random.Generator,
-                T_w_s: np.ndarray | None) -> tuple[Prediction, bool]:
+    def _judged(
+        self, points: np.ndarray, rng: np.random.Generator, T_w_s: np.ndarray | None
+    ) -> tuple[Prediction, bool]:
         """The prediction, and whether the estimate made it."""
         self.calls += 1
         first, unsure = self.classify(points, T_w_s)
@@ -270,8 +292,7 @@ def safe_predict(det: Detector, points: np.ndarray, reg, T_w_s: np.ndarray) -> t
         return UNKNOWN, True
 
 
-def make_detector(spec: str, lidar: Lidar | None = None, seed: int = 0,
-                  sensor: LidarConfig | None = None) -> Detector:
+def make_detector(spec: str, lidar: Lidar | None = None, seed: int = 0, sensor: LidarConfig | None = None) -> Detector:
     """The detector of `spec` (DETECTOR_GRAMMAR): 'learned' is the shipped model, 'learned-sym' averages
     it over the eight mirror/swap views of each scan, 'learned+scanmc' is the shipped model checked by
     scanmc where it is unsure (CascadeDetector). `sensor`: the LiDAR's settings where there is no scene
@@ -281,8 +302,11 @@ def make_detector(spec: str, lidar: Lidar | None = None, seed: int = 0,
     parsed = parse_detector(spec)
     if parsed.kind == "learned+scanmc":
         margin = CASCADE_MARGIN if parsed.margin is None else parsed.margin
-        return CascadeDetector(make_detector("learned", lidar, seed, sensor),  # type: ignore[arg-type]
-                               make_detector("scanmc", lidar, seed, sensor), margin)  # type: ignore[arg-type]
+        return CascadeDetector(
+            make_detector("learned", lidar, seed, sensor),  # type: ignore[arg-type]
+            make_detector("scanmc", lidar, seed, sensor),
+            margin,
+        )  # type: ignore[arg-type]
     if parsed.kind == "none":
         return NoDetector()
     if parsed.kind == "eigen":
@@ -295,8 +319,11 @@ def make_detector(spec: str, lidar: Lidar | None = None, seed: int = 0,
         return OracleDetector(lidar, children=parsed.children or 20, seed=seed)
     if parsed.kind == "scanmc":
         return ScanMCDetector(sensor or LidarConfig(), children=parsed.children or ScanMCConfig.children, seed=seed)
-    return LearnedDetector(parsed.checkpoint, lidar_model=sensor.model if sensor is not None else None,
-                           symmetric=parsed.kind == "learned-sym")
+    return LearnedDetector(
+        parsed.checkpoint,
+        lidar_model=sensor.model if sensor is not None else None,
+        symmetric=parsed.kind == "learned-sym",
+    )
 
 
 def registration_of(detectors: list[Detector]) -> RegistrationConfig:
@@ -307,7 +334,10 @@ def registration_of(detectors: list[Detector]) -> RegistrationConfig:
     if not stored:
         return RegistrationConfig()
     if any(s != stored[0] for s in stored[1:]):
-        warnings.warn("the detectors' checkpoints were labelled with different registration settings; the "
-                      "pipeline runs the defaults", stacklevel=2)
+        warnings.warn(
+            "the detectors' checkpoints were labelled with different registration settings; the "
+            "pipeline runs the defaults",
+            stacklevel=2,
+        )
         return RegistrationConfig()
     return stored[0]

@@ -6,6 +6,7 @@ policies' evaluation all step through these two classes.
 `EnvConfig.fusion` switches it on in an environment; `info` then carries the fused estimate, the
 detector's probabilities and mask, and the running ATE against ground truth.
 """
+
 from __future__ import annotations
 
 import os
@@ -75,8 +76,15 @@ class LocalizationPipeline:
     """Detect and fuse, one step at a time, along one drive: `start` at the first pose, then `step`
     with each step's odometry increment and registration (from a `ScanRegistrar`)."""
 
-    def __init__(self, detector: Detector, backend: str, fusion: FusionConfig, odometry: OdometryConfig,
-                 T_b_s: np.ndarray, attitude: str = "none"):
+    def __init__(
+        self,
+        detector: Detector,
+        backend: str,
+        fusion: FusionConfig,
+        odometry: OdometryConfig,
+        T_b_s: np.ndarray,
+        attitude: str = "none",
+    ):
         check_backend(backend)
         self.detector, self.backend_name, self.fusion, self.odometry = detector, backend, fusion, odometry
         self.T_b_s = T_b_s
@@ -87,9 +95,15 @@ class LocalizationPipeline:
         self.backend = make_fusion(self.backend_name, T_w_b, self.fusion)
         self.steps = 0
 
-    def step(self, odom_increment: np.ndarray, registration: RegistrationResult | None, detector_points: np.ndarray,
-             T_w_s: np.ndarray | None, attitude: np.ndarray | None = None,
-             judged: tuple[Prediction, bool] | None = None) -> StepOutcome:
+    def step(
+        self,
+        odom_increment: np.ndarray,
+        registration: RegistrationResult | None,
+        detector_points: np.ndarray,
+        T_w_s: np.ndarray | None,
+        attitude: np.ndarray | None = None,
+        judged: tuple[Prediction, bool] | None = None,
+    ) -> StepOutcome:
         """`detector_points`: what the detector judges (the new scan, or the classifier's sample of
         it); `T_w_s`: the sensor's pose where a detector needs one (the oracle, a model reading the
         tilt); `attitude`: the IMU's orientation of the body (3x3), fused every ATTITUDE_EVERY steps
@@ -116,19 +130,32 @@ ONLINE_LAG = 300  # steps (30 s at 10 Hz) the environment's graph keeps before m
 class OnlineFusion:
     """The pipeline inside an environment: one run along an episode; `reset` at every episode start."""
 
-    def __init__(self, config: FusionSettings, lidar: Lidar, odometry: OdometryConfig, T_b_s: np.ndarray,
-                 seed: int = 0, registration: RegistrationConfig | dict | None = None):
+    def __init__(
+        self,
+        config: FusionSettings,
+        lidar: Lidar,
+        odometry: OdometryConfig,
+        T_b_s: np.ndarray,
+        seed: int = 0,
+        registration: RegistrationConfig | dict | None = None,
+    ):
         self.config, self.T_b_s = config, T_b_s
         detector = make_detector(config.detector, lidar, seed)
         if isinstance(registration, dict):
             registration = from_dict(RegistrationConfig, registration)
         # with the classifier in a process of its own, the target is prepared on one thread: the other core is its
-        self.registrar = ScanRegistrar(registration or registration_of([detector]),
-                                       threads=1 if config.detector_process else None)
+        self.registrar = ScanRegistrar(
+            registration or registration_of([detector]), threads=1 if config.detector_process else None
+        )
         # an environment reports the newest estimate only: the graph keeps a window (bounded cost per step)
-        self.pipeline = LocalizationPipeline(detector, config.backend,
-                                             odometry_fusion_config(odometry, config, smoother_lag=ONLINE_LAG),
-                                             odometry, T_b_s, config.attitude)
+        self.pipeline = LocalizationPipeline(
+            detector,
+            config.backend,
+            odometry_fusion_config(odometry, config, smoother_lag=ONLINE_LAG),
+            odometry,
+            T_b_s,
+            config.attitude,
+        )
         # the classifier beside the registration, in a process of its own (detection.ahead)
         self.ahead = DetectorProcess(config.detector, lidar.config, seed) if config.detector_process else None
 
@@ -157,8 +184,9 @@ class OnlineFusion:
         self.counts = {"icp_failed": 0, "unknown": 0, "detector_errors": 0, "fallbacks": 0}
         return self._info(T_w_b, UNKNOWN)
 
-    def step(self, odom_increment: np.ndarray, points: np.ndarray, T_w_b_true: np.ndarray,
-             attitude: np.ndarray | None = None) -> dict[str, Any]:
+    def step(
+        self, odom_increment: np.ndarray, points: np.ndarray, T_w_b_true: np.ndarray, attitude: np.ndarray | None = None
+    ) -> dict[str, Any]:
         """`attitude`: the IMU's orientation of the body (3x3), fused every ATTITUDE_EVERY steps
         where `FusionSettings.attitude` asks for it."""
         T_w_s = T_w_b_true @ self.T_b_s
@@ -179,6 +207,11 @@ class OnlineFusion:
             self.ahead.close()
 
     def _info(self, T: np.ndarray, pred: Prediction) -> dict[str, Any]:
-        return {"fused_T_w_b": T.copy(), "localizability_probabilities": pred.probabilities.copy(),
-                "localizability_mask": pred.mask.copy(), "localizability_known": pred.known,
-                "running_ate": float(np.sqrt(np.mean(self.squared_errors))), "fusion_counts": dict(self.counts)}
+        return {
+            "fused_T_w_b": T.copy(),
+            "localizability_probabilities": pred.probabilities.copy(),
+            "localizability_mask": pred.mask.copy(),
+            "localizability_known": pred.known,
+            "running_ate": float(np.sqrt(np.mean(self.squared_errors))),
+            "fusion_counts": dict(self.counts),
+        }

@@ -1,4 +1,5 @@
 """Drive the robot stand-in through a scene to a goal, observing LiDAR and leg odometry."""
+
 from __future__ import annotations
 
 from typing import Any
@@ -45,8 +46,13 @@ class NavigationEnv(gym.Env):
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
 
-    def __init__(self, config: EnvConfig | dict | None = None, render_mode: str | None = None,
-                 scene_object: Scene | None = None, **overrides: Any):
+    def __init__(
+        self,
+        config: EnvConfig | dict | None = None,
+        render_mode: str | None = None,
+        scene_object: Scene | None = None,
+        **overrides: Any,
+    ):
         super().__init__()
         if isinstance(config, dict) or config is None:
             config = from_dict(EnvConfig, {**(config or {}), **overrides})
@@ -59,13 +65,16 @@ class NavigationEnv(gym.Env):
         if not 0 < config.stop_radius <= config.goal_radius:
             raise ValueError(f"stop_radius must be in (0, goal_radius], got {config.stop_radius}")
         if config.arrival == "estimate" and not config.fusion.enabled:
-            raise ValueError("arrival 'estimate' ends an episode on the fused estimate: turn the fusion on "
-                             "(fusion.enabled), or use arrival 'truth'")
+            raise ValueError(
+                "arrival 'estimate' ends an episode on the fused estimate: turn the fusion on "
+                "(fusion.enabled), or use arrival 'truth'"
+            )
         self.config, self.render_mode = config, render_mode
         self.scene = scene_object or make_scene(config.scene, **config.scene_params)
         if config.route not in self.scene.routes:
-            raise ValueError(f"scene '{self.scene.name}' has no route '{config.route}'; "
-                             f"routes: {sorted(self.scene.routes)}")
+            raise ValueError(
+                f"scene '{self.scene.name}' has no route '{config.route}'; routes: {sorted(self.scene.routes)}"
+            )
         self.route = self.scene.routes[config.route]
         self.world = World(self.scene, config.robot)
         self.robot = Robot(self.world)
@@ -74,17 +83,20 @@ class NavigationEnv(gym.Env):
         pattern = self.lidar.pattern
         self.width = config.range_image_width or pattern.image_width
         if pattern.n_azimuth % self.width:
-            raise ValueError(f"range_image_width {self.width} must divide the {pattern.n_azimuth} columns of "
-                             f"{pattern.name}")
+            raise ValueError(
+                f"range_image_width {self.width} must divide the {pattern.n_azimuth} columns of {pattern.name}"
+            )
         shape = (pattern.n_beams, self.width)
         odom_bound = np.array([5.0, 5.0, 5.0, np.pi, np.pi, np.pi], dtype=np.float32)
         extent = np.float32(2 * np.linalg.norm(self.scene.bounds[1] - self.scene.bounds[0]))
-        self.observation_space = spaces.Dict({
-            "ranges": spaces.Box(0.0, self.lidar.max_range, shape, np.float32),
-            "valid": spaces.Box(0, 1, shape, np.int8),
-            "odometry": spaces.Box(-odom_bound, odom_bound, (6,), np.float32),
-            "goal": spaces.Box(-extent, extent, (3,), np.float32),
-        })
+        self.observation_space = spaces.Dict(
+            {
+                "ranges": spaces.Box(0.0, self.lidar.max_range, shape, np.float32),
+                "valid": spaces.Box(0, 1, shape, np.int8),
+                "odometry": spaces.Box(-odom_bound, odom_bound, (6,), np.float32),
+                "goal": spaces.Box(-extent, extent, (3,), np.float32),
+            }
+        )
         self.action_space = spaces.Box(-1.0, 1.0, (3,), dtype=np.float32)
         speed = float(config.robot.max_twist[0])
         route_length = polyline_length(self.route)
@@ -134,8 +146,9 @@ class NavigationEnv(gym.Env):
         if action.shape != (3,) or not np.isfinite(action).all():
             raise ValueError(f"action must be 3 finite numbers (vx, vy, yaw_rate), got {action!r}")
         if not ((action >= self.action_space.low) & (action <= self.action_space.high)).all():
-            raise ValueError(f"action {action} is outside the action space "
-                             f"[{self.action_space.low}, {self.action_space.high}]")
+            raise ValueError(
+                f"action {action} is outside the action space [{self.action_space.low}, {self.action_space.high}]"
+            )
         T_prev = self.robot.T_w_b
         T_cur, blocked = self.robot.step(action * np.asarray(self.config.robot.max_twist))
         increment = self.odometry.measure(T_prev, T_cur)
@@ -147,8 +160,11 @@ class NavigationEnv(gym.Env):
             points = self._scan.points
             if start is not None:  # deskewed with the gyro's turn and the odometry's motion, as LiDAR odometry does
                 self._odometry_steps = (self._odometry_steps + [increment])[-DESKEW_STEPS:]
-                turn = None if self.gyro is None else \
-                    self.gyro.measure(T_prev[:3, :3], T_cur[:3, :3], self.config.robot.dt)
+                turn = (
+                    None
+                    if self.gyro is None
+                    else self.gyro.measure(T_prev[:3, :3], T_cur[:3, :3], self.config.robot.dt)
+                )
                 motion = deskew_motion(self._odometry_steps, turn, mounting=self.robot.T_b_s)
                 points = deskew(points, motion, self.lidar.pattern)
             attitude = None if self.attitude is None else self.attitude.measure(T_cur[:3, :3], self.config.robot.dt)

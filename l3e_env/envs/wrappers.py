@@ -1,4 +1,5 @@
 """Observation wrappers for learning libraries that expect flat vectors."""
+
 from __future__ import annotations
 
 from typing import Any
@@ -23,8 +24,10 @@ class FlatObservation(gym.ObservationWrapper):
         super().__init__(env)
         space = env.observation_space
         if not isinstance(space, spaces.Dict) or any(k not in space.spaces for k in self.FLAT):
-            raise ValueError("FlatObservation wraps the navigation environment, whose observation is a Dict with "
-                             f"{' and '.join(self.FLAT)}")
+            raise ValueError(
+                "FlatObservation wraps the navigation environment, whose observation is a Dict with "
+                f"{' and '.join(self.FLAT)}"
+            )
         flat = {}
         for key, box in space.spaces.items():
             if key in self.FLAT:

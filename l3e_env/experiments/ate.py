@@ -6,6 +6,7 @@ one registration), asks each detector for a mask, fuses odometry and masked ICP 
 graph, and measures against ground truth. A saved recording can be evaluated again with new
 detectors without driving.
 """
+
 from __future__ import annotations
 
 import json
@@ -84,12 +85,23 @@ class Recording:
 
     def save(self, path: str | Path) -> None:
         """Written whole or not at all (a killed run leaves the file that was there)."""
-        write_atomic(path, lambda fh: np.savez_compressed(
-            fh, scene=self.scene, sensor=self.sensor, seed=self.seed, T_b_s=self.T_b_s,
-            scene_params=json.dumps(self.scene_params), mesh_sha256=self.mesh_sha256, sweep=self.sweep,
-            ground_truth=self.ground_truth, odometry=self.odometry, **_ragged("points", self.scans),
-            **_ragged("samples", self.samples),
-        ))
+        write_atomic(
+            path,
+            lambda fh: np.savez_compressed(
+                fh,
+                scene=self.scene,
+                sensor=self.sensor,
+                seed=self.seed,
+                T_b_s=self.T_b_s,
+                scene_params=json.dumps(self.scene_params),
+                mesh_sha256=self.mesh_sha256,
+                sweep=self.sweep,
+                ground_truth=self.ground_truth,
+                odometry=self.odometry,
+                **_ragged("points", self.scans),
+                **_ragged("samples", self.samples),
+            ),
+        )
 
     @classmethod
     def load(cls, path: str | Path) -> Recording:
@@ -100,11 +112,24 @@ class Recording:
                 params = json.loads(str(z["scene_params"])) if "scene_params" in z.files else {}
                 digest = str(z["mesh_sha256"]) if "mesh_sha256" in z.files else ""
                 swept = bool(z["sweep"]) if "sweep" in z.files else False
-                return cls(str(z["scene"]), str(z["sensor"]), int(z["seed"]), z["T_b_s"], z["ground_truth"],
-                           z["odometry"], _unragged(z, "points"), samples, params, digest, swept)
+                return cls(
+                    str(z["scene"]),
+                    str(z["sensor"]),
+                    int(z["seed"]),
+                    z["T_b_s"],
+                    z["ground_truth"],
+                    z["odometry"],
+                    _unragged(z, "points"),
+                    samples,
+                    params,
+                    digest,
+                    swept,
+                )
         except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
-            raise RecordingError(f"{path} cannot be read as a recording ({type(exc).__name__}: {exc}); record the "
-                                 "drive again (l3e ate or l3e record --recording)") from exc
+            raise RecordingError(
+                f"{path} cannot be read as a recording ({type(exc).__name__}: {exc}); record the "
+                "drive again (l3e ate or l3e record --recording)"
+            ) from exc
 
     def scene_file(self, moved_to: str | None = None) -> str:
         """The scene to rebuild: its name, or for a mesh its recorded path, or `moved_to` where the
@@ -114,12 +139,16 @@ class Recording:
         path = self.scene
         if not Path(path).is_file():
             if moved_to is None or not is_mesh_path(moved_to):
-                raise SceneError(f"the recording's mesh {path} is not there: give its new path as the scene "
-                                 "(l3e ate --recording R --scene NEW_PATH)")
+                raise SceneError(
+                    f"the recording's mesh {path} is not there: give its new path as the scene "
+                    "(l3e ate --recording R --scene NEW_PATH)"
+                )
             path = moved_to
         if self.mesh_sha256 and file_sha256(path) != self.mesh_sha256:
-            raise SceneError(f"{path} is not the mesh this recording was made in (its SHA-256 differs): the "
-                             "recorded scans would not match its geometry")
+            raise SceneError(
+                f"{path} is not the mesh this recording was made in (its SHA-256 differs): the "
+                "recorded scans would not match its geometry"
+            )
         return path
 
     def detector_input(self, k: int) -> np.ndarray:
@@ -149,15 +178,22 @@ class RecastScans:
         """The step's judgement: the one made ahead, or made now."""
         return self._ahead.pop(step, None) or self.judge_step(step, T_w_s)
 
-    def judge_ahead(self, poses: list[np.ndarray], scene: Scene, workers: int, progress: bool = True,
-                    steps: list[int] | None = None) -> None:
+    def judge_ahead(
+        self, poses: list[np.ndarray], scene: Scene, workers: int, progress: bool = True, steps: list[int] | None = None
+    ) -> None:
         """Judge the steps that `predict` will be asked for (every `stride`-th, or `steps`), T_w_s of
         call k being poses[k]."""
         steps = list(range(0, len(poses), self.stride)) if steps is None else steps
         jobs = [(k, poses[k]) for k in steps]
-        judged = list(tqdm(ordered_map(_judge_recast_step, jobs, self, _recast_on, (self, scene.mesh), workers),
-                           total=len(jobs), disable=not progress,
-                           desc=f"judging with {self.name} ({workers} workers)", unit="scan"))
+        judged = list(
+            tqdm(
+                ordered_map(_judge_recast_step, jobs, self, _recast_on, (self, scene.mesh), workers),
+                total=len(jobs),
+                disable=not progress,
+                desc=f"judging with {self.name} ({workers} workers)",
+                unit="scan",
+            )
+        )
         self._ahead = dict(zip(steps, judged))
 
     def __getstate__(self) -> dict:  # a worker gets the settings, and casts against its own scene
@@ -206,8 +242,9 @@ class RecastCascade:
         """Scans the estimate has judged (one per block with an unsure step)."""
         return len(self._held)
 
-    def judge_ahead(self, samples: list[np.ndarray], poses: list[np.ndarray], scene: Scene, workers: int,
-                    progress: bool = True) -> None:
+    def judge_ahead(
+        self, samples: list[np.ndarray], poses: list[np.ndarray], scene: Scene, workers: int, progress: bool = True
+    ) -> None:
         """Judge the steps that `predict` will ask the estimate for, the samples and T_w_s of call k
         being samples[k] and poses[k]."""
         self._classified = {k: self.cascade.classify(points, T) for k, (points, T) in enumerate(zip(samples, poses))}
@@ -236,22 +273,36 @@ def _ragged(name: str, arrays: list[np.ndarray]) -> dict[str, np.ndarray]:
 
 def _unragged(z, name: str) -> list[np.ndarray]:
     o, flat = z[f"{name}_offsets" if name != "points" else "offsets"], z[name]
-    return [flat[o[i]:o[i + 1]] for i in range(len(o) - 1)]
+    return [flat[o[i] : o[i + 1]] for i in range(len(o) - 1)]
 
 
-def record_run(scene: str = "mine", sensor: str = "vlp16", seed: int = 0, progress: bool = True,
-               scene_params: dict | None = None, scene_object: Scene | None = None,
-               on_step: Callable[[Scan, dict], None] | None = None, sweep: bool = False,
-               max_steps: int | None = None, still: float = 0.0) -> Recording:
+def record_run(
+    scene: str = "mine",
+    sensor: str = "vlp16",
+    seed: int = 0,
+    progress: bool = True,
+    scene_params: dict | None = None,
+    scene_object: Scene | None = None,
+    on_step: Callable[[Scan, dict], None] | None = None,
+    sweep: bool = False,
+    max_steps: int | None = None,
+    still: float = 0.0,
+) -> Recording:
     """Drive the scene's route once; `scene_object`, if given, is that scene already built.
     `on_step(scan, info)` sees every full scan with the step's info (T_w_b, odom_T_w_b) and the
     sensor's mounting T_b_s, the start's included, before the recording thins it (a bag writer).
     `sweep`: each step's scan is swept over the step's motion (LidarConfig.sweep). `max_steps`: stop the
     drive there (a short run; default: the route's end, or 3x its length at full speed). `still`: seconds
     the robot first stands at the start (an IMU initialiser's calibration), counted in `max_steps`."""
-    env = NavigationEnv(EnvConfig(scene=scene, lidar=LidarConfig(model=sensor, sweep=sweep),
-                                  scene_params=scene_params or {}, max_episode_steps=max_steps),
-                        scene_object=scene_object)
+    env = NavigationEnv(
+        EnvConfig(
+            scene=scene,
+            lidar=LidarConfig(model=sensor, sweep=sweep),
+            scene_params=scene_params or {},
+            max_episode_steps=max_steps,
+        ),
+        scene_object=scene_object,
+    )
     obs, info = env.reset(seed=seed)
     follow = RouteFollower(env.route)
 
@@ -289,8 +340,19 @@ def record_run(scene: str = "mine", sensor: str = "vlp16", seed: int = 0, progre
     bar.close()
     # a mesh scene is rebuilt from its file, a procedural one from its canonical name ('tunnel' -> 'tunnel-0')
     name = canonical_scene_name(scene) if is_mesh_path(scene) else env.scene.name
-    rec = Recording(name, sensor, seed, env.robot.T_b_s, np.array(gt), np.array(odom), scans, samples,
-                    dict(scene_params or {}), file_sha256(scene) if is_mesh_path(scene) else "", sweep)
+    rec = Recording(
+        name,
+        sensor,
+        seed,
+        env.robot.T_b_s,
+        np.array(gt),
+        np.array(odom),
+        scans,
+        samples,
+        dict(scene_params or {}),
+        file_sha256(scene) if is_mesh_path(scene) else "",
+        sweep,
+    )
     env.close()
     return rec
 
@@ -312,12 +374,18 @@ class DetectorResult:
 
     def row(self) -> dict:
         flagged = self.masks.mean(axis=0)
-        return {"detector": self.name, "ate_m": round(self.ate, 3),
-                "ate_aligned_m": None if self.ate_aligned is None else round(self.ate_aligned, 3),
-                "rpe_m": round(self.rpe_translation, 4), "rpe_deg": round(float(np.degrees(self.rpe_rotation)), 3),
-                **{f"flagged_{a}": round(float(f), 3) for a, f in zip(AXES, flagged)},
-                "seconds": round(self.seconds, 2), "unknown_steps": self.unknown_steps,
-                "fallback_steps": self.fallback_steps, "detector_errors": self.detector_errors}
+        return {
+            "detector": self.name,
+            "ate_m": round(self.ate, 3),
+            "ate_aligned_m": None if self.ate_aligned is None else round(self.ate_aligned, 3),
+            "rpe_m": round(self.rpe_translation, 4),
+            "rpe_deg": round(float(np.degrees(self.rpe_rotation)), 3),
+            **{f"flagged_{a}": round(float(f), 3) for a, f in zip(AXES, flagged)},
+            "seconds": round(self.seconds, 2),
+            "unknown_steps": self.unknown_steps,
+            "fallback_steps": self.fallback_steps,
+            "detector_errors": self.detector_errors,
+        }
 
 
 def deskewed(rec: Recording, source: str = "gyro") -> Recording:
@@ -335,8 +403,11 @@ def deskewed(rec: Recording, source: str = "gyro") -> Recording:
     for k, (before, after) in enumerate(zip(rec.ground_truth, rec.ground_truth[1:])):
         turn = None if gyro is None else gyro.measure(before[:3, :3], after[:3, :3], RobotConfig.dt)
         motions.append(deskew_motion(rec.odometry[: k + 1], turn, mounting=rec.T_b_s))  # the last steps count
-    return replace(rec, scans=[deskew(s, m, pattern) for s, m in zip(rec.scans, motions)],
-                   samples=[deskew(s, m, pattern) for s, m in zip(rec.samples, motions)])
+    return replace(
+        rec,
+        scans=[deskew(s, m, pattern) for s, m in zip(rec.scans, motions)],
+        samples=[deskew(s, m, pattern) for s, m in zip(rec.samples, motions)],
+    )
 
 
 def register_sequence(rec: Recording, config: RegistrationConfig, progress: bool = True) -> list:
@@ -362,17 +433,27 @@ class OdometryAttitude:
         return Prediction(np.ones(6), np.ones(6, dtype=bool))
 
 
-def fuse_recording(rec: Recording, detectors: list[Detector], registrations: list, fusion: FusionConfig | None = None,
-                   odometry: OdometryConfig | None = None, progress: bool = True, backend: str = "graph",
-                   attitude: str = "none") -> list[DetectorResult]:
+def fuse_recording(
+    rec: Recording,
+    detectors: list[Detector],
+    registrations: list,
+    fusion: FusionConfig | None = None,
+    odometry: OdometryConfig | None = None,
+    progress: bool = True,
+    backend: str = "graph",
+    attitude: str = "none",
+) -> list[DetectorResult]:
     """The recording's odometry and registrations through the localization pipeline with each
     detector; with `attitude` ("tilt" or "full", see `imu.attitude_sigmas`) the IMU's orientation joins
     every ATTITUDE_EVERY steps, the same readings for every detector (drawn from the recording's seed)."""
     check_backend(backend)
     fusion, odometry = fusion or FusionConfig(), odometry or OdometryConfig()
     gt = rec.ground_truth
-    readings = None if attitude_sigmas(attitude) is None else attitude_readings(
-        gt, RobotConfig.dt, rng=np.random.default_rng([rec.seed, 5]))
+    readings = (
+        None
+        if attitude_sigmas(attitude) is None
+        else attitude_readings(gt, RobotConfig.dt, rng=np.random.default_rng([rec.seed, 5]))
+    )
     out = []
     for det in detectors:
         t0 = time.perf_counter()
@@ -380,15 +461,31 @@ def fuse_recording(rec: Recording, detectors: list[Detector], registrations: lis
         pipeline.start(gt[0])
         masks, probs, unknown, fallbacks, errors = [], [], 0, 0, 0
         for k, reg in enumerate(tqdm(registrations, desc=f"fusing with {det.name}", unit="step", disable=not progress)):
-            step = pipeline.step(rec.odometry[k], reg, rec.detector_input(k + 1), gt[k + 1] @ rec.T_b_s,
-                                 None if readings is None else readings[k + 1])
+            step = pipeline.step(
+                rec.odometry[k],
+                reg,
+                rec.detector_input(k + 1),
+                gt[k + 1] @ rec.T_b_s,
+                None if readings is None else readings[k + 1],
+            )
             unknown += not step.prediction.known
             errors += step.detector_failed
             fallbacks += step.fallback
             masks.append(step.prediction.mask)
             probs.append(step.prediction.probabilities)
-        out.append(_scored(det.name, pipeline.trajectory(), gt, np.array(masks), np.array(probs),
-                           time.perf_counter() - t0, unknown, fallbacks, errors))
+        out.append(
+            _scored(
+                det.name,
+                pipeline.trajectory(),
+                gt,
+                np.array(masks),
+                np.array(probs),
+                time.perf_counter() - t0,
+                unknown,
+                fallbacks,
+                errors,
+            )
+        )
     return out
 
 
@@ -400,8 +497,17 @@ def odometry_only(rec: Recording) -> DetectorResult:
     return _scored("odometry only", np.array(traj), rec.ground_truth, np.ones((n, 6), bool), np.ones((n, 6)), 0.0, 0, 0)
 
 
-def _scored(name: str, traj: np.ndarray, gt: np.ndarray, masks: np.ndarray, probs: np.ndarray, seconds: float,
-            unknown: int, fallbacks: int, errors: int = 0) -> DetectorResult:
+def _scored(
+    name: str,
+    traj: np.ndarray,
+    gt: np.ndarray,
+    masks: np.ndarray,
+    probs: np.ndarray,
+    seconds: float,
+    unknown: int,
+    fallbacks: int,
+    errors: int = 0,
+) -> DetectorResult:
     """A trajectory with its metrics against ground truth (aligned ATE is None for colinear runs)."""
     try:
         aligned = ate_aligned(traj, gt)
@@ -414,6 +520,7 @@ def _scored(name: str, traj: np.ndarray, gt: np.ndarray, masks: np.ndarray, prob
 @dataclass
 class AteRun:
     """One drive fused with every detector: the table's rows (odometry only first) and what was written."""
+
     out_dir: Path
     rows: list[dict]
     swept: bool  # the drive's scans were swept revolutions, deskewed before they were judged and registered
@@ -426,6 +533,7 @@ class AteRun:
 @dataclass
 class AteSeeds:
     """Drives of several seeds: each drive's run, the summary over them per detector, what was written."""
+
     out_dir: Path
     runs: dict[int, AteRun]
     summary: list[dict]
@@ -479,9 +587,15 @@ class AteOptions:
         check_baselines([*self.baselines, *(f for f in self.frontends if f != "icp")])
 
 
-def run_ate_seeds(out_dir: str | Path, scene: str, detectors: list[str], seeds: range,
-                  options: AteOptions | None = None, on_drive: Callable[[int, AteRun], None] | None = None,
-                  progress: bool = True) -> AteSeeds:
+def run_ate_seeds(
+    out_dir: str | Path,
+    scene: str,
+    detectors: list[str],
+    seeds: range,
+    options: AteOptions | None = None,
+    on_drive: Callable[[int, AteRun], None] | None = None,
+    progress: bool = True,
+) -> AteSeeds:
     """`run_ate` on one drive per seed, each into `out_dir/seed-<seed>`, then the summary over them
     (`summarize_seeds`) into seeds.json and seeds.png; `on_drive(seed, run)` sees each drive as it ends.
     `options`: run_ate's (not a recording: that is one drive; their seed is each drive's)."""
@@ -508,6 +622,7 @@ def run_ate_seeds(out_dir: str | Path, scene: str, detectors: list[str], seeds: 
 class AteDrive:
     """One drive's inputs: the scene, its LiDAR, the recording (deskewed where swept, `raw` as
     recorded) and the detectors (made for it)."""
+
     scene: Scene
     lidar: Lidar
     rec: Recording
@@ -516,8 +631,9 @@ class AteDrive:
     registration: RegistrationConfig
 
 
-def run_ate(out_dir: str | Path, scene: str, detectors: list[str], options: AteOptions | None = None,
-            progress: bool = True) -> AteRun:
+def run_ate(
+    out_dir: str | Path, scene: str, detectors: list[str], options: AteOptions | None = None, progress: bool = True
+) -> AteRun:
     """The `l3e ate` command as a function: drives (or loads) the route, registers its scans, fuses
     them with every detector and front end, scores each row against the truth and writes everything
     to out_dir; returns the rows."""
@@ -533,20 +649,39 @@ def run_ate(out_dir: str | Path, scene: str, detectors: list[str], options: AteO
     dets = drive.detectors
     if options.attitude != "none":
         dets, ahead = [OdometryAttitude(), *dets], [0.0, *ahead]
-    runs = {name: run_baseline(name, drive.raw.scans, drive.raw.ground_truth[0], drive.raw.T_b_s,
-                               get_pattern(drive.raw.sensor) if drive.raw.sweep else None, progress=progress)
-            for name in dict.fromkeys([*(f for f in options.frontends if f != "icp"), *options.baselines])}
+    runs = {
+        name: run_baseline(
+            name,
+            drive.raw.scans,
+            drive.raw.ground_truth[0],
+            drive.raw.T_b_s,
+            get_pattern(drive.raw.sensor) if drive.raw.sweep else None,
+            progress=progress,
+        )
+        for name in dict.fromkeys([*(f for f in options.frontends if f != "icp"), *options.baselines])
+    }
     fused, lost = fuse_frontends(drive.rec, dets, ahead, regs, runs, fusion, options, progress)
     results, rows = score_rows(drive, dets, fused, lost, runs, options)
-    summary = {"scene": drive.rec.scene, "sensor": drive.rec.sensor, "seed": drive.rec.seed,
-               "swept": drive.raw.sweep, "deskew": options.deskew if drive.raw.sweep else None,
-               "backend": options.backend, "attitude": options.attitude, **options.fusion_settings.record(),
-               "steps": len(drive.rec.odometry), "icp_seconds": round(icp_seconds, 1),
-               "icp_failed_or_not_converged": sum(r is None or not r.converged for r in regs),
-               "registration": to_dict(drive.registration), "frontends": options.frontends,
-               "baselines": {name: {"config": run.config, "seconds": round(run.seconds, 2), "error": run.error}
-                             for name, run in runs.items()},
-               "rows": rows}
+    summary = {
+        "scene": drive.rec.scene,
+        "sensor": drive.rec.sensor,
+        "seed": drive.rec.seed,
+        "swept": drive.raw.sweep,
+        "deskew": options.deskew if drive.raw.sweep else None,
+        "backend": options.backend,
+        "attitude": options.attitude,
+        **options.fusion_settings.record(),
+        "steps": len(drive.rec.odometry),
+        "icp_seconds": round(icp_seconds, 1),
+        "icp_failed_or_not_converged": sum(r is None or not r.converged for r in regs),
+        "registration": to_dict(drive.registration),
+        "frontends": options.frontends,
+        "baselines": {
+            name: {"config": run.config, "seconds": round(run.seconds, 2), "error": run.error}
+            for name, run in runs.items()
+        },
+        "rows": rows,
+    }
     written = write_ate(out, summary, drive, results)
     return AteRun(out, rows, drive.raw.sweep, written)
 
@@ -555,17 +690,33 @@ def prepare_drive(out: Path, scene: str, specs: list[str], options: AteOptions, 
     """The scene (a recording's own, or `scene`), its LiDAR and the detectors (a bad spec fails before
     the drive), then the drive itself, recorded into out/recording.npz where none was given."""
     rec = Recording.load(options.recording) if options.recording else None
-    scene_obj = (make_scene(rec.scene_file(moved_to=scene), **rec.scene_params) if rec
-                 else make_scene(scene, **(options.scene_params or {})))
+    scene_obj = (
+        make_scene(rec.scene_file(moved_to=scene), **rec.scene_params)
+        if rec
+        else make_scene(scene, **(options.scene_params or {}))
+    )
     lidar = Lidar(EmbreeCaster(scene_obj.mesh), LidarConfig(model=rec.sensor if rec else options.sensor))
     dets = [make_detector(spec, lidar, options.seed) for spec in specs]
     registration = registration_of(dets)
-    dets = [RecastScans(d, lidar, seed=options.seed) if isinstance(d, ScanMCDetector)
-            else RecastCascade(d, lidar, seed=options.seed) if isinstance(d, CascadeDetector) else d for d in dets]
+    dets = [
+        RecastScans(d, lidar, seed=options.seed)
+        if isinstance(d, ScanMCDetector)
+        else RecastCascade(d, lidar, seed=options.seed)
+        if isinstance(d, CascadeDetector)
+        else d
+        for d in dets
+    ]
     out.mkdir(parents=True, exist_ok=True)
     if rec is None:
-        rec = record_run(scene, options.sensor, options.seed, progress, options.scene_params, scene_object=scene_obj,
-                         max_steps=options.max_steps)
+        rec = record_run(
+            scene,
+            options.sensor,
+            options.seed,
+            progress,
+            options.scene_params,
+            scene_object=scene_obj,
+            max_steps=options.max_steps,
+        )
         rec.save(out / "recording.npz")
     return AteDrive(scene_obj, lidar, deskewed(rec, options.deskew), rec, dets, registration)
 
@@ -580,14 +731,23 @@ def judge_ahead(drive: AteDrive, workers: int, progress: bool) -> list[float]:
         if isinstance(det, RecastScans) and workers > 1:
             det.judge_ahead(poses, drive.scene, workers, progress)
         elif isinstance(det, RecastCascade) and workers > 1:
-            det.judge_ahead([drive.rec.detector_input(k + 1) for k in range(len(poses))], poses, drive.scene, workers,
-                            progress)
+            det.judge_ahead(
+                [drive.rec.detector_input(k + 1) for k in range(len(poses))], poses, drive.scene, workers, progress
+            )
         ahead[i] = time.perf_counter() - t0
     return ahead
 
 
-def fuse_frontends(rec: Recording, dets: list, ahead: list[float], regs: list, runs: dict[str, BaselineRun],
-                   fusion: FusionConfig, options: AteOptions, progress: bool) -> tuple[list, list[tuple[str, str]]]:
+def fuse_frontends(
+    rec: Recording,
+    dets: list,
+    ahead: list[float],
+    regs: list,
+    runs: dict[str, BaselineRun],
+    fusion: FusionConfig,
+    options: AteOptions,
+    progress: bool,
+) -> tuple[list, list[tuple[str, str]]]:
     """Every detector fused with every front end's steps; returns the results and, for a front end
     whose odometry failed, its rows' names with the error."""
     fused, lost = [], []
@@ -596,8 +756,9 @@ def fuse_frontends(rec: Recording, dets: list, ahead: list[float], regs: list, r
             lost += [(f"{det.name} @{frontend}", runs[frontend].error) for det in dets]
             continue
         steps = regs if frontend == "icp" else runs[frontend].registrations(regs)
-        by_front = fuse_recording(rec, dets, steps, fusion=fusion, progress=progress, backend=options.backend,
-                                  attitude=options.attitude)
+        by_front = fuse_recording(
+            rec, dets, steps, fusion=fusion, progress=progress, backend=options.backend, attitude=options.attitude
+        )
         for result, seconds, det in zip(by_front, ahead, dets):
             result.seconds += seconds
             result.name = det.name if frontend == "icp" else f"{det.name} @{frontend}"
@@ -605,8 +766,14 @@ def fuse_frontends(rec: Recording, dets: list, ahead: list[float], regs: list, r
     return fused, lost
 
 
-def score_rows(drive: AteDrive, dets: list, fused: list, lost: list[tuple[str, str]], runs: dict[str, BaselineRun],
-               options: AteOptions) -> tuple[list, list[dict]]:
+def score_rows(
+    drive: AteDrive,
+    dets: list,
+    fused: list,
+    lost: list[tuple[str, str]],
+    runs: dict[str, BaselineRun],
+    options: AteOptions,
+) -> tuple[list, list[dict]]:
     """The results (odometry only first, the fusions, the baselines alone) and the table's rows with
     each one's drift inside each named region; a failed row says why."""
     rec, scene = drive.rec, drive.scene
@@ -623,8 +790,18 @@ def score_rows(drive: AteDrive, dets: list, fused: list, lost: list[tuple[str, s
             rows.append(failed_row(name, run.error, scene))
             continue
         steps = len(rec.odometry)
-        results.append(_scored(name, run.trajectory, rec.ground_truth, np.zeros((steps, 6), bool),
-                               np.full((steps, 6), np.nan), run.seconds, 0, 0))
+        results.append(
+            _scored(
+                name,
+                run.trajectory,
+                rec.ground_truth,
+                np.zeros((steps, 6), bool),
+                np.full((steps, 6), np.nan),
+                run.seconds,
+                0,
+                0,
+            )
+        )
         rows.append({**results[-1].row(), **region_drift(run.trajectory, rec.ground_truth, inside)})
     return results, rows
 
@@ -640,8 +817,13 @@ def write_ate(out: Path, summary: dict, drive: AteDrive, results: list) -> list[
     maps = []
     for r in results[1:]:
         maps += plot_map(out / f"map_{file_stem(r.name)}", drive.rec, r.trajectory)
-    written = [out / "results.json", out / "trajectories.png", out / "timeline.png", *maps,
-               *write_trajectories(out / "trajectories", drive.rec.ground_truth, results)]
+    written = [
+        out / "results.json",
+        out / "trajectories.png",
+        out / "timeline.png",
+        *maps,
+        *write_trajectories(out / "trajectories", drive.rec.ground_truth, results),
+    ]
     if (out / "recording.npz").exists():
         written.insert(0, out / "recording.npz")
     return written
@@ -668,15 +850,30 @@ def region_drift(trajectory: np.ndarray, ground_truth: np.ndarray, inside: dict[
 
 def failed_row(name: str, error: str, scene: Scene) -> dict:
     """The row of an estimate that could not be made: its name and why, every figure None."""
-    keys = ("ate_m", "ate_aligned_m", "rpe_m", "rpe_deg", *(f"flagged_{a}" for a in AXES), "seconds",
-            *(f"drift_{g}_{u}" for g in scene.regions for u in ("m", "pct")))
-    return {"detector": name, **dict.fromkeys(keys), "unknown_steps": 0, "fallback_steps": 0, "detector_errors": 0,
-            "error": error}
+    keys = (
+        "ate_m",
+        "ate_aligned_m",
+        "rpe_m",
+        "rpe_deg",
+        *(f"flagged_{a}" for a in AXES),
+        "seconds",
+        *(f"drift_{g}_{u}" for g in scene.regions for u in ("m", "pct")),
+    )
+    return {
+        "detector": name,
+        **dict.fromkeys(keys),
+        "unknown_steps": 0,
+        "fallback_steps": 0,
+        "detector_errors": 0,
+        "error": error,
+    }
 
 
 def regions_of(rows: list[dict]) -> list[str]:
     """The regions whose drift the rows carry, in order."""
-    return [k[len("drift_"):-len("_m")] for k in rows[0] if k.startswith("drift_") and k.endswith("_m")] if rows else []
+    return (
+        [k[len("drift_") : -len("_m")] for k in rows[0] if k.startswith("drift_") and k.endswith("_m")] if rows else []
+    )
 
 
 def write_trajectories(folder: Path, ground_truth: np.ndarray, results: list[DetectorResult]) -> list[Path]:
@@ -719,28 +916,46 @@ def summarize_seeds(runs: dict[int, list[dict]]) -> list[dict]:
         ate = np.array([runs[k][i]["ate_m"] for k in seeds], dtype=float)  # NaN where an estimate failed
         aligned = np.array([runs[k][i]["ate_aligned_m"] for k in seeds], dtype=float)
         ratio = ate / np.array([runs[k][0]["ate_m"] for k in seeds])  # row 0: odometry only
-        summary.append({"detector": name, "seeds": seeds, "ate_m": ate.tolist(),
-                        "ate_mean_m": round(float(ate.mean()), 3), "ate_std_m": round(float(ate.std(ddof=1)), 3),
-                        "ate_min_m": float(ate.min()), "ate_max_m": float(ate.max()),
-                        "ate_aligned_mean_m": round(float(np.nanmean(aligned)), 3),
-                        "ate_over_odometry_mean": round(float(ratio.mean()), 3),
-                        "ate_over_odometry_std": round(float(ratio.std(ddof=1)), 3), **drifts})
+        summary.append(
+            {
+                "detector": name,
+                "seeds": seeds,
+                "ate_m": ate.tolist(),
+                "ate_mean_m": round(float(ate.mean()), 3),
+                "ate_std_m": round(float(ate.std(ddof=1)), 3),
+                "ate_min_m": float(ate.min()),
+                "ate_max_m": float(ate.max()),
+                "ate_aligned_mean_m": round(float(np.nanmean(aligned)), 3),
+                "ate_over_odometry_mean": round(float(ratio.mean()), 3),
+                "ate_over_odometry_std": round(float(ratio.std(ddof=1)), 3),
+                **drifts,
+            }
+        )
     return summary
 
 
 def format_seed_table(summary: list[dict]) -> str:
     w = _name_width(summary)
-    regions = [k[len("drift_"):-len("_pct_mean")] for k in summary[0] if k.endswith("_pct_mean")]
-    head = (f"{'detector':{w}s} {'ATE m mean':>10s} {'std':>6s} {'min':>7s} {'max':>7s} {'aligned':>8s}  "
-            f"{'ATE / odometry':>14s}" + "".join(f"  {'drift ' + g + ' %':>14s}" for g in regions))
-    lines = [f"over {len(summary[0]['seeds'])} drives (seeds {summary[0]['seeds'][0]}-{summary[0]['seeds'][-1]})",
-             head, "-" * len(head)]
+    regions = [k[len("drift_") : -len("_pct_mean")] for k in summary[0] if k.endswith("_pct_mean")]
+    head = (
+        f"{'detector':{w}s} {'ATE m mean':>10s} {'std':>6s} {'min':>7s} {'max':>7s} {'aligned':>8s}  "
+        f"{'ATE / odometry':>14s}" + "".join(f"  {'drift ' + g + ' %':>14s}" for g in regions)
+    )
+    lines = [
+        f"over {len(summary[0]['seeds'])} drives (seeds {summary[0]['seeds'][0]}-{summary[0]['seeds'][-1]})",
+        head,
+        "-" * len(head),
+    ]
     for r in summary:
-        lines.append(f"{r['detector']:{w}s} {r['ate_mean_m']:10.3f} {r['ate_std_m']:6.3f} {r['ate_min_m']:7.3f} "
-                     f"{r['ate_max_m']:7.3f} {r['ate_aligned_mean_m']:8.3f}  "
-                     f"{r['ate_over_odometry_mean']:7.3f} +-{r['ate_over_odometry_std']:.3f}"
-                     + "".join(f"  {'-':>14s}" if r[f"drift_{g}_pct_mean"] is None
-                               else f"  {r[f'drift_{g}_pct_mean']:14.1f}" for g in regions))
+        lines.append(
+            f"{r['detector']:{w}s} {r['ate_mean_m']:10.3f} {r['ate_std_m']:6.3f} {r['ate_min_m']:7.3f} "
+            f"{r['ate_max_m']:7.3f} {r['ate_aligned_mean_m']:8.3f}  "
+            f"{r['ate_over_odometry_mean']:7.3f} +-{r['ate_over_odometry_std']:.3f}"
+            + "".join(
+                f"  {'-':>14s}" if r[f"drift_{g}_pct_mean"] is None else f"  {r[f'drift_{g}_pct_mean']:14.1f}"
+                for g in regions
+            )
+        )
     return "\n".join(lines)
 
 
@@ -754,8 +969,10 @@ def format_table(rows: list[dict]) -> str:
     distance travelled inside it)."""
     w = _name_width(rows)
     regions = regions_of(rows)
-    head = (f"{'detector':{w}s} {'ATE m':>7s} {'aligned':>8s} {'RPE m':>7s} {'RPE deg':>8s}  "
-            f"flagged x/y/z/roll/pitch/yaw      {'s':>6s}" + "".join(f"  {'drift ' + g:>15s}" for g in regions))
+    head = (
+        f"{'detector':{w}s} {'ATE m':>7s} {'aligned':>8s} {'RPE m':>7s} {'RPE deg':>8s}  "
+        f"flagged x/y/z/roll/pitch/yaw      {'s':>6s}" + "".join(f"  {'drift ' + g:>15s}" for g in regions)
+    )
     lines = [head, "-" * len(head)]
     for r in rows:
         if r.get("error"):
@@ -763,8 +980,14 @@ def format_table(rows: list[dict]) -> str:
             continue
         flags = " ".join(f"{r[f'flagged_{a}']:.2f}" for a in AXES)
         al = "-" if r["ate_aligned_m"] is None else f"{r['ate_aligned_m']:.3f}"
-        drifts = "".join(f"  {'-':>15s}" if r[f"drift_{g}_m"] is None
-                         else f"  {r[f'drift_{g}_m']:6.2f} m {r[f'drift_{g}_pct']:5.1f}%" for g in regions)
-        lines.append(f"{r['detector']:{w}s} {r['ate_m']:7.3f} {al:>8s} {r['rpe_m']:7.4f} {r['rpe_deg']:8.3f}  "
-                     f"{flags}  {r['seconds']:6.1f}{drifts}")
+        drifts = "".join(
+            f"  {'-':>15s}"
+            if r[f"drift_{g}_m"] is None
+            else f"  {r[f'drift_{g}_m']:6.2f} m {r[f'drift_{g}_pct']:5.1f}%"
+            for g in regions
+        )
+        lines.append(
+            f"{r['detector']:{w}s} {r['ate_m']:7.3f} {al:>8s} {r['rpe_m']:7.4f} {r['rpe_deg']:8.3f}  "
+            f"{flags}  {r['seconds']:6.1f}{drifts}"
+        )
     return "\n".join(lines)

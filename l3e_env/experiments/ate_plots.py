@@ -1,4 +1,5 @@
 """Figures of the ATE experiment: trajectories over the scene, mask timelines, maps."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -47,8 +48,10 @@ def plot_map(stem: Path, rec, trajectory: np.ndarray, every: int = 10) -> list[P
     """Scans accumulated at the estimated poses, as PLY and a top view: a corrupted map shows. Returns
     the two files."""
     T_b_s = rec.T_b_s
-    pts = [rec.scans[k] @ (trajectory[k] @ T_b_s)[:3, :3].T + (trajectory[k] @ T_b_s)[:3, 3]
-           for k in range(0, len(rec.scans), every)]
+    pts = [
+        rec.scans[k] @ (trajectory[k] @ T_b_s)[:3, :3].T + (trajectory[k] @ T_b_s)[:3, 3]
+        for k in range(0, len(rec.scans), every)
+    ]
     cloud = np.concatenate(pts)
     trimesh.PointCloud(cloud).export(str(stem) + ".ply")
     fig, ax = plt.subplots(figsize=(12, 5))
@@ -69,8 +72,14 @@ def plot_seeds(path: Path, summary: list[dict]) -> None:
     names = [r["detector"] for r in summary]
     ate = np.array([r["ate_m"] for r in summary])  # (detectors, seeds)
     for k, seed in enumerate(summary[0]["seeds"]):
-        ax.plot(range(len(names)), ate[:, k], "o-", color=plt.cm.viridis(k / max(1, ate.shape[1] - 1)),
-                alpha=0.7, label=f"seed {seed}")
+        ax.plot(
+            range(len(names)),
+            ate[:, k],
+            "o-",
+            color=plt.cm.viridis(k / max(1, ate.shape[1] - 1)),
+            alpha=0.7,
+            label=f"seed {seed}",
+        )
     ax.set_xticks(range(len(names)), names, rotation=30, ha="right")
     ax.set_ylabel("ATE (m)")
     ax.set_yscale("log")

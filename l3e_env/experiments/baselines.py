@@ -6,6 +6,7 @@ Frames, once: an odometry estimates the sensor's pose in the frame of its first 
 body's pose is then T_w_b(k) = T_w_b(0) T_b_s P_k T_b_s^-1: the drive's true first pose, the
 mounting carried through, as the fusion's rows start from the true first pose too.
 """
+
 from __future__ import annotations
 
 import importlib
@@ -30,6 +31,7 @@ class BaselineError(RuntimeError):
 class BaselineRun:
     """One odometry over one drive: the body's trajectory (None where it failed), its settings, its
     seconds, and what went wrong (None where nothing did)."""
+
     name: str
     trajectory: np.ndarray | None
     config: dict[str, Any]
@@ -89,13 +91,21 @@ def check_baselines(names: list[str]) -> list[str]:
         try:
             importlib.import_module(BASELINES[name][0])
         except ImportError as exc:
-            raise BaselineError(f"baseline '{name}' needs its package ({exc}); install the extra: "
-                                "pip install 'l3e[baselines]'") from None
+            raise BaselineError(
+                f"baseline '{name}' needs its package ({exc}); install the extra: pip install 'l3e[baselines]'"
+            ) from None
     return names
 
 
-def run_baseline(name: str, scans: list[np.ndarray], ground_truth_0: np.ndarray, T_b_s: np.ndarray,
-                 pattern: BeamPattern | None, max_range: float = 100.0, progress: bool = True) -> BaselineRun:
+def run_baseline(
+    name: str,
+    scans: list[np.ndarray],
+    ground_truth_0: np.ndarray,
+    T_b_s: np.ndarray,
+    pattern: BeamPattern | None,
+    max_range: float = 100.0,
+    progress: bool = True,
+) -> BaselineRun:
     """`name` (BASELINES) over the drive's scans (sensor frame, one per step from the start's). `pattern`:
     the sensor's, for the per-point firing times of swept revolutions, which the odometry then deskews
     with its own motion model; None for scans taken at one instant (no deskewing). Whatever the

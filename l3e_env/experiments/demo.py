@@ -1,4 +1,5 @@
 """`l3e demo`: drive the mine route with the route follower and picture what the LiDAR sees."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -18,9 +19,17 @@ from l3e_env.sim.render import wall_points  # noqa: E402
 ROUTE_SHOTS = {"20pct": 0.2, "50pct": 0.5, "80pct": 0.8}  # scan pictures on a route without named places
 
 
-def run_demo(out_dir: str | Path, scene: str = "mine", sensor: str = "vlp16", seed: int = 0, progress: bool = True,
-             checkpoint: str | None = None, classify_every: int = 5, scene_params: dict | None = None,
-             max_steps: int | None = None) -> dict:
+def run_demo(
+    out_dir: str | Path,
+    scene: str = "mine",
+    sensor: str = "vlp16",
+    seed: int = 0,
+    progress: bool = True,
+    checkpoint: str | None = None,
+    classify_every: int = 5,
+    scene_params: dict | None = None,
+    max_steps: int | None = None,
+) -> dict:
     """Drive the route, save a top view of the path and scan pictures at up to three places,
     and judge every `classify_every`-th scan with the learned detector (the shipped model unless
     `checkpoint` names another): a timeline of its probabilities and the flagged share per axis.
@@ -34,8 +43,9 @@ def run_demo(out_dir: str | Path, scene: str = "mine", sensor: str = "vlp16", se
 
     detector = LearnedDetector(checkpoint, lidar_model=sensor)
     judged: list[tuple[int, str, np.ndarray, np.ndarray]] = []  # step, place, probabilities, mask
-    config = EnvConfig(scene=scene, lidar=LidarConfig(model=sensor), scene_params=scene_params or {},
-                       max_episode_steps=max_steps)
+    config = EnvConfig(
+        scene=scene, lidar=LidarConfig(model=sensor), scene_params=scene_params or {}, max_episode_steps=max_steps
+    )
     env = NavigationEnv(config)  # a broken mesh or route fails here, before the folder exists
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -76,8 +86,13 @@ def run_demo(out_dir: str | Path, scene: str = "mine", sensor: str = "vlp16", se
     flagged = _flagged_shares(judged)
     if judged:
         files.append(_plot_localizability(out / "localizability.png", env, trajectory, judged, detector))
-    return {"steps": len(poses) - 1, "reached_goal": bool(reached), "files": [str(f) for f in files], "out": str(out),
-            "flagged": flagged}
+    return {
+        "steps": len(poses) - 1,
+        "reached_goal": bool(reached),
+        "files": [str(f) for f in files],
+        "out": str(out),
+        "flagged": flagged,
+    }
 
 
 def _flagged_shares(judged: list) -> dict[str, np.ndarray]:

@@ -2,6 +2,7 @@
 scan-to-scan registration would fail there (`l3e judge`). A scan is in its sensor's frame, as
 the driver writes it; points that are NaN, infinite or at the origin (no return, as organised
 clouds keep them) are dropped and counted."""
+
 from __future__ import annotations
 
 import json
@@ -32,13 +33,15 @@ from l3e_env.localizability.registration import RegistrationConfig, Registration
 from l3e_env.sim.patterns import BeamPattern, PatternError, fit_pattern, get_pattern, in_lidar_frame, register_pattern
 
 # what each detector's score means, printed under the table
-SCORES = {"learned": "probability that the axis is not localizable (flagged above the model's threshold)",
-          "eigen": "share of the axis in the Hessian's degenerate subspace (flagged above 0.5)",
-          "dcreg": "log of the axis's condition ratio in its decoupled subspace over 2 log kappa (flagged above 0.5)",
-          "scanmc": "r / (1 + r), r = estimated registration error over the label threshold (flagged above 0.5)",
-          "learned+scanmc": "the classifier's probability where it is sure; where an axis lies within the margin "
-                            "of its threshold, scanmc's r / (1 + r) for every axis",
-          "none": "nothing is flagged"}
+SCORES = {
+    "learned": "probability that the axis is not localizable (flagged above the model's threshold)",
+    "eigen": "share of the axis in the Hessian's degenerate subspace (flagged above 0.5)",
+    "dcreg": "log of the axis's condition ratio in its decoupled subspace over 2 log kappa (flagged above 0.5)",
+    "scanmc": "r / (1 + r), r = estimated registration error over the label threshold (flagged above 0.5)",
+    "learned+scanmc": "the classifier's probability where it is sure; where an axis lies within the margin "
+    "of its threshold, scanmc's r / (1 + r) for every axis",
+    "none": "nothing is flagged",
+}
 
 
 @dataclass
@@ -53,8 +56,12 @@ class Judgement:
     sensor: str | None = None  # the beam pattern it was judged with, where there was one
 
 
-def judge_points(points: np.ndarray, detectors: list[Detector], registration: RegistrationConfig | None = None,
-                 rng: np.random.Generator | None = None) -> dict[str, Prediction]:
+def judge_points(
+    points: np.ndarray,
+    detectors: list[Detector],
+    registration: RegistrationConfig | None = None,
+    rng: np.random.Generator | None = None,
+) -> dict[str, Prediction]:
     """Each detector's prediction for one scan (UNKNOWN where it cannot judge it). The eigenvalue
     test and DCReg read the Hessian of the scan registered onto itself, as `l3e evaluate` scores it; scanmc
     draws its children from `rng` where given."""
@@ -65,8 +72,12 @@ def judge_points(points: np.ndarray, detectors: list[Detector], registration: Re
             onto_itself = RegistrationResult(np.eye(4), H, True, 0, len(points), len(points), 0.0)
         except RegistrationError:
             pass
-    return {d.name: d.judge(points, rng) if rng is not None and isinstance(d, (ScanMCDetector, CascadeDetector))
-            else d.predict(points, onto_itself, None) for d in detectors}
+    return {
+        d.name: d.judge(points, rng)
+        if rng is not None and isinstance(d, (ScanMCDetector, CascadeDetector))
+        else d.predict(points, onto_itself, None)
+        for d in detectors
+    }
 
 
 class _Panel:
@@ -75,8 +86,9 @@ class _Panel:
     made when its first scan comes; a pattern is registered first, as a spawned worker does not
     inherit it."""
 
-    def __init__(self, specs: list[str], sensor: LidarConfig, seed: int, pattern: BeamPattern | None,
-                 given: bool) -> None:
+    def __init__(
+        self, specs: list[str], sensor: LidarConfig, seed: int, pattern: BeamPattern | None, given: bool
+    ) -> None:
         self.specs, self.seed, self.pattern, self.given = specs, seed, pattern, given
         self._detectors: dict[str, list[Detector]] = {}
         self.detectors(pattern, sensor)  # a bad spec fails here, before any scan is read
@@ -122,8 +134,15 @@ class _Panel:
                 return Judgement(name, len(returns), dropped, {}, error=f"{name}: {exc}", stamp=stamp)
             frame = note or frame
         predictions = judge_points(returns, self.detectors(pattern), rng=np.random.default_rng([self.seed, index]))
-        return Judgement(name, len(returns), dropped, predictions, stamp=stamp, frame=frame,
-                         sensor=pattern.name if pattern is not None else None)
+        return Judgement(
+            name,
+            len(returns),
+            dropped,
+            predictions,
+            stamp=stamp,
+            frame=frame,
+            sensor=pattern.name if pattern is not None else None,
+        )
 
 
 def _judge_job(panel: _Panel, job: tuple[int, str | RecordedScan]) -> Judgement:
@@ -133,8 +152,9 @@ def _judge_job(panel: _Panel, job: tuple[int, str | RecordedScan]) -> Judgement:
 RECOGNITION_TRIES = 5  # readable scans tried: a bag's first revolution may be cut short
 
 
-def recognise_sensor(scans: Iterator[str | Path | RecordedScan]) -> tuple[Iterator[str | Path | RecordedScan],
-                                                                     BeamPattern | None, str]:
+def recognise_sensor(
+    scans: Iterator[str | Path | RecordedScan],
+) -> tuple[Iterator[str | Path | RecordedScan], BeamPattern | None, str]:
     """The sensor's beam pattern from the metadata a recording carries (an Ouster capture's), else
     from the first of the first few readable scans that gives one (`fit_pattern`, with the bag's ring
     field where it has one), or None where none does; what was found, or why not; and the scans
@@ -169,8 +189,11 @@ def recognise_sensor(scans: Iterator[str | Path | RecordedScan]) -> tuple[Iterat
             how += f" (from {name}; not from {before} before it: {refused[0]})"
         return chain(seen, scans), pattern, how
     if len(refused) > 1:
-        return chain(seen, scans), None, (f"not recognised from any of the first {len(refused)} readable scans; "
-                                          f"the first, {refused[0]}")
+        return (
+            chain(seen, scans),
+            None,
+            (f"not recognised from any of the first {len(refused)} readable scans; the first, {refused[0]}"),
+        )
     if refused:
         return chain(seen, scans), None, f"not recognised from {refused[0]}"
     return iter(seen), None, "no scan could be read to recognise it from"
@@ -182,9 +205,14 @@ def needs_sensor(specs: list[str]) -> bool:
     return any(spec.partition(":")[0] in ("scanmc", "learned+scanmc") for spec in specs)
 
 
-def judge_scans(scans: Iterable[str | Path | RecordedScan], specs: list[str], sensor: LidarConfig | None = None,
-                seed: int = 0, workers: int = 1,
-                on_sensor: Callable[[BeamPattern, str], None] | None = None) -> Iterator[Judgement]:
+def judge_scans(
+    scans: Iterable[str | Path | RecordedScan],
+    specs: list[str],
+    sensor: LidarConfig | None = None,
+    seed: int = 0,
+    workers: int = 1,
+    on_sensor: Callable[[BeamPattern, str], None] | None = None,
+) -> Iterator[Judgement]:
     """Judge each scan, a file to read (an Ouster capture read scan by scan, `read_capture`, with the
     metadata JSON given as `sensor` where there is one) or a recording's scan (`read_bag`), with each detector
     (config.detector_spec.DETECTOR_GRAMMAR; make_detector refuses the oracle,
@@ -218,18 +246,27 @@ def format_judgement(j: Judgement) -> str:
     if j.error:
         return f"{j.error}: not judged"
     names = list(j.predictions)
-    lines = [f"{j.path}: {j.points} points" + (f" ({j.dropped} without a return dropped)" if j.dropped else "")
-             + (f", {j.frame}" if j.frame else ""),
-             f"  {'axis':6s}" + "".join(f"{n:>16s}" for n in names)]
+    lines = [
+        f"{j.path}: {j.points} points"
+        + (f" ({j.dropped} without a return dropped)" if j.dropped else "")
+        + (f", {j.frame}" if j.frame else ""),
+        f"  {'axis':6s}" + "".join(f"{n:>16s}" for n in names),
+    ]
     for a, axis in enumerate(AXES):
-        cells = [f"{p.probabilities[a]:15.2f}{'*' if p.mask[a] else ' '}" if p.known else f"{'unknown':>16s}"
-                 for p in j.predictions.values()]
+        cells = [
+            f"{p.probabilities[a]:15.2f}{'*' if p.mask[a] else ' '}" if p.known else f"{'unknown':>16s}"
+            for p in j.predictions.values()
+        ]
         lines.append(f"  {axis:6s}" + "".join(cells))
     for n in names:
         p = j.predictions[n]
-        said = ("cannot judge this scan (too few points, or not a full revolution of the sensor)" if not p.known else
-                "not localizable along " + ", ".join(a for a, m in zip(AXES, p.mask) if m) if p.mask.any() else
-                "localizable along every axis")
+        said = (
+            "cannot judge this scan (too few points, or not a full revolution of the sensor)"
+            if not p.known
+            else "not localizable along " + ", ".join(a for a, m in zip(AXES, p.mask) if m)
+            if p.mask.any()
+            else "localizable along every axis"
+        )
         lines.append(f"  {n}: {said}")
     return "\n".join(lines)
 
@@ -239,16 +276,25 @@ def judgement_record(j: Judgement, sensor: str | None) -> dict:
     where = {"path": j.path} | ({} if j.stamp is None else {"stamp": j.stamp})
     if j.error:
         return where | {"error": j.error}
-    return where | {"points": j.points, "dropped": j.dropped, "sensor": j.sensor or sensor,
-                    "frame": j.frame or "as given",
-            "detectors": {name: {"known": p.known,
-                                 "scores": [float(v) if np.isfinite(v) else None for v in p.probabilities],
-                                 "not_localizable": [a for a, m in zip(AXES, p.mask) if m]}
-                          for name, p in j.predictions.items()}}
+    return where | {
+        "points": j.points,
+        "dropped": j.dropped,
+        "sensor": j.sensor or sensor,
+        "frame": j.frame or "as given",
+        "detectors": {
+            name: {
+                "known": p.known,
+                "scores": [float(v) if np.isfinite(v) else None for v in p.probabilities],
+                "not_localizable": [a for a, m in zip(AXES, p.mask) if m],
+            }
+            for name, p in j.predictions.items()
+        },
+    }
 
 
-def write_judgements(path: str | Path, judgements: list[Judgement], sensor: str | None,
-                     where: np.ndarray | None = None) -> Path:
+def write_judgements(
+    path: str | Path, judgements: list[Judgement], sensor: str | None, where: np.ndarray | None = None
+) -> Path:
     """The judgements as a JSON list (judgement_record), each with its `where` position on the
     recording's path (null off the path's time) where a path was read."""
     records = [judgement_record(j, sensor) for j in judgements]

@@ -1,6 +1,7 @@
 """The judgements of a sequence of scans (a bag, or files in order) as pictures: per detector,
 which axes are flagged scan by scan, over time, or on a map of the bag's path, so that the
 stretch of a run where an axis goes blind stands out."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -64,8 +65,9 @@ def plot_timeline(judgements: list[Judgement], path: str | Path) -> None:
     _save(fig, path, 120)
 
 
-def plot_path(judgements: list[Judgement], where: np.ndarray, route: np.ndarray, path: str | Path,
-              title: str = "") -> None:
+def plot_path(
+    judgements: list[Judgement], where: np.ndarray, route: np.ndarray, path: str | Path, title: str = ""
+) -> None:
     """A map per detector and axis, seen from above at equal scale: the robot's `route` (K, 3) as a
     line and each judged scan at `where` (N, 3; NaN: off the route's time), red where the axis is
     flagged. A route longer east-west than north-south gets its six axes one under another."""
@@ -100,7 +102,10 @@ def plot_path(judgements: list[Judgement], where: np.ndarray, route: np.ndarray,
             ax.set_aspect("equal", adjustable="datalim")  # metres alike both ways; the limits give way
             ax.set_title(f"{name}: {AXES[k]}  ({int(flagged.sum())} of {int(judged.sum())} flagged)", fontsize=8)
             ax.tick_params(labelsize=7)
-    fig.suptitle((title + ": " if title else "") + "red = not localizable along the axis, dark = localizable, "
-                 "line = the path (m)", fontsize=9)
+    fig.suptitle(
+        (title + ": " if title else "") + "red = not localizable along the axis, dark = localizable, "
+        "line = the path (m)",
+        fontsize=9,
+    )
     fig.tight_layout()
     _save(fig, path, 110)

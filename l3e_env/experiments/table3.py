@@ -1,6 +1,7 @@
 """Table III for this project: per-axis scores of trained classifiers, and of the eigenvalue
 detector they replace, on the train, validation and test splits (and on whole datasets of another
 sensor or of unseen families), with PR curves per axis."""
+
 from __future__ import annotations
 
 import contextlib
@@ -65,23 +66,27 @@ def region_rows(data: LabelDataset | DatasetUnion, rows: np.ndarray) -> dict[str
         built = make_scene(names[si])
         at = np.flatnonzero(scene == si)
         place = np.array([built.region_of(p) or "" for p in xy[at]])
-        out.update({f"{region} of {names[si]}": at[place == region] for region in built.regions
-                    if (place == region).any()})
+        out.update(
+            {f"{region} of {names[si]}": at[place == region] for region in built.regions if (place == region).any()}
+        )
     return out
 
 
 def split_rows(data: LabelDataset | DatasetUnion, training: dict[str, Any]) -> dict[str, np.ndarray]:
     """A checkpoint's train and validation rows (its own scenes) and the test rows (the test
     families that the dataset holds)."""
-    return {"train": split_indices(data, training["train_scenes"]),
-            "valid": split_indices(data, training["validation_scenes"]),
-            "test": split_indices(data, test_scenes_in(data))}
+    return {
+        "train": split_indices(data, training["train_scenes"]),
+        "valid": split_indices(data, training["validation_scenes"]),
+        "test": split_indices(data, test_scenes_in(data)),
+    }
 
 
 @dataclass
 class Table3Result:
     """Table III: `results` as results.json holds them (per model and detector, per split), the table's
     text, and the files written."""
+
     results: dict[str, Any]
     table: str
     written: list[Path]
@@ -130,21 +135,29 @@ class Table3Options:
     def check(self, checkpoints: list[str | Path], dataset: Any) -> None:
         """ValueError for a combination no run can score, before anything is read or written."""
         if not dataset and not self.others:
-            raise ValueError("nothing to score: give the training dataset(s) (--dataset, scored by split), other "
-                             "datasets (--other, scored whole), or both")
+            raise ValueError(
+                "nothing to score: give the training dataset(s) (--dataset, scored by split), other "
+                "datasets (--other, scored whole), or both"
+            )
         if dataset and not checkpoints:
-            raise ValueError("a dataset is split by a checkpoint's training and validation scenes: give a "
-                             "checkpoint, or score the dataset whole as an other")
+            raise ValueError(
+                "a dataset is split by a checkpoint's training and validation scenes: give a "
+                "checkpoint, or score the dataset whole as an other"
+            )
         if self.draws < 1:
             raise ValueError(f"draws must be at least 1 (the table's own draw), got {self.draws}")
         if self.cascade and not (self.scan_mc and checkpoints):
-            raise ValueError("the cascade checks a checkpoint's unsure scans with the scan estimate: give a "
-                             "checkpoint and --scan-mc M")
+            raise ValueError(
+                "the cascade checks a checkpoint's unsure scans with the scan estimate: give a "
+                "checkpoint and --scan-mc M"
+            )
         if any(not m >= 0 for m in self.cascade):
             raise ValueError(f"a cascade's margin is a log-odds distance >= 0, got {self.cascade}")
         if self.scan_mc < 0 or self.workers < 1:
-            raise ValueError(f"the scan estimate needs 0 (none) or more children and at least one worker, got "
-                             f"{self.scan_mc} and {self.workers}")
+            raise ValueError(
+                f"the scan estimate needs 0 (none) or more children and at least one worker, got "
+                f"{self.scan_mc} and {self.workers}"
+            )
 
 
 Split = tuple[LabelDataset | DatasetUnion, np.ndarray]  # a dataset and the rows of it scored
@@ -178,8 +191,15 @@ class Scoreboard:
             self._columns[split] = {**columns, **(region_rows(ds, rows) if self.options.by_region else {})}
         return self._columns[split]
 
-    def score(self, name: str, split: str, ds: LabelDataset | DatasetUnion, rows: np.ndarray, predicted: np.ndarray,
-              **fields: Any) -> None:
+    def score(
+        self,
+        name: str,
+        split: str,
+        ds: LabelDataset | DatasetUnion,
+        rows: np.ndarray,
+        predicted: np.ndarray,
+        **fields: Any,
+    ) -> None:
         """The split's scores, and those of each of its families and regions where asked."""
         parts = {split: np.arange(len(rows)), **self.columns(split, ds, rows)}
         for column, subset in parts.items():
@@ -187,22 +207,32 @@ class Scoreboard:
             self.table[name][column] = scores = axis_scores(y, predicted[subset])
             self.intervals[name, column] = mean_interval(y, predicted[subset])
             self.results["models"][name]["splits"][column] = {
-                "count": len(subset), "dataset": ds.name, "sensor": ds.manifest["sensor"],
-                **(fields if column == split else {}), "mean": mean_scores(scores),
+                "count": len(subset),
+                "dataset": ds.name,
+                "sensor": ds.manifest["sensor"],
+                **(fields if column == split else {}),
+                "mean": mean_scores(scores),
                 "mean_95_interval": self.intervals[name, column],
-                **{k: np.asarray(v).tolist() for k, v in scores.items()}}
+                **{k: np.asarray(v).tolist() for k, v in scores.items()},
+            }
 
 
 @dataclass
 class ScanEstimates:
     """The scan estimate's errors, children drawn and decisions per split it judged."""
+
     errors: dict[str, np.ndarray] = field(default_factory=dict)
     drawn: dict[str, np.ndarray] = field(default_factory=dict)
     judged: dict[str, np.ndarray] = field(default_factory=dict)
 
 
-def run_table3(checkpoints: list[str | Path], dataset: str | Path | list[str | Path] | None, out_dir: str | Path,
-               options: Table3Options | None = None, progress: bool = True) -> Table3Result:
+def run_table3(
+    checkpoints: list[str | Path],
+    dataset: str | Path | list[str | Path] | None,
+    out_dir: str | Path,
+    options: Table3Options | None = None,
+    progress: bool = True,
+) -> Table3Result:
     """Score each checkpoint on its own train/validation split and on the test families of the
     dataset, and on every scan of each of `options.others` (see Table3Options for the detectors
     beside them); writes table.txt, results.json and pr_curves.png (and cascade.png with a cascade)
@@ -214,10 +244,17 @@ def run_table3(checkpoints: list[str | Path], dataset: str | Path | list[str | P
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     data = open_datasets(dataset) if dataset else None
-    board = Scoreboard({"dataset": data.name if data is not None else None,
-                        "test_scenes": test_scenes_in(data) if data is not None else [],
-                        "symmetric": options.symmetric, "int8": options.int8, "models": {}},
-                       other_columns(options.others), options)
+    board = Scoreboard(
+        {
+            "dataset": data.name if data is not None else None,
+            "test_scenes": test_scenes_in(data) if data is not None else [],
+            "symmetric": options.symmetric,
+            "int8": options.int8,
+            "models": {},
+        },
+        other_columns(options.others),
+        options,
+    )
     first_splits = score_checkpoints(board, checkpoints, data, progress)
     score_hessian_detectors(board, first_splits, progress)
     estimates = score_scan_estimate(board, first_splits, out, progress)
@@ -235,18 +272,23 @@ def other_columns(others: list[str | Path]) -> dict[str, LabelDataset]:
     return extra
 
 
-def score_checkpoints(board: Scoreboard, checkpoints: list[str | Path], data: LabelDataset | DatasetUnion | None,
-                      progress: bool) -> dict[str, Split]:
+def score_checkpoints(
+    board: Scoreboard, checkpoints: list[str | Path], data: LabelDataset | DatasetUnion | None, progress: bool
+) -> dict[str, Split]:
     """Every checkpoint scored on its own splits and the others; returns the first one's splits, on
     which the detectors without a checkpoint are scored (the others' alone without a checkpoint)."""
     options = board.options
-    first_splits: dict[str, Split] = {} if checkpoints else {
-        column: (d, np.arange(len(d))) for column, d in board.others.items()}
+    first_splits: dict[str, Split] = (
+        {} if checkpoints else {column: (d, np.arange(len(d))) for column, d in board.others.items()}
+    )
     for path in map(Path, checkpoints):
         clf = Classifier.load(path, symmetric=options.symmetric, int8=options.int8)
         name = model_name(clf, path, set(board.table))
-        splits = {} if data is None else {
-            split: (data, rows) for split, rows in split_rows(data, clf.meta["training"]).items()}
+        splits = (
+            {}
+            if data is None
+            else {split: (data, rows) for split, rows in split_rows(data, clf.meta["training"]).items()}
+        )
         splits.update({column: (d, np.arange(len(d))) for column, d in board.others.items()})
         splits = {split: (ds, rows) for split, (ds, rows) in splits.items() if len(rows)}
         first_splits = first_splits or splits
@@ -260,7 +302,8 @@ def score_checkpoints(board: Scoreboard, checkpoints: list[str | Path], data: La
             board.score(name, split, ds, rows, probs > clf.thresholds)
             if options.draws > 1:
                 board.results["models"][name]["splits"][split]["draws"] = draw_scores(
-                    clf, ds, rows, probs, options.draws, progress, options.symmetric)
+                    clf, ds, rows, probs, options.draws, progress, options.symmetric
+                )
         if "valid" in board.curves[name]:
             parts = {split: board.columns(split, *splits[split]) for split in board.curves[name]}
             board.results["models"][name]["f1_operating_point"] = f1_operating_point(board.curves[name], parts)
@@ -284,8 +327,7 @@ def score_hessian_detectors(board: Scoreboard, first_splits: dict[str, Split], p
                 board.score(name, split, ds, rows, predicted, unregistrable=int((~known).sum()))
 
 
-def score_scan_estimate(board: Scoreboard, first_splits: dict[str, Split], out: Path,
-                        progress: bool) -> ScanEstimates:
+def score_scan_estimate(board: Scoreboard, first_splits: dict[str, Split], out: Path, progress: bool) -> ScanEstimates:
     """`scanmc:M` on every split but the training one; its estimates saved in scan_mc.npz."""
     children, found = board.options.scan_mc, ScanEstimates()
     if not children:
@@ -298,14 +340,28 @@ def score_scan_estimate(board: Scoreboard, first_splits: dict[str, Split], out: 
         if progress:
             print(f"{name}: {split} ({len(rows)} scans)")
         found.errors[split], found.drawn[split] = dataset_scan_errors(
-            [str(p.folder) for p in ds.parts], rows, ScanMCConfig(children=children), workers=board.options.workers,
-            progress=progress)
+            [str(p.folder) for p in ds.parts],
+            rows,
+            ScanMCConfig(children=children),
+            workers=board.options.workers,
+            progress=progress,
+        )
         known = np.isfinite(found.errors[split]).all(axis=1)
         found.judged[split] = np.where(known[:, None], found.errors[split] > row_thresholds(ds)[rows], False)
-        board.score(name, split, ds, rows, found.judged[split], unjudged=int((~known).sum()),
-                    mean_children=float(found.drawn[split][known].mean()) if known.any() else 0.0)
-    np.savez(out / "scan_mc.npz", **{split.replace(" ", "_"): e for split, e in found.errors.items()},
-             **{f"children_{split.replace(' ', '_')}": n for split, n in found.drawn.items()})
+        board.score(
+            name,
+            split,
+            ds,
+            rows,
+            found.judged[split],
+            unjudged=int((~known).sum()),
+            mean_children=float(found.drawn[split][known].mean()) if known.any() else 0.0,
+        )
+    np.savez(
+        out / "scan_mc.npz",
+        **{split.replace(" ", "_"): e for split, e in found.errors.items()},
+        **{f"children_{split.replace(' ', '_')}": n for split, n in found.drawn.items()},
+    )
     return found
 
 
@@ -327,9 +383,13 @@ def score_cascades(board: Scoreboard, first_splits: dict[str, Split], estimates:
             predicted = np.where(checked[:, None], estimates.judged[split], probs > thresholds)
             board.score(name, split, ds, rows, predicted, checked=float(checked.mean()))
     board.results["cascade_random_checks"] = {
-        split: random_checks(first_splits[split][0].labels[first_splits[split][1]],
-                             board.curves[first][split][1] > thresholds, estimates.judged[split])
-        for split in estimates.errors}
+        split: random_checks(
+            first_splits[split][0].labels[first_splits[split][1]],
+            board.curves[first][split][1] > thresholds,
+            estimates.judged[split],
+        )
+        for split in estimates.errors
+    }
     plot_cascade(board.results, first, board.options.scan_mc, out / "cascade.png")
 
 
@@ -337,20 +397,35 @@ def table_text(board: Scoreboard, estimates: ScanEstimates) -> str:
     """The table with its intervals, the F1-operating points, the draws, the scan estimate's children
     and the cascades' shares of scans checked."""
     options, models = board.options, board.results["models"]
-    text = (format_table(board.table, intervals=board.intervals) + format_f1_operating_points(models)
-            + format_draws(models, options.draws))
+    text = (
+        format_table(board.table, intervals=board.intervals)
+        + format_f1_operating_points(models)
+        + format_draws(models, options.draws)
+    )
     if options.scan_mc:
         scored = models[f"scanmc:{options.scan_mc}"]["splits"]
-        text += f"\nscanmc:{options.scan_mc} children drawn a scan (mean): " + ", ".join(
-            f"{split} {scored[split]['mean_children']:.1f}" for split in estimates.drawn
-            if scored[split]["mean_children"]) + "\n"
+        text += (
+            f"\nscanmc:{options.scan_mc} children drawn a scan (mean): "
+            + ", ".join(
+                f"{split} {scored[split]['mean_children']:.1f}"
+                for split in estimates.drawn
+                if scored[split]["mean_children"]
+            )
+            + "\n"
+        )
     for name, model in models.items():
         if "margin" in model:  # a cascade, and random checks of as many scans as it checked
             random = board.results["cascade_random_checks"]
-            text += f"{name}: share of scans checked by scanmc:{options.scan_mc}: " + ", ".join(
-                f"{split} {r['checked']:.2f} (F1 of random checks that many: "
-                f"{np.interp(r['checked'], random[split]['share'], random[split]['mean_f1']):.3f})"
-                for split, r in model["splits"].items() if "checked" in r) + "\n"
+            text += (
+                f"{name}: share of scans checked by scanmc:{options.scan_mc}: "
+                + ", ".join(
+                    f"{split} {r['checked']:.2f} (F1 of random checks that many: "
+                    f"{np.interp(r['checked'], random[split]['share'], random[split]['mean_f1']):.3f})"
+                    for split, r in model["splits"].items()
+                    if "checked" in r
+                )
+                + "\n"
+            )
     if options.symmetric:
         text = "probabilities averaged over the eight mirror/swap views of each scan\n" + text
     return text
@@ -361,10 +436,15 @@ def write_table3(board: Scoreboard, text: str, out: Path) -> list[Path]:
     (out / "table.txt").write_text(text + "\n")
     (out / "results.json").write_text(json.dumps(board.results, indent=1, default=_nan_safe))
     models = board.results["models"]
-    plot_pr_curves(board.curves, {n: np.asarray(r["thresholds"]) for n, r in models.items() if n in board.curves},
-                   out / "pr_curves.png")
-    return [out / name for name in ("table.txt", "results.json", "pr_curves.png",
-                                    *(["cascade.png"] if board.options.cascade else []))]
+    plot_pr_curves(
+        board.curves,
+        {n: np.asarray(r["thresholds"]) for n, r in models.items() if n in board.curves},
+        out / "pr_curves.png",
+    )
+    return [
+        out / name
+        for name in ("table.txt", "results.json", "pr_curves.png", *(["cascade.png"] if board.options.cascade else []))
+    ]
 
 
 def dataset_hessians(data: LabelDataset | DatasetUnion, rows: np.ndarray, progress: bool = False) -> np.ndarray:
@@ -378,14 +458,24 @@ def dataset_hessians(data: LabelDataset | DatasetUnion, rows: np.ndarray, progre
     return out
 
 
-def draw_scores(clf: Classifier, data: LabelDataset | DatasetUnion, rows: np.ndarray, first: np.ndarray,
-                draws: int, progress: bool, symmetric: bool) -> dict[str, list[float]]:
+def draw_scores(
+    clf: Classifier,
+    data: LabelDataset | DatasetUnion,
+    rows: np.ndarray,
+    first: np.ndarray,
+    draws: int,
+    progress: bool,
+    symmetric: bool,
+) -> dict[str, list[float]]:
     """Mean accuracy and F1 over axes at the stored thresholds, one per draw of the scans' points
     (`first`: draw 0's probabilities, already computed)."""
     y, out = data.labels[rows], {"mean_accuracy": [], "mean_f1": []}
     for seed in range(draws):
-        probs = first if seed == 0 else predict_dataset(clf.model, data, rows, seed=seed, progress=progress,
-                                                        symmetric=symmetric)
+        probs = (
+            first
+            if seed == 0
+            else predict_dataset(clf.model, data, rows, seed=seed, progress=progress, symmetric=symmetric)
+        )
         means = mean_scores(axis_scores(y, probs > clf.thresholds))
         out["mean_accuracy"].append(means["accuracy"])
         out["mean_f1"].append(means["f1"])
@@ -399,17 +489,22 @@ def format_draws(models: dict[str, Any], draws: int) -> str:
             if "draws" not in scored:
                 continue
             f1, acc = (np.array(scored["draws"][k], dtype=float) for k in ("mean_f1", "mean_accuracy"))
-            lines.append(f"  {name:10s} {split:16s} f1 {np.nanmean(f1):.3f} +- {np.nanstd(f1):.3f} "
-                         f"({np.nanmin(f1):.3f}-{np.nanmax(f1):.3f})  accuracy {np.nanmean(acc):.3f} +- "
-                         f"{np.nanstd(acc):.3f}")
+            lines.append(
+                f"  {name:10s} {split:16s} f1 {np.nanmean(f1):.3f} +- {np.nanstd(f1):.3f} "
+                f"({np.nanmin(f1):.3f}-{np.nanmax(f1):.3f})  accuracy {np.nanmean(acc):.3f} +- "
+                f"{np.nanstd(acc):.3f}"
+            )
     if not lines:
         return ""
-    return (f"\n\nover {draws} draws of the points read from each scan (seeds 0-{draws - 1}; the table is draw 0), "
-            "means over axes at the stored thresholds, mean +- std (range):\n" + "\n".join(lines))
+    return (
+        f"\n\nover {draws} draws of the points read from each scan (seeds 0-{draws - 1}; the table is draw 0), "
+        "means over axes at the stored thresholds, mean +- std (range):\n" + "\n".join(lines)
+    )
 
 
-def f1_operating_point(curves: dict[str, tuple[np.ndarray, np.ndarray]],
-                       parts: dict[str, dict[str, np.ndarray]] | None = None) -> dict[str, Any]:
+def f1_operating_point(
+    curves: dict[str, tuple[np.ndarray, np.ndarray]], parts: dict[str, dict[str, np.ndarray]] | None = None
+) -> dict[str, Any]:
     """Mean scores of every split (and of the `parts` columns of a split: column -> its rows) at
     the F1-best validation thresholds. The stored thresholds weigh recall (a missed degenerate axis
     corrupts the fused estimate); this shows what a pure classification operating point would score."""
@@ -427,15 +522,21 @@ def format_f1_operating_points(models: dict[str, Any]) -> str:
         point = model.get("f1_operating_point")
         if point is None:
             continue
-        lines.append(f"{name} at the F1-best validation thresholds "
-                     f"({' '.join(f'{t:.2f}' for t in point['thresholds'])}), means over axes:")
-        lines += [f"  {split:16s} accuracy {m['accuracy']:.3f}  f1 {m['f1']:.3f}  precision {m['precision']:.3f}  "
-                  f"recall {m['recall']:.3f}" for split, m in point["splits"].items()]
+        lines.append(
+            f"{name} at the F1-best validation thresholds "
+            f"({' '.join(f'{t:.2f}' for t in point['thresholds'])}), means over axes:"
+        )
+        lines += [
+            f"  {split:16s} accuracy {m['accuracy']:.3f}  f1 {m['f1']:.3f}  precision {m['precision']:.3f}  "
+            f"recall {m['recall']:.3f}"
+            for split, m in point["splits"].items()
+        ]
     return "\n\n" + "\n".join(lines) if lines else ""
 
 
-def random_checks(labels: np.ndarray, first: np.ndarray, second: np.ndarray, shares: int = 11,
-                  repeats: int = 20, seed: int = 0) -> dict[str, list[float]]:
+def random_checks(
+    labels: np.ndarray, first: np.ndarray, second: np.ndarray, shares: int = 11, repeats: int = 20, seed: int = 0
+) -> dict[str, list[float]]:
     """Mean F1 over axes when a random share of the scans (0, 0.1, ... 1) takes `second`'s
     prediction instead of `first`'s, averaged over `repeats` draws of that share: what checking
     that many scans would give if the cascade chose them blindly, the reference its margins beat."""
@@ -465,8 +566,11 @@ def plot_cascade(results: dict[str, Any], first: str, children: int, path: Path)
     for ax, (split, random) in zip(axes[0], reference.items()):
         cascades = sorted((m["margin"], m["splits"][split]) for m in models.values() if "margin" in m)
         share = [0.0] + [r["checked"] for _, r in cascades] + [1.0]
-        f1 = ([models[first]["splits"][split]["mean"]["f1"]] + [r["mean"]["f1"] for _, r in cascades]
-              + [models[f"scanmc:{children}"]["splits"][split]["mean"]["f1"]])
+        f1 = (
+            [models[first]["splits"][split]["mean"]["f1"]]
+            + [r["mean"]["f1"] for _, r in cascades]
+            + [models[f"scanmc:{children}"]["splits"][split]["mean"]["f1"]]
+        )
         ax.plot(random["share"], random["mean_f1"], "--", color="0.5", label="random checks of that share")
         ax.plot(share, f1, "o-", color="C0", label="cascade by margin (log-odds)")
         for (margin, _), x, y in zip(cascades, share[1:-1], f1[1:-1]):
@@ -488,8 +592,9 @@ def _nan_safe(value: Any) -> Any:
     return None if isinstance(value, float) and not np.isfinite(value) else value
 
 
-def plot_pr_curves(curves: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]], thresholds: dict[str, np.ndarray],
-                   path: Path) -> None:
+def plot_pr_curves(
+    curves: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]], thresholds: dict[str, np.ndarray], path: Path
+) -> None:
     """One panel per axis: the PR curve of each model on each non-training split, with the
     operating point of its stored threshold."""
     import matplotlib
@@ -505,7 +610,7 @@ def plot_pr_curves(curves: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]], 
                 if not y[:, a].any():
                     continue
                 precision, recall, _ = pr_curve(y[:, a], p[:, a])
-                line, = ax.plot(recall, precision, styles[s % 4], color=f"C{m}", label=f"{name} {split}")
+                (line,) = ax.plot(recall, precision, styles[s % 4], color=f"C{m}", label=f"{name} {split}")
                 op = axis_scores(y, p > thresholds[name])
                 ax.plot(op["recall"][a], op["precision"][a], "o", color=line.get_color())
         ax.set_title(f"{AXES[a]} (dot: stored threshold)")

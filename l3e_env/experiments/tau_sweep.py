@@ -4,6 +4,7 @@ every scene.
 
 Each scene is driven and registered once; every tau and kappa only re-runs the fusion.
 """
+
 from __future__ import annotations
 
 import json
@@ -19,10 +20,17 @@ DEFAULT_TAUS = (10, 20, 30, 50, 70, 90, 110, 150, 200, 300)
 DEFAULT_KAPPAS = (3, 5, 10, 20, 50, 100, 300, 1000)
 
 
-def run_sweep(out_dir: str | Path, scenes: list[str], taus: tuple[float, ...] = DEFAULT_TAUS,
-              references: tuple[str, ...] = ("learned", "none"), recordings: dict[str, str] | None = None,
-              seed: int = 0, progress: bool = True, fusion_settings: FusionSettings = FusionSettings(),
-              kappas: tuple[float, ...] = DEFAULT_KAPPAS) -> dict:
+def run_sweep(
+    out_dir: str | Path,
+    scenes: list[str],
+    taus: tuple[float, ...] = DEFAULT_TAUS,
+    references: tuple[str, ...] = ("learned", "none"),
+    recordings: dict[str, str] | None = None,
+    seed: int = 0,
+    progress: bool = True,
+    fusion_settings: FusionSettings = FusionSettings(),
+    kappas: tuple[float, ...] = DEFAULT_KAPPAS,
+) -> dict:
     """Returns {scene: {"taus": [...], "eigen_ate": [...], "kappas": [...], "dcreg_ate": [...],
     "<reference>": ate, ...}} and writes sweep.json and tau_sweep.png into out_dir (recordings are saved
     there for re-use). `kappas`: DCReg's condition ratio thresholds (none: DCReg left out).
@@ -41,19 +49,29 @@ def run_sweep(out_dir: str | Path, scenes: list[str], taus: tuple[float, ...] = 
         eigen = fuse_recording(rec, [EigenvalueDetector(t) for t in taus], regs, fusion=fusion, progress=False)
         dcreg = fuse_recording(rec, [DCRegDetector(k) for k in kappas], regs, fusion=fusion, progress=False)
         refs = fuse_recording(rec, refs, regs, fusion=fusion, progress=False)
-        row = {**fusion_settings.record(), "taus": list(map(float, taus)), "eigen_ate": [r.ate for r in eigen],
-               "eigen_flagged": [r.masks.mean(axis=0).tolist() for r in eigen],
-               "kappas": list(map(float, kappas)), "dcreg_ate": [r.ate for r in dcreg],
-               "dcreg_flagged": [r.masks.mean(axis=0).tolist() for r in dcreg],
-               "odometry only": odometry_only(rec).ate}
+        row = {
+            **fusion_settings.record(),
+            "taus": list(map(float, taus)),
+            "eigen_ate": [r.ate for r in eigen],
+            "eigen_flagged": [r.masks.mean(axis=0).tolist() for r in eigen],
+            "kappas": list(map(float, kappas)),
+            "dcreg_ate": [r.ate for r in dcreg],
+            "dcreg_flagged": [r.masks.mean(axis=0).tolist() for r in dcreg],
+            "odometry only": odometry_only(rec).ate,
+        }
         for name, r in zip(references, refs):
             row[name] = r.ate
             row[f"{name}_flagged"] = r.masks.mean(axis=0).tolist()
         results[rec.scene] = row
         if progress:
-            print(f"{rec.scene}: " + ", ".join(f"tau {t:g}: {a:.2f} m" for t, a in zip(taus, row["eigen_ate"]))
-                  + "; " + ", ".join(f"kappa {k:g}: {a:.2f} m" for k, a in zip(kappas, row["dcreg_ate"]))
-                  + "; " + ", ".join(f"{n}: {row[n]:.2f} m" for n in [*references, "odometry only"]))
+            print(
+                f"{rec.scene}: "
+                + ", ".join(f"tau {t:g}: {a:.2f} m" for t, a in zip(taus, row["eigen_ate"]))
+                + "; "
+                + ", ".join(f"kappa {k:g}: {a:.2f} m" for k, a in zip(kappas, row["dcreg_ate"]))
+                + "; "
+                + ", ".join(f"{n}: {row[n]:.2f} m" for n in [*references, "odometry only"])
+            )
     (out / "sweep.json").write_text(json.dumps(results, indent=1))
     plot_sweep(out / "tau_sweep.png", results, references)
     return results

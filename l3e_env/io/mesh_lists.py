@@ -1,4 +1,5 @@
 """A YAML list of mesh scenes, each with its routes, up axis and scale."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -16,16 +17,19 @@ def meshes_file(path: str | Path, scenes: list[str], options: list[str]) -> dict
     from scenes import canonical_scene_name, is_mesh_path, load_route
 
     if any(is_mesh_path(s) for s in scenes) or options:
-        raise ValueError("--meshes lists the meshes with their routes, axes and scales: give no other mesh scene and "
-                         "no --route, --up-axis, --scale or --snap-route beside it")
+        raise ValueError(
+            "--meshes lists the meshes with their routes, axes and scales: give no other mesh scene and "
+            "no --route, --up-axis, --scale or --snap-route beside it"
+        )
     path = Path(path)
     try:
         entries = yaml.safe_load(path.read_text())
     except (OSError, yaml.YAMLError) as exc:
         raise ValueError(f"{path}: cannot read the list of meshes ({exc})") from exc
     if not isinstance(entries, list) or not entries or not all(isinstance(e, dict) for e in entries):
-        raise ValueError(f"{path}: give a list of meshes, each as 'mesh: FILE' and 'route: FILE' (up_axis, scale "
-                         "optional)")
+        raise ValueError(
+            f"{path}: give a list of meshes, each as 'mesh: FILE' and 'route: FILE' (up_axis, scale optional)"
+        )
     meshes: dict[str, dict] = {}
     for i, entry in enumerate(entries, 1):
         where = f"{path}, mesh {i}"
@@ -43,8 +47,10 @@ def meshes_file(path: str | Path, scenes: list[str], options: list[str]) -> dict
         name = canonical_scene_name(str(path.parent / str(entry["mesh"])))
         if name in meshes:
             raise ValueError(f"{where}: {name} is listed twice (give one mesh its routes as a list)")
-        meshes[name] = {"up_axis": up_axis, "scale": float(scale), "sampling_paths": [
-            load_route(path.parent / str(r), up_axis, scale).tolist() for r in routes],
-            **({"snap_to_floor": True} if snap else {})}
+        meshes[name] = {
+            "up_axis": up_axis,
+            "scale": float(scale),
+            "sampling_paths": [load_route(path.parent / str(r), up_axis, scale).tolist() for r in routes],
+            **({"snap_to_floor": True} if snap else {}),
+        }
     return meshes
-

@@ -4,6 +4,7 @@ dependency installed on its own, without its pins: `pip install --no-deps ouster
 needs only numpy and rosbags, in l3e[bag]; every release pins rosbags and click to versions older
 than this project's). The SDK's clouds (XYZLut) are in its sensor frame; the scans come out in the
 lidar frame, the frame the beams are in, turned by the metadata's lidar_to_sensor_transform."""
+
 from __future__ import annotations
 
 import atexit
@@ -70,8 +71,13 @@ def _sdk():
     return sdk, core, _LOG
 
 
-def read_capture(path: str | Path, metadata: str | Path | None = None, every: int = 1, start: float | None = None,
-                 end: float | None = None) -> Iterator[RecordedScan]:
+def read_capture(
+    path: str | Path,
+    metadata: str | Path | None = None,
+    every: int = 1,
+    start: float | None = None,
+    end: float | None = None,
+) -> Iterator[RecordedScan]:
     """The scans of an Ouster capture, every `every`-th, between `start` and `end` seconds after its
     first scan, as (N, 3) points in the lidar frame with their beams (`rings`) and the sensor's
     pattern from the metadata (an .osf's own; a .pcap's `metadata` JSON, else the one beside it). A
@@ -90,8 +96,11 @@ def read_capture(path: str | Path, metadata: str | Path | None = None, every: in
         source = sdk.open_source(str(path), **given)
     except Exception as exc:  # noqa: BLE001 - the SDK raises several kinds; name the file and the problem
         detail = str(exc).rpartition("more details:")[2].strip() or str(exc)
-        hint = (f"; give its metadata JSON with --sensor (the SDK looks for {path.stem}*.json beside it)"
-                if "metadata" in detail.lower() else "")
+        hint = (
+            f"; give its metadata JSON with --sensor (the SDK looks for {path.stem}*.json beside it)"
+            if "metadata" in detail.lower()
+            else ""
+        )
         raise CaptureError(f"{path}: cannot be read as an Ouster capture: {detail}{hint}") from exc
     infos = source.sensor_info
     if len(infos) != 1:
@@ -105,14 +114,28 @@ def read_capture(path: str | Path, metadata: str | Path | None = None, every: in
     first = next(scans, None)
     if first is None:
         said = log.news()
-        why = (f"the SDK: {'; '.join(said)}; the file is damaged" if said else
-               "the metadata does not match its packets" if path.suffix.lower() == ".pcap" else "the capture is empty")
+        why = (
+            f"the SDK: {'; '.join(said)}; the file is damaged"
+            if said
+            else "the metadata does not match its packets"
+            if path.suffix.lower() == ".pcap"
+            else "the capture is empty"
+        )
         raise CaptureError(f"{path}: holds no scan ({why})")
     return _scans(chain([first], scans), path, pattern, core.XYZLut(info), core, log, every, start, end)
 
 
-def _scans(scans: Iterator, path: Path, pattern: BeamPattern, lut, core, log: _SdkLog, every: int, start: float | None,
-           end: float | None) -> Iterator[RecordedScan]:
+def _scans(
+    scans: Iterator,
+    path: Path,
+    pattern: BeamPattern,
+    lut,
+    core,
+    log: _SdkLog,
+    every: int,
+    start: float | None,
+    end: float | None,
+) -> Iterator[RecordedScan]:
     began = None
     for k, scan in enumerate(scans):
         said = log.news()  # the SDK decodes a scan while it is read: what it logged belongs to this one
@@ -129,15 +152,21 @@ def _scans(scans: Iterator, path: Path, pattern: BeamPattern, lut, core, log: _S
         if valid < scan.w:
             name += f" (a part revolution: {valid} of {scan.w} columns)"
         if said:
-            yield RecordedScan(name, stamp, None, f"{name}: the SDK could not decode it ({'; '.join(said)}); "
-                                                   "the capture is damaged", pattern=pattern)
+            yield RecordedScan(
+                name,
+                stamp,
+                None,
+                f"{name}: the SDK could not decode it ({'; '.join(said)}); the capture is damaged",
+                pattern=pattern,
+            )
             continue
         ranges = scan.field(core.ChanField.RANGE)
         kept = ranges > 0  # no return: the SDK puts it at the beam's origin, not at the lidar's
         points = pattern.from_sensor_frame(lut(ranges)[kept].astype(np.float64))
         rings = np.nonzero(kept)[0].astype(np.int64)
-        yield RecordedScan(name, stamp, points, rings=rings, pattern=pattern,
-                           frame=TURNED if pattern.lidar_to_sensor else None)
+        yield RecordedScan(
+            name, stamp, points, rings=rings, pattern=pattern, frame=TURNED if pattern.lidar_to_sensor else None
+        )
 
 
 def expand_captures(sources: Iterable, metadata: str | Path | None = None) -> Iterator:
@@ -151,4 +180,3 @@ def expand_captures(sources: Iterable, metadata: str | Path | None = None) -> It
                 yield RecordedScan(str(source), None, None, str(exc))
         else:
             yield source
-

@@ -1,5 +1,6 @@
 """A scan read from a recording (a ROS bag or an Ouster capture), and the error of a recording
 that cannot be read at all."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass

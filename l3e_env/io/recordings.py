@@ -1,5 +1,6 @@
 """A recording read scan by scan, whichever kind it is: an Ouster capture (`.osf`, `.pcap`) or a
 ROS bag."""
+
 from __future__ import annotations
 
 from collections.abc import Iterator
@@ -10,8 +11,14 @@ from l3e_env.io.recorded import RecordedScan
 from l3e_env.io.rosbag import read_bag
 
 
-def read_recording(path: str | Path, topic: str | None = None, every: int = 1, start: float | None = None,
-                   end: float | None = None, metadata: str | Path | None = None) -> Iterator[RecordedScan]:
+def read_recording(
+    path: str | Path,
+    topic: str | None = None,
+    every: int = 1,
+    start: float | None = None,
+    end: float | None = None,
+    metadata: str | Path | None = None,
+) -> Iterator[RecordedScan]:
     """`read_capture` for an Ouster capture (with its `metadata` JSON where a .pcap needs one; a
     topic is a bag's, and refused), else `read_bag`. RecordingError where it cannot be read."""
     if is_capture(path):

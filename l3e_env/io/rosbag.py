@@ -4,6 +4,7 @@ recorded bag (ROS 1 `.bag`, or a ROS 2 folder of sqlite3 or mcap storage), as (N
 sensor's frame, to be judged. Out: a simulated drive as a bag (`BagRecorder`), full scans with
 their beam rings, leg odometry, ground truth and the sensor's mounting, for one's own LiDAR
 odometry or SLAM to run on the same scenes."""
+
 from __future__ import annotations
 
 import contextlib
@@ -50,9 +51,10 @@ def _cloud_fields(msg, names: list[str]) -> dict[str, np.ndarray]:
     data = np.asarray(msg.data, dtype=np.uint8)
     if len(data) < height * row_step:
         raise BagError(f"{len(data)} bytes of data for {height} rows of {row_step} bytes")
-    rows = np.ascontiguousarray(data[:height * row_step].reshape(height, row_step)[:, :width * point_step])
-    cloud = rows.view(np.dtype({"names": names, "formats": formats, "offsets": offsets,
-                                "itemsize": point_step})).reshape(-1)
+    rows = np.ascontiguousarray(data[: height * row_step].reshape(height, row_step)[:, : width * point_step])
+    cloud = rows.view(
+        np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": point_step})
+    ).reshape(-1)
     return {a: cloud[a] for a in names}
 
 
@@ -104,8 +106,9 @@ def _stamp(msg, received: int) -> float:
     return header.sec + header.nanosec * 1e-9 if header.sec or header.nanosec else received * 1e-9
 
 
-def read_bag(path: str | Path, topic: str | None = None, every: int = 1, start: float | None = None,
-             end: float | None = None) -> Iterator[RecordedScan]:
+def read_bag(
+    path: str | Path, topic: str | None = None, every: int = 1, start: float | None = None, end: float | None = None
+) -> Iterator[RecordedScan]:
     """The scans of `topic` (the bag's only PointCloud2 topic if None), every `every`-th message,
     between `start` and `end` seconds after the bag's first message. A bag or topic that cannot
     be read raises BagError here, before any scan is read; a message that cannot be decoded gives a
@@ -118,15 +121,19 @@ def read_bag(path: str | Path, topic: str | None = None, every: int = 1, start: 
         clouds = sorted({c.topic for c in reader.connections if c.msgtype == POINTCLOUD2})
         if topic is None:
             if len(clouds) != 1:
-                raise BagError(f"{path}: {'no' if not clouds else len(clouds)} PointCloud2 topics"
-                               + (f" ({', '.join(clouds)}); name one with --topic" if clouds else ""))
+                raise BagError(
+                    f"{path}: {'no' if not clouds else len(clouds)} PointCloud2 topics"
+                    + (f" ({', '.join(clouds)}); name one with --topic" if clouds else "")
+                )
             topic = clouds[0]
         connections = [c for c in reader.connections if c.topic == topic]
         if not connections:
             raise BagError(f"{path}: no topic '{topic}'; its PointCloud2 topics: {', '.join(clouds) or 'none'}")
         if connections[0].msgtype != POINTCLOUD2:
-            raise BagError(f"{path}: '{topic}' carries {connections[0].msgtype}, not {POINTCLOUD2}; "
-                           f"its PointCloud2 topics: {', '.join(clouds) or 'none'}")
+            raise BagError(
+                f"{path}: '{topic}' carries {connections[0].msgtype}, not {POINTCLOUD2}; "
+                f"its PointCloud2 topics: {', '.join(clouds) or 'none'}"
+            )
     except BaseException:
         reader.close()
         raise
@@ -136,8 +143,9 @@ def read_bag(path: str | Path, topic: str | None = None, every: int = 1, start: 
     return _scans(reader, connections, f"{path.name} {topic}", every, lo, hi)
 
 
-def _scans(reader, connections: list, prefix: str, every: int, lo: int | None,
-           hi: int | None) -> Iterator[RecordedScan]:
+def _scans(
+    reader, connections: list, prefix: str, every: int, lo: int | None, hi: int | None
+) -> Iterator[RecordedScan]:
     try:
         for k, (connection, received, raw) in enumerate(reader.messages(connections, start=lo, stop=hi)):
             if k % every:
@@ -188,15 +196,21 @@ def read_path(path: str | Path, topic: str | None = None) -> BagPath:
             odometry = [t for t in poses if kinds[t] == "nav_msgs/msg/Odometry"]
             chosen = odometry if len(odometry) == 1 else poses
             if len(chosen) != 1:
-                raise BagError(f"{path}: {'no' if not poses else len(poses)} pose topics"
-                               + (f" ({', '.join(poses)}); name one with --pose-topic" if poses else
-                                  " (nav_msgs/Odometry, geometry_msgs/PoseStamped or PoseWithCovarianceStamped)"))
+                raise BagError(
+                    f"{path}: {'no' if not poses else len(poses)} pose topics"
+                    + (
+                        f" ({', '.join(poses)}); name one with --pose-topic"
+                        if poses
+                        else " (nav_msgs/Odometry, geometry_msgs/PoseStamped or PoseWithCovarianceStamped)"
+                    )
+                )
             topic = chosen[0]
         if topic not in kinds:
             raise BagError(f"{path}: no topic '{topic}'; its pose topics: {', '.join(poses) or 'none'}")
         if kinds[topic] not in POSE_TYPES:
-            raise BagError(f"{path}: '{topic}' carries {kinds[topic]}, not a pose; its pose topics: "
-                           f"{', '.join(poses) or 'none'}")
+            raise BagError(
+                f"{path}: '{topic}' carries {kinds[topic]}, not a pose; its pose topics: {', '.join(poses) or 'none'}"
+            )
         position = POSE_TYPES[kinds[topic]]
         stamps, positions = [], []
         for connection, received, raw in reader.messages([c for c in reader.connections if c.topic == topic]):
@@ -242,8 +256,16 @@ class BagRecorder:
     killed drive leaves no half bag under that name (the next one removes the folder). ROS 2
     (`ros2=True`) writes a sqlite3 bag folder."""
 
-    def __init__(self, path: str | Path, ros2: bool = False, dt: float = 0.1, start: float = 1.0,
-                 odometry: OdometryConfig | None = None, imu: ImuConfig | None = ImuConfig(), seed: int = 0):
+    def __init__(
+        self,
+        path: str | Path,
+        ros2: bool = False,
+        dt: float = 0.1,
+        start: float = 1.0,
+        odometry: OdometryConfig | None = None,
+        imu: ImuConfig | None = ImuConfig(),
+        seed: int = 0,
+    ):
         try:
             from rosbags.rosbag1 import Writer as Writer1
             from rosbags.rosbag2 import Writer as Writer2
@@ -262,8 +284,9 @@ class BagRecorder:
         self.partial = self.folder / self.path.name
         self.store = get_typestore(Stores.ROS2_HUMBLE if ros2 else Stores.ROS1_NOETIC)
         if "tf2_msgs/msg/TFMessage" not in self.store.types:  # rosbags' Noetic store leaves tf2_msgs out
-            self.store.register(get_types_from_msg("geometry_msgs/TransformStamped[] transforms",
-                                                   "tf2_msgs/msg/TFMessage"))
+            self.store.register(
+                get_types_from_msg("geometry_msgs/TransformStamped[] transforms", "tf2_msgs/msg/TFMessage")
+            )
         self.serialize = self.store.serialize_cdr if ros2 else self.store.serialize_ros1
         self.writer = Writer2(self.partial, version=9) if ros2 else Writer1(self.partial)
         self.writer.open()
@@ -271,10 +294,14 @@ class BagRecorder:
         self.covariance, self.last_odom = DeadReckoningCovariance(odometry), None
         self.imu, self.seed, self.truth, self.swept = imu, seed, [], False
         self.topics = {}
-        for topic, msgtype in (("/points", POINTCLOUD2), ("/odom", "nav_msgs/msg/Odometry"),
-                               ("/ground_truth", "geometry_msgs/msg/PoseStamped"), ("/tf", "tf2_msgs/msg/TFMessage"),
-                               ("/tf_static", "tf2_msgs/msg/TFMessage"),
-                               *((("/imu", "sensor_msgs/msg/Imu"),) if imu is not None else ())):
+        for topic, msgtype in (
+            ("/points", POINTCLOUD2),
+            ("/odom", "nav_msgs/msg/Odometry"),
+            ("/ground_truth", "geometry_msgs/msg/PoseStamped"),
+            ("/tf", "tf2_msgs/msg/TFMessage"),
+            ("/tf_static", "tf2_msgs/msg/TFMessage"),
+            *((("/imu", "sensor_msgs/msg/Imu"),) if imu is not None else ()),
+        ):
             extra = {"latching": 1} if topic == "/tf_static" and not ros2 else {}
             self.topics[topic] = self.writer.add_connection(topic, msgtype, typestore=self.store, **extra)
 
@@ -289,15 +316,20 @@ class BagRecorder:
         t = self.store.types
         x, y, z, w = _quaternion(T)
         return t["geometry_msgs/msg/TransformStamped"](
-            header=self._header(stamp, parent), child_frame_id=child,
-            transform=t["geometry_msgs/msg/Transform"](translation=t["geometry_msgs/msg/Vector3"](*T[:3, 3]),
-                                                       rotation=t["geometry_msgs/msg/Quaternion"](x, y, z, w)))
+            header=self._header(stamp, parent),
+            child_frame_id=child,
+            transform=t["geometry_msgs/msg/Transform"](
+                translation=t["geometry_msgs/msg/Vector3"](*T[:3, 3]),
+                rotation=t["geometry_msgs/msg/Quaternion"](x, y, z, w),
+            ),
+        )
 
     def _pose(self, T: np.ndarray):
         t = self.store.types
         x, y, z, w = _quaternion(T)
-        return t["geometry_msgs/msg/Pose"](position=t["geometry_msgs/msg/Point"](*T[:3, 3]),
-                                           orientation=t["geometry_msgs/msg/Quaternion"](x, y, z, w))
+        return t["geometry_msgs/msg/Pose"](
+            position=t["geometry_msgs/msg/Point"](*T[:3, 3]), orientation=t["geometry_msgs/msg/Quaternion"](x, y, z, w)
+        )
 
     def _write(self, topic: str, stamp: float, msg) -> None:
         connection = self.topics[topic]
@@ -308,33 +340,60 @@ class BagRecorder:
         t = self.store.types
         stamp = self.start + self.steps * self.dt
         if self.steps == 0:
-            self._write("/tf_static", stamp, t["tf2_msgs/msg/TFMessage"](
-                transforms=[self._transform(stamp, "base_link", "lidar", np.asarray(info["T_b_s"], np.float64))]))
+            self._write(
+                "/tf_static",
+                stamp,
+                t["tf2_msgs/msg/TFMessage"](
+                    transforms=[self._transform(stamp, "base_link", "lidar", np.asarray(info["T_b_s"], np.float64))]
+                ),
+            )
         # a swept revolution is stamped when it began, its points' times counted from there (as the
         # Velodyne and Ouster drivers write them, and as LIO-SAM and FAST-LIO read them)
         began = stamp if scan.times is None else stamp - self.dt
         if self.steps == 0:
             self.swept = scan.times is not None
-        self._write("/points", began, _cloud_message(t, self._header(began, "lidar"), scan.points,
-                                                     scan.beam.astype(np.uint16), scan.times,
-                                                     scan.pattern.time_field))
+        self._write(
+            "/points",
+            began,
+            _cloud_message(
+                t,
+                self._header(began, "lidar"),
+                scan.points,
+                scan.beam.astype(np.uint16),
+                scan.times,
+                scan.pattern.time_field,
+            ),
+        )
         odom = np.asarray(info["odom_T_w_b"], dtype=np.float64)
         increment = np.eye(4) if self.last_odom is None else inverse(self.last_odom) @ odom
         self.last_odom = odom
         pose_covariance, twist_covariance = self.covariance.step(increment, odom, self.dt)
         velocity = matrix_to_pose(increment) / self.dt  # over the step just taken, in the body frame
         vector = t["geometry_msgs/msg/Vector3"]
-        self._write("/odom", stamp, t["nav_msgs/msg/Odometry"](
-            header=self._header(stamp, "odom"), child_frame_id="base_link",
-            pose=t["geometry_msgs/msg/PoseWithCovariance"](pose=self._pose(odom), covariance=pose_covariance.ravel()),
-            twist=t["geometry_msgs/msg/TwistWithCovariance"](
-                twist=t["geometry_msgs/msg/Twist"](linear=vector(*velocity[:3]), angular=vector(*velocity[3:])),
-                covariance=twist_covariance.ravel())))
-        self._write("/tf", stamp, t["tf2_msgs/msg/TFMessage"](
-            transforms=[self._transform(stamp, "odom", "base_link", odom)]))
+        self._write(
+            "/odom",
+            stamp,
+            t["nav_msgs/msg/Odometry"](
+                header=self._header(stamp, "odom"),
+                child_frame_id="base_link",
+                pose=t["geometry_msgs/msg/PoseWithCovariance"](
+                    pose=self._pose(odom), covariance=pose_covariance.ravel()
+                ),
+                twist=t["geometry_msgs/msg/TwistWithCovariance"](
+                    twist=t["geometry_msgs/msg/Twist"](linear=vector(*velocity[:3]), angular=vector(*velocity[3:])),
+                    covariance=twist_covariance.ravel(),
+                ),
+            ),
+        )
+        self._write(
+            "/tf", stamp, t["tf2_msgs/msg/TFMessage"](transforms=[self._transform(stamp, "odom", "base_link", odom)])
+        )
         self.truth.append(np.asarray(info["T_w_b"], dtype=np.float64))
-        self._write("/ground_truth", stamp, t["geometry_msgs/msg/PoseStamped"](
-            header=self._header(stamp, "world"), pose=self._pose(self.truth[-1])))
+        self._write(
+            "/ground_truth",
+            stamp,
+            t["geometry_msgs/msg/PoseStamped"](header=self._header(stamp, "world"), pose=self._pose(self.truth[-1])),
+        )
         self.steps += 1
 
     def _write_imu(self) -> None:
@@ -356,12 +415,19 @@ class BagRecorder:
             quaternions, covariance = imu.orientation, np.diag(self.imu.orientation_sigmas() ** 2).ravel()
         vector = t["geometry_msgs/msg/Vector3"]
         for k, (stamp, w, a, q) in enumerate(zip(imu.stamps, imu.gyro, imu.accel, quaternions)):
-            self._write("/imu", float(stamp), t["sensor_msgs/msg/Imu"](
-                header=self._header(float(stamp), "base_link", k),
-                orientation=t["geometry_msgs/msg/Quaternion"](*(float(v) for v in q)),
-                orientation_covariance=covariance, angular_velocity=vector(*w),
-                angular_velocity_covariance=np.diag([gyro_sigma**2] * 3).ravel(),
-                linear_acceleration=vector(*a), linear_acceleration_covariance=np.diag([accel_sigma**2] * 3).ravel()))
+            self._write(
+                "/imu",
+                float(stamp),
+                t["sensor_msgs/msg/Imu"](
+                    header=self._header(float(stamp), "base_link", k),
+                    orientation=t["geometry_msgs/msg/Quaternion"](*(float(v) for v in q)),
+                    orientation_covariance=covariance,
+                    angular_velocity=vector(*w),
+                    angular_velocity_covariance=np.diag([gyro_sigma**2] * 3).ravel(),
+                    linear_acceleration=vector(*a),
+                    linear_acceleration_covariance=np.diag([accel_sigma**2] * 3).ravel(),
+                ),
+            )
 
     def abort(self) -> None:
         """Drop the unfinished bag: a drive that failed or was stopped leaves nothing half-written."""
@@ -397,8 +463,9 @@ def bag_size_bound(rays_per_scan: int, scans: int, swept: bool) -> int:
     return rays_per_scan * scans * (20 if swept else 16)
 
 
-def _cloud_message(types, header, points: np.ndarray, ring: np.ndarray, times: np.ndarray | None = None,
-                   time_field: str = "time"):
+def _cloud_message(
+    types, header, points: np.ndarray, ring: np.ndarray, times: np.ndarray | None = None, time_field: str = "time"
+):
     """x, y, z float32 and ring uint16 in 16-byte points, as a VLP-16 driver lays them out; with
     `times`, each point's time since the stamp in 20-byte points, as the sensor's driver writes it
     (`time_field`, one of patterns.TIME_FIELDS: Velodyne's `time`, Ouster's `t`)."""
@@ -407,8 +474,9 @@ def _cloud_message(types, header, points: np.ndarray, ring: np.ndarray, times: n
         _, time_format, per_second = TIME_FIELDS[time_field]
         names, formats, offsets = names + [time_field], formats + [time_format], offsets + [16]
     step = 16 if times is None else 20
-    table = np.zeros(len(points), dtype=np.dtype({"names": names, "formats": formats, "offsets": offsets,
-                                                  "itemsize": step}))
+    table = np.zeros(
+        len(points), dtype=np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": step})
+    )
     for i, a in enumerate("xyz"):
         table[a] = points[:, i]
     table["ring"] = ring
@@ -416,6 +484,13 @@ def _cloud_message(types, header, points: np.ndarray, ring: np.ndarray, times: n
         table[time_field] = np.round(times.astype(np.float64) * per_second) if per_second != 1.0 else times
     field = types["sensor_msgs/msg/PointField"]
     return types[POINTCLOUD2](
-        header=header, height=1, width=len(points), is_bigendian=False, is_dense=True, point_step=step,
-        row_step=step * len(points), data=table.view(np.uint8).copy(),
-        fields=[field(name=n, offset=o, datatype=_FIELD_TYPES[f], count=1) for n, o, f in zip(names, offsets, formats)])
+        header=header,
+        height=1,
+        width=len(points),
+        is_bigendian=False,
+        is_dense=True,
+        point_step=step,
+        row_step=step * len(points),
+        data=table.view(np.uint8).copy(),
+        fields=[field(name=n, offset=o, datatype=_FIELD_TYPES[f], count=1) for n, o, f in zip(names, offsets, formats)],
+    )

@@ -1,4 +1,5 @@
 """Scan files in a sensor's frame, read as (N, 3) points: numpy, KITTI .bin, PLY, PCD and text."""
+
 from __future__ import annotations
 
 import warnings
@@ -6,9 +7,17 @@ from pathlib import Path
 
 import numpy as np
 
-FORMATS = {".npy": "numpy (N, >=3)", ".npz": "numpy archive ('points' or its only array)",
-           ".bin": "KITTI float32 x y z intensity", ".ply": "PLY", ".pcd": "PCD (ascii or binary)",
-           ".xyz": "text x y z ...", ".txt": "text x y z ...", ".csv": "comma-separated x,y,z,..."}
+FORMATS = {
+    ".npy": "numpy (N, >=3)",
+    ".npz": "numpy archive ('points' or its only array)",
+    ".bin": "KITTI float32 x y z intensity",
+    ".ply": "PLY",
+    ".pcd": "PCD (ascii or binary)",
+    ".xyz": "text x y z ...",
+    ".txt": "text x y z ...",
+    ".csv": "comma-separated x,y,z,...",
+}
+
 
 class ScanFileError(ValueError):
     """A scan file that cannot be read as points."""
@@ -33,20 +42,35 @@ def _read_pcd(path: Path) -> np.ndarray:
         raise ScanFileError(f"{path}: the PCD has fields {fields}, not x, y and z")
     sizes = [int(s) for s in header.get("SIZE", [])]
     types, counts = header.get("TYPE", []), [int(c) for c in header.get("COUNT", ["1"] * len(fields))]
-    n = int(header["POINTS"][0]) if "POINTS" in header else int(header.get("WIDTH", ["0"])[0]) * int(
-        header.get("HEIGHT", ["1"])[0])
+    n = (
+        int(header["POINTS"][0])
+        if "POINTS" in header
+        else int(header.get("WIDTH", ["0"])[0]) * int(header.get("HEIGHT", ["1"])[0])
+    )
     kind = header["DATA"][0].lower()
     if kind == "ascii":
         table = np.loadtxt(raw[offset:].decode("ascii").splitlines(), ndmin=2)
         if len(table) != n:  # a file cut short, or rows added: either way not the cloud the header describes
-            raise ScanFileError(f"{path}: the PCD header says {n} points and the file holds {len(table)} rows; "
-                                "the file is cut short or damaged")
+            raise ScanFileError(
+                f"{path}: the PCD header says {n} points and the file holds {len(table)} rows; "
+                "the file is cut short or damaged"
+            )
         columns = np.cumsum([0] + counts)
         return np.stack([table[:, columns[fields.index(a)]] for a in "xyz"], axis=1)
     if kind != "binary":
         raise ScanFileError(f"{path}: PCD data '{kind}' is not read; save it as ascii or binary")
-    codes = {("F", 4): "<f4", ("F", 8): "<f8", ("I", 1): "<i1", ("I", 2): "<i2", ("I", 4): "<i4", ("I", 8): "<i8",
-             ("U", 1): "<u1", ("U", 2): "<u2", ("U", 4): "<u4", ("U", 8): "<u8"}
+    codes = {
+        ("F", 4): "<f4",
+        ("F", 8): "<f8",
+        ("I", 1): "<i1",
+        ("I", 2): "<i2",
+        ("I", 4): "<i4",
+        ("I", 8): "<i8",
+        ("U", 1): "<u1",
+        ("U", 2): "<u2",
+        ("U", 4): "<u4",
+        ("U", 8): "<u8",
+    }
     try:
         dtype = np.dtype([(f, codes[t, s], (c,)) for f, t, s, c in zip(fields, types, sizes, counts)])
     except KeyError as exc:
@@ -62,8 +86,9 @@ def read_scan(path: str | Path) -> np.ndarray:
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in FORMATS:
-        raise ScanFileError(f"{path}: unknown scan format '{suffix}'; read: "
-                            + ", ".join(f"{k} ({v})" for k, v in FORMATS.items()))
+        raise ScanFileError(
+            f"{path}: unknown scan format '{suffix}'; read: " + ", ".join(f"{k} ({v})" for k, v in FORMATS.items())
+        )
     if not path.is_file():
         raise ScanFileError(f"{path}: no such file")
     try:
@@ -78,8 +103,9 @@ def read_scan(path: str | Path) -> np.ndarray:
         elif suffix == ".bin":
             size = path.stat().st_size
             if size % 16:  # np.fromfile would drop a cut-off tail silently
-                raise ScanFileError(f"{path}: {size} bytes, not whole x y z intensity float32 quadruples "
-                                    "(KITTI .bin: 16 bytes a point)")
+                raise ScanFileError(
+                    f"{path}: {size} bytes, not whole x y z intensity float32 quadruples (KITTI .bin: 16 bytes a point)"
+                )
             points = np.fromfile(path, dtype=np.float32).reshape(-1, 4)
         elif suffix == ".ply":
             import trimesh
@@ -99,6 +125,8 @@ def read_scan(path: str | Path) -> np.ndarray:
     if points.ndim != 2 or points.shape[1] < 3:
         raise ScanFileError(f"{path}: points of shape {points.shape}, not (N, 3) or more columns")
     if points.shape[0] in (3, 4) and points.shape[1] > points.shape[0]:  # x, y, z (, intensity) as rows
-        raise ScanFileError(f"{path}: points of shape {points.shape}: a scan is (N, 3) or (N, 4), one point a row; "
-                            f"this looks like its transpose (save points.T)")
+        raise ScanFileError(
+            f"{path}: points of shape {points.shape}: a scan is (N, 3) or (N, 4), one point a row; "
+            f"this looks like its transpose (save points.T)"
+        )
     return points[:, :3].astype(np.float64)

@@ -1,5 +1,6 @@
 """Monte-Carlo localizability labels (L3E, Sec. IV-A): parent poses near sampling paths,
 children perturbed around them, each child ray-cast anew and registered to its parent."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -24,8 +25,10 @@ AXES = ("x", "y", "z", "roll", "pitch", "yaw")
 # most half of what holding still leaves, the ground plane's normals). Data of another protocol is
 # refused by name, never mixed.
 LABEL_PROTOCOL = 2
-PROTOCOLS = {1: "the paper's 0.1 m translation thresholds and the neighbours' normals",
-             2: "thresholds that ask whether ICP corrects the offset, and the ground plane's normals"}
+PROTOCOLS = {
+    1: "the paper's 0.1 m translation thresholds and the neighbours' normals",
+    2: "thresholds that ask whether ICP corrects the offset, and the ground plane's normals",
+}
 
 
 def protocol_name(protocol: int) -> str:

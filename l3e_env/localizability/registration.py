@@ -3,6 +3,7 @@
 One registration everywhere: the ICP that labels the training data is the ICP the fusion runs
 between consecutive scans, built from the same `RegistrationConfig`.
 """
+
 from __future__ import annotations
 
 import itertools
@@ -132,8 +133,9 @@ class PreparedTarget:
 
     def __init__(self, points: np.ndarray, config: RegistrationConfig, threads: int = 1):
         pts = _checked(points, "target scan", config.min_points)
-        self.cloud, self.tree = small_gicp.preprocess_points(pts, config.downsampling_resolution, config.num_neighbors,
-                                                             num_threads=max(1, int(threads)))
+        self.cloud, self.tree = small_gicp.preprocess_points(
+            pts, config.downsampling_resolution, config.num_neighbors, num_threads=max(1, int(threads))
+        )
         if self.cloud.size() < config.min_points:
             raise RegistrationError(
                 f"target scan has {self.cloud.size()} points after {config.downsampling_resolution} m downsampling "
@@ -187,9 +189,15 @@ def register(
             T, done, converged, inliers, error = _plane_icp(source_points, tgt, T, distance, config)
         else:
             result = small_gicp.align(
-                tgt.cloud, src, tgt.tree, init_T_target_source=T, registration_type="PLANE_ICP",
-                max_correspondence_distance=distance, max_iterations=config.max_iterations,
-                rotation_epsilon=config.rotation_epsilon, translation_epsilon=config.translation_epsilon,
+                tgt.cloud,
+                src,
+                tgt.tree,
+                init_T_target_source=T,
+                registration_type="PLANE_ICP",
+                max_correspondence_distance=distance,
+                max_iterations=config.max_iterations,
+                rotation_epsilon=config.rotation_epsilon,
+                translation_epsilon=config.translation_epsilon,
             )
             T, done, converged = np.asarray(result.T_target_source), int(result.iterations), bool(result.converged)
             inliers, error = int(result.num_inliers), float(result.error)
@@ -199,13 +207,15 @@ def register(
         converged = False
     H = (
         point_to_plane_hessian(source_points, tgt, T, config.max_correspondence_distance[-1])
-        if with_hessian else np.full((6, 6), np.nan)
+        if with_hessian
+        else np.full((6, 6), np.nan)
     )
     return RegistrationResult(T, H, converged, iterations, inliers, int(src.size()), error)
 
 
-def _plane_icp(source: np.ndarray, target: PreparedTarget, T: np.ndarray, distance: float,
-               config: RegistrationConfig) -> tuple[np.ndarray, int, bool, int, float]:
+def _plane_icp(
+    source: np.ndarray, target: PreparedTarget, T: np.ndarray, distance: float, config: RegistrationConfig
+) -> tuple[np.ndarray, int, bool, int, float]:
     """One stage of point-to-plane ICP onto the target's own `normals` (nearest neighbour within
     `distance`, T <- T exp(delta)): Gauss-Newton as small_gicp's PLANE_ICP (damping 1e-6, stop when
     the update is under the epsilons), except that a step that turns back on the one before and
@@ -252,8 +262,9 @@ def _rotation(w: np.ndarray) -> np.ndarray:
     return np.eye(3) + np.sin(angle) * K + (1.0 - np.cos(angle)) * K @ K
 
 
-def point_to_plane_hessian(source: np.ndarray, target: PreparedTarget, T: np.ndarray,
-                           max_distance: float) -> np.ndarray:
+def point_to_plane_hessian(
+    source: np.ndarray, target: PreparedTarget, T: np.ndarray, max_distance: float
+) -> np.ndarray:
     """A^T A of the point-to-plane residuals at T, from the final correspondences.
 
     small_gicp's `H` is that of its last linearisation, one update before the solution (5 %

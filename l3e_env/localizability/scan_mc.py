@@ -14,6 +14,7 @@ to M) and drawing stops once every axis lies `settle` times the estimate's own s
 its threshold. The children are the same draws in the same order, so a scan that goes on to M
 gets exactly the estimate of M children.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
@@ -80,14 +81,21 @@ def beams_and_columns(points: np.ndarray, pattern: BeamPattern) -> tuple[np.ndar
     beam, column, off = pattern.locate(points)
     spacing = pattern.spacing_deg()
     if off.max(initial=0.0) > BEAM_TOLERANCE * spacing:
-        raise ScanPatternError(f"a point lies {off.max():.2f} deg off the nearest beam of {pattern.name} (beams "
-                               f"{spacing:.2f} deg apart): give a scan of that sensor, in its own frame, or leave "
-                               "the sensor to be recognised from the scan")
+        raise ScanPatternError(
+            f"a point lies {off.max():.2f} deg off the nearest beam of {pattern.name} (beams "
+            f"{spacing:.2f} deg apart): give a scan of that sensor, in its own frame, or leave "
+            "the sensor to be recognised from the scan"
+        )
     return beam, column
 
 
-def range_image_mesh(points: np.ndarray, pattern: BeamPattern, max_range_ratio: float = 1.5,
-                     shadow_deg: float = 0.0, beyond_deg: float = 0.0) -> trimesh.Trimesh:
+def range_image_mesh(
+    points: np.ndarray,
+    pattern: BeamPattern,
+    max_range_ratio: float = 1.5,
+    shadow_deg: float = 0.0,
+    beyond_deg: float = 0.0,
+) -> trimesh.Trimesh:
     """The scan's points as vertices, each 2 x 2 block of neighbouring beams and columns (columns
     wrap around) as two triangles where all three returns exist and their ranges differ by less
     than `max_range_ratio`. With `shadow_deg`, a surface behind each return beside a depth jump,
@@ -106,15 +114,17 @@ def range_image_mesh(points: np.ndarray, pattern: BeamPattern, max_range_ratio: 
     vertex[beam, column] = np.arange(len(points))
     beside = (np.roll(vertex, -1, axis=1)[beam, column] >= 0).mean() if len(points) else 0.0
     if beside < 0.5:  # a full revolution has a return in the next column beside nearly every return
-        raise ScanPatternError(f"only {beside:.0%} of the scan's returns have one beside them: the scan is thinned "
-                               "or sampled, and the estimate needs every return of a revolution")
+        raise ScanPatternError(
+            f"only {beside:.0%} of the scan's returns have one beside them: the scan is thinned "
+            "or sampled, and the estimate needs every return of a revolution"
+        )
     ranges = np.zeros(shape)
     ranges[beam, column] = np.linalg.norm(points, axis=1)
     order = np.argsort(pattern.elevations_deg)  # rows from the lowest beam up, so that rows k, k+1 neighbour
     vertex, ranges = vertex[order], ranges[order]
 
     def corner(grid: np.ndarray, down: int, right: int) -> np.ndarray:
-        return np.roll(grid, -right, axis=1)[down:down + len(grid) - 1]
+        return np.roll(grid, -right, axis=1)[down : down + len(grid) - 1]
 
     def joined(vertex: np.ndarray, ranges: np.ndarray, keep: np.ndarray | None = None) -> np.ndarray:
         faces = []
@@ -174,18 +184,27 @@ def range_image_mesh(points: np.ndarray, pattern: BeamPattern, max_range_ratio: 
     return trimesh.Trimesh(np.concatenate(vertices), np.concatenate(faces), process=False)
 
 
-def scan_errors(points: np.ndarray, lidar: LidarConfig, registration: RegistrationConfig, labels: LabelConfig,
-                config: ScanMCConfig, rng: np.random.Generator) -> ScanEstimate:
+def scan_errors(
+    points: np.ndarray,
+    lidar: LidarConfig,
+    registration: RegistrationConfig,
+    labels: LabelConfig,
+    config: ScanMCConfig,
+    rng: np.random.Generator,
+) -> ScanEstimate:
     """The scan's estimated mean registration errors (metres, radians), as labels.py computes
     them in the full scene, times the calibration, from as many children as settle every axis
     against `labels`' thresholds. Raises RegistrationError where the scan itself cannot be
     registered, or more than half of the children cannot."""
     if config.children < 1 or config.first < 1:
-        raise ValueError(f"the scan estimate needs at least one child, got children={config.children} "
-                         f"first={config.first}")
+        raise ValueError(
+            f"the scan estimate needs at least one child, got children={config.children} first={config.first}"
+        )
     if not config.settle >= 0 or len(config.spread) != 6 or len(config.calibration) != 6:
-        raise ValueError(f"scan estimate settings: settle must be >= 0 (got {config.settle}), spread and calibration "
-                         f"six numbers each (got {len(config.spread)} and {len(config.calibration)})")
+        raise ValueError(
+            f"scan estimate settings: settle must be >= 0 (got {config.settle}), spread and calibration "
+            f"six numbers each (got {len(config.spread)} and {len(config.calibration)})"
+        )
     points = np.asarray(points, dtype=np.float64)
     target = PreparedTarget(points, registration)  # checks shape, NaN and size first
     pattern = get_pattern(lidar.model)
@@ -208,8 +227,9 @@ def scan_errors(points: np.ndarray, lidar: LidarConfig, registration: Registrati
             errors.append(registration_error(result.T_target_source, T_p_c, labels.error_frame))
         drawn = stage
         if len(errors) < max(1, drawn // 2):
-            raise RegistrationError(f"{drawn - len(errors)} of {drawn} children of the scan's own surface could "
-                                    "not be registered")
+            raise RegistrationError(
+                f"{drawn - len(errors)} of {drawn} children of the scan's own surface could not be registered"
+            )
         estimate = np.mean(errors, axis=0) * calibration
         margin = np.abs(np.log(np.maximum(estimate, 1e-12) / thresholds))
         settled = config.settle > 0 and (margin >= config.settle * spread * np.sqrt(20 / drawn)).all()

@@ -5,6 +5,7 @@ FCGF (the L3E model) and a PointNet (the paper's ablation baseline). Checkpoints
 architecture, its config, the per-axis thresholds and the sensor and registration settings
 the labels were made with, and are refused when they do not match this code.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -47,8 +48,9 @@ DEFAULT_CHECKPOINT = Path(__file__).parent / "shipped" / "resunet_vlp16.pt"
 # swaps the x/y and the roll/pitch labels. Training draws from these views; symmetric inference
 # averages over all eight.
 SWAP_LABELS = np.array([1, 0, 2, 4, 3, 5])
-SYMMETRIES: list[tuple[float, float, bool]] = [(sx, sy, swap) for sx in (1.0, -1.0) for sy in (1.0, -1.0)
-                                               for swap in (False, True)]
+SYMMETRIES: list[tuple[float, float, bool]] = [
+    (sx, sy, swap) for sx in (1.0, -1.0) for sy in (1.0, -1.0) for swap in (False, True)
+]
 
 
 class CheckpointError(RuntimeError):
@@ -137,8 +139,9 @@ class ResUNet(nn.Module):
         self.up_norm = nn.ModuleList(_bn_relu(c[i]) for i in range(len(c) - 1))
         # the concatenation is mixed down to the level's width by a linear map before the ResBlock:
         # the same receptive field as a ResBlock on the concatenation for 40 % fewer operations
-        self.up_mix = nn.ModuleList(nn.Sequential(nn.Linear(2 * c[i], c[i], bias=False), _bn_relu(c[i]))
-                                    for i in range(len(c) - 1))
+        self.up_mix = nn.ModuleList(
+            nn.Sequential(nn.Linear(2 * c[i], c[i], bias=False), _bn_relu(c[i])) for i in range(len(c) - 1)
+        )
         self.up_block = nn.ModuleList(ResBlock(c[i], c[i]) for i in range(len(c) - 1))
         self.out = nn.Linear(c[0], cfg.feature)
 
@@ -221,8 +224,9 @@ class LocalizabilityNet(nn.Module):
             raise ValueError("the constraint layer reads the ResUNet's voxels; a PointNet has none")
         levels = cfg.constraint_levels
         if not levels or sorted(set(levels)) != list(levels) or levels[0] < 0 or levels[-1] >= len(cfg.channels):
-            raise ValueError(f"constraint levels {levels}: distinct, ascending, each a ResUNet level 0-"
-                             f"{len(cfg.channels) - 1}")
+            raise ValueError(
+                f"constraint levels {levels}: distinct, ascending, each a ResUNet level 0-{len(cfg.channels) - 1}"
+            )
         self.stacker = AxisStacker(FEATURES * len(levels)) if cfg.constraints else None
 
     def forward(self, points: list[torch.Tensor], up: torch.Tensor | None = None) -> torch.Tensor:
@@ -234,8 +238,9 @@ class LocalizabilityNet(nn.Module):
             logits = self.stacker(logits, features)
         return logits if swapped is None else torch.where(swapped[:, None], logits[:, SWAP_LABELS], logits)
 
-    def canonical(self, points: list[torch.Tensor], up: torch.Tensor | None = None
-                  ) -> tuple[list[torch.Tensor], torch.Tensor | None, torch.Tensor | None]:
+    def canonical(
+        self, points: list[torch.Tensor], up: torch.Tensor | None = None
+    ) -> tuple[list[torch.Tensor], torch.Tensor | None, torch.Tensor | None]:
         """For a model with config.frame "canonical": each scan (and up vector) in its canonical view
         (canonical_view), and which scans that view swaps x and y (B,), whose answers then come in the
         order y, x, z, pitch, roll, yaw. Otherwise the input as it is, and None."""
@@ -247,8 +252,9 @@ class LocalizabilityNet(nn.Module):
             up = torch.stack([symmetry_view(u[None], v)[0] for u, v in zip(up, views)])
         return points, up, torch.tensor([swap for _, _, swap in views], dtype=torch.bool)
 
-    def parts(self, points: list[torch.Tensor], up: torch.Tensor | None = None,
-              constraints: bool | None = None) -> tuple[torch.Tensor, torch.Tensor | None]:
+    def parts(
+        self, points: list[torch.Tensor], up: torch.Tensor | None = None, constraints: bool | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
         """The network's logits (B, 6) and, for a model with config.constraints (or when asked),
         the scans' Hessian features (B, 12 per constraint level) (l3e_env.model.constraints), else None."""
         constraints = self.config.constraints if constraints is None else constraints
@@ -263,8 +269,10 @@ class LocalizabilityNet(nn.Module):
         if not self.config.gravity:
             return self.head(feature), features
         if up is None or tuple(up.shape) != (len(points), 3):
-            raise ValueError("this classifier was trained with the gravity direction: give the up vector of "
-                             "each scan's sensor frame, (B, 3)")
+            raise ValueError(
+                "this classifier was trained with the gravity direction: give the up vector of "
+                "each scan's sensor frame, (B, 3)"
+            )
         return self.head(torch.cat([feature, up.to(feature.dtype)], dim=1)), features
 
 
@@ -276,8 +284,11 @@ def _norm_sites(backbone: nn.Module) -> list[tuple[nn.Module, nn.Module, str]]:
         for block in [backbone.stem_block, *backbone.down_block, *backbone.up_block]:
             sites += [(block.conv1, block.norm1, "0"), (block.conv2, block, "norm2")]
         for i in range(len(backbone.down)):
-            sites += [(backbone.down[i], backbone.down_norm[i], "0"), (backbone.up[i], backbone.up_norm[i], "0"),
-                      (backbone.up_mix[i][0], backbone.up_mix[i][1], "0")]
+            sites += [
+                (backbone.down[i], backbone.down_norm[i], "0"),
+                (backbone.up[i], backbone.up_norm[i], "0"),
+                (backbone.up_mix[i][0], backbone.up_mix[i][1], "0"),
+            ]
     elif isinstance(backbone, PointNet):
         sites += [(backbone.mlp[i], backbone.mlp[i + 1], "0") for i in range(0, len(backbone.mlp), 2)]
     return sites
@@ -387,8 +398,9 @@ def canonical_view(points: torch.Tensor) -> tuple[float, float, bool]:
 
 
 @torch.inference_mode()
-def model_probabilities(model: LocalizabilityNet, batch: list[torch.Tensor], symmetric: bool = False,
-                        up: np.ndarray | None = None) -> np.ndarray:
+def model_probabilities(
+    model: LocalizabilityNet, batch: list[torch.Tensor], symmetric: bool = False, up: np.ndarray | None = None
+) -> np.ndarray:
     """(B, 6) probabilities; symmetric: the mean over the eight mirror/swap views of each scan (one
     forward pass of 8 B scans), each view's output mapped back onto the scan's own axes. `up`
     (B, 3): see LocalizabilityNet.forward."""
@@ -418,14 +430,23 @@ def torch_threads(n: int) -> Iterator[None]:
         torch.set_num_threads(before)
 
 
-def save_checkpoint(path: str | Path, model: LocalizabilityNet, thresholds: np.ndarray, meta: dict[str, Any],
-                    extra: dict[str, Any] | None = None) -> None:
+def save_checkpoint(
+    path: str | Path,
+    model: LocalizabilityNet,
+    thresholds: np.ndarray,
+    meta: dict[str, Any],
+    extra: dict[str, Any] | None = None,
+) -> None:
     """Write atomically: a reader (or a resumed run) never sees half a checkpoint."""
     path = Path(path)
     state = {
-        "format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION,
+        "format": CHECKPOINT_FORMAT,
+        "version": CHECKPOINT_VERSION,
         "model": plain(dataclasses.asdict(model.config)),
-        "state_dict": model.state_dict(), "thresholds": [float(t) for t in thresholds], **meta, **(extra or {}),
+        "state_dict": model.state_dict(),
+        "thresholds": [float(t) for t in thresholds],
+        **meta,
+        **(extra or {}),
     }
     write_atomic(path, lambda fh: torch.save(state, fh))
 
@@ -450,8 +471,9 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
     if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT:
         raise CheckpointError(f"{path} is not an l3e classifier checkpoint")
     if state.get("version") != CHECKPOINT_VERSION:
-        raise CheckpointError(f"{path} has checkpoint version {state.get('version')}; this code reads "
-                              f"version {CHECKPOINT_VERSION}")
+        raise CheckpointError(
+            f"{path} has checkpoint version {state.get('version')}; this code reads version {CHECKPOINT_VERSION}"
+        )
     return state
 
 
@@ -461,8 +483,9 @@ def model_from_checkpoint(state: dict[str, Any], source: str = "checkpoint") -> 
     try:
         model.load_state_dict(state["state_dict"])
     except RuntimeError as exc:
-        raise CheckpointError(f"{source} does not fit the {cfg.architecture} architecture of this code: "
-                              f"{str(exc).splitlines()[0]}") from exc
+        raise CheckpointError(
+            f"{source} does not fit the {cfg.architecture} architecture of this code: {str(exc).splitlines()[0]}"
+        ) from exc
     return model.eval()
 
 
@@ -484,11 +507,16 @@ class Classifier:
         float32, with the same decisions (docs/decisions.md)."""
         path = Path(path) if path is not None else DEFAULT_CHECKPOINT
         state = load_checkpoint(path)
-        broken = [name for name, t in state["state_dict"].items()
-                  if torch.is_tensor(t) and t.is_floating_point() and not torch.isfinite(t).all()]
+        broken = [
+            name
+            for name, t in state["state_dict"].items()
+            if torch.is_tensor(t) and t.is_floating_point() and not torch.isfinite(t).all()
+        ]
         if broken:  # a model with NaN or infinite weights answers nothing trustworthy: refuse it, never judge with it
-            raise CheckpointError(f"{path} has non-finite weights in {', '.join(broken[:3])}"
-                                  f"{' ...' if len(broken) > 3 else ''}: the file is corrupt or its training diverged")
+            raise CheckpointError(
+                f"{path} has non-finite weights in {', '.join(broken[:3])}"
+                f"{' ...' if len(broken) > 3 else ''}: the file is corrupt or its training diverged"
+            )
         model = fold_batch_norms(model_from_checkpoint(state, str(path)))
         if int8:
             quantize_int8(model)
@@ -496,16 +524,20 @@ class Classifier:
         if "thresholds" not in state:
             raise CheckpointError(f"{path} holds no thresholds")
         if symmetric and "symmetric_thresholds" not in state:
-            raise CheckpointError(f"{path} has no thresholds for symmetric inference; add them with "
-                                  f"'l3e calibrate --checkpoint {path} --dataset <its dataset>'")
+            raise CheckpointError(
+                f"{path} has no thresholds for symmetric inference; add them with "
+                f"'l3e calibrate --checkpoint {path} --dataset <its dataset>'"
+            )
         key = "symmetric_thresholds" if symmetric else "thresholds"
         try:
             thresholds = np.asarray(state[key], dtype=np.float64)
         except (TypeError, ValueError):
             thresholds = np.full(0, np.nan)
         if thresholds.shape != (6,) or not ((thresholds > 0) & (thresholds < 1)).all():
-            raise CheckpointError(f"{path}: its {key} must be six probabilities in (0, 1), one per axis "
-                                  f"(x, y, z, roll, pitch, yaw); it holds {state[key]!r}")
+            raise CheckpointError(
+                f"{path}: its {key} must be six probabilities in (0, 1), one per axis "
+                f"(x, y, z, roll, pitch, yaw); it holds {state[key]!r}"
+            )
         return cls(model, thresholds, meta, symmetric=symmetric)
 
     def check_settings(self, lidar_model: str | None = None, registration: dict | None = None) -> None:
@@ -513,20 +545,25 @@ class Classifier:
         trained = self.meta.get("lidar", {}).get("model")
         # the calibrated VLP-16 is the same sensor: its beams leave at most 11 mm off the axis
         if lidar_model is not None and trained is not None and lidar_model.removesuffix("-calibrated") != trained:
-            warnings.warn(f"the classifier was trained on {trained} scans and now sees {lidar_model} scans",
-                          stacklevel=2)
+            warnings.warn(
+                f"the classifier was trained on {trained} scans and now sees {lidar_model} scans", stacklevel=2
+            )
         protocol = self.meta.get("protocol", 1)
         if protocol != LABEL_PROTOCOL:
-            warnings.warn(f"the classifier learnt labels of {protocol_name(protocol)}; this version labels under "
-                          f"{protocol_name(LABEL_PROTOCOL)}: refit it on data labelled now (l3e fit-constraints "
-                          "--checkpoint ... --dataset ...) or train it again", stacklevel=2)
+            warnings.warn(
+                f"the classifier learnt labels of {protocol_name(protocol)}; this version labels under "
+                f"{protocol_name(LABEL_PROTOCOL)}: refit it on data labelled now (l3e fit-constraints "
+                "--checkpoint ... --dataset ...) or train it again",
+                stacklevel=2,
+            )
             return
         in_use = plain(registration) if registration is not None else None
         stored = self.meta.get("registration")
         labelled = None if stored is None else with_defaults(RegistrationConfig, stored)
         if in_use is not None and labelled not in (None, in_use):
-            warnings.warn("the classifier's labels were made with other registration settings than the "
-                          "ones in use", stacklevel=2)
+            warnings.warn(
+                "the classifier's labels were made with other registration settings than the ones in use", stacklevel=2
+            )
 
     @property
     def needs_pose(self) -> bool:
@@ -539,8 +576,9 @@ class Classifier:
         rng = np.random.default_rng(self.seed)
         batch = [model_input(check_scan(s), self.model.config, rng) for s in scans]
         if self.needs_pose and poses is None:
-            raise ValueError("this classifier reads the sensor's tilt: give the scans' poses (an IMU's roll and "
-                             "pitch suffice)")
+            raise ValueError(
+                "this classifier reads the sensor's tilt: give the scans' poses (an IMU's roll and pitch suffice)"
+            )
         up = up_vector(poses) if self.needs_pose else None
         return model_probabilities(self.model, batch, self.symmetric, up)
 

@@ -17,6 +17,7 @@ eigen-decomposition of the 3x3 scatter (torch.linalg.eigh on a few thousand 3x3 
 4 ms here). The Hessian is summed by a loop compiled with numba, one voxel at a time: numpy's
 operations on arrays of a few thousand voxels cost more in overhead than in arithmetic.
 """
+
 from __future__ import annotations
 
 import math
@@ -87,8 +88,9 @@ def voxel_hessian(level: Level, means: torch.Tensor, batch_size: int) -> np.ndar
     normal of its 3x3x3 neighbourhood. The ICP that makes the labels thins its scans to voxels too,
     so every voxel weighs one."""
     hessians = np.zeros((batch_size, 6, 6))
-    _add_planar_hessians(level.neighbours().numpy(), means.numpy().astype(np.float64), level.coords[:, 0].numpy(),
-                         hessians)
+    _add_planar_hessians(
+        level.neighbours().numpy(), means.numpy().astype(np.float64), level.coords[:, 0].numpy(), hessians
+    )
     return hessians
 
 
@@ -117,9 +119,14 @@ def _planar_row(neighbours: np.ndarray, means: np.ndarray, v: int, row: np.ndarr
     if count < MIN_NEIGHBOURS:
         return False
     mx, my, mz = sx / count, sy / count, sz / count
-    nx, ny, nz, smallest, middle = _closed_form_normal(sxx / count - mx * mx, sxy / count - mx * my,
-                                                       sxz / count - mx * mz, syy / count - my * my,
-                                                       syz / count - my * mz, szz / count - mz * mz)
+    nx, ny, nz, smallest, middle = _closed_form_normal(
+        sxx / count - mx * mx,
+        sxy / count - mx * my,
+        sxz / count - mx * mz,
+        syy / count - my * my,
+        syz / count - my * mz,
+        szz / count - mz * mz,
+    )
     if not smallest < PLANARITY * middle:
         return False
     px, py, pz = means[v, 0], means[v, 1], means[v, 2]
@@ -185,8 +192,9 @@ def scan_features(level: Level, means: torch.Tensor, batch_size: int, levels: tu
     points = means.numpy().astype(np.float64)
     for k in range(max(levels) + 1):
         if k in levels:
-            _add_planar_hessians(level.neighbours().numpy(), points, level.coords[:, 0].numpy(),
-                                 hessians[levels.index(k)])
+            _add_planar_hessians(
+                level.neighbours().numpy(), points, level.coords[:, 0].numpy(), hessians[levels.index(k)]
+            )
         if k < max(levels):
             level, points = coarser_means(level, points)
     per_level = hessian_features(hessians.reshape(-1, 6, 6)).reshape(len(levels), batch_size, FEATURES)

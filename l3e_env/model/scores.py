@@ -5,6 +5,7 @@ An axis with no positive label and no positive prediction in a split has undefin
 recall and F1; they are NaN there and left out of the averages (the count of axes that enter
 is reported with them), instead of being counted as 0 or 1.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -23,18 +24,25 @@ def axis_scores(labels: np.ndarray, predicted: np.ndarray) -> dict[str, np.ndarr
         precision = np.where(tp + fp > 0, tp / (tp + fp), np.where(tp + fn > 0, 0.0, np.nan))
         recall = np.where(tp + fn > 0, tp / (tp + fn), np.where(tp + fp > 0, 0.0, np.nan))
         f1 = np.where(2 * tp + fp + fn > 0, 2 * tp / (2 * tp + fp + fn), np.nan)
-    return {"accuracy": (y == p).mean(0) if len(y) else np.full(6, np.nan), "precision": precision,
-            "recall": recall, "f1": f1, "support": y.sum(0)}
+    return {
+        "accuracy": (y == p).mean(0) if len(y) else np.full(6, np.nan),
+        "precision": precision,
+        "recall": recall,
+        "f1": f1,
+        "support": y.sum(0),
+    }
 
 
 def mean_scores(scores: dict[str, np.ndarray]) -> dict[str, float]:
     """Averages over the axes where each score is defined."""
-    return {k: float(np.nanmean(v)) if np.isfinite(v).any() else float("nan")
-            for k, v in scores.items() if k != "support"}
+    return {
+        k: float(np.nanmean(v)) if np.isfinite(v).any() else float("nan") for k, v in scores.items() if k != "support"
+    }
 
 
-def mean_interval(labels: np.ndarray, predicted: np.ndarray, resamples: int = 1000, level: float = 0.95,
-                  seed: int = 0) -> dict[str, tuple[float, float]]:
+def mean_interval(
+    labels: np.ndarray, predicted: np.ndarray, resamples: int = 1000, level: float = 0.95, seed: int = 0
+) -> dict[str, tuple[float, float]]:
     """Bootstrap interval (scans drawn with replacement) of each averaged score: how far a mean
     over axes with a handful of positives can move on another draw of test scans."""
     y = np.asarray(labels, dtype=bool).reshape(-1, 6)
@@ -46,8 +54,12 @@ def mean_interval(labels: np.ndarray, predicted: np.ndarray, resamples: int = 10
         for k, v in mean_scores(axis_scores(y[rows], p[rows])).items():
             draws.setdefault(k, []).append(v)
     tail = 100 * (1 - level) / 2
-    return {k: (float(np.nanpercentile(v, tail)), float(np.nanpercentile(v, 100 - tail)))
-            if np.isfinite(v).any() else (float("nan"), float("nan")) for k, v in draws.items()}
+    return {
+        k: (float(np.nanpercentile(v, tail)), float(np.nanpercentile(v, 100 - tail)))
+        if np.isfinite(v).any()
+        else (float("nan"), float("nan"))
+        for k, v in draws.items()
+    }
 
 
 def pr_curve(labels: np.ndarray, probabilities: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -78,8 +90,9 @@ def auroc(labels: np.ndarray, scores: np.ndarray) -> float:
     return float((ranks[y].sum() - positives * (positives + 1) / 2.0) / (positives * negatives))
 
 
-def best_thresholds(labels: np.ndarray, probabilities: np.ndarray, default: float = 0.5,
-                    beta: float = 1.0) -> np.ndarray:
+def best_thresholds(
+    labels: np.ndarray, probabilities: np.ndarray, default: float = 0.5, beta: float = 1.0
+) -> np.ndarray:
     """Per axis, the threshold that maximises F-beta (beta > 1 weighs recall more) on the given
     (validation) set; `default` where the axis has no positive label. Returned as values for
     `p > threshold`: midway between the chosen probability and the next lower one, so that it is
@@ -99,22 +112,32 @@ def best_thresholds(labels: np.ndarray, probabilities: np.ndarray, default: floa
     return out
 
 
-def format_table(rows: dict[str, dict[str, dict[str, np.ndarray]]], digits: int = 3,
-                 intervals: dict[tuple[str, str], dict[str, tuple[float, float]]] | None = None,
-                 per_block: int = 8) -> str:
+def format_table(
+    rows: dict[str, dict[str, dict[str, np.ndarray]]],
+    digits: int = 3,
+    intervals: dict[tuple[str, str], dict[str, tuple[float, float]]] | None = None,
+    per_block: int = 8,
+) -> str:
     """A Table III layout: one column per (model, split), rows are score x axis plus the mean
     (and its bootstrap interval where given), and the count of positives per axis. Past
     `per_block` columns the table goes on in another block below, so that it fits a terminal."""
     columns = [(m, s) for m, splits in rows.items() for s in splits]
     width = max(14, *(len(m) + 2 for m, _ in columns), *(len(s) + 2 for _, s in columns))
-    blocks = [columns[i:i + per_block] for i in range(0, len(columns), per_block)]
+    blocks = [columns[i : i + per_block] for i in range(0, len(columns), per_block)]
     return "\n\n".join(_table_block(rows, block, width, digits, intervals) for block in blocks)
 
 
-def _table_block(rows: dict[str, dict[str, dict[str, np.ndarray]]], columns: list[tuple[str, str]], width: int,
-                 digits: int, intervals: dict[tuple[str, str], dict[str, tuple[float, float]]] | None) -> str:
-    lines = [f"{'':16s}" + "".join(f"{m:>{width}s}" for m, _ in columns),
-             f"{'':16s}" + "".join(f"{s:>{width}s}" for _, s in columns)]
+def _table_block(
+    rows: dict[str, dict[str, dict[str, np.ndarray]]],
+    columns: list[tuple[str, str]],
+    width: int,
+    digits: int,
+    intervals: dict[tuple[str, str], dict[str, tuple[float, float]]] | None,
+) -> str:
+    lines = [
+        f"{'':16s}" + "".join(f"{m:>{width}s}" for m, _ in columns),
+        f"{'':16s}" + "".join(f"{s:>{width}s}" for _, s in columns),
+    ]
     for score in ("accuracy", "f1", "precision", "recall"):
         for a, axis in enumerate([*AXES, "mean"]):
             cells = []
@@ -131,6 +154,7 @@ def _table_block(rows: dict[str, dict[str, dict[str, np.ndarray]]], columns: lis
                 cells.append(f"{text:>{width}s}")
             lines.append(f"{score + ' 95% CI':16s}" + "".join(cells))
     for a, axis in enumerate(AXES):
-        lines.append(f"{'positives ' + axis:16s}" + "".join(f"{int(rows[m][s]['support'][a]):>{width}d}"
-                                                            for m, s in columns))
+        lines.append(
+            f"{'positives ' + axis:16s}" + "".join(f"{int(rows[m][s]['support'][a]):>{width}d}" for m, s in columns)
+        )
     return "\n".join(lines)

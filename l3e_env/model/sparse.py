@@ -16,6 +16,7 @@ key (the batch, then the bits of x, y and z interleaved), so that the eight chil
 coarser site are consecutive rows and each coarser level follows from the finer one without
 another sort.
 """
+
 from __future__ import annotations
 
 import itertools
@@ -79,8 +80,12 @@ def _linear_keys(coords: np.ndarray) -> np.ndarray:
     """Keys linear in x, y and z: a neighbour's key is the site's plus a constant (_NEIGHBOUR_DELTAS)."""
     keys = np.empty(len(coords), dtype=np.int64)
     for i in range(len(coords)):
-        keys[i] = (coords[i, 0] << 3 * _BITS) | (_shifted(coords[i, 1]) << 2 * _BITS) | (
-            _shifted(coords[i, 2]) << _BITS) | _shifted(coords[i, 3])
+        keys[i] = (
+            (coords[i, 0] << 3 * _BITS)
+            | (_shifted(coords[i, 1]) << 2 * _BITS)
+            | (_shifted(coords[i, 2]) << _BITS)
+            | _shifted(coords[i, 3])
+        )
     return keys
 
 
@@ -217,13 +222,18 @@ class Level:
                 slot = keys & 7  # the lowest bits of x, y and z: 4 dx + 2 dy + dz
                 children = np.full((len(first), 8), len(coords), dtype=np.int64)
                 children[parent, slot] = np.arange(len(coords))
-            self._coarser = (Level(torch.from_numpy(coarse), self.stride * 2, coarse_keys),
-                             torch.from_numpy(children), torch.from_numpy(parent), torch.from_numpy(slot))
+            self._coarser = (
+                Level(torch.from_numpy(coarse), self.stride * 2, coarse_keys),
+                torch.from_numpy(children),
+                torch.from_numpy(parent),
+                torch.from_numpy(slot),
+            )
         return self._coarser
 
 
-def _gather_matmul(x: torch.Tensor, table: torch.Tensor, weight: torch.Tensor,
-                   bias: torch.Tensor | None = None) -> torch.Tensor:
+def _gather_matmul(
+    x: torch.Tensor, table: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None = None
+) -> torch.Tensor:
     """sum_k x[table[:, k]] @ weight[k] (+ bias), with row len(x) of the table meaning 'no neighbour'."""
     padded = torch.cat([x, x.new_zeros(1, x.shape[1])])
     gathered = padded.index_select(0, table.reshape(-1)).reshape(len(table), -1)  # 2x faster than padded[table]
@@ -299,8 +309,9 @@ def _rounded_rows(y: np.ndarray, high: float) -> tuple[np.ndarray, float]:
 
 
 @njit(cache=True, nogil=True)
-def _relu_rows(products: np.ndarray, weight_scale: np.ndarray, scale: float, bias: np.ndarray
-               ) -> tuple[np.ndarray, float]:
+def _relu_rows(
+    products: np.ndarray, weight_scale: np.ndarray, scale: float, bias: np.ndarray
+) -> tuple[np.ndarray, float]:
     """relu(products * weight_scale * scale + bias) of one scan as int8 rows (see _rounded_rows)."""
     n, c = products.shape
     factor = weight_scale * np.float32(scale)
@@ -313,8 +324,9 @@ def _relu_rows(products: np.ndarray, weight_scale: np.ndarray, scale: float, bia
 
 
 @njit(cache=True, nogil=True)
-def _residual_relu(products: np.ndarray, weight_scale: np.ndarray, scale: float, bias: np.ndarray,
-                   residual: np.ndarray) -> np.ndarray:
+def _residual_relu(
+    products: np.ndarray, weight_scale: np.ndarray, scale: float, bias: np.ndarray, residual: np.ndarray
+) -> np.ndarray:
     """relu(products * weight_scale * scale + bias + residual), float32."""
     n, c = products.shape
     factor = weight_scale * np.float32(scale)
@@ -388,8 +400,9 @@ def int8_residual_block(conv1: GatherConv, conv2: GatherConv, x: torch.Tensor, l
     products = conv1.int8_products(torch.from_numpy(rows), table).numpy()
     rows, scale = _relu_rows(products, conv1.int8_scale.numpy(), scale, conv1.bias.detach().numpy())
     products = conv2.int8_products(torch.from_numpy(rows), table).numpy()
-    return torch.from_numpy(_residual_relu(products, conv2.int8_scale.numpy(), scale, conv2.bias.detach().numpy(),
-                                           features))
+    return torch.from_numpy(
+        _residual_relu(products, conv2.int8_scale.numpy(), scale, conv2.bias.detach().numpy(), features)
+    )
 
 
 class SubmanifoldConv(GatherConv):

@@ -8,6 +8,7 @@ uninterrupted run would have. The folder holds:
   best.pt       the epoch with the best validation F1, with thresholds from its PR curves
   model.pt      best.pt without the optimizer state: the file to ship and load
 """
+
 from __future__ import annotations
 
 import json
@@ -102,7 +103,7 @@ def training_targets(data: LabelDataset | DatasetUnion, softness: float) -> np.n
     if softness <= 0:
         return data.labels.astype(np.float32)
     ratio = np.maximum(error_ratios(data), 1e-9)
-    return (1.0 / (1.0 + ratio ** -softness)).astype(np.float32)  # = sigmoid(k ln ratio)
+    return (1.0 / (1.0 + ratio**-softness)).astype(np.float32)  # = sigmoid(k ln ratio)
 
 
 def scene_families(data: LabelDataset | DatasetUnion, rows: np.ndarray) -> tuple[np.ndarray, list[str]]:
@@ -120,8 +121,9 @@ class GroupWeights:
 
     def __init__(self, families: list[str], eta: float, weights: list[float] | None = None):
         self.families, self.eta = families, eta
-        self.q = torch.tensor(weights if weights is not None else [1.0 / len(families)] * len(families),
-                              dtype=torch.float64)
+        self.q = torch.tensor(
+            weights if weights is not None else [1.0 / len(families)] * len(families), dtype=torch.float64
+        )
 
     def loss(self, per_scan: torch.Tensor, group: torch.Tensor) -> torch.Tensor:
         present = torch.unique(group)
@@ -149,8 +151,9 @@ def balanced_pool(labels: np.ndarray, max_upsampling: float) -> np.ndarray:
     return np.concatenate(pool)
 
 
-def augment(points: np.ndarray, labels: np.ndarray, rng: np.random.Generator,
-            up: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+def augment(
+    points: np.ndarray, labels: np.ndarray, rng: np.random.Generator, up: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """A random mirror/swap view of the scan, with its labels (and up vector) to match."""
     sign = np.array([rng.choice([-1, 1]), rng.choice([-1, 1]), 1], dtype=np.float32)
     swap = rng.random() < 0.5
@@ -170,33 +173,51 @@ def scaled(points: np.ndarray, factor: float, rng: np.random.Generator) -> np.nd
     return points * np.float32(np.exp(rng.uniform(-1.0, 1.0) * np.log(factor)))
 
 
-def _dataset_batches(model: LocalizabilityNet, data: LabelDataset | DatasetUnion, rows: np.ndarray, seed: int,
-                     batch_size: int, progress: bool):
+def _dataset_batches(
+    model: LocalizabilityNet,
+    data: LabelDataset | DatasetUnion,
+    rows: np.ndarray,
+    seed: int,
+    batch_size: int,
+    progress: bool,
+):
     """(start, model inputs, up vectors or None) per batch of `rows`; the point sampling of scan i
     is seeded by (seed, i), so the figures do not depend on the batch size or the order."""
     ups = up_vector(data.poses[rows]) if model.config.gravity else None
     for start in tqdm(range(0, len(rows), batch_size), desc="predicting", disable=not progress, leave=False):
-        chunk = rows[start:start + batch_size]
-        batch = [model_input(data.scan(int(i)), model.config, np.random.default_rng([seed, int(i)]))
-                 for i in chunk]
-        yield start, batch, None if ups is None else ups[start:start + len(chunk)]
+        chunk = rows[start : start + batch_size]
+        batch = [model_input(data.scan(int(i)), model.config, np.random.default_rng([seed, int(i)])) for i in chunk]
+        yield start, batch, None if ups is None else ups[start : start + len(chunk)]
 
 
-def predict_dataset(model: LocalizabilityNet, data: LabelDataset | DatasetUnion, rows: np.ndarray, seed: int = 0,
-                    batch_size: int = 16, progress: bool = False, symmetric: bool = False) -> np.ndarray:
+def predict_dataset(
+    model: LocalizabilityNet,
+    data: LabelDataset | DatasetUnion,
+    rows: np.ndarray,
+    seed: int = 0,
+    batch_size: int = 16,
+    progress: bool = False,
+    symmetric: bool = False,
+) -> np.ndarray:
     """(len(rows), 6) probabilities (averaged over the mirror/swap views if `symmetric`)."""
     model.eval()
     if symmetric:  # the same number of views per forward pass
         batch_size = max(1, batch_size // len(SYMMETRIES))
     out = np.zeros((len(rows), 6))
     for start, batch, up in _dataset_batches(model, data, rows, seed, batch_size, progress):
-        out[start:start + len(batch)] = model_probabilities(model, batch, symmetric, up)
+        out[start : start + len(batch)] = model_probabilities(model, batch, symmetric, up)
     return out
 
 
 @torch.inference_mode()
-def network_parts(model: LocalizabilityNet, data: LabelDataset | DatasetUnion, rows: np.ndarray, seed: int = 0,
-                  batch_size: int = 16, progress: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def network_parts(
+    model: LocalizabilityNet,
+    data: LabelDataset | DatasetUnion,
+    rows: np.ndarray,
+    seed: int = 0,
+    batch_size: int = 16,
+    progress: bool = False,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The network's own logits (len(rows), 6), before any constraint layer, the scans' Hessian
     features (len(rows), 12 per level of config.constraint_levels), both on the axes of the view the
     model reads (LocalizabilityNet.canonical), and which rows that view swaps x and y (len(rows),):
@@ -208,9 +229,9 @@ def network_parts(model: LocalizabilityNet, data: LabelDataset | DatasetUnion, r
     for start, batch, up in _dataset_batches(model, data, rows, seed, batch_size, progress):
         views, view_up, swap = model.canonical(batch, up_tensor(up))
         net, feats = model.parts(views, view_up, constraints=True)
-        logits[start:start + len(batch)], features[start:start + len(batch)] = net.numpy(), feats.numpy()
+        logits[start : start + len(batch)], features[start : start + len(batch)] = net.numpy(), feats.numpy()
         if swap is not None:
-            swapped[start:start + len(batch)] = swap.numpy()
+            swapped[start : start + len(batch)] = swap.numpy()
     return logits, features, swapped
 
 
@@ -225,28 +246,39 @@ def _optimizer(cfg: TrainConfig, model: torch.nn.Module) -> torch.optim.Optimize
 def _label_meta(data: LabelDataset | DatasetUnion) -> dict[str, Any]:
     """What a checkpoint records of the labels it learnt: their protocol, sensor and registration."""
     settings = data.manifest["settings"]
-    return {"protocol": data.manifest["protocol"], "lidar": settings["lidar"], "registration": settings["registration"],
-            "labels": settings["labels"]}
+    return {
+        "protocol": data.manifest["protocol"],
+        "lidar": settings["lidar"],
+        "registration": settings["registration"],
+        "labels": settings["labels"],
+    }
 
 
 def _meta(cfg: TrainConfig, data: LabelDataset | DatasetUnion) -> dict[str, Any]:
-    return {"training": plain(to_dict(cfg)), **_label_meta(data),
-            "dataset": {"folder": data.name, "count": len(data), "seed": data.manifest["settings"]["seed"]}}
+    return {
+        "training": plain(to_dict(cfg)),
+        **_label_meta(data),
+        "dataset": {"folder": data.name, "count": len(data), "seed": data.manifest["settings"]["seed"]},
+    }
 
 
 def check_train_config(cfg: TrainConfig) -> None:
     """TrainingError for settings no run can use, before any folder or data is touched."""
-    problems = [f"{name} must be {rule}, got {value}" for name, value, ok, rule in [
-        ("epochs", cfg.epochs, cfg.epochs >= 1, "at least 1"),
-        ("batch_size", cfg.batch_size, cfg.batch_size >= 1, "at least 1"),
-        ("learning_rate", cfg.learning_rate, cfg.learning_rate >= 0, "0 or more"),
-        ("lr_decay", cfg.lr_decay, 0 < cfg.lr_decay <= 1, "in (0, 1]"),
-        ("samples_per_epoch", cfg.samples_per_epoch, cfg.samples_per_epoch >= 0, "0 (the whole pool) or more"),
-        ("threads", cfg.threads, cfg.threads >= 1, "at least 1"),
-        ("optimizer", cfg.optimizer, cfg.optimizer in ("sgd", "adamw"), "sgd or adamw"),
-        ("group_dro", cfg.group_dro, cfg.group_dro >= 0, "0 (off) or more"),
-        ("scale_augment", cfg.scale_augment, cfg.scale_augment >= 1, "1 (off) or more"),
-    ] if not ok]
+    problems = [
+        f"{name} must be {rule}, got {value}"
+        for name, value, ok, rule in [
+            ("epochs", cfg.epochs, cfg.epochs >= 1, "at least 1"),
+            ("batch_size", cfg.batch_size, cfg.batch_size >= 1, "at least 1"),
+            ("learning_rate", cfg.learning_rate, cfg.learning_rate >= 0, "0 or more"),
+            ("lr_decay", cfg.lr_decay, 0 < cfg.lr_decay <= 1, "in (0, 1]"),
+            ("samples_per_epoch", cfg.samples_per_epoch, cfg.samples_per_epoch >= 0, "0 (the whole pool) or more"),
+            ("threads", cfg.threads, cfg.threads >= 1, "at least 1"),
+            ("optimizer", cfg.optimizer, cfg.optimizer in ("sgd", "adamw"), "sgd or adamw"),
+            ("group_dro", cfg.group_dro, cfg.group_dro >= 0, "0 (off) or more"),
+            ("scale_augment", cfg.scale_augment, cfg.scale_augment >= 1, "1 (off) or more"),
+        ]
+        if not ok
+    ]
     if problems:
         raise TrainingError("; ".join(problems))
 
@@ -254,16 +286,20 @@ def check_train_config(cfg: TrainConfig) -> None:
 def _initial_model(cfg: TrainConfig) -> LocalizabilityNet:
     """Fresh weights seeded by cfg.seed, or (fine-tuning) the weights of cfg.init."""
     if cfg.model.constraints:
-        raise TrainingError("the constraint layer is fitted after training (l3e fit-constraints): train the network "
-                            "without it, from a checkpoint without it")
+        raise TrainingError(
+            "the constraint layer is fitted after training (l3e fit-constraints): train the network "
+            "without it, from a checkpoint without it"
+        )
     torch.manual_seed(cfg.seed)
     if cfg.init is None:
         return LocalizabilityNet(cfg.model)
     start = model_from_checkpoint(load_checkpoint(cfg.init), cfg.init)
     network = network_config(start.config)
     if plain(to_dict(network)) != plain(to_dict(cfg.model)):
-        raise TrainingError(f"--init {cfg.init}: its model settings {plain(to_dict(network))} differ from "
-                            f"this run's {plain(to_dict(cfg.model))}")
+        raise TrainingError(
+            f"--init {cfg.init}: its model settings {plain(to_dict(network))} differ from "
+            f"this run's {plain(to_dict(cfg.model))}"
+        )
     if network == start.config:
         return start
     model = LocalizabilityNet(network)  # a checkpoint with a constraint layer: its network, without the layer
@@ -284,14 +320,18 @@ def _resumable(training: dict[str, Any]) -> dict[str, Any]:
     return {k: v for k, v in full.items() if k not in ("epochs", "threads", "threshold_beta")}
 
 
-def train(dataset: str | Path | list[str | Path], out_dir: str | Path, cfg: TrainConfig,
-          progress: bool = True) -> dict[str, Any]:
+def train(
+    dataset: str | Path | list[str | Path], out_dir: str | Path, cfg: TrainConfig, progress: bool = True
+) -> dict[str, Any]:
     """Train (or resume) into `out_dir` on one dataset or several read as one; returns the
     summary of the best epoch."""
     check_train_config(cfg)
     # a mesh scene by its absolute path, as its dataset names it, whatever folder the config was written in
-    cfg = replace(cfg, train_scenes=[canonical_scene_name(s) for s in cfg.train_scenes],
-                  validation_scenes=[canonical_scene_name(s) for s in cfg.validation_scenes])
+    cfg = replace(
+        cfg,
+        train_scenes=[canonical_scene_name(s) for s in cfg.train_scenes],
+        validation_scenes=[canonical_scene_name(s) for s in cfg.validation_scenes],
+    )
     torch.set_num_threads(cfg.threads)
     data = open_datasets(dataset)
     out = Path(out_dir)
@@ -310,8 +350,9 @@ def train(dataset: str | Path | list[str | Path], out_dir: str | Path, cfg: Trai
         before = {**_resumable(state["training"]), "dataset": state["dataset"]}
         now = {**_resumable(meta["training"]), "dataset": meta["dataset"]}
         if before != now:
-            raise TrainingError(f"{out} holds a run with other settings ({settings_changed(before, now)}); "
-                                "choose another folder")
+            raise TrainingError(
+                f"{out} holds a run with other settings ({settings_changed(before, now)}); choose another folder"
+            )
         model = model_from_checkpoint(state, str(last))
     else:
         model = _initial_model(cfg)
@@ -343,11 +384,15 @@ def train(dataset: str | Path | list[str | Path], out_dir: str | Path, cfg: Trai
         order = train_rows[rng.choice(pool, count, replace=count > len(pool))]
         model.train()
         losses = []
-        bar = tqdm(range(0, count - cfg.batch_size + 1, cfg.batch_size), disable=not progress, leave=False,
-                   desc=f"epoch {epoch + 1}/{cfg.epochs}")
+        bar = tqdm(
+            range(0, count - cfg.batch_size + 1, cfg.batch_size),
+            disable=not progress,
+            leave=False,
+            desc=f"epoch {epoch + 1}/{cfg.epochs}",
+        )
         for start in bar:
             batch, targets, ups = [], [], []
-            for i in order[start:start + cfg.batch_size]:
+            for i in order[start : start + cfg.batch_size]:
                 pts, lab, up = data.scan(int(i)), targets_all[i], up_all[i] if up_all is not None else None
                 if cfg.augment:
                     pts, lab, up = augment(pts, lab, rng, up)
@@ -361,7 +406,7 @@ def train(dataset: str | Path | list[str | Path], out_dir: str | Path, cfg: Trai
                 loss = loss_fn(logits, truth)
             else:
                 per_scan = torch.nn.functional.binary_cross_entropy_with_logits(logits, truth, reduction="none").mean(1)
-                member = torch.tensor([row_family[int(i)] for i in order[start:start + cfg.batch_size]])
+                member = torch.tensor([row_family[int(i)] for i in order[start : start + cfg.batch_size]])
                 loss = groups.loss(per_scan, member)
             optimizer.zero_grad()
             loss.backward()
@@ -369,15 +414,20 @@ def train(dataset: str | Path | list[str | Path], out_dir: str | Path, cfg: Trai
             losses.append(loss.item())
             bar.set_postfix(loss=f"{np.mean(losses[-50:]):.3f}")
         scheduler.step()
-        record = {"epoch": epoch + 1, "train_loss": float(np.mean(losses)), "lr": scheduler.get_last_lr()[0],
-                  "seconds": round(time.perf_counter() - t0, 1)}
+        record = {
+            "epoch": epoch + 1,
+            "train_loss": float(np.mean(losses)),
+            "lr": scheduler.get_last_lr()[0],
+            "seconds": round(time.perf_counter() - t0, 1),
+        }
         if groups is not None:
             record["family_weights"] = {f: round(w, 4) for f, w in groups.state().items()}
         if len(val_rows):
             probs = predict_dataset(model, data, val_rows, seed=cfg.seed)
             y = labels[val_rows]
-            record["val_loss"] = float(loss_fn(torch.logit(torch.tensor(probs).clamp(1e-6, 1 - 1e-6)),
-                                               torch.tensor(y, dtype=torch.float64)))
+            record["val_loss"] = float(
+                loss_fn(torch.logit(torch.tensor(probs).clamp(1e-6, 1 - 1e-6)), torch.tensor(y, dtype=torch.float64))
+            )
             thresholds = best_thresholds(y, probs)
             scores = mean_scores(axis_scores(y, probs > thresholds))
             record.update({f"val_{k}": v for k, v in scores.items()})
@@ -390,17 +440,28 @@ def train(dataset: str | Path | list[str | Path], out_dir: str | Path, cfg: Trai
         if improved:
             best = {"f1": record.get("val_f1", float("nan")), "epoch": epoch + 1}
             save_checkpoint(out / "best.pt", model, thresholds, meta, {"epoch": epoch, "scores": record})
-        save_checkpoint(last, model, thresholds, meta, {
-            "epoch": epoch, "best": best, "optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(),
-            "group_weights": groups.state() if groups is not None else None})
+        save_checkpoint(
+            last,
+            model,
+            thresholds,
+            meta,
+            {
+                "epoch": epoch,
+                "best": best,
+                "optimizer": optimizer.state_dict(),
+                "scheduler": scheduler.state_dict(),
+                "group_weights": groups.state() if groups is not None else None,
+            },
+        )
         if progress:
             val = f", val loss {record['val_loss']:.3f}, F1 {record['val_f1']:.3f}" if "val_f1" in record else ""
             print(f"epoch {epoch + 1}/{cfg.epochs}: train loss {record['train_loss']:.3f}{val} ({record['seconds']} s)")
     return finalize(data, out, cfg, val_rows, meta)
 
 
-def finalize(data: LabelDataset | DatasetUnion, out: Path, cfg: TrainConfig, val_rows: np.ndarray,
-             meta: dict[str, Any]) -> dict:
+def finalize(
+    data: LabelDataset | DatasetUnion, out: Path, cfg: TrainConfig, val_rows: np.ndarray, meta: dict[str, Any]
+) -> dict:
     """model.pt: the best epoch's weights with the operating thresholds (F-beta on validation), for
     single and for symmetric (eight-view) inference."""
     state = load_checkpoint(out / "best.pt")
@@ -410,14 +471,24 @@ def finalize(data: LabelDataset | DatasetUnion, out: Path, cfg: TrainConfig, val
         probs = predict_dataset(model, data, val_rows, seed=cfg.seed)
         thresholds = best_thresholds(data.labels[val_rows], probs, beta=cfg.threshold_beta)
         symmetric = symmetric_thresholds(model, data, val_rows, cfg.seed, cfg.threshold_beta)
-    save_checkpoint(out / "model.pt", model, thresholds, {**meta, "threshold_beta": cfg.threshold_beta},
-                    {"epoch": state["epoch"], "scores": state["scores"],
-                     "symmetric_thresholds": [float(t) for t in symmetric]})
+    save_checkpoint(
+        out / "model.pt",
+        model,
+        thresholds,
+        {**meta, "threshold_beta": cfg.threshold_beta},
+        {"epoch": state["epoch"], "scores": state["scores"], "symmetric_thresholds": [float(t) for t in symmetric]},
+    )
     return {"best_epoch": state["epoch"] + 1, **state["scores"], "thresholds": thresholds.round(4).tolist()}
 
 
-def symmetric_thresholds(model: LocalizabilityNet, data: LabelDataset | DatasetUnion, val_rows: np.ndarray,
-                         seed: int, beta: float, progress: bool = False) -> np.ndarray:
+def symmetric_thresholds(
+    model: LocalizabilityNet,
+    data: LabelDataset | DatasetUnion,
+    val_rows: np.ndarray,
+    seed: int,
+    beta: float,
+    progress: bool = False,
+) -> np.ndarray:
     """F-beta-best validation thresholds for the eight-view averaged probabilities: averaging
     narrows the spread of the probabilities, so the single-view thresholds do not carry over."""
     probs = predict_dataset(model, data, val_rows, seed=seed, progress=progress, symmetric=True)
@@ -429,8 +500,9 @@ def _checkpoint_meta(state: dict[str, Any]) -> dict[str, Any]:
     return {k: v for k, v in state.items() if k not in ("format", "version", "model", "state_dict", "thresholds")}
 
 
-def calibrate_symmetric(checkpoint: str | Path, dataset: str | Path | list[str | Path], out: str | Path | None = None,
-                        progress: bool = True) -> np.ndarray:
+def calibrate_symmetric(
+    checkpoint: str | Path, dataset: str | Path | list[str | Path], out: str | Path | None = None, progress: bool = True
+) -> np.ndarray:
     """Add symmetric-inference thresholds to a checkpoint made before they existed, from its own
     validation scenes and F-beta; everything else in the file is kept. Written to `out`, or back
     into the checkpoint (atomically)."""
@@ -441,16 +513,28 @@ def calibrate_symmetric(checkpoint: str | Path, dataset: str | Path | list[str |
     data = open_datasets(dataset)
     rows = split_indices(data, training["validation_scenes"])
     model = model_from_checkpoint(state, str(checkpoint))
-    thresholds = symmetric_thresholds(model, data, rows, int(training.get("seed", 0)),
-                                      float(state.get("threshold_beta", 1.0)), progress)
-    save_checkpoint(out or checkpoint, model, np.asarray(state["thresholds"]), _checkpoint_meta(state),
-                    {"symmetric_thresholds": [float(t) for t in thresholds]})
+    thresholds = symmetric_thresholds(
+        model, data, rows, int(training.get("seed", 0)), float(state.get("threshold_beta", 1.0)), progress
+    )
+    save_checkpoint(
+        out or checkpoint,
+        model,
+        np.asarray(state["thresholds"]),
+        _checkpoint_meta(state),
+        {"symmetric_thresholds": [float(t) for t in thresholds]},
+    )
     return thresholds
 
 
-def fit_constraints(checkpoint: str | Path, dataset: str | Path | list[str | Path], out: str | Path,
-                    beta: float | None = None, levels: tuple[int, ...] = (0, 1),
-                    progress: bool = True, frame: str | None = None) -> dict[str, Any]:
+def fit_constraints(
+    checkpoint: str | Path,
+    dataset: str | Path | list[str | Path],
+    out: str | Path,
+    beta: float | None = None,
+    levels: tuple[int, ...] = (0, 1),
+    progress: bool = True,
+    frame: str | None = None,
+) -> dict[str, Any]:
     """A checkpoint with the constraint layer (l3e_env.model.constraints): the network of `checkpoint` as
     it is, a per-axis logistic layer over its logits and the Hessian features of the ResUNet levels
     `levels` fitted on its own training scenes, and thresholds (single and eight-view) chosen on its
@@ -462,8 +546,9 @@ def fit_constraints(checkpoint: str | Path, dataset: str | Path | list[str | Pat
         raise CheckpointError(f"{checkpoint} does not name its training and validation scenes")
     base = model_from_checkpoint(state, str(checkpoint))
     if base.config.architecture != "resunet":
-        raise CheckpointError(f"{checkpoint} is a {base.config.architecture}; the constraint layer reads a ResUNet's "
-                              "voxels")
+        raise CheckpointError(
+            f"{checkpoint} is a {base.config.architecture}; the constraint layer reads a ResUNet's voxels"
+        )
     data = open_datasets(dataset)
     train_rows = split_indices(data, training["train_scenes"])
     val_rows = split_indices(data, training["validation_scenes"])
@@ -472,8 +557,9 @@ def fit_constraints(checkpoint: str | Path, dataset: str | Path | list[str | Pat
     Path(out).parent.mkdir(parents=True, exist_ok=True)  # before minutes of fitting, not after
     seed = int(training.get("seed", 0))
     try:
-        model = LocalizabilityNet(replace(base.config, constraints=True, constraint_levels=tuple(levels),
-                                          frame=frame or base.config.frame))
+        model = LocalizabilityNet(
+            replace(base.config, constraints=True, constraint_levels=tuple(levels), frame=frame or base.config.frame)
+        )
     except ValueError as exc:
         raise TrainingError(str(exc)) from exc
     model.load_state_dict({**model.state_dict(), **base.state_dict()})  # the base's network, the layer unfitted
@@ -490,8 +576,17 @@ def fit_constraints(checkpoint: str | Path, dataset: str | Path | list[str | Pat
     # the base network's epoch and validation scores describe the network without the layer: kept apart
     kept = {k: v for k, v in _checkpoint_meta(state).items() if k not in ("epoch", "scores")}
     scores = {f"val_{k}": v for k, v in mean_scores(axis_scores(val_labels, val_probs > thresholds)).items()}
-    meta = {**kept, **_label_meta(data), "threshold_beta": beta, "scores": scores,
-            "constraints": {"base": str(checkpoint), "fitted_rows": int(len(train_rows)),
-                            "base_epoch": state.get("epoch"), "base_scores": state.get("scores")}}
+    meta = {
+        **kept,
+        **_label_meta(data),
+        "threshold_beta": beta,
+        "scores": scores,
+        "constraints": {
+            "base": str(checkpoint),
+            "fitted_rows": int(len(train_rows)),
+            "base_epoch": state.get("epoch"),
+            "base_scores": state.get("scores"),
+        },
+    }
     save_checkpoint(out, model, thresholds, meta, {"symmetric_thresholds": [float(t) for t in symmetric]})
     return {"thresholds": thresholds.round(4).tolist(), "weights": stacker.weight.detach().numpy().round(3).tolist()}

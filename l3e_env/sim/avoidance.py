@@ -9,6 +9,7 @@ for `look` metres; the heading the policy wants is kept where free, else the fre
 turns least from it and from the robot's own heading together is taken. Hand-written: the
 navigation libraries on the registry (ROS's local planners, nav2) need a ROS install.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -29,12 +30,18 @@ class FreeHeadings:
 
     def __post_init__(self):
         if self.half_width <= 0 or self.front < 0 or self.look <= 0 or not 0 < self.resolution <= np.pi / 2:
-            raise ValueError(f"FreeHeadings needs half_width > 0, front >= 0, look > 0 and a resolution in "
-                             f"(0, pi/2], got {self}")
+            raise ValueError(
+                f"FreeHeadings needs half_width > 0, front >= 0, look > 0 and a resolution in (0, pi/2], got {self}"
+            )
 
     @staticmethod
-    def obstacles(points_s: np.ndarray, T_b_s: np.ndarray, robot: RobotConfig | None = None,
-                  above_ground: float = 0.2, above_base: float = 0.3) -> np.ndarray:
+    def obstacles(
+        points_s: np.ndarray,
+        T_b_s: np.ndarray,
+        robot: RobotConfig | None = None,
+        above_ground: float = 0.2,
+        above_base: float = 0.3,
+    ) -> np.ndarray:
         """The scan's returns (sensor frame, (N, 3)) that the base would hit, as body-frame (x, y):
         those from `above_ground` m over the floor under the feet to `above_base` m over the base's top."""
         robot = robot or RobotConfig()

@@ -1,4 +1,5 @@
 """A scripted pure-pursuit route follower, for demos, recordings and as a baseline policy."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -18,8 +19,9 @@ def route_drive(route: np.ndarray) -> tuple[float, int]:
     return length, round(length / CRUISE_SPEED / RobotConfig.dt)
 
 
-def walk_towards(heading_error: np.ndarray | float, speed: float = CRUISE_SPEED, turn_gain: float = 1.5
-                 ) -> tuple[np.ndarray, np.ndarray]:
+def walk_towards(
+    heading_error: np.ndarray | float, speed: float = CRUISE_SPEED, turn_gain: float = 1.5
+) -> tuple[np.ndarray, np.ndarray]:
     """Normalised forward speed and yaw rate that walk towards a heading `heading_error` (rad) off
     the robot's own: forward at `speed` times the cosine of the turn (none past 90 deg), turning at
     `turn_gain` times its angle; element-wise."""
@@ -36,8 +38,14 @@ class RouteFollower:
     heading nearest to the target's, so that a robot whose pose is off walks round what it meets.
     """
 
-    def __init__(self, route: np.ndarray, lookahead: float = 2.0, speed: float = CRUISE_SPEED, turn_gain: float = 1.5,
-                 avoid: FreeHeadings | None = None):
+    def __init__(
+        self,
+        route: np.ndarray,
+        lookahead: float = 2.0,
+        speed: float = CRUISE_SPEED,
+        turn_gain: float = 1.5,
+        avoid: FreeHeadings | None = None,
+    ):
         self.route = resample_polyline(np.asarray(route)[:, :2], 0.25)
         self.lookahead, self.speed, self.turn_gain, self.avoid = lookahead, speed, turn_gain, avoid
         self.index = 0
@@ -57,7 +65,8 @@ class RouteFollower:
         local = inverse(T_w_b) @ np.array([target[0], target[1], T_w_b[2, 3], 1.0])
         heading_error = float(np.arctan2(local[1], local[0]))
         if self.avoid is not None and obstacles is not None:
-            heading_error = self.avoid.steer(obstacles, heading_error,
-                                             look=min(self.avoid.look, float(np.hypot(local[0], local[1]))))
+            heading_error = self.avoid.steer(
+                obstacles, heading_error, look=min(self.avoid.look, float(np.hypot(local[0], local[1])))
+            )
         forward, turn = walk_towards(heading_error, self.speed, self.turn_gain)
         return np.array([forward, 0.0, turn], dtype=np.float32)

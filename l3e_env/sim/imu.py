@@ -3,6 +3,7 @@ recorded drive also feeds LiDAR-inertial odometry (FAST-LIO, LIO-SAM), which nee
 orientation of a nine-axis unit (LIO-SAM reads it), whose roll and pitch hold to gravity and
 whose heading wanders with the magnetometer's disturbances, and with the jolts of a walking
 robot's footfalls, which the stand-in's smooth drive does not have."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -52,8 +53,9 @@ class ImuSamples:
     orientation: np.ndarray | None = None  # (N, 4) x, y, z, w of the body in the world frame; None: six-axis
 
 
-def imu_samples(stamps: np.ndarray, poses: list[np.ndarray], config: ImuConfig | None = None,
-                rng: np.random.Generator | None = None) -> ImuSamples:
+def imu_samples(
+    stamps: np.ndarray, poses: list[np.ndarray], config: ImuConfig | None = None, rng: np.random.Generator | None = None
+) -> ImuSamples:
     """The IMU's readings from the first pose's time to the last at `config.rate`: position and
     rotation splines through the poses T_w_b (z up) at `stamps` (continuous angular rate and
     acceleration), plus white noise and wandering biases where `rng` is given; with
@@ -62,8 +64,9 @@ def imu_samples(stamps: np.ndarray, poses: list[np.ndarray], config: ImuConfig |
     config = config or ImuConfig()
     stamps = np.asarray(stamps, dtype=np.float64)
     if len(stamps) < 2 or len(stamps) != len(poses) or not (np.diff(stamps) > 0).all():
-        raise ValueError(f"the IMU needs at least two poses at increasing times, got {len(poses)} poses "
-                         f"at {len(stamps)} times")
+        raise ValueError(
+            f"the IMU needs at least two poses at increasing times, got {len(poses)} poses at {len(stamps)} times"
+        )
     poses = np.asarray(poses, dtype=np.float64)
     from scipy.interpolate import CubicSpline  # scipy.interpolate loads slowly: only where an IMU is simulated
 
@@ -76,16 +79,23 @@ def imu_samples(stamps: np.ndarray, poses: list[np.ndarray], config: ImuConfig |
     if rng is not None:
         gyro_sigma, accel_sigma = config.sigmas()
         step = np.sqrt(1.0 / config.rate)
-        gyro = gyro + np.cumsum(rng.normal(0.0, config.gyro_bias_walk * step, gyro.shape), axis=0) \
+        gyro = (
+            gyro
+            + np.cumsum(rng.normal(0.0, config.gyro_bias_walk * step, gyro.shape), axis=0)
             + rng.normal(0.0, gyro_sigma, gyro.shape)
-        accel = accel + np.cumsum(rng.normal(0.0, config.accel_bias_walk * step, accel.shape), axis=0) \
+        )
+        accel = (
+            accel
+            + np.cumsum(rng.normal(0.0, config.accel_bias_walk * step, accel.shape), axis=0)
             + rng.normal(0.0, accel_sigma, accel.shape)
+        )
     attitude = None
     if config.orientation:
         body = rotation(t)
         if rng is not None:
-            body = body * Rotation.from_rotvec(_gauss_markov(len(t), 1.0 / config.rate, config.orientation_time,
-                                                             config.orientation_sigmas(), rng))
+            body = body * Rotation.from_rotvec(
+                _gauss_markov(len(t), 1.0 / config.rate, config.orientation_time, config.orientation_sigmas(), rng)
+            )
         attitude = body.as_quat()
     if rng is not None and config.footfall_accel > 0:  # drawn last: the other draws stay as they were
         walking = (np.linalg.norm(position(t, 1)[:, :2], axis=1) > WALKING_SPEED) | (np.abs(gyro[:, 2]) > WALKING_TURN)
@@ -137,8 +147,9 @@ def footfall_jolts(walking: np.ndarray, config: ImuConfig, rng: np.random.Genera
     phase = np.cumsum(walking * config.footfall_rate * dt)
     falls = np.flatnonzero(np.diff(np.floor(phase), prepend=0.0) > 0)
     s = np.arange(0.0, JOLT_LENGTH * config.jolt_time + 2.0 * dt, dt)
-    shape = np.concatenate([[0.0], s * np.exp(-s / config.jolt_time) * np.sin(2.0 * np.pi * config.jolt_frequency * s),
-                            [0.0, 0.0]])  # cut off at rest: what is left at 12 T, a 1e-5 of the jolt, is dropped
+    shape = np.concatenate(
+        [[0.0], s * np.exp(-s / config.jolt_time) * np.sin(2.0 * np.pi * config.jolt_frequency * s), [0.0, 0.0]]
+    )  # cut off at rest: what is left at 12 T, a 1e-5 of the jolt, is dropped
     rate_kernel = np.diff(shape)[1:] / dt  # the impact at a sample moves the body from the next one on
     accel_kernel = np.diff(shape, 2) / dt**2
     rate_peak, accel_peak = np.abs(rate_kernel).max(), np.abs(accel_kernel).max()
@@ -148,8 +159,9 @@ def footfall_jolts(walking: np.ndarray, config: ImuConfig, rng: np.random.Genera
     ones, zeros = np.ones(len(falls)), np.zeros(len(falls))
     n = len(walking)
     jolt_gyro, jolt_accel = np.zeros((n, 3)), np.zeros((n, 3))
-    jolt_accel[falls] = size * (config.footfall_accel / accel_peak) * np.stack([0.3 * sign[:, 0], 0.3 * alternate,
-                                                                                ones], 1)
+    jolt_accel[falls] = (
+        size * (config.footfall_accel / accel_peak) * np.stack([0.3 * sign[:, 0], 0.3 * alternate, ones], 1)
+    )
     jolt_gyro[falls] = size * (config.footfall_gyro / rate_peak) * np.stack([alternate, sign[:, 1], zeros], 1)
     for k in range(3):  # each footfall's impulse spread into its jolt
         jolt_accel[:, k] = np.convolve(jolt_accel[:, k], accel_kernel)[:n]
@@ -196,8 +208,9 @@ class StepAttitude:
         return np.asarray(R_w_b, dtype=np.float64) @ Rotation.from_rotvec(self.error).as_matrix()
 
 
-def attitude_readings(poses: np.ndarray, dt: float, config: ImuConfig | None = None,
-                      rng: np.random.Generator | None = None) -> np.ndarray:
+def attitude_readings(
+    poses: np.ndarray, dt: float, config: ImuConfig | None = None, rng: np.random.Generator | None = None
+) -> np.ndarray:
     """`StepAttitude`'s readings (N, 3, 3) at poses T_w_b taken every `dt` s."""
     unit = StepAttitude(config, rng)
     return np.array([unit.measure(T[:3, :3], dt) for T in np.asarray(poses, dtype=np.float64)])

@@ -1,4 +1,5 @@
 """Spinning LiDAR models: beam patterns, noise, dropout; points in the sensor frame."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -62,8 +63,13 @@ class Lidar:
         self._beam, self._column = beam.astype(np.int16), column.astype(np.int16)
         self._firing = self.pattern.firing_share(self._dirs)
 
-    def scan(self, T_w_s: np.ndarray, rng: np.random.Generator | None = None, start: np.ndarray | None = None,
-             period: float = 0.1) -> Scan:
+    def scan(
+        self,
+        T_w_s: np.ndarray,
+        rng: np.random.Generator | None = None,
+        start: np.ndarray | None = None,
+        period: float = 0.1,
+    ) -> Scan:
         """Scan from sensor pose T_w_s. Noise and dropout need `rng`; without it the scan is exact.
 
         `start`: the sensor's pose when the revolution began, `period` seconds before T_w_s. Each
@@ -127,8 +133,9 @@ DESKEW_STEPS = 2  # odometry steps averaged into the motion a revolution is desk
 DESKEW_SOURCES = ("gyro", "odometry")  # where a deskewing's rotation comes from; its translation is the odometry's
 
 
-def deskew_motion(steps: list[np.ndarray], gyro: np.ndarray | None = None,
-                  mounting: np.ndarray | None = None) -> np.ndarray:
+def deskew_motion(
+    steps: list[np.ndarray], gyro: np.ndarray | None = None, mounting: np.ndarray | None = None
+) -> np.ndarray:
     """The motion to deskew a revolution with, from the odometry's last steps (oldest first; the
     result is in their frame): the mean of the last DESKEW_STEPS, rotations averaged on SO(3). One
     step's leg odometry carries its white noise whole, which doubled ICP's yaw error on a steady

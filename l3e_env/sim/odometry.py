@@ -1,4 +1,5 @@
 """Leg odometry: the true relative motion between steps, with the drift legged robots show."""
+
 from __future__ import annotations
 
 from typing import TYPE_CHECKING
@@ -39,8 +40,16 @@ class LegOdometry:
         d, a = float(np.linalg.norm(v[:3])), abs(float(v[5]))
         self.yaw_bias += rng.normal(0.0, c.yaw_bias_walk * np.sqrt(d))
         self.z_bias += rng.normal(0.0, c.z_bias_walk * np.sqrt(d))
-        sigma = np.array([c.trans_noise_per_m * d, c.trans_noise_per_m * d, c.z_noise_per_m * d,
-                          c.rp_noise_per_m * d, c.rp_noise_per_m * d, c.yaw_noise_per_m * d + c.yaw_noise_per_rad * a])
+        sigma = np.array(
+            [
+                c.trans_noise_per_m * d,
+                c.trans_noise_per_m * d,
+                c.z_noise_per_m * d,
+                c.rp_noise_per_m * d,
+                c.rp_noise_per_m * d,
+                c.yaw_noise_per_m * d + c.yaw_noise_per_rad * a,
+            ]
+        )
         noisy = v + rng.normal(0.0, 1.0, 6) * sigma
         noisy[:3] *= self.scale
         noisy[2] += self.z_bias * d
@@ -54,25 +63,32 @@ class LegOdometry:
 SCALE_WALK = 1e-4  # per square-root metre
 
 
-def odometry_fusion_config(odometry: OdometryConfig, settings: FusionSettings = FusionSettings(),
-                           **overrides) -> FusionConfig:
+def odometry_fusion_config(
+    odometry: OdometryConfig, settings: FusionSettings = FusionSettings(), **overrides
+) -> FusionConfig:
     """The estimator's checked FusionConfig for `settings` (and any other FusionConfig fields), its
     odometry bias states, if any, starting from this noise model's bias spread and wandering by its
     random walk."""
     from fusion import FusionConfig, check_config  # GTSAM loads slowly
 
-    return check_config(FusionConfig(odometry_bias_sigmas=(odometry.yaw_bias_std, odometry.z_bias_std,
-                                                           odometry.scale_error_std),
-                                     odometry_bias_walk=(odometry.yaw_bias_walk, odometry.z_bias_walk, SCALE_WALK),
-                                     mode=settings.mode, odometry_bias=tuple(settings.odometry_bias), **overrides))
+    return check_config(
+        FusionConfig(
+            odometry_bias_sigmas=(odometry.yaw_bias_std, odometry.z_bias_std, odometry.scale_error_std),
+            odometry_bias_walk=(odometry.yaw_bias_walk, odometry.z_bias_walk, SCALE_WALK),
+            mode=settings.mode,
+            odometry_bias=tuple(settings.odometry_bias),
+            **overrides,
+        )
+    )
 
 
 def _white_sigmas(v: np.ndarray, cfg: OdometryConfig) -> np.ndarray:
     """The sigmas of one step's white noise, for the increment v = (x, y, z, roll, pitch, yaw)."""
     d, a = float(np.linalg.norm(v[:3])), abs(float(v[5]))
     yaw = cfg.yaw_noise_per_m * d + cfg.yaw_noise_per_rad * a
-    return np.array([cfg.trans_noise_per_m, cfg.trans_noise_per_m, cfg.z_noise_per_m, cfg.rp_noise_per_m,
-                     cfg.rp_noise_per_m, 0.0]) * d + np.array([0, 0, 0, 0, 0, yaw])
+    return np.array(
+        [cfg.trans_noise_per_m, cfg.trans_noise_per_m, cfg.z_noise_per_m, cfg.rp_noise_per_m, cfg.rp_noise_per_m, 0.0]
+    ) * d + np.array([0, 0, 0, 0, 0, yaw])
 
 
 def odometry_sigmas(increment: np.ndarray, cfg: OdometryConfig) -> np.ndarray:
@@ -81,7 +97,7 @@ def odometry_sigmas(increment: np.ndarray, cfg: OdometryConfig) -> np.ndarray:
     d = float(np.linalg.norm(v[:3]))
     bias = d * np.array([0, 0, cfg.z_bias_std, 0, 0, cfg.yaw_bias_std])
     scale = cfg.scale_error_std * np.abs(v) * np.array([1, 1, 1, 0, 0, 0])
-    return np.sqrt(_white_sigmas(v, cfg)**2 + bias**2 + scale**2) + np.array([1e-3, 1e-3, 1e-3, 1e-4, 1e-4, 1e-4])
+    return np.sqrt(_white_sigmas(v, cfg) ** 2 + bias**2 + scale**2) + np.array([1e-3, 1e-3, 1e-3, 1e-4, 1e-4, 1e-4])
 
 
 class DeadReckoningCovariance:

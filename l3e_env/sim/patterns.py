@@ -1,6 +1,7 @@
 """Beam patterns of spinning LiDARs: the built-in ones, user files (own YAML/JSON, or an Ouster
 sensor's metadata JSON), and a pattern recognised or fitted from a scan's own points, so that a
 recorded scan of another sensor can be read back onto its beams and columns."""
+
 from __future__ import annotations
 
 import json
@@ -134,6 +135,7 @@ def _nearest(values: np.ndarray, x: np.ndarray) -> np.ndarray:
 # seconds, Ouster's `t` uint32 nanoseconds.
 TIME_FIELDS = {"time": ("float32 seconds", "<f4", 1.0), "t": ("uint32 nanoseconds", "<u4", 1e9)}
 
+
 def _image_width(n_azimuth: int) -> int:
     """The widest divisor of the column count up to 360: the observations' range-image width."""
     return max(w for w in range(1, min(n_azimuth, 360) + 1) if n_azimuth % w == 0)
@@ -153,9 +155,27 @@ PATTERNS: dict[str, BeamPattern] = {
 # the README was measured with it (its scans differ by at most 11 mm); a real VLP-16's cloud is
 # recognised as whichever of the two its near returns lie on.
 PATTERNS["vlp16-calibrated"] = replace(
-    PATTERNS["vlp16"], name="vlp16-calibrated",
-    beam_vertical_offsets=(0.0112, 0.0097, 0.0081, 0.0066, 0.0051, 0.0037, 0.0022, 0.0007,
-                           -0.0007, -0.0022, -0.0037, -0.0051, -0.0066, -0.0081, -0.0097, -0.0112))
+    PATTERNS["vlp16"],
+    name="vlp16-calibrated",
+    beam_vertical_offsets=(
+        0.0112,
+        0.0097,
+        0.0081,
+        0.0066,
+        0.0051,
+        0.0037,
+        0.0022,
+        0.0007,
+        -0.0007,
+        -0.0022,
+        -0.0037,
+        -0.0051,
+        -0.0066,
+        -0.0081,
+        -0.0097,
+        -0.0112,
+    ),
+)
 
 
 def _with_width(pattern: BeamPattern) -> BeamPattern:
@@ -169,62 +189,182 @@ PATTERNS["hdl32e"] = _with_width(BeamPattern("hdl32e", tuple(np.linspace(-30.67,
 # Velodyne VLP-32C (Ultra Puck): 32 beams from -25 to +15 deg, bunched round the horizon; the driver's
 # calibration (VeloView-VLP-32C.yaml) turns each beam by +-1.4 or +-4.2 deg (rot_correction, listed
 # by laser id), which shifts its returns' azimuth by the same; 0.2 deg azimuth, 200 m.
-_VLP32C = ((-25.0, 1.4), (-1.0, -4.2), (-1.667, 1.4), (-15.639, -1.4), (-11.31, 1.4), (0.0, -1.4), (-0.667, 4.2),
-           (-8.843, -1.4), (-7.254, 1.4), (0.333, -4.2), (-0.333, 1.4), (-6.148, -1.4), (-5.333, 4.2), (1.333, -1.4),
-           (0.667, 4.2), (-4.0, -1.4), (-4.667, 1.4), (1.667, -4.2), (1.0, 1.4), (-3.667, -4.2), (-3.333, 4.2),
-           (3.333, -1.4), (2.333, 1.4), (-2.667, -1.4), (-3.0, 1.4), (7.0, -1.4), (4.667, 1.4), (-2.333, -4.2),
-           (-2.0, 4.2), (15.0, -1.4), (10.333, 1.4), (-1.333, -1.4))
+_VLP32C = (
+    (-25.0, 1.4),
+    (-1.0, -4.2),
+    (-1.667, 1.4),
+    (-15.639, -1.4),
+    (-11.31, 1.4),
+    (0.0, -1.4),
+    (-0.667, 4.2),
+    (-8.843, -1.4),
+    (-7.254, 1.4),
+    (0.333, -4.2),
+    (-0.333, 1.4),
+    (-6.148, -1.4),
+    (-5.333, 4.2),
+    (1.333, -1.4),
+    (0.667, 4.2),
+    (-4.0, -1.4),
+    (-4.667, 1.4),
+    (1.667, -4.2),
+    (1.0, 1.4),
+    (-3.667, -4.2),
+    (-3.333, 4.2),
+    (3.333, -1.4),
+    (2.333, 1.4),
+    (-2.667, -1.4),
+    (-3.0, 1.4),
+    (7.0, -1.4),
+    (4.667, 1.4),
+    (-2.333, -4.2),
+    (-2.0, 4.2),
+    (15.0, -1.4),
+    (10.333, 1.4),
+    (-1.333, -1.4),
+)
 _VLP32C_SORTED = sorted(_VLP32C)
-PATTERNS["vlp32c"] = _with_width(BeamPattern(
-    "vlp32c", tuple(e for e, _ in _VLP32C_SORTED), 1800, 200.0, 0.5, 1,
-    azimuth_offsets_deg=tuple(a for _, a in _VLP32C_SORTED)))
+PATTERNS["vlp32c"] = _with_width(
+    BeamPattern(
+        "vlp32c",
+        tuple(e for e, _ in _VLP32C_SORTED),
+        1800,
+        200.0,
+        0.5,
+        1,
+        azimuth_offsets_deg=tuple(a for _, a in _VLP32C_SORTED),
+    )
+)
 # Ouster OS0, OS1 and OS2 with 32, 64 or 128 beams spread evenly over their vertical fields (90, 45 and
 # 22.5 deg), 1024 columns (their 512 and 2048 column modes are recognised from a scan as `@512`,
 # `@2048`), ranges at 80 % reflectivity. As `os0-128` (the simulation's), every beam leaves from the
 # axis at its nominal angle: a unit's own angles, stagger and beam origin are in its metadata JSON,
 # which `--sensor` reads.
-for _line, _field, (_far, _near) in (("os0", 90.0, (50.0, 0.3)), ("os1", 45.0, (120.0, 0.5)),
-                                     ("os2", 22.5, (240.0, 0.8))):
+for _line, _field, (_far, _near) in (
+    ("os0", 90.0, (50.0, 0.3)),
+    ("os1", 45.0, (120.0, 0.5)),
+    ("os2", 22.5, (240.0, 0.8)),
+):
     for _beams in (32, 64, 128):
         _name = f"{_line}-{_beams}"
         if _name not in PATTERNS:
-            PATTERNS[_name] = BeamPattern(_name, tuple(np.linspace(-_field / 2, _field / 2, _beams)), 1024, _far,
-                                          _near, 256, time_field="t")
+            PATTERNS[_name] = BeamPattern(
+                _name, tuple(np.linspace(-_field / 2, _field / 2, _beams)), 1024, _far, _near, 256, time_field="t"
+            )
 # Hesai PandarXT-32: 32 beams every degree from -16 to +15 deg, 0.18 deg azimuth (2000 columns), 120 m.
 PATTERNS["xt32"] = _with_width(BeamPattern("xt32", tuple(float(e) for e in range(-16, 16)), 2000, 120.0, 0.05, 1))
 # Hesai Pandar64: 64 beams from -25 to +15 deg, 0.167 deg apart between -6 and +2 deg, each turned by
 # one of +-1.042, +-3.125, +-5.208 deg in azimuth (the user manual's nominal angle correction, by
 # channel from the top), 0.2 deg azimuth, 200 m.
-_PANDAR64_ELEVATIONS = (14.882, 11.032, 8.059, 5.057, 3.04, 2.028, 1.86, 1.688, 1.522, 1.351, 1.184, 1.013, 0.846,
-                        0.675, 0.508, 0.337, 0.169, 0.0, -0.169, -0.337, -0.508, -0.675, -0.845, -1.013, -1.184,
-                        -1.351, -1.522, -1.688, -1.86, -2.028, -2.198, -2.365, -2.536, -2.7, -2.873, -3.04, -3.21,
-                        -3.375, -3.548, -3.712, -3.884, -4.05, -4.221, -4.385, -4.558, -4.72, -4.892, -5.057, -5.229,
-                        -5.391, -5.565, -5.726, -5.898, -6.061, -7.063, -8.059, -9.06, -9.885, -11.032, -12.006,
-                        -12.974, -13.93, -18.889, -24.897)
+_PANDAR64_ELEVATIONS = (
+    14.882,
+    11.032,
+    8.059,
+    5.057,
+    3.04,
+    2.028,
+    1.86,
+    1.688,
+    1.522,
+    1.351,
+    1.184,
+    1.013,
+    0.846,
+    0.675,
+    0.508,
+    0.337,
+    0.169,
+    0.0,
+    -0.169,
+    -0.337,
+    -0.508,
+    -0.675,
+    -0.845,
+    -1.013,
+    -1.184,
+    -1.351,
+    -1.522,
+    -1.688,
+    -1.86,
+    -2.028,
+    -2.198,
+    -2.365,
+    -2.536,
+    -2.7,
+    -2.873,
+    -3.04,
+    -3.21,
+    -3.375,
+    -3.548,
+    -3.712,
+    -3.884,
+    -4.05,
+    -4.221,
+    -4.385,
+    -4.558,
+    -4.72,
+    -4.892,
+    -5.057,
+    -5.229,
+    -5.391,
+    -5.565,
+    -5.726,
+    -5.898,
+    -6.061,
+    -7.063,
+    -8.059,
+    -9.06,
+    -9.885,
+    -11.032,
+    -12.006,
+    -12.974,
+    -13.93,
+    -18.889,
+    -24.897,
+)
 _PANDAR64_AZIMUTHS = (-1.042,) * 6 + (1.042, 3.125, 5.208, -5.208, -3.125, -1.042) * 8 + (-1.042,) * 10
-PATTERNS["pandar64"] = _with_width(BeamPattern(
-    "pandar64", _PANDAR64_ELEVATIONS[::-1], 1800, 200.0, 0.3, 1, azimuth_offsets_deg=_PANDAR64_AZIMUTHS[::-1]))
+PATTERNS["pandar64"] = _with_width(
+    BeamPattern(
+        "pandar64", _PANDAR64_ELEVATIONS[::-1], 1800, 200.0, 0.3, 1, azimuth_offsets_deg=_PANDAR64_AZIMUTHS[::-1]
+    )
+)
 BUILT_IN_SENSORS = tuple(PATTERNS)
 PATTERN_FILES = (".yaml", ".yml", ".json")
 BEAM_TOLERANCE = 0.25  # a return lies on a beam within this share of the beams' spacing
 
 
 MAX_BEAMS, MAX_COLUMNS = 512, 8192  # beyond any spinning LiDAR's datasheet: a typo, refused before any array is made
-OWN_KEYS = {"elevations_deg", "columns", "max_range", "min_range", "image_width", "azimuth_offsets_deg",
-            "beam_origin_offset", "spin", "scan_start_deg", "time_field", "beam_vertical_offsets", "lidar_to_sensor"}
+OWN_KEYS = {
+    "elevations_deg",
+    "columns",
+    "max_range",
+    "min_range",
+    "image_width",
+    "azimuth_offsets_deg",
+    "beam_origin_offset",
+    "spin",
+    "scan_start_deg",
+    "time_field",
+    "beam_vertical_offsets",
+    "lidar_to_sensor",
+}
 
 
 def check_pattern(pattern: BeamPattern) -> None:
     """Raise PatternError naming what makes `pattern` unusable."""
     problem = None
     if pattern.n_beams < 1 or pattern.n_azimuth < 1 or not pattern.max_range > pattern.min_range >= 0:
-        problem = (f"needs beams, columns and max_range > min_range >= 0 (got {pattern.n_beams} beams, "
-                   f"{pattern.n_azimuth} columns, range {pattern.min_range}-{pattern.max_range} m)")
+        problem = (
+            f"needs beams, columns and max_range > min_range >= 0 (got {pattern.n_beams} beams, "
+            f"{pattern.n_azimuth} columns, range {pattern.min_range}-{pattern.max_range} m)"
+        )
     elif not np.isfinite(pattern.elevations_deg).all() or not np.isfinite(pattern.azimuth_offsets_deg).all():
         problem = "holds an angle that is not a finite number"
     elif pattern.n_beams > MAX_BEAMS or pattern.n_azimuth > MAX_COLUMNS:
-        problem = (f"has {pattern.n_beams} beams and {pattern.n_azimuth} columns; spinning LiDARs have at most "
-                   f"{MAX_BEAMS} beams and {MAX_COLUMNS} columns")
+        problem = (
+            f"has {pattern.n_beams} beams and {pattern.n_azimuth} columns; spinning LiDARs have at most "
+            f"{MAX_BEAMS} beams and {MAX_COLUMNS} columns"
+        )
     elif np.abs(pattern.elevations_deg).max() >= 90:
         problem = f"has a beam at {np.abs(pattern.elevations_deg).max():g} deg elevation; beams lie within +-90 deg"
     elif len(set(pattern.elevations_deg)) < pattern.n_beams and not pattern.azimuth_offsets_deg:
@@ -268,8 +408,9 @@ def get_pattern(name: str) -> BeamPattern:
     if name not in PATTERNS and name.lower().endswith(PATTERN_FILES):
         register_pattern(load_pattern(name))
     if name not in PATTERNS:
-        raise ValueError(f"unknown LiDAR model '{name}'; known: {sorted(PATTERNS)}, or a pattern file "
-                         f"({', '.join(PATTERN_FILES)})")
+        raise ValueError(
+            f"unknown LiDAR model '{name}'; known: {sorted(PATTERNS)}, or a pattern file ({', '.join(PATTERN_FILES)})"
+        )
     return PATTERNS[name]
 
 
@@ -305,9 +446,18 @@ def ouster_pattern(name: str, meta: dict) -> BeamPattern:
         matrix = np.asarray(to_sensor, dtype=np.float64).reshape(4, 4)
         matrix[:3, 3] /= 1e3  # Ouster writes the translation in millimetres
         to_sensor = tuple(float(v) for v in matrix.ravel())
-    return BeamPattern(name, tuple(float(a) for a in altitudes), int(columns), far, near, _image_width(int(columns)),
-                       tuple(-float(a) for a in azimuths), origin_mm / 1e3, time_field="t",
-                       lidar_to_sensor=to_sensor or ())
+    return BeamPattern(
+        name,
+        tuple(float(a) for a in altitudes),
+        int(columns),
+        far,
+        near,
+        _image_width(int(columns)),
+        tuple(-float(a) for a in azimuths),
+        origin_mm / 1e3,
+        time_field="t",
+        lidar_to_sensor=to_sensor or (),
+    )
 
 
 def _own_pattern(name: str, spec: dict) -> BeamPattern:
@@ -317,13 +467,21 @@ def _own_pattern(name: str, spec: dict) -> BeamPattern:
     if isinstance(elevations, dict):  # evenly spaced: {from, to, beams}
         elevations = np.linspace(float(elevations["from"]), float(elevations["to"]), int(elevations["beams"]))
     columns = int(spec["columns"])
-    return BeamPattern(name, tuple(float(e) for e in elevations), columns, float(spec["max_range"]),
-                       float(spec.get("min_range", 0.0)), int(spec.get("image_width", _image_width(columns))),
-                       tuple(float(a) for a in spec.get("azimuth_offsets_deg", ())),
-                       float(spec.get("beam_origin_offset", 0.0)), _spin(spec.get("spin", "clockwise")),
-                       float(spec.get("scan_start_deg", 180.0)), str(spec.get("time_field", "time")),
-                       tuple(float(z) for z in spec.get("beam_vertical_offsets", ())),
-                       tuple(float(v) for v in np.ravel(spec.get("lidar_to_sensor", ()))))
+    return BeamPattern(
+        name,
+        tuple(float(e) for e in elevations),
+        columns,
+        float(spec["max_range"]),
+        float(spec.get("min_range", 0.0)),
+        int(spec.get("image_width", _image_width(columns))),
+        tuple(float(a) for a in spec.get("azimuth_offsets_deg", ())),
+        float(spec.get("beam_origin_offset", 0.0)),
+        _spin(spec.get("spin", "clockwise")),
+        float(spec.get("scan_start_deg", 180.0)),
+        str(spec.get("time_field", "time")),
+        tuple(float(z) for z in spec.get("beam_vertical_offsets", ())),
+        tuple(float(v) for v in np.ravel(spec.get("lidar_to_sensor", ()))),
+    )
 
 
 def _spin(text: str) -> bool:
@@ -359,8 +517,10 @@ def load_pattern(path: str | Path) -> BeamPattern:
     except PatternError:
         raise
     except KeyError as exc:
-        raise PatternError(f"{path}: the beam pattern lacks {exc}; it needs elevations_deg, columns and max_range, "
-                           "or is an Ouster metadata file with beam_altitude_angles") from exc
+        raise PatternError(
+            f"{path}: the beam pattern lacks {exc}; it needs elevations_deg, columns and max_range, "
+            "or is an Ouster metadata file with beam_altitude_angles"
+        ) from exc
     except (TypeError, ValueError) as exc:
         raise PatternError(f"{path}: a beam pattern value is not a number: {exc}") from exc
     check_pattern(pattern)
@@ -378,8 +538,10 @@ def _columns(points: np.ndarray, beam: np.ndarray) -> int:
     typical = float(np.median(step))
     regular = float(np.mean(np.abs(step / typical - 1) < 0.1))
     if regular < 0.5:  # a full revolution's returns follow each other one column apart, mostly
-        raise PatternError(f"only {regular:.0%} of the steps between a beam's returns are its typical step: the scan "
-                           "is thinned or sampled, not every return of a revolution")
+        raise PatternError(
+            f"only {regular:.0%} of the steps between a beam's returns are its typical step: the scan "
+            "is thinned or sampled, not every return of a revolution"
+        )
     return int(round(2 * np.pi / typical))
 
 
@@ -476,8 +638,9 @@ def fit_pattern(points: np.ndarray, rings: np.ndarray | None = None) -> tuple[Be
         columns = _columns(points, beam)
         pattern, how = known, f"{known.name}: every return lies on one of its beams"
         if abs(columns - known.n_azimuth) > 0.02 * known.n_azimuth:
-            pattern = replace(known, name=f"{known.name}@{columns}", n_azimuth=columns,
-                              image_width=_image_width(columns))
+            pattern = replace(
+                known, name=f"{known.name}@{columns}", n_azimuth=columns, image_width=_image_width(columns)
+            )
             how = f"{known.name}'s beams at {columns} columns a revolution"
         phases = _own_phases(points, beam, pattern)
         if phases is not None:  # its columns lie off the datasheet's grid (a unit's own encoder offset)
@@ -488,20 +651,34 @@ def fit_pattern(points: np.ndarray, rings: np.ndarray | None = None) -> tuple[Be
     elevation = _elevations(points, origin)
     beams = np.sort(_beams_of(elevation, rings))
     if len(beams) > 512:
-        raise PatternError(f"the returns lie at {len(beams)} elevations, not on a few beams: give one revolution of "
-                           "a spinning LiDAR in its own frame, not a map or a deskewed cloud")
+        raise PatternError(
+            f"the returns lie at {len(beams)} elevations, not on a few beams: give one revolution of "
+            "a spinning LiDAR in its own frame, not a map or a deskewed cloud"
+        )
     r = np.linalg.norm(points, axis=1)
-    fitted = BeamPattern("fitted", tuple(float(b) for b in beams), 1, float(np.ceil(r.max())),
-                         float(np.floor(10 * r.min()) / 10), 1, beam_origin_offset=origin)
+    fitted = BeamPattern(
+        "fitted",
+        tuple(float(b) for b in beams),
+        1,
+        float(np.ceil(r.max())),
+        float(np.floor(10 * r.min()) / 10),
+        1,
+        beam_origin_offset=origin,
+    )
     beam, _, off = fitted.locate(points)
     if off.max() > BEAM_TOLERANCE * fitted.spacing_deg():
-        raise PatternError(f"a return lies {off.max():.2f} deg off its beam (beams {fitted.spacing_deg():.2f} deg "
-                           "apart)" + ("" if rings is not None else ", and the cloud has no ring field to sort "
-                                       "the returns by beam"))
+        raise PatternError(
+            f"a return lies {off.max():.2f} deg off its beam (beams {fitted.spacing_deg():.2f} deg "
+            "apart)" + ("" if rings is not None else ", and the cloud has no ring field to sort the returns by beam")
+        )
     columns = _columns(points, beam)
-    fitted = replace(fitted, name=f"fitted-{len(beams)}x{columns}", n_azimuth=columns,
-                     image_width=_image_width(columns),
-                     azimuth_offsets_deg=_azimuth_offsets(points, beam, len(beams), columns))
+    fitted = replace(
+        fitted,
+        name=f"fitted-{len(beams)}x{columns}",
+        n_azimuth=columns,
+        image_width=_image_width(columns),
+        azimuth_offsets_deg=_azimuth_offsets(points, beam, len(beams), columns),
+    )
     check_pattern(fitted)
     how = f"fitted to the scan: {len(beams)} beams over {beams[0]:.1f} to {beams[-1]:.1f} deg, {columns} columns"
     if fitted.azimuth_offsets_deg:
@@ -526,9 +703,11 @@ def in_lidar_frame(points: np.ndarray, pattern: BeamPattern) -> tuple[np.ndarray
     off = [pattern.locate(cloud)[2] for cloud in (points, back)]  # deg from the nearest beam
     shares = [float(np.mean(o <= tolerance)) for o in off]
     if max(shares) < ON_BEAMS:
-        raise PatternError(f"{shares[0]:.0%} of the returns lie on {pattern.name}'s beams as given (its lidar frame) "
-                           f"and {shares[1]:.0%} turned back from its SDK's sensor frame: give one revolution of this "
-                           "sensor in either frame, or the metadata of the sensor that took it")
+        raise PatternError(
+            f"{shares[0]:.0%} of the returns lie on {pattern.name}'s beams as given (its lidar frame) "
+            f"and {shares[1]:.0%} turned back from its SDK's sensor frame: give one revolution of this "
+            "sensor in either frame, or the metadata of the sensor that took it"
+        )
     # the frames differ by a turn about z, which keeps every elevation, and a lift of a few cm, which
     # moves each a little: on beams far apart both lie within the tolerance, and the frame whose
     # returns lie closer to the beams is the lidar frame
@@ -559,24 +738,32 @@ def _offset_words(offsets: tuple[float, ...]) -> str:
 def describe_pattern(pattern: BeamPattern) -> str:
     """A pattern in a few lines, as `l3e sensor` prints it."""
     beams = np.sort(pattern.elevations_deg)
-    lines = [f"{pattern.name}: {pattern.n_beams} beams over {beams[0]:.2f} to {beams[-1]:.2f} deg "
-             f"(closest {pattern.spacing_deg():.3f} deg apart), {pattern.n_azimuth} columns a revolution, "
-             f"{pattern.min_range:g}-{pattern.max_range:g} m"]
+    lines = [
+        f"{pattern.name}: {pattern.n_beams} beams over {beams[0]:.2f} to {beams[-1]:.2f} deg "
+        f"(closest {pattern.spacing_deg():.3f} deg apart), {pattern.n_azimuth} columns a revolution, "
+        f"{pattern.min_range:g}-{pattern.max_range:g} m"
+    ]
     if pattern.azimuth_offsets_deg:
         lines.append("  " + _offset_words(pattern.azimuth_offsets_deg))
     if pattern.beam_origin_offset:
         lines.append(f"  beams leave {1e3 * pattern.beam_origin_offset:.1f} mm out from the axis")
     if pattern.beam_vertical_offsets:
-        lines.append(f"  beams leave {1e3 * min(pattern.beam_vertical_offsets):+.1f} to "
-                     f"{1e3 * max(pattern.beam_vertical_offsets):+.1f} mm from the axis, across the beam")
+        lines.append(
+            f"  beams leave {1e3 * min(pattern.beam_vertical_offsets):+.1f} to "
+            f"{1e3 * max(pattern.beam_vertical_offsets):+.1f} mm from the axis, across the beam"
+        )
     if pattern.lidar_to_sensor:
         m = np.asarray(pattern.lidar_to_sensor).reshape(4, 4)
         turn = np.degrees(np.arctan2(m[1, 0], m[0, 0]))
-        lines.append(f"  its SDK's sensor frame: the lidar frame turned {turn:+.0f} deg about z and shifted "
-                     f"{1e3 * m[2, 3]:+.1f} mm in z (clouds in either frame are read)")
-    lines.append(f"  spins {'clockwise' if pattern.clockwise else 'counterclockwise'} seen from above from "
-                 f"{pattern.scan_start_deg:g} deg; a recorded bag's point time: {pattern.time_field} "
-                 f"({TIME_FIELDS[pattern.time_field][0]})")
+        lines.append(
+            f"  its SDK's sensor frame: the lidar frame turned {turn:+.0f} deg about z and shifted "
+            f"{1e3 * m[2, 3]:+.1f} mm in z (clouds in either frame are read)"
+        )
+    lines.append(
+        f"  spins {'clockwise' if pattern.clockwise else 'counterclockwise'} seen from above from "
+        f"{pattern.scan_start_deg:g} deg; a recorded bag's point time: {pattern.time_field} "
+        f"({TIME_FIELDS[pattern.time_field][0]})"
+    )
     return "\n".join(lines)
 
 
@@ -586,9 +773,13 @@ def save_pattern(pattern: BeamPattern, path: str | Path) -> Path:
     path = Path(path)
     if not path.name.lower().endswith(PATTERN_FILES):
         raise PatternError(f"{path}: a beam pattern file ends in {', '.join(PATTERN_FILES)}")
-    spec = {"elevations_deg": [round(float(e), 6) for e in pattern.elevations_deg], "columns": int(pattern.n_azimuth),
-            "max_range": float(pattern.max_range), "min_range": float(pattern.min_range),
-            "image_width": int(pattern.image_width)}
+    spec = {
+        "elevations_deg": [round(float(e), 6) for e in pattern.elevations_deg],
+        "columns": int(pattern.n_azimuth),
+        "max_range": float(pattern.max_range),
+        "min_range": float(pattern.min_range),
+        "image_width": int(pattern.image_width),
+    }
     if pattern.azimuth_offsets_deg:
         spec["azimuth_offsets_deg"] = [round(float(a), 6) for a in pattern.azimuth_offsets_deg]
     if pattern.beam_origin_offset:

@@ -1,4 +1,5 @@
 """Ray casting backends behind one interface: Embree (default) and PyBullet's rayTestBatch."""
+
 from __future__ import annotations
 
 import os
@@ -101,8 +102,11 @@ class PyBulletCaster:
             chunk = dirs[lo : lo + PYBULLET_MAX_RAYS]
             starts = origins[lo : lo + PYBULLET_MAX_RAYS].copy()
             hits = pb.rayTestBatch(
-                starts, starts + chunk * max_range, numThreads=self.threads,
-                collisionFilterMask=self.mask, physicsClientId=self.client,
+                starts,
+                starts + chunk * max_range,
+                numThreads=self.threads,
+                collisionFilterMask=self.mask,
+                physicsClientId=self.client,
             )
             frac = np.array([h[2] if h[0] >= 0 else np.inf for h in hits], dtype=np.float64)
             out[lo : lo + len(chunk)] = frac * max_range
@@ -113,8 +117,10 @@ class PyBulletCaster:
         starts = np.asarray(origins, dtype=np.float64)
         pb = import_pybullet()
         hits = pb.rayTestBatch(
-            starts, starts + np.asarray(direction) * max_range, collisionFilterMask=self.mask,
-            physicsClientId=self.client
+            starts,
+            starts + np.asarray(direction) * max_range,
+            collisionFilterMask=self.mask,
+            physicsClientId=self.client,
         )
         return np.array([h[2] * max_range if h[0] >= 0 else np.inf for h in hits])
 

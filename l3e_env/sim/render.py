@@ -1,4 +1,5 @@
 """Top-down pictures of a scene, the robot and its scan, as RGB arrays (no GUI needed)."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -70,8 +71,13 @@ class TopDownRenderer:
         draw.rectangle([6, 16, 6 + bar, 19], fill=(0, 0, 0))
         draw.text((6, 3), f"{metres:g} m", fill=(0, 0, 0))
         x = 16 + max(bar, 40)
-        for label, colour in (("route", ROUTE), ("trail", TRAIL), ("scan low", tuple(SCAN_LOW)),
-                              ("scan high", tuple(SCAN_HIGH)), ("robot", NOSE)):
+        for label, colour in (
+            ("route", ROUTE),
+            ("trail", TRAIL),
+            ("scan low", tuple(SCAN_LOW)),
+            ("scan high", tuple(SCAN_HIGH)),
+            ("robot", NOSE),
+        ):
             draw.rectangle([x, 10, x + 8, 18], fill=tuple(int(v) for v in colour))
             draw.text((x + 11, 8), label, fill=(0, 0, 0))
             x += 17 + int(draw.textlength(label))
@@ -94,8 +100,13 @@ class TopDownRenderer:
         r, c = self.to_pixels(dense)
         img[r, c] = color
 
-    def frame(self, T_w_b: np.ndarray, scan_world: np.ndarray | None = None, trail: np.ndarray | None = None,
-              footprint: tuple[float, float] = (0.9, 0.5)) -> np.ndarray:
+    def frame(
+        self,
+        T_w_b: np.ndarray,
+        scan_world: np.ndarray | None = None,
+        trail: np.ndarray | None = None,
+        footprint: tuple[float, float] = (0.9, 0.5),
+    ) -> np.ndarray:
         """RGB uint8 image: floor plan, trail, scan points (by height) and the robot footprint, over the
         legend strip."""
         img = self.base.copy()

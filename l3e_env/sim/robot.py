@@ -1,4 +1,5 @@
 """The legged-robot stand-in: a base box driven by a planar twist that walks on the terrain."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -13,12 +14,17 @@ def planar_motion(yaw: float, twist: np.ndarray, dt: float) -> tuple[float, floa
     """World (dx, dy) and the new yaw after applying the body twist (vx, vy, yaw_rate) for dt,
     turning at the midpoint of the step."""
     mid = yaw + 0.5 * twist[2] * dt
-    return ((np.cos(mid) * twist[0] - np.sin(mid) * twist[1]) * dt,
-            (np.sin(mid) * twist[0] + np.cos(mid) * twist[1]) * dt, yaw + twist[2] * dt)
+    return (
+        (np.cos(mid) * twist[0] - np.sin(mid) * twist[1]) * dt,
+        (np.sin(mid) * twist[0] + np.cos(mid) * twist[1]) * dt,
+        yaw + twist[2] * dt,
+    )
 
 
-SPAWN_HINT = ("; is the route's first waypoint on a floor? For a mesh given as a file, are --up-axis and --scale "
-              "those of the file?")
+SPAWN_HINT = (
+    "; is the route's first waypoint on a floor? For a mesh given as a file, are --up-axis and --scale "
+    "those of the file?"
+)
 
 
 class SpawnError(RuntimeError):
@@ -48,8 +54,9 @@ class Robot:
         if T is None:
             raise SpawnError(f"no ground under the robot at ({x:.2f}, {y:.2f}){SPAWN_HINT}")
         if self.world.in_collision(T):
-            raise SpawnError(f"the robot at ({x:.2f}, {y:.2f}, yaw {yaw:.2f}) would be inside scene "
-                             f"geometry{SPAWN_HINT}")
+            raise SpawnError(
+                f"the robot at ({x:.2f}, {y:.2f}, yaw {yaw:.2f}) would be inside scene geometry{SPAWN_HINT}"
+            )
         self.T_w_b = T
         self._z_ground = self._ground_height(T)
         return T

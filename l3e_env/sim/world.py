@@ -1,4 +1,5 @@
 """The PyBullet world: the static scene as a concave mesh and the robot's collision box."""
+
 from __future__ import annotations
 
 import contextlib
@@ -44,8 +45,9 @@ class World:
     def in_collision(self, T_w_b: np.ndarray, tolerance: float = 0.005) -> bool:
         """Whether the robot's base box at T_w_b penetrates the scene."""
         quat = Rotation.from_matrix(T_w_b[:3, :3]).as_quat()
-        pb.resetBasePositionAndOrientation(self.robot_body, T_w_b[:3, 3].tolist(), quat.tolist(),
-                                           physicsClientId=self.client)
+        pb.resetBasePositionAndOrientation(
+            self.robot_body, T_w_b[:3, 3].tolist(), quat.tolist(), physicsClientId=self.client
+        )
         contacts = pb.getClosestPoints(self.robot_body, self.scene_body, distance=0.0, physicsClientId=self.client)
         return any(c[8] < -tolerance for c in contacts)
 
