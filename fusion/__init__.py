@@ -12,7 +12,7 @@ from .metrics import MetricError, ate, ate_aligned, rpe, rpe_pairs, stretch_drif
 from .steps import ICP_COVARIANCES, FusionConfig, StepReport, check_config, icp_information
 from .tangent import to_gtsam_order, to_project_order
 
-BACKENDS = {"graph": FusionGraph, "ekf": EKFFusion}
+BACKENDS: dict[str, type[FusionGraph] | type[EKFFusion]] = {"graph": FusionGraph, "ekf": EKFFusion}
 
 
 def check_backend(backend: str) -> str:

@@ -57,6 +57,7 @@ class EKFFusion:
         nb = len(self.bias_axes)
         G = np.zeros((6, nb))  # how the motion moves with the biases
         if step.has_odom:
+            assert odom_T_prev_cur is not None  # resolve_step: has_odom says it is given
             sigmas = check_odometry_sigmas(odom_sigmas)
             motion, G = corrected_increment(odom_T_prev_cur, self.odometry_bias, self.bias_axes)
             walked = float(np.linalg.norm(np.asarray(odom_T_prev_cur)[:3, 3]))

@@ -7,6 +7,8 @@ odometry alone decides there. This is the L3E use of the mask.
 
 from __future__ import annotations
 
+from typing import Any
+
 import gtsam
 import numpy as np
 
@@ -47,7 +49,7 @@ class FusionGraph:
         params.setRelinearizeThreshold(self.config.relinearize_threshold)
         self.lag = self.config.smoother_lag
         # with a lag, the poses that left the window keep the estimate they had when they left
-        self.isam = (
+        self.isam: Any = (  # ISAM2 or the fixed-lag smoother: the same update and estimate calls
             gtsam.ISAM2(params) if self.lag is None else gtsam.IncrementalFixedLagSmoother(float(self.lag), params)
         )
         self._left: list[np.ndarray] = []
@@ -85,12 +87,14 @@ class FusionGraph:
     def _keep_leaving(self, k: int) -> None:
         """Before the update stamped k: the estimates of the poses it marginalizes (GTSAM's smoother
         drops the states stamped before k - lag; pose m was last stamped m + 1, by the next step)."""
+        assert self.lag is not None  # only the windowed smoother marginalizes
         while len(self._left) + 1 < k - self.lag:
             self._left.append(self.isam.calculateEstimatePose3(len(self._left)).matrix())
 
     def _noise(self, information_project: np.ndarray) -> gtsam.noiseModel.Base:
         """Precisions (6) or an information matrix (6x6), project order; zeros say nothing."""
         information = to_gtsam_order(information_project)
+        base: gtsam.noiseModel.Base
         if information.ndim == 1 or not (information - np.diag(np.diag(information))).any():
             precisions = information if information.ndim == 1 else np.diag(information)
             base = gtsam.noiseModel.Diagonal.Precisions(np.where(precisions > 0.0, precisions, 0.0))  # no -0.0
@@ -101,7 +105,7 @@ class FusionGraph:
         kernel = self.config.robust_kernel
         if kernel is None:
             return base
-        est = {"huber": gtsam.noiseModel.mEstimator.Huber, "cauchy": gtsam.noiseModel.mEstimator.Cauchy}[kernel]
+        est: Any = {"huber": gtsam.noiseModel.mEstimator.Huber, "cauchy": gtsam.noiseModel.mEstimator.Cauchy}[kernel]
         return gtsam.noiseModel.Robust.Create(est.Create(self.config.robust_threshold), base)
 
     def add_step(
@@ -126,8 +130,10 @@ class FusionGraph:
         i, j = self.k, self.k + 1
         odometry = None
         if self.bias_axes and has_odom:
+            assert odom_T_prev_cur is not None
             self._next_bias_knot(float(np.linalg.norm(odom_T_prev_cur[:3, 3])), graph, values)
         if has_odom:
+            assert odom_T_prev_cur is not None  # resolve_step: has_odom says it is given
             precision = 1.0 / np.maximum(check_odometry_sigmas(odom_sigmas), 1e-9) ** 2
             if self.bias_axes:
                 odometry = corrected_increment(odom_T_prev_cur, self.odometry_bias, self.bias_axes)[0]
@@ -140,6 +146,7 @@ class FusionGraph:
                 odometry = _pose3(odom_T_prev_cur)
                 graph.add(gtsam.BetweenFactorPose3(i, j, odometry, self._noise(precision)))
         if has_icp:
+            assert icp_T_prev_cur is not None
             information = icp_information(self.config, icp_hessian, mask)
             graph.add(gtsam.BetweenFactorPose3(i, j, _pose3(icp_T_prev_cur), self._noise(information)))
         if not has_odom and not has_icp:
@@ -148,7 +155,11 @@ class FusionGraph:
         guess = (
             self.estimate.compose(odometry)
             if odometry is not None
-            else (self.estimate.compose(_pose3(icp_T_prev_cur)) if has_icp else self.estimate)
+            else (
+                self.estimate.compose(_pose3(icp_T_prev_cur))
+                if has_icp and icp_T_prev_cur is not None
+                else self.estimate
+            )
         )
         values.insert(j, guess)
         self._update(graph, values, j)

@@ -18,13 +18,14 @@ def to_dict(cfg: Any) -> dict[str, Any]:
 def from_dict(cls: type[T], data: dict[str, Any] | None) -> T:
     """Build a (nested) config dataclass, rejecting unknown keys by name."""
     data = dict(data or {})
-    names = {f.name: f for f in dataclasses.fields(cls)}
+    names = {f.name: f for f in dataclasses.fields(cls)}  # type: ignore[arg-type]  # a dataclass by contract
     unknown = sorted(set(data) - set(names))
     if unknown:
         raise ValueError(f"{cls.__name__}: unknown option(s) {unknown}; known: {sorted(names)}")
     kwargs = {}
     for key, value in data.items():
-        default = names[key].default_factory() if names[key].default_factory is not dataclasses.MISSING else None
+        factory = names[key].default_factory
+        default = factory() if callable(factory) else None
         if dataclasses.is_dataclass(default) and isinstance(value, dict):
             value = from_dict(type(default), value)
         elif isinstance(value, list):

@@ -48,6 +48,7 @@ def _start(work: Callable[[Any, Any], Any], build: Callable[..., Any], args: tup
 
 
 def _run(job: Any) -> Any:
+    assert _worker is not None, "a worker's object is made by its initializer"
     work, obj = _worker
     return work(obj, job)
 
