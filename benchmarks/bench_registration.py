@@ -56,7 +56,7 @@ def main() -> None:
     icp = {name: [] for name in configs}
     for source, target in scan_pairs(args.pairs):
         for name, config in configs.items():
-            whole[name].append(timed(lambda c=config: register(source, target, c), args.repeats))
+            whole[name].append(timed(lambda c=config, s=source, t=target: register(s, t, c), args.repeats))
             prepared, thinned = PreparedTarget(target, config), prepare_source(source, config)
             icp[name].append(
                 timed(lambda c=config, t=prepared, s=thinned: register(s, t, c, with_hessian=False), args.repeats)
