@@ -105,3 +105,39 @@ def test_any_action_steps_the_environment_or_is_refused_with_a_value_error(tunne
     assert np.isfinite(reward) and np.isfinite(info["T_w_b"]).all()
     if terminated or truncated:
         tunnel_env.reset(seed=1)
+
+
+YAML_VALUES = st.one_of(
+    st.integers(-5, 5),
+    st.floats(allow_nan=True, allow_infinity=True),
+    st.booleans(),
+    st.text(max_size=6),
+    st.lists(st.integers(-2, 2), max_size=2),
+    st.dictionaries(st.text(max_size=3), st.integers(), max_size=1),
+)
+
+
+@SMALL
+@given(
+    option=st.sampled_from(["every", "workers", "seed", "start", "end"]),
+    value=YAML_VALUES,
+)
+def test_any_option_value_from_set_is_typed_and_in_range_or_refused_naming_the_option(option, value, capsys):
+    """`--set KEY=VALUE` (VALUE in YAML): the option gets a value of its own type and range (a whole
+    number of 1 or more workers, a finite start), or the command stops naming the option."""
+    import math
+
+    import yaml
+
+    from l3e_env.cli.main import build_parser
+    from l3e_env.cli.option_files import MINIMUM, resolve
+
+    text = yaml.safe_dump(value, default_flow_style=True).strip().removesuffix("...").strip()
+    try:
+        args = resolve(build_parser(), ["judge", "--bag", "x.bag", "--set", f"{option}={text}"])
+    except SystemExit:
+        assert option in capsys.readouterr().err
+        return
+    got = getattr(args, option)
+    kind = float if option in ("start", "end") else int
+    assert type(got) is kind and math.isfinite(got) and got >= MINIMUM[option], (value, got)

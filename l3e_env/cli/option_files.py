@@ -9,6 +9,7 @@ file is read with `yaml.safe_load`: it cannot run code."""
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
 from typing import Any
 
@@ -29,6 +30,7 @@ def leaf_parsers(parser: argparse.ArgumentParser) -> list[argparse.ArgumentParse
 def add_option_files(parser: argparse.ArgumentParser) -> None:
     """--config (where the command has no --config of its own, as `l3e train` has) and --set on every
     command; each remembers its parser so that `resolve` can check the keys against it."""
+    strict_types(parser)
     for leaf in leaf_parsers(parser):
         own = any(a.dest == "config" for a in leaf._actions)
         g = leaf.add_argument_group("options from a file")
@@ -49,6 +51,68 @@ def add_option_files(parser: argparse.ArgumentParser) -> None:
         leaf.set_defaults(_parser=leaf, _options_file=not own)
 
 
+# The least value of each counted or measured option, by its name, on every command that has it: the
+# command line, --set and --config all pass through the same check (`checked_type`)
+MINIMUM = {
+    "workers": 1,
+    "every": 1,
+    "episodes": 1,
+    "seeds": 1,
+    "parents": 1,
+    "children": 1,
+    "epochs": 1,
+    "points": 1,
+    "threads": 1,
+    "envs": 1,
+    "timesteps": 1,
+    "samples_per_epoch": 1,
+    "draws": 1,
+    "max_steps": 1,
+    "seed": 0,
+    "start": 0.0,
+    "end": 0.0,
+    "scan_mc": 0,
+    "imu_rate": 0.0,
+    "lam": 0.0,
+    "resolution": 1e-3,
+    "scale": 1e-9,
+    "lr": 0.0,
+    "beta": 1e-9,
+}
+
+
+def checked_type(action: argparse.Action, name: str) -> Any:
+    """The action's type, made strict: a whole number for `int` (never 2.5 or true), a finite number for
+    `float` (never nan), and at least the option's MINIMUM; the message names the option."""
+    base = action.type
+    if base not in (int, float):
+        return base
+    least = MINIMUM.get(action.dest)
+
+    def check(text: str) -> int | float:
+        try:
+            value = base(text)
+        except (TypeError, ValueError):
+            kind = "a whole number" if base is int else "a number"
+            raise argparse.ArgumentTypeError(f"{name} takes {kind}, got {text!r}") from None
+        if base is float and not math.isfinite(value):
+            raise argparse.ArgumentTypeError(f"{name} takes a finite number, got {text!r}")
+        if least is not None and value < least:
+            raise argparse.ArgumentTypeError(f"{name} takes {least} or more, got {text!r}")
+        return value
+
+    check.__name__ = base.__name__  # argparse names the type in its own messages
+    return check
+
+
+def strict_types(parser: argparse.ArgumentParser) -> None:
+    """Every command's int and float options checked by `checked_type`."""
+    for leaf in leaf_parsers(parser):
+        for action in leaf._actions:
+            if action.option_strings:
+                action.type = checked_type(action, action.option_strings[-1])
+
+
 def _actions(leaf: argparse.ArgumentParser) -> dict[str, argparse.Action]:
     return {
         a.dest: a
@@ -64,6 +128,10 @@ def _converted(action: argparse.Action, key: str, value: Any) -> Any:
         return None
 
     def one(v: Any) -> Any:
+        if action.type is not None and not isinstance(v, str):  # a YAML number, list, map or boolean
+            if isinstance(v, bool) or not isinstance(v, (int, float)):
+                raise ValueError(f"option {key}: {v!r} is not a value of this option")
+            v = str(v)
         if isinstance(v, str) and action.type is not None:
             try:
                 v = action.type(v)
@@ -81,6 +149,8 @@ def _converted(action: argparse.Action, key: str, value: Any) -> Any:
         return [x for v in (value if isinstance(value, list) else [value]) for x in one(v)]
     if isinstance(action, argparse._AppendAction) or action.nargs in ("+", "*") or isinstance(action.nargs, int):
         return [one(v) for v in (value if isinstance(value, list) else [value])]
+    if isinstance(value, list) and getattr(action.type, "__name__", "") in ("int", "float"):
+        raise ValueError(f"option {key}: takes one number, got {value!r}")
     if isinstance(value, list) and action.type is not None:
         if not value:
             return ()
