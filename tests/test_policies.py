@@ -494,7 +494,8 @@ def test_full_pipeline_evaluation_on_the_small_fork(small_fork, monkeypatch, tmp
     shortest, planner = (
         evaluation.Episode(**json.loads(line)) for line in (tmp_path / "episodes.jsonl").read_text().splitlines()
     )
-    assert shortest.success and planner.success
+    # through the degenerate corridor the shortest path drifts more: the planner arrives, nearer the truth
+    assert planner.success and planner.final_ate < shortest.final_ate
     assert not shortest.rich_route and planner.rich_route
     assert planner.path_length > shortest.path_length
     assert shortest.final_ate > 0 and np.isfinite(planner.mean_ate)
