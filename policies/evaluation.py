@@ -328,6 +328,15 @@ def run_episodes(
     bar.close()
 
 
+def _remove_unstarted(out: Path, created: bool) -> None:
+    """An evaluation's settings and empty log, and its folder where the evaluation made it and it is
+    empty now."""
+    for name in ("settings.json", "episodes.jsonl"):
+        (out / name).unlink(missing_ok=True)
+    if created and not any(out.iterdir()):
+        out.rmdir()
+
+
 def evaluate_policies(
     out: str | Path,
     policies: list[str],
@@ -362,7 +371,6 @@ def evaluate_policies(
     for policy in policies:  # and a wrong policy before the maps are built, which can take minutes
         check_policy(policy)
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     # every policy's episodes are weighed with the evaluation detector's map (expected_drift)
     map_detectors = {_ppo_detector(p, detector) if p.startswith("ppo:") else detector for p in policies} | {detector}
     params = scene_params or {}
@@ -413,11 +421,18 @@ def evaluate_policies(
         raise ValueError(
             f"{out} holds episodes run with other settings ({settings_changed(held, settings)}); use another folder"
         )
+    created = not out.exists()
+    out.mkdir(parents=True, exist_ok=True)
     settings_file.write_text(json.dumps(settings))
     log = out / "episodes.jsonl"
     done = finished_episodes(log)
     t0 = time.perf_counter()
-    run_episodes(jobs, done, log, workers, progress)
+    try:
+        run_episodes(jobs, done, log, workers, progress)
+    except BaseException:
+        if held is None and not done:  # failed before its first episode: nothing that looks like a result
+            _remove_unstarted(out, created)
+        raise
     results = [done[j[:3]] for j in jobs]
     rows = summarize(results)
     r, paired = drift_correlation(results)

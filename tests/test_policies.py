@@ -536,6 +536,19 @@ def test_full_pipeline_evaluation_on_the_small_fork(small_fork, monkeypatch, tmp
             fusion_settings=FusionSettings(odometry_bias=("roll",)),
         )
     assert not (tmp_path / "bad").exists()
+    # a run whose first episode fails leaves nothing that looks like a result
+    monkeypatch.setattr(evaluation, "run_episodes", lambda *a: (_ for _ in ()).throw(RuntimeError("episode 0 died")))
+    with pytest.raises(RuntimeError, match="episode 0 died"):
+        evaluation.evaluate_policies(
+            tmp_path / "dies",
+            ["shortest"],
+            ["fork-0"],
+            episodes=1,
+            detector="eigen:30",
+            cache_dir=cache,
+            progress=False,
+        )
+    assert not (tmp_path / "dies").exists()
     with pytest.raises(ValueError, match="unknown policy"):
         evaluation.make_controller("wander", "fork-0", "eigen:30", cache, 50.0)
     # a wrong policy is named before any map is built or any folder written

@@ -438,3 +438,22 @@ def test_record_says_how_large_the_bag_may_grow_before_driving(tmp_path, capsys)
     )
     said = re.search(r"recording about 6 scans of vlp16: the bag's scans take up to (\d+) MiB", capsys.readouterr().out)
     assert said and (tmp_path / "short.bag").stat().st_size <= 1.1 * int(said.group(1)) * 2**20
+
+
+@pytest.mark.parametrize(
+    "name, content, words",
+    [
+        ("notes.txt", b"hello\n", "cannot be read as a ROS bag .* give a ROS 1 .bag"),
+        ("junk.bag", bytes(range(256)) * 4, "cannot be read as a ROS bag"),
+        ("empty.osf", b"", "the file is empty; give an Ouster .osf or .pcap"),
+    ],
+)
+def test_a_file_that_is_no_recording_is_named_with_what_to_give(tmp_path, name, content, words):
+    from l3e_env.io.recorded import RecordingError
+    from l3e_env.io.recordings import read_recording
+
+    path = tmp_path / name
+    path.write_bytes(content)
+    with pytest.raises(RecordingError, match=words) as caught:
+        list(read_recording(path))
+    assert str(path) in str(caught.value)

@@ -88,6 +88,8 @@ def read_capture(
     path = Path(path)
     if not path.is_file():
         raise CaptureError(f"{path}: no such capture")
+    if path.stat().st_size == 0:
+        raise CaptureError(f"{path}: the file is empty; give an Ouster .osf or .pcap that holds scans")
     sdk, core, log = _sdk()
     log.news()
     try:

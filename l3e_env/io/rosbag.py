@@ -91,12 +91,15 @@ def _open(path: Path):
         raise BagError("reading ROS bags needs the rosbags package: pip install 'l3e[bag]'") from exc
     if not path.exists():
         raise BagError(f"{path}: no such bag")
-    # a ROS 2 bag written without its message definitions is read with the current ones
-    reader = AnyReader([path], default_typestore=get_typestore(Stores.LATEST))
     try:
+        # a ROS 2 bag written without its message definitions is read with the current ones
+        reader = AnyReader([path], default_typestore=get_typestore(Stores.LATEST))
         reader.open()
     except Exception as exc:  # noqa: BLE001 - rosbags raises several kinds; name the bag and the problem
-        raise BagError(f"{path}: cannot be read as a ROS bag: {exc}") from exc
+        raise BagError(
+            f"{path}: cannot be read as a ROS bag ({exc}); give a ROS 1 .bag, a ROS 2 bag folder or .mcap/.db3, "
+            "or an Ouster .osf or .pcap"
+        ) from exc
     return reader
 
 
