@@ -584,6 +584,7 @@ def fit_constraints(
         "constraints": {
             "base": str(checkpoint),
             "fitted_rows": int(len(train_rows)),
+            "dataset": data.name,
             "base_epoch": state.get("epoch"),
             "base_scores": state.get("scores"),
         },
