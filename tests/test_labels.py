@@ -400,3 +400,21 @@ def test_two_runs_into_one_dataset_folder_are_refused_by_name(tmp_path):
     with folder_lock(tmp_path / "d"), pytest.raises(FolderBusyError, match=busy):  # a run already writing there
         generate(tmp_path / "d", cfg, workers=1, progress=False)
     assert generate(tmp_path / "d", cfg, workers=1, progress=False)["count"] == 1  # free again: it runs
+
+
+def test_a_dataset_of_the_papers_protocol_is_refused_with_the_command_that_labels_it_again(tiny_dataset, tmp_path):
+    import shutil
+
+    old = tmp_path / "old"
+    shutil.copytree(tiny_dataset, old)
+    manifest = json.loads((old / "manifest.json").read_text())
+    del manifest["protocol"]  # written before datasets recorded their protocol: the paper's
+    (old / "manifest.json").write_text(json.dumps(manifest))
+    for read in (lambda: LabelDataset(old), lambda: generate(old, config_for(None, **manifest["settings"]))):
+        with pytest.raises(
+            DatasetError,
+            match=r"label protocol 1 .*l3e dataset generate --out .*old-p2 --scenes "
+            r"tunnel-0,office-0,field-0 --parents 4 --seed 0",
+        ):
+            read()
+    assert LabelDataset(tiny_dataset).manifest["protocol"] == 2
