@@ -411,3 +411,16 @@ def test_stretch_drift_counts_only_the_error_made_inside_the_stretches():
     assert ate(turned, gt) > 2 * ate(est, gt)  # which the ATE does count
     with pytest.raises(MetricError, match="mask"):
         stretch_drift(est, gt, inside[:-1])
+
+
+def test_the_pipeline_says_start_first_when_stepped_before_a_drive():
+    from l3e_env.config import OdometryConfig
+    from l3e_env.detection.detectors import NoDetector
+    from l3e_env.detection.pipeline import LocalizationPipeline
+
+    pipeline = LocalizationPipeline(NoDetector(), "graph", FusionConfig(), OdometryConfig(), np.eye(4))
+    with pytest.raises(RuntimeError, match=r"call start\(T_w_b\)"):
+        pipeline.step(pose(0.1), None, np.zeros((0, 3)), None)
+    pipeline.start(np.eye(4))
+    outcome = pipeline.step(pose(0.1), None, np.zeros((0, 3)), None)
+    assert np.allclose(outcome.T_w_b[:3, 3], [0.1, 0, 0], atol=1e-6)

@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from fusion import FusionConfig, check_backend, make_fusion
+from fusion import EKFFusion, FusionConfig, FusionGraph, check_backend, make_fusion
 from l3e_env.config import FusionSettings, OdometryConfig, from_dict
 from l3e_env.localizability.registration import (
     PreparedTarget,
@@ -90,10 +90,19 @@ class LocalizationPipeline:
         self.T_b_s = T_b_s
         self.attitude_sigmas = attitude_sigmas(attitude)
         self.attitude_mode = attitude
+        self._backend: FusionGraph | EKFFusion | None = None
+        self.steps = 0
 
     def start(self, T_w_b: np.ndarray) -> None:
-        self.backend = make_fusion(self.backend_name, T_w_b, self.fusion)
+        self._backend = make_fusion(self.backend_name, T_w_b, self.fusion)
         self.steps = 0
+
+    @property
+    def backend(self) -> FusionGraph | EKFFusion:
+        """The estimator of the drive begun by `start`."""
+        if self._backend is None:
+            raise RuntimeError("the pipeline has no drive yet: call start(T_w_b) with the first pose before step()")
+        return self._backend
 
     def step(
         self,
