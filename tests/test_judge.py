@@ -212,3 +212,12 @@ def test_a_cloud_larger_than_any_revolution_is_refused_by_name_before_any_work(t
     assert main(["judge", str(big), "--detector", "learned"]) == 2
     said = capsys.readouterr()
     assert "accumulated map" in said.err and "1 of 1 scans could not be read or judged" in said.err
+
+
+def test_a_ply_of_text_garbage_is_named_as_no_ply_point_cloud(tmp_path):
+    from l3e_env.io.scan_files import ScanFileError, read_scan
+
+    path = tmp_path / "bad.ply"
+    path.write_text("ply\nformat ascii 1.0\ngarbage\n")
+    with pytest.raises(ScanFileError, match=r"bad.ply: not a PLY point cloud: its header must open with 'ply'"):
+        read_scan(path)

@@ -289,7 +289,7 @@ def test_pattern_files_in_the_projects_own_keys_and_as_ouster_metadata(tmp_path)
     "text,problem",
     [
         ("columns: 10\nmax_range: 5\n", "lacks 'elevations_deg'"),
-        ("elevations_deg: [0, 1]\ncolumns: ten\nmax_range: 5\n", "not a number"),
+        ("elevations_deg: [0, 1]\ncolumns: ten\nmax_range: 5\n", "columns is a whole number from 1 to 8192, got .ten."),
         (
             "elevations_deg: [0, 1]\ncolumns: 10\nmax_range: 5\nazimuth_offsets_deg: [1]\n",
             "1 azimuth offsets for 2 beams",
@@ -309,9 +309,15 @@ def test_pattern_files_in_the_projects_own_keys_and_as_ouster_metadata(tmp_path)
         ("elevations_deg: [0, 1]\ncolumns: 10\nmax_range: 5\ntime_field: stamp\n", "time_field 'stamp'; it is one of"),
         (
             "elevations_deg: [0, 1]\ncolumns: 100000000\nmax_range: 5\n",
-            "100000000 columns; spinning LiDARs have at most",
+            "columns is a whole number from 1 to 8192, got 100000000",
         ),
-        ("elevations_deg: {from: -10, to: 10, beams: 100000}\ncolumns: 10\nmax_range: 5\n", "100000 beams"),
+        (
+            "elevations_deg: {from: -10, to: 10, beams: 2000000000}\ncolumns: 10\nmax_range: 5\n",
+            "beams is a whole number from 1 to 512, got 2000000000",  # refused before 16 GB of angles are made
+        ),
+        ("elevations_deg: [0, 1]\ncolumns: 0\nmax_range: 5\n", "columns is a whole number from 1 to 8192, got 0"),
+        ("elevations_deg: [0, 1]\ncolumns: 10.5\nmax_range: 5\n", "columns is a whole number from 1 to 8192, got 10.5"),
+        ("elevations_deg: 5\ncolumns: 10\nmax_range: 5\n", "elevations_deg is a list of 1 to 512 angles"),
         ("elevations_deg: [0, 200]\ncolumns: 10\nmax_range: 5\n", "a beam at 200 deg elevation"),
         ("elevations_deg: [0, 1, 1]\ncolumns: 10\nmax_range: 5\n", "two beams at the same elevation"),
         (

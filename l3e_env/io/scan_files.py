@@ -81,6 +81,23 @@ def _read_pcd(path: Path) -> np.ndarray:
     return np.stack([data[a][:, 0] for a in "xyz"], axis=1)
 
 
+def _check_ply_header(path: Path) -> None:
+    """ScanFileError where the file does not open with a PLY header that declares its vertices (a
+    header is text up to `end_header`; trimesh's own errors on a broken one name no cause)."""
+    with open(path, "rb") as f:
+        head = f.read(65536)
+    lines = head.split(b"end_header")[0].splitlines() if b"end_header" in head else []
+    if (
+        not lines
+        or lines[0].strip() != b"ply"
+        or not any(line.split()[:2] == [b"element", b"vertex"] for line in lines)
+    ):
+        raise ScanFileError(
+            f"{path}: not a PLY point cloud: its header must open with 'ply', declare 'element vertex N' "
+            "and close with 'end_header'"
+        )
+
+
 def read_scan(path: str | Path) -> np.ndarray:
     """(N, 3) float64 points of a scan file, as written (NaN kept: `judge_scans` drops them)."""
     path = Path(path)
@@ -110,6 +127,7 @@ def read_scan(path: str | Path) -> np.ndarray:
         elif suffix == ".ply":
             import trimesh
 
+            _check_ply_header(path)
             points = np.asarray(trimesh.load(path, process=False).vertices)
         elif suffix == ".pcd":
             points = _read_pcd(path)

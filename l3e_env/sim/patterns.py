@@ -465,8 +465,11 @@ def _own_pattern(name: str, spec: dict) -> BeamPattern:
         raise PatternError(f"{name}: unknown keys {sorted(unknown)} (a beam pattern file's keys: {sorted(OWN_KEYS)})")
     elevations = spec["elevations_deg"]
     if isinstance(elevations, dict):  # evenly spaced: {from, to, beams}
-        elevations = np.linspace(float(elevations["from"]), float(elevations["to"]), int(elevations["beams"]))
-    columns = int(spec["columns"])
+        beams = _count(name, "elevations_deg.beams", elevations["beams"], MAX_BEAMS)
+        elevations = np.linspace(float(elevations["from"]), float(elevations["to"]), beams)
+    elif not isinstance(elevations, list) or not 1 <= len(elevations) <= MAX_BEAMS:
+        raise PatternError(f"{name}: elevations_deg is a list of 1 to {MAX_BEAMS} angles or {{from, to, beams}}")
+    columns = _count(name, "columns", spec["columns"], MAX_COLUMNS)
     return BeamPattern(
         name,
         tuple(float(e) for e in elevations),
@@ -482,6 +485,13 @@ def _own_pattern(name: str, spec: dict) -> BeamPattern:
         tuple(float(z) for z in spec.get("beam_vertical_offsets", ())),
         tuple(float(v) for v in np.ravel(spec.get("lidar_to_sensor", ()))),
     )
+
+
+def _count(name: str, key: str, value: object, most: int) -> int:
+    """A whole number from 1 to `most` (checked before any array of that size is made)."""
+    if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= most:
+        raise PatternError(f"{name}: {key} is a whole number from 1 to {most}, got {value!r}")
+    return value
 
 
 def _spin(text: str) -> bool:
