@@ -221,3 +221,24 @@ def test_a_ply_of_text_garbage_is_named_as_no_ply_point_cloud(tmp_path):
     path.write_text("ply\nformat ascii 1.0\ngarbage\n")
     with pytest.raises(ScanFileError, match=r"bad.ply: not a PLY point cloud: its header must open with 'ply'"):
         read_scan(path)
+
+
+def test_scan_files_of_two_sensors_given_together_are_each_read_with_their_own(tmp_path):
+    """The sensor recognised from the first file is not forced on the next: an OS0-128 scan judged
+    after a VLP-16 one is read on its own beams, and scanmc judges both."""
+    from l3e_env.config import LidarConfig
+    from l3e_env.core.transforms import pose_to_matrix
+    from l3e_env.experiments.judge import judge_scans
+    from l3e_env.sim.lidar import Lidar
+    from l3e_env.sim.raycast import EmbreeCaster
+    from scenes import make_scene
+
+    caster = EmbreeCaster(make_scene("office").mesh, threads=1)
+    pose = pose_to_matrix(np.array([5.0, 0.0, 0.85, 0.0, 0.0, 0.3]))
+    paths = []
+    for model in ("vlp16", "os0-128"):
+        paths.append(tmp_path / f"{model}.npy")
+        np.save(paths[-1], Lidar(caster, LidarConfig(model=model)).scan(pose, np.random.default_rng(0)).points)
+    judged = list(judge_scans(paths, ["scanmc:4"]))
+    assert [j.sensor for j in judged] == ["vlp16", "os0-128"]
+    assert all(j.error is None and j.predictions["scanmc:4"].known for j in judged)

@@ -102,6 +102,14 @@ class _Panel:
             self._detectors[key] = [make_detector(spec, seed=self.seed, sensor=sensor) for spec in self.specs]
         return self._detectors[key]
 
+    def own_pattern(self, points: np.ndarray) -> BeamPattern | None:
+        """A scan file's own sensor, recognised from its returns (files given together may come from
+        several sensors); None where it cannot be told, and the run's sensor is used."""
+        try:
+            return fit_pattern(points)[0]
+        except PatternError:
+            return None
+
     def judge(self, index: int, source: str | Path | RecordedScan) -> Judgement:
         """A scan file read, or a recording's scan, and judged; scanmc's children are seeded by the
         scan's place in the list, so that a scan is judged alike alone or in a worker. A cloud of a
@@ -127,6 +135,8 @@ class _Panel:
         far = out_of_reach(returns)
         if far is not None:
             return Judgement(name, len(returns), dropped, {}, error=f"{name}: {far}", stamp=stamp)
+        if not isinstance(source, RecordedScan) and not self.given and needs_sensor(self.specs):
+            pattern = self.own_pattern(returns) or pattern
         if pattern is not None:
             try:
                 returns, note = in_lidar_frame(returns, pattern)
