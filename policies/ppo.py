@@ -71,7 +71,26 @@ def _load_tensors(path: Path) -> dict[str, Any]:
     try:
         return torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # noqa: BLE001 - whatever the loader raises, name the file
-        raise PolicyCheckpointError(f"{path}: cannot be read as policy weights ({exc})") from exc
+        # torch's own message advises loading with weights_only=False, which would run code from the file
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        reason = "not a weights-only torch file, or damaged" if first.startswith("Weights only load failed") else first
+        raise PolicyCheckpointError(f"{path}: cannot be read as policy weights ({reason})") from exc
+
+
+def _checked_meta(path: Path, meta: Any) -> dict[str, Any]:
+    """policy.json's structure: PolicyCheckpointError naming the file and the key that is missing or wrong."""
+    if not isinstance(meta, dict):
+        raise PolicyCheckpointError(f"{path}: holds a {type(meta).__name__}, not the mapping train_ppo writes")
+    fast_env = meta.get("fast_env")
+    repeat = fast_env.get("action_repeat") if isinstance(fast_env, dict) else None
+    if isinstance(repeat, bool) or not isinstance(repeat, int) or repeat < 1:
+        raise PolicyCheckpointError(
+            f"{path}: fast_env.action_repeat must be a whole number of 1 or more, got {repeat!r}"
+        )
+    arch = meta.get("net_arch", NET_ARCH)
+    if not isinstance(arch, list) or not arch or not all(type(n) is int and 0 < n <= 4096 for n in arch):
+        raise PolicyCheckpointError(f"{path}: net_arch must be a list of layer widths (1 to 4096), got {arch!r}")
+    return meta
 
 
 def _save_state(model: Any, path: Path) -> None:
@@ -300,7 +319,7 @@ class PPOPolicy:
                 f"{folder}: no {POLICY_FILE} with {META_FILE} beside it{old} (train one with `l3e policy train`)"
             )
         try:
-            self.meta = json.loads(meta_path.read_text())
+            self.meta = _checked_meta(meta_path, json.loads(meta_path.read_text()))
         except (OSError, ValueError) as exc:
             raise PolicyCheckpointError(f"{meta_path}: cannot be read ({exc})") from exc
         if self.meta.get("observation") != json.loads(json.dumps(OBSERVATION)):
@@ -321,8 +340,14 @@ class PPOPolicy:
             lambda _: 0.0,
             net_arch=list(self.meta.get("net_arch", NET_ARCH)),
         )
+        tensors = _load_tensors(weights)
+        if not isinstance(tensors, dict):
+            raise PolicyCheckpointError(f"{weights}: holds a {type(tensors).__name__}, not a network's weights")
+        broken = [k for k, t in tensors.items() if hasattr(t, "isfinite") and not bool(t.isfinite().all())]
+        if broken:
+            raise PolicyCheckpointError(f"{weights}: non-finite weights in {', '.join(broken[:3])}: retrain the policy")
         try:
-            self.policy.load_state_dict(_load_tensors(weights))
+            self.policy.load_state_dict(tensors)
         except (RuntimeError, TypeError, ValueError) as exc:
             raise PolicyCheckpointError(f"{weights}: not the weights of this network ({exc})") from exc
         self.policy.set_training_mode(False)

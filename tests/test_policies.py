@@ -349,7 +349,7 @@ def test_policy_view_sees_the_corridor_ahead(small_fork):
 
 def test_ppo_trains_resumes_and_refuses_other_observations(tmp_path, small_fork):
     pytest.importorskip("stable_baselines3")
-    from policies.ppo import PolicyCheckpointError, PPOPolicy, train_ppo
+    from policies.ppo import OBSERVATION, PolicyCheckpointError, PPOPolicy, train_ppo
 
     scene, space, cache = small_fork
     contexts = [SceneContext(scene, space, get_map(scene, space, "eigen:30", cache, resolution=4.0))]
@@ -377,6 +377,28 @@ def test_ppo_trains_resumes_and_refuses_other_observations(tmp_path, small_fork)
         PPOPolicy(out)
     with pytest.raises(PolicyCheckpointError, match="no policy.pt"):
         PPOPolicy(tmp_path / "nowhere")
+    # policy.json's structure and the weights' values, each named with the file
+    good = json.loads(json.dumps(meta))
+    good["action"], good["observation"] = ["vx", "vy", "yaw_rate"], json.loads(json.dumps(OBSERVATION))
+    without = {k: v for k, v in good.items() if k != "fast_env"}
+    for broken, words in (
+        ([good], "holds a list, not the mapping"),
+        (without, "fast_env.action_repeat must be a whole number of 1 or more, got None"),
+        ({**good, "fast_env": {**good["fast_env"], "action_repeat": 0}}, "fast_env.action_repeat must be .* got 0"),
+        ({**good, "net_arch": "wide"}, "net_arch must be a list of layer widths"),
+    ):
+        (out / "policy.json").write_text(json.dumps(broken))
+        with pytest.raises(PolicyCheckpointError, match=f"policy.json: {words}"):
+            PPOPolicy(out)
+    (out / "policy.json").write_text(json.dumps(good))
+    import torch
+
+    weights = torch.load(out / "policy.pt", weights_only=True)
+    first_key = next(iter(weights))
+    weights[first_key] = torch.full_like(weights[first_key], float("nan"))
+    torch.save(weights, out / "policy.pt")
+    with pytest.raises(PolicyCheckpointError, match=f"policy.pt: non-finite weights in {first_key}"):
+        PPOPolicy(out)
 
 
 def test_teacher_walks_the_aware_direction_and_ppo_starts_from_its_clone(tmp_path, small_fork):
