@@ -14,7 +14,7 @@ from l3e_env.experiments.judge import judge_scans
 from l3e_env.io.ouster import TURNED, CaptureError, read_capture
 from l3e_env.sim.patterns import get_pattern, in_lidar_frame
 
-DATA = Path(__file__).parent / "data" / "ouster"
+DATA = Path(__file__).parents[2] / "data" / "ouster"
 OS0 = DATA / "OS-0-128_v3.0.1_1024x10_20241017_141645.osf"
 OS1_OSF = DATA / "OS-1-128_v2.3.0_1024x10_lb_n3.osf"
 OS1_PCAP = DATA / "OS-1-128_v2.3.0_1024x10_lb_n3.pcap"

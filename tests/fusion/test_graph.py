@@ -380,7 +380,7 @@ def test_ate_rpe_and_alignment():
 
 
 def test_fusion_imports_nothing_of_the_project():
-    for path in Path(__file__).parents[1].joinpath("fusion").glob("*.py"):
+    for path in Path(__file__).parents[2].joinpath("fusion").glob("*.py"):
         tree = ast.parse(path.read_text())
         names = {a.name.split(".")[0] for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
         names |= {
