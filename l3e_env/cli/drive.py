@@ -7,7 +7,7 @@ import sys
 import time
 from pathlib import Path
 
-from l3e_env.config import ATTITUDE_MODES
+from l3e_env.config import ATTITUDE_MODES, FUSION_BACKENDS
 from l3e_env.config.detector_spec import DEFAULT_ATE_DETECTORS, DETECTOR_GRAMMAR, detector_spec
 
 from .options import (
@@ -254,7 +254,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         type=detector_spec,
         help=f"{DETECTOR_GRAMMAR}; repeat for several (default: {', '.join(DEFAULT_ATE_DETECTORS)})",
     )
-    p.add_argument("--backend", choices=["graph", "ekf"], default="graph", help="iSAM2 smoother or filterpy EKF")
+    p.add_argument("--backend", choices=FUSION_BACKENDS, default="graph", help="iSAM2 smoother or filterpy EKF")
     p.add_argument(
         "--baseline",
         action="append",

@@ -56,6 +56,13 @@ class OdometryConfig:
     scale_error_std: float = 0.02  # constant stride-length scale error per episode
 
 
+# the fusion's modes, checked where FusionSettings is made; the CLI's choices are these
+ATTITUDE_MODES = ("none", "tilt", "full")  # the IMU's orientation in the fusion: none, roll and pitch, all three
+FUSION_BACKENDS = ("graph", "ekf")  # iSAM2 smoother, filterpy EKF
+FUSION_MODES = ("mask", "full", "drop")  # see fusion.FusionConfig
+DESKEW_SOURCES = ("gyro", "odometry")  # where a deskewing's rotation comes from; its translation is the odometry's
+
+
 @dataclass(frozen=True)
 class FusionSettings:
     """The fusion that l3e_env runs, in the environments' loop (`EnvConfig.fusion`, off by default: it
@@ -81,6 +88,16 @@ class FusionSettings:
     attitude: str = "none"
     odometry_bias: tuple[str, ...] = ()
     detector_process: bool = False
+
+    def __post_init__(self) -> None:
+        for name, value, allowed in (
+            ("backend", self.backend, FUSION_BACKENDS),
+            ("mode", self.mode, FUSION_MODES),
+            ("deskew", self.deskew, DESKEW_SOURCES),
+            ("attitude", self.attitude, ATTITUDE_MODES),
+        ):
+            if value not in allowed:
+                raise ValueError(f"fusion.{name} must be one of {allowed}, got {value!r}")
 
     def record(self) -> dict[str, Any]:
         """The estimator's choices, as written into results.json, sweep.json and a policy evaluation's
@@ -112,6 +129,3 @@ class EnvConfig:
     collision_penalty: float = 0.1
     goal_reward: float = 10.0
     fusion: FusionSettings = field(default_factory=FusionSettings)
-
-
-ATTITUDE_MODES = ("none", "tilt", "full")  # the IMU's orientation in the fusion: none, roll and pitch, all three

@@ -11,7 +11,7 @@ from gymnasium import spaces
 from l3e_env.config import EnvConfig, from_dict
 from l3e_env.core.transforms import inverse, matrix_to_pose
 from l3e_env.sim.imu import StepAttitude, StepGyro
-from l3e_env.sim.lidar import DESKEW_SOURCES, DESKEW_STEPS, Lidar, Scan, deskew, deskew_motion
+from l3e_env.sim.lidar import DESKEW_STEPS, Lidar, Scan, deskew, deskew_motion
 from l3e_env.sim.odometry import LegOdometry
 from l3e_env.sim.raycast import make_caster
 from l3e_env.sim.render import TopDownRenderer
@@ -103,8 +103,6 @@ class NavigationEnv(gym.Env):
         self.max_steps = config.max_episode_steps or int(np.ceil(3 * route_length / (speed * config.robot.dt)))
         self._renderer: TopDownRenderer | None = None
         self.fusion = None
-        if config.fusion.deskew not in DESKEW_SOURCES:
-            raise ValueError(f"fusion.deskew must be one of {DESKEW_SOURCES}, got {config.fusion.deskew!r}")
         swept_fusion = config.fusion.enabled and config.lidar.sweep
         self.gyro = StepGyro() if swept_fusion and config.fusion.deskew == "gyro" else None  # deskews only there
         self.attitude = StepAttitude() if config.fusion.enabled and config.fusion.attitude != "none" else None

@@ -32,7 +32,7 @@ from fusion import (
     write_kitti,
     write_tum,
 )
-from l3e_env.config import EnvConfig, FusionSettings, LidarConfig, OdometryConfig, RobotConfig, to_dict
+from l3e_env.config import DESKEW_SOURCES, EnvConfig, FusionSettings, LidarConfig, OdometryConfig, RobotConfig, to_dict
 from l3e_env.core.files import write_atomic
 from l3e_env.core.transforms import inverse
 from l3e_env.core.workers import ordered_map
@@ -51,7 +51,7 @@ from l3e_env.localizability.labels import AXES
 from l3e_env.localizability.registration import RegistrationConfig
 from l3e_env.sim.follower import RouteFollower
 from l3e_env.sim.imu import StepGyro, attitude_readings, attitude_sigmas
-from l3e_env.sim.lidar import DESKEW_SOURCES, Lidar, Scan, deskew, deskew_motion, get_pattern
+from l3e_env.sim.lidar import Lidar, Scan, deskew, deskew_motion, get_pattern
 from l3e_env.sim.odometry import odometry_fusion_config
 from l3e_env.sim.raycast import EmbreeCaster
 from scenes import Scene, SceneError, canonical_scene_name, file_sha256, is_mesh_path, make_scene
@@ -551,7 +551,7 @@ class AteOptions:
     used; the scene given matters only as the new path of a recorded mesh that has moved).
     scene_params: make_scene's arguments (a mesh scene's up axis, scale and route). workers: processes
     that judge the route with scanmc before the fusion (the same judgements as one). deskew: where a
-    swept recording's deskewing takes its rotation from (sim.lidar.DESKEW_SOURCES). attitude: the
+    swept recording's deskewing takes its rotation from (config.DESKEW_SOURCES). attitude: the
     IMU's orientation in the fusion ("none", "tilt" or "full"); with it, a row "odometry + attitude"
     follows odometry alone. fusion_settings: every fusion's (the biases' prior from the default
     OdometryConfig, as the drive's). max_steps: a shorter drive. baselines: external LiDAR odometries

@@ -130,7 +130,6 @@ def deskew(points: np.ndarray, motion: np.ndarray, pattern: BeamPattern) -> np.n
 
 
 DESKEW_STEPS = 2  # odometry steps averaged into the motion a revolution is deskewed with
-DESKEW_SOURCES = ("gyro", "odometry")  # where a deskewing's rotation comes from; its translation is the odometry's
 
 
 def deskew_motion(
