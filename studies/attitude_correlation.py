@@ -21,7 +21,7 @@ import numpy as np
 
 from l3e_env.config import FusionSettings, LidarConfig, OdometryConfig
 from l3e_env.detection.detectors import make_detector
-from l3e_env.experiments import ate as experiment
+from l3e_env.experiments import drive, fuse, recast
 from l3e_env.localizability.registration import RegistrationConfig
 from l3e_env.sim.imu import attitude_sigmas
 from l3e_env.sim.lidar import Lidar
@@ -32,12 +32,12 @@ from scenes import make_scene
 
 def drive_ates(seed: int, factors: list[float], scene, lidar: Lidar) -> dict[str, float]:
     """ATE (m) per row of one drive: without the attitude, then per mode and factor."""
-    rec = experiment.deskewed(experiment.record_run("mine", "vlp16", seed, False, scene_object=scene), "gyro")
-    regs = experiment.register_sequence(rec, RegistrationConfig(), False)
+    rec = drive.deskewed(drive.record_run("mine", "vlp16", seed, False, scene_object=scene), "gyro")
+    regs = drive.register_sequence(rec, RegistrationConfig(), False)
     fusion = odometry_fusion_config(OdometryConfig(), FusionSettings())
     detectors = [make_detector("learned", lidar, seed), make_detector("none", lidar, seed)]
-    ates = {"odometry only": experiment.odometry_only(rec).ate}
-    for r in experiment.fuse_recording(rec, detectors, regs, fusion=fusion, progress=False):
+    ates = {"odometry only": fuse.odometry_only(rec).ate}
+    for r in fuse.fuse_recording(rec, detectors, regs, fusion=fusion, progress=False):
         ates[f"{r.name}, no attitude"] = r.ate
     for mode in ("tilt", "full"):
         for factor in factors:
@@ -46,9 +46,9 @@ def drive_ates(seed: int, factors: list[float], scene, lidar: Lidar) -> dict[str
                 sigmas = attitude_sigmas(m, config)
                 return None if sigmas is None else sigmas * factor
 
-            with mock.patch.object(experiment, "attitude_sigmas", scaled):
-                rows = experiment.fuse_recording(
-                    rec, [experiment.OdometryAttitude(), *detectors], regs, fusion=fusion, progress=False, attitude=mode
+            with mock.patch.object(fuse, "attitude_sigmas", scaled):
+                rows = fuse.fuse_recording(
+                    rec, [recast.OdometryAttitude(), *detectors], regs, fusion=fusion, progress=False, attitude=mode
                 )
             for r in rows:
                 ates[f"{r.name}, {mode} x{factor:g}"] = r.ate

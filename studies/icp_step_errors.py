@@ -30,7 +30,7 @@ from fusion import FusionConfig
 from l3e_env.config import OdometryConfig
 from l3e_env.core.transforms import inverse, matrix_to_pose
 from l3e_env.detection.detectors import EigenvalueDetector
-from l3e_env.experiments.ate import record_run, register_sequence
+from l3e_env.experiments.drive import record_run, register_sequence
 from l3e_env.localizability.labels import AXES
 from l3e_env.localizability.registration import RegistrationConfig
 from l3e_env.sim.odometry import odometry_sigmas

@@ -151,7 +151,7 @@ def record_imu(args: argparse.Namespace):
 
 
 def _cmd_record(args: argparse.Namespace) -> int:
-    from l3e_env.experiments.ate import record_run
+    from l3e_env.experiments.drive import record_run
     from l3e_env.io.rosbag import BagError, BagRecorder
 
     params = scene_params(args)

@@ -14,7 +14,8 @@ from l3e_env.config import FusionSettings, OdometryConfig
 from l3e_env.detection.detectors import DCRegDetector, EigenvalueDetector, make_detector, registration_of
 from l3e_env.sim.odometry import odometry_fusion_config
 
-from .ate import Recording, fuse_recording, odometry_only, record_run, register_sequence
+from .drive import Recording, record_run, register_sequence
+from .fuse import fuse_recording, odometry_only
 
 DEFAULT_TAUS = (10, 20, 30, 50, 70, 90, 110, 150, 200, 300)
 DEFAULT_KAPPAS = (3, 5, 10, 20, 50, 100, 300, 1000)

@@ -5,20 +5,11 @@ import pytest
 
 from l3e_env.config import FusionSettings, LidarConfig
 from l3e_env.detection.detectors import DCRegDetector, EigenvalueDetector, NoDetector, make_detector
-from l3e_env.experiments.ate import (
-    AteOptions,
-    RecastCascade,
-    RecastScans,
-    Recording,
-    file_stem,
-    format_seed_table,
-    format_table,
-    fuse_recording,
-    record_run,
-    register_sequence,
-    run_ate,
-    summarize_seeds,
-)
+from l3e_env.experiments.ate import AteOptions, run_ate
+from l3e_env.experiments.ate_tables import file_stem, format_seed_table, format_table, summarize_seeds
+from l3e_env.experiments.drive import Recording, record_run, register_sequence
+from l3e_env.experiments.fuse import fuse_recording
+from l3e_env.experiments.recast import RecastCascade, RecastScans
 from l3e_env.localizability.labels import AXES
 from l3e_env.localizability.registration import RegistrationConfig
 from l3e_env.sim.lidar import Lidar
@@ -524,7 +515,7 @@ def test_a_swept_recording_is_deskewed_by_its_odometry_and_gyro_before_it_is_fus
     import trimesh
 
     from l3e_env.core.transforms import pose_to_matrix
-    from l3e_env.experiments.ate import deskewed
+    from l3e_env.experiments.drive import deskewed
 
     room = trimesh.creation.box(extents=(10.0, 6.0, 4.0))
     lidar = Lidar(EmbreeCaster(room), LidarConfig(range_noise_std=0.0))
@@ -558,7 +549,7 @@ def test_a_swept_recording_is_deskewed_by_its_odometry_and_gyro_before_it_is_fus
 
 def test_a_recording_is_saved_whole_and_a_damaged_one_is_named(walls_run, tmp_path, capsys, monkeypatch):
     from l3e_env.cli.main import main
-    from l3e_env.experiments.ate import RecordingError
+    from l3e_env.experiments.drive import RecordingError
 
     rec, _ = walls_run
     rec.save(tmp_path / "rec.npz")
@@ -582,7 +573,7 @@ def test_a_recording_is_saved_whole_and_a_damaged_one_is_named(walls_run, tmp_pa
 
 def test_the_drift_of_each_region_is_its_own_and_the_table_shows_it():
     from l3e_env.core.transforms import pose_to_matrix
-    from l3e_env.experiments.ate import format_table, region_drift, regions_inside
+    from l3e_env.experiments.ate_tables import format_table, region_drift, regions_inside
     from scenes import make_scene
 
     mine = make_scene("mine")

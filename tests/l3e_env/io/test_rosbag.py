@@ -377,7 +377,7 @@ def test_swept_scans_are_stamped_when_they_began_with_each_point_s_time(tmp_path
 def test_record_cli_writes_a_drive_that_judge_reads_back(tmp_path, capsys):
     bag, rec = tmp_path / "walls.bag", tmp_path / "walls.npz"
     assert main(["record", "--scene", "primitives-1", "--out", str(bag), "--recording", str(rec), "--quiet"]) == 0
-    from l3e_env.experiments.ate import Recording
+    from l3e_env.experiments.drive import Recording
 
     recording = Recording.load(rec)
     assert recording.sweep
@@ -423,7 +423,7 @@ def test_a_failed_or_stopped_record_leaves_no_half_written_bag(tmp_path, monkeyp
     def stopped(*args, **kwargs):
         raise RuntimeError("the drive was stopped")
 
-    monkeypatch.setattr("l3e_env.experiments.ate.record_run", stopped)
+    monkeypatch.setattr("l3e_env.experiments.drive.record_run", stopped)
     assert main(["record", "--scene", "primitives-1", "--out", str(tmp_path / "walls.bag"), "--quiet"]) == 2
     assert "the drive was stopped" in capsys.readouterr().err
     assert list(tmp_path.iterdir()) == []  # neither the bag nor its .partial folder

@@ -270,7 +270,7 @@ def test_ground_normals_converge_on_an_open_field_where_weakly_held_matches_flip
     """On the field's route the ground holds nothing sideways: a few far features decide x, y and yaw,
     and their matches can flip from one iteration to the next. The registration must settle (the
     step back uphill is not taken) instead of swinging until it runs out of iterations."""
-    from l3e_env.experiments.ate import record_run, register_sequence
+    from l3e_env.experiments.drive import record_run, register_sequence
 
     rec = record_run("field-0", seed=0, progress=False)
     regs = register_sequence(rec, GROUND, progress=False)

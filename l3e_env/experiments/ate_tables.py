@@ -1,0 +1,184 @@
+"""The ATE experiment's rows and tables: drift inside each named region, failed rows, the summary over
+seeds, trajectories as files."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+
+from fusion import (
+    stretch_drift,
+    write_kitti,
+    write_tum,
+)
+from l3e_env.config import RobotConfig
+from l3e_env.localizability.labels import AXES
+from scenes import Scene
+
+from .fuse import DetectorResult
+
+
+def regions_inside(ground_truth: np.ndarray, scene: Scene) -> dict[str, np.ndarray]:
+    """Per named region of the scene (the mine's yard, tunnel and quarry), which poses of the drive
+    lie inside it (N,): found once a drive, for every row's region_drift."""
+    where = [scene.region_of(p) for p in ground_truth[:, :2, 3]]
+    return {region: np.array([w == region for w in where]) for region in scene.regions}
+
+
+def region_drift(trajectory: np.ndarray, ground_truth: np.ndarray, inside: dict[str, np.ndarray]) -> dict:
+    """Per region (`regions_inside`): the error the estimate accumulated while the robot was inside it
+    (fusion.stretch_drift), in metres and in % of the true distance travelled there; as row fields
+    drift_<region>_m and drift_<region>_pct (None where the drive did not move inside the region)."""
+    out: dict[str, float | None] = {}
+    for region, poses in inside.items():
+        drift, distance = stretch_drift(trajectory, ground_truth, poses)
+        out[f"drift_{region}_m"] = round(drift, 3) if distance > 0 else None
+        out[f"drift_{region}_pct"] = round(100 * drift / distance, 2) if distance > 0 else None
+    return out
+
+
+def failed_row(name: str, error: str, scene: Scene) -> dict:
+    """The row of an estimate that could not be made: its name and why, every figure None."""
+    keys = (
+        "ate_m",
+        "ate_aligned_m",
+        "rpe_m",
+        "rpe_deg",
+        *(f"flagged_{a}" for a in AXES),
+        "seconds",
+        *(f"drift_{g}_{u}" for g in scene.regions for u in ("m", "pct")),
+    )
+    return {
+        "detector": name,
+        **dict.fromkeys(keys),
+        "unknown_steps": 0,
+        "fallback_steps": 0,
+        "detector_errors": 0,
+        "error": error,
+    }
+
+
+def regions_of(rows: list[dict]) -> list[str]:
+    """The regions whose drift the rows carry, in order."""
+    return (
+        [k[len("drift_") : -len("_m")] for k in rows[0] if k.startswith("drift_") and k.endswith("_m")] if rows else []
+    )
+
+
+def write_trajectories(folder: Path, ground_truth: np.ndarray, results: list[DetectorResult]) -> list[Path]:
+    """The ground truth and each row's estimate of the body's pose, in TUM (times from the drive's start)
+    and KITTI files, so that evo_ape and other tools read them: `evo_ape tum ground_truth.tum learned.tum`."""
+    folder.mkdir(parents=True, exist_ok=True)
+    stamps = np.arange(len(ground_truth)) * RobotConfig.dt
+    written = []
+    for stem, poses in [("ground_truth", ground_truth), *((file_stem(r.name), r.trajectory) for r in results)]:
+        write_tum(folder / f"{stem}.tum", stamps, poses)
+        write_kitti(folder / f"{stem}.kitti", poses)
+        written += [folder / f"{stem}.tum", folder / f"{stem}.kitti"]
+    return written
+
+
+def file_stem(detector_name: str) -> str:
+    """A detector's name as a file name: 'learned:runs/a/model.pt' names a path, not a folder."""
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", detector_name).strip("_")
+
+
+def summarize_seeds(runs: dict[int, list[dict]]) -> list[dict]:
+    """Per detector, over drives of several seeds: ATE and aligned ATE as mean, standard deviation
+    and range, and the ATE against odometry alone on the same drive, which cancels most of one
+    drive's luck (the odometry's noise decides much of the drift of every detector); and the mean drift
+    in each region of the scene (region_drift)."""
+    seeds = sorted(runs)
+    names = [r["detector"] for r in runs[seeds[0]]]
+    if any([r["detector"] for r in runs[k]] != names for k in seeds):
+        raise ValueError("every seed's drive must be fused with the same detectors")
+    if names[0] != "odometry only":
+        raise ValueError("each drive's rows start with odometry only, as run_ate returns them")
+    summary = []
+    regions = regions_of(runs[seeds[0]])
+    for i, name in enumerate(names):
+        drifts = {}
+        for g in regions:  # the mean over the drives that moved inside the region
+            for unit in ("m", "pct"):
+                values = [runs[k][i][f"drift_{g}_{unit}"] for k in seeds if runs[k][i][f"drift_{g}_{unit}"] is not None]
+                drifts[f"drift_{g}_{unit}_mean"] = round(float(np.mean(values)), 3) if values else None
+        ate = np.array([runs[k][i]["ate_m"] for k in seeds], dtype=float)  # NaN where an estimate failed
+        aligned = np.array([runs[k][i]["ate_aligned_m"] for k in seeds], dtype=float)
+        ratio = ate / np.array([runs[k][0]["ate_m"] for k in seeds])  # row 0: odometry only
+        summary.append(
+            {
+                "detector": name,
+                "seeds": seeds,
+                "ate_m": ate.tolist(),
+                "ate_mean_m": round(float(ate.mean()), 3),
+                "ate_std_m": round(float(ate.std(ddof=1)), 3),
+                "ate_min_m": float(ate.min()),
+                "ate_max_m": float(ate.max()),
+                "ate_aligned_mean_m": round(float(np.nanmean(aligned)), 3),
+                "ate_over_odometry_mean": round(float(ratio.mean()), 3),
+                "ate_over_odometry_std": round(float(ratio.std(ddof=1)), 3),
+                **drifts,
+            }
+        )
+    return summary
+
+
+def format_seed_table(summary: list[dict]) -> str:
+    w = _name_width(summary)
+    regions = [k[len("drift_") : -len("_pct_mean")] for k in summary[0] if k.endswith("_pct_mean")]
+    head = (
+        f"{'detector':{w}s} {'ATE m mean':>10s} {'std':>6s} {'min':>7s} {'max':>7s} {'aligned':>8s}  "
+        f"{'ATE / odometry':>14s}" + "".join(f"  {'drift ' + g + ' %':>14s}" for g in regions)
+    )
+    lines = [
+        f"over {len(summary[0]['seeds'])} drives (seeds {summary[0]['seeds'][0]}-{summary[0]['seeds'][-1]})",
+        head,
+        "-" * len(head),
+    ]
+    for r in summary:
+        lines.append(
+            f"{r['detector']:{w}s} {r['ate_mean_m']:10.3f} {r['ate_std_m']:6.3f} {r['ate_min_m']:7.3f} "
+            f"{r['ate_max_m']:7.3f} {r['ate_aligned_mean_m']:8.3f}  "
+            f"{r['ate_over_odometry_mean']:7.3f} +-{r['ate_over_odometry_std']:.3f}"
+            + "".join(
+                f"  {'-':>14s}" if r[f"drift_{g}_pct_mean"] is None else f"  {r[f'drift_{g}_pct_mean']:14.1f}"
+                for g in regions
+            )
+        )
+    return "\n".join(lines)
+
+
+def _name_width(rows: list[dict]) -> int:
+    """The detector column's width: the longest name, at least 14 characters."""
+    return max([14, *(len(r["detector"]) for r in rows)])
+
+
+def format_table(rows: list[dict]) -> str:
+    """The ATE table; with regions, a column per region of the drift accumulated there (m and % of the
+    distance travelled inside it)."""
+    w = _name_width(rows)
+    regions = regions_of(rows)
+    head = (
+        f"{'detector':{w}s} {'ATE m':>7s} {'aligned':>8s} {'RPE m':>7s} {'RPE deg':>8s}  "
+        f"flagged x/y/z/roll/pitch/yaw      {'s':>6s}" + "".join(f"  {'drift ' + g:>15s}" for g in regions)
+    )
+    lines = [head, "-" * len(head)]
+    for r in rows:
+        if r.get("error"):
+            lines.append(f"{r['detector']:{w}s} failed: {r['error']}")
+            continue
+        flags = " ".join(f"{r[f'flagged_{a}']:.2f}" for a in AXES)
+        al = "-" if r["ate_aligned_m"] is None else f"{r['ate_aligned_m']:.3f}"
+        drifts = "".join(
+            f"  {'-':>15s}"
+            if r[f"drift_{g}_m"] is None
+            else f"  {r[f'drift_{g}_m']:6.2f} m {r[f'drift_{g}_pct']:5.1f}%"
+            for g in regions
+        )
+        lines.append(
+            f"{r['detector']:{w}s} {r['ate_m']:7.3f} {al:>8s} {r['rpe_m']:7.4f} {r['rpe_deg']:8.3f}  "
+            f"{flags}  {r['seconds']:6.1f}{drifts}"
+        )
+    return "\n".join(lines)
