@@ -46,7 +46,7 @@ from .ate_tables import (
     write_trajectories,
 )
 from .baselines import BASELINES, BaselineRun, check_baselines, run_baseline
-from .drive import Recording, deskewed, record_run, register_sequence
+from .drive import DriveRecord, deskewed, record_run, register_sequence
 from .fuse import fuse_recording, odometry_only, scored
 from .recast import OdometryAttitude, RecastCascade, RecastScans
 
@@ -159,8 +159,8 @@ class AteDrive:
 
     scene: Scene
     lidar: Lidar
-    rec: Recording
-    raw: Recording
+    rec: DriveRecord
+    raw: DriveRecord
     detectors: list[Detector]
     registration: RegistrationConfig
 
@@ -223,7 +223,7 @@ def run_ate(
 def prepare_drive(out: Path, scene: str, specs: list[str], options: AteOptions, progress: bool) -> AteDrive:
     """The scene (a recording's own, or `scene`), its LiDAR and the detectors (a bad spec fails before
     the drive), then the drive itself, recorded into out/recording.npz where none was given."""
-    rec = Recording.load(options.recording) if options.recording else None
+    rec = DriveRecord.load(options.recording) if options.recording else None
     scene_obj = (
         make_scene(rec.scene_file(moved_to=scene), **rec.scene_params)
         if rec
@@ -273,7 +273,7 @@ def judge_ahead(drive: AteDrive, workers: int, progress: bool) -> list[float]:
 
 
 def fuse_frontends(
-    rec: Recording,
+    rec: DriveRecord,
     dets: list,
     ahead: list[float],
     regs: list,

@@ -1,4 +1,4 @@
-"""A drive recorded once: its scans, odometry, IMU and truth (`Recording`, `record_run`), deskewed
+"""A drive recorded once: its scans, odometry, IMU and truth (`DriveRecord`, `record_run`), deskewed
 and registered scan to scan (`deskewed`, `register_sequence`)."""
 
 from __future__ import annotations
@@ -28,12 +28,12 @@ STORE_VOXEL = 0.2  # stored scans for ICP are thinned (ICP downsamples to 0.3 m 
 CLASSIFIER_POINTS = 4000  # the classifier's input size (ModelConfig.points)
 
 
-class RecordingError(ValueError):
-    """A recording.npz that is missing, cut short or not a recording: the message names the file."""
+class DriveRecordError(ValueError):
+    """A saved drive (recording.npz) that is missing, cut short or not one: the message names the file."""
 
 
 @dataclass
-class Recording:
+class DriveRecord:
     scene: str
     sensor: str
     seed: int
@@ -70,8 +70,8 @@ class Recording:
         )
 
     @classmethod
-    def load(cls, path: str | Path) -> Recording:
-        """RecordingError naming the file where it is missing, cut short or not a recording."""
+    def load(cls, path: str | Path) -> DriveRecord:
+        """DriveRecordError naming the file where it is missing, cut short or not a recording."""
         try:
             with np.load(path, allow_pickle=False) as z:
                 samples = _unragged(z, "samples") if "samples_offsets" in z.files else []
@@ -92,7 +92,7 @@ class Recording:
                     swept,
                 )
         except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
-            raise RecordingError(
+            raise DriveRecordError(
                 f"{path} cannot be read as a recording ({type(exc).__name__}: {exc}); record the "
                 "drive again (l3e ate or l3e record --recording)"
             ) from exc
@@ -143,7 +143,7 @@ def record_run(
     sweep: bool = False,
     max_steps: int | None = None,
     still: float = 0.0,
-) -> Recording:
+) -> DriveRecord:
     """Drive the scene's route once; `scene_object`, if given, is that scene already built.
     `on_step(scan, info)` sees every full scan with the step's info (T_w_b, odom_T_w_b) and the
     sensor's mounting T_b_s, the start's included, before the recording thins it (a bag writer).
@@ -196,7 +196,7 @@ def record_run(
     bar.close()
     # a mesh scene is rebuilt from its file, a procedural one from its canonical name ('tunnel' -> 'tunnel-0')
     name = canonical_scene_name(scene) if is_mesh_path(scene) else env.scene.name
-    rec = Recording(
+    rec = DriveRecord(
         name,
         sensor,
         seed,
@@ -213,7 +213,7 @@ def record_run(
     return rec
 
 
-def deskewed(rec: Recording, source: str = "gyro") -> Recording:
+def deskewed(rec: DriveRecord, source: str = "gyro") -> DriveRecord:
     """A swept recording's scans and samples put into the sensor frame at each revolution's end, by
     the leg odometry's motion over the last steps (`deskew_motion`; the first revolution was taken
     standing still), its rotation the gyro's where `source` is "gyro": a StepGyro along the drive's
@@ -235,7 +235,7 @@ def deskewed(rec: Recording, source: str = "gyro") -> Recording:
     )
 
 
-def register_sequence(rec: Recording, config: RegistrationConfig, progress: bool = True) -> list:
+def register_sequence(rec: DriveRecord, config: RegistrationConfig, progress: bool = True) -> list:
     """Scan k registered to scan k-1 from identity, as the pipeline's `ScanRegistrar` does on line; None
     where registration is impossible. Registered once, the steps serve every detector's fusion."""
     registrar = ScanRegistrar(config)

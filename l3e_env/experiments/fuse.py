@@ -25,7 +25,7 @@ from l3e_env.detection.pipeline import LocalizationPipeline
 from l3e_env.localizability.labels import AXES
 from l3e_env.sim.imu import attitude_readings, attitude_sigmas
 
-from .drive import Recording
+from .drive import DriveRecord
 
 
 @dataclass
@@ -60,7 +60,7 @@ class DetectorResult:
 
 
 def fuse_recording(
-    rec: Recording,
+    rec: DriveRecord,
     detectors: list[Detector],
     registrations: list,
     fusion: FusionConfig | None = None,
@@ -115,7 +115,7 @@ def fuse_recording(
     return out
 
 
-def odometry_only(rec: Recording) -> DetectorResult:
+def odometry_only(rec: DriveRecord) -> DetectorResult:
     traj = [rec.ground_truth[0]]
     for inc in rec.odometry:
         traj.append(traj[-1] @ inc)

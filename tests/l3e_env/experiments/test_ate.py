@@ -7,7 +7,7 @@ from l3e_env.config import FusionSettings, LidarConfig
 from l3e_env.detection.detectors import DCRegDetector, EigenvalueDetector, NoDetector, make_detector
 from l3e_env.experiments.ate import AteOptions, run_ate
 from l3e_env.experiments.ate_tables import file_stem, format_seed_table, format_table, summarize_seeds
-from l3e_env.experiments.drive import Recording, record_run, register_sequence
+from l3e_env.experiments.drive import DriveRecord, record_run, register_sequence
 from l3e_env.experiments.fuse import fuse_recording
 from l3e_env.experiments.recast import RecastCascade, RecastScans
 from l3e_env.localizability.labels import AXES
@@ -48,7 +48,7 @@ def test_masking_the_wall_axis_beats_full_icp(walls_run, tmp_path):
     assert "eigen" in format_table([full.row(), eigen.row()])
     # a saved recording evaluates to the same numbers without driving again
     rec.save(tmp_path / "rec.npz")
-    again = Recording.load(tmp_path / "rec.npz")
+    again = DriveRecord.load(tmp_path / "rec.npz")
     registered = register_sequence(again, RegistrationConfig(), False)
     (eigen2,) = fuse_recording(again, [EigenvalueDetector(tau)], registered, progress=False)
     assert eigen2.ate == pytest.approx(eigen.ate, rel=1e-9)
@@ -214,7 +214,7 @@ def test_a_swept_recording_says_so_when_replayed(walls_run, tmp_path, capsys):
     rec, _ = walls_run
     assert not rec.sweep
     replace(rec, sweep=True).save(tmp_path / "swept.npz")
-    assert Recording.load(tmp_path / "swept.npz").sweep
+    assert DriveRecord.load(tmp_path / "swept.npz").sweep
     assert (
         main(
             [
@@ -367,7 +367,7 @@ def test_a_users_mesh_and_route_are_driven_and_replayed(cad_corridor, tmp_path, 
         == 0
     )
     first = json.loads((out / "results.json").read_text())["rows"]
-    rec = Recording.load(out / "recording.npz")
+    rec = DriveRecord.load(out / "recording.npz")
     assert rec.scene_params["up_axis"] == "y" and len(rec.ground_truth) > 50
     assert rec.ground_truth[-1][0, 3] > 7.0 and abs(rec.ground_truth[-1][1, 3]) < 0.3  # along the corridor
     again = run_ate(
@@ -527,9 +527,9 @@ def test_a_swept_recording_is_deskewed_by_its_odometry_and_gyro_before_it_is_fus
     scans = [lidar.scan(truth[0] @ T_b_s, start=truth[0] @ T_b_s).points]
     scans += [lidar.scan(T @ T_b_s, start=before @ T_b_s).points for before, T in zip(truth, truth[1:])]
     odometry = np.array([pose_to_matrix([0.1, 0.02, 0.0, 0.0, 0.0, 0.15]) for _ in range(3)])
-    rec = Recording("box", "vlp16", 0, T_b_s, np.array(truth), odometry, scans, scans, sweep=True)
+    rec = DriveRecord("box", "vlp16", 0, T_b_s, np.array(truth), odometry, scans, scans, sweep=True)
 
-    def off_the_walls(recording: Recording) -> list[float]:
+    def off_the_walls(recording: DriveRecord) -> list[float]:
         worst = []
         for T, points in zip(truth, recording.scans):
             world = points.astype(np.float64) @ (T @ T_b_s)[:3, :3].T + (T @ T_b_s)[:3, 3]
@@ -549,18 +549,18 @@ def test_a_swept_recording_is_deskewed_by_its_odometry_and_gyro_before_it_is_fus
 
 def test_a_recording_is_saved_whole_and_a_damaged_one_is_named(walls_run, tmp_path, capsys, monkeypatch):
     from l3e_env.cli.main import main
-    from l3e_env.experiments.drive import RecordingError
+    from l3e_env.experiments.drive import DriveRecordError
 
     rec, _ = walls_run
     rec.save(tmp_path / "rec.npz")
     whole = (tmp_path / "rec.npz").read_bytes()
     (tmp_path / "cut.npz").write_bytes(whole[: len(whole) // 2])
-    with pytest.raises(RecordingError, match="cut.npz cannot be read as a recording"):
-        Recording.load(tmp_path / "cut.npz")
+    with pytest.raises(DriveRecordError, match="cut.npz cannot be read as a recording"):
+        DriveRecord.load(tmp_path / "cut.npz")
     assert main(["ate", "--recording", str(tmp_path / "cut.npz"), "--quiet", "--out", str(tmp_path / "o")]) == 2
     assert "cut.npz cannot be read as a recording" in capsys.readouterr().err
-    with pytest.raises(RecordingError, match="missing.npz"):
-        Recording.load(tmp_path / "missing.npz")
+    with pytest.raises(DriveRecordError, match="missing.npz"):
+        DriveRecord.load(tmp_path / "missing.npz")
 
     def killed(*args, **kwargs):
         raise KeyboardInterrupt  # the run is stopped while the file is written

@@ -377,9 +377,9 @@ def test_swept_scans_are_stamped_when_they_began_with_each_point_s_time(tmp_path
 def test_record_cli_writes_a_drive_that_judge_reads_back(tmp_path, capsys):
     bag, rec = tmp_path / "walls.bag", tmp_path / "walls.npz"
     assert main(["record", "--scene", "primitives-1", "--out", str(bag), "--recording", str(rec), "--quiet"]) == 0
-    from l3e_env.experiments.drive import Recording
+    from l3e_env.experiments.drive import DriveRecord
 
-    recording = Recording.load(rec)
+    recording = DriveRecord.load(rec)
     assert recording.sweep
     scans = list(read_bag(bag, every=200))
     assert len(scans) == len(range(0, len(recording.ground_truth), 200))
