@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import small_gicp
+from numba import njit
 
 from l3e_env.core.transforms import adjoint, inverse
 
@@ -185,8 +186,9 @@ def register(
     source_points = np.asarray(src.points())[:, :3]
     iterations = 0
     for distance in config.max_correspondence_distance:
+        hessian = None  # small_gicp's is from its last linearisation, one update before the solution
         if config.ground_normals:
-            T, done, converged, inliers, error = _plane_icp(source_points, tgt, T, distance, config)
+            T, done, converged, inliers, error, hessian = _plane_icp(source_points, tgt, T, distance, config)
         else:
             result = small_gicp.align(
                 tgt.cloud,
@@ -205,51 +207,83 @@ def register(
     converged = converged and bool(np.isfinite(T).all())
     if inliers < config.min_inlier_ratio * src.size():
         converged = False
-    H = (
-        point_to_plane_hessian(source_points, tgt, T, config.max_correspondence_distance[-1])
-        if with_hessian
-        else np.full((6, 6), np.nan)
-    )
+    if not with_hessian:
+        H = np.full((6, 6), np.nan)
+    elif hessian is not None:  # the last stage's at the pose returned: the final correspondences
+        H = hessian
+    else:
+        H = point_to_plane_hessian(source_points, tgt, T, config.max_correspondence_distance[-1])
     return RegistrationResult(T, H, converged, iterations, inliers, int(src.size()), error)
+
+
+@njit(cache=True)
+def _normal_equations(source, R, moved, idx, sq, points, normals, max_sq):  # pragma: no cover - compiled
+    """J^T J, J^T r, the squared residuals' sum and the correspondences of point-to-plane ICP at the
+    pose (R, moved = R p + t): rows J = [R^T n, p x R^T n] (d r / d delta for T exp(delta), delta in the
+    source frame), residuals r = n . (R p + t - q), over the matches within sqrt(max_sq)."""
+    H, g = np.zeros((6, 6)), np.zeros(6)
+    total, count = 0.0, 0
+    j = np.zeros(6)
+    for i in range(len(idx)):
+        k = idx[i]
+        if k < 0 or sq[i] >= max_sq:
+            continue
+        n0, n1, n2 = normals[k, 0], normals[k, 1], normals[k, 2]
+        r = n0 * (moved[i, 0] - points[k, 0]) + n1 * (moved[i, 1] - points[k, 1]) + n2 * (moved[i, 2] - points[k, 2])
+        a0 = R[0, 0] * n0 + R[1, 0] * n1 + R[2, 0] * n2  # R^T n
+        a1 = R[0, 1] * n0 + R[1, 1] * n1 + R[2, 1] * n2
+        a2 = R[0, 2] * n0 + R[1, 2] * n1 + R[2, 2] * n2
+        p0, p1, p2 = source[i, 0], source[i, 1], source[i, 2]
+        j[0], j[1], j[2] = a0, a1, a2
+        j[3], j[4], j[5] = p1 * a2 - p2 * a1, p2 * a0 - p0 * a2, p0 * a1 - p1 * a0
+        for u in range(6):
+            g[u] += j[u] * r
+            for v in range(6):
+                H[u, v] += j[u] * j[v]
+        total += r * r
+        count += 1
+    return H, g, total, count
 
 
 def _plane_icp(
     source: np.ndarray, target: PreparedTarget, T: np.ndarray, distance: float, config: RegistrationConfig
-) -> tuple[np.ndarray, int, bool, int, float]:
+) -> tuple[np.ndarray, int, bool, int, float, np.ndarray]:
     """One stage of point-to-plane ICP onto the target's own `normals` (nearest neighbour within
     `distance`, T <- T exp(delta)): Gauss-Newton as small_gicp's PLANE_ICP (damping 1e-6, stop when
     the update is under the epsilons), except that a step that turns back on the one before and
     raises the mean squared residual over its new correspondences is not taken: there a weakly held
     axis's matches flip back and forth and the pose would swing between two, the better one is kept.
-    Returns the pose, iterations, whether it converged, the final correspondences and half their
-    squared residuals. Hand-written: small_gicp cannot be handed normals other than its own."""
+    Returns the pose, iterations, whether it converged, the final correspondences, half their
+    squared residuals and J^T J there (the Hessian at the pose returned). Hand-written: small_gicp
+    cannot be handed normals other than its own; the sums are compiled (numba), since numpy's
+    per-operation overhead on a thousand rows was most of a registration's time."""
 
-    def linearised(T: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    def linearised(T: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, float, int]:
         moved = source @ T[:3, :3].T + T[:3, 3]
         idx, sq = target.tree.batch_nearest_neighbor_search(moved)
-        idx, sq = np.asarray(idx).reshape(-1), np.asarray(sq).reshape(-1)
-        keep = (idx >= 0) & (sq < distance**2)
-        n = target.normals[idx[keep]]
-        r = np.einsum("ij,ij->i", n, moved[keep] - target.points[idx[keep]])
-        n_local = n @ T[:3, :3]  # rows R^T n: d r / d delta, delta = (v, w) in the source frame
-        cost = float(r @ r) / max(len(r), 1)  # per correspondence: how many there are moves with the pose
-        return cost, np.hstack([n_local, np.cross(source[keep], n_local)]), r
+        idx = np.asarray(idx, dtype=np.int64).reshape(-1)
+        sq = np.asarray(sq, dtype=np.float64).reshape(-1)
+        H, g, total, count = _normal_equations(
+            source, np.ascontiguousarray(T[:3, :3]), moved, idx, sq, target.points, target.normals, distance**2
+        )
+        # per correspondence: how many there are moves with the pose
+        return total / max(count, 1), H, g, total, count
 
-    cost, J, r = linearised(T)
+    cost, H, g, total, count = linearised(T)
     before = np.zeros(6)
     for iteration in range(1, config.max_iterations + 1):
-        delta = np.linalg.solve(J.T @ J + 1e-6 * np.eye(6), -J.T @ r)
+        delta = np.linalg.solve(H + 1e-6 * np.eye(6), -g)
         step = np.eye(4)
         step[:3, :3], step[:3, 3] = _rotation(delta[3:]), delta[:3]
         trial = T @ step
-        trial_cost, trial_J, trial_r = linearised(trial)
+        trial_cost, trial_H, trial_g, trial_total, trial_count = linearised(trial)
         if delta @ before < -0.5 * np.linalg.norm(delta) * np.linalg.norm(before) and trial_cost > cost:
-            return T, iteration, True, len(r), 0.5 * float(r @ r)  # back uphill to where it came from: swinging
-        T, cost, J, r, before = trial, trial_cost, trial_J, trial_r, delta
+            return T, iteration, True, count, 0.5 * total, H  # back uphill to where it came from: swinging
+        T, cost, H, g, total, count, before = trial, trial_cost, trial_H, trial_g, trial_total, trial_count, delta
         small = np.linalg.norm(delta[3:]) < config.rotation_epsilon
         if small and np.linalg.norm(delta[:3]) < config.translation_epsilon:
-            return T, iteration, True, len(r), 0.5 * float(r @ r)
-    return T, config.max_iterations, False, len(r), 0.5 * float(r @ r)
+            return T, iteration, True, count, 0.5 * total, H
+    return T, config.max_iterations, False, count, 0.5 * total, H
 
 
 def _rotation(w: np.ndarray) -> np.ndarray:
