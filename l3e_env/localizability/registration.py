@@ -245,6 +245,20 @@ def _normal_equations(source, R, moved, idx, sq, points, normals, max_sq):  # pr
     return H, g, total, count
 
 
+def _linearise(
+    source: np.ndarray, target: PreparedTarget, T: np.ndarray, distance: float
+) -> tuple[np.ndarray, np.ndarray, float, int]:
+    """The point-to-plane normal equations at T over the nearest target voxels within `distance`
+    (`_normal_equations`): J^T J, J^T r, the squared residuals' sum and the correspondences."""
+    moved = source @ T[:3, :3].T + T[:3, 3]
+    idx, sq = target.tree.batch_nearest_neighbor_search(moved)
+    idx = np.asarray(idx, dtype=np.int64).reshape(-1)
+    sq = np.asarray(sq, dtype=np.float64).reshape(-1)
+    return _normal_equations(
+        source, np.ascontiguousarray(T[:3, :3]), moved, idx, sq, target.points, target.normals, distance**2
+    )
+
+
 def _plane_icp(
     source: np.ndarray, target: PreparedTarget, T: np.ndarray, distance: float, config: RegistrationConfig
 ) -> tuple[np.ndarray, int, bool, int, float, np.ndarray]:
@@ -259,13 +273,7 @@ def _plane_icp(
     per-operation overhead on a thousand rows was most of a registration's time."""
 
     def linearised(T: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, float, int]:
-        moved = source @ T[:3, :3].T + T[:3, 3]
-        idx, sq = target.tree.batch_nearest_neighbor_search(moved)
-        idx = np.asarray(idx, dtype=np.int64).reshape(-1)
-        sq = np.asarray(sq, dtype=np.float64).reshape(-1)
-        H, g, total, count = _normal_equations(
-            source, np.ascontiguousarray(T[:3, :3]), moved, idx, sq, target.points, target.normals, distance**2
-        )
+        H, g, total, count = _linearise(source, target, T, distance)
         # per correspondence: how many there are moves with the pose
         return total / max(count, 1), H, g, total, count
 
@@ -305,13 +313,7 @@ def point_to_plane_hessian(
     off on a converged office pair); the degeneracy test wants the Hessian at the solution.
     Rows are d r / d delta for T * exp(delta), delta in project order: [R^T n, p x R^T n].
     """
-    moved = source @ T[:3, :3].T + T[:3, 3]
-    idx, sq = target.tree.batch_nearest_neighbor_search(moved)
-    idx, sq = np.asarray(idx).reshape(-1), np.asarray(sq).reshape(-1)
-    keep = (idx >= 0) & (sq < max_distance**2)
-    n_local = target.normals[idx[keep]] @ T[:3, :3]  # rows R^T n
-    J = np.hstack([n_local, np.cross(source[keep], n_local)])
-    return J.T @ J
+    return _linearise(source, target, T, max_distance)[0]
 
 
 def hessian_in_frame(hessian: np.ndarray, T_b_s: np.ndarray) -> np.ndarray:
