@@ -3,6 +3,7 @@
 from .mesh_io import file_sha256, is_mesh_path, load_mesh, load_route, scene_from_mesh
 from .registry import (
     DATASET_SCENES,
+    DISTILL_SCENES,
     HELDOUT_SCENES,
     TEST_SCENES,
     TRAIN_SCENES,
@@ -34,4 +35,5 @@ __all__ = [
     "TEST_SCENES",
     "HELDOUT_SCENES",
     "DATASET_SCENES",
+    "DISTILL_SCENES",
 ]

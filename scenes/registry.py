@@ -116,6 +116,11 @@ TRAIN_SCENES = (
 VALIDATION_SCENES = ["tunnel-7", "primitives-7", "office-5", "field-3", "gallery-9", "cave-5", "chamber-5"]
 TEST_SCENES = ["mine-0", "mine-1", "mine-2"]
 HELDOUT_SCENES = [f"piperack-{s}" for s in range(6)]
+# A distillation set's scenes (labelled by the scan's own estimate, `l3e dataset generate --preset
+# distill`): the training families and procedural layouts at seeds no split uses, so that many
+# more places than the Monte-Carlo labels can afford are seen; never a test or held-out family.
+DISTILL_FAMILIES = ["tunnel", "primitives", "field", "office", "fork", "gallery", "cave", "chamber", "layout"]
+DISTILL_SCENES = [f"{family}-{s}" for s in range(10, 22) for family in DISTILL_FAMILIES]
 # The order of scenes in a dataset matters (parent i of the s-th scene is seeded by (seed, s, i)):
 # scenes added to the split later are appended, so that earlier ones keep their labels.
 DATASET_SCENES = TRAIN_SCENES + VALIDATION_SCENES + TEST_SCENES[:1]

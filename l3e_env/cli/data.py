@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from l3e_env.config import DATASET_PRESETS, LABELLERS
+
 from .options import SENSOR_HELP, add_mesh_options, dataset_scenes, scene_names, sensor_name
 
 
@@ -19,11 +21,12 @@ def _cmd_dataset_generate(args: argparse.Namespace) -> int:
         "seed": args.seed,
         "lidar": {"model": args.sensor} if args.sensor else None,
         "labels": {"children": args.children} if args.children else None,
+        "labeller": args.labeller,
     }
     config = config_for(args.preset, **overrides)
     print(
         f"dataset -> {Path(args.out).resolve()}: {len(config.scenes)} scenes x {config.parents_per_scene} parents, "
-        f"M = {config.labels.children}, {config.lidar.model}, seed {config.seed}, "
+        f"{_children(config)}, {config.lidar.model}, seed {config.seed}, "
         f"{args.workers} workers ({args.backend})"
     )
     manifest = generate(
@@ -37,6 +40,12 @@ def _cmd_dataset_generate(args: argparse.Namespace) -> int:
         print(f"  failed: {failure['scene']} parent {failure['parent']}: {failure['reason']}")
     print(format_statistics(manifest["statistics"]))
     return 0
+
+
+def _children(config) -> str:
+    if config.labeller == "scan":
+        return f"labelled by each scan's own estimate (at most {config.scan_mc.children} children)"
+    return f"M = {config.labels.children}"
 
 
 def _cmd_dataset_stats(args: argparse.Namespace) -> int:
@@ -58,10 +67,17 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--out", required=True, help="dataset folder (an unfinished one is resumed)")
     g.add_argument(
         "--preset",
-        choices=["small", "paper", "level"],
+        choices=DATASET_PRESETS,
         default="small",
         help="small: a first look; paper: the paper's protocol; level: operating poses "
-        "(level, heading along or across the paths)",
+        "(level, heading along or across the paths); distill: many places of the training families, "
+        "each scan labelled by its own estimate (a distillation set for training)",
+    )
+    g.add_argument(
+        "--labeller",
+        choices=LABELLERS,
+        help="scene: children ray-cast in the scene (the Monte-Carlo labels); scan: the scan's own "
+        "estimate, no scene needed beyond the scan (training only, never a test set)",
     )
     g.add_argument(
         "--scenes",

@@ -2,9 +2,11 @@
 
 from .sections import (
     ATTITUDE_MODES,
+    DATASET_PRESETS,
     DESKEW_SOURCES,
     FUSION_BACKENDS,
     FUSION_MODES,
+    LABELLERS,
     EnvConfig,
     FusionSettings,
     LidarConfig,
@@ -16,7 +18,9 @@ from .serialize import dump_yaml, from_dict, load_yaml, plain, settings_changed,
 __all__ = [
     "ATTITUDE_MODES",
     "DESKEW_SOURCES",
+    "DATASET_PRESETS",
     "FUSION_BACKENDS",
+    "LABELLERS",
     "FUSION_MODES",
     "EnvConfig",
     "FusionSettings",

@@ -29,22 +29,24 @@ from typing import Any, BinaryIO
 import numpy as np
 from tqdm import tqdm
 
-from l3e_env.config import LidarConfig, from_dict, settings_changed, with_defaults
+from l3e_env.config import LABELLERS, LidarConfig, from_dict, settings_changed, with_defaults
 from l3e_env.core.files import folder_lock, write_atomic
 from l3e_env.core.workers import die_with_parent
 from l3e_env.localizability.labels import (
     AXES,
     LABEL_PROTOCOL,
     LabelConfig,
+    ParentLabel,
     SamplingError,
     label_parent,
     protocol_name,
     sample_parent_pose,
 )
 from l3e_env.localizability.registration import RegistrationConfig, RegistrationError
+from l3e_env.localizability.scan_mc import ScanMCConfig, ScanPatternError, scan_errors
 from l3e_env.sim.lidar import Lidar, get_pattern
 from l3e_env.sim.raycast import EmbreeCaster
-from scenes import DATASET_SCENES, check_scene_name, file_sha256, is_mesh_path, make_scene
+from scenes import DATASET_SCENES, DISTILL_SCENES, check_scene_name, file_sha256, is_mesh_path, make_scene
 
 FORMAT_VERSION = 1
 ARRAYS = ("points", "offsets", "poses", "errors", "labels", "scene", "children_failed")
@@ -59,6 +61,11 @@ class DatasetConfig:
     lidar: LidarConfig = field(default_factory=LidarConfig)
     labels: LabelConfig = field(default_factory=LabelConfig)
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
+    # "scene": children ray-cast in the scene (the paper's Monte-Carlo labels, the ground truth of
+    # every score); "scan": the parent scan's own estimate (localizability.scan_mc), which needs no
+    # more than the scan: a distillation set, for training only
+    labeller: str = "scene"
+    scan_mc: ScanMCConfig = field(default_factory=ScanMCConfig)  # the "scan" labeller's settings
     # make_scene's keyword arguments by scene name: a mesh file's route (as its sampling path),
     # up axis and scale; procedural scenes need none
     scene_params: dict[str, dict[str, Any]] = field(default_factory=dict)
@@ -81,6 +88,9 @@ PRESETS: dict[str, dict[str, Any]] = {
         "seed": 1,
         "labels": {"parent_sigma": [0.3, 0.3, 0.05, 3.0, 3.0, 15.0], "heading": "path"},
     },
+    # a distillation set: 108 places of the training families and layouts, each scan labelled by
+    # its own estimate (no child is cast in the scene)
+    "distill": {"scenes": DISTILL_SCENES, "parents_per_scene": 24, "seed": 10, "labeller": "scan"},
 }
 
 
@@ -147,8 +157,8 @@ def run_shard(config: DatasetConfig, shard: tuple[str, int, int, int]) -> dict[s
         rng = np.random.default_rng([config.seed, si, i])
         try:
             T = sample_parent_pose(scene, caster, rng, config.labels)
-            result = label_parent(lidar, T, rng, config.labels, config.registration)
-        except (RegistrationError, SamplingError) as exc:
+            result = _label(config, lidar, T, rng)
+        except (RegistrationError, SamplingError, ScanPatternError) as exc:
             failures.append({"scene": scene.name, "parent": i, "reason": str(exc)})
             continue
         rows["points"].append(result.points)
@@ -170,6 +180,16 @@ def run_shard(config: DatasetConfig, shard: tuple[str, int, int, int]) -> dict[s
         "children_failed": np.array(rows["children_failed"], dtype=np.int32),
         "failures": json.dumps(failures),
     }
+
+
+def _label(config: DatasetConfig, lidar: Lidar, T_w_p: np.ndarray, rng: np.random.Generator) -> ParentLabel:
+    """One parent's errors and labels, from its children in the scene or from its scan alone."""
+    if config.labeller == "scene":
+        return label_parent(lidar, T_w_p, rng, config.labels, config.registration)
+    parent = lidar.scan(T_w_p, rng)
+    found = scan_errors(parent.points, config.lidar, config.registration, config.labels, config.scan_mc, rng)
+    labels = (found.errors > config.labels.threshold_vector()).astype(np.uint8)
+    return ParentLabel(T_w_p, parent.points, found.errors, labels, found.children - len(found.child_errors), 0)
 
 
 def _write_atomic(path: Path, write: Callable[[BinaryIO], None]) -> None:
@@ -236,6 +256,7 @@ def check_dataset_config(config: DatasetConfig) -> None:
             ("parents_per_scene", config.parents_per_scene, config.parents_per_scene >= 1, "at least 1"),
             ("shard_size", config.shard_size, config.shard_size >= 1, "at least 1"),
             ("labels.children", config.labels.children, config.labels.children >= 1, "at least 1"),
+            ("labeller", config.labeller, config.labeller in LABELLERS, f"one of {', '.join(LABELLERS)}"),
         ]
         if not ok
     ]
@@ -473,6 +494,11 @@ class LabelDataset:
         return np.asarray(self.arrays["poses"])
 
     @property
+    def labeller(self) -> str:
+        """Where the errors come from (LABELLERS): "scan" for a distillation set."""
+        return str(self.manifest["settings"].get("labeller", "scene"))
+
+    @property
     def label_config(self) -> LabelConfig:
         """The label settings the dataset was made with (its thresholds turn errors into labels)."""
         return from_dict(LabelConfig, self.manifest["settings"]["labels"])
@@ -559,6 +585,23 @@ def error_ratios(data: LabelDataset | DatasetUnion) -> np.ndarray:
     """(N, 6) mean registration errors over each row's own label thresholds: above 1 is a
     positive label."""
     return data.errors / row_thresholds(data)
+
+
+def scan_labelled(data: LabelDataset | DatasetUnion) -> np.ndarray:
+    """(N,) bool: the rows labelled by their scan's own estimate (a distillation set's), not in the scene."""
+    return np.concatenate([np.full(len(p), p.labeller == "scan") for p in data.parts])
+
+
+def check_ground_truth(data: LabelDataset | DatasetUnion, use: str) -> None:
+    """DatasetError where a dataset (or a part of one) holds a distillation set's labels, which are an
+    estimate and no ground truth to `use` against."""
+    for part in data.parts:
+        if part.labeller == "scan":
+            raise DatasetError(
+                f"{part.folder} is labelled by each scan's own estimate (a distillation set, for "
+                f"training): it is no ground truth to {use}. Give datasets labelled in the scene "
+                "(`l3e dataset generate` without --labeller scan)"
+            )
 
 
 def open_datasets(folders: str | Path | list[str | Path]) -> LabelDataset | DatasetUnion:

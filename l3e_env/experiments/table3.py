@@ -14,7 +14,7 @@ import numpy as np
 from tqdm import tqdm
 
 from l3e_env.config import from_dict
-from l3e_env.data.dataset import DatasetUnion, LabelDataset, open_datasets, row_thresholds
+from l3e_env.data.dataset import DatasetUnion, LabelDataset, check_ground_truth, open_datasets, row_thresholds
 from l3e_env.data.scan_estimates import dataset_scan_errors
 from l3e_env.detection.detectors import near_threshold
 from l3e_env.localizability.labels import AXES
@@ -244,6 +244,8 @@ def run_table3(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     data = open_datasets(dataset) if dataset else None
+    if data is not None:
+        check_ground_truth(data, "score a classifier against (score the training scenes' own datasets)")
     board = Scoreboard(
         {
             "dataset": data.name if data is not None else None,
@@ -268,6 +270,7 @@ def other_columns(others: list[str | Path]) -> dict[str, LabelDataset]:
     """Each other dataset under its column's name ('all of <name>', the folder where two share a name)."""
     extra: dict[str, LabelDataset] = {}
     for d in map(LabelDataset, others):
+        check_ground_truth(d, "score a classifier against")
         extra[f"all of {d.name}" if f"all of {d.name}" not in extra else f"all of {d.folder}"] = d
     return extra
 

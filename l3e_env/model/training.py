@@ -22,7 +22,14 @@ import torch
 from tqdm import tqdm
 
 from l3e_env.config import dump_yaml, plain, settings_changed, to_dict
-from l3e_env.data.dataset import DatasetUnion, LabelDataset, error_ratios, open_datasets
+from l3e_env.data.dataset import (
+    DatasetUnion,
+    LabelDataset,
+    check_ground_truth,
+    error_ratios,
+    open_datasets,
+    scan_labelled,
+)
 from scenes import TRAIN_SCENES, VALIDATION_SCENES, canonical_scene_name, scene_family
 
 from .classifier import (
@@ -320,6 +327,20 @@ def _resumable(training: dict[str, Any]) -> dict[str, Any]:
     return {k: v for k, v in full.items() if k not in ("epochs", "threads", "threshold_beta")}
 
 
+def _split(data: LabelDataset | DatasetUnion, cfg: TrainConfig) -> tuple[np.ndarray, np.ndarray]:
+    """The training and validation rows; validation rows must hold labels made in the scene."""
+    train_rows, val_rows = split_indices(data, cfg.train_scenes), split_indices(data, cfg.validation_scenes)
+    if len(train_rows) == 0:
+        raise TrainingError("the training split is empty")
+    if scan_labelled(data)[val_rows].any():
+        raise TrainingError(
+            "validation scenes are in a dataset labelled by each scan's own estimate: epochs and "
+            "thresholds are chosen on labels made in the scene; give the validation scenes' dataset "
+            "labelled in the scene and leave them out of the distillation set"
+        )
+    return train_rows, val_rows
+
+
 def train(
     dataset: str | Path | list[str | Path], out_dir: str | Path, cfg: TrainConfig, progress: bool = True
 ) -> dict[str, Any]:
@@ -336,9 +357,7 @@ def train(
     data = open_datasets(dataset)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    train_rows, val_rows = split_indices(data, cfg.train_scenes), split_indices(data, cfg.validation_scenes)
-    if len(train_rows) == 0:
-        raise TrainingError("the training split is empty")
+    train_rows, val_rows = _split(data, cfg)
     labels = data.labels
     targets_all = training_targets(data, cfg.soft_labels)
     up_all = up_vector(data.poses) if cfg.model.gravity else None
@@ -539,7 +558,8 @@ def fit_constraints(
     it is, a per-axis logistic layer over its logits and the Hessian features of the ResUNet levels
     `levels` fitted on its own training scenes, and thresholds (single and eight-view) chosen on its
     validation scenes by F-beta (`beta`: the checkpoint's own by default). `frame`: the view the model
-    reads (ModelConfig.frame; the checkpoint's own by default), the layer fitted in it."""
+    reads (ModelConfig.frame; the checkpoint's own by default), the layer fitted in it. The dataset
+    must be labelled in the scene; the training scenes it lacks (a distillation set's) are left out."""
     state = load_checkpoint(checkpoint)
     training = state.get("training")
     if not isinstance(training, dict) or not training.get("train_scenes") or not training.get("validation_scenes"):
@@ -550,7 +570,11 @@ def fit_constraints(
             f"{checkpoint} is a {base.config.architecture}; the constraint layer reads a ResUNet's voxels"
         )
     data = open_datasets(dataset)
-    train_rows = split_indices(data, training["train_scenes"])
+    check_ground_truth(data, "fit the constraint layer and choose thresholds on")
+    # the training scenes the dataset holds: a network trained with a distillation set is fitted on
+    # the scenes labelled in the scene
+    held = [s for s in training["train_scenes"] if s in data.manifest["scenes"]]
+    train_rows = split_indices(data, held)
     val_rows = split_indices(data, training["validation_scenes"])
     if not len(train_rows) or not len(val_rows):
         raise TrainingError(f"the dataset holds no scans of {checkpoint}'s training or validation scenes")
