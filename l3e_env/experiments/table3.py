@@ -27,7 +27,16 @@ from l3e_env.localizability.registration import (
 )
 from l3e_env.localizability.scan_mc import ScanMCConfig
 from l3e_env.model.classifier import Classifier
-from l3e_env.model.scores import axis_scores, best_thresholds, format_table, mean_interval, mean_scores, pr_curve
+from l3e_env.model.scores import (
+    MIN_POSITIVES,
+    axis_scores,
+    best_thresholds,
+    format_table,
+    mean_interval,
+    mean_scores,
+    micro_f1,
+    pr_curve,
+)
 from l3e_env.model.training import predict_dataset, split_indices
 from scenes import TEST_SCENES, is_mesh_path, make_scene, scene_family
 
@@ -174,6 +183,9 @@ class Scoreboard:
         self.curves: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = {}
         self.intervals: dict[tuple[str, str], dict[str, tuple[float, float]]] = {}
         self._columns: dict[str, dict[str, np.ndarray]] = {}
+        # per model, the labels and decisions of each column a test family is scored in (the test
+        # split, each other dataset): what the headline pools
+        self.decisions: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = {}
 
     def add_model(self, name: str, entry: dict[str, Any]) -> None:
         self.table[name] = {}
@@ -206,12 +218,15 @@ class Scoreboard:
             y = ds.labels[rows[subset]]
             self.table[name][column] = scores = axis_scores(y, predicted[subset])
             self.intervals[name, column] = mean_interval(y, predicted[subset])
+            if column == split and (split == "test" or split in self.others):
+                self.decisions.setdefault(name, {})[split] = (y, np.asarray(predicted, dtype=bool))
             self.results["models"][name]["splits"][column] = {
                 "count": len(subset),
                 "dataset": ds.name,
                 "sensor": ds.manifest["sensor"],
                 **(fields if column == split else {}),
                 "mean": mean_scores(scores),
+                "micro_f1": micro_f1(y, predicted[subset]),
                 "mean_95_interval": self.intervals[name, column],
                 **{k: np.asarray(v).tolist() for k, v in scores.items()},
             }
@@ -396,12 +411,74 @@ def score_cascades(board: Scoreboard, first_splits: dict[str, Split], estimates:
     plot_cascade(board.results, first, board.options.scan_mc, out / "cascade.png")
 
 
+def headline(board: Scoreboard) -> dict[str, Any]:
+    """Per model, the test families' scores as the classifier is judged: each column's F1 on the axes
+    with at least MIN_POSITIVES positives and its micro-F1, and the micro-F1 of every test family's
+    decisions pooled, each with its 95% bootstrap interval."""
+    out: dict[str, Any] = {}
+    for name, columns in board.decisions.items():
+        entry: dict[str, Any] = {"columns": {}}
+        for column, (y, p) in columns.items():
+            interval = board.intervals[name, column]
+            support = y.sum(axis=0)
+            entry["columns"][column] = {
+                "axes": {
+                    axis: {
+                        "f1": float(board.table[name][column]["f1"][a]),
+                        "interval": interval[f"f1 {axis}"],
+                        "positives": int(support[a]),
+                    }
+                    for a, axis in enumerate(AXES)
+                    if support[a] >= MIN_POSITIVES
+                },
+                "micro_f1": micro_f1(y, p),
+                "micro_f1_interval": interval["micro_f1"],
+            }
+        if len(columns) > 1:
+            y, p = (np.concatenate([np.asarray(c[k]) for c in columns.values()]) for k in (0, 1))
+            entry["pooled"] = {"micro_f1": micro_f1(y, p), "interval": mean_interval(y, p)["micro_f1"]}
+        out[name] = entry
+    return out
+
+
+def format_headline(found: dict[str, Any]) -> str:
+    """The headline as lines: a model's per-axis F1 (axes with enough positives) and micro-F1 per
+    test column, then pooled over the test families."""
+    if not found:
+        return ""
+    lines = [
+        f"\n\nheadline: F1 per axis with at least {MIN_POSITIVES} positives (positives), micro-F1 over every "
+        "axis decision; 95% bootstrap intervals"
+    ]
+
+    def cell(value: float, interval: tuple[float, float]) -> str:
+        return f"{value:.3f} ({interval[0]:.3f}-{interval[1]:.3f})" if np.isfinite(value) else "n/a"
+
+    for name, entry in found.items():
+        for column, scored in entry["columns"].items():
+            axes = "  ".join(
+                f"{axis} {cell(a['f1'], a['interval'])} [{a['positives']}]" for axis, a in scored["axes"].items()
+            )
+            lines.append(
+                f"  {name:22s} {column:22s} micro-F1 {cell(scored['micro_f1'], scored['micro_f1_interval'])}"
+                + (f"  {axes}" if axes else "")
+            )
+        if "pooled" in entry:
+            pooled = entry["pooled"]
+            lines.append(
+                f"  {name:22s} {'test families pooled':22s} micro-F1 {cell(pooled['micro_f1'], pooled['interval'])}"
+            )
+    return "\n".join(lines)
+
+
 def table_text(board: Scoreboard, estimates: ScanEstimates) -> str:
     """The table with its intervals, the F1-operating points, the draws, the scan estimate's children
     and the cascades' shares of scans checked."""
     options, models = board.options, board.results["models"]
+    board.results["headline"] = found = headline(board)
     text = (
         format_table(board.table, intervals=board.intervals)
+        + format_headline(found)
         + format_f1_operating_points(models)
         + format_draws(models, options.draws)
     )

@@ -37,7 +37,16 @@ from l3e_env.model.classifier import (
     symmetry_view,
     up_vector,
 )
-from l3e_env.model.scores import auroc, axis_scores, best_thresholds, format_table, mean_interval, mean_scores, pr_curve
+from l3e_env.model.scores import (
+    auroc,
+    axis_scores,
+    best_thresholds,
+    format_table,
+    mean_interval,
+    mean_scores,
+    micro_f1,
+    pr_curve,
+)
 from l3e_env.model.sparse import GatherConv, int8_products_work, int8_residual_block, voxelize
 from l3e_env.model.training import (
     SWAP_LABELS,
@@ -364,6 +373,18 @@ def test_bootstrap_interval_brackets_the_mean_and_widens_with_few_positives(rng)
     assert hi_rare - lo_rare > 3 * (hi - lo)
 
 
+def test_micro_f1_pools_every_axis_decision_and_has_its_interval(rng):
+    y = rng.random((300, 6)) < 0.2
+    p = y ^ (rng.random((300, 6)) < 0.1)
+    tp, fp, fn = (int(((a == 1) & (b == 1)).sum()) for a, b in ((y, p), (~y, p), (y, ~p)))
+    assert micro_f1(y, p) == pytest.approx(2 * tp / (2 * tp + fp + fn))
+    assert np.isnan(micro_f1(np.zeros((5, 6), bool), np.zeros((5, 6), bool)))
+    interval = mean_interval(y, p)
+    assert interval["micro_f1"][0] < micro_f1(y, p) < interval["micro_f1"][1]
+    f1_x = axis_scores(y, p)["f1"][1]
+    assert interval["f1 y"][0] < f1_x < interval["f1 y"][1]
+
+
 def test_pr_curve_and_thresholds_match_brute_force(rng):
     y = rng.random((300, 6)) < 0.3
     p = np.clip(y * 0.3 + rng.random((300, 6)) * 0.7, 0, 1).round(2)  # ties on purpose
@@ -657,6 +678,13 @@ def test_evaluate_writes_table_curves_and_results(tiny_dataset, tmp_path, monkey
     )
     assert splits["test"]["draws"]["mean_accuracy"][2] == pytest.approx(again["accuracy"])
     assert len(splits["valid"]["draws"]["mean_f1"]) == 3 and "draws" not in splits["tunnel of test"]
+    # the headline: the test split's micro-F1, axes with at least 30 positives only (none here: 8 scans)
+    test_y = data.labels[test_rows]
+    test_p = predict_dataset(clf.model, data, test_rows) > clf.thresholds
+    head = drawn.results["headline"][name]["columns"]["test"]
+    assert head["micro_f1"] == pytest.approx(micro_f1(test_y, test_p), nan_ok=True) and head["axes"] == {}
+    assert "pooled" not in drawn.results["headline"][name]  # one test column: nothing to pool
+    assert "headline: F1 per axis with at least 30 positives" in drawn.table
     assert "over 3 draws of the points" in drawn.table
     with pytest.raises(ValueError, match="draws must be at least 1"):
         run_table3(
