@@ -125,14 +125,15 @@ class MapJudge:
     above which the fusion masks an axis. Kinds, as in l3e_env.detection.detectors.make_detector:
     - learned[:checkpoint]: the classifier on the scan at each pose (NaN: a scan it cannot judge);
       learned-sym[:checkpoint] averages it over the eight mirror/swap views of each scan;
-    - eigen:<tau>: Zhang's test on the Hessian of registering a scan taken `step` metres further
-      ahead onto the pose's scan (what the fusion loop sees between consecutive scans);
+    - eigen:<tau>, dcreg:<kappa>: Zhang's test or DCReg's on the Hessian of registering a scan taken
+      `step` metres further ahead onto the pose's scan (what the fusion loop sees between consecutive
+      scans); xicp[:L], drpm[:s]: X-ICP's or DRPM's test on the pose's scan's own correspondences;
     - oracle[:M]: Monte-Carlo ICP labels with M children at the pose (slow; ground truth);
     - scanmc[:M]: the same estimated from the scan at the pose alone (l3e_env.localizability.scan_mc; slow);
     - learned+scanmc[:margin]: the shipped classifier, and scanmc where it is unsure. Its two judges
       have different thresholds, so the classifier's probabilities are moved to put its thresholds
       at 0.5 (sigmoid of the log-odds over the threshold): the same flags on one scale.
-    Eigen and oracle give 0/1 masks as probabilities; all but learned have thresholds 0.5."""
+    The classical tests and oracle give 0/1 masks as probabilities; all but learned have thresholds 0.5."""
 
     def __init__(self, spec: str, lidar: Lidar, seed: int = 0, step: float = 0.1):
         self.spec, self.lidar, self.seed, self.step = spec, lidar, seed, step
@@ -151,7 +152,7 @@ class MapJudge:
             if kind == "learned+scanmc":
                 self.detector.learned.classifier.check_settings(lidar.config.model)
                 self.identity += "-" + file_digest(DEFAULT_CHECKPOINT)
-            if kind != "eigen":  # new labels, a new calibration or another seeding is another map
+            if kind in ("oracle", "scanmc", "learned+scanmc"):  # new labels, calibration or seeding: another map
                 config = self.detector.labels if kind == "oracle" else self.estimate_config
                 self.identity += "-" + settings_digest({"config": to_dict(config), "children": "seeded by pose"})
 
@@ -192,11 +193,13 @@ class MapJudge:
                 continue
             else:
                 ahead = T @ planar_pose(self.step, 0.0, 0.0, 0.0)
+                ahead_points = self.lidar.scan(ahead, rng).points
+                here = self.lidar.scan(T, rng).points
                 try:
-                    reg = register(self.lidar.scan(ahead, rng).points, self.lidar.scan(T, rng).points)
+                    reg = register(ahead_points, here)
                 except RegistrationError:
                     continue
-                pred = self.detector.predict(None, reg, T)
+                pred = self.detector.predict(here, reg, T)
             if pred.known:
                 out[i] = pred.mask.astype(np.float64)
         return out, estimated

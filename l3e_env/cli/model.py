@@ -82,6 +82,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         symmetric=args.symmetric,
         eigen=args.eigen or [],
         dcreg=args.dcreg or [],
+        xicp=args.xicp or [],
+        drpm=args.drpm or [],
         int8=not args.float32,
         by_family=args.by_family,
         by_region=args.by_region,
@@ -228,6 +230,22 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="KAPPA",
         help="also score DCReg's detection at this condition ratio threshold (rotation and translation "
         "decoupled by Schur complements, same Hessian); repeat for several",
+    )
+    p.add_argument(
+        "--xicp",
+        type=float,
+        action="append",
+        metavar="L",
+        help="also score X-ICP's localizability analysis at this threshold (correspondences that constrain "
+        "an axis squarely; its published configuration's is 300); repeat for several",
+    )
+    p.add_argument(
+        "--drpm",
+        type=float,
+        action="append",
+        metavar="S",
+        help="also score DRPM's probabilistic degeneracy test at this signal-to-noise factor (the paper's s, "
+        "e.g. 10); repeat for several",
     )
     p.add_argument(
         "--scan-mc",

@@ -11,10 +11,25 @@ from dataclasses import dataclass
 # eigenvalue test at a low and a high threshold (docs/decisions.md) and the labels' own truth
 DEFAULT_ATE_DETECTORS = ("none", "learned", "eigen:30", "eigen:110", "oracle")
 DETECTOR_GRAMMAR = (
-    "none | eigen:<tau> | dcreg:<kappa> | oracle[:M] | scanmc[:M] | learned[-sym][:checkpoint] | "
+    "none | eigen:<tau> | dcreg:<kappa> | xicp[:<L>] | drpm[:<s>] | oracle[:M] | scanmc[:M] | "
+    "learned[-sym][:checkpoint] | "
     "learned+scanmc[:margin]"
 )
-DETECTOR_KINDS = ("none", "eigen", "dcreg", "oracle", "scanmc", "learned", "learned-sym", "learned+scanmc")
+DETECTOR_KINDS = (
+    "none",
+    "eigen",
+    "dcreg",
+    "xicp",
+    "drpm",
+    "oracle",
+    "scanmc",
+    "learned",
+    "learned-sym",
+    "learned+scanmc",
+)
+# the training-free detectors that read each correspondence: their threshold's default, the published one
+XICP_ENOUGH = 300.0  # X-ICP's localizability a direction needs (its published configuration)
+DRPM_SNR = 10.0  # DRPM's signal-to-noise factor s
 MAP_DETECTORS = DETECTOR_KINDS[1:]  # a localizability map of 'trust everything' says nothing
 
 
@@ -24,7 +39,7 @@ class DetectorSpec:
     None where the spec gives none and the kind's default applies)."""
 
     kind: str
-    tau: float | None = None  # eigen's tau, dcreg's kappa
+    tau: float | None = None  # eigen's tau, dcreg's kappa, xicp's localizability, drpm's signal-to-noise factor
     children: int | None = None
     checkpoint: str | None = None
     margin: float | None = None
@@ -32,6 +47,32 @@ class DetectorSpec:
     @property
     def learned(self) -> bool:
         return self.kind in ("learned", "learned-sym")
+
+
+# the detectors with one threshold: (default where the spec gives none, the form that gives it, the
+# smallest value it may take (exclusive), the rule as the error says it)
+THRESHOLDS: dict[str, tuple[float | None, str, float, str]] = {
+    "eigen": (None, "the threshold as eigen:<tau>, e.g. eigen:30", 0.0, "the eigenvalue threshold must be positive"),
+    "dcreg": (
+        None,
+        "the condition ratio threshold as dcreg:<kappa>, e.g. dcreg:10",
+        1.0,
+        "DCReg's condition ratio threshold must exceed 1",
+    ),
+    "xicp": (XICP_ENOUGH, "the localizability threshold as xicp:<L>, e.g. xicp:300", 0.0, "it must be positive"),
+    "drpm": (DRPM_SNR, "the signal-to-noise factor as drpm:<s>, e.g. drpm:10", 0.0, "it must be positive"),
+}
+
+
+def _threshold(spec: str, arg: str, default: float | None, form: str, floor: float, rule: str) -> float:
+    """A detector's threshold from its spec's argument, or ValueError naming the form expected."""
+    try:
+        value = float(arg) if arg or default is None else default
+    except ValueError as exc:
+        raise ValueError(f"detector '{spec}': give {form}") from exc
+    if not floor < value < float("inf"):
+        raise ValueError(f"detector '{spec}': {rule}, got {value:g}")
+    return value
 
 
 def parse_detector(spec: str, allowed: tuple[str, ...] = DETECTOR_KINDS, what: str = "detector") -> DetectorSpec:
@@ -47,24 +88,8 @@ def parse_detector(spec: str, allowed: tuple[str, ...] = DETECTOR_KINDS, what: s
         if arg:
             raise ValueError(f"detector '{spec}': 'none' takes no argument")
         return DetectorSpec(kind)
-    if kind == "eigen":
-        try:
-            tau = float(arg)
-        except ValueError as exc:
-            raise ValueError(f"detector '{spec}': give the threshold as eigen:<tau>, e.g. eigen:30") from exc
-        if not tau > 0:
-            raise ValueError(f"eigenvalue threshold must be positive, got {tau}")
-        return DetectorSpec(kind, tau=tau)
-    if kind == "dcreg":
-        try:
-            kappa = float(arg)
-        except ValueError as exc:
-            raise ValueError(
-                f"detector '{spec}': give the condition ratio threshold as dcreg:<kappa>, e.g. dcreg:10"
-            ) from exc
-        if not kappa > 1:
-            raise ValueError(f"detector '{spec}': DCReg's condition ratio threshold must exceed 1")
-        return DetectorSpec(kind, tau=kappa)
+    if kind in THRESHOLDS:
+        return DetectorSpec(kind, tau=_threshold(spec, arg, *THRESHOLDS[kind]))
     if kind in ("oracle", "scanmc"):
         if arg and not (arg.isdigit() and int(arg) >= 1):
             raise ValueError(f"detector '{spec}': give the number of children as {kind}:<M>, M >= 1, e.g. {kind}:60")

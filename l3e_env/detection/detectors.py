@@ -18,6 +18,7 @@ import numpy as np
 
 from l3e_env.config import LidarConfig, from_dict
 from l3e_env.config.detector_spec import parse_detector
+from l3e_env.localizability.degeneracy import drpm_mask, scan_rows, xicp_mask
 from l3e_env.localizability.labels import LabelConfig, label_parent
 from l3e_env.localizability.registration import (
     RegistrationConfig,
@@ -99,6 +100,59 @@ class DCRegDetector(HessianDetector):
             raise ValueError(f"DCReg's condition ratio threshold must exceed 1, got {kappa}")
         super().__init__(kappa)
         self.kappa = self.threshold
+
+
+class CorrespondenceDetector:
+    """A training-free test that reads each correspondence of the scan's own point-to-plane problem
+    (localizability.degeneracy: the scan registered onto itself), named '<kind>:<threshold>'; UNKNOWN
+    where the scan is too small to register."""
+
+    kind = ""
+
+    def __init__(self, threshold: float, registration: RegistrationConfig | None = None):
+        if not threshold > 0:
+            raise ValueError(f"{self.kind}'s threshold must be positive, got {threshold}")
+        self.threshold = float(threshold)
+        self.name = f"{self.kind}:{threshold:g}"
+        self.registration = registration or RegistrationConfig()
+
+    def predict(self, points, registration=None, T_w_s=None) -> Prediction:
+        try:
+            rows = scan_rows(points, self.registration)
+        except RegistrationError:
+            return UNKNOWN
+        if len(rows.points) < 6:
+            return UNKNOWN
+        return Prediction(*self.judge(rows))
+
+    def judge(self, rows) -> tuple[np.ndarray, np.ndarray]:
+        raise NotImplementedError
+
+
+class XICPDetector(CorrespondenceDetector):
+    """X-ICP's localizability analysis (Tuna et al., T-RO 2024; degeneracy.xicp_mask): an axis is flagged
+    where fewer correspondences than the threshold constrain it squarely; `probabilities` are
+    L / (L + threshold) scores, not calibrated probabilities."""
+
+    kind = "xicp"
+
+    def judge(self, rows) -> tuple[np.ndarray, np.ndarray]:
+        return xicp_mask(rows, self.threshold)
+
+
+class DRPMDetector(CorrespondenceDetector):
+    """DRPM's probabilistic degeneracy test (Hatleskog and Alexis, RA-L 2024; degeneracy.drpm_mask) with
+    signal-to-noise factor s and the sensor's range noise; `probabilities` are shares of the degenerate
+    subspace, not calibrated probabilities."""
+
+    kind = "drpm"
+
+    def __init__(self, threshold: float, registration: RegistrationConfig | None = None, point_sigma: float = 0.03):
+        super().__init__(threshold, registration)
+        self.point_sigma = point_sigma
+
+    def judge(self, rows) -> tuple[np.ndarray, np.ndarray]:
+        return drpm_mask(rows, self.threshold, self.point_sigma)
 
 
 class OracleDetector:
@@ -313,6 +367,10 @@ def make_detector(spec: str, lidar: Lidar | None = None, seed: int = 0, sensor: 
         return EigenvalueDetector(parsed.tau)
     if parsed.kind == "dcreg":
         return DCRegDetector(parsed.tau)
+    if parsed.kind == "xicp":
+        return XICPDetector(parsed.tau)
+    if parsed.kind == "drpm":
+        return DRPMDetector(parsed.tau, point_sigma=(sensor or LidarConfig()).range_noise_std or 0.03)
     if parsed.kind == "oracle":
         if lidar is None:
             raise ValueError("the oracle detector needs the scene's LiDAR")

@@ -37,6 +37,8 @@ SCORES = {
     "learned": "probability that the axis is not localizable (flagged above the model's threshold)",
     "eigen": "share of the axis in the Hessian's degenerate subspace (flagged above 0.5)",
     "dcreg": "log of the axis's condition ratio in its decoupled subspace over 2 log kappa (flagged above 0.5)",
+    "xicp": "threshold / (threshold + L), L the correspondences that constrain the axis squarely (flagged above 0.5)",
+    "drpm": "share of the axis in the directions whose signal is not above s times the noise (flagged above 0.5)",
     "scanmc": "r / (1 + r), r = estimated registration error over the label threshold (flagged above 0.5)",
     "learned+scanmc": "the classifier's probability where it is sure; where an axis lies within the margin "
     "of its threshold, scanmc's r / (1 + r) for every axis",

@@ -17,6 +17,7 @@ from l3e_env.config import from_dict
 from l3e_env.data.dataset import DatasetUnion, LabelDataset, check_ground_truth, open_datasets, row_thresholds
 from l3e_env.data.scan_estimates import dataset_scan_errors
 from l3e_env.detection.detectors import near_threshold
+from l3e_env.localizability.degeneracy import PlaneRows, drpm_mask, scan_rows, xicp_mask
 from l3e_env.localizability.labels import AXES
 from l3e_env.localizability.registration import (
     RegistrationConfig,
@@ -115,7 +116,9 @@ class Table3Options:
     thresholds chosen for them. eigen: thresholds tau of the eigenvalue detector, scored on the first
     checkpoint's splits from each scan's own Hessian (`scan_hessian`); a scan too small to register
     flags nothing, as the detector's UNKNOWN does. dcreg: condition ratio thresholds kappa of DCReg's
-    detection (registration.dcreg_mask), scored alike. int8: the ResUNet's convolutions as deployed
+    detection (registration.dcreg_mask), scored alike. xicp, drpm: thresholds of X-ICP's localizability
+    analysis and signal-to-noise factors of DRPM's test (localizability.degeneracy), from each scan's own
+    correspondences, scored alike. int8: the ResUNet's convolutions as deployed
     (Classifier.load); False scores them in float32. by_family: each scene family of the test split
     and of an `others` dataset, where it holds several, also gets a column of its own ('mine of
     test'): a mean over families of unlike difficulty hides which one a model fails on. by_region: the
@@ -133,6 +136,8 @@ class Table3Options:
     symmetric: bool = False
     eigen: list[float] = field(default_factory=list)
     dcreg: list[float] = field(default_factory=list)
+    xicp: list[float] = field(default_factory=list)
+    drpm: list[float] = field(default_factory=list)
     int8: bool = True
     by_family: bool = False
     by_region: bool = False
@@ -153,6 +158,8 @@ class Table3Options:
                 "a dataset is split by a checkpoint's training and validation scenes: give a "
                 "checkpoint, or score the dataset whole as an other"
             )
+        if any(not v > 0 for v in [*self.xicp, *self.drpm]):
+            raise ValueError(f"X-ICP's and DRPM's thresholds must be positive, got {self.xicp} and {self.drpm}")
         if self.draws < 1:
             raise ValueError(f"draws must be at least 1 (the table's own draw), got {self.draws}")
         if self.cascade and not (self.scan_mc and checkpoints):
@@ -274,6 +281,7 @@ def run_table3(
     )
     first_splits = score_checkpoints(board, checkpoints, data, progress)
     score_hessian_detectors(board, first_splits, progress)
+    score_correspondence_detectors(board, first_splits, progress)
     estimates = score_scan_estimate(board, first_splits, out, progress)
     score_cascades(board, first_splits, estimates, out)
     text = table_text(board, estimates)
@@ -343,6 +351,38 @@ def score_hessian_detectors(board: Scoreboard, first_splits: dict[str, Split], p
                 predicted = np.zeros((len(rows), 6), bool)
                 predicted[known] = [mask_of(H, value)[1] for H in hessians[split][known]]
                 board.score(name, split, ds, rows, predicted, unregistrable=int((~known).sum()))
+
+
+def score_correspondence_detectors(board: Scoreboard, first_splits: dict[str, Split], progress: bool) -> None:
+    """X-ICP and DRPM at each of their thresholds; one set of correspondences per scan serves all."""
+    xicp, drpm = board.options.xicp, board.options.drpm
+    if not (xicp or drpm):
+        return
+    rows = {split: dataset_rows(ds, at, progress) for split, (ds, at) in first_splits.items()}
+    for kind, judge, values in (("xicp", xicp_mask, xicp), ("drpm", drpm_mask, drpm)):
+        for value in values:
+            name = f"{kind}:{value:g}"
+            board.add_model(name, {"threshold": value})
+            for split, (ds, at) in first_splits.items():
+                known = [r is not None and len(r.points) >= 6 for r in rows[split]]
+                predicted = np.zeros((len(at), 6), bool)
+                for k, r in enumerate(rows[split]):
+                    if known[k]:
+                        predicted[k] = judge(r, value)[1]
+                board.score(name, split, ds, at, predicted, unregistrable=int(len(at) - sum(known)))
+
+
+def dataset_rows(data: LabelDataset | DatasetUnion, rows: np.ndarray, progress: bool = False) -> list[PlaneRows | None]:
+    """Each scan's own point-to-plane rows (degeneracy.scan_rows) with the dataset's registration
+    settings; None for a scan too small to register."""
+    config = from_dict(RegistrationConfig, data.manifest["settings"]["registration"])
+    out: list[PlaneRows | None] = []
+    for i in tqdm(rows, desc="correspondences", disable=not progress, leave=False):
+        try:
+            out.append(scan_rows(data.scan(int(i)), config))
+        except RegistrationError:
+            out.append(None)
+    return out
 
 
 def score_scan_estimate(board: Scoreboard, first_splits: dict[str, Split], out: Path, progress: bool) -> ScanEstimates:

@@ -353,14 +353,19 @@ def eigen_mask(hessian: np.ndarray, tau: float) -> tuple[np.ndarray, np.ndarray]
 _PERMUTATIONS = np.array(list(itertools.permutations(range(3))))
 
 
+def aligned_axes(V: np.ndarray) -> np.ndarray:
+    """For each physical axis a of a 3x3 block, the column of the eigenvectors V aligned with it: the
+    one-to-one assignment with the largest total |component| (DCReg's basis alignment)."""
+    fit = np.abs(V)[np.arange(3)[None, :], _PERMUTATIONS].sum(axis=1)  # axis a takes eigenvector perm[a]
+    return _PERMUTATIONS[int(np.argmax(fit))]
+
+
 def _aligned_ratios(block: np.ndarray) -> np.ndarray:
     """Per physical axis of a 3x3 information block: the largest eigenvalue over the eigenvalue of the
-    eigenvector aligned with that axis (the one-to-one assignment with the largest total |component|)."""
+    eigenvector aligned with that axis (aligned_axes)."""
     w, V = np.linalg.eigh(0.5 * (block + block.T))
     w = np.maximum(w, 1e-12 * max(float(w[-1]), 1e-300))  # a null direction has an infinite ratio, not a NaN
-    fit = np.abs(V)[np.arange(3)[None, :], _PERMUTATIONS].sum(axis=1)  # axis a takes eigenvector perm[a]
-    best = _PERMUTATIONS[int(np.argmax(fit))]
-    return w[-1] / w[best]
+    return w[-1] / w[aligned_axes(V)]
 
 
 def dcreg_mask(hessian: np.ndarray, kappa: float) -> tuple[np.ndarray, np.ndarray]:

@@ -187,6 +187,17 @@ def test_a_map_built_by_two_workers_is_the_same(small_fork):
         build_map(scene, space, judge, resolution=4.0, workers=0)
 
 
+@pytest.mark.parametrize("spec", ["dcreg:10", "xicp:100", "drpm:10"])
+def test_the_classical_tests_make_maps_that_flag_the_smooth_corridor(small_fork, spec):
+    scene, space, _ = small_fork
+    judge = MapJudge(spec, scene_lidar(scene))
+    built = build_map(scene, space, judge, resolution=4.0, batch=4)
+    assert judge.identity == spec.replace(":", "")  # no scan-estimate settings in a classical test's name
+    assert set(np.unique(built.probabilities[np.isfinite(built.probabilities)])) <= {0.0, 1.0}
+    inside = np.abs(built.positions[:, 1]) < 0.1  # the smooth corridor: heading along it, x slides
+    assert inside.any() and built.probabilities[inside, 0, 0].mean() > 0.5
+
+
 def test_learned_map_gives_probabilities(small_fork):
     scene, space, cache = small_fork
     locmap = get_map(scene, space, "learned", cache, resolution=8.0)
