@@ -71,6 +71,22 @@ def _sdk():
     return sdk, core, _LOG
 
 
+def _check_metadata(path: Path, metadata: str | Path | None) -> None:
+    """CaptureError naming a .pcap's metadata file (the one given, else those the SDK would take beside
+    it) where it is not a JSON object: the SDK's own message names neither the file nor the fix."""
+    candidates = [Path(metadata)] if metadata else sorted(path.parent.glob(f"{path.stem}*.json"))
+    for meta in candidates:
+        try:
+            found = json.loads(meta.read_text())
+        except (OSError, UnicodeDecodeError, ValueError) as exc:
+            raise CaptureError(
+                f"{meta}: the metadata of {path.name} is not readable JSON ({exc}); give the sensor's metadata "
+                "as the Ouster SDK writes it"
+            ) from exc
+        if not isinstance(found, dict):
+            raise CaptureError(f"{meta}: the metadata of {path.name} is not a JSON object")
+
+
 def read_capture(
     path: str | Path,
     metadata: str | Path | None = None,
@@ -92,6 +108,8 @@ def read_capture(
         raise CaptureError(f"{path}: the file is empty; give an Ouster .osf or .pcap that holds scans")
     sdk, core, log = _sdk()
     log.news()
+    if path.suffix.lower() == ".pcap":
+        _check_metadata(path, metadata)
     try:
         # an .osf carries its metadata; a .pcap's is the one given, else the SDK's find beside it
         given = {"meta": [str(metadata)]} if metadata and path.suffix.lower() == ".pcap" else {}
@@ -99,7 +117,8 @@ def read_capture(
     except Exception as exc:  # noqa: BLE001 - the SDK raises several kinds; name the file and the problem
         detail = str(exc).rpartition("more details:")[2].strip() or str(exc)
         hint = (
-            f"; give its metadata JSON with --sensor (the SDK looks for {path.stem}*.json beside it)"
+            f"; put its metadata JSON beside it as {path.stem}.json (the SDK looks for {path.stem}*.json "
+            "there), or give it to l3e judge with --sensor"
             if "metadata" in detail.lower()
             else ""
         )

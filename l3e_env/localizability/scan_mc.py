@@ -58,6 +58,9 @@ class ScanMCConfig:
     # of the training scenes with 20 children (`studies/scan_mc_calibration.py --shadow-deg 3
     # --beyond-deg 4`; 1.23 1.23 1.21 1.17 1.20 1.11 for the scan's bare mesh).
     calibration: tuple[float, ...] = (1.16, 1.20, 1.16, 1.16, 1.16, 1.12)
+    # each child casts every k-th column of the revolution (1: all): the registration keeps one point
+    # a 0.15 m voxel and then at most 1000, so most columns never reach it
+    column_stride: int = 1
 
 
 class ScanEstimate(NamedTuple):
@@ -196,6 +199,8 @@ def scan_errors(
     them in the full scene, times the calibration, from as many children as settle every axis
     against `labels`' thresholds. Raises RegistrationError where the scan itself cannot be
     registered, or more than half of the children cannot."""
+    if config.column_stride < 1:
+        raise ValueError(f"the scan estimate casts every k-th column, k >= 1, got {config.column_stride}")
     if config.children < 1 or config.first < 1:
         raise ValueError(
             f"the scan estimate needs at least one child, got children={config.children} first={config.first}"
@@ -211,7 +216,8 @@ def scan_errors(
     mesh = range_image_mesh(points, pattern, config.max_range_ratio, config.shadow_deg, config.beyond_deg)
     if len(mesh.faces) == 0:
         raise RegistrationError("no two neighbouring returns of the scan could be joined into a surface")
-    sensor = Lidar(EmbreeCaster(mesh, threads=1), lidar)
+    cast = replace(pattern, n_azimuth=pattern.n_azimuth // config.column_stride) if config.column_stride > 1 else None
+    sensor = Lidar(EmbreeCaster(mesh, threads=1), lidar, cast)
     sigma, thresholds = labels.sigma_vector("child"), labels.threshold_vector()
     calibration, spread = np.asarray(config.calibration), np.asarray(config.spread)
     errors: list[np.ndarray] = []

@@ -50,9 +50,10 @@ class Scan:
 class Lidar:
     """Casts one revolution from a sensor pose with a RayCaster backend."""
 
-    def __init__(self, caster: RayCaster, config: LidarConfig | None = None):
+    def __init__(self, caster: RayCaster, config: LidarConfig | None = None, pattern: BeamPattern | None = None):
+        """`pattern`: beams to cast in place of the config's model's (a thinned revolution, say)."""
         self.config = config or LidarConfig()
-        self.pattern = get_pattern(self.config.model)
+        self.pattern = pattern or get_pattern(self.config.model)
         self.caster = caster
         self.max_range = self.config.max_range or self.pattern.max_range
         self.min_range = self.pattern.min_range if self.config.min_range is None else self.config.min_range

@@ -69,9 +69,16 @@ def test_a_damaged_capture_is_refused_by_name(broken):
 def test_a_pcap_without_its_metadata_names_the_fix(tmp_path):
     alone = tmp_path / "capture.pcap"
     shutil.copy(OS1_PCAP, alone)
-    with pytest.raises(CaptureError, match="give its metadata JSON with --sensor"):
+    with pytest.raises(CaptureError, match="put its metadata JSON beside it as capture.json"):
         read_capture(alone)
     assert len(list(read_capture(alone, _metadata(OS1_PCAP)))) == 3
+    for text in ("{not json", "[1, 2]"):  # metadata beside it, or given, that is no JSON object: named
+        (tmp_path / "capture.json").write_text(text)
+        with pytest.raises(CaptureError, match=r"capture.json: the metadata of capture.pcap is not"):
+            read_capture(alone)
+        with pytest.raises(CaptureError, match=rf"capture.json: the metadata of {OS1_PCAP.name} is not"):
+            read_capture(OS1_PCAP, tmp_path / "capture.json")
+    (tmp_path / "capture.json").unlink()
     # another sensor's metadata: its packets are not of that sensor
     with pytest.raises(CaptureError, match="the metadata does not match its packets"):
         read_capture(alone, _metadata(OS0))
