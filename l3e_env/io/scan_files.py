@@ -98,6 +98,29 @@ def _check_ply_header(path: Path) -> None:
         )
 
 
+TRIPLES_FIX = "if it holds x y z float32 triples, save them as .npy (numpy.save) and give that"
+
+
+def _read_kitti_bin(path: Path) -> np.ndarray:
+    """KITTI's x y z intensity float32 quadruples. x y z triples whose length happens to divide by 16
+    read as quadruples too, their coordinates then taken for intensities: a fourth float that is
+    negative on more than 1% of the points is no intensity, and the file is refused."""
+    size = path.stat().st_size
+    if size % 16:  # np.fromfile would drop a cut-off tail silently
+        raise ScanFileError(
+            f"{path}: {size} bytes, not whole x y z intensity float32 quadruples (KITTI .bin: 16 bytes a "
+            f"point); {TRIPLES_FIX}"
+        )
+    points = np.fromfile(path, dtype=np.float32).reshape(-1, 4)
+    negative = float(np.mean(points[:, 3] < 0)) if len(points) else 0.0
+    if negative > 0.01:
+        raise ScanFileError(
+            f"{path}: the fourth float of {negative:.0%} of the points is negative, so it is no KITTI intensity "
+            f"and the file is not x y z intensity quadruples; {TRIPLES_FIX}"
+        )
+    return points
+
+
 def read_scan(path: str | Path) -> np.ndarray:
     """(N, 3) float64 points of a scan file, as written (NaN kept: `judge_scans` drops them)."""
     path = Path(path)
@@ -118,12 +141,7 @@ def read_scan(path: str | Path) -> np.ndarray:
                     raise ScanFileError(f"{path}: holds {names}; name the points array 'points'")
                 points = archive["points" if "points" in names else names[0]]
         elif suffix == ".bin":
-            size = path.stat().st_size
-            if size % 16:  # np.fromfile would drop a cut-off tail silently
-                raise ScanFileError(
-                    f"{path}: {size} bytes, not whole x y z intensity float32 quadruples (KITTI .bin: 16 bytes a point)"
-                )
-            points = np.fromfile(path, dtype=np.float32).reshape(-1, 4)
+            points = _read_kitti_bin(path)
         elif suffix == ".ply":
             import trimesh
 

@@ -65,7 +65,10 @@ def test_a_broken_or_unknown_scan_file_is_named(tmp_path):
     lines = (tmp_path / "half.pcd").read_bytes().splitlines(keepends=True)
     (tmp_path / "half.pcd").write_bytes(b"".join(lines[:-10]))  # ten rows of twenty: cut short
     np.save(tmp_path / "rows.npy", np.zeros((3, 500)))
+    # x y z triples of 400 points: 4800 bytes divide by 16, and would read as 300 quadruples
+    (np.random.default_rng(0).normal(size=(400, 3)) * 5).astype(np.float32).tofile(tmp_path / "triples.bin")
     cases = {
+        "triples.bin": r"fourth float of \d+% of the points is negative.*save them as .npy",
         "broken.npy": "cannot be read as numpy",
         "flat.npy": r"shape \(10, 2\)",
         "two.npz": "name the points",
