@@ -69,6 +69,7 @@ MINIMUM = {
     "draws": 1,
     "max_steps": 1,
     "seed": 0,
+    "sensor_index": 0,
     "start": 0.0,
     "end": 0.0,
     "scan_mc": 0,

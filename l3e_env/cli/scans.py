@@ -54,6 +54,7 @@ def _judge_all(args: argparse.Namespace, scans, specs: list[str]) -> tuple[list,
         seed=args.seed,
         workers=args.workers,
         on_sensor=recognised,
+        sensor_index=args.sensor_index,
     ):
         judgements.append(j)
         stamp = "" if j.stamp is None else f"[t = {j.stamp:.3f} s] "
@@ -92,7 +93,9 @@ def _cmd_judge(args: argparse.Namespace) -> int:
     metadata = args.sensor if args.sensor and args.sensor.lower().endswith(".json") else None
     try:
         scans = (
-            read_recording(args.bag, args.topic, args.every, args.start, args.end, metadata) if args.bag else args.scans
+            read_recording(args.bag, args.topic, args.every, args.start, args.end, metadata, args.sensor_index)
+            if args.bag
+            else args.scans
         )
         route = read_path(args.bag, args.pose_topic) if args.bag and (args.path_plot or args.pose_topic) else None
     except RecordingError as exc:
@@ -144,7 +147,7 @@ def _cmd_sensor(args: argparse.Namespace) -> int:
                 read_scan(args.source)  # a file that cannot be read is named here
                 scans = iter([args.source])
             else:
-                scans = read_recording(recording, args.topic)
+                scans = read_recording(recording, args.topic, sensor_index=args.sensor_index, one_sensor=True)
         except (RecordingError, ScanFileError) as exc:
             print(f"l3e sensor: {exc}", file=sys.stderr)
             return 2
@@ -203,6 +206,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="the LiDAR that took the scans, for scanmc's beams: vlp16, os0-128 or a beam pattern file "
         "(.yaml/.json, or an Ouster metadata .json); default: recognised from the scans",
     )
+    p.add_argument(
+        "--sensor-index",
+        type=int,
+        metavar="I",
+        help="judge only the I-th sensor's scans of an Ouster capture of several (default: every sensor's, "
+        "each with its own beams)",
+    )
     p.add_argument("--seed", type=int, default=0, help="seed of scanmc's children")
     p.add_argument("--workers", type=int, default=1, help="scans judged side by side in processes (default 1)")
     p.add_argument("--json", help="also write the scores here")
@@ -221,5 +231,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--bag", help="recognise it from this ROS bag's first scans (or an Ouster capture's metadata)")
     p.add_argument("--topic", help="the bag's PointCloud2 topic (default: the only one)")
+    p.add_argument("--sensor-index", type=int, metavar="I", help="the sensor of an Ouster capture of several")
     p.add_argument("--out", help="write the pattern here (.yaml or .json)")
     p.set_defaults(func=_cmd_sensor)

@@ -224,6 +224,7 @@ def judge_scans(
     seed: int = 0,
     workers: int = 1,
     on_sensor: Callable[[BeamPattern, str], None] | None = None,
+    sensor_index: int | None = None,
 ) -> Iterator[Judgement]:
     """Judge each scan, a file to read (an Ouster capture read scan by scan, `read_capture`, with the
     metadata JSON given as `sensor` where there is one) or a recording's scan (`read_bag`), with each detector
@@ -231,11 +232,13 @@ def judge_scans(
     which needs a scene), after dropping its points without a return, in the order given,
     `workers` scans at a time. Without `sensor`, a detector that needs one gets the pattern
     recognised from the first scans (the default where none fits), reported to `on_sensor`
-    with what was found or why not. A scan that cannot be read gives a
+    with what was found or why not. An Ouster capture of several sensors gives every sensor's scans, each
+    judged with its own sensor's detectors, or `sensor_index`'s only. A scan that cannot be read gives a
     Judgement with its `error`, and the next one is read."""
     if workers < 1:
         raise ValueError(f"workers must be at least 1, got {workers}")
-    scans = expand_captures(scans, sensor.model if sensor and sensor.model.lower().endswith(".json") else None)
+    metadata = sensor.model if sensor and sensor.model.lower().endswith(".json") else None
+    scans = expand_captures(scans, metadata, sensor_index)
     pattern = None
     if sensor is not None:
         pattern = get_pattern(sensor.model)  # an unknown sensor is named before any file is read

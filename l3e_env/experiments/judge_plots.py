@@ -40,26 +40,35 @@ def _save(fig, path: str | Path, dpi: int) -> None:
 
 
 def plot_timeline(judgements: list[Judgement], path: str | Path) -> None:
-    """Rows of axes against time (seconds since the first scan, for a bag) or the scan's place."""
+    """Rows of axes against time (seconds since the first scan, for a bag) or the scan's place, a panel
+    per detector, and per sensor where the scans come from several (a capture of several sensors)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     names = _detectors(judgements)
+    sensors = list(dict.fromkeys(j.sensor for j in judgements if j.sensor is not None))
+    groups = {s: [j for j in judgements if j.sensor == s] for s in sensors} if len(sensors) > 1 else {None: judgements}
+    panels = [(s, n) for s, group in groups.items() for n in names if any(n in j.predictions for j in group)]
     stamps = [j.stamp for j in judgements]
     timed = all(s is not None for s in stamps)
-    x = np.asarray(stamps, dtype=np.float64) - stamps[0] if timed else np.arange(len(judgements), dtype=np.float64)
-    gaps = np.diff(x) if len(x) > 1 else np.ones(1)
-    edges = np.concatenate([[x[0] - gaps[0] / 2], (x[:-1] + x[1:]) / 2, [x[-1] + gaps[-1] / 2]])
     cmap = matplotlib.colormaps["Reds"].resampled(2).with_extremes(bad="0.8")
-    fig, axes = plt.subplots(len(names), 1, figsize=(10, 1.4 + 1.1 * len(names)), sharex=True, squeeze=False)
-    for ax, name in zip(axes[:, 0], names):
-        flags = flag_matrix(judgements, name)
-        ax.pcolormesh(edges, np.arange(7), np.ma.masked_invalid(flags), cmap=cmap, vmin=0, vmax=1)
+    fig, axes = plt.subplots(len(panels), 1, figsize=(10, 1.4 + 1.1 * len(panels)), sharex=timed, squeeze=False)
+    for ax, (sensor, name) in zip(axes[:, 0], panels):
+        group = groups[sensor]
+        x = (
+            np.array([j.stamp for j in group], dtype=np.float64) - stamps[0]
+            if timed
+            else np.arange(len(group), dtype=np.float64)
+        )
+        gaps = np.diff(x) if len(x) > 1 else np.ones(1)
+        edges = np.concatenate([[x[0] - gaps[0] / 2], (x[:-1] + x[1:]) / 2, [x[-1] + gaps[-1] / 2]])
+        ax.pcolormesh(edges, np.arange(7), np.ma.masked_invalid(flag_matrix(group, name)), cmap=cmap, vmin=0, vmax=1)
         ax.set_yticks(np.arange(6) + 0.5, AXES)
         ax.invert_yaxis()
-        ax.set_title(f"{name}: red = not localizable, grey = not judged", fontsize=9, loc="left")
+        title = f"{name}: red = not localizable, grey = not judged"
+        ax.set_title(title if sensor is None else f"{sensor}, {title}", fontsize=9, loc="left")
     axes[-1, 0].set_xlabel("seconds since the first scan" if timed else "scan")
     fig.tight_layout()
     _save(fig, path, 120)

@@ -14,6 +14,7 @@ import tempfile
 from collections.abc import Iterable, Iterator
 from itertools import chain
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -93,12 +94,17 @@ def read_capture(
     every: int = 1,
     start: float | None = None,
     end: float | None = None,
+    sensor_index: int | None = None,
+    one_sensor: bool = False,
 ) -> Iterator[RecordedScan]:
-    """The scans of an Ouster capture, every `every`-th, between `start` and `end` seconds after its
-    first scan, as (N, 3) points in the lidar frame with their beams (`rings`) and the sensor's
-    pattern from the metadata (an .osf's own; a .pcap's `metadata` JSON, else the one beside it). A
-    capture that cannot be opened, or holds no scan, raises CaptureError here; a scan the SDK could
-    not decode gives a RecordedScan with its `error`, and the next one is read."""
+    """The scans of an Ouster capture, every `every`-th of each sensor, between `start` and `end`
+    seconds after its first scan, as (N, 3) points in the lidar frame with their beams (`rings`) and
+    their sensor's pattern from the metadata (an .osf's own; a .pcap's `metadata` JSON, else the one
+    beside it). An .osf may hold several sensors: each scan comes with its own sensor's pattern and
+    `sensor <i>` in its name, or only sensor `sensor_index`'s scans; `one_sensor` refuses a capture of
+    several without an index (what reads one sensor's beams). A capture that cannot be opened, or
+    holds no scan, raises CaptureError here; a scan the SDK could not decode gives a RecordedScan with
+    its `error`, and the next one is read."""
     if every < 1:
         raise CaptureError(f"every must be at least 1, got {every}")
     path = Path(path)
@@ -108,31 +114,12 @@ def read_capture(
         raise CaptureError(f"{path}: the file is empty; give an Ouster .osf or .pcap that holds scans")
     sdk, core, log = _sdk()
     log.news()
-    if path.suffix.lower() == ".pcap":
-        _check_metadata(path, metadata)
-    try:
-        # an .osf carries its metadata; a .pcap's is the one given, else the SDK's find beside it
-        given = {"meta": [str(metadata)]} if metadata and path.suffix.lower() == ".pcap" else {}
-        source = sdk.open_source(str(path), **given)
-    except Exception as exc:  # noqa: BLE001 - the SDK raises several kinds; name the file and the problem
-        detail = str(exc).rpartition("more details:")[2].strip() or str(exc)
-        hint = (
-            f"; put its metadata JSON beside it as {path.stem}.json (the SDK looks for {path.stem}*.json "
-            "there), or give it to l3e judge with --sensor"
-            if "metadata" in detail.lower()
-            else ""
-        )
-        raise CaptureError(f"{path}: cannot be read as an Ouster capture: {detail}{hint}") from exc
-    infos = source.sensor_info
-    if len(infos) != 1:
-        raise CaptureError(f"{path}: holds the scans of {len(infos)} sensors; give a capture of one sensor")
-    info = infos[0]
-    try:
-        pattern = ouster_pattern(path.stem, json.loads(info.to_json_string()))
-    except (PatternError, KeyError, TypeError, ValueError) as exc:
-        raise CaptureError(f"{path}: its metadata does not describe the sensor's beams: {exc}") from exc
-    scans = (frames[0] for frames in source if frames and frames[0] is not None)
-    first = next(scans, None)
+    source = _open(sdk, path, metadata)
+    infos = list(source.sensor_info)
+    chosen = _chosen_sensors(path, infos, sensor_index, one_sensor)
+    sensors = {i: _sensor(path, infos, i, core) for i in chosen}
+    frames = ((i, found[i]) for found in source for i in chosen if i < len(found) and found[i] is not None)
+    first = next(frames, None)
     if first is None:
         said = log.news()
         why = (
@@ -143,23 +130,78 @@ def read_capture(
             else "the capture is empty"
         )
         raise CaptureError(f"{path}: holds no scan ({why})")
-    return _scans(chain([first], scans), path, pattern, core.XYZLut(info), core, log, every, start, end)
+    return _scans(chain([first], frames), path, sensors, len(infos) > 1, core, log, (every, start, end))
+
+
+def _open(sdk, path: Path, metadata: str | Path | None):
+    """The SDK's source of the capture, or CaptureError naming the problem and its fix."""
+    if path.suffix.lower() == ".pcap":
+        _check_metadata(path, metadata)
+    try:
+        # an .osf carries its metadata; a .pcap's is the one given, else the SDK's find beside it
+        given = {"meta": [str(metadata)]} if metadata and path.suffix.lower() == ".pcap" else {}
+        return sdk.open_source(str(path), **given)
+    except Exception as exc:  # noqa: BLE001 - the SDK raises several kinds; name the file and the problem
+        detail = str(exc).rpartition("more details:")[2].strip() or str(exc)
+        hint = (
+            f"; put its metadata JSON beside it as {path.stem}.json (the SDK looks for {path.stem}*.json "
+            "there), or give it to l3e judge with --sensor"
+            if "metadata" in detail.lower()
+            else ""
+        )
+        raise CaptureError(f"{path}: cannot be read as an Ouster capture: {detail}{hint}") from exc
+
+
+def _chosen_sensors(path: Path, infos: list, index: int | None, one: bool) -> list[int]:
+    """The indices of the sensors whose scans are read, or CaptureError naming the choice to make."""
+    if not infos:
+        raise CaptureError(f"{path}: holds no sensor's metadata (cut short, or not an Ouster capture)")
+    products = ", ".join(f"{i}: {getattr(info, 'prod_line', '') or 'a sensor'}" for i, info in enumerate(infos))
+    if index is not None:
+        if not 0 <= index < len(infos):
+            raise CaptureError(
+                f"{path}: holds {len(infos)} sensor(s) ({products}); --sensor-index {index} is none of them"
+            )
+        return [index]
+    if one and len(infos) > 1:
+        raise CaptureError(
+            f"{path}: holds the scans of {len(infos)} sensors ({products}); pick one with --sensor-index"
+        )
+    return list(range(len(infos)))
+
+
+class _Sensor(NamedTuple):
+    pattern: BeamPattern
+    lut: object  # the SDK's XYZLut
+
+
+def _sensor(path: Path, infos: list, i: int, core) -> _Sensor:
+    """Sensor i's pattern (named after the capture, and the sensor where it holds several) and lookup."""
+    name = path.stem if len(infos) == 1 else f"{path.stem}-sensor{i}"
+    try:
+        pattern = ouster_pattern(name, json.loads(infos[i].to_json_string()))
+    except (PatternError, KeyError, TypeError, ValueError) as exc:
+        raise CaptureError(f"{path}: the metadata of sensor {i} does not describe its beams: {exc}") from exc
+    return _Sensor(pattern, core.XYZLut(infos[i]))
 
 
 def _scans(
-    scans: Iterator,
+    frames: Iterator,
     path: Path,
-    pattern: BeamPattern,
-    lut,
+    sensors: dict[int, _Sensor],
+    several: bool,
     core,
     log: _SdkLog,
-    every: int,
-    start: float | None,
-    end: float | None,
+    window: tuple[int, float | None, float | None],
 ) -> Iterator[RecordedScan]:
-    began = None
-    for k, scan in enumerate(scans):
+    """Each (sensor index, frame) as a RecordedScan: every `every`-th scan of each sensor, between
+    `start` and `end` seconds after the first scan of any."""
+    every, start, end = window
+    began, counts = None, dict.fromkeys(sensors, 0)
+    for i, scan in frames:
         said = log.news()  # the SDK decodes a scan while it is read: what it logged belongs to this one
+        k = counts[i]
+        counts[i] += 1
         stamps = np.asarray(scan.timestamp)
         stamp = float(stamps[stamps > 0][0]) * 1e-9 if (stamps > 0).any() else None
         began = began if began is not None or stamp is None else stamp
@@ -167,11 +209,14 @@ def _scans(
         if k % every or (start is not None and after is not None and after < start):
             continue
         if end is not None and after is not None and after > end:
-            break
-        name = f"{path.name} #{k}"
+            if not several:
+                break
+            continue
+        name = f"{path.name} {'sensor ' + str(i) + ' ' if several else ''}#{k}"
         valid = int((np.asarray(scan.status) & 1).sum())  # columns the sensor sent
         if valid < scan.w:
             name += f" (a part revolution: {valid} of {scan.w} columns)"
+        pattern = sensors[i].pattern
         if said:
             yield RecordedScan(
                 name,
@@ -183,20 +228,20 @@ def _scans(
             continue
         ranges = scan.field(core.ChanField.RANGE)
         kept = ranges > 0  # no return: the SDK puts it at the beam's origin, not at the lidar's
-        points = pattern.from_sensor_frame(lut(ranges)[kept].astype(np.float64))
+        points = pattern.from_sensor_frame(sensors[i].lut(ranges)[kept].astype(np.float64))
         rings = np.nonzero(kept)[0].astype(np.int64)
         yield RecordedScan(
             name, stamp, points, rings=rings, pattern=pattern, frame=TURNED if pattern.lidar_to_sensor else None
         )
 
 
-def expand_captures(sources: Iterable, metadata: str | Path | None = None) -> Iterator:
-    """The sources with each Ouster capture among them replaced by its scans (one that cannot be
-    read by a RecordedScan naming why), the others as they are."""
+def expand_captures(sources: Iterable, metadata: str | Path | None = None, sensor_index: int | None = None) -> Iterator:
+    """The sources with each Ouster capture among them replaced by its scans (of every sensor, or of
+    `sensor_index`'s; one that cannot be read by a RecordedScan naming why), the others as they are."""
     for source in sources:
         if isinstance(source, (str, Path)) and is_capture(source):
             try:
-                yield from read_capture(source, metadata)
+                yield from read_capture(source, metadata, sensor_index=sensor_index)
             except CaptureError as exc:
                 yield RecordedScan(str(source), None, None, str(exc))
         else:

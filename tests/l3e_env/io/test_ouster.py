@@ -185,3 +185,48 @@ def test_a_librarys_warning_is_a_line_of_the_commands_own(capsys):
     )
     err = capsys.readouterr().err
     assert "l3e judge: warning: the classifier was trained on vlp16 scans" in err and "UserWarning" not in err
+
+
+@pytest.fixture(scope="module")
+def two_sensors(tmp_path_factory) -> Path:
+    """An .osf holding two sensors: the OS0-128 capture's three scans and the OS1-128 capture's three."""
+    import ouster.sdk as sdk
+    from ouster.sdk import osf
+
+    sources = [sdk.open_source(str(OS0)), sdk.open_source(str(OS1_OSF))]
+    path = tmp_path_factory.mktemp("two") / "two.osf"
+    writer = osf.Writer(str(path), [s.sensor_info[0] for s in sources])
+    for i, source in enumerate(sources):
+        for frames in source:
+            writer.save(i, frames[0])
+    writer.close()
+    return path
+
+
+def test_a_capture_of_two_sensors_gives_each_sensors_scans_with_its_own_beams(two_sensors, tmp_path, capsys):
+    scans = list(read_capture(two_sensors))
+    names = [s.name.split(" (a part")[0] for s in scans]  # the OS0's first scan is a part revolution
+    assert sorted(names) == sorted(f"two.osf sensor {i} #{k}" for i in (0, 1) for k in range(3))
+    patterns = {name.split(" #")[0]: s.pattern for name, s in zip(names, scans)}
+    assert {p.name for p in patterns.values()} == {"two-sensor0", "two-sensor1"}
+    assert all(p.n_beams == 128 for p in patterns.values())
+    alone = [s.points for s in read_capture(OS1_OSF)]
+    second = [s for s in read_capture(two_sensors, sensor_index=1)]
+    assert [s.name for s in second] == [f"two.osf sensor 1 #{k}" for k in range(3)]
+    assert all(np.array_equal(a, s.points) for a, s in zip(alone, second))  # the same scans as the OS1's own file
+    with pytest.raises(CaptureError, match=r"holds 2 sensor\(s\) \(0: .*1: .*\); --sensor-index 2 is none of them"):
+        read_capture(two_sensors, sensor_index=2)
+    with pytest.raises(CaptureError, match="holds the scans of 2 sensors .*pick one with --sensor-index"):
+        read_capture(two_sensors, one_sensor=True)
+    out, plot = tmp_path / "judged.json", tmp_path / "flags.png"
+    args = ["judge", str(two_sensors), "--detector", "eigen:30", "--json", str(out), "--plot", str(plot)]
+    assert main(args) == 0
+    records = json.loads(out.read_text())
+    assert len(records) == 6 and {r["sensor"] for r in records} == {"two-sensor0", "two-sensor1"}
+    assert plot.stat().st_size > 10_000
+    assert main([*args[:2], "--sensor-index", "0", *args[2:]]) == 0
+    assert {r["sensor"] for r in json.loads(out.read_text())} == {"two-sensor0"}
+    assert main(["sensor", str(two_sensors)]) == 2
+    assert "pick one with --sensor-index" in capsys.readouterr().err
+    assert main(["sensor", str(two_sensors), "--sensor-index", "1"]) == 0
+    assert "128 beams" in capsys.readouterr().out
