@@ -478,8 +478,15 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
 
 
 def model_from_checkpoint(state: dict[str, Any], source: str = "checkpoint") -> LocalizabilityNet:
-    cfg = from_dict(ModelConfig, state["model"])
-    model = LocalizabilityNet(cfg)
+    """The network a checkpoint holds; CheckpointError naming `source` where its model settings are
+    missing or unusable or its weights do not fit them."""
+    if not isinstance(state.get("model"), dict) or not isinstance(state.get("state_dict"), dict):
+        raise CheckpointError(f"{source} lacks its model settings or weights ('model', 'state_dict'): it is damaged")
+    try:
+        cfg = from_dict(ModelConfig, state["model"])
+        model = LocalizabilityNet(cfg)
+    except (TypeError, ValueError, KeyError) as exc:
+        raise CheckpointError(f"{source} holds model settings this code cannot build: {exc}") from exc
     try:
         model.load_state_dict(state["state_dict"])
     except RuntimeError as exc:

@@ -253,6 +253,18 @@ def test_wrong_checkpoints_are_refused_by_name(tmp_path):
         Classifier.load(tmp_path / "other.pt")
     with pytest.raises(CheckpointError, match="no checkpoint"):
         Classifier.load(tmp_path / "missing.pt")
+    good = torch.load(path, weights_only=True)
+    for name, change, message in [
+        ("nomodel.pt", lambda st: st.pop("model"), "lacks its model settings or weights"),
+        ("listmodel.pt", lambda st: st.__setitem__("model", [1, 2]), "lacks its model settings or weights"),
+        ("zero.pt", lambda st: st["model"].__setitem__("points", 0), "cannot build: a model reads at least one point"),
+        ("arch.pt", lambda st: st["model"].__setitem__("architecture", "mlp"), "cannot build: unknown architecture"),
+    ]:
+        state = {**good, "model": dict(good["model"])}
+        change(state)
+        torch.save(state, tmp_path / name)
+        with pytest.raises(CheckpointError, match=f"{name}.* {message}"):
+            Classifier.load(tmp_path / name)
 
 
 def test_a_broken_checkpoint_is_refused_and_a_non_finite_answer_is_unknown(tmp_path, monkeypatch):
