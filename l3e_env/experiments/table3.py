@@ -263,11 +263,12 @@ def run_table3(
     data."""
     options = options or Table3Options()
     options.check(checkpoints, dataset)
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     data = open_datasets(dataset) if dataset else None
     if data is not None:
         check_ground_truth(data, "score a classifier against (score the training scenes' own datasets)")
+    others = other_columns(options.others)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)  # once every dataset is read: a run refused leaves no folder
     board = Scoreboard(
         {
             "dataset": data.name if data is not None else None,
@@ -276,7 +277,7 @@ def run_table3(
             "int8": options.int8,
             "models": {},
         },
-        other_columns(options.others),
+        others,
         options,
     )
     first_splits = score_checkpoints(board, checkpoints, data, progress)

@@ -80,6 +80,7 @@ def test_a_distillation_set_is_no_ground_truth_to_score_or_choose_epochs_on(dist
     assert scan_labelled(union).tolist() == [False] * 12 + [True] * 4
     with pytest.raises(DatasetError, match="labelled by each scan's own estimate .* no ground truth to score"):
         run_table3([], None, tmp_path / "t3", Table3Options(others=[distill_dataset]), progress=False)
+    assert not (tmp_path / "t3").exists()  # a run refused leaves no folder that looks like a result
     with pytest.raises(TrainingError, match="validation scenes are in a dataset labelled by each scan's own"):
         train(
             [tiny_dataset, distill_dataset], tmp_path / "run", _train_cfg(["tunnel-0"], ["office-10"]), progress=False
