@@ -42,7 +42,7 @@ def test_any_npy_array_reads_as_points_or_is_refused_by_name(tmp_path, array):
 @SMALL
 @given(text=st.binary(max_size=200))
 def test_any_bytes_in_a_scan_file_read_as_points_or_are_refused_by_name(tmp_path, text):
-    for suffix in (".pcd", ".bin", ".xyz", ".npz"):
+    for suffix in (".pcd", ".bin", ".xyz", ".npz", ".npy", ".ply", ".csv"):
         path = tmp_path / f"scan{suffix}"
         path.write_bytes(text)
         try:
@@ -141,3 +141,70 @@ def test_any_option_value_from_set_is_typed_and_in_range_or_refused_naming_the_o
     got = getattr(args, option)
     kind = float if option in ("start", "end") else int
     assert type(got) is kind and math.isfinite(got) and got >= MINIMUM[option], (value, got)
+
+
+JSON_VALUES = st.recursive(
+    st.none() | st.booleans() | st.integers(-(10**12), 10**12) | st.floats(allow_nan=True) | st.text(max_size=8),
+    lambda inner: st.lists(inner, max_size=6) | st.dictionaries(st.text(max_size=6), inner, max_size=4),
+    max_leaves=12,
+)
+PATTERN_KEYS = [
+    "elevations_deg",
+    "columns",
+    "max_range",
+    "min_range",
+    "azimuth_offsets_deg",
+    "beam_origin_offset",
+    "beam_vertical_offsets",
+    "image_width",
+    "spin",
+    "scan_start_deg",
+    "time_field",
+    "beams",
+    "from",
+    "to",
+]
+
+
+@SMALL
+@given(spec=st.dictionaries(st.sampled_from(PATTERN_KEYS), JSON_VALUES, max_size=8))
+def test_any_beam_pattern_file_loads_or_is_refused_by_name(tmp_path, spec):
+    """Whatever its values (huge counts among them), a pattern file loads as a checked pattern or is
+    refused naming the file, before any array of its declared size is made."""
+    import json
+
+    from l3e_env.sim.patterns import PatternError, load_pattern
+
+    path = tmp_path / "beams.json"
+    path.write_text(json.dumps(spec))
+    try:
+        pattern = load_pattern(path)
+    except PatternError as exc:
+        assert str(path) in str(exc)
+        return
+    assert 1 <= pattern.n_beams <= 512 and pattern.n_azimuth >= 1
+
+
+@SMALL
+@given(meta=JSON_VALUES)
+def test_any_policy_record_is_read_or_refused_by_name(tmp_path, meta):
+    from policies.ppo import PolicyCheckpointError, _checked_meta
+
+    path = tmp_path / "policy.json"
+    try:
+        checked = _checked_meta(path, meta)
+    except PolicyCheckpointError as exc:
+        assert str(path) in str(exc)
+        return
+    assert checked["fast_env"]["action_repeat"] >= 1
+
+
+@SMALL
+@given(data=st.binary(max_size=300))
+def test_any_bytes_as_a_checkpoint_are_refused_by_name(tmp_path, data):
+    from l3e_env.model.classifier import CheckpointError, Classifier
+
+    path = tmp_path / "model.pt"
+    path.write_bytes(data)
+    with pytest.raises(CheckpointError, match=str(path)):
+        Classifier.load(path)
