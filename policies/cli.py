@@ -215,15 +215,7 @@ def map_detector(text: str) -> str:
     return text
 
 
-def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("policy", help="navigation: localizability maps, planner, PPO training and evaluation")
-    psub = p.add_subparsers(dest="policy_command", required=True)
-    common = argparse.ArgumentParser(add_help=False)
-    common.add_argument(
-        "--cache-dir", dest="cache_dir", help="map cache (default: $L3E_CACHE/maps or ~/.cache/l3e/maps)"
-    )
-    common.add_argument("--sensor", type=sensor_name, default="vlp16", help=SENSOR_HELP)
-    common.add_argument("--quiet", action="store_true", help="no progress bars")
+def _add_map(psub: argparse._SubParsersAction, common: argparse.ArgumentParser) -> None:
     g = psub.add_parser("map", parents=[common], help="build (or load) and plot localizability maps")
     g.add_argument(
         "--scene", type=scene_names, action="append", help="scene names, comma-separated or repeated (default: fork)"
@@ -236,6 +228,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--workers", type=int, default=1, help="processes that build a map not yet cached")
     add_mesh_options(g, several=True)
     g.set_defaults(func=_cmd_map)
+
+
+def _add_plan(psub: argparse._SubParsersAction, common: argparse.ArgumentParser) -> None:
     g = psub.add_parser("plan", parents=[common], help="shortest path and localizability-aware plan, with a plot")
     g.add_argument("--scene", type=scene_names, action="append", help="scene names (default: fork)")
     g.add_argument("--detector", default="learned", type=map_detector, help="map detector (default: learned)")
@@ -246,6 +241,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--workers", type=int, default=1, help="processes that build a map not yet cached")
     add_mesh_options(g, several=True)
     g.set_defaults(func=_cmd_plan)
+
+
+def _add_train(psub: argparse._SubParsersAction, common: argparse.ArgumentParser) -> None:
     g = psub.add_parser("train", parents=[common], help="train a PPO navigation policy on fork variants (resumable)")
     g.add_argument("--out", required=True, help="run folder (an unfinished run there is resumed)")
     g.add_argument("--scene", type=scene_names, action="append", help="training variants (default: fork-0 ... fork-6)")
@@ -281,6 +279,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--seed", type=int, default=0)
     add_mesh_options(g, several=True)
     g.set_defaults(func=_cmd_train)
+
+
+def _add_evaluate(psub: argparse._SubParsersAction, common: argparse.ArgumentParser) -> None:
     g = psub.add_parser("evaluate", parents=[common], help="seeded full-pipeline episodes: success, route, ATE, length")
     g.add_argument(
         "--policy",
@@ -334,3 +335,18 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--out", help="output folder (default: l3e_out/policy-eval-<time>)")
     add_mesh_options(g, several=True)
     g.set_defaults(func=_cmd_evaluate)
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("policy", help="navigation: localizability maps, planner, PPO training and evaluation")
+    psub = p.add_subparsers(dest="policy_command", required=True)
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument(
+        "--cache-dir", dest="cache_dir", help="map cache (default: $L3E_CACHE/maps or ~/.cache/l3e/maps)"
+    )
+    common.add_argument("--sensor", type=sensor_name, default="vlp16", help=SENSOR_HELP)
+    common.add_argument("--quiet", action="store_true", help="no progress bars")
+    _add_map(psub, common)
+    _add_plan(psub, common)
+    _add_train(psub, common)
+    _add_evaluate(psub, common)

@@ -7,7 +7,7 @@ import sys
 import time
 from pathlib import Path
 
-from l3e_env.config import ATTITUDE_MODES, FUSION_BACKENDS
+from l3e_env.config import ATTITUDE_MODES, DESKEW_SOURCES, FUSION_BACKENDS
 from l3e_env.config.detector_spec import DEFAULT_ATE_DETECTORS, DETECTOR_GRAMMAR, detector_spec
 
 from .options import (
@@ -230,7 +230,7 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
     return 0
 
 
-def register(sub: argparse._SubParsersAction) -> None:
+def _add_demo(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("demo", help="drive the mine route and save a top view and scan pictures")
     p.add_argument("--out", help="output folder (default: l3e_out/demo-<time>)")
     p.add_argument("--scene", type=scene_name, default="mine", help="scene name (default: mine)")
@@ -241,20 +241,21 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_mesh_options(p)
     p.set_defaults(func=_cmd_demo)
+
+
+def _add_scenes(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("scenes", help="list scenes and the train/validation/test split")
     p.add_argument("names", nargs="*", type=scene_name, help="scene names to describe (default: all families)")
     p.set_defaults(func=_cmd_scenes)
+
+
+def _add_envs(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("envs", help="list the registered Gymnasium environment ids")
     p.set_defaults(func=_cmd_envs)
-    p = sub.add_parser("ate", help="drive a route once, fuse with each detector, compare ATE")
-    p.add_argument("--scene", type=scene_name, default="mine")
-    p.add_argument(
-        "--detector",
-        action="append",
-        type=detector_spec,
-        help=f"{DETECTOR_GRAMMAR}; repeat for several (default: {', '.join(DEFAULT_ATE_DETECTORS)})",
-    )
-    p.add_argument("--backend", choices=FUSION_BACKENDS, default="graph", help="iSAM2 smoother or filterpy EKF")
+
+
+def _add_odometry_options(p: argparse.ArgumentParser) -> None:
+    """The external LiDAR odometries `l3e ate` runs as rows of their own or as the fusion's front end."""
     p.add_argument(
         "--baseline",
         action="append",
@@ -270,6 +271,19 @@ def register(sub: argparse._SubParsersAction) -> None:
         "relative motions, masked by the detectors and fused with the legs alike; repeat to fuse every "
         "detector with each (rows '<detector> @<front end>')",
     )
+
+
+def _add_ate(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("ate", help="drive a route once, fuse with each detector, compare ATE")
+    p.add_argument("--scene", type=scene_name, default="mine")
+    p.add_argument(
+        "--detector",
+        action="append",
+        type=detector_spec,
+        help=f"{DETECTOR_GRAMMAR}; repeat for several (default: {', '.join(DEFAULT_ATE_DETECTORS)})",
+    )
+    p.add_argument("--backend", choices=FUSION_BACKENDS, default="graph", help="iSAM2 smoother or filterpy EKF")
+    _add_odometry_options(p)
     p.add_argument("--sensor", type=sensor_name, default="vlp16", help=SENSOR_HELP)
     p.add_argument("--seed", type=int, default=0)
     add_max_steps(p)
@@ -282,7 +296,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--recording", help="evaluate a saved recording.npz instead of driving again")
     p.add_argument(
         "--deskew",
-        choices=["gyro", "odometry"],
+        choices=DESKEW_SOURCES,
         default="gyro",
         help="a swept recording's scans are deskewed with the leg odometry's motion, turned by the "
         "gyro's rotation (default) or the odometry's own",
@@ -306,6 +320,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--quiet", action="store_true")
     add_mesh_options(p)
     p.set_defaults(func=_cmd_ate)
+
+
+def _add_record(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "record",
         help="drive a route once and write it as a ROS bag: full scans, leg odometry, "
@@ -349,6 +366,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--quiet", action="store_true")
     add_mesh_options(p)
     p.set_defaults(func=_cmd_record)
+
+
+def _add_sweep(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "sweep", help="ATE against the eigenvalue threshold in several scenes, with the learned detector as reference"
     )
@@ -364,3 +384,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", help="output folder (default: l3e_out/sweep-<time>)")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_cmd_sweep)
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    _add_demo(sub)
+    _add_scenes(sub)
+    _add_envs(sub)
+    _add_ate(sub)
+    _add_record(sub)
+    _add_sweep(sub)

@@ -122,17 +122,8 @@ def _cmd_fit_constraints(args: argparse.Namespace) -> int:
     return 0
 
 
-def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("train", help="train the localizability classifier on a labelled dataset (resumable)")
-    p.add_argument(
-        "--dataset",
-        required=True,
-        action="append",
-        help="dataset folder made by 'l3e dataset generate'; repeat to train on several as one",
-    )
-    p.add_argument("--out", required=True, help="run folder (an unfinished run there is resumed)")
-    p.add_argument("--init", help="model.pt to start from (fine-tuning; its model settings are kept)")
-    p.add_argument("--config", help="YAML of TrainConfig (defaults: the shipped model's settings)")
+def _add_model_options(p: argparse.ArgumentParser) -> None:
+    """The model settings `l3e train` takes (ModelConfig)."""
     p.add_argument("--architecture", choices=["resunet", "pointnet"])
     p.add_argument(
         "--gravity",
@@ -158,6 +149,20 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="canonical: each scan read in its canonical mirror/swap view, so that its mirror images and "
         "its turns by 90 and 180 deg about z get the same answer (default: sensor)",
     )
+
+
+def _add_train(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("train", help="train the localizability classifier on a labelled dataset (resumable)")
+    p.add_argument(
+        "--dataset",
+        required=True,
+        action="append",
+        help="dataset folder made by 'l3e dataset generate'; repeat to train on several as one",
+    )
+    p.add_argument("--out", required=True, help="run folder (an unfinished run there is resumed)")
+    p.add_argument("--init", help="model.pt to start from (fine-tuning; its model settings are kept)")
+    p.add_argument("--config", help="YAML of TrainConfig (defaults: the shipped model's settings)")
+    _add_model_options(p)
     p.add_argument("--epochs", type=int)
     p.add_argument("--samples-per-epoch", type=int, dest="samples_per_epoch")
     p.add_argument("--optimizer", choices=["sgd", "adamw"])
@@ -184,37 +189,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_cmd_train)
-    p = sub.add_parser("evaluate", help="Table III: per-axis scores on train, validation and test, PR curves")
-    p.add_argument(
-        "--checkpoint", action="append", help="model.pt of a run; repeat to compare (default: the shipped model)"
-    )
-    p.add_argument(
-        "--dataset",
-        action="append",
-        help="the dataset(s) the models were trained on, scored by their train, validation and test "
-        "splits; repeat to score several as one (may be left out when --other is given)",
-    )
-    p.add_argument(
-        "--other",
-        "--other-sensor",
-        dest="other",
-        action="append",
-        help="another dataset, scored whole: another sensor, or scene families never trained on; repeat for several",
-    )
-    p.add_argument(
-        "--by-family",
-        action="store_true",
-        dest="by_family",
-        help="also score each scene family of the test split and of an --other dataset on its own "
-        "(e.g. 'mine of test', 'yard of rooms48')",
-    )
-    p.add_argument(
-        "--by-region",
-        action="store_true",
-        dest="by_region",
-        help="also score each named region of a scene there on its own (e.g. 'yard of mine-0', "
-        "'tunnel of mine-0', 'quarry of mine-0')",
-    )
+
+
+def _add_detector_options(p: argparse.ArgumentParser) -> None:
+    """The training-free detectors `l3e evaluate` scores beside the checkpoints."""
     p.add_argument(
         "--eigen",
         type=float,
@@ -267,6 +245,41 @@ def register(sub: argparse._SubParsersAction) -> None:
         "(1 is its default); repeat for several",
     )
     p.add_argument("--workers", type=int, default=1, help="processes for --scan-mc (default 1)")
+
+
+def _add_evaluate(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("evaluate", help="Table III: per-axis scores on train, validation and test, PR curves")
+    p.add_argument(
+        "--checkpoint", action="append", help="model.pt of a run; repeat to compare (default: the shipped model)"
+    )
+    p.add_argument(
+        "--dataset",
+        action="append",
+        help="the dataset(s) the models were trained on, scored by their train, validation and test "
+        "splits; repeat to score several as one (may be left out when --other is given)",
+    )
+    p.add_argument(
+        "--other",
+        "--other-sensor",
+        dest="other",
+        action="append",
+        help="another dataset, scored whole: another sensor, or scene families never trained on; repeat for several",
+    )
+    p.add_argument(
+        "--by-family",
+        action="store_true",
+        dest="by_family",
+        help="also score each scene family of the test split and of an --other dataset on its own "
+        "(e.g. 'mine of test', 'yard of rooms48')",
+    )
+    p.add_argument(
+        "--by-region",
+        action="store_true",
+        dest="by_region",
+        help="also score each named region of a scene there on its own (e.g. 'yard of mine-0', "
+        "'tunnel of mine-0', 'quarry of mine-0')",
+    )
+    _add_detector_options(p)
     p.add_argument(
         "--draws",
         type=int,
@@ -286,6 +299,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_cmd_evaluate)
+
+
+def _add_calibrate(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "calibrate", help="add symmetric-inference thresholds to a checkpoint, from its validation scenes"
     )
@@ -294,6 +310,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", help="write the completed checkpoint here instead")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_cmd_calibrate)
+
+
+def _add_fit_constraints(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "fit-constraints",
         help="add a per-axis logistic layer over the network's logits and the "
@@ -317,3 +336,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_cmd_fit_constraints)
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    _add_train(sub)
+    _add_evaluate(sub)
+    _add_calibrate(sub)
+    _add_fit_constraints(sub)

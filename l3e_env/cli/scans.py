@@ -161,7 +161,7 @@ def _cmd_sensor(args: argparse.Namespace) -> int:
     return 0
 
 
-def register(sub: argparse._SubParsersAction) -> None:
+def _add_judge(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "judge",
         help="judge your own scans (files or a ROS bag): along which axes would scan-to-scan registration fail there",
@@ -218,6 +218,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--json", help="also write the scores here")
     p.add_argument("--plot", help="also draw the flagged axes scan by scan (over time for a bag) into this image")
     p.set_defaults(func=_cmd_judge)
+
+
+def _add_sensor(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "sensor",
         help="show a LiDAR's beam pattern, or recognise it from a scan or a bag and "
@@ -234,3 +237,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--sensor-index", type=int, metavar="I", help="the sensor of an Ouster capture of several")
     p.add_argument("--out", help="write the pattern here (.yaml or .json)")
     p.set_defaults(func=_cmd_sensor)
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    _add_judge(sub)
+    _add_sensor(sub)
