@@ -58,6 +58,28 @@ def _clutter(
     return parts
 
 
+def _boundary_and_aprons(rng: np.random.Generator, gx: float, top: float, bottom: float) -> list:
+    """Walls round the whole place, buttressed inside, and a few structures on the aprons off the
+    routes, so that start and goal are rich places."""
+    parts = _face(rng, -APRON - 4, gx + APRON + 4, top, 0.3, -1, 3.0)
+    parts.append(box(((gx) / 2, bottom - 0.15, 1.5), (gx + 2 * APRON + 8, 0.3, 3.0)))
+    for x in (-APRON - 4, gx + APRON + 4):
+        parts.append(box((x, (top + bottom) / 2, 1.5), (0.3, top - bottom, 3.0)))
+    for a, b in ((-APRON - 3, -2.5), (gx + 2.5, gx + APRON + 3)):
+        parts += _clutter(rng, a, b, bottom + 1.0, top - 1.0, 0.8)
+    return parts
+
+
+def _routes(gx: float, centres: np.ndarray, steps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The short way straight through the gallery and the rich way round along the detour's lane."""
+    short_route = resample_polyline(np.array([[0.0, 0, 0], [gx, 0, 0]]), 1.0)
+    corners = [[0.0, 0.0], [3.0, 0.0], [3.0, centres[0]]]
+    for k in range(len(steps)):
+        corners += [[steps[k] - 1.5, centres[k]], [steps[k] + 1.5, centres[k + 1]]]
+    corners += [[gx - 3.0, centres[-1]], [gx - 3.0, 0.0], [gx, 0.0]]
+    return short_route, resample_polyline(np.column_stack([np.array(corners), np.zeros(len(corners))]), 1.0)
+
+
 def make_bypass(seed: int = 0, gallery_length: float | None = None, detour: float | None = None) -> Scene:
     """Start at the origin facing +x, the goal straight ahead beyond a gallery of `gallery_length` m
     (60-150 m across seeds, unset) whose walls and roof are smooth; the way round runs at y =
@@ -98,20 +120,8 @@ def make_bypass(seed: int = 0, gallery_length: float | None = None, detour: floa
         parts += _face(rng, a, b, face, 0.3, +1, height)
         far = float(centres[k] + lane / 2)
         parts += _clutter(rng, a, b, far + 0.6, far + 3.5, density)
-    # the boundary: walls round the whole place, buttressed inside
-    parts += _face(rng, -APRON - 4, gx + APRON + 4, top, 0.3, -1, 3.0)
-    parts.append(box(((gx) / 2, bottom - 0.15, 1.5), (gx + 2 * APRON + 8, 0.3, 3.0)))
-    for x in (-APRON - 4, gx + APRON + 4):
-        parts.append(box((x, (top + bottom) / 2, 1.5), (0.3, top - bottom, 3.0)))
-    # the aprons: a few structures off the routes, so that start and goal are rich places
-    for a, b in ((-APRON - 3, -2.5), (gx + 2.5, gx + APRON + 3)):
-        parts += _clutter(rng, a, b, bottom + 1.0, top - 1.0, 0.8)
-    short_route = resample_polyline(np.array([[0.0, 0, 0], [gx, 0, 0]]), 1.0)
-    corners = [[0.0, 0.0], [3.0, 0.0], [3.0, centres[0]]]
-    for k in range(len(steps)):
-        corners += [[steps[k] - 1.5, centres[k]], [steps[k] + 1.5, centres[k + 1]]]
-    corners += [[gx - 3.0, centres[-1]], [gx - 3.0, 0.0], [gx, 0.0]]
-    rich = resample_polyline(np.column_stack([np.array(corners), np.zeros(len(corners))]), 1.0)
+    parts += _boundary_and_aprons(rng, gx, top, bottom)
+    short_route, rich = _routes(gx, centres, steps)
     for route in (short_route, rich):  # nothing the clutter put on a route
         _clear(parts, route)
     return Scene.two_ways(

@@ -81,6 +81,53 @@ def _beside(rng: np.random.Generator, walk: np.ndarray, near: float, far: float)
     return walk[k, :2] + side * rng.uniform(near, far), heading
 
 
+def _piece(rng: np.random.Generator, kind: str, xy: np.ndarray, heading: float, z0: float, walk: np.ndarray) -> list:
+    """One piece of furniture of `kind` at `xy` (none where it would stand on the walk)."""
+    out: list[trimesh.Trimesh] = []
+    if kind == "box":
+        size = rng.uniform(0.4, 1.0, 3) * rng.choice([1.5, 4.0, 12.0])
+        if _clear_of(walk, xy, 0.5 * float(np.hypot(size[0], size[1]))):
+            out.append(box((xy[0], xy[1], z0 + size[2] / 2), tuple(size), yaw=float(rng.uniform(0, np.pi))))
+    elif kind in ("pillar", "tree"):
+        r = float(rng.uniform(0.1, 0.6)) if kind == "pillar" else float(rng.uniform(0.1, 0.3))
+        h = float(rng.uniform(2.5, 8.0))
+        if _clear_of(walk, xy, r if kind == "pillar" else 2.0):
+            out.append(cylinder((xy[0], xy[1]), r, h, z0=z0))
+            if kind == "tree":
+                crown = trimesh.creation.icosphere(1, radius=float(rng.uniform(1.0, 2.5)))
+                out.append(crown.apply_translation((xy[0], xy[1], z0 + h)))
+    elif kind == "rock":
+        r = float(rng.uniform(0.3, 3.0))
+        if _clear_of(walk, xy, r * 1.3):
+            rock = trimesh.creation.icosphere(2, radius=r)
+            rock.vertices *= 1 + 0.25 * rng.standard_normal((len(rock.vertices), 1))
+            out.append(rock.apply_translation((xy[0], xy[1], z0 + 0.3)))
+    else:  # a wall along the walk (parallel: the corridor kind) or at an angle to it
+        along = rng.random() < 0.6
+        wall_len = float(rng.uniform(5, 40))
+        yaw = heading if along else heading + float(rng.uniform(0.3, np.pi - 0.3))
+        centre = xy + wall_len / 2 * np.array([np.cos(yaw), np.sin(yaw)]) * (0 if along else 1)
+        ends = centre + np.outer([-0.5, 0.5], [np.cos(yaw), np.sin(yaw)]) * wall_len
+        samples = ends[0] + np.linspace(0, 1, 12)[:, None] * (ends[1] - ends[0])
+        if all(_clear_of(walk, p, 0.3) for p in samples):
+            h = float(rng.uniform(1.0, 6.0))
+            out.append(box((centre[0], centre[1], z0 + h / 2), (wall_len, 0.3, h), yaw=yaw))
+    return out
+
+
+def _tunnel_stretch(rng: np.random.Generator, walk: np.ndarray) -> trimesh.Trimesh:
+    """A stretch of tunnel of random profile and roughness along 20-60 m of the walk."""
+    a = int(rng.integers(0, len(walk) // 2))
+    b = min(len(walk), a + int(rng.uniform(20, 60) / 0.5))
+    stretch = walk[a:b]
+    width = float(rng.uniform(3.0, 8.0))
+    angles = np.linspace(0, 2 * np.pi, 48, endpoint=False)
+    rho, cz = polar_profile(str(rng.choice(PROFILES)), angles, width, float(rng.uniform(3.0, 6.0)))
+    roughness = float(np.exp(rng.uniform(np.log(0.01), np.log(0.8))))
+    noise = smooth_noise(rng, roughness, wavelengths=(1.0, 6.0))
+    return sweep(stretch, angles, np.tile(rho, (len(stretch), 1)), np.full(len(stretch), cz), noise=noise)
+
+
 def make_layout(seed: int = 0) -> Scene:
     """One procedural layout (see the module's text); the walk is its route and sampling path."""
     rng = np.random.default_rng(seed + 9000)
@@ -104,47 +151,12 @@ def make_layout(seed: int = 0) -> Scene:
         else:
             xy, heading = _beside(rng, walk, 1.5, 1.5 + spread)
         z0 = float(height(xy)[0]) - 0.3  # sunk a little: rolling ground leaves no gap beneath
-        if kind == "box":
-            size = rng.uniform(0.4, 1.0, 3) * rng.choice([1.5, 4.0, 12.0])
-            if _clear_of(walk, xy, 0.5 * float(np.hypot(size[0], size[1]))):
-                furniture.append(box((xy[0], xy[1], z0 + size[2] / 2), tuple(size), yaw=float(rng.uniform(0, np.pi))))
-        elif kind in ("pillar", "tree"):
-            r = float(rng.uniform(0.1, 0.6)) if kind == "pillar" else float(rng.uniform(0.1, 0.3))
-            h = float(rng.uniform(2.5, 8.0))
-            if _clear_of(walk, xy, r if kind == "pillar" else 2.0):
-                furniture.append(cylinder((xy[0], xy[1]), r, h, z0=z0))
-                if kind == "tree":
-                    crown = trimesh.creation.icosphere(1, radius=float(rng.uniform(1.0, 2.5)))
-                    furniture.append(crown.apply_translation((xy[0], xy[1], z0 + h)))
-        elif kind == "rock":
-            r = float(rng.uniform(0.3, 3.0))
-            if _clear_of(walk, xy, r * 1.3):
-                rock = trimesh.creation.icosphere(2, radius=r)
-                rock.vertices *= 1 + 0.25 * rng.standard_normal((len(rock.vertices), 1))
-                furniture.append(rock.apply_translation((xy[0], xy[1], z0 + 0.3)))
-        else:  # a wall along the walk (parallel: the corridor kind) or at an angle to it
-            along = rng.random() < 0.6
-            wall_len = float(rng.uniform(5, 40))
-            yaw = heading if along else heading + float(rng.uniform(0.3, np.pi - 0.3))
-            centre = xy + wall_len / 2 * np.array([np.cos(yaw), np.sin(yaw)]) * (0 if along else 1)
-            ends = centre + np.outer([-0.5, 0.5], [np.cos(yaw), np.sin(yaw)]) * wall_len
-            samples = ends[0] + np.linspace(0, 1, 12)[:, None] * (ends[1] - ends[0])
-            if all(_clear_of(walk, p, 0.3) for p in samples):
-                h = float(rng.uniform(1.0, 6.0))
-                furniture.append(box((centre[0], centre[1], z0 + h / 2), (wall_len, 0.3, h), yaw=yaw))
+        furniture += _piece(rng, str(kind), xy, heading, z0, walk)
     parts += [part for part in furniture if _keeps_clear(part, walk, height)]
     if rng.random() < 0.25:  # a ceiling over the whole walk: a hall
         z = float(rng.uniform(3.0, 8.0))
         parts.append(box(((lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, z + 0.1), (hi[0] - lo[0], hi[1] - lo[1], 0.2)))
     if rng.random() < 0.35:  # a stretch of tunnel that the walk runs through
-        a = int(rng.integers(0, len(walk) // 2))
-        b = min(len(walk), a + int(rng.uniform(20, 60) / 0.5))
-        stretch = walk[a:b]
-        width = float(rng.uniform(3.0, 8.0))
-        angles = np.linspace(0, 2 * np.pi, 48, endpoint=False)
-        rho, cz = polar_profile(str(rng.choice(PROFILES)), angles, width, float(rng.uniform(3.0, 6.0)))
-        roughness = float(np.exp(rng.uniform(np.log(0.01), np.log(0.8))))
-        noise = smooth_noise(rng, roughness, wavelengths=(1.0, 6.0))
-        parts.append(sweep(stretch, angles, np.tile(rho, (len(stretch), 1)), np.full(len(stretch), cz), noise=noise))
+        parts.append(_tunnel_stretch(rng, walk))
     route = resample_polyline(walk, 1.0)
     return Scene.along_route(f"layout-{seed}", merge(parts), route, "layout", seed)

@@ -8,12 +8,8 @@ from .geometry import box, ground_plane, merge, polar_profile, resample_polyline
 from .scene import Scene
 
 
-def make_mine(seed: int = 0, tunnel_length: float = 100.0, tunnel_width: float = 4.5) -> Scene:
-    """Yard on x < 0 with buildings and containers; a portal in a cliff face at x = 0; a
-    horseshoe tunnel to x = tunnel_length; a noisy quarry cavern about 30 m across behind it."""
-    rng = np.random.default_rng(seed + 3000)
-    yard = 45.0
-    height = tunnel_width
+def _yard(rng: np.random.Generator, seed: int, yard: float) -> list:
+    """The yard's ground and its buildings and containers (jittered for seeds other than 0)."""
     parts = [ground_plane(-yard, 0.5, -30, 30, cell=15)]
     for cx, cy, sx, sy, sz in [
         (-32, -9, 8, 5, 4),
@@ -25,15 +21,24 @@ def make_mine(seed: int = 0, tunnel_length: float = 100.0, tunnel_width: float =
     ]:
         j = rng.uniform(-1, 1, 2) if seed else np.zeros(2)
         parts.append(box((cx + j[0], cy + j[1], sz / 2), (sx, sy, sz), yaw=rng.uniform(-0.3, 0.3) if seed else 0.0))
-    # cliff face around the portal opening (rectangular opening of the tunnel's width and height)
+    return parts
+
+
+def _cliff(tunnel_width: float, height: float) -> list:
+    """The cliff face around the portal: a rectangular opening of the tunnel's width and height."""
     cliff_h, half = 18.0, tunnel_width / 2
-    parts += [
+    return [
         box((-0.5, -(30 + half) / 2, cliff_h / 2), (1.0, 30 - half, cliff_h)),
         box((-0.5, (30 + half) / 2, cliff_h / 2), (1.0, 30 - half, cliff_h)),
         box((-0.5, 0, (height + cliff_h) / 2), (1.0, 2 * half, cliff_h - height)),
     ]
-    # tunnel morphing into the quarry cavern, then closed
-    cavern_r, cavern_len = 15.0, 34.0
+
+
+def _tunnel_and_quarry(
+    rng: np.random.Generator, tunnel_length: float, tunnel_width: float, cavern_r: float, cavern_len: float
+):
+    """The horseshoe tunnel morphing over 6 m into the rough quarry cavern, closed at its end."""
+    height, half = tunnel_width, tunnel_width / 2
     s = np.arange(0.0, tunnel_length + cavern_len + 1e-9, 1.0)
     angles = np.linspace(0, 2 * np.pi, 64, endpoint=False)
     rho_t, cz_t = polar_profile("horseshoe", angles, tunnel_width, height)
@@ -45,7 +50,17 @@ def make_mine(seed: int = 0, tunnel_length: float = 100.0, tunnel_width: float =
     path = np.column_stack([s, 0 * s, 0 * s])
     noise = smooth_noise(rng, 0.9, wavelengths=(3.0, 10.0))
     tunnel_noise = lambda pts: noise(pts) * np.clip((pts[:, 0] - tunnel_length) / 6.0, 0.02, 1.0)  # noqa: E731
-    parts.append(sweep(path, angles, rho, cz, noise=tunnel_noise, close_end=True))
+    return sweep(path, angles, rho, cz, noise=tunnel_noise, close_end=True)
+
+
+def make_mine(seed: int = 0, tunnel_length: float = 100.0, tunnel_width: float = 4.5) -> Scene:
+    """Yard on x < 0 with buildings and containers; a portal in a cliff face at x = 0; a
+    horseshoe tunnel to x = tunnel_length; a noisy quarry cavern about 30 m across behind it."""
+    rng = np.random.default_rng(seed + 3000)
+    yard, half = 45.0, tunnel_width / 2
+    cavern_r, cavern_len = 15.0, 34.0
+    parts = _yard(rng, seed, yard) + _cliff(tunnel_width, tunnel_width)
+    parts.append(_tunnel_and_quarry(rng, tunnel_length, tunnel_width, cavern_r, cavern_len))
     goal_x = tunnel_length + cavern_len * 0.6
     route = resample_polyline(np.array([[-38.0, 0.5, 0], [-16.0, 0.5, 0], [-4.0, 0, 0], [goal_x, 0, 0]]), 1.0)
     regions = {
