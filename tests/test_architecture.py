@@ -32,9 +32,7 @@ def lint_imports(root: Path) -> subprocess.CompletedProcess:
 KNOWN_LONG = {
     "l3e_env/envs/navigation.py:__init__",
     "l3e_env/experiments/drive.py:record_run",
-    "l3e_env/experiments/fuse.py:scored",
     "l3e_env/experiments/demo.py:run_demo",
-    "l3e_env/experiments/tau_sweep.py:run_sweep",
     "l3e_env/localizability/scan_mc.py:range_image_mesh",
     "l3e_env/model/training.py:train",
     "l3e_env/model/training.py:fit_constraints",

@@ -205,22 +205,21 @@ def _cmd_record(args: argparse.Namespace) -> int:
 
 
 def _cmd_sweep(args: argparse.Namespace) -> int:
-    from l3e_env.experiments.tau_sweep import DEFAULT_KAPPAS, DEFAULT_TAUS, beaten_everywhere, run_sweep
+    from l3e_env.experiments.tau_sweep import DEFAULT_KAPPAS, DEFAULT_TAUS, SweepOptions, beaten_everywhere, run_sweep
 
     out = Path(args.out or f"l3e_out/sweep-{time.strftime('%Y%m%d-%H%M%S')}")
     args.out = str(out)  # the resolved options are written beside it
     print(f"writing the sweep into {out.resolve()}")
     taus = args.taus or DEFAULT_TAUS
     recordings = dict(r.split("=", 1) for r in args.recording or [])
-    results = run_sweep(
-        out,
-        args.scene or ["tunnel", "field", "office"],
-        taus,
-        recordings=recordings,
-        progress=not args.quiet,
-        fusion_settings=fusion_settings(args),
+    options = SweepOptions(
+        taus=tuple(taus),
         kappas=DEFAULT_KAPPAS if args.kappas is None else tuple(args.kappas),
+        xicps=tuple(args.xicps or ()),
+        drpms=tuple(args.drpms or ()),
+        fusion_settings=fusion_settings(args),
     )
+    results = run_sweep(out, args.scene or ["tunnel", "field", "office"], options, recordings, not args.quiet)
     best = beaten_everywhere(results, "learned")
     print(
         "taus at least as good as the learned detector in every scene: "
@@ -378,6 +377,16 @@ def _add_sweep(sub: argparse._SubParsersAction) -> None:
         "--kappas",
         type=float_list,
         help="comma-separated condition ratio thresholds of DCReg, swept beside tau (default 3 ... 1000)",
+    )
+    p.add_argument(
+        "--xicps",
+        type=float_list,
+        help="comma-separated localizability thresholds of X-ICP to sweep as well (e.g. 30,60,100,150,300)",
+    )
+    p.add_argument(
+        "--drpms",
+        type=float_list,
+        help="comma-separated signal-to-noise factors of DRPM to sweep as well (e.g. 1,3,10,30,100)",
     )
     p.add_argument("--recording", action="append", help="SCENE=recording.npz to skip driving that scene")
     add_fusion_options(p)

@@ -47,7 +47,7 @@ from .ate_tables import (
 )
 from .baselines import BASELINES, BaselineRun, check_baselines, run_baseline
 from .drive import DriveRecord, deskewed, record_run, register_sequence
-from .fuse import fuse_recording, odometry_only, scored
+from .fuse import FusedRun, fuse_recording, odometry_only, scored
 from .recast import OdometryAttitude, RecastCascade, RecastScans
 
 
@@ -324,18 +324,8 @@ def score_rows(
             rows.append(failed_row(name, run.error, scene))
             continue
         steps = len(rec.odometry)
-        results.append(
-            scored(
-                name,
-                run.trajectory,
-                rec.ground_truth,
-                np.zeros((steps, 6), bool),
-                np.full((steps, 6), np.nan),
-                run.seconds,
-                0,
-                0,
-            )
-        )
+        masks, probabilities = np.zeros((steps, 6), bool), np.full((steps, 6), np.nan)
+        results.append(scored(FusedRun(name, run.trajectory, masks, probabilities, run.seconds), rec.ground_truth))
         rows.append({**results[-1].row(), **region_drift(run.trajectory, rec.ground_truth, inside)})
     return results, rows
 

@@ -99,19 +99,17 @@ def fuse_recording(
             fallbacks += step.fallback
             masks.append(step.prediction.mask)
             probs.append(step.prediction.probabilities)
-        out.append(
-            scored(
-                det.name,
-                pipeline.trajectory(),
-                gt,
-                np.array(masks),
-                np.array(probs),
-                time.perf_counter() - t0,
-                unknown,
-                fallbacks,
-                errors,
-            )
+        run = FusedRun(
+            det.name,
+            pipeline.trajectory(),
+            np.array(masks),
+            np.array(probs),
+            time.perf_counter() - t0,
+            unknown,
+            fallbacks,
+            errors,
         )
+        out.append(scored(run, gt))
     return out
 
 
@@ -120,24 +118,42 @@ def odometry_only(rec: DriveRecord) -> DetectorResult:
     for inc in rec.odometry:
         traj.append(traj[-1] @ inc)
     n = len(rec.odometry)
-    return scored("odometry only", np.array(traj), rec.ground_truth, np.ones((n, 6), bool), np.ones((n, 6)), 0.0, 0, 0)
+    return scored(FusedRun("odometry only", np.array(traj), np.ones((n, 6), bool), np.ones((n, 6))), rec.ground_truth)
 
 
-def scored(
-    name: str,
-    traj: np.ndarray,
-    gt: np.ndarray,
-    masks: np.ndarray,
-    probs: np.ndarray,
-    seconds: float,
-    unknown: int,
-    fallbacks: int,
-    errors: int = 0,
-) -> DetectorResult:
+@dataclass
+class FusedRun:
+    """A trajectory the fusion made (or an odometry gave) and what its detector did at each step."""
+
+    name: str
+    trajectory: np.ndarray
+    masks: np.ndarray  # (N, 6) bool
+    probabilities: np.ndarray  # (N, 6)
+    seconds: float = 0.0
+    unknown_steps: int = 0
+    fallback_steps: int = 0
+    detector_errors: int = 0
+
+
+def scored(run: FusedRun, gt: np.ndarray) -> DetectorResult:
     """A trajectory with its metrics against ground truth (aligned ATE is None for colinear runs)."""
+    traj = run.trajectory
     try:
         aligned = ate_aligned(traj, gt)
     except MetricError:
         aligned = None
     rt, rr = rpe(traj, gt, delta=min(10, len(gt) - 1))
-    return DetectorResult(name, traj, masks, probs, ate(traj, gt), aligned, rt, rr, seconds, unknown, fallbacks, errors)
+    return DetectorResult(
+        run.name,
+        traj,
+        run.masks,
+        run.probabilities,
+        ate(traj, gt),
+        aligned,
+        rt,
+        rr,
+        run.seconds,
+        run.unknown_steps,
+        run.fallback_steps,
+        run.detector_errors,
+    )

@@ -143,18 +143,13 @@ def test_the_hessian_weighs_the_icp_factor_and_the_settings_are_written(walls_ru
     rows = run_ate(tmp_path / "out", "mine", ["none"], AteOptions(recording=tmp_path / "rec.npz"), progress=False).rows
     assert rows[1]["ate_m"] == round(weighed.ate, 3)  # rows are rounded
     assert json.loads((tmp_path / "out" / "results.json").read_text())["odometry_bias"] == []
-    from l3e_env.experiments.tau_sweep import run_sweep
+    from l3e_env.experiments.tau_sweep import SweepOptions, run_sweep
 
-    swept = run_sweep(
-        tmp_path / "sweep",
-        ["primitives-1"],
-        taus=(1e12,),
-        references=("none",),
-        recordings={"primitives-1": str(tmp_path / "rec.npz")},
-        progress=False,
-        kappas=(1e15,),
-    )
+    options = SweepOptions(taus=(1e12,), kappas=(1e15,), xicps=(1e9,), drpms=(1e-3,), references=("none",))
+    swept = run_sweep(tmp_path / "sweep", ["primitives-1"], options, {"primitives-1": str(tmp_path / "rec.npz")}, False)
     row = swept["primitives-1"]
+    assert row["xicp_ate"][0] == pytest.approx(row["odometry only"], rel=1e-6)  # no axis that well held: the legs
+    assert row["drpm_flagged"][0][1:] == [0.0] * 5  # a tiny signal-to-noise factor: only the walls' free axis
     assert row["odometry_bias"] == [] and row["none"] == pytest.approx(weighed.ate, rel=1e-9)
     assert row["eigen_ate"][0] == pytest.approx(row["odometry only"], rel=1e-6)  # every axis flagged: the legs alone
     assert row["dcreg_ate"][0] == pytest.approx(row["none"], rel=1e-9)  # no ratio that high: nothing flagged
