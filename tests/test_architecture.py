@@ -34,8 +34,6 @@ KNOWN_LONG = {
     "l3e_env/experiments/drive.py:record_run",
     "l3e_env/experiments/demo.py:run_demo",
     "l3e_env/localizability/scan_mc.py:range_image_mesh",
-    "l3e_env/model/training.py:train",
-    "l3e_env/model/training.py:fit_constraints",
     "l3e_env/sim/patterns.py:fit_pattern",
     "policies/context.py:scene_context",
     "policies/evaluation.py:make_controller",

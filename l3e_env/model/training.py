@@ -341,6 +341,29 @@ def _split(data: LabelDataset | DatasetUnion, cfg: TrainConfig) -> tuple[np.ndar
     return train_rows, val_rows
 
 
+@dataclass
+class _Run:
+    """A training run under way: its data and split, its targets, the model and its optimiser, and
+    where it stands (the epoch to begin with, the best epoch so far)."""
+
+    cfg: TrainConfig
+    data: LabelDataset | DatasetUnion
+    out: Path
+    train_rows: np.ndarray
+    val_rows: np.ndarray
+    targets: np.ndarray
+    up: np.ndarray | None
+    meta: dict[str, Any]
+    model: LocalizabilityNet
+    optimizer: torch.optim.Optimizer
+    scheduler: torch.optim.lr_scheduler.ExponentialLR
+    pool: np.ndarray
+    groups: GroupWeights | None = None
+    row_family: dict[int, int] = field(default_factory=dict)
+    first_epoch: int = 0
+    best: dict[str, Any] = field(default_factory=lambda: {"f1": -1.0})
+
+
 def train(
     dataset: str | Path | list[str | Path], out_dir: str | Path, cfg: TrainConfig, progress: bool = True
 ) -> dict[str, Any]:
@@ -357,12 +380,32 @@ def train(
     data = open_datasets(dataset)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    train_rows, val_rows = _split(data, cfg)
-    labels = data.labels
-    targets_all = training_targets(data, cfg.soft_labels)
-    up_all = up_vector(data.poses) if cfg.model.gravity else None
-    meta = _meta(cfg, data)
+    run = _start(cfg, data, out)
+    for epoch in range(run.first_epoch, cfg.epochs):
+        t0 = time.perf_counter()
+        losses = _train_epoch(run, epoch, progress)
+        run.scheduler.step()
+        record = {
+            "epoch": epoch + 1,
+            "train_loss": float(np.mean(losses)),
+            "lr": run.scheduler.get_last_lr()[0],
+            "seconds": round(time.perf_counter() - t0, 1),
+        }
+        if run.groups is not None:
+            record["family_weights"] = {f: round(w, 4) for f, w in run.groups.state().items()}
+        thresholds, improved = _validate(run, record)
+        _save_epoch(run, epoch, record, thresholds, improved)
+        if progress:
+            val = f", val loss {record['val_loss']:.3f}, F1 {record['val_f1']:.3f}" if "val_f1" in record else ""
+            print(f"epoch {epoch + 1}/{cfg.epochs}: train loss {record['train_loss']:.3f}{val} ({record['seconds']} s)")
+    return finalize(data, out, cfg, run.val_rows, run.meta)
 
+
+def _start(cfg: TrainConfig, data: LabelDataset | DatasetUnion, out: Path) -> _Run:
+    """The run in `out`: a new one, or the one its last.pt holds, resumed where it stopped (refused
+    where its settings differ)."""
+    train_rows, val_rows = _split(data, cfg)
+    meta = _meta(cfg, data)
     last = out / "last.pt"
     state = load_checkpoint(last) if last.exists() else None
     if state is not None:
@@ -377,105 +420,116 @@ def train(
         model = _initial_model(cfg)
         dump_yaml(cfg, out / "config.yaml")
     optimizer = _optimizer(cfg, model)
-    scheduler = torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma=cfg.lr_decay)
-    first_epoch, best = 0, {"f1": -1.0}
+    pool = balanced_pool(data.labels[train_rows], cfg.max_upsampling) if cfg.balance else np.arange(len(train_rows))
+    run = _Run(
+        cfg,
+        data,
+        out,
+        train_rows,
+        val_rows,
+        training_targets(data, cfg.soft_labels),
+        up_vector(data.poses) if cfg.model.gravity else None,
+        meta,
+        model,
+        optimizer,
+        torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma=cfg.lr_decay),
+        pool,
+    )
     if state is not None:
-        optimizer.load_state_dict(state["optimizer"])
-        scheduler.load_state_dict(state["scheduler"])
-        first_epoch, best = state["epoch"] + 1, state["best"]
+        run.optimizer.load_state_dict(state["optimizer"])
+        run.scheduler.load_state_dict(state["scheduler"])
+        run.first_epoch, run.best = state["epoch"] + 1, state["best"]
         print(f"resuming {out} after epoch {state['epoch'] + 1}")
-
-    pool = balanced_pool(labels[train_rows], cfg.max_upsampling) if cfg.balance else np.arange(len(train_rows))
-    loss_fn = torch.nn.BCEWithLogitsLoss()
-    groups, row_family = None, {}
     if cfg.group_dro > 0:
         family, families = scene_families(data, train_rows)
-        row_family = dict(zip(train_rows.tolist(), family.tolist()))
+        run.row_family = dict(zip(train_rows.tolist(), family.tolist()))
         saved = state.get("group_weights") if state is not None else None
-        groups = GroupWeights(families, cfg.group_dro, list(saved.values()) if saved else None)
-    for epoch in range(first_epoch, cfg.epochs):
-        t0 = time.perf_counter()
-        rng = np.random.default_rng([cfg.seed, epoch])
-        torch.manual_seed(cfg.seed * 100_003 + epoch)
-        # at least one whole batch: a pool smaller than a batch (a small dataset of one's own scene)
-        # would otherwise give epochs without a single step
-        count = max(cfg.samples_per_epoch or len(pool), cfg.batch_size)
-        order = train_rows[rng.choice(pool, count, replace=count > len(pool))]
-        model.train()
-        losses = []
-        bar = tqdm(
-            range(0, count - cfg.batch_size + 1, cfg.batch_size),
-            disable=not progress,
-            leave=False,
-            desc=f"epoch {epoch + 1}/{cfg.epochs}",
+        run.groups = GroupWeights(families, cfg.group_dro, list(saved.values()) if saved else None)
+    return run
+
+
+def _train_epoch(run: _Run, epoch: int, progress: bool) -> list[float]:
+    """One epoch of steps over scans drawn from the balanced pool; the steps' losses."""
+    cfg, model = run.cfg, run.model
+    rng = np.random.default_rng([cfg.seed, epoch])
+    torch.manual_seed(cfg.seed * 100_003 + epoch)
+    # at least one whole batch: a pool smaller than a batch (a small dataset of one's own scene)
+    # would otherwise give epochs without a single step
+    count = max(cfg.samples_per_epoch or len(run.pool), cfg.batch_size)
+    order = run.train_rows[rng.choice(run.pool, count, replace=count > len(run.pool))]
+    model.train()
+    losses: list[float] = []
+    bar = tqdm(
+        range(0, count - cfg.batch_size + 1, cfg.batch_size),
+        disable=not progress,
+        leave=False,
+        desc=f"epoch {epoch + 1}/{cfg.epochs}",
+    )
+    for start in bar:
+        rows = order[start : start + cfg.batch_size]
+        batch, targets, ups = [], [], []
+        for i in rows:
+            pts, lab, up = run.data.scan(int(i)), run.targets[i], run.up[i] if run.up is not None else None
+            if cfg.augment:
+                pts, lab, up = augment(pts, lab, rng, up)
+            pts = scaled(pts, cfg.scale_augment, rng)
+            batch.append(model_input(pts, cfg.model, rng))
+            targets.append(lab)
+            ups.append(up)
+        up_batch = torch.tensor(np.array(ups), dtype=torch.float32) if run.up is not None else None
+        logits, truth = model(batch, up_batch), torch.tensor(np.array(targets), dtype=torch.float32)
+        if run.groups is None:
+            loss = torch.nn.functional.binary_cross_entropy_with_logits(logits, truth)
+        else:
+            per_scan = torch.nn.functional.binary_cross_entropy_with_logits(logits, truth, reduction="none").mean(1)
+            loss = run.groups.loss(per_scan, torch.tensor([run.row_family[int(i)] for i in rows]))
+        run.optimizer.zero_grad()
+        loss.backward()
+        run.optimizer.step()
+        losses.append(loss.item())
+        bar.set_postfix(loss=f"{np.mean(losses[-50:]):.3f}")
+    return losses
+
+
+def _validate(run: _Run, record: dict[str, Any]) -> tuple[np.ndarray, bool]:
+    """The validation split's loss, scores and F1-best thresholds into `record`; the thresholds and
+    whether the epoch is the best so far (without a validation split: thresholds 0.5, always)."""
+    if not len(run.val_rows):
+        return np.full(6, 0.5), True
+    probs = predict_dataset(run.model, run.data, run.val_rows, seed=run.cfg.seed)
+    y = run.data.labels[run.val_rows]
+    record["val_loss"] = float(
+        torch.nn.functional.binary_cross_entropy_with_logits(
+            torch.logit(torch.tensor(probs).clamp(1e-6, 1 - 1e-6)), torch.tensor(y, dtype=torch.float64)
         )
-        for start in bar:
-            batch, targets, ups = [], [], []
-            for i in order[start : start + cfg.batch_size]:
-                pts, lab, up = data.scan(int(i)), targets_all[i], up_all[i] if up_all is not None else None
-                if cfg.augment:
-                    pts, lab, up = augment(pts, lab, rng, up)
-                pts = scaled(pts, cfg.scale_augment, rng)
-                batch.append(model_input(pts, cfg.model, rng))
-                targets.append(lab)
-                ups.append(up)
-            up_batch = torch.tensor(np.array(ups), dtype=torch.float32) if up_all is not None else None
-            logits, truth = model(batch, up_batch), torch.tensor(np.array(targets), dtype=torch.float32)
-            if groups is None:
-                loss = loss_fn(logits, truth)
-            else:
-                per_scan = torch.nn.functional.binary_cross_entropy_with_logits(logits, truth, reduction="none").mean(1)
-                member = torch.tensor([row_family[int(i)] for i in order[start : start + cfg.batch_size]])
-                loss = groups.loss(per_scan, member)
-            optimizer.zero_grad()
-            loss.backward()
-            optimizer.step()
-            losses.append(loss.item())
-            bar.set_postfix(loss=f"{np.mean(losses[-50:]):.3f}")
-        scheduler.step()
-        record = {
-            "epoch": epoch + 1,
-            "train_loss": float(np.mean(losses)),
-            "lr": scheduler.get_last_lr()[0],
-            "seconds": round(time.perf_counter() - t0, 1),
-        }
-        if groups is not None:
-            record["family_weights"] = {f: round(w, 4) for f, w in groups.state().items()}
-        if len(val_rows):
-            probs = predict_dataset(model, data, val_rows, seed=cfg.seed)
-            y = labels[val_rows]
-            record["val_loss"] = float(
-                loss_fn(torch.logit(torch.tensor(probs).clamp(1e-6, 1 - 1e-6)), torch.tensor(y, dtype=torch.float64))
-            )
-            thresholds = best_thresholds(y, probs)
-            scores = mean_scores(axis_scores(y, probs > thresholds))
-            record.update({f"val_{k}": v for k, v in scores.items()})
-            record["thresholds"] = thresholds.round(4).tolist()
-            improved = scores["f1"] > best["f1"]
-        else:  # no validation split: keep the last epoch, thresholds 0.5
-            thresholds, improved = np.full(6, 0.5), True
-        with open(out / "log.jsonl", "a") as fh:
-            fh.write(json.dumps(record) + "\n")
-        if improved:
-            best = {"f1": record.get("val_f1", float("nan")), "epoch": epoch + 1}
-            save_checkpoint(out / "best.pt", model, thresholds, meta, {"epoch": epoch, "scores": record})
-        save_checkpoint(
-            last,
-            model,
-            thresholds,
-            meta,
-            {
-                "epoch": epoch,
-                "best": best,
-                "optimizer": optimizer.state_dict(),
-                "scheduler": scheduler.state_dict(),
-                "group_weights": groups.state() if groups is not None else None,
-            },
-        )
-        if progress:
-            val = f", val loss {record['val_loss']:.3f}, F1 {record['val_f1']:.3f}" if "val_f1" in record else ""
-            print(f"epoch {epoch + 1}/{cfg.epochs}: train loss {record['train_loss']:.3f}{val} ({record['seconds']} s)")
-    return finalize(data, out, cfg, val_rows, meta)
+    )
+    thresholds = best_thresholds(y, probs)
+    scores = mean_scores(axis_scores(y, probs > thresholds))
+    record.update({f"val_{k}": v for k, v in scores.items()})
+    record["thresholds"] = thresholds.round(4).tolist()
+    return thresholds, scores["f1"] > run.best["f1"]
+
+
+def _save_epoch(run: _Run, epoch: int, record: dict[str, Any], thresholds: np.ndarray, improved: bool) -> None:
+    """The epoch's line in log.jsonl, best.pt where it is the best so far, and last.pt to resume from."""
+    with open(run.out / "log.jsonl", "a") as fh:
+        fh.write(json.dumps(record) + "\n")
+    if improved:
+        run.best = {"f1": record.get("val_f1", float("nan")), "epoch": epoch + 1}
+        save_checkpoint(run.out / "best.pt", run.model, thresholds, run.meta, {"epoch": epoch, "scores": record})
+    save_checkpoint(
+        run.out / "last.pt",
+        run.model,
+        thresholds,
+        run.meta,
+        {
+            "epoch": epoch,
+            "best": run.best,
+            "optimizer": run.optimizer.state_dict(),
+            "scheduler": run.scheduler.state_dict(),
+            "group_weights": run.groups.state() if run.groups is not None else None,
+        },
+    )
 
 
 def finalize(
@@ -545,6 +599,33 @@ def calibrate_symmetric(
     return thresholds
 
 
+def _with_fitted_layer(
+    base: LocalizabilityNet,
+    data: LabelDataset | DatasetUnion,
+    rows: np.ndarray,
+    seed: int,
+    layer: tuple[tuple[int, ...], str | None],
+    progress: bool,
+) -> tuple[LocalizabilityNet, torch.nn.Module]:
+    """The base network with a constraint layer over the ResUNet levels `layer[0]`, read in the view
+    `layer[1]` (the base's own where None), fitted on `rows` (each row's labels in the view it was read
+    in); the model and the fitted layer."""
+    levels, frame = layer
+    try:
+        model = LocalizabilityNet(
+            replace(base.config, constraints=True, constraint_levels=levels, frame=frame or base.config.frame)
+        )
+    except ValueError as exc:
+        raise TrainingError(str(exc)) from exc
+    model.load_state_dict({**model.state_dict(), **base.state_dict()})  # the base's network, the layer unfitted
+    logits, features, swapped = network_parts(model, data, rows, seed, progress=progress)
+    labels = np.array(data.labels[rows])
+    labels[swapped] = labels[swapped][:, SWAP_LABELS]
+    stacker = fit_stacker(logits, features, labels)
+    model.stacker.load_state_dict(stacker.state_dict())
+    return model.eval(), stacker
+
+
 def fit_constraints(
     checkpoint: str | Path,
     dataset: str | Path | list[str | Path],
@@ -580,19 +661,7 @@ def fit_constraints(
         raise TrainingError(f"the dataset holds no scans of {checkpoint}'s training or validation scenes")
     Path(out).parent.mkdir(parents=True, exist_ok=True)  # before minutes of fitting, not after
     seed = int(training.get("seed", 0))
-    try:
-        model = LocalizabilityNet(
-            replace(base.config, constraints=True, constraint_levels=tuple(levels), frame=frame or base.config.frame)
-        )
-    except ValueError as exc:
-        raise TrainingError(str(exc)) from exc
-    model.load_state_dict({**model.state_dict(), **base.state_dict()})  # the base's network, the layer unfitted
-    logits, features, swapped = network_parts(model, data, train_rows, seed, progress=progress)
-    labels = np.array(data.labels[train_rows])
-    labels[swapped] = labels[swapped][:, SWAP_LABELS]
-    stacker = fit_stacker(logits, features, labels)
-    model.stacker.load_state_dict(stacker.state_dict())
-    model.eval()
+    model, stacker = _with_fitted_layer(base, data, train_rows, seed, (tuple(levels), frame), progress)
     beta = float(state.get("threshold_beta", 1.0) if beta is None else beta)
     val_labels, val_probs = data.labels[val_rows], predict_dataset(model, data, val_rows, seed)
     thresholds = best_thresholds(val_labels, val_probs, beta=beta)
