@@ -174,7 +174,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
-    from .evaluation import evaluate_policies, format_rows
+    from .evaluation import EvalOptions, evaluate_policies, format_rows
     from .ppo import EVAL_VARIANTS
 
     scenes = _scenes_with_params(args, tuple(EVAL_VARIANTS))
@@ -184,23 +184,20 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         f"{args.episodes} episodes per policy on {', '.join(scenes)}, full pipeline ({args.detector} detector) "
         f"-> {out.resolve()}"
     )
-    rows = evaluate_policies(
-        out,
-        args.policy or ["shortest", "planner"],
-        list(scenes),
-        args.episodes,
-        args.seed,
-        args.detector,
-        args.cache_dir,
-        args.lam,
-        args.workers,
+    options = EvalOptions(
+        episodes=args.episodes,
+        seed=args.seed,
+        detector=args.detector,
+        cache_dir=args.cache_dir,
+        lam=args.lam,
+        workers=args.workers,
         steer_on=args.steer_on,
-        progress=not args.quiet,
-        scene_params={k: v for k, v in scenes.items() if v},
         fusion_settings=dataclasses.replace(fusion_settings(args), attitude=args.attitude),
         recovery=args.recovery,
         avoid=args.avoid,
+        scene_params={k: v for k, v in scenes.items() if v},
     )
+    rows = evaluate_policies(out, args.policy or ["shortest", "planner"], list(scenes), options, not args.quiet)
     print(format_rows(rows))
     print(f"routes: {out / 'routes.png'}")
     return 0

@@ -17,7 +17,7 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field, replace
 from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
@@ -123,13 +123,27 @@ def _unknown_policy(policy: str) -> ValueError:
     return ValueError(f"unknown policy '{policy}'; use one of {', '.join(POLICY_KINDS)}")
 
 
+@dataclass(frozen=True)
+class MapSource:
+    """Where a controller finds its scene and localizability map: the scene by name (with make_scene's
+    arguments), the map of `detector` in `cache_dir`, built already."""
+
+    scene: str
+    detector: str = "learned"
+    cache_dir: str | Path | None = None
+    scene_params: dict | None = None
+
+    def context(self, detector: str | None = None) -> SceneContext:
+        """The scene with the map of `detector` (this source's own by default)."""
+        return scene_context(
+            self.scene, detector or self.detector, self.cache_dir, build=False, scene_params=self.scene_params
+        )
+
+
 def make_controller(
     policy: str,
-    scene: str,
-    detector: str,
-    cache_dir: str | Path | None,
+    source: MapSource,
     lam: float,
-    scene_params: dict | None = None,
     odometry: OdometryConfig | None = None,
     context: SceneContext | None = None,
     avoid: FreeHeadings | None = None,
@@ -137,10 +151,10 @@ def make_controller(
     """A function (T_w_b estimate, step index, the scan's obstacles or None) -> normalised twist, for
     one scene, and for a route policy the drift its plan is expected to cost (`odometry`: the
     environment's leg odometry, whose noise model gives the drift rates; `context`: the scene with
-    `detector`'s map, where the caller holds it; `avoid`: the local layer that keeps off the
+    the source's map, where the caller holds it; `avoid`: the local layer that keeps off the
     obstacles, None to follow the policy blind)."""
     if policy in ROUTE_POLICIES:
-        ctx = context or scene_context(scene, detector, cache_dir, build=False, scene_params=scene_params)
+        ctx = context or source.context()
         plan = Planner(ctx.space, ctx.locmap, lam=lam if policy == "planner" else 0.0, odometry=odometry).plan(
             ctx.scene.start[:2], ctx.scene.goal
         )
@@ -150,9 +164,7 @@ def make_controller(
         from .ppo import PPOPolicy
 
         model = PPOPolicy(policy.partition(":")[2])
-        ctx = scene_context(
-            scene, model.meta.get("detector", detector), cache_dir, build=False, scene_params=scene_params
-        )
+        ctx = source.context(model.meta.get("detector", source.detector))
         view = PolicyView(ctx.space, ctx.locmap, ctx.scene.goal, float(model.meta["fast_env"]["lam"]))
         held = {"action": np.zeros(3, dtype=np.float32)}
 
@@ -170,63 +182,77 @@ def make_controller(
 STEER_ON = ("estimate", "truth")
 
 
-def run_episode(
-    policy: str,
-    scene: str,
-    seed: int,
-    detector: str = "learned",
-    cache_dir: str | Path | None = None,
-    lam: float = 50.0,
-    backend: str = "graph",
-    steer_on: str = "estimate",
-    scene_params: dict | None = None,
-    fusion_settings: FusionSettings = FusionSettings(),
-    recovery: bool = True,
-    avoid: bool = True,
-) -> Episode:
+@dataclass(frozen=True)
+class EvalOptions:
+    """How an evaluation's episodes run. All but `workers` and `cache_dir` go into its settings.json,
+    and a resumed evaluation must match them. `lam`: the planner's weight of expected drift; `steer_on`:
+    the pose the robot steers and stops on (STEER_ON); `recovery`: a wedged robot backs off (BackOff);
+    `avoid`: the policies keep off the obstacles the scan shows ahead (FreeHeadings), both None: as the
+    folder's episodes so far, else on; `scene_params`: make_scene's arguments by scene name."""
+
+    episodes: int = 50
+    seed: int = 0
+    detector: str = "learned"
+    cache_dir: str | Path | None = None
+    lam: float = 50.0
+    workers: int = 1
+    backend: str = "graph"
+    steer_on: str = "estimate"
+    fusion_settings: FusionSettings = FusionSettings()
+    recovery: bool | None = None
+    avoid: bool | None = None
+    scene_params: dict[str, dict] = field(default_factory=dict)
+
+    def source(self, scene: str) -> MapSource:
+        return MapSource(scene, self.detector, self.cache_dir, self.scene_params.get(scene))
+
+
+@dataclass(frozen=True)
+class EpisodeJob:
+    """One episode to run: a policy in a scene with an environment seed, under the evaluation's options."""
+
+    policy: str
+    scene: str
+    seed: int
+    options: EvalOptions = EvalOptions()
+
+    @property
+    def key(self) -> tuple[str, str, int]:
+        return self.policy, self.scene, self.seed
+
+
+def run_episode(job: EpisodeJob) -> Episode:
+    """The episode, driven through the full pipeline: the robot steers on its fused estimate (or on the
+    truth), and success is judged where it stops."""
     import torch
 
     torch.set_num_threads(1)
-    # steering on the estimate the robot stops where it believes the goal is; success is judged there
+    options, source = job.options, job.options.source(job.scene)
     env = NavigationEnv(
-        scene=scene,
-        scene_params=scene_params or {},
-        arrival=steer_on,
-        fusion={**asdict(fusion_settings), "enabled": True, "detector": detector, "backend": backend},
+        scene=job.scene,
+        scene_params=source.scene_params or {},
+        arrival=options.steer_on,
+        fusion={
+            **asdict(options.fusion_settings),
+            "enabled": True,
+            "detector": options.detector,
+            "backend": options.backend,
+        },
     )
     try:
-        ctx = scene_context(scene, detector, cache_dir, build=False, scene_params=scene_params)
-        local = FreeHeadings() if avoid else None
-        steer, planned = make_controller(
-            policy, scene, detector, cache_dir, lam, scene_params, env.config.odometry, ctx, local
-        )
+        ctx = source.context()
+        local = FreeHeadings() if options.avoid is not False else None
+        steer, planned = make_controller(job.policy, source, options.lam, env.config.odometry, ctx, local)
         controller = BackOff(steer)
-        _, info = env.reset(seed=seed)
-        trail, length, terminated, truncated = [info["T_w_b"][:2, 3]], 0.0, False, False
-        while not (terminated or truncated):
-            previous = info["T_w_b"][:3, 3]
-            pose = info["fused_T_w_b"] if steer_on == "estimate" else info["T_w_b"]
-            obstacles = (
-                None if local is None else FreeHeadings.obstacles(env.scan.points, env.robot.T_b_s, env.config.robot)
-            )
-            _, _, terminated, truncated, info = env.step(controller(pose, env.steps, obstacles))
-            if recovery:
-                controller.observe(info["blocked"])
-            length += float(np.linalg.norm(info["T_w_b"][:3, 3] - previous))
-            if env.steps % 5 == 0:
-                trail.append(info["T_w_b"][:2, 3])
-        trail.append(info["T_w_b"][:2, 3])
-        path = np.array(trail)
-        final = float(np.linalg.norm(info["fused_T_w_b"][:3, 3] - info["T_w_b"][:3, 3]))
+        path, length, info = _drive(env, controller, job, local)
         expected = expected_drift_along(path, ctx.locmap, drift_rates(env.config.odometry))
-        arrived = bool(terminated) and info["distance_to_goal"] <= env.config.goal_radius
         return Episode(
-            policy,
-            scene,
-            seed,
-            arrived,
+            job.policy,
+            job.scene,
+            job.seed,
+            bool(info["terminated"]) and info["distance_to_goal"] <= env.config.goal_radius,
             avoided_corridor(path, env.scene),
-            final,
+            float(np.linalg.norm(info["fused_T_w_b"][:3, 3] - info["T_w_b"][:3, 3])),
             float(info["running_ate"]),
             length,
             env.steps,
@@ -239,8 +265,27 @@ def run_episode(
         env.close()
 
 
-def _run(job: tuple) -> Episode:
-    return run_episode(*job)
+def _drive(
+    env: NavigationEnv, controller: BackOff, job: EpisodeJob, local: FreeHeadings | None
+) -> tuple[np.ndarray, float, dict[str, Any]]:
+    """The episode's steps until it ends: the true path (every fifth step), its length and the last
+    step's info (with whether the episode terminated)."""
+    _, info = env.reset(seed=job.seed)
+    trail, length, terminated, truncated = [info["T_w_b"][:2, 3]], 0.0, False, False
+    while not (terminated or truncated):
+        previous = info["T_w_b"][:3, 3]
+        pose = info["fused_T_w_b"] if job.options.steer_on == "estimate" else info["T_w_b"]
+        obstacles = (
+            None if local is None else FreeHeadings.obstacles(env.scan.points, env.robot.T_b_s, env.config.robot)
+        )
+        _, _, terminated, truncated, info = env.step(controller(pose, env.steps, obstacles))
+        if job.options.recovery is not False:
+            controller.observe(info["blocked"])
+        length += float(np.linalg.norm(info["T_w_b"][:3, 3] - previous))
+        if env.steps % 5 == 0:
+            trail.append(info["T_w_b"][:2, 3])
+    trail.append(info["T_w_b"][:2, 3])
+    return np.array(trail), length, {**info, "terminated": terminated}
 
 
 def summarize(episodes: list[Episode]) -> list[dict[str, Any]]:
@@ -304,11 +349,11 @@ def finished_episodes(log: Path) -> dict[tuple[str, str, int], Episode]:
 
 
 def run_episodes(
-    jobs: list[tuple], done: dict[tuple[str, str, int], Episode], log: Path, workers: int, progress: bool
+    jobs: list[EpisodeJob], done: dict[tuple[str, str, int], Episode], log: Path, workers: int, progress: bool
 ) -> None:
     """The jobs not yet `done`, over `workers` processes, each episode appended to the log (and to
     `done`) as it finishes."""
-    todo = [j for j in jobs if j[:3] not in done]
+    todo = [j for j in jobs if j.key not in done]
     bar = tqdm(total=len(jobs), initial=len(jobs) - len(todo), desc="episodes", unit="ep", disable=not progress)
     with open(log, "a") as f:
 
@@ -320,11 +365,11 @@ def run_episodes(
 
         if workers > 1 and len(todo) > 1:
             with get_context("spawn").Pool(workers, initializer=die_with_parent) as pool:
-                for e in pool.imap_unordered(_run, todo):
+                for e in pool.imap_unordered(run_episode, todo):
                     record(e)
         else:
             for job in todo:
-                record(_run(job))
+                record(run_episode(job))
     bar.close()
 
 
@@ -338,85 +383,29 @@ def _remove_unstarted(out: Path, created: bool) -> None:
 
 
 def evaluate_policies(
-    out: str | Path,
-    policies: list[str],
-    scenes: list[str],
-    episodes: int = 50,
-    seed: int = 0,
-    detector: str = "learned",
-    cache_dir: str | Path | None = None,
-    lam: float = 50.0,
-    workers: int = 1,
-    backend: str = "graph",
-    steer_on: str = "estimate",
-    progress: bool = True,
-    scene_params: dict[str, dict] | None = None,
-    fusion_settings: FusionSettings = FusionSettings(),
-    recovery: bool | None = None,
-    avoid: bool | None = None,
+    out: str | Path, policies: list[str], scenes: list[str], options: EvalOptions = EvalOptions(), progress: bool = True
 ) -> list[dict[str, Any]]:
-    """Episode i of every policy runs on scenes[i % len(scenes)] with environment seed seed + i.
-    `scene_params`: make_scene's arguments by scene name (a mesh's up axis, scale and route).
-    `fusion_settings`: the fusion's (as `FusionSettings` gives them in the environment).
-    `recovery`: a wedged robot backs off (BackOff) instead of staying there; `avoid`: the policies
-    keep off the obstacles the scan shows ahead (FreeHeadings); None: as the folder's episodes so
-    far, else on.
+    """Episode i of every policy runs on scenes[i % len(scenes)] with environment seed options.seed + i.
     Writes episodes.jsonl, summary.json, summary.txt, routes.png and drift.png (the drift model's
-    expectation of each path against the final error measured) into `out`."""
-    from .plots import plot_drift_check, plot_paths
-
-    if steer_on not in STEER_ON:
-        raise ValueError(f"steer_on must be one of {STEER_ON}, got {steer_on!r}")
-    odometry_fusion_config(OdometryConfig(), fusion_settings)  # bad options fail here, not in every episode
-    for policy in policies:  # and a wrong policy before the maps are built, which can take minutes
-        check_policy(policy)
+    expectation of each path against the final error measured) into `out`; a killed evaluation resumes
+    where it stopped, with the settings it started with."""
+    _check_evaluation(policies, options)
     out = Path(out)
-    # every policy's episodes are weighed with the evaluation detector's map (expected_drift)
-    map_detectors = {_ppo_detector(p, detector) if p.startswith("ppo:") else detector for p in policies} | {detector}
-    params = scene_params or {}
-    for name in dict.fromkeys(scenes):  # maps must exist: build them here, once, not in every worker
-        for d in sorted(map_detectors):
-            scene_context(name, d, cache_dir, progress=progress, scene_params=params.get(name))
+    _build_maps(policies, scenes, options, progress)
     settings_file = out / "settings.json"
     held = json.loads(settings_file.read_text()) if settings_file.exists() else None
-    if recovery is None:
-        recovery = held.get("recovery", True) if held else True
-    if avoid is None:
-        avoid = held.get("avoid", True) if held else True
+    options = replace(
+        options,
+        recovery=(held or {}).get("recovery", True) if options.recovery is None else options.recovery,
+        avoid=(held or {}).get("avoid", True) if options.avoid is None else options.avoid,
+    )
     jobs = [
-        (
-            p,
-            scenes[i % len(scenes)],
-            seed + i,
-            detector,
-            cache_dir,
-            lam,
-            backend,
-            steer_on,
-            params.get(scenes[i % len(scenes)]),
-            fusion_settings,
-            recovery,
-            avoid,
-        )
-        for i in range(episodes)
+        EpisodeJob(p, scenes[i % len(scenes)], options.seed + i, options)
+        for i in range(options.episodes)
         for p in policies
     ]
-    # episodes are appended as they finish; a killed evaluation resumes where it stopped, with the
-    # settings it started with
-    run = {
-        "detector": detector,
-        "lam": lam,
-        "backend": backend,
-        "steer_on": steer_on,
-        "arrival": steer_on,
-        **fusion_settings.record(),
-        "attitude": fusion_settings.attitude,
-        "recovery": recovery,
-        "avoid": avoid,
-    }  # also in summary.json
-    settings = dict(run)
-    if params:  # left out without a mesh, so that folders written before meshes were taken resume
-        settings["scene_params"] = params
+    run = _run_record(options)  # also in summary.json
+    settings = {**run, **({"scene_params": options.scene_params} if options.scene_params else {})}
     if held is not None and held != settings:
         raise ValueError(
             f"{out} holds episodes run with other settings ({settings_changed(held, settings)}); use another folder"
@@ -428,33 +417,69 @@ def evaluate_policies(
     done = finished_episodes(log)
     t0 = time.perf_counter()
     try:
-        run_episodes(jobs, done, log, workers, progress)
+        run_episodes(jobs, done, log, options.workers, progress)
     except BaseException:
         if held is None and not done:  # failed before its first episode: nothing that looks like a result
             _remove_unstarted(out, created)
         raise
-    results = [done[j[:3]] for j in jobs]
+    results = [done[j.key] for j in jobs]
     rows = summarize(results)
+    extra = {"scenes": scenes, "episodes": options.episodes, "seed": options.seed, **run}
+    _write_summary(out, results, rows, {**extra, "seconds": round(time.perf_counter() - t0, 1)})
+    _plot_evaluation(out, results, policies, scenes[0], options)
+    return rows
+
+
+def _check_evaluation(policies: list[str], options: EvalOptions) -> None:
+    """Bad options and policies fail here, not in every episode, and before the maps are built (minutes)."""
+    if options.steer_on not in STEER_ON:
+        raise ValueError(f"steer_on must be one of {STEER_ON}, got {options.steer_on!r}")
+    odometry_fusion_config(OdometryConfig(), options.fusion_settings)
+    for policy in policies:
+        check_policy(policy)
+
+
+def _build_maps(policies: list[str], scenes: list[str], options: EvalOptions, progress: bool) -> None:
+    """Every map the episodes read, built here once, not in every worker: the evaluation detector's
+    (expected_drift weighs every policy's episodes with it) and each PPO policy's own."""
+    detectors = {_ppo_detector(p, options.detector) if p.startswith("ppo:") else options.detector for p in policies}
+    for name in dict.fromkeys(scenes):
+        for d in sorted(detectors | {options.detector}):
+            scene_context(name, d, options.cache_dir, progress=progress, scene_params=options.scene_params.get(name))
+
+
+def _run_record(options: EvalOptions) -> dict[str, Any]:
+    """What the episodes' results depend on, as settings.json and summary.json hold it."""
+    return {
+        "detector": options.detector,
+        "lam": options.lam,
+        "backend": options.backend,
+        "steer_on": options.steer_on,
+        "arrival": options.steer_on,
+        **options.fusion_settings.record(),
+        "attitude": options.fusion_settings.attitude,
+        "recovery": options.recovery,
+        "avoid": options.avoid,
+    }
+
+
+def _write_summary(out: Path, results: list[Episode], rows: list[dict[str, Any]], run: dict[str, Any]) -> None:
+    """summary.json (the rows, the drift check and the run's settings) and summary.txt."""
     r, paired = drift_correlation(results)
     check = {"pearson_r": r, "episodes": paired}
-    (out / "summary.json").write_text(
-        json.dumps(
-            {
-                "rows": rows,
-                "drift_check": check,
-                "scenes": scenes,
-                "episodes": episodes,
-                "seed": seed,
-                **run,
-                "seconds": round(time.perf_counter() - t0, 1),
-            },
-            indent=2,
-        )
-    )
+    (out / "summary.json").write_text(json.dumps({"rows": rows, "drift_check": check, **run}, indent=2))
     words = (
         "n/a (fewer than three episodes or no spread)" if r is None else f"Pearson r = {r:.2f} over {paired} episodes"
     )
     (out / "summary.txt").write_text(format_rows(rows) + f"\nexpected drift against final ATE: {words}\n")
+
+
+def _plot_evaluation(out: Path, results: list[Episode], policies: list[str], first: str, options: EvalOptions) -> None:
+    """drift.png (each path's expected drift against its final error) and routes.png (the routes taken
+    on the first scene)."""
+    from .plots import plot_drift_check, plot_paths
+
+    r, _ = drift_correlation(results)
     plot_drift_check(
         out / "drift.png",
         {
@@ -466,8 +491,7 @@ def evaluate_policies(
         },
         r,
     )
-    first = scenes[0]
-    ctx = scene_context(first, None, cache_dir, scene_params=params.get(first))
+    ctx = scene_context(first, None, options.cache_dir, scene_params=options.scene_params.get(first))
     plot_paths(
         out / "routes.png",
         ctx.scene,
@@ -475,7 +499,6 @@ def evaluate_policies(
         ctx.space,
         title=f"{first}: routes taken (episodes on this variant)",
     )
-    return rows
 
 
 def _ppo_detector(policy: str, default: str) -> str:

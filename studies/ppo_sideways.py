@@ -21,7 +21,7 @@ def episode(job: tuple[str, str, bool]) -> tuple:
 
     from l3e_env.config import FusionSettings
     from policies import ppo
-    from policies.evaluation import run_episode
+    from policies.evaluation import EpisodeJob, EvalOptions, run_episode
 
     torch.set_num_threads(1)
     actions = []
@@ -36,7 +36,7 @@ def episode(job: tuple[str, str, bool]) -> tuple:
 
     ppo.PPOPolicy.__call__ = act  # this worker's process only (one task a process)
     settings = FusionSettings(odometry_bias=("yaw", "scale"), attitude="tilt")
-    ep = run_episode(f"ppo:{folder}", scene, 0, fusion_settings=settings)
+    ep = run_episode(EpisodeJob(f"ppo:{folder}", scene, 0, EvalOptions(fusion_settings=settings)))
     a = np.array(actions)
     return scene, zero_vy, ep.success, ep.final_ate, ep.path_length, np.abs(a).mean(0), a.mean(0)
 

@@ -55,13 +55,11 @@ def drive(scene_name: str, seed: int, settings: FusionSettings) -> None:
     from l3e_env.envs import NavigationEnv
     from l3e_env.sim.avoidance import FreeHeadings
     from policies.context import scene_context
-    from policies.evaluation import make_controller
+    from policies.evaluation import MapSource, make_controller
 
     env = NavigationEnv(scene=scene_name, fusion={**asdict(settings), "enabled": True, "detector": "learned"})
     ctx = scene_context(scene_name, "learned", None, build=False)
-    steer, _ = make_controller(
-        "planner", scene_name, "learned", None, 50.0, None, env.config.odometry, ctx, FreeHeadings()
-    )
+    steer, _ = make_controller("planner", MapSource(scene_name), 50.0, env.config.odometry, ctx, FreeHeadings())
     _, info = env.reset(seed=seed)
     rows, done = [], False
     while not done:

@@ -510,20 +510,13 @@ def test_a_crafted_policy_folder_runs_no_code_when_loaded_or_resumed(tmp_path, s
 
 def test_full_pipeline_evaluation_on_the_small_fork(small_fork, monkeypatch, tmp_path):
     from policies import evaluation
+    from policies.evaluation import EvalOptions, MapSource
 
     scene, space, cache = small_fork
     monkeypatch.setattr("policies.context.make_scene", lambda name: scene)
     monkeypatch.setattr("l3e_env.envs.navigation.make_scene", lambda name, **kw: scene)
-    rows = evaluation.evaluate_policies(
-        tmp_path,
-        ["shortest", "planner"],
-        ["fork-0"],
-        episodes=1,
-        detector="eigen:30",
-        cache_dir=cache,
-        lam=200.0,
-        progress=False,
-    )
+    options = EvalOptions(episodes=1, detector="eigen:30", cache_dir=cache, lam=200.0)
+    rows = evaluation.evaluate_policies(tmp_path, ["shortest", "planner"], ["fork-0"], options, progress=False)
     shortest, planner = (
         evaluation.Episode(**json.loads(line)) for line in (tmp_path / "episodes.jsonl").read_text().splitlines()
     )
@@ -534,63 +527,32 @@ def test_full_pipeline_evaluation_on_the_small_fork(small_fork, monkeypatch, tmp
     assert shortest.final_ate > 0 and np.isfinite(planner.mean_ate)
     assert [r["policy"] for r in rows] == ["shortest", "planner"] and rows[1]["rich_route"] == 1.0
     assert (tmp_path / "routes.png").stat().st_size > 10_000 and "rich route" in (tmp_path / "summary.txt").read_text()
+    settings = json.loads((tmp_path / "settings.json").read_text())
+    assert settings["recovery"] is True and settings["avoid"] is True and settings["lam"] == 200.0
     # a second run (or one after a kill) reuses the finished episodes
-    monkeypatch.setattr(evaluation, "_run", lambda job: pytest.fail(f"episode {job[:3]} ran again"))
-    again = evaluation.evaluate_policies(
-        tmp_path,
-        ["shortest", "planner"],
-        ["fork-0"],
-        episodes=1,
-        detector="eigen:30",
-        cache_dir=cache,
-        lam=200.0,
-        progress=False,
-    )
+    monkeypatch.setattr(evaluation, "run_episode", lambda job: pytest.fail(f"episode {job.key} ran again"))
+    again = evaluation.evaluate_policies(tmp_path, ["shortest", "planner"], ["fork-0"], options, progress=False)
     assert again == rows
     with pytest.raises(ValueError, match="holds episodes run with"):
         evaluation.evaluate_policies(
-            tmp_path,
-            ["shortest"],
-            ["fork-0"],
-            episodes=1,
-            detector="eigen:30",
-            cache_dir=cache,
-            steer_on="truth",
-            progress=False,
+            tmp_path, ["shortest"], ["fork-0"], dataclasses.replace(options, steer_on="truth"), progress=False
         )
     with pytest.raises(ValueError, match="odometry_bias takes distinct axes"):
-        evaluation.evaluate_policies(
-            tmp_path / "bad",
-            ["shortest"],
-            ["fork-0"],
-            episodes=1,
-            detector="eigen:30",
-            cache_dir=cache,
-            fusion_settings=FusionSettings(odometry_bias=("roll",)),
-        )
+        bad = dataclasses.replace(options, fusion_settings=FusionSettings(odometry_bias=("roll",)))
+        evaluation.evaluate_policies(tmp_path / "bad", ["shortest"], ["fork-0"], bad)
     assert not (tmp_path / "bad").exists()
     # a run whose first episode fails leaves nothing that looks like a result
     monkeypatch.setattr(evaluation, "run_episodes", lambda *a: (_ for _ in ()).throw(RuntimeError("episode 0 died")))
     with pytest.raises(RuntimeError, match="episode 0 died"):
-        evaluation.evaluate_policies(
-            tmp_path / "dies",
-            ["shortest"],
-            ["fork-0"],
-            episodes=1,
-            detector="eigen:30",
-            cache_dir=cache,
-            progress=False,
-        )
+        evaluation.evaluate_policies(tmp_path / "dies", ["shortest"], ["fork-0"], options, progress=False)
     assert not (tmp_path / "dies").exists()
     with pytest.raises(ValueError, match="unknown policy"):
-        evaluation.make_controller("wander", "fork-0", "eigen:30", cache, 50.0)
+        evaluation.make_controller("wander", MapSource("fork-0", "eigen:30", cache), 50.0)
     # a wrong policy is named before any map is built or any folder written
     monkeypatch.setattr(evaluation, "scene_context", lambda *a, **k: pytest.fail("a map was looked up first"))
     for policy, message in (("wander", "unknown policy"), (f"ppo:{tmp_path / 'none'}", "none: no policy.pt")):
         with pytest.raises((ValueError, RuntimeError), match=message):
-            evaluation.evaluate_policies(
-                tmp_path / "bad", ["shortest", policy], ["fork-0"], episodes=1, detector="eigen:30", cache_dir=cache
-            )
+            evaluation.evaluate_policies(tmp_path / "bad", ["shortest", policy], ["fork-0"], options)
     assert not (tmp_path / "bad").exists()
 
 
