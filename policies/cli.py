@@ -63,8 +63,7 @@ def _cmd_map(args: argparse.Namespace) -> int:
             name,
             args.detector,
             args.cache_dir,
-            sensor=args.sensor,
-            resolution=args.resolution,
+            grid=map_grid(args.sensor, args.resolution),
             progress=not args.quiet,
             scene_params=params,
             workers=args.workers,
@@ -106,7 +105,7 @@ def _cmd_plan(args: argparse.Namespace) -> int:
             name,
             args.detector,
             args.cache_dir,
-            sensor=args.sensor,
+            grid=map_grid(args.sensor),
             progress=not args.quiet,
             scene_params=params,
             workers=args.workers,
@@ -153,7 +152,12 @@ def _cmd_train(args: argparse.Namespace) -> int:
     print(f"PPO on {', '.join(scenes)} (fast map environment, {args.detector} maps) -> {Path(args.out).resolve()}")
     contexts = [
         scene_context(
-            name, args.detector, args.cache_dir, sensor=args.sensor, progress=not args.quiet, scene_params=params
+            name,
+            args.detector,
+            args.cache_dir,
+            grid=map_grid(args.sensor),
+            progress=not args.quiet,
+            scene_params=params,
         )
         for name, params in scenes.items()
     ]
@@ -201,6 +205,16 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     print(format_rows(rows))
     print(f"routes: {out / 'routes.png'}")
     return 0
+
+
+def map_grid(sensor: str, resolution: float | None = None):
+    """The maps' grid for a sensor (and a spacing of mapped positions; the default where None)."""
+    from l3e_env.config import LidarConfig
+
+    from .context import MAP_RESOLUTION
+    from .locmap import MapGrid
+
+    return MapGrid(resolution=resolution or MAP_RESOLUTION, lidar=LidarConfig(model=sensor))
 
 
 def map_detector(text: str) -> str:

@@ -7,12 +7,12 @@ from pathlib import Path
 
 import numpy as np
 
-from l3e_env.config import LidarConfig, RobotConfig, to_dict
+from l3e_env.config import RobotConfig, to_dict
 from l3e_env.core.files import write_atomic
 from scenes import Scene, make_scene
 
 from .freespace import FreeSpace, build_free_space, reachable_from
-from .locmap import LocalizabilityMap, default_cache_dir, get_map, settings_digest
+from .locmap import LocalizabilityMap, MapGrid, default_cache_dir, get_map, settings_digest
 
 MAP_RESOLUTION = 2.0  # m between mapped positions; 4 headings each (about 40 s per fork variant)
 
@@ -66,28 +66,18 @@ def scene_context(
     detector: str | None = "learned",
     cache_dir: str | Path | None = None,
     build: bool = True,
-    sensor: str = "vlp16",
-    resolution: float = MAP_RESOLUTION,
+    grid: MapGrid | None = None,
     progress: bool = False,
     scene_params: dict | None = None,
     workers: int = 1,
 ) -> SceneContext:
-    """Scene, free space and (unless detector is None) its localizability map, built by `workers`
-    processes where it is not cached; `scene_params` go to make_scene (a mesh scene's up axis,
-    scale and route)."""
+    """Scene, free space and (unless detector is None) its localizability map on `grid` (positions
+    MAP_RESOLUTION apart by default), built by `workers` processes where it is not cached;
+    `scene_params` go to make_scene (a mesh scene's up axis, scale and route)."""
     scene = make_scene(name, **(scene_params or {}))
     space = free_space(scene, cache_dir, progress=progress)
     locmap = None
     if detector is not None:
-        locmap = get_map(
-            scene,
-            space,
-            detector,
-            cache_dir,
-            build=build,
-            resolution=resolution,
-            lidar=LidarConfig(model=sensor),
-            progress=progress,
-            workers=workers,
-        )
+        grid = grid or MapGrid(resolution=MAP_RESOLUTION)
+        locmap = get_map(scene, space, detector, cache_dir, build, grid, progress, workers)
     return SceneContext(scene, space, locmap)

@@ -214,7 +214,7 @@ class EpisodeJob:
     policy: str
     scene: str
     seed: int
-    options: EvalOptions = EvalOptions()
+    options: EvalOptions
 
     @property
     def key(self) -> tuple[str, str, int]:
@@ -383,12 +383,13 @@ def _remove_unstarted(out: Path, created: bool) -> None:
 
 
 def evaluate_policies(
-    out: str | Path, policies: list[str], scenes: list[str], options: EvalOptions = EvalOptions(), progress: bool = True
+    out: str | Path, policies: list[str], scenes: list[str], options: EvalOptions | None = None, progress: bool = True
 ) -> list[dict[str, Any]]:
     """Episode i of every policy runs on scenes[i % len(scenes)] with environment seed options.seed + i.
     Writes episodes.jsonl, summary.json, summary.txt, routes.png and drift.png (the drift model's
     expectation of each path against the final error measured) into `out`; a killed evaluation resumes
     where it stopped, with the settings it started with."""
+    options = options or EvalOptions()
     _check_evaluation(policies, options)
     out = Path(out)
     _build_maps(policies, scenes, options, progress)

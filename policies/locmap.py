@@ -205,11 +205,23 @@ class MapJudge:
         return out, estimated
 
 
-def map_settings(
-    scene: Scene, free: FreeSpace, resolution: float, yaw_bins: int, judge: MapJudge, robot: RobotConfig, seed: int
-) -> dict[str, Any]:
+@dataclass(frozen=True)
+class MapGrid:
+    """Where and how a map judges: positions every `resolution` m of free space, `yaw_bins` headings,
+    the body level on the floor at the robot's standing height, the scans of `lidar`, each pose seeded
+    by (seed, cell, heading)."""
+
+    resolution: float = 1.0
+    yaw_bins: int = 4
+    robot: RobotConfig = field(default_factory=RobotConfig)
+    lidar: LidarConfig = field(default_factory=LidarConfig)
+    seed: int = 0
+
+
+def map_settings(scene: Scene, free: FreeSpace, grid: MapGrid, judge: MapJudge) -> dict[str, Any]:
     """Everything a map depends on; its hash names the cache file. The registration is in it
     because eigen and oracle maps run ICP, so a new ICP setting must not reuse their old maps."""
+    resolution, yaw_bins, robot, seed = grid.resolution, grid.yaw_bins, grid.robot, grid.seed
     return {
         "format": MAP_FORMAT,
         "scene": scene.name,
@@ -266,21 +278,20 @@ def _judge_batch(judge: MapJudge, job: tuple[list[np.ndarray], list[list[int]]])
 def build_map(
     scene: Scene,
     free: FreeSpace,
-    judge: MapJudge,
-    resolution: float = 1.0,
-    yaw_bins: int = 4,
-    robot: RobotConfig | None = None,
-    seed: int = 0,
+    detector: str,
+    grid: MapGrid | None = None,
     batch: int = 8,
     progress: bool = False,
     workers: int = 1,
 ) -> LocalizabilityMap:
-    """Judge every (position, yaw) with the body level on the floor; `workers` processes judge
+    """`detector`'s judgement (MapJudge) of every (position, yaw) of the grid; `workers` processes judge
     batches of poses side by side (each pose has its own seed, so the map is the same)."""
-    robot = robot or RobotConfig()
-    if yaw_bins < 1 or workers < 1:
-        raise ValueError(f"yaw_bins and workers must be at least 1, got {yaw_bins} and {workers}")
-    settings = map_settings(scene, free, resolution, yaw_bins, judge, robot, seed)
+    grid = grid or MapGrid()
+    if grid.yaw_bins < 1 or workers < 1:
+        raise ValueError(f"yaw_bins and workers must be at least 1, got {grid.yaw_bins} and {workers}")
+    judge = MapJudge(detector, scene_lidar(scene, grid.lidar), grid.seed)
+    settings = map_settings(scene, free, grid, judge)
+    resolution, yaw_bins, robot, seed = grid.resolution, grid.yaw_bins, grid.robot, grid.seed
     cells = map_positions(free, resolution)
     positions = free.center(cells)
     yaws = np.arange(yaw_bins) * 2 * np.pi / yaw_bins
@@ -326,19 +337,15 @@ def get_map(
     detector: str = "learned",
     cache_dir: str | Path | None = None,
     build: bool = True,
-    resolution: float = 1.0,
-    yaw_bins: int = 4,
-    lidar: LidarConfig | None = None,
-    robot: RobotConfig | None = None,
-    seed: int = 0,
+    grid: MapGrid | None = None,
     progress: bool = False,
     workers: int = 1,
 ) -> LocalizabilityMap:
     """The cached map for these settings; built (by `workers` processes) and cached when missing if
     `build`, else MapCacheError."""
-    robot = robot or RobotConfig()
-    judge = MapJudge(detector, scene_lidar(scene, lidar), seed)
-    settings = map_settings(scene, free, resolution, yaw_bins, judge, robot, seed)
+    grid = grid or MapGrid()
+    judge = MapJudge(detector, scene_lidar(scene, grid.lidar), grid.seed)
+    settings = map_settings(scene, free, grid, judge)
     path = cache_path(cache_dir or default_cache_dir(), settings)
     if path.exists():
         cached = LocalizabilityMap.load(path)
@@ -350,6 +357,6 @@ def get_map(
             f"no {detector} localizability map of scene '{scene.name}' cached for these settings "
             f"({path}); make it with `l3e policy map --scene {scene.name} --detector {detector}`"
         )
-    result = build_map(scene, free, judge, resolution, yaw_bins, robot, seed, progress=progress, workers=workers)
+    result = build_map(scene, free, detector, grid, progress=progress, workers=workers)
     result.save(path)
     return result

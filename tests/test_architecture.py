@@ -35,9 +35,6 @@ KNOWN_LONG = {
     "l3e_env/experiments/demo.py:run_demo",
     "l3e_env/localizability/scan_mc.py:range_image_mesh",
     "l3e_env/sim/patterns.py:fit_pattern",
-    "policies/context.py:scene_context",
-    "policies/locmap.py:build_map",
-    "policies/locmap.py:get_map",
     "policies/ppo.py:train_ppo",
 }
 

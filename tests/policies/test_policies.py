@@ -15,7 +15,7 @@ from l3e_env.localizability.registration import RegistrationConfig
 from policies.context import SceneContext, free_space
 from policies.fastenv import FastEnvConfig, MapNavigationEnv
 from policies.freespace import FreeSpace, FreeSpaceError, build_free_space, reachable_from
-from policies.locmap import LocalizabilityMap, MapCacheError, MapJudge, build_map, get_map, scene_lidar
+from policies.locmap import LocalizabilityMap, MapCacheError, MapGrid, build_map, get_map
 from policies.observation import PolicyView
 from policies.planner import Planner, PlanningError, drift_rates
 from scenes import make_scene
@@ -159,9 +159,9 @@ def test_map_lookup_interpolates_headings_and_round_trips(tmp_path, small_fork):
 def test_eigen_map_is_cached_and_a_missing_cache_is_named(small_fork):
     scene, space, cache = small_fork
     with pytest.raises(MapCacheError, match="l3e policy map"):
-        get_map(scene, space, "eigen:30", cache, build=False, resolution=4.0)
-    built = get_map(scene, space, "eigen:30", cache, resolution=4.0)
-    cached = get_map(scene, space, "eigen:30", cache, build=False, resolution=4.0)
+        get_map(scene, space, "eigen:30", cache, build=False, grid=MapGrid(resolution=4.0))
+    built = get_map(scene, space, "eigen:30", cache, grid=MapGrid(resolution=4.0))
+    cached = get_map(scene, space, "eigen:30", cache, build=False, grid=MapGrid(resolution=4.0))
     assert np.array_equal(built.probabilities, cached.probabilities, equal_nan=True)
     assert cached.estimated.shape == built.probabilities.shape[:2] and not cached.estimated.any()
     # other ICP settings make another file
@@ -173,26 +173,24 @@ def test_eigen_map_is_cached_and_a_missing_cache_is_named(small_fork):
     rich = np.abs(built.positions[:, 1] - 8.0) < 0.1
     assert built.masked[rich, 0, 0].mean() < 0.5
     with pytest.raises(ValueError, match="map detector"):
-        get_map(scene, space, "none", cache, resolution=4.0)
+        get_map(scene, space, "none", cache, grid=MapGrid(resolution=4.0))
 
 
 def test_a_map_built_by_two_workers_is_the_same(small_fork):
     scene, space, _ = small_fork
-    judge = MapJudge("eigen:30", scene_lidar(scene))
-    alone = build_map(scene, space, judge, resolution=4.0, batch=4)
-    shared = build_map(scene, space, judge, resolution=4.0, batch=4, workers=2)
+    alone = build_map(scene, space, "eigen:30", MapGrid(resolution=4.0), batch=4)
+    shared = build_map(scene, space, "eigen:30", MapGrid(resolution=4.0), batch=4, workers=2)
     assert np.isfinite(alone.probabilities).any()
     assert np.array_equal(alone.probabilities, shared.probabilities, equal_nan=True)
     with pytest.raises(ValueError, match="workers must be at least 1"):
-        build_map(scene, space, judge, resolution=4.0, workers=0)
+        build_map(scene, space, "eigen:30", MapGrid(resolution=4.0), workers=0)
 
 
 @pytest.mark.parametrize("spec", ["dcreg:10", "xicp:100", "drpm:10"])
 def test_the_classical_tests_make_maps_that_flag_the_smooth_corridor(small_fork, spec):
     scene, space, _ = small_fork
-    judge = MapJudge(spec, scene_lidar(scene))
-    built = build_map(scene, space, judge, resolution=4.0, batch=4)
-    assert judge.identity == spec.replace(":", "")  # no scan-estimate settings in a classical test's name
+    built = build_map(scene, space, spec, MapGrid(resolution=4.0), batch=4)
+    assert built.meta["detector"] == spec.replace(":", "")  # no scan-estimate settings in a classical test's name
     assert set(np.unique(built.probabilities[np.isfinite(built.probabilities)])) <= {0.0, 1.0}
     inside = np.abs(built.positions[:, 1]) < 0.1  # the smooth corridor: heading along it, x slides
     assert inside.any() and built.probabilities[inside, 0, 0].mean() > 0.5
@@ -200,7 +198,7 @@ def test_the_classical_tests_make_maps_that_flag_the_smooth_corridor(small_fork,
 
 def test_learned_map_gives_probabilities(small_fork):
     scene, space, cache = small_fork
-    locmap = get_map(scene, space, "learned", cache, resolution=8.0)
+    locmap = get_map(scene, space, "learned", cache, grid=MapGrid(resolution=8.0))
     assert locmap.probabilities.shape == (len(locmap.positions), 4, 6)
     assert np.isfinite(locmap.probabilities).all()
     assert ((locmap.probabilities >= 0) & (locmap.probabilities <= 1)).all()
@@ -363,7 +361,7 @@ def test_ppo_trains_resumes_and_refuses_other_observations(tmp_path, small_fork)
     from policies.ppo import OBSERVATION, PolicyCheckpointError, PPOPolicy, train_ppo
 
     scene, space, cache = small_fork
-    contexts = [SceneContext(scene, space, get_map(scene, space, "eigen:30", cache, resolution=4.0))]
+    contexts = [SceneContext(scene, space, get_map(scene, space, "eigen:30", cache, grid=MapGrid(resolution=4.0)))]
     out = tmp_path / "ppo"
     first = train_ppo(out, contexts, "eigen:30", timesteps=512, n_envs=2, config=FastEnvConfig(), progress=False)
     assert first["timesteps"] >= 512 and (out / "last.pt").exists() and not list(out.glob("*.zip"))
@@ -421,7 +419,7 @@ def test_teacher_walks_the_aware_direction_and_ppo_starts_from_its_clone(tmp_pat
     np.testing.assert_allclose(teacher_action(obs), [[1, 0, 0], [0, 0, 1], [np.cos(0.3), 0, -0.45]], atol=1e-6)
     np.testing.assert_allclose(teacher_action(obs, sideways=False), [[1, 0], [0, 1], [np.cos(0.3), -0.45]], atol=1e-6)
     scene, space, cache = small_fork
-    contexts = [SceneContext(scene, space, get_map(scene, space, "eigen:30", cache, resolution=4.0))]
+    contexts = [SceneContext(scene, space, get_map(scene, space, "eigen:30", cache, grid=MapGrid(resolution=4.0)))]
     warm = WarmStart(episodes=2, epochs=300)  # a few samples: more passes
     walking = FastEnvConfig(sideways=False)  # (vx, yaw rate)
     observations, actions, returns = demonstrations(contexts, walking, warm)
@@ -501,7 +499,7 @@ def test_a_crafted_policy_folder_runs_no_code_when_loaded_or_resumed(tmp_path, s
     with pytest.raises(PolicyCheckpointError, match="cannot be read as policy weights"):
         PPOPolicy(folder)
     scene, space, cache = small_fork
-    contexts = [SceneContext(scene, space, get_map(scene, space, "eigen:30", cache, resolution=4.0))]
+    contexts = [SceneContext(scene, space, get_map(scene, space, "eigen:30", cache, grid=MapGrid(resolution=4.0)))]
     (folder / "last.pt").write_bytes(pickle.dumps(_Payload(marker), protocol=2))
     with pytest.raises(PolicyCheckpointError, match="cannot be read as policy weights"):
         train_ppo(folder, contexts, "eigen:30", timesteps=256, n_envs=1, config=FastEnvConfig(), progress=False)
