@@ -32,7 +32,7 @@ from scenes import make_scene
 
 def drive_ates(seed: int, factors: list[float], scene, lidar: Lidar) -> dict[str, float]:
     """ATE (m) per row of one drive: without the attitude, then per mode and factor."""
-    rec = drive.deskewed(drive.record_run("mine", "vlp16", seed, False, scene_object=scene), "gyro")
+    rec = drive.deskewed(drive.record_run("mine", drive.DriveOptions(seed=seed), False, scene_object=scene), "gyro")
     regs = drive.register_sequence(rec, RegistrationConfig(), False)
     fusion = odometry_fusion_config(OdometryConfig(), FusionSettings())
     detectors = [make_detector("learned", lidar, seed), make_detector("none", lidar, seed)]

@@ -30,7 +30,7 @@ from fusion import FusionConfig
 from l3e_env.config import OdometryConfig
 from l3e_env.core.transforms import inverse, matrix_to_pose
 from l3e_env.detection.detectors import EigenvalueDetector
-from l3e_env.experiments.drive import record_run, register_sequence
+from l3e_env.experiments.drive import DriveOptions, record_run, register_sequence
 from l3e_env.localizability.labels import AXES
 from l3e_env.localizability.registration import RegistrationConfig
 from l3e_env.sim.odometry import odometry_sigmas
@@ -40,7 +40,7 @@ def step_errors(scene: str, tau: float, seed: int, registration: RegistrationCon
     """(errors, trusted, odometry sigmas) per registered step of the scene's route, (K, 6) each,
     e' H e / 6 per step (K), and e_i^2 / (v H^-1)_ii per axis (K, 6; NaN where an axis is flagged),
     v the default residual variance."""
-    rec = record_run(scene, seed=seed, progress=False)
+    rec = record_run(scene, DriveOptions(seed=seed), progress=False)
     registrations = register_sequence(rec, registration, progress=False)
     detector, T_b_s = EigenvalueDetector(tau), rec.T_b_s
     errors, trusted, sigmas, quadratic, calibration = [], [], [], [], []

@@ -26,21 +26,14 @@ from .options import (
 
 def _cmd_demo(args: argparse.Namespace) -> int:
     from l3e_env.experiments.demo import run_demo
+    from l3e_env.experiments.drive import DriveOptions
 
     params = scene_params(args)
     out = Path(args.out or f"l3e_out/demo-{time.strftime('%Y%m%d-%H%M%S')}")
     args.out = str(out)  # the resolved options are written beside it
     print(f"writing the demo into {out.resolve()}")
-    result = run_demo(
-        out,
-        scene=args.scene,
-        sensor=args.sensor,
-        seed=args.seed,
-        progress=not args.quiet,
-        checkpoint=args.checkpoint,
-        scene_params=params,
-        max_steps=args.max_steps,
-    )
+    driving = DriveOptions(args.sensor, args.seed, params, max_steps=args.max_steps)
+    result = run_demo(out, args.scene, driving, args.checkpoint, progress=not args.quiet)
     print(f"{result['steps']} steps, goal {'reached' if result['reached_goal'] else 'NOT reached'}")
     from l3e_env.localizability.labels import AXES
 
@@ -151,7 +144,7 @@ def record_imu(args: argparse.Namespace):
 
 
 def _cmd_record(args: argparse.Namespace) -> int:
-    from l3e_env.experiments.drive import record_run
+    from l3e_env.experiments.drive import DriveOptions, record_run
     from l3e_env.io.rosbag import BagError, BagRecorder
 
     params = scene_params(args)
@@ -180,18 +173,8 @@ def _cmd_record(args: argparse.Namespace) -> int:
         print(f"l3e record: {exc}", file=sys.stderr)
         return 2
     try:
-        rec = record_run(
-            args.scene,
-            args.sensor,
-            args.seed,
-            progress=not args.quiet,
-            scene_params=params,
-            scene_object=scene,
-            on_step=bag,
-            sweep=args.sweep,
-            max_steps=args.max_steps,
-            still=args.still,
-        )
+        options = DriveOptions(args.sensor, args.seed, params, args.sweep, args.max_steps, args.still)
+        rec = record_run(args.scene, options, not args.quiet, scene_object=scene, on_step=bag)
         written = bag.close()
     except BaseException:
         bag.abort()  # no half-written bag beside the name

@@ -46,7 +46,7 @@ from .ate_tables import (
     write_trajectories,
 )
 from .baselines import BASELINES, BaselineRun, check_baselines, run_baseline
-from .drive import DriveRecord, deskewed, record_run, register_sequence
+from .drive import DriveOptions, DriveRecord, deskewed, record_run, register_sequence
 from .fuse import FusedRun, fuse_recording, odometry_only, scored
 from .recast import OdometryAttitude, RecastCascade, RecastScans
 
@@ -242,15 +242,8 @@ def prepare_drive(out: Path, scene: str, specs: list[str], options: AteOptions, 
     ]
     out.mkdir(parents=True, exist_ok=True)
     if rec is None:
-        rec = record_run(
-            scene,
-            options.sensor,
-            options.seed,
-            progress,
-            options.scene_params,
-            scene_object=scene_obj,
-            max_steps=options.max_steps,
-        )
+        driving = DriveOptions(options.sensor, options.seed, options.scene_params, max_steps=options.max_steps)
+        rec = record_run(scene, driving, progress, scene_object=scene_obj)
         rec.save(out / "recording.npz")
     return AteDrive(scene_obj, lidar, deskewed(rec, options.deskew), rec, dets, registration)
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import NamedTuple
 
 import matplotlib
 
@@ -16,43 +17,74 @@ from l3e_env.envs.navigation import NavigationEnv  # noqa: E402
 from l3e_env.sim.follower import RouteFollower  # noqa: E402
 from l3e_env.sim.render import wall_points  # noqa: E402
 
+from .drive import DriveOptions  # noqa: E402
+
 ROUTE_SHOTS = {"20pct": 0.2, "50pct": 0.5, "80pct": 0.8}  # scan pictures on a route without named places
 
 
 def run_demo(
     out_dir: str | Path,
     scene: str = "mine",
-    sensor: str = "vlp16",
-    seed: int = 0,
-    progress: bool = True,
+    options: DriveOptions | None = None,
     checkpoint: str | None = None,
     classify_every: int = 5,
-    scene_params: dict | None = None,
-    max_steps: int | None = None,
+    progress: bool = True,
 ) -> dict:
-    """Drive the route, save a top view of the path and scan pictures at up to three places,
-    and judge every `classify_every`-th scan with the learned detector (the shipped model unless
-    `checkpoint` names another): a timeline of its probabilities and the flagged share per axis.
+    """Drive the route (as `options` say: the LiDAR, the seed, make_scene's arguments, `max_steps` to
+    stop early), save a top view of the path and scan pictures at up to three places, and judge every
+    `classify_every`-th scan with the learned detector (the shipped model unless `checkpoint` names
+    another): a timeline of its probabilities and the flagged share per axis.
 
     Returns a summary (steps, reached goal, flagged shares, files written). For the mine the
     places are the yard, the tunnel and the quarry; other scenes use 20 %, 50 % and 80 % of the route.
-    `scene_params` go to make_scene (a mesh scene's up axis, scale and route); `max_steps` stops the
-    drive early (a short run).
     """
     from l3e_env.detection.detectors import LearnedDetector
 
-    detector = LearnedDetector(checkpoint, lidar_model=sensor)
-    judged: list[tuple[int, str, np.ndarray, np.ndarray]] = []  # step, place, probabilities, mask
+    options = options or DriveOptions()
+    detector = LearnedDetector(checkpoint, lidar_model=options.sensor)
     config = EnvConfig(
-        scene=scene, lidar=LidarConfig(model=sensor), scene_params=scene_params or {}, max_episode_steps=max_steps
+        scene=scene,
+        lidar=LidarConfig(model=options.sensor),
+        scene_params=options.scene_params or {},
+        max_episode_steps=options.max_steps,
     )
     env = NavigationEnv(config)  # a broken mesh or route fails here, before the folder exists
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     dump_yaml(config, out / "config.yaml")
+    env.reset(seed=options.seed)
+    drove = _drive(env, detector, classify_every, progress)
+    env.close()
+    trajectory = np.array([T[:3, 3] for T in drove.poses])
+    files = [_plot_path(out / "path_topdown.png", env, trajectory, drove.snapshots)]
+    for place, (T, points) in drove.snapshots.items():
+        files.append(_plot_scan(out / f"scan_{place}.png", place, T, points))
+        np.save(out / f"scan_{place}.npy", points.astype(np.float32))  # in the sensor's frame: l3e judge reads it
+        files.append(out / f"scan_{place}.npy")
+    np.savetxt(out / "trajectory.txt", trajectory, header="x y z (ground truth, world frame, 10 Hz)")
+    if drove.judged:
+        files.append(_plot_localizability(out / "localizability.png", env, trajectory, drove.judged, detector))
+    return {
+        "steps": len(drove.poses) - 1,
+        "reached_goal": drove.reached,
+        "files": [str(f) for f in files],
+        "out": str(out),
+        "flagged": _flagged_shares(drove.judged),
+    }
+
+
+class _Drove(NamedTuple):
+    poses: list[np.ndarray]  # the true base poses, the start's first
+    snapshots: dict[str, tuple[np.ndarray, np.ndarray]]  # place -> (pose, scan)
+    judged: list[tuple[int, str, np.ndarray, np.ndarray]]  # step, place, probabilities, mask
+    reached: bool
+
+
+def _drive(env: NavigationEnv, detector, classify_every: int, progress: bool) -> _Drove:
+    """The route followed to its end: the poses, a scan from each place, and every `classify_every`-th
+    scan judged by the detector."""
     follower = RouteFollower(env.route)
-    env.reset(seed=seed)
-    poses, snapshots = [env.robot.T_w_b.copy()], {}
+    poses, snapshots, judged = [env.robot.T_w_b.copy()], {}, []
     route_len = len(follower.route)
     done, reached = False, False
     bar = tqdm(total=env.max_steps, desc=f"driving {env.scene.name}", unit="step", disable=not progress)
@@ -75,24 +107,7 @@ def run_demo(
             if pred.known:
                 judged.append((len(poses) - 1, place or "", pred.probabilities, pred.mask))
     bar.close()
-    env.close()
-    trajectory = np.array([T[:3, 3] for T in poses])
-    files = [_plot_path(out / "path_topdown.png", env, trajectory, snapshots)]
-    for place, (T, points) in snapshots.items():
-        files.append(_plot_scan(out / f"scan_{place}.png", place, T, points))
-        np.save(out / f"scan_{place}.npy", points.astype(np.float32))  # in the sensor's frame: l3e judge reads it
-        files.append(out / f"scan_{place}.npy")
-    np.savetxt(out / "trajectory.txt", trajectory, header="x y z (ground truth, world frame, 10 Hz)")
-    flagged = _flagged_shares(judged)
-    if judged:
-        files.append(_plot_localizability(out / "localizability.png", env, trajectory, judged, detector))
-    return {
-        "steps": len(poses) - 1,
-        "reached_goal": bool(reached),
-        "files": [str(f) for f in files],
-        "out": str(out),
-        "flagged": flagged,
-    }
+    return _Drove(poses, snapshots, judged, bool(reached))
 
 
 def _flagged_shares(judged: list) -> dict[str, np.ndarray]:

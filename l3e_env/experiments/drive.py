@@ -132,82 +132,93 @@ def _unragged(z, name: str) -> list[np.ndarray]:
     return [flat[o[i] : o[i + 1]] for i in range(len(o) - 1)]
 
 
+@dataclass(frozen=True)
+class DriveOptions:
+    """How a route is driven and recorded: the LiDAR, the drive's seed, make_scene's arguments, whether
+    each scan is swept over the step's motion (LidarConfig.sweep), where the drive stops (`max_steps`;
+    default: the route's end, or 3x its length at full speed) and how many seconds the robot first
+    stands at the start (an IMU initialiser's calibration; counted in `max_steps`)."""
+
+    sensor: str = "vlp16"
+    seed: int = 0
+    scene_params: dict | None = None
+    sweep: bool = False
+    max_steps: int | None = None
+    still: float = 0.0
+
+
+class _Tape:
+    """A drive's record as it is taken: true and odometry poses, each scan thinned for registration
+    (STORE_VOXEL) and sampled for the classifier (CLASSIFIER_POINTS), and the full scans to `on_step`."""
+
+    def __init__(self, seed: int, on_step: Callable[[Scan, dict], None] | None):
+        self.gt: list[np.ndarray] = []
+        self.odom: list[np.ndarray] = []
+        self.scans: list[np.ndarray] = []
+        self.samples: list[np.ndarray] = []
+        self.sampler, self.on_step = np.random.default_rng([seed, 1]), on_step
+
+    def add(self, env: NavigationEnv, info: dict, previous: np.ndarray | None) -> None:
+        self.gt.append(info["T_w_b"])
+        if previous is not None:
+            self.odom.append(inverse(previous) @ info["odom_T_w_b"])
+        points = env.scan.points
+        cloud = small_gicp.voxelgrid_sampling(points.astype(np.float64), STORE_VOXEL)
+        self.scans.append(np.asarray(cloud.points())[:, :3].astype(np.float32))
+        if len(points) > CLASSIFIER_POINTS:
+            points = points[self.sampler.choice(len(points), CLASSIFIER_POINTS, replace=False)]
+        self.samples.append(points.astype(np.float32))
+        if self.on_step is not None:
+            self.on_step(env.scan, {**info, "T_b_s": env.robot.T_b_s})
+
+
 def record_run(
     scene: str = "mine",
-    sensor: str = "vlp16",
-    seed: int = 0,
+    options: DriveOptions | None = None,
     progress: bool = True,
-    scene_params: dict | None = None,
     scene_object: Scene | None = None,
     on_step: Callable[[Scan, dict], None] | None = None,
-    sweep: bool = False,
-    max_steps: int | None = None,
-    still: float = 0.0,
 ) -> DriveRecord:
     """Drive the scene's route once; `scene_object`, if given, is that scene already built.
     `on_step(scan, info)` sees every full scan with the step's info (T_w_b, odom_T_w_b) and the
-    sensor's mounting T_b_s, the start's included, before the recording thins it (a bag writer).
-    `sweep`: each step's scan is swept over the step's motion (LidarConfig.sweep). `max_steps`: stop the
-    drive there (a short run; default: the route's end, or 3x its length at full speed). `still`: seconds
-    the robot first stands at the start (an IMU initialiser's calibration), counted in `max_steps`."""
-    env = NavigationEnv(
-        EnvConfig(
-            scene=scene,
-            lidar=LidarConfig(model=sensor, sweep=sweep),
-            scene_params=scene_params or {},
-            max_episode_steps=max_steps,
-        ),
-        scene_object=scene_object,
-    )
-    obs, info = env.reset(seed=seed)
-    follow = RouteFollower(env.route)
-
-    def thin(points: np.ndarray) -> np.ndarray:
-        cloud = small_gicp.voxelgrid_sampling(points.astype(np.float64), STORE_VOXEL)
-        return np.asarray(cloud.points())[:, :3].astype(np.float32)
-
-    sampler = np.random.default_rng([seed, 1])
-
-    def sample(points: np.ndarray) -> np.ndarray:
-        if len(points) > CLASSIFIER_POINTS:
-            points = points[sampler.choice(len(points), CLASSIFIER_POINTS, replace=False)]
-        return points.astype(np.float32)
-
-    gt, odom, scans, samples = [info["T_w_b"]], [], [thin(env.scan.points)], [sample(env.scan.points)]
-    if on_step is not None:
-        on_step(env.scan, {**info, "T_b_s": env.robot.T_b_s})
-    bar = tqdm(total=env.max_steps, desc=f"recording {env.scene.name}", unit="step", disable=not progress)
-    done, standing = False, int(round(still / RobotConfig.dt))
+    sensor's mounting T_b_s, the start's included, before the recording thins it (a bag writer)."""
+    options = options or DriveOptions()
+    standing = int(round(options.still / RobotConfig.dt))
     if standing < 0:
-        raise ValueError(f"the robot stands still for 0 s or more, not {still} s")
+        raise ValueError(f"the robot stands still for 0 s or more, not {options.still} s")
+    lidar = LidarConfig(model=options.sensor, sweep=options.sweep)
+    config = EnvConfig(
+        scene=scene, lidar=lidar, scene_params=options.scene_params or {}, max_episode_steps=options.max_steps
+    )
+    env = NavigationEnv(config, scene_object=scene_object)
+    _, info = env.reset(seed=options.seed)
+    follow, tape = RouteFollower(env.route), _Tape(options.seed, on_step)
+    tape.add(env, info, None)
+    bar = tqdm(total=env.max_steps, desc=f"recording {env.scene.name}", unit="step", disable=not progress)
+    done = False
     while not done:
-        prev_odom = info["odom_T_w_b"]
+        previous = info["odom_T_w_b"]
         action = np.zeros(3) if standing > 0 else follow(info["T_w_b"])
         standing -= 1
-        obs, _, terminated, truncated, info = env.step(action)
+        _, _, terminated, truncated, info = env.step(action)
         done = terminated or truncated
-        gt.append(info["T_w_b"])
-        odom.append(inverse(prev_odom) @ info["odom_T_w_b"])
-        scans.append(thin(env.scan.points))
-        samples.append(sample(env.scan.points))
-        if on_step is not None:
-            on_step(env.scan, {**info, "T_b_s": env.robot.T_b_s})
+        tape.add(env, info, previous)
         bar.update()
     bar.close()
     # a mesh scene is rebuilt from its file, a procedural one from its canonical name ('tunnel' -> 'tunnel-0')
     name = canonical_scene_name(scene) if is_mesh_path(scene) else env.scene.name
     rec = DriveRecord(
         name,
-        sensor,
-        seed,
+        options.sensor,
+        options.seed,
         env.robot.T_b_s,
-        np.array(gt),
-        np.array(odom),
-        scans,
-        samples,
-        dict(scene_params or {}),
+        np.array(tape.gt),
+        np.array(tape.odom),
+        tape.scans,
+        tape.samples,
+        dict(options.scene_params or {}),
         file_sha256(scene) if is_mesh_path(scene) else "",
-        sweep,
+        options.sweep,
     )
     env.close()
     return rec

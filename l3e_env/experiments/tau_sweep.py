@@ -23,7 +23,7 @@ from l3e_env.detection.detectors import (
 )
 from l3e_env.sim.odometry import odometry_fusion_config
 
-from .drive import DriveRecord, record_run, register_sequence
+from .drive import DriveOptions, DriveRecord, record_run, register_sequence
 from .fuse import fuse_recording, odometry_only
 
 DEFAULT_TAUS = (10, 20, 30, 50, 70, 90, 110, 150, 200, 300)
@@ -71,7 +71,7 @@ def run_sweep(
     results: dict[str, dict] = {}
     for scene in scenes:
         given = (recordings or {}).get(scene)
-        rec = DriveRecord.load(given) if given else record_run(scene, seed=options.seed, progress=progress)
+        rec = DriveRecord.load(given) if given else record_run(scene, DriveOptions(seed=options.seed), progress)
         if not given:
             rec.save(out / f"recording_{scene}.npz")
         refs = [make_detector(r) for r in options.references]

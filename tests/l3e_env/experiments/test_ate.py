@@ -7,7 +7,7 @@ from l3e_env.config import FusionSettings, LidarConfig
 from l3e_env.detection.detectors import DCRegDetector, EigenvalueDetector, NoDetector, make_detector
 from l3e_env.experiments.ate import AteOptions, run_ate
 from l3e_env.experiments.ate_tables import file_stem, format_seed_table, format_table, summarize_seeds
-from l3e_env.experiments.drive import DriveRecord, record_run, register_sequence
+from l3e_env.experiments.drive import DriveOptions, DriveRecord, record_run, register_sequence
 from l3e_env.experiments.fuse import fuse_recording
 from l3e_env.experiments.recast import RecastCascade, RecastScans
 from l3e_env.localizability.labels import AXES
@@ -19,7 +19,7 @@ from scenes import make_scene
 
 @pytest.fixture(scope="module")
 def walls_run():
-    rec = record_run("primitives-1", seed=0, progress=False)  # two parallel walls: along-wall x is degenerate
+    rec = record_run("primitives-1", progress=False)  # two parallel walls: along-wall x is degenerate
     return rec, register_sequence(rec, RegistrationConfig(), progress=False)
 
 
@@ -35,7 +35,7 @@ def test_masking_the_wall_axis_beats_full_icp(walls_run, tmp_path):
     # hold no step along it), so unmasked ICP leaves it to the legs too
     fulls, masked = [full.ate], [eigen.ate]
     for seed in (1, 2):
-        other = record_run("primitives-1", seed=seed, progress=False)
+        other = record_run("primitives-1", DriveOptions(seed=seed), progress=False)
         f, e = fuse_recording(
             other,
             [NoDetector(), EigenvalueDetector(tau)],
