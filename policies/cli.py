@@ -5,7 +5,6 @@ Registered with the `l3e` command through the `l3e.commands` entry-point group."
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -196,7 +195,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         lam=args.lam,
         workers=args.workers,
         steer_on=args.steer_on,
-        fusion_settings=dataclasses.replace(fusion_settings(args), attitude=args.attitude),
+        fusion_settings=fusion_settings(args),
         recovery=args.recovery,
         avoid=args.avoid,
         scene_params={k: v for k, v in scenes.items() if v},

@@ -184,7 +184,8 @@ STEER_ON = ("estimate", "truth")
 
 @dataclass(frozen=True)
 class EvalOptions:
-    """How an evaluation's episodes run. All but `workers` and `cache_dir` go into its settings.json,
+    """How an evaluation's episodes run (the fusion's backend and the rest as `fusion_settings` say; its
+    detector is `detector`, the maps'). All but `workers` and `cache_dir` go into its settings.json,
     and a resumed evaluation must match them. `lam`: the planner's weight of expected drift; `steer_on`:
     the pose the robot steers and stops on (STEER_ON); `recovery`: a wedged robot backs off (BackOff);
     `avoid`: the policies keep off the obstacles the scan shows ahead (FreeHeadings), both None: as the
@@ -196,7 +197,6 @@ class EvalOptions:
     cache_dir: str | Path | None = None
     lam: float = 50.0
     workers: int = 1
-    backend: str = "graph"
     steer_on: str = "estimate"
     fusion_settings: FusionSettings = FusionSettings()
     recovery: bool | None = None
@@ -232,12 +232,7 @@ def run_episode(job: EpisodeJob) -> Episode:
         scene=job.scene,
         scene_params=source.scene_params or {},
         arrival=options.steer_on,
-        fusion={
-            **asdict(options.fusion_settings),
-            "enabled": True,
-            "detector": options.detector,
-            "backend": options.backend,
-        },
+        fusion={**asdict(options.fusion_settings), "enabled": True, "detector": options.detector},
     )
     try:
         ctx = source.context()
@@ -454,11 +449,9 @@ def _run_record(options: EvalOptions) -> dict[str, Any]:
     return {
         "detector": options.detector,
         "lam": options.lam,
-        "backend": options.backend,
         "steer_on": options.steer_on,
         "arrival": options.steer_on,
-        **options.fusion_settings.record(),
-        "attitude": options.fusion_settings.attitude,
+        "fusion": {**options.fusion_settings.record(), "enabled": True, "detector": options.detector},
         "recovery": options.recovery,
         "avoid": options.avoid,
     }

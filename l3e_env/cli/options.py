@@ -72,11 +72,18 @@ def add_fusion_options(parser: argparse.ArgumentParser) -> None:
 
 
 def fusion_settings(args: argparse.Namespace) -> FusionSettings:
-    """The options that `add_fusion_options` added."""
+    """The fusion's settings from the options that `add_fusion_options` added, and from --backend,
+    --deskew and --attitude where the command has them (the defaults where not)."""
     axes = tuple(args.odometry_bias)
     if len(set(axes)) < len(axes):
         raise ValueError(f"--odometry-bias names an axis twice: {', '.join(axes)}")
-    return FusionSettings(odometry_bias=axes)
+    default = FusionSettings()
+    return FusionSettings(
+        backend=getattr(args, "backend", default.backend),
+        deskew=getattr(args, "deskew", default.deskew),
+        attitude=getattr(args, "attitude", default.attitude),
+        odometry_bias=axes,
+    )
 
 
 def sensor_name(text: str) -> str:

@@ -6,7 +6,7 @@ made it (see `dump_yaml`).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Any
 
 
@@ -104,9 +104,9 @@ class FusionSettings:
                 raise ValueError(f"fusion.{name} must be one of {allowed}, got {value!r}")
 
     def record(self) -> dict[str, Any]:
-        """The estimator's choices, as written into results.json, sweep.json and a policy evaluation's
-        settings."""
-        return {"odometry_bias": list(self.odometry_bias)}
+        """The settings whole, as results.json, sweep.json and a policy evaluation's settings hold them
+        (under "fusion")."""
+        return {f.name: list(v) if isinstance(v := getattr(self, f.name), tuple) else v for f in fields(self)}
 
 
 @dataclass

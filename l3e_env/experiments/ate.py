@@ -20,7 +20,7 @@ import numpy as np
 from fusion import (
     FusionConfig,
 )
-from l3e_env.config import DESKEW_SOURCES, FusionSettings, LidarConfig, OdometryConfig, to_dict
+from l3e_env.config import FusionSettings, LidarConfig, OdometryConfig, to_dict
 from l3e_env.detection.detectors import (
     CascadeDetector,
     Detector,
@@ -29,7 +29,6 @@ from l3e_env.detection.detectors import (
     registration_of,
 )
 from l3e_env.localizability.registration import RegistrationConfig
-from l3e_env.sim.imu import attitude_sigmas
 from l3e_env.sim.lidar import Lidar, get_pattern
 from l3e_env.sim.odometry import odometry_fusion_config
 from l3e_env.sim.raycast import EmbreeCaster
@@ -84,11 +83,11 @@ class AteOptions:
     sensor, seed: the drive's LiDAR and seed. recording: a saved drive to fuse again (its own scene is
     used; the scene given matters only as the new path of a recorded mesh that has moved).
     scene_params: make_scene's arguments (a mesh scene's up axis, scale and route). workers: processes
-    that judge the route with scanmc before the fusion (the same judgements as one). deskew: where a
-    swept recording's deskewing takes its rotation from (config.DESKEW_SOURCES). attitude: the
-    IMU's orientation in the fusion ("none", "tilt" or "full"); with it, a row "odometry + attitude"
-    follows odometry alone. fusion_settings: every fusion's (the biases' prior from the default
-    OdometryConfig, as the drive's). max_steps: a shorter drive. baselines: external LiDAR odometries
+    that judge the route with scanmc before the fusion (the same judgements as one). fusion_settings:
+    every fusion's (its backend; its deskew, where a swept recording's deskewing takes its rotation
+    from; its attitude, the IMU's orientation in the fusion, and with it a row "odometry + attitude"
+    after odometry alone; the biases' prior from the default OdometryConfig, as the drive's).
+    max_steps: a shorter drive. baselines: external LiDAR odometries
     (experiments.baselines: kiss-icp, genz-icp) run on the drive's scans as recorded (a swept drive's
     with their firing times, which they deskew themselves), each a row after the fusion's; their
     settings go into results.json, and one that fails says so in its row. frontends: the LiDAR front
@@ -99,11 +98,8 @@ class AteOptions:
     sensor: str = "vlp16"
     seed: int = 0
     recording: str | Path | None = None
-    backend: str = "graph"
     scene_params: dict | None = None
     workers: int = 1
-    deskew: str = "gyro"
-    attitude: str = "none"
     fusion_settings: FusionSettings = FusionSettings()
     max_steps: int | None = None
     baselines: list[str] = field(default_factory=list)
@@ -113,9 +109,6 @@ class AteOptions:
         """ValueError naming a setting no drive can use (and a missing baseline package), before the drive."""
         if self.workers < 1:
             raise ValueError(f"workers must be at least 1, got {self.workers}")
-        if self.deskew not in DESKEW_SOURCES:
-            raise ValueError(f"deskew must be one of {DESKEW_SOURCES}, got {self.deskew!r}")
-        attitude_sigmas(self.attitude)
         if not self.frontends or any(f != "icp" and f not in BASELINES for f in self.frontends):
             raise ValueError(f"front ends: icp or one of {', '.join(BASELINES)}, got {self.frontends}")
         check_baselines([*self.baselines, *(f for f in self.frontends if f != "icp")])
@@ -181,7 +174,7 @@ def run_ate(
     icp_seconds = time.perf_counter() - t0
     ahead = judge_ahead(drive, options.workers, progress)
     dets = drive.detectors
-    if options.attitude != "none":
+    if options.fusion_settings.attitude != "none":
         dets, ahead = [OdometryAttitude(), *dets], [0.0, *ahead]
     runs = {
         name: run_baseline(
@@ -201,10 +194,8 @@ def run_ate(
         "sensor": drive.rec.sensor,
         "seed": drive.rec.seed,
         "swept": drive.raw.sweep,
-        "deskew": options.deskew if drive.raw.sweep else None,
-        "backend": options.backend,
-        "attitude": options.attitude,
-        **options.fusion_settings.record(),
+        "deskew": options.fusion_settings.deskew if drive.raw.sweep else None,
+        "fusion": options.fusion_settings.record(),
         "steps": len(drive.rec.odometry),
         "icp_seconds": round(icp_seconds, 1),
         "icp_failed_or_not_converged": sum(r is None or not r.converged for r in regs),
@@ -245,7 +236,7 @@ def prepare_drive(out: Path, scene: str, specs: list[str], options: AteOptions, 
         driving = DriveOptions(options.sensor, options.seed, options.scene_params, max_steps=options.max_steps)
         rec = record_run(scene, driving, progress, scene_object=scene_obj)
         rec.save(out / "recording.npz")
-    return AteDrive(scene_obj, lidar, deskewed(rec, options.deskew), rec, dets, registration)
+    return AteDrive(scene_obj, lidar, deskewed(rec, options.fusion_settings.deskew), rec, dets, registration)
 
 
 def judge_ahead(drive: AteDrive, workers: int, progress: bool) -> list[float]:
@@ -283,9 +274,7 @@ def fuse_frontends(
             lost += [(f"{det.name} @{frontend}", runs[frontend].error) for det in dets]
             continue
         steps = regs if frontend == "icp" else runs[frontend].registrations(regs)
-        by_front = fuse_recording(
-            rec, dets, steps, fusion=fusion, progress=progress, backend=options.backend, attitude=options.attitude
-        )
+        by_front = fuse_recording(rec, dets, steps, fusion, progress=progress, settings=options.fusion_settings)
         for result, seconds, det in zip(by_front, ahead, dets):
             result.seconds += seconds
             result.name = det.name if frontend == "icp" else f"{det.name} @{frontend}"

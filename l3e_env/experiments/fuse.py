@@ -17,7 +17,7 @@ from fusion import (
     check_backend,
     rpe,
 )
-from l3e_env.config import OdometryConfig, RobotConfig
+from l3e_env.config import FusionSettings, OdometryConfig, RobotConfig
 from l3e_env.detection.detectors import (
     Detector,
 )
@@ -66,12 +66,14 @@ def fuse_recording(
     fusion: FusionConfig | None = None,
     odometry: OdometryConfig | None = None,
     progress: bool = True,
-    backend: str = "graph",
-    attitude: str = "none",
+    settings: FusionSettings = FusionSettings(),
 ) -> list[DetectorResult]:
     """The recording's odometry and registrations through the localization pipeline with each
-    detector; with `attitude` ("tilt" or "full", see `imu.attitude_sigmas`) the IMU's orientation joins
-    every ATTITUDE_EVERY steps, the same readings for every detector (drawn from the recording's seed)."""
+    detector, on the settings' backend; with their attitude ("tilt" or "full", see
+    `imu.attitude_sigmas`) the IMU's orientation joins every ATTITUDE_EVERY steps, the same readings
+    for every detector (drawn from the recording's seed). `fusion`: the estimator's parameters (the
+    defaults where None)."""
+    backend, attitude = settings.backend, settings.attitude
     check_backend(backend)
     fusion, odometry = fusion or FusionConfig(), odometry or OdometryConfig()
     gt = rec.ground_truth

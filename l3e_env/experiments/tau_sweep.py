@@ -76,14 +76,17 @@ def run_sweep(
             rec.save(out / f"recording_{scene}.npz")
         refs = [make_detector(r) for r in options.references]
         regs = register_sequence(rec, registration_of(refs), progress)
-        row: dict = {**options.fusion_settings.record(), "odometry only": odometry_only(rec).ate}
+        row: dict = {"fusion": options.fusion_settings.record(), "odometry only": odometry_only(rec).ate}
         for field_name, make, key in SWEPT:
             values = getattr(options, field_name)
-            swept = fuse_recording(rec, [make(v) for v in values], regs, fusion=fusion, progress=False)
+            swept = fuse_recording(
+                rec, [make(v) for v in values], regs, fusion, progress=False, settings=options.fusion_settings
+            )
             row[field_name] = list(map(float, values))
             row[f"{key}_ate"] = [r.ate for r in swept]
             row[f"{key}_flagged"] = [r.masks.mean(axis=0).tolist() for r in swept]
-        for name, r in zip(options.references, fuse_recording(rec, refs, regs, fusion=fusion, progress=False)):
+        fused = fuse_recording(rec, refs, regs, fusion, progress=False, settings=options.fusion_settings)
+        for name, r in zip(options.references, fused):
             row[name] = r.ate
             row[f"{name}_flagged"] = r.masks.mean(axis=0).tolist()
         results[rec.scene] = row

@@ -686,7 +686,7 @@ def test_a_users_mesh_is_driven_by_the_policies(cad_corridor, tmp_path, capsys, 
     biased = [*args[:-3], "--out", str(tmp_path / "ev-bias"), "--quiet", "--route", str(route)]
     assert main([*biased, "--odometry-bias", "yaw", "--policy", "shortest"]) == 0
     summary = json.loads((tmp_path / "ev-bias" / "summary.json").read_text())
-    assert summary["odometry_bias"] == ["yaw"] and summary["rows"][0]["success"] == 1.0
+    assert summary["fusion"]["odometry_bias"] == ["yaw"] and summary["rows"][0]["success"] == 1.0
     (same_drive,) = [json.loads(line) for line in (tmp_path / "ev-bias" / "episodes.jsonl").read_text().splitlines()]
     assert same_drive["mean_ate"] != episode["mean_ate"]  # the same drive: the option reached the fusion
 

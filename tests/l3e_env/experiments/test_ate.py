@@ -103,7 +103,9 @@ def test_the_imu_attitude_joins_every_detector_alike_and_adds_its_own_reference_
 
     rec, regs = walls_run
     (plain,) = fuse_recording(rec, [NoDetector()], regs, progress=False)
-    held, again = fuse_recording(rec, [NoDetector(), NoDetector()], regs, progress=False, attitude="full")
+    held, again = fuse_recording(
+        rec, [NoDetector(), NoDetector()], regs, progress=False, settings=FusionSettings(attitude="full")
+    )
     np.testing.assert_array_equal(held.trajectory, again.trajectory)  # the same readings for every detector
     assert np.abs(held.trajectory - plain.trajectory).max() > 1e-6
     rec.save(tmp_path / "rec.npz")
@@ -125,10 +127,10 @@ def test_the_imu_attitude_joins_every_detector_alike_and_adds_its_own_reference_
         == 0
     )
     summary = json.loads((tmp_path / "out" / "results.json").read_text())
-    assert summary["attitude"] == "tilt"
+    assert summary["fusion"]["attitude"] == "tilt" and summary["fusion"]["backend"] == "graph"
     assert [r["detector"] for r in summary["rows"]] == ["odometry only", "odometry + attitude", "none"]
     with pytest.raises(ValueError, match="attitude must be one of"):
-        run_ate(tmp_path / "bad", "mine", ["none"], AteOptions(attitude="compass"))
+        run_ate(tmp_path / "bad", "mine", ["none"], AteOptions(fusion_settings=FusionSettings(attitude="compass")))
     assert not (tmp_path / "bad").exists()
 
 
@@ -142,7 +144,7 @@ def test_the_hessian_weighs_the_icp_factor_and_the_settings_are_written(walls_ru
     assert weighed.ate != pytest.approx(fixed.ate, rel=1e-3)  # the library's fixed sigmas are another estimator
     rows = run_ate(tmp_path / "out", "mine", ["none"], AteOptions(recording=tmp_path / "rec.npz"), progress=False).rows
     assert rows[1]["ate_m"] == round(weighed.ate, 3)  # rows are rounded
-    assert json.loads((tmp_path / "out" / "results.json").read_text())["odometry_bias"] == []
+    assert json.loads((tmp_path / "out" / "results.json").read_text())["fusion"]["odometry_bias"] == []
     from l3e_env.experiments.tau_sweep import SweepOptions, run_sweep
 
     options = SweepOptions(taus=(1e12,), kappas=(1e15,), xicps=(1e9,), drpms=(1e-3,), references=("none",))
@@ -150,7 +152,7 @@ def test_the_hessian_weighs_the_icp_factor_and_the_settings_are_written(walls_ru
     row = swept["primitives-1"]
     assert row["xicp_ate"][0] == pytest.approx(row["odometry only"], rel=1e-6)  # no axis that well held: the legs
     assert row["drpm_flagged"][0][1:] == [0.0] * 5  # a tiny signal-to-noise factor: only the walls' free axis
-    assert row["odometry_bias"] == [] and row["none"] == pytest.approx(weighed.ate, rel=1e-9)
+    assert row["fusion"]["odometry_bias"] == [] and row["none"] == pytest.approx(weighed.ate, rel=1e-9)
     assert row["eigen_ate"][0] == pytest.approx(row["odometry only"], rel=1e-6)  # every axis flagged: the legs alone
     assert row["dcreg_ate"][0] == pytest.approx(row["none"], rel=1e-9)  # no ratio that high: nothing flagged
     assert row["dcreg_flagged"][0] == [0.0] * 6 and (tmp_path / "sweep" / "tau_sweep.png").stat().st_size > 0
@@ -190,7 +192,7 @@ def test_the_legs_bias_as_a_fusion_state_from_the_command_line(walls_run, tmp_pa
         == 0
     )
     summary = json.loads((tmp_path / "out" / "results.json").read_text())
-    assert summary["odometry_bias"] == ["yaw", "z"] and summary["rows"][1]["ate_m"] == round(learnt.ate, 3)
+    assert summary["fusion"]["odometry_bias"] == ["yaw", "z"] and summary["rows"][1]["ate_m"] == round(learnt.ate, 3)
     with pytest.raises(SystemExit):
         main(["ate", "--recording", str(tmp_path / "rec.npz"), "--odometry-bias", "roll", "--quiet"])
     assert "expected none or distinct axes among yaw, z, scale" in capsys.readouterr().err
@@ -249,7 +251,12 @@ def test_a_swept_recording_says_so_when_replayed(walls_run, tmp_path, capsys):
     assert json.loads((tmp_path / "legs" / "results.json").read_text())["deskew"] == "odometry"
     assert "with the odometry's rotation" in capsys.readouterr().out
     with pytest.raises(ValueError, match="deskew must be one of"):
-        run_ate(tmp_path / "bad", "mine", ["none"], AteOptions(recording=tmp_path / "swept.npz", deskew="imu"))
+        run_ate(
+            tmp_path / "bad",
+            "mine",
+            ["none"],
+            AteOptions(recording=tmp_path / "swept.npz", fusion_settings=FusionSettings(deskew="imu")),
+        )
 
 
 def test_scanmc_in_a_replay_judges_scans_cast_again_at_the_true_poses(walls_run, tmp_path):
