@@ -51,6 +51,10 @@ def _cmd_train(args: argparse.Namespace) -> int:
         model["points"] = args.points
     if args.frame:
         model["frame"] = args.frame
+    if args.distilled:  # the distillation set's places join the training scenes
+        from scenes import DISTILL_SCENES
+
+        overrides["train_scenes"] = list(dict.fromkeys([*cfg.train_scenes, *DISTILL_SCENES]))
     cfg = from_dict(TrainConfig, {**_asdict(cfg), **overrides, "model": model})
     print(
         f"training {cfg.model.architecture} on {' + '.join(args.dataset)} -> {Path(args.out).resolve()} "
@@ -186,6 +190,12 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
         type=float,
         dest="scale_augment",
         help="f > 1: scale each training scan by a factor drawn log-uniformly from [1/f, f]",
+    )
+    p.add_argument(
+        "--distilled",
+        action="store_true",
+        help="also train on the places of a distillation set (l3e dataset generate --preset distill), given "
+        "as one of the --dataset folders",
     )
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_cmd_train)

@@ -120,3 +120,14 @@ def _train_cfg(train_scenes, validation_scenes):
         threads=1,
         soft_labels=4.0,
     )
+
+
+def test_distilled_training_asks_for_every_place_of_the_distillation_set(
+    distill_dataset, tiny_dataset, tmp_path, capsys
+):
+    from l3e_env.cli.main import main
+
+    args = ["train", "--dataset", str(tiny_dataset), "--dataset", str(distill_dataset), "--out", str(tmp_path / "r")]
+    assert main([*args, "--distilled", "--epochs", "1"]) == 2
+    said = capsys.readouterr().err
+    assert "layout-21" in said and "are not in dataset" in said  # a small set lacks the preset's places
