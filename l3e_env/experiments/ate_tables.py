@@ -27,16 +27,22 @@ def regions_inside(ground_truth: np.ndarray, scene: Scene) -> dict[str, np.ndarr
     return {region: np.array([w == region for w in where]) for region in scene.regions}
 
 
+UNITS = ("m", "pct")  # a region's drift in metres and in % of the true distance travelled there
+
+
 def region_drift(trajectory: np.ndarray, ground_truth: np.ndarray, inside: dict[str, np.ndarray]) -> dict:
     """Per region (`regions_inside`): the error the estimate accumulated while the robot was inside it
-    (fusion.stretch_drift), in metres and in % of the true distance travelled there; as row fields
-    drift_<region>_m and drift_<region>_pct (None where the drive did not move inside the region)."""
-    out: dict[str, float | None] = {}
+    (fusion.stretch_drift), in metres and in % of the true distance travelled there; as the row field
+    {"drift": {region: {"m": ..., "pct": ...}}} (None where the drive did not move inside the region)."""
+    out: dict[str, dict[str, float | None]] = {}
     for region, poses in inside.items():
         drift, distance = stretch_drift(trajectory, ground_truth, poses)
-        out[f"drift_{region}_m"] = round(drift, 3) if distance > 0 else None
-        out[f"drift_{region}_pct"] = round(100 * drift / distance, 2) if distance > 0 else None
-    return out
+        moved = distance > 0
+        out[region] = {
+            "m": round(drift, 3) if moved else None,
+            "pct": round(100 * drift / distance, 2) if moved else None,
+        }
+    return {"drift": out}
 
 
 def failed_row(name: str, error: str, scene: Scene) -> dict:
@@ -48,11 +54,11 @@ def failed_row(name: str, error: str, scene: Scene) -> dict:
         "rpe_deg",
         *(f"flagged_{a}" for a in AXES),
         "seconds",
-        *(f"drift_{g}_{u}" for g in scene.regions for u in ("m", "pct")),
     )
     return {
         "detector": name,
         **dict.fromkeys(keys),
+        "drift": {g: dict.fromkeys(UNITS) for g in scene.regions},
         "unknown_steps": 0,
         "fallback_steps": 0,
         "detector_errors": 0,
@@ -62,9 +68,7 @@ def failed_row(name: str, error: str, scene: Scene) -> dict:
 
 def regions_of(rows: list[dict]) -> list[str]:
     """The regions whose drift the rows carry, in order."""
-    return (
-        [k[len("drift_") : -len("_m")] for k in rows[0] if k.startswith("drift_") and k.endswith("_m")] if rows else []
-    )
+    return list(rows[0].get("drift", {})) if rows else []
 
 
 def write_trajectories(folder: Path, ground_truth: np.ndarray, results: list[DetectorResult]) -> list[Path]:
@@ -99,11 +103,13 @@ def summarize_seeds(runs: dict[int, list[dict]]) -> list[dict]:
     summary = []
     regions = regions_of(runs[seeds[0]])
     for i, name in enumerate(names):
-        drifts = {}
+        drifts: dict[str, dict[str, float | None]] = {}
         for g in regions:  # the mean over the drives that moved inside the region
-            for unit in ("m", "pct"):
-                values = [runs[k][i][f"drift_{g}_{unit}"] for k in seeds if runs[k][i][f"drift_{g}_{unit}"] is not None]
-                drifts[f"drift_{g}_{unit}_mean"] = round(float(np.mean(values)), 3) if values else None
+            found = [runs[k][i]["drift"][g] for k in seeds]
+            drifts[g] = {
+                unit: round(float(np.mean(v)), 3) if (v := [d[unit] for d in found if d[unit] is not None]) else None
+                for unit in UNITS
+            }
         ate = np.array([runs[k][i]["ate_m"] for k in seeds], dtype=float)  # NaN where an estimate failed
         aligned = np.array([runs[k][i]["ate_aligned_m"] for k in seeds], dtype=float)
         ratio = ate / np.array([runs[k][0]["ate_m"] for k in seeds])  # row 0: odometry only
@@ -119,7 +125,7 @@ def summarize_seeds(runs: dict[int, list[dict]]) -> list[dict]:
                 "ate_aligned_mean_m": round(float(np.nanmean(aligned)), 3),
                 "ate_over_odometry_mean": round(float(ratio.mean()), 3),
                 "ate_over_odometry_std": round(float(ratio.std(ddof=1)), 3),
-                **drifts,
+                "drift_mean": drifts,
             }
         )
     return summary
@@ -127,7 +133,7 @@ def summarize_seeds(runs: dict[int, list[dict]]) -> list[dict]:
 
 def format_seed_table(summary: list[dict]) -> str:
     w = _name_width(summary)
-    regions = [k[len("drift_") : -len("_pct_mean")] for k in summary[0] if k.endswith("_pct_mean")]
+    regions = list(summary[0]["drift_mean"])
     head = (
         f"{'detector':{w}s} {'ATE m mean':>10s} {'std':>6s} {'min':>7s} {'max':>7s} {'aligned':>8s}  "
         f"{'ATE / odometry':>14s}" + "".join(f"  {'drift ' + g + ' %':>14s}" for g in regions)
@@ -143,7 +149,7 @@ def format_seed_table(summary: list[dict]) -> str:
             f"{r['ate_max_m']:7.3f} {r['ate_aligned_mean_m']:8.3f}  "
             f"{r['ate_over_odometry_mean']:7.3f} +-{r['ate_over_odometry_std']:.3f}"
             + "".join(
-                f"  {'-':>14s}" if r[f"drift_{g}_pct_mean"] is None else f"  {r[f'drift_{g}_pct_mean']:14.1f}"
+                f"  {'-':>14s}" if r["drift_mean"][g]["pct"] is None else f"  {r['drift_mean'][g]['pct']:14.1f}"
                 for g in regions
             )
         )
@@ -172,9 +178,7 @@ def format_table(rows: list[dict]) -> str:
         flags = " ".join(f"{r[f'flagged_{a}']:.2f}" for a in AXES)
         al = "-" if r["ate_aligned_m"] is None else f"{r['ate_aligned_m']:.3f}"
         drifts = "".join(
-            f"  {'-':>15s}"
-            if r[f"drift_{g}_m"] is None
-            else f"  {r[f'drift_{g}_m']:6.2f} m {r[f'drift_{g}_pct']:5.1f}%"
+            f"  {'-':>15s}" if (d := r["drift"][g])["m"] is None else f"  {d['m']:6.2f} m {d['pct']:5.1f}%"
             for g in regions
         )
         lines.append(

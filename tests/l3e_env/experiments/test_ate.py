@@ -443,8 +443,7 @@ def _row(name: str, ate: float, tunnel_pct: float | None = None) -> dict:
         "detector": name,
         "ate_m": ate,
         "ate_aligned_m": ate / 2,
-        "drift_tunnel_m": tunnel_pct,
-        "drift_tunnel_pct": tunnel_pct,
+        "drift": {"tunnel": {"m": tunnel_pct, "pct": tunnel_pct}},
     }
 
 
@@ -462,7 +461,7 @@ def test_several_drives_summarised_per_detector_and_against_odometry_on_the_same
     assert learned["ate_over_odometry_mean"] == pytest.approx(np.mean([0.5, 0.75, 0.5]), abs=1e-3)
     assert odometry["ate_over_odometry_mean"] == 1.0 and odometry["ate_over_odometry_std"] == 0.0
     assert learned["ate_aligned_mean_m"] == pytest.approx(11 / 12, abs=1e-3)
-    assert learned["drift_tunnel_pct_mean"] == 1.5 and odometry["drift_tunnel_pct_mean"] == 5.0
+    assert learned["drift_mean"]["tunnel"]["pct"] == 1.5 and odometry["drift_mean"]["tunnel"]["pct"] == 5.0
     table = format_seed_table([odometry, learned])
     assert "over 3 drives (seeds 3-5)" in table and "drift tunnel %" in table and table.endswith("1.5")
     runs[5] = [_row("odometry only", 3.0), _row("eigen:30", 1.5)]
@@ -584,9 +583,10 @@ def test_the_drift_of_each_region_is_its_own_and_the_table_shows_it():
     est = gt.copy()
     est[:, 0, 3] -= 0.05 * np.clip(np.arange(len(xs)) - 40, 0, None)  # 5 cm short a step once in the tunnel
     drift = region_drift(est, gt, regions_inside(gt, mine))
-    assert drift["drift_yard_m"] == pytest.approx(0.0, abs=1e-9) and drift["drift_tunnel_m"] == pytest.approx(3.9)
-    assert drift["drift_tunnel_pct"] == pytest.approx(100 * 3.9 / 39.0)  # x = 0 is the yard's, the tunnel's from 0.5
-    assert drift["drift_quarry_m"] is None and drift["drift_quarry_pct"] is None
+    yard, tunnel, quarry = (drift["drift"][g] for g in ("yard", "tunnel", "quarry"))
+    assert yard["m"] == pytest.approx(0.0, abs=1e-9) and tunnel["m"] == pytest.approx(3.9)
+    assert tunnel["pct"] == pytest.approx(100 * 3.9 / 39.0)  # x = 0 is the yard's, the tunnel's from 0.5
+    assert quarry["m"] is None and quarry["pct"] is None
     row = {
         "detector": "none",
         "ate_m": 1.0,
