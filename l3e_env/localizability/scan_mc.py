@@ -92,6 +92,77 @@ def beams_and_columns(points: np.ndarray, pattern: BeamPattern) -> tuple[np.ndar
     return beam, column
 
 
+def _corner(grid: np.ndarray, down: int, right: int) -> np.ndarray:
+    """The grid shifted `down` rows and `right` columns (columns wrap around), one row short."""
+    return np.roll(grid, -right, axis=1)[down : down + len(grid) - 1]
+
+
+def _joined(
+    vertex: np.ndarray, ranges: np.ndarray, max_range_ratio: float, keep: np.ndarray | None = None
+) -> np.ndarray:
+    """The two triangles of each 2 x 2 block of the grid whose three returns exist and whose ranges differ
+    by less than `max_range_ratio` (with `keep`, only those that touch a kept cell)."""
+    faces = []
+    for tri in (((0, 0), (0, 1), (1, 0)), ((0, 1), (1, 1), (1, 0))):
+        ids = [_corner(vertex, d, r) for d, r in tri]
+        rs = [_corner(ranges, d, r) for d, r in tri]
+        hi, lo = np.maximum.reduce(rs), np.minimum.reduce(rs)
+        ok = (ids[0] >= 0) & (ids[1] >= 0) & (ids[2] >= 0) & (hi < max_range_ratio * lo)
+        if keep is not None:  # only faces that reach behind the foreground
+            ok &= np.logical_or.reduce([_corner(keep, d, r) for d, r in tri])
+        faces.append(np.stack([i[ok] for i in ids], axis=1))
+    return np.concatenate(faces)
+
+
+def _add_shadow(
+    vertices: list, faces: list, vertex: np.ndarray, ranges: np.ndarray, pattern: BeamPattern, ratio: float, deg: float
+) -> None:
+    """A surface behind each return beside a depth jump, at the farthest range within `deg` of azimuth
+    and a beam: taken to go on behind the foreground, where a child that moves sees it."""
+    from scipy.ndimage import maximum_filter
+
+    width = 2 * int(round(deg / (360.0 / pattern.n_azimuth))) + 1
+    far = maximum_filter(ranges, size=(3, width), mode=("nearest", "wrap"))
+    behind = (vertex >= 0) & (far >= ratio * ranges)  # foreground returns beside a far surface
+    layer = vertex.copy()
+    layer[behind] = sum(map(len, vertices)) + np.arange(behind.sum())
+    vertices.append(vertices[0][vertex[behind]] * (far[behind] / ranges[behind])[:, None])
+    faces.append(_joined(layer, np.where(behind, far, ranges), ratio, behind))
+
+
+def _add_beyond(
+    vertices: list, faces: list, vertex: np.ndarray, ranges: np.ndarray, pattern: BeamPattern, ratio: float, deg: float
+) -> None:
+    """The lowest and highest beams' surfaces continued `deg` past them, one beam spacing a row, their
+    range growing by the ratio between the edge beam's and the next beam's."""
+    elevations = np.sort(pattern.elevations_deg)
+    rows = int(np.ceil(deg / pattern.spacing_deg()))
+    points = vertices[0]
+    for edge, inner in ((0, 1), (-1, -2)):
+        ids, growth = vertex[edge], ranges[edge] / np.where(ranges[inner] > 0, ranges[inner], np.inf)
+        ok = (ids >= 0) & (growth > 1 / ratio) & (growth < ratio)
+        last = points[np.where(ok, ids, 0)]
+        azimuth = np.arctan2(last[:, 1], last[:, 0])
+        step = np.deg2rad(elevations[edge] - elevations[inner])
+        elevation = np.arctan2(last[:, 2], np.hypot(last[:, 0], last[:, 1]))
+        grid, grid_ranges = [vertex[edge]], [ranges[edge]]
+        for k in range(1, rows + 1):
+            r = ranges[edge] * growth**k
+            el = elevation + k * step
+            ray = np.stack([np.cos(el) * np.cos(azimuth), np.cos(el) * np.sin(azimuth), np.sin(el)], axis=1)
+            index = np.full(len(ids), -1, dtype=np.int64)
+            index[ok] = sum(map(len, vertices)) + np.arange(ok.sum())
+            vertices.append((ray * r[:, None])[ok])
+            grid.append(index)
+            grid_ranges.append(np.where(ok, r, 0.0))
+        stack, stack_ranges = np.stack(grid), np.stack(grid_ranges)
+        if edge == 0:  # rows run from the lowest up
+            stack, stack_ranges = stack[::-1], stack_ranges[::-1]
+        fresh = np.ones_like(stack, dtype=bool)
+        fresh[-1 if edge == 0 else 0] = False
+        faces.append(_joined(stack, stack_ranges, ratio, fresh))
+
+
 def range_image_mesh(
     points: np.ndarray,
     pattern: BeamPattern,
@@ -125,63 +196,11 @@ def range_image_mesh(
     ranges[beam, column] = np.linalg.norm(points, axis=1)
     order = np.argsort(pattern.elevations_deg)  # rows from the lowest beam up, so that rows k, k+1 neighbour
     vertex, ranges = vertex[order], ranges[order]
-
-    def corner(grid: np.ndarray, down: int, right: int) -> np.ndarray:
-        return np.roll(grid, -right, axis=1)[down : down + len(grid) - 1]
-
-    def joined(vertex: np.ndarray, ranges: np.ndarray, keep: np.ndarray | None = None) -> np.ndarray:
-        faces = []
-        for tri in (((0, 0), (0, 1), (1, 0)), ((0, 1), (1, 1), (1, 0))):
-            ids = [corner(vertex, d, r) for d, r in tri]
-            rs = [corner(ranges, d, r) for d, r in tri]
-            hi, lo = np.maximum.reduce(rs), np.minimum.reduce(rs)
-            ok = (ids[0] >= 0) & (ids[1] >= 0) & (ids[2] >= 0) & (hi < max_range_ratio * lo)
-            if keep is not None:  # only faces that reach behind the foreground
-                ok &= np.logical_or.reduce([corner(keep, d, r) for d, r in tri])
-            faces.append(np.stack([i[ok] for i in ids], axis=1))
-        return np.concatenate(faces)
-
-    vertices, faces = [points], [joined(vertex, ranges)]
+    vertices, faces = [points], [_joined(vertex, ranges, max_range_ratio)]
     if shadow_deg > 0:
-        from scipy.ndimage import maximum_filter
-
-        # the farthest surface within shadow_deg of azimuth and a beam of each return, taken to go on
-        # behind it where it lies beyond a depth jump
-        width = 2 * int(round(shadow_deg / (360.0 / pattern.n_azimuth))) + 1
-        far = maximum_filter(ranges, size=(3, width), mode=("nearest", "wrap"))
-        behind = (vertex >= 0) & (far >= max_range_ratio * ranges)  # foreground returns beside a far surface
-        layer = vertex.copy()
-        layer[behind] = sum(map(len, vertices)) + np.arange(behind.sum())
-        vertices.append(points[vertex[behind]] * (far[behind] / ranges[behind])[:, None])
-        faces.append(joined(layer, np.where(behind, far, ranges), behind))
-    elevations = np.sort(pattern.elevations_deg)
-    rows = int(np.ceil(beyond_deg / pattern.spacing_deg())) if beyond_deg > 0 and len(elevations) > 2 else 0
-    for edge, inner in ((0, 1), (-1, -2)) if rows else ():
-        # the edge beam's surface continued outwards, one beam spacing a row, its range growing by
-        # the ratio between the edge beam's and the next beam's
-        ids, ratio = vertex[edge], ranges[edge] / np.where(ranges[inner] > 0, ranges[inner], np.inf)
-        ok = (ids >= 0) & (ratio > 1 / max_range_ratio) & (ratio < max_range_ratio)
-        last = points[np.where(ok, ids, 0)]
-        azimuth = np.arctan2(last[:, 1], last[:, 0])
-        step = np.deg2rad(elevations[edge] - elevations[inner])
-        elevation = np.arctan2(last[:, 2], np.hypot(last[:, 0], last[:, 1]))
-        grid, grid_ranges = [vertex[edge]], [ranges[edge]]
-        for k in range(1, rows + 1):
-            r = ranges[edge] * ratio**k
-            el = elevation + k * step
-            ray = np.stack([np.cos(el) * np.cos(azimuth), np.cos(el) * np.sin(azimuth), np.sin(el)], axis=1)
-            new = ray * r[:, None]
-            index = np.full(len(ids), -1, dtype=np.int64)
-            index[ok] = sum(map(len, vertices)) + np.arange(ok.sum())
-            vertices.append(new[ok])
-            grid.append(index)
-            grid_ranges.append(np.where(ok, r, 0.0))
-        stack, stack_ranges = np.stack(grid), np.stack(grid_ranges)
-        if edge == 0:  # rows run from the lowest up
-            stack, stack_ranges = stack[::-1], stack_ranges[::-1]
-        fresh = np.ones_like(stack, dtype=bool)
-        fresh[-1 if edge == 0 else 0] = False
-        faces.append(joined(stack, stack_ranges, fresh))
+        _add_shadow(vertices, faces, vertex, ranges, pattern, max_range_ratio, shadow_deg)
+    if beyond_deg > 0 and pattern.n_beams > 2:
+        _add_beyond(vertices, faces, vertex, ranges, pattern, max_range_ratio, beyond_deg)
     import trimesh  # loads slowly: only the scan estimate builds a mesh
 
     return trimesh.Trimesh(np.concatenate(vertices), np.concatenate(faces), process=False)

@@ -635,6 +635,14 @@ def fit_pattern(points: np.ndarray, rings: np.ndarray | None = None) -> tuple[Be
     points = points[usable]
     if len(points) < 100:
         raise PatternError(f"{len(points)} finite returns are too few to tell the sensor's beams")
+    known = _known_pattern(points)
+    return known if known is not None else _fitted_pattern(points, rings)
+
+
+def _known_pattern(points: np.ndarray) -> tuple[BeamPattern, str] | None:
+    """The registered pattern with the fewest beams that every return lies on, with a return on one of
+    its end beams (of two with the same beams, the one the returns lie closer to), at the scan's column
+    count and encoder phases; None where none fits."""
     fits = []
     for known in PATTERNS.values():
         beam, _, off = known.locate(points)
@@ -643,20 +651,24 @@ def fit_pattern(points: np.ndarray, rings: np.ndarray | None = None) -> tuple[Be
         # both end beams empty; a scan of this sensor reaches the ground or the roof with one of them
         if off.max() <= BEAM_TOLERANCE * known.spacing_deg() and ends & set(np.unique(beam).tolist()):
             fits.append((known.n_beams, float(off.mean()), len(fits), known, beam))
-    if fits:  # the fewest beams; of the same beams (a VLP-16 with or without its offsets), the closest
-        _, _, _, known, beam = min(fits, key=lambda fit: fit[:3])
-        columns = _columns(points, beam)
-        pattern, how = known, f"{known.name}: every return lies on one of its beams"
-        if abs(columns - known.n_azimuth) > 0.02 * known.n_azimuth:
-            pattern = replace(
-                known, name=f"{known.name}@{columns}", n_azimuth=columns, image_width=_image_width(columns)
-            )
-            how = f"{known.name}'s beams at {columns} columns a revolution"
-        phases = _own_phases(points, beam, pattern)
-        if phases is not None:  # its columns lie off the datasheet's grid (a unit's own encoder offset)
-            pattern = replace(pattern, name=f"{pattern.name}-phased", azimuth_offsets_deg=phases)
-            how += ", " + _offset_words(phases)
-        return pattern, how
+    if not fits:
+        return None
+    _, _, _, known, beam = min(fits, key=lambda fit: fit[:3])
+    columns = _columns(points, beam)
+    pattern, how = known, f"{known.name}: every return lies on one of its beams"
+    if abs(columns - known.n_azimuth) > 0.02 * known.n_azimuth:
+        pattern = replace(known, name=f"{known.name}@{columns}", n_azimuth=columns, image_width=_image_width(columns))
+        how = f"{known.name}'s beams at {columns} columns a revolution"
+    phases = _own_phases(points, beam, pattern)
+    if phases is not None:  # its columns lie off the datasheet's grid (a unit's own encoder offset)
+        pattern = replace(pattern, name=f"{pattern.name}-phased", azimuth_offsets_deg=phases)
+        how += ", " + _offset_words(phases)
+    return pattern, how
+
+
+def _fitted_pattern(points: np.ndarray, rings: np.ndarray | None) -> tuple[BeamPattern, str]:
+    """A pattern fitted to the scan: a beam per ring (`rings`) or per cluster of equal elevations, the
+    beams' origin offset, the columns and each beam's azimuth offset."""
     origin = _beam_origin(points)
     elevation = _elevations(points, origin)
     beams = np.sort(_beams_of(elevation, rings))
