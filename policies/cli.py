@@ -144,7 +144,7 @@ def non_negative(text: str) -> float:
 
 def _cmd_train(args: argparse.Namespace) -> int:
     from .context import scene_context
-    from .ppo import TRAIN_VARIANTS, WarmStart, require_sb3, resumed_config, train_ppo
+    from .ppo import TRAIN_VARIANTS, PPOTraining, WarmStart, require_sb3, resumed_config, train_ppo
 
     require_sb3()  # before minutes of maps, not after
     scenes = _scenes_with_params(args, tuple(TRAIN_VARIANTS))
@@ -161,17 +161,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
         for name, params in scenes.items()
     ]
     config = resumed_config(args.out, lam=args.lam, lateral_drift=args.lateral_drift, sideways=args.sideways)
-    summary = train_ppo(
-        args.out,
-        contexts,
-        args.detector,
-        args.timesteps,
-        args.seed,
-        args.envs,
-        config,
-        progress=not args.quiet,
-        warm=WarmStart() if args.warm_start else None,
-    )
+    training = PPOTraining(args.timesteps, args.seed, args.envs, WarmStart() if args.warm_start else None)
+    summary = train_ppo(args.out, contexts, args.detector, training, config, progress=not args.quiet)
     print(f"{summary['timesteps']} steps; policy: {Path(args.out) / 'policy.pt'}; logs: progress.csv, monitor.csv")
     return 0
 

@@ -208,56 +208,90 @@ def clone(
     return error
 
 
+@dataclasses.dataclass(frozen=True)
+class PPOTraining:
+    """How long and how PPO trains: `timesteps` in all (a resumed run goes on to them), over `n_envs`
+    environments, seeded by `seed`; a new run starts from `warm`'s behaviour cloning of the planner's
+    choice (None: from random weights)."""
+
+    timesteps: int = 300_000
+    seed: int = 0
+    n_envs: int = 4
+    warm: WarmStart | None = WarmStart()
+
+
 def train_ppo(
     out: str | Path,
     contexts: list[SceneContext],
     detector: str = "learned",
-    timesteps: int = 300_000,
-    seed: int = 0,
-    n_envs: int = 4,
+    training: PPOTraining = PPOTraining(),
     config: FastEnvConfig | None = None,
     progress: bool = True,
-    warm: WarmStart | None = WarmStart(),
 ) -> dict[str, Any]:
     """Train (or resume) a PPO policy on the scenes' cached maps (made with `detector`, which
-    evaluation reads back from policy.json); returns the summary written there. A new run starts
-    from `warm`'s behaviour cloning of the planner's choice (None: from random weights)."""
-    sb3 = require_sb3()
+    evaluation reads back from policy.json); returns the summary written there."""
+    require_sb3()
     import torch
-    from stable_baselines3.common.callbacks import BaseCallback
     from stable_baselines3.common.logger import configure
-    from stable_baselines3.common.vec_env import DummyVecEnv, VecMonitor
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     torch.set_num_threads(1)
     config = config or FastEnvConfig()
-    scenes = [c.scene.name for c in contexts]
-
     last = out / STATE_FILE
-    # one episode log per run: monitor.csv, then resume-1.monitor.csv, ... (SB3 wants the suffix)
+    model = _ppo_model(out, contexts, config, training)
+    if last.exists():
+        _resume(model, last)
+    elif training.warm is not None:
+        observations, actions, returns = demonstrations(contexts, config, training.warm, training.seed)
+        cloned = clone(model.policy, observations, actions, returns, training.warm, training.seed)
+        record = {**dataclasses.asdict(training.warm), "samples": len(observations), "action_mse": cloned}
+        (out / WARM_FILE).write_text(json.dumps(record, indent=2))
+    model.set_logger(configure(str(out), ["csv", *(["tensorboard"] if _has_tensorboard() else [])]))
+    done = model.num_timesteps
+    if training.timesteps > done:
+        model.learn(
+            training.timesteps - done,
+            callback=[_progress(model, last, training.timesteps, progress)],
+            reset_num_timesteps=False,
+        )
+    _save_state(model, last)
+    _save_tensors(out / POLICY_FILE, model.policy.state_dict())
+    return _write_record(out, model, contexts, detector, training, config, done)
+
+
+def _ppo_model(out: Path, contexts: list[SceneContext], config: FastEnvConfig, training: PPOTraining) -> Any:
+    """A PPO model over `n_envs` fast environments of the scenes, their episodes logged to a monitor
+    file of this run's own (monitor.csv, then resume-1.monitor.csv, ...: SB3 wants the suffix)."""
+    sb3 = require_sb3()
+    from stable_baselines3.common.vec_env import DummyVecEnv, VecMonitor
+
     runs = len(list(out.glob("*monitor.csv")))
     monitor = out / ("monitor.csv" if runs == 0 else f"resume-{runs}.monitor.csv")
-    venv = VecMonitor(DummyVecEnv([lambda: MapNavigationEnv(contexts, config)] * n_envs), str(monitor))
-    venv.seed(seed)
-    model = sb3.PPO("MlpPolicy", venv, seed=seed, device="cpu", policy_kwargs={"net_arch": NET_ARCH}, **PPO_SETTINGS)
-    if last.exists():
-        state = _load_tensors(last)
-        try:
-            model.policy.load_state_dict(state["policy"])
-            model.policy.optimizer.load_state_dict(state["optimizer"])
-            model.num_timesteps = int(state["num_timesteps"])
-        except (KeyError, RuntimeError, ValueError, TypeError) as exc:
-            raise PolicyCheckpointError(
-                f"{last}: not the state of a run of this network ({exc}); train into another folder"
-            ) from exc
-    elif warm is not None:
-        observations, actions, returns = demonstrations(contexts, config, warm, seed)
-        cloned = clone(model.policy, observations, actions, returns, warm, seed)
-        (out / WARM_FILE).write_text(
-            json.dumps({**dataclasses.asdict(warm), "samples": len(observations), "action_mse": cloned}, indent=2)
-        )
-    model.set_logger(configure(str(out), ["csv", *(["tensorboard"] if _has_tensorboard() else [])]))
+    venv = VecMonitor(DummyVecEnv([lambda: MapNavigationEnv(contexts, config)] * training.n_envs), str(monitor))
+    venv.seed(training.seed)
+    return sb3.PPO(
+        "MlpPolicy", venv, seed=training.seed, device="cpu", policy_kwargs={"net_arch": NET_ARCH}, **PPO_SETTINGS
+    )
+
+
+def _resume(model: Any, last: Path) -> None:
+    """The policy, its optimiser and the steps taken from a run's last state (weights only)."""
+    state = _load_tensors(last)
+    try:
+        model.policy.load_state_dict(state["policy"])
+        model.policy.optimizer.load_state_dict(state["optimizer"])
+        model.num_timesteps = int(state["num_timesteps"])
+    except (KeyError, RuntimeError, ValueError, TypeError) as exc:
+        raise PolicyCheckpointError(
+            f"{last}: not the state of a run of this network ({exc}); train into another folder"
+        ) from exc
+
+
+def _progress(model: Any, last: Path, timesteps: int, progress: bool) -> Any:
+    """A callback that shows a progress bar and saves the run's state every 20 000 steps."""
+    from stable_baselines3.common.callbacks import BaseCallback
+
     done = model.num_timesteps
 
     class Bar(BaseCallback):
@@ -273,14 +307,23 @@ def train_ppo(
         def _on_training_end(self) -> None:
             self.bar.close()
 
-    if timesteps > done:
-        model.learn(timesteps - done, callback=[Bar()], reset_num_timesteps=False)
-    _save_state(model, last)
-    _save_tensors(out / POLICY_FILE, model.policy.state_dict())
-    # a run resumed on other variants (a curriculum) keeps the record of every stage
+    return Bar()
+
+
+def _write_record(
+    out: Path,
+    model: Any,
+    contexts: list[SceneContext],
+    detector: str,
+    training: PPOTraining,
+    config: FastEnvConfig,
+    done: int,
+) -> dict[str, Any]:
+    """policy.json: the layouts, the scenes and maps, the fast environment, and each stage's steps (a run
+    resumed on other variants, a curriculum, keeps the record of every stage)."""
+    scenes = [c.scene.name for c in contexts]
     history = run_record(out).get("history", [])
     history.append({"scenes": scenes, "from_timestep": int(done), "to_timestep": int(model.num_timesteps)})
-    warm_record = json.loads((out / WARM_FILE).read_text()) if (out / WARM_FILE).exists() else None
     summary = {
         "observation": OBSERVATION,
         "action": list(action_layout(config.sideways)),
@@ -288,8 +331,8 @@ def train_ppo(
         "scenes": scenes,
         "detector": detector,
         "timesteps": int(model.num_timesteps),
-        "warm_start": warm_record,
-        "seed": seed,
+        "warm_start": json.loads((out / WARM_FILE).read_text()) if (out / WARM_FILE).exists() else None,
+        "seed": training.seed,
         "fast_env": plain(dataclasses.asdict(config)),
         "history": history,
     }

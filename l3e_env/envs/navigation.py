@@ -23,6 +23,19 @@ from scenes.geometry import polyline_length
 ARRIVAL = ("truth", "estimate")  # EnvConfig.arrival: which pose ends an episode at the goal
 
 
+def _check_config(config: EnvConfig) -> None:
+    """ValueError for an arrival, stop radius or fusion the episode cannot use."""
+    if config.arrival not in ARRIVAL:
+        raise ValueError(f"arrival must be one of {ARRIVAL}, got {config.arrival!r}")
+    if not 0 < config.stop_radius <= config.goal_radius:
+        raise ValueError(f"stop_radius must be in (0, goal_radius], got {config.stop_radius}")
+    if config.arrival == "estimate" and not config.fusion.enabled:
+        raise ValueError(
+            "arrival 'estimate' ends an episode on the fused estimate: turn the fusion on "
+            "(fusion.enabled), or use arrival 'truth'"
+        )
+
+
 class NavigationEnv(gym.Env):
     """Observation (Dict):
       ranges   (beams, width) float32: range image in metres, 0 where there is no return
@@ -60,15 +73,7 @@ class NavigationEnv(gym.Env):
             raise ValueError("pass either an EnvConfig or keyword options, not both")
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
-        if config.arrival not in ARRIVAL:
-            raise ValueError(f"arrival must be one of {ARRIVAL}, got {config.arrival!r}")
-        if not 0 < config.stop_radius <= config.goal_radius:
-            raise ValueError(f"stop_radius must be in (0, goal_radius], got {config.stop_radius}")
-        if config.arrival == "estimate" and not config.fusion.enabled:
-            raise ValueError(
-                "arrival 'estimate' ends an episode on the fused estimate: turn the fusion on "
-                "(fusion.enabled), or use arrival 'truth'"
-            )
+        _check_config(config)
         self.config, self.render_mode = config, render_mode
         self.scene = scene_object or make_scene(config.scene, **config.scene_params)
         if config.route not in self.scene.routes:
@@ -86,17 +91,7 @@ class NavigationEnv(gym.Env):
             raise ValueError(
                 f"range_image_width {self.width} must divide the {pattern.n_azimuth} columns of {pattern.name}"
             )
-        shape = (pattern.n_beams, self.width)
-        odom_bound = np.array([5.0, 5.0, 5.0, np.pi, np.pi, np.pi], dtype=np.float32)
-        extent = np.float32(2 * np.linalg.norm(self.scene.bounds[1] - self.scene.bounds[0]))
-        self.observation_space = spaces.Dict(
-            {
-                "ranges": spaces.Box(0.0, self.lidar.max_range, shape, np.float32),
-                "valid": spaces.Box(0, 1, shape, np.int8),
-                "odometry": spaces.Box(-odom_bound, odom_bound, (6,), np.float32),
-                "goal": spaces.Box(-extent, extent, (3,), np.float32),
-            }
-        )
+        self.observation_space = self._observation_space()
         self.action_space = spaces.Box(-1.0, 1.0, (3,), dtype=np.float32)
         speed = float(config.robot.max_twist[0])
         route_length = polyline_length(self.route)
@@ -111,6 +106,20 @@ class NavigationEnv(gym.Env):
 
             self.fusion = OnlineFusion(config.fusion, self.lidar, config.odometry, self.robot.T_b_s)
         self._fusion_info: dict[str, Any] = {}
+
+    def _observation_space(self) -> spaces.Dict:
+        """The range image and its valid returns, the odometry step and the goal in the body frame."""
+        shape = (self.lidar.pattern.n_beams, self.width)
+        odom_bound = np.array([5.0, 5.0, 5.0, np.pi, np.pi, np.pi], dtype=np.float32)
+        extent = np.float32(2 * np.linalg.norm(self.scene.bounds[1] - self.scene.bounds[0]))
+        return spaces.Dict(
+            {
+                "ranges": spaces.Box(0.0, self.lidar.max_range, shape, np.float32),
+                "valid": spaces.Box(0, 1, shape, np.int8),
+                "odometry": spaces.Box(-odom_bound, odom_bound, (6,), np.float32),
+                "goal": spaces.Box(-extent, extent, (3,), np.float32),
+            }
+        )
 
     # -- gymnasium API -------------------------------------------------------------------
     def reset(self, *, seed: int | None = None, options: dict | None = None):

@@ -292,11 +292,11 @@ def test_policy_train_takes_the_sideways_cost_and_a_resumed_run_keeps_it(tmp_pat
 
     given = []
 
-    def fake_train(out, contexts, detector, timesteps, seed, envs, config, progress, warm):
+    def fake_train(out, contexts, detector, training, config, progress):
         given.append((config.lateral_drift, config.lam, config.sideways))
         (Path(out) / "policy.json").parent.mkdir(parents=True, exist_ok=True)
         (Path(out) / "policy.json").write_text(json.dumps({"fast_env": plain(dataclasses.asdict(config))}))
-        return {"timesteps": timesteps}
+        return {"timesteps": training.timesteps}
 
     monkeypatch.setattr("policies.ppo.train_ppo", fake_train)
     monkeypatch.setattr("policies.context.scene_context", lambda *args, **kwargs: None)
@@ -358,14 +358,14 @@ def test_policy_view_sees_the_corridor_ahead(small_fork):
 
 def test_ppo_trains_resumes_and_refuses_other_observations(tmp_path, small_fork):
     pytest.importorskip("stable_baselines3")
-    from policies.ppo import OBSERVATION, PolicyCheckpointError, PPOPolicy, train_ppo
+    from policies.ppo import OBSERVATION, PolicyCheckpointError, PPOPolicy, PPOTraining, train_ppo
 
     scene, space, cache = small_fork
     contexts = [SceneContext(scene, space, get_map(scene, space, "eigen:30", cache, grid=MapGrid(resolution=4.0)))]
     out = tmp_path / "ppo"
-    first = train_ppo(out, contexts, "eigen:30", timesteps=512, n_envs=2, config=FastEnvConfig(), progress=False)
+    first = train_ppo(out, contexts, "eigen:30", PPOTraining(512, n_envs=2), FastEnvConfig(), progress=False)
     assert first["timesteps"] >= 512 and (out / "last.pt").exists() and not list(out.glob("*.zip"))
-    resumed = train_ppo(out, contexts, "eigen:30", timesteps=1024, n_envs=2, progress=False)
+    resumed = train_ppo(out, contexts, "eigen:30", PPOTraining(1024, n_envs=2), progress=False)
     assert resumed["timesteps"] >= 1024
     assert (out / "progress.csv").exists() and (out / "monitor.csv").exists()
     assert list(out.glob("events.out.tfevents.*")), "the TensorBoard log beside the CSV one"
@@ -412,7 +412,7 @@ def test_ppo_trains_resumes_and_refuses_other_observations(tmp_path, small_fork)
 
 def test_teacher_walks_the_aware_direction_and_ppo_starts_from_its_clone(tmp_path, small_fork):
     pytest.importorskip("stable_baselines3")
-    from policies.ppo import PPOPolicy, WarmStart, demonstrations, teacher_action, train_ppo
+    from policies.ppo import PPOPolicy, PPOTraining, WarmStart, demonstrations, teacher_action, train_ppo
 
     obs = np.zeros((3, PolicyView.size), dtype=np.float32)
     obs[:, PolicyView.aware] = [[1.0, 0.0], [0.0, 1.0], [np.cos(-0.3), np.sin(-0.3)]]
@@ -428,9 +428,7 @@ def test_teacher_walks_the_aware_direction_and_ppo_starts_from_its_clone(tmp_pat
     gaps = {}
     for name, start in (("warm", warm), ("cold", None)):
         # no PPO step after it: the network as cloned (or as drawn)
-        train_ppo(
-            tmp_path / name, contexts, "eigen:30", timesteps=0, n_envs=1, config=walking, progress=False, warm=start
-        )
+        train_ppo(tmp_path / name, contexts, "eigen:30", PPOTraining(0, n_envs=1, warm=start), walking, progress=False)
         policy = PPOPolicy(tmp_path / name)
         twists = np.array([policy(o) for o in observations[:200]])
         assert not twists[:, 1].any()  # (vx, yaw rate): it never walks sideways
@@ -460,7 +458,7 @@ def test_a_crafted_policy_folder_runs_no_code_when_loaded_or_resumed(tmp_path, s
     import zipfile
 
     from l3e_env.cli.main import main
-    from policies.ppo import OBSERVATION, PolicyCheckpointError, PPOPolicy, train_ppo
+    from policies.ppo import OBSERVATION, PolicyCheckpointError, PPOPolicy, PPOTraining, train_ppo
 
     marker = tmp_path / "marker"
     folder = tmp_path / "shared-policy"
@@ -502,7 +500,7 @@ def test_a_crafted_policy_folder_runs_no_code_when_loaded_or_resumed(tmp_path, s
     contexts = [SceneContext(scene, space, get_map(scene, space, "eigen:30", cache, grid=MapGrid(resolution=4.0)))]
     (folder / "last.pt").write_bytes(pickle.dumps(_Payload(marker), protocol=2))
     with pytest.raises(PolicyCheckpointError, match="cannot be read as policy weights"):
-        train_ppo(folder, contexts, "eigen:30", timesteps=256, n_envs=1, config=FastEnvConfig(), progress=False)
+        train_ppo(folder, contexts, "eigen:30", PPOTraining(256, n_envs=1), FastEnvConfig(), progress=False)
     assert not marker.exists()
 
 
