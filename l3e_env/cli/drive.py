@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from pathlib import Path
 
@@ -12,6 +11,7 @@ from l3e_env.config.detector_spec import DEFAULT_ATE_DETECTORS, DETECTOR_GRAMMAR
 
 from .options import (
     SENSOR_HELP,
+    CommandError,
     add_fusion_options,
     add_max_steps,
     add_mesh_options,
@@ -84,8 +84,7 @@ def _cmd_ate(args: argparse.Namespace) -> int:
     out = Path(args.out or f"l3e_out/ate-{stem}-{time.strftime('%Y%m%d-%H%M%S')}")
     args.out = str(out)  # the resolved options are written beside it
     if args.seeds < 1 or (args.seeds > 1 and args.recording):
-        print("l3e ate: --seeds is 1 or more drives, and a recording is one drive", file=sys.stderr)
-        return 2
+        raise CommandError("--seeds is 1 or more drives, and a recording is one drive")
     print(f"writing the experiment into {out.resolve()}")
     detectors = args.detector or list(DEFAULT_ATE_DETECTORS)
     options = AteOptions(
@@ -142,12 +141,11 @@ def record_imu(args: argparse.Namespace):
 
 def _cmd_record(args: argparse.Namespace) -> int:
     from l3e_env.experiments.drive import DriveOptions, record_run
-    from l3e_env.io.rosbag import BagError, BagRecorder
+    from l3e_env.io.rosbag import BagRecorder
 
     params = scene_params(args)
     if not args.imu_rate >= 0:
-        print(f"l3e record: --imu-rate must be 0 (no IMU) or more, got {args.imu_rate}", file=sys.stderr)
-        return 2
+        raise CommandError(f"--imu-rate must be 0 (no IMU) or more, got {args.imu_rate}")
     from l3e_env.io.rosbag import bag_size_bound
     from l3e_env.sim.follower import route_drive
     from l3e_env.sim.patterns import get_pattern
@@ -156,19 +154,14 @@ def _cmd_record(args: argparse.Namespace) -> int:
     pattern = get_pattern(args.sensor)
     scene = make_scene(args.scene, **params)  # built once: the size estimate and the drive share it
     if not args.still >= 0:
-        print(f"l3e record: --still is 0 s or more, got {args.still}", file=sys.stderr)
-        return 2
+        raise CommandError(f"--still is 0 s or more, got {args.still}")
     from l3e_env.config import RobotConfig
 
     steps = min(route_drive(scene.route)[1] + int(round(args.still / RobotConfig.dt)), args.max_steps or 10**9)
     size = bag_size_bound(pattern.n_beams * pattern.n_azimuth, steps + 1, args.sweep)
     shown = f"{size / 2**30:.1f} GiB" if size >= 2**30 else f"{size / 2**20:.0f} MiB"
     print(f"recording about {steps + 1} scans of {pattern.name}: the bag's scans take up to {shown}", flush=True)
-    try:
-        bag = BagRecorder(args.out, ros2=args.ros2, imu=record_imu(args), seed=args.seed)
-    except BagError as exc:
-        print(f"l3e record: {exc}", file=sys.stderr)
-        return 2
+    bag = BagRecorder(args.out, ros2=args.ros2, imu=record_imu(args), seed=args.seed)  # a BagError: the command's
     try:
         options = DriveOptions(args.sensor, args.seed, params, args.sweep, args.max_steps, args.still)
         rec = record_run(args.scene, options, not args.quiet, scene_object=scene, on_step=bag)

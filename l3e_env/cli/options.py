@@ -71,6 +71,11 @@ def add_fusion_options(parser: argparse.ArgumentParser) -> None:
     )
 
 
+class CommandError(ValueError):
+    """A command's options or inputs that it cannot use: `l3e` prints it as the command's error and exits
+    with 2, as it does every library error (the one way a command reports one)."""
+
+
 def fusion_settings(args: argparse.Namespace) -> FusionSettings:
     """The fusion's settings from the options that `add_fusion_options` added, and from --backend,
     --deskew and --attitude where the command has them (the defaults where not)."""

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from l3e_env.config.detector_spec import DETECTOR_GRAMMAR, detector_spec
 
-from .options import sensor_name
+from .options import CommandError, sensor_name
 
 
 def _judge_usage_problem(args: argparse.Namespace) -> str | None:
@@ -82,25 +82,19 @@ def _cmd_judge(args: argparse.Namespace) -> int:
     import numpy as np
 
     from l3e_env.experiments.judge import score_legend, write_judgements
-    from l3e_env.io.recorded import RecordingError
     from l3e_env.io.recordings import read_recording
     from l3e_env.io.rosbag import read_path
 
     problem = _judge_usage_problem(args)
     if problem:
-        print(f"l3e judge: {problem}", file=sys.stderr)
-        return 2
+        raise CommandError(problem)
     metadata = args.sensor if args.sensor and args.sensor.lower().endswith(".json") else None
-    try:
-        scans = (
-            read_recording(args.bag, args.topic, args.every, args.start, args.end, metadata, args.sensor_index)
-            if args.bag
-            else args.scans
-        )
-        route = read_path(args.bag, args.pose_topic) if args.bag and (args.path_plot or args.pose_topic) else None
-    except RecordingError as exc:
-        print(f"l3e judge: {exc}", file=sys.stderr)
-        return 2
+    scans = (
+        read_recording(args.bag, args.topic, args.every, args.start, args.end, metadata, args.sensor_index)
+        if args.bag
+        else args.scans
+    )
+    route = read_path(args.bag, args.pose_topic) if args.bag and (args.path_plot or args.pose_topic) else None
     specs = args.detector or ["learned", "eigen:30", "scanmc"]
     judgements, sensor = _judge_all(args, scans, specs)
     print("scores ('*' flagged):\n" + score_legend(specs))
@@ -114,11 +108,7 @@ def _cmd_judge(args: argparse.Namespace) -> int:
         plot_timeline(judgements, args.plot)
         print(f"written: {args.plot}")
     if args.path_plot and judged:
-        try:
-            _judge_path_plot(args, judgements, where, route)
-        except ValueError as exc:
-            print(f"l3e judge: {exc}", file=sys.stderr)
-            return 2
+        _judge_path_plot(args, judgements, where, route)
     failed = sum(j.error is not None for j in judgements)
     if not judgements:
         print("l3e judge: no scan in the recording between --start and --end", file=sys.stderr)
@@ -130,31 +120,24 @@ def _cmd_judge(args: argparse.Namespace) -> int:
 def _cmd_sensor(args: argparse.Namespace) -> int:
     from l3e_env.experiments.judge import recognise_sensor
     from l3e_env.io.ouster import is_capture
-    from l3e_env.io.recorded import RecordingError
     from l3e_env.io.recordings import read_recording
-    from l3e_env.io.scan_files import ScanFileError, read_scan
+    from l3e_env.io.scan_files import read_scan
     from l3e_env.sim.patterns import PATTERN_FILES, PATTERNS, describe_pattern, get_pattern, save_pattern
 
     if bool(args.source) == bool(args.bag):
-        print("l3e sensor: give a sensor (name or pattern file), a scan file or --bag, one of them", file=sys.stderr)
-        return 2
+        raise CommandError("give a sensor (name or pattern file), a scan file or --bag, one of them")
     if args.source and (args.source in PATTERNS or args.source.lower().endswith(PATTERN_FILES)):
         pattern, how = get_pattern(args.source), "as given"
     else:
         recording = args.bag or (args.source if is_capture(args.source) else None)
-        try:
-            if recording is None:
-                read_scan(args.source)  # a file that cannot be read is named here
-                scans = iter([args.source])
-            else:
-                scans = read_recording(recording, args.topic, sensor_index=args.sensor_index, one_sensor=True)
-        except (RecordingError, ScanFileError) as exc:
-            print(f"l3e sensor: {exc}", file=sys.stderr)
-            return 2
+        if recording is None:
+            read_scan(args.source)  # a file that cannot be read is named here
+            scans = iter([args.source])
+        else:
+            scans = read_recording(recording, args.topic, sensor_index=args.sensor_index, one_sensor=True)
         _, pattern, how = recognise_sensor(scans)
         if pattern is None:
-            print(f"l3e sensor: {how}", file=sys.stderr)
-            return 2
+            raise CommandError(how)
     print(describe_pattern(pattern) + f"\n  ({how})")
     if args.out:
         print(f"written: {save_pattern(pattern, args.out)} (give it as --sensor)")

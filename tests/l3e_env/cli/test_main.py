@@ -266,3 +266,18 @@ def test_a_range_of_scene_variants_is_spelt_once():
     for bad in ("bypass-9..3", "bypass-a..3", "volcano-1..2"):
         with pytest.raises(SystemExit):
             build_parser().parse_args(["policy", "evaluate", "--scene", bad])
+
+
+def test_every_command_reports_an_error_one_way(tmp_path, capsys):
+    """A usage error found by a command and an error raised by the library read alike: one line on
+    stderr, `l3e <command>: error: ...`, and exit status 2."""
+    cases = [
+        (["sensor"], "l3e sensor: error: give a sensor (name or pattern file), a scan file or --bag"),
+        (["ate", "--recording", "r.npz", "--seeds", "2"], "l3e ate: error: --seeds is 1 or more drives"),
+        (["judge", "a.npy", "--bag", "b.bag"], "l3e judge: error: give scan files or --bag, not both"),
+        (["evaluate", "--other", str(tmp_path / "none")], f"l3e evaluate: error: {tmp_path / 'none'} is not a dataset"),
+    ]
+    for argv, said in cases:
+        assert main(argv) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert err == [err[0]] and err[0].startswith(said), (argv, err)
