@@ -1,0 +1,95 @@
+"""The per-step pipeline's parts on their own: the scan registrar, the detect-and-fuse step, and the
+environment's online fusion."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fusion import FusionConfig
+from l3e_env.config import FusionSettings, LidarConfig, OdometryConfig
+from l3e_env.core.transforms import inverse, matrix_to_pose, pose_to_matrix
+from l3e_env.detection.detectors import NoDetector, Prediction
+from l3e_env.detection.pipeline import LocalizationPipeline, OnlineFusion, ScanRegistrar
+from l3e_env.localizability.registration import RegistrationConfig
+from l3e_env.sim.imu import ATTITUDE_EVERY
+from l3e_env.sim.lidar import Lidar
+from l3e_env.sim.raycast import EmbreeCaster
+from scenes import make_scene
+
+
+@pytest.fixture(scope="module")
+def office():
+    scene = make_scene("office-0")
+    return Lidar(EmbreeCaster(scene.mesh, threads=1), LidarConfig())
+
+
+def _at(x: float, yaw: float = 0.3) -> np.ndarray:
+    return pose_to_matrix(np.array([5.0 + x, 0.0, 0.85, 0.0, 0.0, yaw]))
+
+
+class _MaskAll:
+    name = "mask-all"
+
+    def predict(self, points, registration=None, T_w_s=None) -> Prediction:
+        return Prediction(np.ones(6), np.ones(6, dtype=bool))
+
+
+class _Broken:
+    name = "broken"
+
+    def predict(self, points, registration=None, T_w_s=None) -> Prediction:
+        raise RuntimeError("a detector bug")
+
+
+def test_the_registrar_registers_each_scan_to_the_last_and_skips_a_scan_too_small(office):
+    rng = np.random.default_rng(0)
+    registrar = ScanRegistrar(RegistrationConfig(), threads=1)
+    registrar.start(office.scan(_at(0.0), rng).points)
+    step = registrar.next(office.scan(_at(0.1), rng).points)
+    assert step is not None and step.converged
+    # the new scan (source) in the last one's frame: the sensor, yawed 0.3 rad, moved 0.1 m along world x
+    moved = matrix_to_pose(step.T_target_source)
+    assert moved[:3] == pytest.approx([0.1 * np.cos(0.3), -0.1 * np.sin(0.3), 0.0], abs=0.02)
+    assert registrar.next(np.zeros((10, 3))) is None  # too few points: no registration ...
+    assert registrar.next(office.scan(_at(0.2), rng).points) is None  # ... and no target for the next
+    assert registrar.next(office.scan(_at(0.3), rng).points) is not None  # then it goes on
+
+
+def test_a_step_fuses_odometry_alone_where_every_axis_is_masked_and_counts_a_failing_detector():
+    odometry = OdometryConfig()
+    step = pose_to_matrix(np.array([0.1, 0.0, 0.0, 0.0, 0.0, 0.02]))
+    pipeline = LocalizationPipeline(_MaskAll(), "graph", FusionConfig(), odometry, np.eye(4))
+    with pytest.raises(RuntimeError, match="call start"):
+        pipeline.step(step, None, np.zeros((0, 3)), None)
+    pipeline.start(np.eye(4))
+    for _ in range(5):
+        out = pipeline.step(step, None, np.zeros((0, 3)), None)
+    assert not out.icp_used and not out.detector_failed and out.prediction.mask.all()
+    assert out.T_w_b == pytest.approx(np.linalg.matrix_power(step, 5), abs=1e-6)  # dead reckoning
+    assert pipeline.trajectory().shape == (6, 4, 4)
+    broken = LocalizationPipeline(_Broken(), "ekf", FusionConfig(), odometry, np.eye(4))
+    broken.start(np.eye(4))
+    failed = broken.step(step, None, np.zeros((0, 3)), None)
+    assert failed.detector_failed and not failed.prediction.known
+    tilted = LocalizationPipeline(NoDetector(), "graph", FusionConfig(), odometry, np.eye(4), attitude="tilt")
+    tilted.start(np.eye(4))
+    with pytest.raises(ValueError, match="every step needs the IMU's attitude"):
+        for _ in range(ATTITUDE_EVERY):
+            tilted.step(step, None, np.zeros((0, 3)), None)
+
+
+def test_the_online_fusion_follows_a_drive_and_counts_what_it_did(office):
+    rng = np.random.default_rng(1)
+    fusion = OnlineFusion(FusionSettings(enabled=True, detector="eigen:30"), office, OdometryConfig(), np.eye(4))
+    truth = [_at(0.1 * k) for k in range(8)]
+    info = fusion.reset(truth[0], office.scan(truth[0], rng).points)
+    assert info["running_ate"] == 0.0 and not info["localizability_known"]
+    for k in range(1, len(truth)):
+        step = inverse(truth[k - 1]) @ truth[k]  # perfect odometry: the estimate must stay on the truth
+        info = fusion.step(step, office.scan(truth[k], rng).points, truth[k])
+    assert np.linalg.norm(info["fused_T_w_b"][:3, 3] - truth[-1][:3, 3]) < 0.05
+    assert info["running_ate"] < 0.05 and info["localizability_known"]
+    assert info["fusion_counts"] == {"icp_failed": 0, "unknown": 0, "detector_errors": 0, "fallbacks": 0}
+    assert fusion.detector.name == "eigen:30" and fusion.registration == RegistrationConfig()
+    fusion.close()
