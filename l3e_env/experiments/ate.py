@@ -35,7 +35,7 @@ from l3e_env.sim.raycast import EmbreeCaster
 from scenes import Scene, make_scene
 
 from .ate_tables import (
-    failed_row,
+    AteRow,
     file_stem,
     format_seed_table,
     format_table,
@@ -55,7 +55,7 @@ class AteRun:
     """One drive fused with every detector: the table's rows (odometry only first) and what was written."""
 
     out_dir: Path
-    rows: list[dict]
+    rows: list[AteRow]
     swept: bool  # the drive's scans were swept revolutions, deskewed before they were judged and registered
     written: list[Path]
 
@@ -205,7 +205,7 @@ def run_ate(
             name: {"config": run.config, "seconds": round(run.seconds, 2), "error": run.error}
             for name, run in runs.items()
         },
-        "rows": rows,
+        "rows": [r.record() for r in rows],
     }
     written = write_ate(out, summary, drive, results)
     return AteRun(out, rows, drive.raw.sweep, written)
@@ -295,20 +295,20 @@ def score_rows(
     rec, scene = drive.rec, drive.scene
     results = [odometry_only(rec)] + fused
     inside = regions_inside(rec.ground_truth, scene)
-    rows = [{**r.row(), **region_drift(r.trajectory, rec.ground_truth, inside)} for r in results]
+    rows = [AteRow.of(r, region_drift(r.trajectory, rec.ground_truth, inside)) for r in results]
     for det, row in zip(dets * len(options.frontends), rows[1:]):
         if isinstance(det, RecastCascade):  # what the estimate cost it: steps it was asked, scans it judged
-            row.update(checked_steps=det.cascade.checked, judged_steps=det.judged_steps)
-    rows += [failed_row(name, error, scene) for name, error in lost]
+            row.extra.update(checked_steps=det.cascade.checked, judged_steps=det.judged_steps)
+    rows += [AteRow.failed(name, error, scene) for name, error in lost]
     for name in options.baselines:
         run = runs[name]
         if run.error is not None:
-            rows.append(failed_row(name, run.error, scene))
+            rows.append(AteRow.failed(name, run.error, scene))
             continue
         steps = len(rec.odometry)
         masks, probabilities = np.zeros((steps, 6), bool), np.full((steps, 6), np.nan)
         results.append(scored(FusedRun(name, run.trajectory, masks, probabilities, run.seconds), rec.ground_truth))
-        rows.append({**results[-1].row(), **region_drift(run.trajectory, rec.ground_truth, inside)})
+        rows.append(AteRow.of(results[-1], region_drift(run.trajectory, rec.ground_truth, inside)))
     return results, rows
 
 

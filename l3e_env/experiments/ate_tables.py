@@ -4,7 +4,9 @@ seeds, trajectories as files."""
 from __future__ import annotations
 
 import re
+from dataclasses import dataclass, field, fields
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -28,13 +30,14 @@ def regions_inside(ground_truth: np.ndarray, scene: Scene) -> dict[str, np.ndarr
 
 
 UNITS = ("m", "pct")  # a region's drift in metres and in % of the true distance travelled there
+Drift = dict[str, dict[str, float | None]]  # region -> {"m": ..., "pct": ...}
 
 
-def region_drift(trajectory: np.ndarray, ground_truth: np.ndarray, inside: dict[str, np.ndarray]) -> dict:
+def region_drift(trajectory: np.ndarray, ground_truth: np.ndarray, inside: dict[str, np.ndarray]) -> Drift:
     """Per region (`regions_inside`): the error the estimate accumulated while the robot was inside it
-    (fusion.stretch_drift), in metres and in % of the true distance travelled there; as the row field
-    {"drift": {region: {"m": ..., "pct": ...}}} (None where the drive did not move inside the region)."""
-    out: dict[str, dict[str, float | None]] = {}
+    (fusion.stretch_drift), in metres and in % of the true distance travelled there (None where the
+    drive did not move inside the region)."""
+    out: Drift = {}
     for region, poses in inside.items():
         drift, distance = stretch_drift(trajectory, ground_truth, poses)
         moved = distance > 0
@@ -42,33 +45,60 @@ def region_drift(trajectory: np.ndarray, ground_truth: np.ndarray, inside: dict[
             "m": round(drift, 3) if moved else None,
             "pct": round(100 * drift / distance, 2) if moved else None,
         }
-    return {"drift": out}
+    return out
 
 
-def failed_row(name: str, error: str, scene: Scene) -> dict:
-    """The row of an estimate that could not be made: its name and why, every figure None."""
-    keys = (
-        "ate_m",
-        "ate_aligned_m",
-        "rpe_m",
-        "rpe_deg",
-        *(f"flagged_{a}" for a in AXES),
-        "seconds",
-    )
-    return {
-        "detector": name,
-        **dict.fromkeys(keys),
-        "drift": {g: dict.fromkeys(UNITS) for g in scene.regions},
-        "unknown_steps": 0,
-        "fallback_steps": 0,
-        "detector_errors": 0,
-        "error": error,
-    }
+@dataclass
+class AteRow:
+    """One row of the ATE table: an estimate's errors against the truth, the share of steps its detector
+    flagged per axis, what the run cost and its drift per region; or, with `error`, why it could not be
+    made (every figure None). `extra`: what a kind of row adds (a cascade's steps checked)."""
+
+    detector: str
+    ate_m: float | None = None
+    ate_aligned_m: float | None = None
+    rpe_m: float | None = None
+    rpe_deg: float | None = None
+    flagged: dict[str, float | None] = field(default_factory=lambda: dict.fromkeys(AXES))
+    seconds: float | None = None
+    unknown_steps: int = 0
+    fallback_steps: int = 0
+    detector_errors: int = 0
+    drift: Drift = field(default_factory=dict)
+    error: str | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @classmethod
+    def of(cls, result: DetectorResult, drift: Drift) -> AteRow:
+        """The row of a scored estimate."""
+        return cls(
+            result.name,
+            round(result.ate, 3),
+            None if result.ate_aligned is None else round(result.ate_aligned, 3),
+            round(result.rpe_translation, 4),
+            round(float(np.degrees(result.rpe_rotation)), 3),
+            {a: round(float(f), 3) for a, f in zip(AXES, result.masks.mean(axis=0))},
+            round(result.seconds, 2),
+            result.unknown_steps,
+            result.fallback_steps,
+            result.detector_errors,
+            drift,
+        )
+
+    @classmethod
+    def failed(cls, name: str, error: str, scene: Scene) -> AteRow:
+        """The row of an estimate that could not be made: its name and why, every figure None."""
+        return cls(name, drift={g: dict.fromkeys(UNITS) for g in scene.regions}, error=error)
+
+    def record(self) -> dict[str, Any]:
+        """The row as results.json holds it."""
+        out = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "extra"}
+        return {**out, **self.extra}
 
 
-def regions_of(rows: list[dict]) -> list[str]:
+def regions_of(rows: list[AteRow]) -> list[str]:
     """The regions whose drift the rows carry, in order."""
-    return list(rows[0].get("drift", {})) if rows else []
+    return list(rows[0].drift) if rows else []
 
 
 def write_trajectories(folder: Path, ground_truth: np.ndarray, results: list[DetectorResult]) -> list[Path]:
@@ -89,14 +119,14 @@ def file_stem(detector_name: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", detector_name).strip("_")
 
 
-def summarize_seeds(runs: dict[int, list[dict]]) -> list[dict]:
+def summarize_seeds(runs: dict[int, list[AteRow]]) -> list[dict]:
     """Per detector, over drives of several seeds: ATE and aligned ATE as mean, standard deviation
     and range, and the ATE against odometry alone on the same drive, which cancels most of one
     drive's luck (the odometry's noise decides much of the drift of every detector); and the mean drift
     in each region of the scene (region_drift)."""
     seeds = sorted(runs)
-    names = [r["detector"] for r in runs[seeds[0]]]
-    if any([r["detector"] for r in runs[k]] != names for k in seeds):
+    names = [r.detector for r in runs[seeds[0]]]
+    if any([r.detector for r in runs[k]] != names for k in seeds):
         raise ValueError("every seed's drive must be fused with the same detectors")
     if names[0] != "odometry only":
         raise ValueError("each drive's rows start with odometry only, as run_ate returns them")
@@ -105,14 +135,14 @@ def summarize_seeds(runs: dict[int, list[dict]]) -> list[dict]:
     for i, name in enumerate(names):
         drifts: dict[str, dict[str, float | None]] = {}
         for g in regions:  # the mean over the drives that moved inside the region
-            found = [runs[k][i]["drift"][g] for k in seeds]
+            found = [runs[k][i].drift[g] for k in seeds]
             drifts[g] = {
                 unit: round(float(np.mean(v)), 3) if (v := [d[unit] for d in found if d[unit] is not None]) else None
                 for unit in UNITS
             }
-        ate = np.array([runs[k][i]["ate_m"] for k in seeds], dtype=float)  # NaN where an estimate failed
-        aligned = np.array([runs[k][i]["ate_aligned_m"] for k in seeds], dtype=float)
-        ratio = ate / np.array([runs[k][0]["ate_m"] for k in seeds])  # row 0: odometry only
+        ate = np.array([runs[k][i].ate_m for k in seeds], dtype=float)  # NaN where an estimate failed
+        aligned = np.array([runs[k][i].ate_aligned_m for k in seeds], dtype=float)
+        ratio = ate / np.array([runs[k][0].ate_m for k in seeds])  # row 0: odometry only
         summary.append(
             {
                 "detector": name,
@@ -161,10 +191,10 @@ def _name_width(rows: list[dict]) -> int:
     return max([14, *(len(r["detector"]) for r in rows)])
 
 
-def format_table(rows: list[dict]) -> str:
+def format_table(rows: list[AteRow]) -> str:
     """The ATE table; with regions, a column per region of the drift accumulated there (m and % of the
     distance travelled inside it)."""
-    w = _name_width(rows)
+    w = max([14, *(len(r.detector) for r in rows)])
     regions = regions_of(rows)
     head = (
         f"{'detector':{w}s} {'ATE m':>7s} {'aligned':>8s} {'RPE m':>7s} {'RPE deg':>8s}  "
@@ -172,17 +202,15 @@ def format_table(rows: list[dict]) -> str:
     )
     lines = [head, "-" * len(head)]
     for r in rows:
-        if r.get("error"):
-            lines.append(f"{r['detector']:{w}s} failed: {r['error']}")
+        if r.error:
+            lines.append(f"{r.detector:{w}s} failed: {r.error}")
             continue
-        flags = " ".join(f"{r[f'flagged_{a}']:.2f}" for a in AXES)
-        al = "-" if r["ate_aligned_m"] is None else f"{r['ate_aligned_m']:.3f}"
+        flags = " ".join(f"{r.flagged[a]:.2f}" for a in AXES)
+        al = "-" if r.ate_aligned_m is None else f"{r.ate_aligned_m:.3f}"
         drifts = "".join(
-            f"  {'-':>15s}" if (d := r["drift"][g])["m"] is None else f"  {d['m']:6.2f} m {d['pct']:5.1f}%"
+            f"  {'-':>15s}" if (d := r.drift[g])["m"] is None else f"  {d['m']:6.2f} m {d['pct']:5.1f}%"
             for g in regions
         )
-        lines.append(
-            f"{r['detector']:{w}s} {r['ate_m']:7.3f} {al:>8s} {r['rpe_m']:7.4f} {r['rpe_deg']:8.3f}  "
-            f"{flags}  {r['seconds']:6.1f}{drifts}"
-        )
+        errors = f"{r.ate_m:7.3f} {al:>8s} {r.rpe_m:7.4f} {r.rpe_deg:8.3f}"
+        lines.append(f"{r.detector:{w}s} {errors}  {flags}  {r.seconds:6.1f}{drifts}")
     return "\n".join(lines)

@@ -22,7 +22,6 @@ from l3e_env.detection.detectors import (
     Detector,
 )
 from l3e_env.detection.pipeline import LocalizationPipeline
-from l3e_env.localizability.labels import AXES
 from l3e_env.sim.imu import attitude_readings, attitude_sigmas
 
 from .drive import DriveRecord
@@ -42,21 +41,6 @@ class DetectorResult:
     unknown_steps: int
     fallback_steps: int
     detector_errors: int = 0
-
-    def row(self) -> dict:
-        flagged = self.masks.mean(axis=0)
-        return {
-            "detector": self.name,
-            "ate_m": round(self.ate, 3),
-            "ate_aligned_m": None if self.ate_aligned is None else round(self.ate_aligned, 3),
-            "rpe_m": round(self.rpe_translation, 4),
-            "rpe_deg": round(float(np.degrees(self.rpe_rotation)), 3),
-            **{f"flagged_{a}": round(float(f), 3) for a, f in zip(AXES, flagged)},
-            "seconds": round(self.seconds, 2),
-            "unknown_steps": self.unknown_steps,
-            "fallback_steps": self.fallback_steps,
-            "detector_errors": self.detector_errors,
-        }
 
 
 def fuse_recording(

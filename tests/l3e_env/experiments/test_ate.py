@@ -6,7 +6,7 @@ import pytest
 from l3e_env.config import FusionSettings, LidarConfig
 from l3e_env.detection.detectors import DCRegDetector, EigenvalueDetector, NoDetector, make_detector
 from l3e_env.experiments.ate import AteOptions, run_ate
-from l3e_env.experiments.ate_tables import file_stem, format_seed_table, format_table, summarize_seeds
+from l3e_env.experiments.ate_tables import AteRow, file_stem, format_seed_table, format_table, summarize_seeds
 from l3e_env.experiments.drive import DriveOptions, DriveRecord, record_run, register_sequence
 from l3e_env.experiments.fuse import fuse_recording
 from l3e_env.experiments.recast import RecastCascade, RecastScans
@@ -45,7 +45,7 @@ def test_masking_the_wall_axis_beats_full_icp(walls_run, tmp_path):
         fulls.append(f.ate)
         masked.append(e.ate)
     assert np.mean(masked) < np.mean(fulls)
-    assert "eigen" in format_table([full.row(), eigen.row()])
+    assert "eigen" in format_table([AteRow.of(full, {}), AteRow.of(eigen, {})])
     # a saved recording evaluates to the same numbers without driving again
     rec.save(tmp_path / "rec.npz")
     again = DriveRecord.load(tmp_path / "rec.npz")
@@ -84,12 +84,12 @@ def test_ate_from_a_recording_writes_results_and_figures(walls_run, tmp_path):
             evo_file.read_tum_trajectory_file(tmp_path / "out" / "trajectories" / "none.tum"),
         )
     )
-    none_row = next(r for r in run.rows if r["detector"] == "none")
-    assert ape.get_statistic(evo_metrics.StatisticsType.rmse) == pytest.approx(none_row["ate_m"], abs=1e-3)
+    none_row = next(r for r in run.rows if r.detector == "none")
+    assert ape.get_statistic(evo_metrics.StatisticsType.rmse) == pytest.approx(none_row.ate_m, abs=1e-3)
     kitti = evo_file.read_kitti_poses_file(tmp_path / "out" / "trajectories" / "none.kitti")
     tum = evo_file.read_tum_trajectory_file(tmp_path / "out" / "trajectories" / "none.tum")
     np.testing.assert_allclose(kitti.positions_xyz, tum.positions_xyz, atol=1e-6)
-    assert [r["detector"] for r in rows] == ["odometry only", "eigen:30", "none"]
+    assert [r.detector for r in rows] == ["odometry only", "eigen:30", "none"]
     written = {p.name for p in (tmp_path / "out").iterdir()}
     assert {"results.json", "trajectories.png", "timeline.png", "map_eigen_30.png", "map_none.png"} <= written
     assert "recording.npz" not in written
@@ -143,7 +143,7 @@ def test_the_hessian_weighs_the_icp_factor_and_the_settings_are_written(walls_ru
     (weighed,) = fuse_recording(rec, [NoDetector()], regs, progress=False)
     assert weighed.ate != pytest.approx(fixed.ate, rel=1e-3)  # the library's fixed sigmas are another estimator
     rows = run_ate(tmp_path / "out", "mine", ["none"], AteOptions(recording=tmp_path / "rec.npz"), progress=False).rows
-    assert rows[1]["ate_m"] == round(weighed.ate, 3)  # rows are rounded
+    assert rows[1].ate_m == round(weighed.ate, 3)  # rows are rounded
     assert json.loads((tmp_path / "out" / "results.json").read_text())["fusion"]["odometry_bias"] == []
     from l3e_env.experiments.tau_sweep import SweepOptions, run_sweep
 
@@ -269,7 +269,7 @@ def test_scanmc_in_a_replay_judges_scans_cast_again_at_the_true_poses(walls_run,
         r for r in json.loads((tmp_path / "out" / "results.json").read_text())["rows"] if r["detector"] == "scanmc:4"
     ]
     assert row["unknown_steps"] == row["detector_errors"] == 0  # the recording's thinned scans would all be unknown
-    assert row["flagged_x"] > 0.8 and max(row[f"flagged_{a}"] for a in AXES[1:]) < 0.2
+    assert row["flagged"]["x"] > 0.8 and max(row["flagged"][a] for a in AXES[1:]) < 0.2
 
 
 def test_a_recast_detector_judges_every_stride_steps_alike_in_workers_and_holds_no_failure(walls_run):
@@ -375,7 +375,7 @@ def test_a_users_mesh_and_route_are_driven_and_replayed(cad_corridor, tmp_path, 
     again = run_ate(
         tmp_path / "again", "ignored", ["eigen:30"], AteOptions(recording=out / "recording.npz"), progress=False
     ).rows  # rebuilt from the recording's mesh path and parameters
-    assert again[1]["ate_m"] == first[1]["ate_m"]
+    assert again[1].ate_m == first[1]["ate_m"]
     # the mesh moved: the recording names its old path, and takes the new one as the scene
     moved = mesh.rename(tmp_path / "moved.obj")
     replay = ["ate", "--recording", str(out / "recording.npz"), "--detector", "eigen:30", "--quiet"]
@@ -438,13 +438,8 @@ def test_detector_names_become_flat_file_names():
     assert "/" not in file_stem("learned:/abs/path/model.pt")
 
 
-def _row(name: str, ate: float, tunnel_pct: float | None = None) -> dict:
-    return {
-        "detector": name,
-        "ate_m": ate,
-        "ate_aligned_m": ate / 2,
-        "drift": {"tunnel": {"m": tunnel_pct, "pct": tunnel_pct}},
-    }
+def _row(name: str, ate: float, tunnel_pct: float | None = None) -> AteRow:
+    return AteRow(name, ate, ate / 2, drift={"tunnel": {"m": tunnel_pct, "pct": tunnel_pct}})
 
 
 def test_several_drives_summarised_per_detector_and_against_odometry_on_the_same_drive():
@@ -583,19 +578,10 @@ def test_the_drift_of_each_region_is_its_own_and_the_table_shows_it():
     est = gt.copy()
     est[:, 0, 3] -= 0.05 * np.clip(np.arange(len(xs)) - 40, 0, None)  # 5 cm short a step once in the tunnel
     drift = region_drift(est, gt, regions_inside(gt, mine))
-    yard, tunnel, quarry = (drift["drift"][g] for g in ("yard", "tunnel", "quarry"))
+    yard, tunnel, quarry = (drift[g] for g in ("yard", "tunnel", "quarry"))
     assert yard["m"] == pytest.approx(0.0, abs=1e-9) and tunnel["m"] == pytest.approx(3.9)
     assert tunnel["pct"] == pytest.approx(100 * 3.9 / 39.0)  # x = 0 is the yard's, the tunnel's from 0.5
     assert quarry["m"] is None and quarry["pct"] is None
-    row = {
-        "detector": "none",
-        "ate_m": 1.0,
-        "ate_aligned_m": None,
-        "rpe_m": 0.1,
-        "rpe_deg": 0.1,
-        "seconds": 1.0,
-        **{f"flagged_{a}": 0.0 for a in ("x", "y", "z", "roll", "pitch", "yaw")},
-        **drift,
-    }
+    row = AteRow("none", 1.0, None, 0.1, 0.1, dict.fromkeys(AXES, 0.0), 1.0, drift=drift)
     table = format_table([row])
     assert "drift tunnel" in table and "3.90 m  10.0%" in table and table.splitlines()[-1].endswith("-")

@@ -82,7 +82,7 @@ def test_kiss_icp_and_genz_icp_rows_in_the_ate_table(tmp_path):
         AteOptions(max_steps=40, baselines=["kiss-icp", "genz-icp"], frontends=["icp", "genz-icp"]),
         progress=False,
     )
-    names = [r["detector"] for r in run.rows]
+    names = [r.detector for r in run.rows]
     assert names == [
         "odometry only",
         "none",
@@ -92,14 +92,14 @@ def test_kiss_icp_and_genz_icp_rows_in_the_ate_table(tmp_path):
         "kiss-icp",
         "genz-icp",
     ]
-    assert all(r["ate_m"] is not None and np.isfinite(r["ate_m"]) for r in run.rows)
+    assert all(r.ate_m is not None and np.isfinite(r.ate_m) for r in run.rows)
     assert "kiss-icp" in run.table() and (tmp_path / "trajectories" / "kiss-icp.tum").exists()
     import json
 
     saved = json.loads((tmp_path / "results.json").read_text())["baselines"]
     assert saved["kiss-icp"]["config"]["mapping"]["voxel_size"] == 1.0 and saved["genz-icp"]["error"] is None
-    rows = {r["detector"]: r for r in run.rows}  # the front end's steps are its own, not ICP's
-    assert rows["none @genz-icp"]["ate_m"] != rows["none"]["ate_m"]
+    rows = {r.detector: r for r in run.rows}  # the front end's steps are its own, not ICP's
+    assert rows["none @genz-icp"].ate_m != rows["none"].ate_m
 
 
 def test_a_front_end_takes_the_odometrys_steps_with_the_icp_information():
