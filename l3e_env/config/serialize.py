@@ -57,12 +57,14 @@ def with_defaults(cls: type, stored: dict[str, Any]) -> dict[str, Any]:
     return plain(to_dict(from_dict(cls, stored)))
 
 
-def settings_changed(before: dict[str, Any], now: dict[str, Any]) -> str:
-    """The top-level settings that differ, named for an error message: the old and new values of
-    the short ones, the names only of long ones (a mesh's route is a long list)."""
+def settings_changed(before: dict[str, Any], now: dict[str, Any], prefix: str = "") -> str:
+    """The settings that differ, named for an error message (a section's by its path, "fusion.backend"):
+    the old and new values of the short ones, the names only of long ones (a mesh's route is a long list)."""
 
     def shown(key: str) -> str:
-        old, new = repr(before.get(key)), repr(now.get(key))
-        return key if len(old) + len(new) > 80 else f"{key} {old}, now {new}"
+        old, new = before.get(key), now.get(key)
+        if isinstance(old, dict) and isinstance(new, dict):
+            return settings_changed(old, new, f"{prefix}{key}.")
+        return f"{prefix}{key}" if len(repr(old)) + len(repr(new)) > 80 else f"{prefix}{key} {old!r}, now {new!r}"
 
     return ", ".join(shown(k) for k in sorted(before.keys() | now.keys()) if before.get(k) != now.get(k))

@@ -668,19 +668,21 @@ def test_a_users_mesh_is_driven_by_the_policies(cad_corridor, tmp_path, capsys, 
     assert summary.splitlines()[2].split()[3] == "n/a"
     np.savetxt(tmp_path / "other.csv", [[1000.0, 0, 0], [6000, 0, 0]])
     assert main([*args, "--route", str(tmp_path / "other.csv")]) == 2  # the folder's episodes had another route
-    assert "holds episodes run with other settings (scene_params)" in capsys.readouterr().err
+    assert "holds episodes run with other settings (scene_params." in capsys.readouterr().err
     assert main([*args, "--route", str(route), "--odometry-bias", "yaw"]) == 2
-    assert "other settings (odometry_bias [], now ['yaw'])" in capsys.readouterr().err
+    assert "other settings (fusion.odometry_bias [], now ['yaw'])" in capsys.readouterr().err
     assert main([*args, "--route", str(route), "--no-recovery"]) == 2  # the recovery is on by default
     assert "other settings (recovery True, now False)" in capsys.readouterr().err
     assert main([*args, "--route", str(route), "--recovery"]) == 0
     assert main([*args, "--route", str(route), "--no-avoid"]) == 2  # the local layer too
     assert "other settings (avoid True, now False)" in capsys.readouterr().err
     settings = json.loads((tmp_path / "ev" / "settings.json").read_text())
-    assert settings.pop("odometry_bias") == [] and settings.pop("recovery") is True and settings["avoid"] is True
+    assert (
+        settings["fusion"].pop("odometry_bias") == [] and settings.pop("recovery") is True and settings["avoid"] is True
+    )
     (tmp_path / "ev" / "settings.json").write_text(json.dumps(settings))  # a folder that does not say its options
     assert main([*args, "--route", str(route)]) == 2
-    assert "other settings (odometry_bias None, now [], recovery None, now True)" in capsys.readouterr().err
+    assert "other settings (fusion.odometry_bias None, now [], recovery None, now True)" in capsys.readouterr().err
     biased = [*args[:-3], "--out", str(tmp_path / "ev-bias"), "--quiet", "--route", str(route)]
     assert main([*biased, "--odometry-bias", "yaw", "--policy", "shortest"]) == 0
     summary = json.loads((tmp_path / "ev-bias" / "summary.json").read_text())
