@@ -49,7 +49,6 @@ def _scenes_with_params(args: argparse.Namespace, default: tuple[str, ...] = ("f
 
 
 def _cmd_map(args: argparse.Namespace) -> int:
-    from .context import scene_context
     from .plots import plot_locmap
 
     scenes = _scenes_with_params(args)
@@ -58,15 +57,7 @@ def _cmd_map(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     for name, params in scenes.items():
         t0 = time.perf_counter()
-        ctx = scene_context(
-            name,
-            args.detector,
-            args.cache_dir,
-            grid=map_grid(args.sensor, args.resolution),
-            progress=not args.quiet,
-            scene_params=params,
-            workers=args.workers,
-        )
+        ctx = _context(args, name, params, args.resolution)
         figure = out / f"{ctx.scene.name}-{args.detector.replace(':', '')}.png"
         plot_locmap(figure, ctx.scene, ctx.locmap, ctx.space)
         share = " ".join(
@@ -91,7 +82,6 @@ def _estimated_share(locmap: LocalizabilityMap, detector: str) -> str:
 
 
 def _cmd_plan(args: argparse.Namespace) -> int:
-    from .context import scene_context
     from .planner import Planner
     from .plots import plot_paths
 
@@ -100,15 +90,7 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     args.out = str(out)  # the resolved options are written beside it
     out.mkdir(parents=True, exist_ok=True)
     for name, params in scenes.items():
-        ctx = scene_context(
-            name,
-            args.detector,
-            args.cache_dir,
-            grid=map_grid(args.sensor),
-            progress=not args.quiet,
-            scene_params=params,
-            workers=args.workers,
-        )
+        ctx = _context(args, name, params)
         start = np.array(args.start, dtype=float) if args.start else ctx.scene.start[:2]
         goal = np.array(args.goal, dtype=float) if args.goal else ctx.scene.goal
         plans = {
@@ -143,23 +125,12 @@ def non_negative(text: str) -> float:
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
-    from .context import scene_context
     from .ppo import TRAIN_VARIANTS, PPOTraining, WarmStart, require_sb3, resumed_config, train_ppo
 
     require_sb3()  # before minutes of maps, not after
     scenes = _scenes_with_params(args, tuple(TRAIN_VARIANTS))
     print(f"PPO on {', '.join(scenes)} (fast map environment, {args.detector} maps) -> {Path(args.out).resolve()}")
-    contexts = [
-        scene_context(
-            name,
-            args.detector,
-            args.cache_dir,
-            grid=map_grid(args.sensor),
-            progress=not args.quiet,
-            scene_params=params,
-        )
-        for name, params in scenes.items()
-    ]
+    contexts = [_context(args, name, params) for name, params in scenes.items()]
     config = resumed_config(args.out, lam=args.lam, lateral_drift=args.lateral_drift, sideways=args.sideways)
     training = PPOTraining(args.timesteps, args.seed, args.envs, WarmStart() if args.warm_start else None)
     summary = train_ppo(args.out, contexts, args.detector, training, config, progress=not args.quiet)
@@ -195,6 +166,15 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     print(format_rows(rows))
     print(f"routes: {out / 'routes.png'}")
     return 0
+
+
+def _context(args: argparse.Namespace, name: str, params: dict | None, resolution: float | None = None):
+    """The scene with the map of the command's detector on its sensor's grid, built where not cached."""
+    from .context import scene_context
+
+    grid = map_grid(args.sensor, resolution)
+    workers = getattr(args, "workers", 1)
+    return scene_context(name, args.detector, args.cache_dir, True, grid, not args.quiet, params, workers)
 
 
 def map_grid(sensor: str, resolution: float | None = None):
