@@ -4,7 +4,7 @@
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 from tqdm import tqdm
@@ -28,19 +28,27 @@ from .drive import DriveRecord
 
 
 @dataclass
-class DetectorResult:
+class FusedRun:
+    """A trajectory the fusion made (or an odometry gave) and what its detector did at each step."""
+
     name: str
     trajectory: np.ndarray
     masks: np.ndarray  # (N, 6) bool
     probabilities: np.ndarray  # (N, 6)
-    ate: float
-    ate_aligned: float | None
-    rpe_translation: float
-    rpe_rotation: float
-    seconds: float
-    unknown_steps: int
-    fallback_steps: int
+    seconds: float = 0.0
+    unknown_steps: int = 0
+    fallback_steps: int = 0
     detector_errors: int = 0
+
+
+@dataclass
+class DetectorResult(FusedRun):
+    """A fused run scored against the ground truth (`scored`)."""
+
+    ate: float = float("nan")
+    ate_aligned: float | None = None
+    rpe_translation: float = float("nan")
+    rpe_rotation: float = float("nan")
 
 
 def fuse_recording(
@@ -107,20 +115,6 @@ def odometry_only(rec: DriveRecord) -> DetectorResult:
     return scored(FusedRun("odometry only", np.array(traj), np.ones((n, 6), bool), np.ones((n, 6))), rec.ground_truth)
 
 
-@dataclass
-class FusedRun:
-    """A trajectory the fusion made (or an odometry gave) and what its detector did at each step."""
-
-    name: str
-    trajectory: np.ndarray
-    masks: np.ndarray  # (N, 6) bool
-    probabilities: np.ndarray  # (N, 6)
-    seconds: float = 0.0
-    unknown_steps: int = 0
-    fallback_steps: int = 0
-    detector_errors: int = 0
-
-
 def scored(run: FusedRun, gt: np.ndarray) -> DetectorResult:
     """A trajectory with its metrics against ground truth (aligned ATE is None for colinear runs)."""
     traj = run.trajectory
@@ -129,17 +123,5 @@ def scored(run: FusedRun, gt: np.ndarray) -> DetectorResult:
     except MetricError:
         aligned = None
     rt, rr = rpe(traj, gt, delta=min(10, len(gt) - 1))
-    return DetectorResult(
-        run.name,
-        traj,
-        run.masks,
-        run.probabilities,
-        ate(traj, gt),
-        aligned,
-        rt,
-        rr,
-        run.seconds,
-        run.unknown_steps,
-        run.fallback_steps,
-        run.detector_errors,
-    )
+    made = {f.name: getattr(run, f.name) for f in fields(run)}
+    return DetectorResult(**made, ate=ate(traj, gt), ate_aligned=aligned, rpe_translation=rt, rpe_rotation=rr)

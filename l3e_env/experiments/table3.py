@@ -342,16 +342,12 @@ def score_hessian_detectors(board: Scoreboard, first_splits: dict[str, Split], p
     eigen, dcreg = board.options.eigen, board.options.dcreg
     if not (eigen or dcreg):
         return
-    hessians = {split: dataset_hessians(ds, rows, progress) for split, (ds, rows) in first_splits.items()}
-    for kind, mask_of, values in (("eigen", eigen_mask, eigen), ("dcreg", dcreg_mask, dcreg)):
-        for value in values:
-            name = f"{kind}:{value:g}"
-            board.add_model(name, {"tau" if kind == "eigen" else "kappa": value})
-            for split, (ds, rows) in first_splits.items():
-                known = np.isfinite(hessians[split]).all(axis=(1, 2))
-                predicted = np.zeros((len(rows), 6), bool)
-                predicted[known] = [mask_of(H, value)[1] for H in hessians[split][known]]
-                board.score(name, split, ds, rows, predicted, unregistrable=int((~known).sum()))
+    hessians = {
+        split: [H if np.isfinite(H).all() else None for H in dataset_hessians(ds, rows, progress)]
+        for split, (ds, rows) in first_splits.items()
+    }
+    tests = (("eigen", eigen_mask, eigen, "tau"), ("dcreg", dcreg_mask, dcreg, "kappa"))
+    score_threshold_tests(board, first_splits, hessians, tests)
 
 
 def score_correspondence_detectors(board: Scoreboard, first_splits: dict[str, Split], progress: bool) -> None:
@@ -359,18 +355,31 @@ def score_correspondence_detectors(board: Scoreboard, first_splits: dict[str, Sp
     xicp, drpm = board.options.xicp, board.options.drpm
     if not (xicp or drpm):
         return
-    rows = {split: dataset_rows(ds, at, progress) for split, (ds, at) in first_splits.items()}
-    for kind, judge, values in (("xicp", xicp_mask, xicp), ("drpm", drpm_mask, drpm)):
+    rows = {
+        split: [r if r is not None and len(r.points) >= 6 else None for r in dataset_rows(ds, at, progress)]
+        for split, (ds, at) in first_splits.items()
+    }
+    tests = (("xicp", xicp_mask, xicp, "threshold"), ("drpm", drpm_mask, drpm, "threshold"))
+    score_threshold_tests(board, first_splits, rows, tests)
+
+
+def score_threshold_tests(
+    board: Scoreboard, first_splits: dict[str, Split], inputs: dict[str, list[Any]], tests: tuple
+) -> None:
+    """Each (kind, judge, thresholds, name of the threshold) test at each threshold, judging each scan's
+    input (`judge(input, threshold)` -> (scores, mask)); a scan without one (too small to register)
+    flags nothing, as a detector's UNKNOWN does, and is counted."""
+    for kind, judge, values, key in tests:
         for value in values:
             name = f"{kind}:{value:g}"
-            board.add_model(name, {"threshold": value})
-            for split, (ds, at) in first_splits.items():
-                known = [r is not None and len(r.points) >= 6 for r in rows[split]]
-                predicted = np.zeros((len(at), 6), bool)
-                for k, r in enumerate(rows[split]):
-                    if known[k]:
-                        predicted[k] = judge(r, value)[1]
-                board.score(name, split, ds, at, predicted, unregistrable=int(len(at) - sum(known)))
+            board.add_model(name, {key: value})
+            for split, (ds, rows) in first_splits.items():
+                predicted = np.zeros((len(rows), 6), bool)
+                for k, found in enumerate(inputs[split]):
+                    if found is not None:
+                        predicted[k] = judge(found, value)[1]
+                unknown = sum(found is None for found in inputs[split])
+                board.score(name, split, ds, rows, predicted, unregistrable=unknown)
 
 
 def dataset_rows(data: LabelDataset | DatasetUnion, rows: np.ndarray, progress: bool = False) -> list[PlaneRows | None]:
