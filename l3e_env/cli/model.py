@@ -51,6 +51,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
         model["points"] = args.points
     if args.frame:
         model["frame"] = args.frame
+    if args.pooling:
+        model["pooling"] = args.pooling
     if args.distilled:  # the distillation set's places join the training scenes
         from scenes import DISTILL_SCENES
 
@@ -152,6 +154,12 @@ def _add_model_options(p: argparse.ArgumentParser) -> None:
         choices=["sensor", "canonical"],
         help="canonical: each scan read in its canonical mirror/swap view, so that its mirror images and "
         "its turns by 90 and 180 deg about z get the same answer (default: sensor)",
+    )
+    p.add_argument(
+        "--pooling",
+        choices=["max", "information"],
+        help="information: beside the max-pooled feature, point-to-plane information matrices whose voxels "
+        "the network weighs, summed over the scan as ICP's Hessian (the ResUNet only; default: max)",
     )
 
 

@@ -27,6 +27,7 @@ from l3e_env.localizability.labels import LABEL_PROTOCOL, protocol_name
 from l3e_env.localizability.registration import RegistrationConfig
 
 from .constraints import FEATURES, SURFACE_FEATURES, AxisStacker, scan_features, surface_rows
+from .information import InformationPool
 from .sparse import (
     DownConv,
     GatherConv,
@@ -95,6 +96,11 @@ class ModelConfig:
     # its turns by 90 and 180 deg about z get the same answer on their own axes, by construction.
     # "sensor": the scan as the sensor gives it
     frame: str = "sensor"
+    # "max": the decoder's features max-pooled over the scan; "information": beside them, the features
+    # of `information_heads` point-to-plane information matrices whose voxels the network weighs
+    # (l3e_env.model.information): a sum over the scan, as ICP's Hessian, instead of a maximum
+    pooling: str = "max"
+    information_heads: int = 4
 
 
 def _bn_relu(c: int) -> nn.Sequential:
@@ -144,6 +150,7 @@ class ResUNet(nn.Module):
         )
         self.up_block = nn.ModuleList(ResBlock(c[i], c[i]) for i in range(len(c) - 1))
         self.out = nn.Linear(c[0], cfg.feature)
+        self.information = InformationPool(c[0], cfg.information_heads) if cfg.pooling == "information" else None
 
     def forward(self, points: list[torch.Tensor]) -> torch.Tensor:
         level, means, _ = voxelize(points, self.voxel)
@@ -155,8 +162,8 @@ class ResUNet(nn.Module):
         # the voxel is in the scan (range and direction matter for the constraint it gives)
         inside = means / self.voxel - level.coords[:, 1:] - 0.5
         x = torch.cat([torch.ones(len(means), 1), inside, means / self.scale], dim=1)
-        if self.surface_rows:
-            rows = surface_rows(level, means)
+        rows = surface_rows(level, means) if self.surface_rows or self.information is not None else None
+        if self.surface_rows and rows is not None:
             x = torch.cat([x, rows[:, :3], rows[:, 3:6] / self.scale, rows[:, 6:]], dim=1)
         levels = [level]
         for _ in self.down:  # coarser levels first: their kernel maps give the finer ones (Level.neighbours)
@@ -170,7 +177,10 @@ class ResUNet(nn.Module):
         for i in reversed(range(len(self.up))):
             x = self.up_norm[i](self.up[i](x, levels[i]))
             x = self.up_block[i](self.up_mix[i](torch.cat([x, skips[i]], dim=1)), levels[i])
-        return global_max_pool(self.out(x), levels[0], batch_size)
+        pooled = global_max_pool(self.out(x), levels[0], batch_size)
+        if self.information is None or rows is None:
+            return pooled
+        return torch.cat([pooled, self.information(x, rows, levels[0].coords[:, 0], batch_size)], dim=1)
 
 
 class PointNet(nn.Module):
@@ -213,7 +223,12 @@ class LocalizabilityNet(nn.Module):
             raise ValueError(f"a model reads at least one point of a scan, not {cfg.points}")
         if cfg.frame not in ("sensor", "canonical"):
             raise ValueError(f"unknown frame '{cfg.frame}' (sensor, canonical)")
-        widths = (cfg.feature + (3 if cfg.gravity else 0), *cfg.head)
+        if cfg.pooling not in ("max", "information"):
+            raise ValueError(f"unknown pooling '{cfg.pooling}' (max, information)")
+        if cfg.pooling == "information" and cfg.architecture != "resunet":
+            raise ValueError("information pooling weighs the ResUNet's voxels; a PointNet has none")
+        pooled = cfg.feature + (cfg.information_heads * FEATURES if cfg.pooling == "information" else 0)
+        widths = (pooled + (3 if cfg.gravity else 0), *cfg.head)
         layers: list[nn.Module] = []
         for a, b in zip(widths[:-1], widths[1:]):
             layers += [nn.Linear(a, b), nn.ReLU(inplace=True), nn.Dropout(cfg.dropout)]
