@@ -225,9 +225,9 @@ def _add_plan(psub: argparse._SubParsersAction, common: argparse.ArgumentParser)
 
 
 def _add_train(psub: argparse._SubParsersAction, common: argparse.ArgumentParser) -> None:
-    g = psub.add_parser("train", parents=[common], help="train a PPO navigation policy on fork variants (resumable)")
+    g = psub.add_parser("train", parents=[common], help="train a PPO navigation policy on bypass variants (resumable)")
     g.add_argument("--out", required=True, help="run folder (an unfinished run there is resumed)")
-    g.add_argument("--scene", type=scene_names, action="append", help="training variants (default: fork-0 ... fork-6)")
+    g.add_argument("--scene", type=scene_names, action="append", help="training variants (default: bypass-0..7)")
     g.add_argument("--detector", default="learned", type=map_detector, help="map detector (default: learned)")
     g.add_argument("--timesteps", type=int, default=300_000, help="decisions of 0.5 s (default 300000)")
     g.add_argument(
@@ -274,7 +274,7 @@ def _add_evaluate(psub: argparse._SubParsersAction, common: argparse.ArgumentPar
         type=scene_names,
         action="append",
         help="evaluation variants, comma-separated or repeated, a range as family-A..B such as "
-        "bypass-100..149 (default: fork-100..109)",
+        "bypass-100..149 (default: bypass-100..109; the fork family as fork-100..109)",
     )
     g.add_argument("--episodes", type=int, default=50, help="episodes per policy (default 50)")
     g.add_argument(

@@ -53,7 +53,7 @@ def scan_rows(points: np.ndarray, config: RegistrationConfig | None = None) -> P
     w, V = np.linalg.eigh(cov)  # ascending: the smallest is the normal's
     inverse = np.where(w[:, 1:] > 1e-12, 1.0 / np.maximum(w[:, 1:], 1e-12), 0.0) / k
     spread = np.einsum("mik,mk,mjk->mij", V[:, :, 1:], inverse, V[:, :, 1:])
-    normals = target.normals[matched]
+    normals = target.normals_at(matched)[matched]
     # a ground voxel reads the ground plane's normal, not its neighbourhood's: its spread is kept to the
     # plane of the normal it reads (a unit normal moves only across itself)
     across = np.eye(3) - normals[:, :, None] * normals[:, None, :]

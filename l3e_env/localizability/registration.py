@@ -13,6 +13,7 @@ import numpy as np
 import small_gicp
 from numba import njit
 
+from l3e_env.core.normals import neighbourhood_normals
 from l3e_env.core.transforms import adjoint, inverse
 
 # small_gicp's tangent order is (rx, ry, rz, tx, ty, tz); the project's is (x, y, z, roll, pitch, yaw).
@@ -128,28 +129,63 @@ def _fit_ground(low: np.ndarray) -> np.ndarray | None:
 
 class PreparedTarget:
     """A target scan downsampled, with normals and a k-d tree: prepared once, matched many times.
-    `threads` (OpenMP, in small_gicp) changes the speed, not the result: registrations onto it are
-    the same to the bit. With `config.ground_normals` the ground's voxels take the ground plane's
-    normal (`normals`)."""
+    `threads` (the normals' neighbour search) changes the speed, not the result: registrations onto
+    it are the same to the bit. With `config.ground_normals` the ground's voxels take the ground plane's
+    normal (`normals`), and the other voxels' normals (from their `num_neighbors` nearest, as
+    small_gicp estimates them) are computed when first matched (`normals_at`): the neighbour search
+    was most of a step's registration cost, and a registration matches a fifth of the voxels; the
+    ground plane needs the normals of the voxels below the sensor only."""
 
     def __init__(self, points: np.ndarray, config: RegistrationConfig, threads: int = 1):
         pts = _checked(points, "target scan", config.min_points)
-        self.cloud, self.tree = small_gicp.preprocess_points(
-            pts, config.downsampling_resolution, config.num_neighbors, num_threads=max(1, int(threads))
-        )
+        self.config, self.threads = config, max(1, int(threads))
+        # preprocess_points thins with small_gicp's OpenMP voxel grid (which keeps a voxel whose points
+        # straddle two of its blocks as two part means; the labels were made on it) and builds the
+        # k-d tree; with the ground's normals, asked for one neighbour's, it spends next to nothing on
+        # normals, which are computed where matched (normals_at). On one thread: on more, its voxel
+        # grid's part means vary from run to run with the threads' timing (small_gicp's own note)
+        neighbours = 1 if config.ground_normals else config.num_neighbors
+        self.cloud, self.tree = small_gicp.preprocess_points(pts, config.downsampling_resolution, neighbours)
         if self.cloud.size() < config.min_points:
             raise RegistrationError(
                 f"target scan has {self.cloud.size()} points after {config.downsampling_resolution} m downsampling "
                 f"(minimum {config.min_points})"
             )
-        self.points = np.asarray(self.cloud.points())[:, :3]
-        self.normals = np.asarray(self.cloud.normals())[:, :3]
+        self.points = np.ascontiguousarray(np.asarray(self.cloud.points())[:, :3])
         self.ground = None  # the plane (n, d) whose normal the ground's voxels took
-        if config.ground_normals:
-            self.ground = ground_plane(self.points, self.normals)
-            if self.ground is not None:
-                self.normals = self.normals.copy()
-                self.normals[ground_voxels(self.points, self.ground)] = self.ground[:3]
+        if not config.ground_normals:  # small_gicp's own PLANE_ICP reads them from the cloud
+            self._normals, self._known = np.asarray(self.cloud.normals())[:, :3], np.ones(len(self.points), bool)
+            return
+        self._normals, self._known = np.zeros((len(self.points), 3)), np.zeros(len(self.points), bool)
+        low = np.flatnonzero(self.points[:, 2] < -GROUND_BELOW)  # ground_plane's candidates lie there
+        self.ground = ground_plane(self.points[low], self.normals_at(low)[low])
+        if self.ground is not None:
+            on_ground = ground_voxels(self.points, self.ground)
+            self._normals[on_ground], self._known[on_ground] = self.ground[:3], True
+
+    def normals_at(self, which: np.ndarray) -> np.ndarray:
+        """The (N, 3) normals, those of the voxels `which` computed where not yet (the others may be zero)."""
+        missing = np.unique(which[~self._known[which]])
+        if len(missing):
+            neighbours, _ = self.tree.batch_knn_search(
+                self.points[missing], self.config.num_neighbors, num_threads=self.threads
+            )
+            neighbourhood_normals(self.points, np.asarray(neighbours, dtype=np.int64), missing, self._normals)
+            self._known[missing] = True
+        return self._normals
+
+    @property
+    def normals(self) -> np.ndarray:
+        """(N, 3) every voxel's normal (the ground's: the plane's)."""
+        return self.normals_at(np.arange(len(self.points)))
+
+    @normals.setter
+    def normals(self, normals: np.ndarray) -> None:
+        """Match onto other normals (a study's: the mesh's own, another estimate), one per voxel."""
+        normals = np.asarray(normals, dtype=np.float64)
+        if normals.shape != self.points.shape:
+            raise ValueError(f"{len(self.points)} normals needed, one per voxel, got shape {normals.shape}")
+        self._normals, self._known = normals.copy(), np.ones(len(self.points), bool)
 
 
 def prepare_source(points: np.ndarray, config: RegistrationConfig) -> small_gicp.PointCloud:
@@ -254,8 +290,9 @@ def _linearise(
     idx, sq = target.tree.batch_nearest_neighbor_search(moved)
     idx = np.asarray(idx, dtype=np.int64).reshape(-1)
     sq = np.asarray(sq, dtype=np.float64).reshape(-1)
+    normals = target.normals_at(idx[(idx >= 0) & (sq < distance**2)])
     return _normal_equations(
-        source, np.ascontiguousarray(T[:3, :3]), moved, idx, sq, target.points, target.normals, distance**2
+        source, np.ascontiguousarray(T[:3, :3]), moved, idx, sq, target.points, normals, distance**2
     )
 
 

@@ -20,66 +20,18 @@ operations on arrays of a few thousand voxels cost more in overhead than in arit
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import torch
 from numba import njit
 from torch import nn
+
+from l3e_env.core.normals import closed_form_normal
 
 from .sparse import Level
 
 FEATURES = 12  # per level: log diag(H^-1) (6), log eigenvalues of H (6)
 MIN_NEIGHBOURS = 4  # occupied voxels in the 3x3x3 block, the voxel itself included, for a normal
 PLANARITY = 0.1  # smallest scatter eigenvalue under this share of the middle one: a surface
-
-
-def smallest_eigenvector(c: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(unit eigenvector of the smallest eigenvalue, smallest, middle eigenvalue) of symmetric
-    (N, 3, 3) matrices, in closed form (see _closed_form_normal)."""
-    c = np.asarray(c, dtype=np.float64)
-    return _smallest_eigenvectors(np.stack([c[:, i, j] for i, j in _UPPER]))
-
-
-_UPPER = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))  # the six distinct entries, in this order
-
-
-@njit(cache=True, nogil=True)
-def _closed_form_normal(a: float, e: float, f: float, b: float, g: float, d: float) -> tuple[float, ...]:
-    """(nx, ny, nz, smallest, middle eigenvalue) of [[a, e, f], [e, b, g], [f, g, d]]: the
-    trigonometric solution of the characteristic cubic, and the eigenvector as the longest cross
-    product of two rows of C - smallest I (it is orthogonal to every row)."""
-    q = (a + b + d) / 3
-    a0, b0, d0 = a - q, b - q, d - q
-    p = max(math.sqrt((a0 * a0 + b0 * b0 + d0 * d0 + 2 * (e * e + f * f + g * g)) / 6), 1e-12)
-    det = a0 * (b0 * d0 - g * g) - e * (e * d0 - g * f) + f * (e * g - b0 * f)  # of C - q I
-    phi = math.acos(min(max(det / (2 * p**3), -1.0), 1.0)) / 3
-    largest = q + 2 * p * math.cos(phi)
-    smallest = q + 2 * p * math.cos(phi + 2 * math.pi / 3)
-    middle = 3 * q - largest - smallest
-    a1, b1, d1 = a - smallest, b - smallest, d - smallest
-    x, y, z = e * g - f * b1, f * e - a1 * g, a1 * b1 - e * e  # rows 0 x 1
-    longest = x * x + y * y + z * z
-    x2, y2, z2 = e * d1 - f * g, f * f - a1 * d1, a1 * g - e * f  # rows 0 x 2
-    if x2 * x2 + y2 * y2 + z2 * z2 > longest:
-        x, y, z, longest = x2, y2, z2, x2 * x2 + y2 * y2 + z2 * z2
-    x2, y2, z2 = b1 * d1 - g * g, g * f - e * d1, e * g - b1 * f  # rows 1 x 2
-    if x2 * x2 + y2 * y2 + z2 * z2 > longest:
-        x, y, z, longest = x2, y2, z2, x2 * x2 + y2 * y2 + z2 * z2
-    length = max(math.sqrt(longest), 1e-12)
-    return x / length, y / length, z / length, smallest, middle
-
-
-@njit(cache=True, nogil=True)
-def _smallest_eigenvectors(entries: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """smallest_eigenvector of the (6, N) distinct entries, in _UPPER's order."""
-    n = entries.shape[1]
-    normal, smallest, middle = np.empty((n, 3)), np.empty(n), np.empty(n)
-    for i in range(n):
-        a, e, f, b, g, d = entries[:, i]
-        nx, ny, nz, smallest[i], middle[i] = _closed_form_normal(a, e, f, b, g, d)
-        normal[i, 0], normal[i, 1], normal[i, 2] = nx, ny, nz
-    return normal, smallest, middle
 
 
 def voxel_hessian(level: Level, means: torch.Tensor, batch_size: int) -> np.ndarray:
@@ -119,7 +71,7 @@ def _planar_row(neighbours: np.ndarray, means: np.ndarray, v: int, row: np.ndarr
     if count < MIN_NEIGHBOURS:
         return False
     mx, my, mz = sx / count, sy / count, sz / count
-    nx, ny, nz, smallest, middle = _closed_form_normal(
+    nx, ny, nz, smallest, middle = closed_form_normal(
         sxx / count - mx * mx,
         sxy / count - mx * my,
         sxz / count - mx * mz,

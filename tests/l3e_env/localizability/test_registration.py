@@ -45,6 +45,28 @@ def test_a_target_prepared_on_two_threads_gives_the_same_registration_to_the_bit
     assert np.array_equal(one.T_target_source, two.T_target_source) and np.array_equal(one.hessian, two.hessian)
 
 
+def test_normals_computed_where_matched_give_the_registration_onto_small_gicps_normals():
+    """The target's voxels are those of small_gicp's preprocess_points and its normals, computed only
+    where a registration matches, are small_gicp's: the same registration as onto its whole cloud's."""
+    cfg = RegistrationConfig()
+    target, source, _ = scan_pair("tunnel", [50, 0, 0.85, 0, 0, 0], [0.1, 0.05, 0.02, 0.01, -0.01, 0.05])
+    lazy = PreparedTarget(target, cfg)
+    cloud, _ = small_gicp.preprocess_points(target, cfg.downsampling_resolution, cfg.num_neighbors)
+    whole = np.asarray(cloud.points())[:, :3]
+    assert np.array_equal(lazy.points, whole)  # preprocess_points' own voxels, part means and all
+    result = register(source, lazy, cfg)
+    assert 0.05 < lazy._known.mean() < 0.95  # the ground's and the matched voxels' normals only
+    eager = PreparedTarget(target, cfg)
+    normals = np.asarray(cloud.normals())[:, :3]
+    normals[np.abs(whole @ eager.ground[:3] - eager.ground[3]) < 0.05] = eager.ground[:3]
+    eager.normals = normals
+    expected = register(source, eager, cfg)
+    assert result.converged and np.allclose(result.T_target_source, expected.T_target_source, atol=1e-9)
+    np.testing.assert_allclose(result.hessian, expected.hessian, rtol=1e-7, atol=1e-7)
+    with pytest.raises(ValueError, match="one per voxel"):
+        eager.normals = normals[:10]
+
+
 @pytest.mark.parametrize("ground_normals", [False, True])
 def test_hessian_matches_finite_differences_of_the_point_to_plane_cost(ground_normals):
     cfg = RegistrationConfig(ground_normals=ground_normals)
@@ -234,7 +256,8 @@ def test_the_ground_plane_is_fitted_under_a_tilted_sensor_and_its_voxels_take_it
     on = np.abs(tgt.points @ tgt.ground[:3] - tgt.ground[3]) < 0.05
     assert on.mean() > 0.05 and np.all(tgt.normals[on] == tgt.ground[:3])
     plain = PreparedTarget(target, PLAIN)
-    assert plain.ground is None and np.array_equal(plain.normals[~on], tgt.normals[~on])
+    # off the ground, small_gicp's normals (up to their sign, which point-to-plane ICP does not read)
+    assert plain.ground is None and np.allclose(np.abs((plain.normals[~on] * tgt.normals[~on]).sum(1)), 1.0)
 
 
 def test_ground_normals_recover_steps_beside_walls_and_leave_the_tunnel_axis_free():
@@ -263,7 +286,8 @@ def test_a_round_floor_keeps_its_own_normals():
     there the plane holds too few of the ground candidates and is not used."""
     target, _, _ = scan_pair("primitives-4", [0, 0, 0.85, 0, 0, 0], [0, 0, 0, 0, 0, 0])
     tgt = PreparedTarget(target, GROUND)
-    assert tgt.ground is None and np.array_equal(tgt.normals, PreparedTarget(target, PLAIN).normals)
+    plain = PreparedTarget(target, PLAIN).normals  # small_gicp's, up to their sign
+    assert tgt.ground is None and np.allclose(np.abs((tgt.normals * plain).sum(1)), 1.0)
 
 
 def test_ground_normals_converge_on_an_open_field_where_weakly_held_matches_flip():

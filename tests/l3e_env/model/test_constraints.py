@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import torch
 
+from l3e_env.core.normals import smallest_eigenvector
 from l3e_env.data.dataset import LabelDataset
 from l3e_env.model.classifier import (
     Classifier,
@@ -21,7 +22,6 @@ from l3e_env.model.constraints import (
     fit_stacker,
     hessian_features,
     scan_features,
-    smallest_eigenvector,
     surface_rows,
     voxel_hessian,
 )

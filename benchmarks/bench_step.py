@@ -1,0 +1,109 @@
+"""CPU cost of one full-pipeline step of a navigation episode, by part: the scan, the ICP target's
+preparation (normals, k-d tree), ICP, the detector, the fusion, the local layer and the follower, and
+the rest (the walk, odometry, collision checks). The reference in the same run is the scan alone.
+
+CPU time (time.process_time: every thread of the process counted), as a policy evaluation on 2 cores
+pays it; the follower walks the scene's route steering on the fused estimate, as `l3e policy evaluate`.
+
+Run: python benchmarks/bench_step.py [--scene bypass-100] [--steps 400] [--detector learned]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from collections import defaultdict
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+import torch
+
+import l3e_env.detection.pipeline as pipeline_module
+from l3e_env.config import FusionSettings
+from l3e_env.envs.navigation import NavigationEnv
+from l3e_env.sim.avoidance import FreeHeadings
+from l3e_env.sim.follower import RouteFollower
+
+PARTS = ("scan", "ICP target", "ICP", "detector", "fusion", "local layer and follower")
+
+
+class Clock:
+    """CPU seconds spent in each timed part."""
+
+    def __init__(self) -> None:
+        self.spent: dict[str, float] = defaultdict(float)
+
+    def wrap(self, part: str, fn: Callable[..., Any]) -> Callable[..., Any]:
+        def timed(*args: Any, **kwargs: Any) -> Any:
+            t0 = time.process_time()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                self.spent[part] += time.process_time() - t0
+
+        return timed
+
+
+def instrumented_env(scene: str, detector: str, clock: Clock) -> NavigationEnv:
+    """The evaluation's environment with each part's calls timed."""
+    env = NavigationEnv(
+        scene=scene, arrival="estimate", fusion={**FusionSettings().__dict__, "enabled": True, "detector": detector}
+    )
+    online = env.fusion
+    env.lidar.scan = clock.wrap("scan", env.lidar.scan)  # type: ignore[method-assign]
+    online.registrar._prepare = clock.wrap("ICP target", online.registrar._prepare)  # type: ignore[method-assign]
+    pipeline_module.register = clock.wrap("ICP", pipeline_module.register)  # type: ignore[assignment]
+    online.pipeline.detector.predict = clock.wrap("detector", online.pipeline.detector.predict)  # type: ignore[method-assign]
+    start = online.pipeline.start
+
+    def timed_start(T_w_b: np.ndarray) -> None:
+        start(T_w_b)
+        backend = online.pipeline.backend
+        backend.add_step = clock.wrap("fusion", backend.add_step)  # type: ignore[method-assign]
+        backend.add_attitude = clock.wrap("fusion", backend.add_attitude)  # type: ignore[method-assign]
+
+    online.pipeline.start = timed_start  # type: ignore[method-assign]
+    return env
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scene", default="bypass-100")
+    parser.add_argument("--steps", type=int, default=400)
+    parser.add_argument("--detector", default="learned")
+    args = parser.parse_args()
+    torch.set_num_threads(1)  # as each evaluation worker
+    clock = Clock()
+    env = instrumented_env(args.scene, args.detector, clock)
+    local = FreeHeadings()
+    follow = RouteFollower(env.route, avoid=local)
+
+    def steer(T_w_b: np.ndarray) -> np.ndarray:
+        return follow(T_w_b, FreeHeadings.obstacles(env.scan.points, env.robot.T_b_s, env.config.robot))
+
+    policy = clock.wrap("local layer and follower", steer)
+    _, info = env.reset(seed=0)
+    for _ in range(20):  # warm up: compiled kernels, caches
+        _, _, done, cut, info = env.step(policy(info["fused_T_w_b"]))
+    clock.spent.clear()
+    steps, t0 = 0, time.process_time()
+    while steps < args.steps:
+        _, _, done, cut, info = env.step(policy(info["fused_T_w_b"]))
+        steps += 1
+        if done or cut:
+            _, info = env.reset(seed=steps)
+            follow.reset()
+    total = (time.process_time() - t0) / steps
+    env.close()
+    scan = clock.spent["scan"] / steps
+    print(f"{args.scene}, detector {args.detector}: {total * 1e3:.1f} ms of CPU a step over {steps} steps")
+    for part in PARTS:
+        print(f"  {part:26s} {clock.spent[part] / steps * 1e3:6.2f} ms")
+    rest = total - sum(clock.spent[p] for p in PARTS) / steps
+    print(f"  {'the rest (walk, odometry)':26s} {rest * 1e3:6.2f} ms")
+    print(f"reference: the scan alone {scan * 1e3:.2f} ms; a step costs {total / scan:.1f} scans")
+
+
+if __name__ == "__main__":
+    main()
