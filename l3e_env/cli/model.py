@@ -53,10 +53,10 @@ def _cmd_train(args: argparse.Namespace) -> int:
         model["frame"] = args.frame
     if args.pooling:
         model["pooling"] = args.pooling
-    if args.distilled:  # the distillation set's places join the training scenes
-        from scenes import DISTILL_SCENES
+    if args.distilled:  # the distillation sets' places join the training scenes
+        from l3e_env.model.training import distilled_scenes
 
-        overrides["train_scenes"] = list(dict.fromkeys([*cfg.train_scenes, *DISTILL_SCENES]))
+        overrides["train_scenes"] = list(dict.fromkeys([*cfg.train_scenes, *distilled_scenes(args.dataset)]))
     cfg = from_dict(TrainConfig, {**_asdict(cfg), **overrides, "model": model})
     print(
         f"training {cfg.model.architecture} on {' + '.join(args.dataset)} -> {Path(args.out).resolve()} "
@@ -202,8 +202,8 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--distilled",
         action="store_true",
-        help="also train on the places of a distillation set (l3e dataset generate --preset distill), given "
-        "as one of the --dataset folders",
+        help="also train on the places of the distillation sets (l3e dataset generate --labeller scan, e.g. "
+        "--preset distill) among the --dataset folders",
     )
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_cmd_train)

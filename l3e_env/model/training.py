@@ -30,7 +30,7 @@ from l3e_env.data.dataset import (
     open_datasets,
     scan_labelled,
 )
-from scenes import TRAIN_SCENES, VALIDATION_SCENES, canonical_scene_name, scene_family
+from scenes import HELDOUT_SCENES, TEST_SCENES, TRAIN_SCENES, VALIDATION_SCENES, canonical_scene_name, scene_family
 
 from .classifier import (
     SWAP_LABELS,
@@ -92,6 +92,29 @@ class TrainConfig:
 
 class TrainingError(RuntimeError):
     """A run that cannot start or resume; the message says why."""
+
+
+def distilled_scenes(folders: list[str | Path]) -> list[str]:
+    """The places of the distillation sets among `folders` (`l3e train --distilled` trains on them
+    too); a TrainingError where one lies in a test or held-out family or is a validation scene,
+    which the classifier must never have learnt, not even from an estimate."""
+    places: list[str] = []
+    for folder in folders:
+        data = LabelDataset(folder)
+        if data.labeller == "scan":
+            places += [s for s in data.manifest["scenes"] if s not in places]
+    if not places:
+        raise TrainingError(
+            "--distilled: none of the datasets is a distillation set (l3e dataset generate --labeller scan)"
+        )
+    unseen = {scene_family(s) for s in [*TEST_SCENES, *HELDOUT_SCENES]}
+    banned = [s for s in places if scene_family(s) in unseen or s in VALIDATION_SCENES]
+    if banned:
+        raise TrainingError(
+            f"the distillation sets hold {', '.join(banned[:5])}: a test or held-out family or a validation "
+            "scene is never trained on; label other places"
+        )
+    return places
 
 
 def split_indices(data: LabelDataset | DatasetUnion, scenes: list[str]) -> np.ndarray:

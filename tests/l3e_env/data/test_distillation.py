@@ -23,15 +23,8 @@ from l3e_env.localizability.scan_mc import ScanMCConfig, scan_errors
 
 
 def _distill_config(**kw):
-    return config_for(
-        None,
-        scenes=["tunnel-10", "office-10"],
-        parents_per_scene=2,
-        shard_size=1,
-        labeller="scan",
-        scan_mc={"children": 10, "first": 10},
-        **kw,
-    )
+    settings = {"scenes": ["tunnel-10", "office-10"], "parents_per_scene": 2, **kw}
+    return config_for(None, shard_size=1, labeller="scan", scan_mc={"children": 10, "first": 10}, **settings)
 
 
 @pytest.fixture(scope="module")
@@ -122,12 +115,27 @@ def _train_cfg(train_scenes, validation_scenes):
     )
 
 
-def test_distilled_training_asks_for_every_place_of_the_distillation_set(
+def test_distilled_training_learns_the_distillation_sets_places_and_never_a_test_familys(
     distill_dataset, tiny_dataset, tmp_path, capsys
 ):
     from l3e_env.cli.main import main
+    from l3e_env.model.training import TrainingError, distilled_scenes
 
-    args = ["train", "--dataset", str(tiny_dataset), "--dataset", str(distill_dataset), "--out", str(tmp_path / "r")]
-    assert main([*args, "--distilled", "--epochs", "1"]) == 2
+    assert distilled_scenes([tiny_dataset, distill_dataset]) == ["tunnel-10", "office-10"]  # their own places
+    with pytest.raises(TrainingError, match="none of the datasets is a distillation set"):
+        distilled_scenes([tiny_dataset])
+    mine = tmp_path / "mine"
+    generate(mine, _distill_config(scenes=["mine-0"], parents_per_scene=1), workers=1, progress=False)
+    args = [
+        "train",
+        "--dataset",
+        str(tiny_dataset),
+        "--dataset",
+        str(mine),
+        "--distilled",
+        "--out",
+        str(tmp_path / "m"),
+    ]
+    assert main(args) == 2
     said = capsys.readouterr().err
-    assert "layout-21" in said and "are not in dataset" in said  # a small set lacks the preset's places
+    assert "mine-0" in said and "never trained on" in said and not (tmp_path / "m").exists()
