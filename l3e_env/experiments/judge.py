@@ -256,6 +256,11 @@ def judge_scans(
     yield from ordered_map(_judge_job, jobs, panel, _Panel, (specs, sensor, seed, pattern, given), workers)
 
 
+def _width(name: str) -> int:
+    """A detector's column: 16 characters, or its name and two spaces where that is longer."""
+    return max(16, len(name) + 2)
+
+
 def format_judgement(j: Judgement) -> str:
     """A table of each detector's per-axis score, flagged axes marked '*', and a summary line."""
     if j.error:
@@ -265,12 +270,14 @@ def format_judgement(j: Judgement) -> str:
         f"{j.path}: {j.points} points"
         + (f" ({j.dropped} without a return dropped)" if j.dropped else "")
         + (f", {j.frame}" if j.frame else ""),
-        f"  {'axis':6s}" + "".join(f"{n:>16s}" for n in names),
+        f"  {'axis':6s}" + "".join(f"{n:>{_width(n)}s}" for n in names),
     ]
     for a, axis in enumerate(AXES):
         cells = [
-            f"{p.probabilities[a]:15.2f}{'*' if p.mask[a] else ' '}" if p.known else f"{'unknown':>16s}"
-            for p in j.predictions.values()
+            f"{p.probabilities[a]:{_width(n) - 1}.2f}{'*' if p.mask[a] else ' '}"
+            if p.known
+            else f"{'unknown':>{_width(n)}s}"
+            for n, p in j.predictions.items()
         ]
         lines.append(f"  {axis:6s}" + "".join(cells))
     for n in names:

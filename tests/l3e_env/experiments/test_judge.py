@@ -245,3 +245,17 @@ def test_scan_files_of_two_sensors_given_together_are_each_read_with_their_own(t
     judged = list(judge_scans(paths, ["scanmc:4"]))
     assert [j.sensor for j in judged] == ["vlp16", "os0-128"]
     assert all(j.error is None and j.predictions["scanmc:4"].known for j in judged)
+
+
+def test_a_long_detector_name_keeps_its_columns_apart():
+    import numpy as np
+
+    from l3e_env.detection.detectors import Prediction
+    from l3e_env.experiments.judge import Judgement
+
+    names = ["learned:runs/a-long-folder/model.pt", "scanmc:60"]
+    flagged = Prediction(np.linspace(0.1, 0.6, 6), np.array([0, 0, 0, 0, 0, 1], bool))
+    table = format_judgement(Judgement("scan.npy", 1000, 0, {n: flagged for n in names})).splitlines()
+    header, yaw = table[1], table[-3]
+    assert f"  {names[0]}" in header and f"  {names[1]}" in header  # two spaces before each name
+    assert len(header) == len(yaw) and yaw.endswith("0.60*")  # each score ends under its name, then its flag
