@@ -39,20 +39,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
                 f"{args.init} has a constraint layer: its network is fine-tuned without it; fit the layer "
                 "again afterwards (l3e fit-constraints)"
             )
-    if args.architecture:
-        model["architecture"] = args.architecture
-    if args.gravity:
-        model["gravity"] = True
-    if args.surface_rows:
-        model["surface_rows"] = True
-    if args.sampling:
-        model["sampling"] = args.sampling
-    if args.points:
-        model["points"] = args.points
-    if args.frame:
-        model["frame"] = args.frame
-    if args.pooling:
-        model["pooling"] = args.pooling
+    model.update(_model_options(args))
     if args.distilled:  # the distillation sets' places join the training scenes
         from l3e_env.model.training import distilled_scenes
 
@@ -69,6 +56,20 @@ def _cmd_train(args: argparse.Namespace) -> int:
     )
     print(f"model: {Path(args.out) / 'model.pt'}")
     return 0
+
+
+def _model_options(args: argparse.Namespace) -> dict:
+    """The model settings given on the command line (ModelConfig's fields)."""
+    given = {
+        "architecture": args.architecture,
+        "gravity": args.gravity or None,
+        "surface_rows": args.surface_rows or None,
+        "sampling": args.sampling,
+        "points": args.points,
+        "frame": args.frame,
+        "pooling": args.pooling,
+    }
+    return {k: v for k, v in given.items() if v}
 
 
 def _asdict(cfg) -> dict:
