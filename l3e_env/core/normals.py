@@ -67,7 +67,10 @@ def neighbourhood_normals(points: np.ndarray, neighbours: np.ndarray, which: np.
     """normals[i] = the smallest eigenvector of the scatter of points[neighbours[k]] about their mean,
     for each i = which[k]: each point's normal from its k nearest neighbours (itself among them), the
     moments summed about the mean as small_gicp's normal estimation does. Fewer than three
-    neighbours (a negative index: none found) give a zero normal, as small_gicp marks it invalid."""
+    neighbours (a negative index: none found) give a zero normal, as small_gicp marks it invalid.
+    The scatter is summed about the mean, as small_gicp sums it, so that the registration's normals
+    are its own to rounding; the constraint layer's raw moments (l3e_env.model.constraints) stay
+    as the shipped model was fitted on them."""
     for k in range(len(which)):
         count = 0
         sx = sy = sz = 0.0
