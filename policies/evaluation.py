@@ -27,7 +27,7 @@ from tqdm import tqdm
 
 from l3e_env.config import FusionSettings, OdometryConfig, settings_changed
 from l3e_env.core.transforms import yaw_of
-from l3e_env.core.workers import die_with_parent
+from l3e_env.core.workers import worker_start
 from l3e_env.envs import NavigationEnv
 from l3e_env.sim.avoidance import FreeHeadings
 from l3e_env.sim.follower import RouteFollower
@@ -359,7 +359,7 @@ def run_episodes(
             bar.update()
 
         if workers > 1 and len(todo) > 1:
-            with get_context("spawn").Pool(workers, initializer=die_with_parent) as pool:
+            with get_context("spawn").Pool(workers, initializer=worker_start) as pool:
                 for e in pool.imap_unordered(run_episode, todo):
                     record(e)
         else:

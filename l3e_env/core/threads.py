@@ -10,6 +10,10 @@ OpenMP's default wait policy and OpenBLAS's threads both spin.
   Library users set the same variables themselves (`OMP_WAIT_POLICY=PASSIVE OPENBLAS_NUM_THREADS=1`).
 - `one_blas_thread()`: the few large products the project makes itself (the LiDAR's ray directions)
   on one BLAS thread in any process, without touching the process's own setting.
+- `part_threads()`: the threads one part of a step (a scan's rays, the ICP target's normals) splits
+  its work over: up to 2, this project's reference machine, or `L3E_PART_THREADS`. A worker among
+  others (`one_thread_per_part()`, which the project's worker pools call) uses one: there the other
+  workers fill the cores, and a second thread only adds its hand-over to every part's cost.
 The classifier runs each scan on one torch thread (`Classifier.predict`), so it has no team to wait for.
 """
 
@@ -21,6 +25,7 @@ from typing import Any
 
 PACKAGE_THREAD_ENV = {"OMP_WAIT_POLICY": "PASSIVE"}
 PROCESS_THREAD_ENV = {**PACKAGE_THREAD_ENV, "OPENBLAS_NUM_THREADS": "1"}
+PART_THREADS_ENV = "L3E_PART_THREADS"
 
 _blas: Any = None  # threadpoolctl's handle on the loaded BLAS libraries, found once
 
@@ -29,6 +34,21 @@ def settle_process_threads(variables: dict[str, str] = PROCESS_THREAD_ENV) -> No
     """Set `variables` where the user has not; child processes inherit them."""
     for name, value in variables.items():
         os.environ.setdefault(name, value)
+
+
+def part_threads() -> int:
+    """Threads for one part of a step: `L3E_PART_THREADS` where set, else up to 2 (see the module)."""
+    value = os.environ.get(PART_THREADS_ENV)
+    if value is None:
+        return min(2, os.cpu_count() or 1)
+    if not value.isdigit() or int(value) < 1:
+        raise ValueError(f"{PART_THREADS_ENV} must be a whole number of threads, at least 1, not {value!r}")
+    return int(value)
+
+
+def one_thread_per_part() -> None:
+    """This process is one worker of several: each part of a step on one thread (part_threads)."""
+    os.environ[PART_THREADS_ENV] = "1"
 
 
 def one_blas_thread() -> AbstractContextManager:

@@ -13,6 +13,8 @@ from itertools import chain, islice
 from multiprocessing import get_context
 from typing import Any, TypeVar
 
+from l3e_env.core.threads import one_thread_per_part
+
 Job = TypeVar("Job")
 Result = TypeVar("Result")
 
@@ -31,6 +33,13 @@ def die_with_parent() -> None:
         ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
 
 
+def worker_start() -> None:
+    """A pool worker's initializer: it dies with its parent (die_with_parent) and runs each part of
+    a step on one thread, as the other workers fill the other cores (threads.one_thread_per_part)."""
+    die_with_parent()
+    one_thread_per_part()
+
+
 def _one_torch_thread() -> None:
     """The workers share the cores: torch, where the work has imported it, runs on one thread. It is
     looked up rather than imported, so that workers of torch-free work never load it."""
@@ -40,7 +49,7 @@ def _one_torch_thread() -> None:
 
 def _start(work: Callable[[Any, Any], Any], build: Callable[..., Any], args: tuple) -> None:
     global _worker
-    die_with_parent()
+    worker_start()
     _one_torch_thread()
     obj = build(*args)
     _one_torch_thread()  # `build` may have imported it (a learned detector)

@@ -31,7 +31,7 @@ from tqdm import tqdm
 
 from l3e_env.config import LABELLERS, LidarConfig, from_dict, settings_changed, with_defaults
 from l3e_env.core.files import folder_lock, write_atomic
-from l3e_env.core.workers import die_with_parent
+from l3e_env.core.workers import worker_start
 from l3e_env.localizability.labels import (
     AXES,
     LABEL_PROTOCOL,
@@ -369,7 +369,7 @@ def _execute(config: DatasetConfig, todo: list, workers: int, backend: str, ray_
         for shard in todo:
             yield run_shard(config, shard)
     else:
-        with ProcessPoolExecutor(workers, initializer=die_with_parent) as pool:
+        with ProcessPoolExecutor(workers, initializer=worker_start) as pool:
             futures = [pool.submit(run_shard, config, s) for s in todo]
             for fut in as_completed(futures):
                 yield fut.result()

@@ -9,7 +9,6 @@ detector's probabilities and mask, and the running ATE against ground truth.
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 from typing import Any
 
@@ -17,6 +16,7 @@ import numpy as np
 
 from fusion import EKFFusion, FusionConfig, FusionGraph, check_backend, make_fusion
 from l3e_env.config import FusionSettings, OdometryConfig, from_dict
+from l3e_env.core.threads import part_threads
 from l3e_env.localizability.registration import (
     PreparedTarget,
     RegistrationConfig,
@@ -36,11 +36,11 @@ class ScanRegistrar:
     """Scan k registered to scan k-1, from identity (as the labels are made): `start` with the first
     scan, then `next` with each new one. None where registration is impossible (too few points).
     Each scan is prepared as the next target (normals, k-d tree: the step's largest cost) on
-    `threads` threads, by default as many as the ray casting uses."""
+    `threads` threads, by default as many as the ray casting uses (`part_threads()`)."""
 
     def __init__(self, config: RegistrationConfig, threads: int | None = None):
         self.config = config
-        self.threads = threads if threads is not None else min(2, os.cpu_count() or 1)
+        self.threads = threads if threads is not None else part_threads()
         self.target: PreparedTarget | None = None
 
     def _prepare(self, points: np.ndarray) -> PreparedTarget | None:

@@ -11,6 +11,7 @@ from embreex import rtcore_scene
 from embreex.mesh_construction import TriangleMesh
 
 from l3e_env.core.quiet import import_pybullet
+from l3e_env.core.threads import part_threads
 
 if TYPE_CHECKING:  # trimesh and pybullet load slowly: only the meshes' owners need them
     import trimesh
@@ -42,14 +43,14 @@ class EmbreeCaster:
     """Intel Embree through embreex: ~10x PyBullet's throughput on one thread.
 
     embreex releases the GIL while it traces, so a scan is split over `threads` worker threads
-    (default: up to 2, this project's reference machine). Vertices are stored relative to the
+    (default: `part_threads()`, up to 2). Vertices are stored relative to the
     mesh centre so float32 keeps sub-millimetre precision in scenes a few hundred metres wide.
     """
 
     MIN_RAYS_PER_THREAD = 4096
 
     def __init__(self, mesh: trimesh.Trimesh, threads: int | None = None):
-        self.threads = max(1, threads if threads is not None else min(2, os.cpu_count() or 1))
+        self.threads = max(1, threads if threads is not None else part_threads())
         self.offset = np.asarray(mesh.bounds, dtype=np.float64).mean(axis=0)
         self.scene = rtcore_scene.EmbreeScene()
         verts = (np.asarray(mesh.vertices, dtype=np.float64) - self.offset).astype(np.float32)

@@ -3,7 +3,10 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
+import trimesh
 
+from l3e_env.core import threads
 from l3e_env.core.threads import PROCESS_THREAD_ENV, one_blas_thread
 
 
@@ -39,3 +42,22 @@ def test_one_blas_thread_holds_for_the_block_only():
         product = np.ones((1000, 3)) @ np.eye(3)
     assert inside and all(n == 1 for n in inside) and blas_threads() == before
     assert np.array_equal(product, np.ones((1000, 3)))
+
+
+def test_a_part_of_a_step_uses_up_to_two_threads_and_a_worker_one(monkeypatch):
+    monkeypatch.setenv(threads.PART_THREADS_ENV, "3")  # restored to the session's own afterwards
+    assert threads.part_threads() == 3
+    monkeypatch.delenv(threads.PART_THREADS_ENV)
+    assert threads.part_threads() == min(2, os.cpu_count() or 1)
+    threads.one_thread_per_part()
+    assert threads.part_threads() == 1
+    from l3e_env.sim.raycast import EmbreeCaster
+
+    assert EmbreeCaster(trimesh.creation.box()).threads == 1
+
+
+def test_a_part_thread_count_that_is_not_a_whole_number_is_refused(monkeypatch):
+    for bad in ("0", "two", "-1"):
+        monkeypatch.setenv(threads.PART_THREADS_ENV, bad)
+        with pytest.raises(ValueError, match="L3E_PART_THREADS"):
+            threads.part_threads()
