@@ -29,7 +29,7 @@ if TYPE_CHECKING:
     from .locmap import LocalizabilityMap
 
 
-def _scenes_with_params(args: argparse.Namespace, default: tuple[str, ...] = ("fork",)) -> dict[str, dict]:
+def _scenes_with_params(args: argparse.Namespace, default: tuple[str, ...] = ("bypass",)) -> dict[str, dict]:
     """Each scene (--scene, else `default`) with make_scene's keyword arguments; the mesh options
     describe one mesh scene, named by its absolute path so that an evaluation folder knows it from
     any working folder."""
@@ -199,7 +199,7 @@ def map_detector(text: str) -> str:
 def _add_map(psub: argparse._SubParsersAction, common: argparse.ArgumentParser) -> None:
     g = psub.add_parser("map", parents=[common], help="build (or load) and plot localizability maps")
     g.add_argument(
-        "--scene", type=scene_names, action="append", help="scene names, comma-separated or repeated (default: fork)"
+        "--scene", type=scene_names, action="append", help="scene names, comma-separated or repeated (default: bypass, the family's first variant)"
     )
     g.add_argument(
         "--detector", default="learned", type=map_detector, help=f"{DETECTOR_GRAMMAR}, not none (default: learned)"
@@ -213,7 +213,9 @@ def _add_map(psub: argparse._SubParsersAction, common: argparse.ArgumentParser) 
 
 def _add_plan(psub: argparse._SubParsersAction, common: argparse.ArgumentParser) -> None:
     g = psub.add_parser("plan", parents=[common], help="shortest path and localizability-aware plan, with a plot")
-    g.add_argument("--scene", type=scene_names, action="append", help="scene names (default: fork)")
+    g.add_argument(
+        "--scene", type=scene_names, action="append", help="scene names (default: bypass, the family's first variant)"
+    )
     g.add_argument("--detector", default="learned", type=map_detector, help="map detector (default: learned)")
     g.add_argument("--lam", type=float, default=50.0, help="weight of expected drift against length (default 50)")
     g.add_argument("--start", type=float, nargs=2, metavar=("X", "Y"), help="default: the scene's start")

@@ -10,7 +10,7 @@ fused estimate. Summed over the route, the heading error of the fused increments
 heading's error at the end; an error of heading e at distance d to go costs about e * d across.
 
 Run: python studies/route_drift_budget.py --scene bypass-102 --seed 2 [--policy planner]
-     [--odometry-bias yaw,scale] [--attitude tilt]
+     [--odometry-bias yaw,scale] [--attitude tilt] [--no-sweep]
 """
 
 from __future__ import annotations
@@ -36,10 +36,11 @@ def _error(true: np.ndarray, estimate: np.ndarray) -> tuple[float, float, float,
     return float(d[0]), float(d[1]), float(d[2]), float(yaw_of(inverse(true) @ estimate))
 
 
-def run_episode(scene: str, seed: int, policy: str, settings: FusionSettings) -> dict[str, np.ndarray]:
+def run_episode(scene: str, seed: int, policy: str, settings: FusionSettings, sweep: bool) -> dict[str, np.ndarray]:
     """Per step: the true increment's turn, and the (along, across, yaw) errors of the registration
     (NaN where none), the odometry and the fused increment, all in the body frame."""
-    env = NavigationEnv(scene=scene, fusion={**asdict(settings), "enabled": True})
+    fusion = {**asdict(settings), "enabled": True}
+    env = NavigationEnv(scene=scene, fusion=fusion, lidar={"sweep": sweep})
     online = env.fusion
     registrations: list = []
     next_registration = online.registrar.next
@@ -118,10 +119,11 @@ def main() -> None:
     parser.add_argument("--policy", default="planner", choices=["planner", "shortest"])
     parser.add_argument("--odometry-bias", default="", help="comma-separated: yaw, z, scale")
     parser.add_argument("--attitude", default="none", choices=["none", "tilt", "full"])
+    parser.add_argument("--no-sweep", action="store_true", help="scans taken at an instant (no revolution to deskew)")
     args = parser.parse_args()
     bias = tuple(a for a in args.odometry_bias.split(",") if a)
     settings = FusionSettings(odometry_bias=bias, attitude=args.attitude, detector="learned")
-    report(run_episode(args.scene, args.seed, args.policy, settings))
+    report(run_episode(args.scene, args.seed, args.policy, settings, not args.no_sweep))
 
 
 if __name__ == "__main__":
