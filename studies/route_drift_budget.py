@@ -10,7 +10,7 @@ fused estimate. Summed over the route, the heading error of the fused increments
 heading's error at the end; an error of heading e at distance d to go costs about e * d across.
 
 Run: python studies/route_drift_budget.py --scene bypass-102 --seed 2 [--policy planner]
-     [--odometry-bias yaw,scale] [--attitude tilt] [--no-sweep]
+     [--odometry-bias yaw,scale] [--attitude tilt] [--no-sweep] [--steer-on truth]
 """
 
 from __future__ import annotations
@@ -36,7 +36,9 @@ def _error(true: np.ndarray, estimate: np.ndarray) -> tuple[float, float, float,
     return float(d[0]), float(d[1]), float(d[2]), float(yaw_of(inverse(true) @ estimate))
 
 
-def run_episode(scene: str, seed: int, policy: str, settings: FusionSettings, sweep: bool) -> dict[str, np.ndarray]:
+def run_episode(
+    scene: str, seed: int, policy: str, settings: FusionSettings, sweep: bool, steer_on: str
+) -> dict[str, np.ndarray]:
     """Per step: the true increment's turn, and the (along, across, yaw) errors of the registration
     (NaN where none), the odometry and the fused increment, all in the body frame."""
     fusion = {**asdict(settings), "enabled": True}
@@ -59,7 +61,8 @@ def run_episode(scene: str, seed: int, policy: str, settings: FusionSettings, sw
     truth, fused, odom = info["T_w_b"], info["fused_T_w_b"], info["odom_T_w_b"]
     while not done:
         obstacles = FreeHeadings.obstacles(env.scan.points, T_b_s, env.config.robot)
-        _, _, terminated, truncated, info = env.step(steer(info["fused_T_w_b"], env.steps, obstacles))
+        pose = info["fused_T_w_b"] if steer_on == "estimate" else info["T_w_b"]
+        _, _, terminated, truncated, info = env.step(steer(pose, env.steps, obstacles))
         done = terminated or truncated
         true_step = inverse(truth) @ info["T_w_b"]
         fused_step = inverse(fused) @ info["fused_T_w_b"]
@@ -120,10 +123,16 @@ def main() -> None:
     parser.add_argument("--odometry-bias", default="", help="comma-separated: yaw, z, scale")
     parser.add_argument("--attitude", default="none", choices=["none", "tilt", "full"])
     parser.add_argument("--no-sweep", action="store_true", help="scans taken at an instant (no revolution to deskew)")
+    parser.add_argument(
+        "--steer-on",
+        choices=["estimate", "truth"],
+        default="estimate",
+        help="truth: the same path whatever the estimate (an episode steered on it may end elsewhere)",
+    )
     args = parser.parse_args()
     bias = tuple(a for a in args.odometry_bias.split(",") if a)
     settings = FusionSettings(odometry_bias=bias, attitude=args.attitude, detector="learned")
-    report(run_episode(args.scene, args.seed, args.policy, settings, not args.no_sweep))
+    report(run_episode(args.scene, args.seed, args.policy, settings, not args.no_sweep, args.steer_on))
 
 
 if __name__ == "__main__":

@@ -203,6 +203,21 @@ def prepare_source(points: np.ndarray, config: RegistrationConfig) -> small_gicp
     return cloud
 
 
+def _rigid_guess(T: np.ndarray) -> np.ndarray:
+    """The initial guess as a float64 4x4, or a ValueError where it is not a rigid transform: ICP's
+    updates keep whatever shear or scale the guess has, and a chain of such poses amplifies it."""
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4) or not np.isfinite(T).all():
+        raise ValueError(f"init_T_target_source must be a finite 4x4 transform, got shape {T.shape}")
+    R = T[:3, :3]
+    if np.abs(R.T @ R - np.eye(3)).max() > 1e-6 or np.linalg.det(R) < 0 or np.abs(T[3] - [0, 0, 0, 1]).max() > 0:
+        raise ValueError(
+            "init_T_target_source is not a rigid transform (its rotation is not orthonormal, or its last row "
+            "is not 0 0 0 1): take the nearest rotation (by SVD) of a pose composed from many"
+        )
+    return T
+
+
 def register(
     source: np.ndarray | small_gicp.PointCloud,
     target: np.ndarray | PreparedTarget,
@@ -218,7 +233,7 @@ def register(
     config = config or RegistrationConfig()
     tgt = target if isinstance(target, PreparedTarget) else PreparedTarget(target, config)
     src = source if isinstance(source, small_gicp.PointCloud) else prepare_source(source, config)
-    T = np.eye(4) if init_T_target_source is None else np.asarray(init_T_target_source, dtype=np.float64)
+    T = np.eye(4) if init_T_target_source is None else _rigid_guess(init_T_target_source)
     source_points = np.asarray(src.points())[:, :3]
     iterations = 0
     for distance in config.max_correspondence_distance:

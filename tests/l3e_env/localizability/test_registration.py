@@ -137,6 +137,19 @@ def test_bad_scans_raise_clear_errors(capfd):
         eigen_mask(np.eye(5), 1.0)
 
 
+def test_a_guess_that_is_not_a_rigid_transform_is_refused_and_a_rigid_one_is_followed():
+    target, source, T_true = scan_pair("office", [5, 0, 0.85, 0, 0, 0.3], [0.6, -0.2, 0.0, 0.0, 0.0, 0.4])
+    sheared = T_true.copy()
+    sheared[0, 1] += 1e-3
+    with pytest.raises(ValueError, match="not a rigid transform"):
+        register(source, target, init_T_target_source=sheared)
+    with pytest.raises(ValueError, match="finite 4x4"):
+        register(source, target, init_T_target_source=np.full((4, 4), np.nan))
+    res = register(source, target, init_T_target_source=T_true @ pose_to_matrix(np.array([0.02, 0.01, 0, 0, 0, 0.01])))
+    err = matrix_to_pose(res.T_target_source @ inverse(T_true))
+    assert res.converged and np.abs(err[:3]).max() < 0.01 and np.abs(err[3:]).max() < np.radians(0.5)
+
+
 def test_icp_without_overlap_is_reported_not_converged():
     target, _, _ = scan_pair("office", [5, 0, 0.85, 0, 0, 0], [0, 0, 0, 0, 0, 0])
     far = target + np.array([200.0, 0, 0], dtype=np.float32)
