@@ -52,7 +52,13 @@ class EKFFusion:
         icp_T_prev_cur: np.ndarray | None = None,
         non_localizable: np.ndarray | None = None,
         icp_hessian: np.ndarray | None = None,
+        icp_span: int = 1,
     ) -> tuple[np.ndarray, StepReport]:
+        if icp_span != 1:
+            raise ValueError(
+                "the EKF keeps the newest pose only: its ICP factor ties consecutive poses (icp_span 1); "
+                "registrations onto keyframes need the graph backend"
+            )
         step = resolve_step(self.config.mode, odom_T_prev_cur, icp_T_prev_cur, non_localizable)
         nb = len(self.bias_axes)
         G = np.zeros((6, nb))  # how the motion moves with the biases

@@ -115,10 +115,12 @@ class FusionGraph:
         icp_T_prev_cur: np.ndarray | None = None,
         non_localizable: np.ndarray | None = None,
         icp_hessian: np.ndarray | None = None,
+        icp_span: int = 1,
     ) -> tuple[np.ndarray, StepReport]:
         """Add pose k+1 with its factors; returns (estimate of pose k+1, report). `icp_hessian`:
         the registration's point-to-plane Hessian in the body frame, project order (see
-        FusionConfig.icp_covariance).
+        FusionConfig.icp_covariance). `icp_span`: the ICP factor ties pose k+1 to pose k+1-icp_span
+        (a keyframe's; 1: pose k), which must still be in the smoother's window.
 
         Missing odometry with every ICP axis masked leaves the new pose unconstrained: then the
         ICP factor is kept whole (documented fallback), and with no ICP either the pose is tied to
@@ -128,6 +130,7 @@ class FusionGraph:
         has_odom, has_icp, mask, icp_T_prev_cur = step.has_odom, step.has_icp, step.mask, step.icp_T_prev_cur
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         i, j = self.k, self.k + 1
+        key = self._icp_key(j, icp_span)
         odometry = None
         if self.bias_axes and has_odom:
             assert odom_T_prev_cur is not None
@@ -148,7 +151,7 @@ class FusionGraph:
         if has_icp:
             assert icp_T_prev_cur is not None
             information = icp_information(self.config, icp_hessian, mask)
-            graph.add(gtsam.BetweenFactorPose3(i, j, _pose3(icp_T_prev_cur), self._noise(information)))
+            graph.add(gtsam.BetweenFactorPose3(key, j, _pose3(icp_T_prev_cur), self._noise(information)))
         if not has_odom and not has_icp:
             weak = gtsam.noiseModel.Isotropic.Sigma(6, 1.0)
             graph.add(gtsam.BetweenFactorPose3(i, j, gtsam.Pose3(), weak))
@@ -156,7 +159,7 @@ class FusionGraph:
             self.estimate.compose(odometry)
             if odometry is not None
             else (
-                self.estimate.compose(_pose3(icp_T_prev_cur))
+                (self.estimate if key == i else self.isam.calculateEstimatePose3(key)).compose(_pose3(icp_T_prev_cur))
                 if has_icp and icp_T_prev_cur is not None
                 else self.estimate
             )
@@ -168,6 +171,18 @@ class FusionGraph:
         if self.bias_axes:
             self.odometry_bias = np.asarray(self.isam.calculateEstimateVector(bias_key(self._knot)), dtype=np.float64)
         return self.estimate.matrix(), step.report()
+
+    def _icp_key(self, j: int, span: int) -> int:
+        """The pose an ICP factor of `span` steps ties pose j to, or a ValueError where there is none
+        (before the first pose, or outside the smoother's window)."""
+        if not isinstance(span, (int, np.integer)) or span < 1 or span > j:
+            raise ValueError(f"an ICP factor spans 1 to {j} steps back from pose {j}, not {span}")
+        if self.lag is not None and span > self.lag // 2:
+            raise ValueError(
+                f"an ICP factor of {span} steps reaches beyond half the smoother's window of {self.lag} steps: "
+                "renew keyframes sooner, or widen FusionConfig.smoother_lag"
+            )
+        return j - int(span)
 
     def _next_bias_knot(self, walked: float, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> None:
         """Count the metres walked on the present bias state; past BIAS_KNOT_METRES start the next,

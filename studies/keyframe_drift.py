@@ -19,7 +19,7 @@ import dataclasses
 
 import numpy as np
 
-from l3e_env.core.transforms import inverse, yaw_of
+from l3e_env.core.transforms import inverse, nearest_rigid, yaw_of
 from l3e_env.envs import NavigationEnv
 from l3e_env.localizability.registration import PreparedTarget, RegistrationConfig, register
 from l3e_env.sim.avoidance import FreeHeadings
@@ -49,15 +49,6 @@ def walk(scene: str, seed: int) -> tuple[list[np.ndarray], list[np.ndarray], lis
     return poses, scans, odometry, T_b_s
 
 
-def rigid(T: np.ndarray) -> np.ndarray:
-    """T with its rotation made orthonormal again (the nearest rotation): the chain's products would
-    otherwise amplify their rounding, as a pose relative to a keyframe is taken through an inverse."""
-    u, _, vt = np.linalg.svd(T[:3, :3])
-    out = T.copy()
-    out[:3, :3] = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
-    return out
-
-
 def chain(
     poses: list[np.ndarray], scans: list[np.ndarray], odometry: list[np.ndarray], T_b_s: np.ndarray, every: int
 ) -> list[np.ndarray]:
@@ -80,7 +71,7 @@ def chain(
             if result.converged
             else inverse(estimate[key]) @ (estimate[k - 1] @ odometry[k])
         )
-        estimate.append(rigid(estimate[key] @ step))
+        estimate.append(nearest_rigid(estimate[key] @ step))
         if k - key >= every:
             key, target = k, PreparedTarget(scans[k], config)
     return estimate

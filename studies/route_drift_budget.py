@@ -11,6 +11,7 @@ heading's error at the end; an error of heading e at distance d to go costs abou
 
 Run: python studies/route_drift_budget.py --scene bypass-102 --seed 2 [--policy planner]
      [--odometry-bias yaw,scale] [--attitude tilt] [--no-sweep] [--steer-on truth]
+     [--keyframe-distance 4]
 """
 
 from __future__ import annotations
@@ -39,16 +40,17 @@ def _error(true: np.ndarray, estimate: np.ndarray) -> tuple[float, float, float,
 def run_episode(
     scene: str, seed: int, policy: str, settings: FusionSettings, sweep: bool, steer_on: str
 ) -> dict[str, np.ndarray]:
-    """Per step: the true increment's turn, and the (along, across, yaw) errors of the registration
-    (NaN where none), the odometry and the fused increment, all in the body frame."""
+    """Per step: the true increment's turn, and the (along, across, height, yaw) errors of the
+    registration (NaN where none, or where it was onto a keyframe), the odometry and the fused
+    increment, all in the body frame."""
     fusion = {**asdict(settings), "enabled": True}
     env = NavigationEnv(scene=scene, fusion=fusion, lidar={"sweep": sweep})
     online = env.fusion
     registrations: list = []
     next_registration = online.registrar.next
 
-    def kept(points: np.ndarray):  # type: ignore[no-untyped-def]
-        result = next_registration(points)
+    def kept(points: np.ndarray, motion: np.ndarray | None = None):  # type: ignore[no-untyped-def]
+        result = next_registration(points, motion)
         registrations.append(result)
         return result
 
@@ -69,7 +71,7 @@ def run_episode(
         odom_step = inverse(odom) @ info["odom_T_w_b"]
         reg = registrations[-1]
         reg_err = (np.nan,) * 4
-        if reg is not None and reg.converged:
+        if reg is not None and reg.converged and reg.span == 1:  # a keyframe's: not a step's error
             reg_err = _error(true_step, T_b_s @ reg.T_target_source @ inverse(T_b_s))
         rows.append(
             [
@@ -122,6 +124,7 @@ def main() -> None:
     parser.add_argument("--policy", default="planner", choices=["planner", "shortest"])
     parser.add_argument("--odometry-bias", default="", help="comma-separated: yaw, z, scale")
     parser.add_argument("--attitude", default="none", choices=["none", "tilt", "full"])
+    parser.add_argument("--keyframe-distance", type=float, default=0.0, help="m (default 0: scan to scan)")
     parser.add_argument("--no-sweep", action="store_true", help="scans taken at an instant (no revolution to deskew)")
     parser.add_argument(
         "--steer-on",
@@ -131,7 +134,9 @@ def main() -> None:
     )
     args = parser.parse_args()
     bias = tuple(a for a in args.odometry_bias.split(",") if a)
-    settings = FusionSettings(odometry_bias=bias, attitude=args.attitude, detector="learned")
+    settings = FusionSettings(
+        odometry_bias=bias, attitude=args.attitude, detector="learned", keyframe_distance=args.keyframe_distance
+    )
     report(run_episode(args.scene, args.seed, args.policy, settings, not args.no_sweep, args.steer_on))
 
 

@@ -82,7 +82,10 @@ class FusionSettings:
     odometry config's); detector_process: a learned detector judges each scan in a process of its
     own while the step registers it (detection.ahead; the same answers, faster where a core is
     free). The fusion's ICP is the detectors' registration (the one their labels were made with),
-    its factor weighed by the registration's Hessian (fusion.FusionConfig)."""
+    its factor weighed by the registration's Hessian (fusion.FusionConfig). keyframe_distance: each
+    scan is registered onto a keyframe renewed every that many metres (or 0.8 rad of turn, or 100
+    scans), from the odometry's guess, and the ICP factor ties the keyframe's pose to the scan's
+    (detection.pipeline.ScanRegistrar; the graph backend); 0: each scan onto the one before."""
 
     enabled: bool = False
     detector: str = "learned"
@@ -92,6 +95,7 @@ class FusionSettings:
     attitude: str = "none"
     odometry_bias: tuple[str, ...] = ()
     detector_process: bool = False
+    keyframe_distance: float = 0.0
 
     def __post_init__(self) -> None:
         for name, value, allowed in (
@@ -102,6 +106,13 @@ class FusionSettings:
         ):
             if value not in allowed:
                 raise ValueError(f"fusion.{name} must be one of {allowed}, got {value!r}")
+        if not self.keyframe_distance >= 0:
+            raise ValueError(f"fusion.keyframe_distance is metres, at least 0, not {self.keyframe_distance!r}")
+        if self.keyframe_distance > 0 and self.backend != "graph":
+            raise ValueError(
+                "fusion.keyframe_distance ties a scan to an earlier keyframe's pose, which the EKF no longer "
+                "holds: use backend graph, or keyframe_distance 0"
+            )
 
     def record(self) -> dict[str, Any]:
         """The settings whole, as results.json, sweep.json and a policy evaluation's settings hold them

@@ -34,6 +34,15 @@ def inverse(T: np.ndarray) -> np.ndarray:
     return Ti
 
 
+def nearest_rigid(T: np.ndarray) -> np.ndarray:
+    """T with its rotation replaced by the nearest rotation (SVD): a pose composed from many keeps
+    its rounding, and one taken through `inverse` (which transposes) amplifies it."""
+    u, _, vt = np.linalg.svd(T[:3, :3])
+    out = np.array(T, dtype=np.float64)
+    out[:3, :3] = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+    return out
+
+
 def yaw_of(T: np.ndarray) -> float:
     return float(np.arctan2(T[1, 0], T[0, 0]))
 

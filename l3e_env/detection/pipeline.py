@@ -9,7 +9,7 @@ detector's probabilities and mask, and the running ATE against ground truth.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -17,6 +17,7 @@ import numpy as np
 from fusion import EKFFusion, FusionConfig, FusionGraph, check_backend, make_fusion
 from l3e_env.config import FusionSettings, OdometryConfig, from_dict
 from l3e_env.core.threads import part_threads
+from l3e_env.core.transforms import inverse, nearest_rigid
 from l3e_env.localizability.registration import (
     PreparedTarget,
     RegistrationConfig,
@@ -32,16 +33,49 @@ from .ahead import DetectorProcess
 from .detectors import UNKNOWN, Detector, Prediction, make_detector, registration_of, safe_predict
 
 
-class ScanRegistrar:
-    """Scan k registered to scan k-1, from identity (as the labels are made): `start` with the first
-    scan, then `next` with each new one. None where registration is impossible (too few points).
-    Each scan is prepared as the next target (normals, k-d tree: the step's largest cost) on
-    `threads` threads, by default as many as the ray casting uses (`part_threads()`)."""
+@dataclass(frozen=True)
+class Keyframes:
+    """When a registrar's keyframe is renewed: once the scans registered onto it have moved `distance`
+    metres or turned `turn` radians from it, or `steps` scans have been registered onto it, or one
+    failed to register. A distance of 0 registers each scan to the one before (no keyframes)."""
 
-    def __init__(self, config: RegistrationConfig, threads: int | None = None):
+    distance: float = 0.0
+    turn: float = 0.8
+    steps: int = 100
+
+    def __post_init__(self) -> None:
+        if not (self.distance >= 0 and self.turn > 0 and self.steps >= 1):
+            raise ValueError(
+                f"keyframes: a distance of at least 0 m, a turn above 0 rad and at least 1 step, got {self}"
+            )
+
+    @property
+    def enabled(self) -> bool:
+        return self.distance > 0
+
+
+class ScanRegistrar:
+    """Each scan registered to an earlier one: `start` with the first scan, then `next` with each
+    new one. None where registration is impossible (too few points). A target scan is prepared
+    (normals, k-d tree: the step's largest cost) on `threads` threads, by default as many as the
+    ray casting uses (`part_threads()`).
+
+    Without keyframes, scan k onto scan k-1 from identity, as the labels are made. With them
+    (`Keyframes`), onto the last keyframe, from the pose since it that the registrations before
+    give, advanced by the step's `motion` (the odometry's, in the sensor frame), matched in the
+    registration's fine stage alone: its coarse stage's matches, meant for a start from identity,
+    pull a weakly held axis away from a good guess. A scan-to-scan step's small bias adds up at
+    every scan; onto a keyframe it adds up once a keyframe (studies/keyframe_drift.py)."""
+
+    def __init__(self, config: RegistrationConfig, threads: int | None = None, keyframes: Keyframes | None = None):
         self.config = config
         self.threads = threads if threads is not None else part_threads()
+        self.keyframes = keyframes or Keyframes()
+        # from a guess: the last stage of the coarse-to-fine schedule only
+        self._from_guess = replace(config, max_correspondence_distance=config.max_correspondence_distance[-1:])
         self.target: PreparedTarget | None = None
+        self._since = np.eye(4)  # the newest scan's pose in the keyframe's sensor frame
+        self._span = 0  # scans registered onto the keyframe
 
     def _prepare(self, points: np.ndarray) -> PreparedTarget | None:
         try:
@@ -51,16 +85,38 @@ class ScanRegistrar:
 
     def start(self, points: np.ndarray) -> None:
         self.target = self._prepare(points)
+        self._since, self._span = np.eye(4), 0
 
-    def next(self, points: np.ndarray) -> RegistrationResult | None:
-        result = None
-        if self.target is not None:
-            try:
-                result = register(points, self.target, self.config)
-            except RegistrationError:
-                result = None
-        self.target = self._prepare(points)
+    def next(self, points: np.ndarray, motion: np.ndarray | None = None) -> RegistrationResult | None:
+        """The registration of `points` onto the keyframe (the scan before, without keyframes);
+        `motion`: the sensor's motion since the scan before (4x4), the guess's step with keyframes."""
+        if not self.keyframes.enabled:
+            result = self._register(points, self.config, None)
+            self.target = self._prepare(points)
+            return result
+        self._span += 1
+        guess = nearest_rigid(self._since @ motion) if motion is not None else self._since
+        result = self._register(points, self._from_guess, guess)
+        self._since = result.T_target_source if result is not None and result.converged else guess
+        if result is None or not result.converged or self._renew():
+            self.start(points)
         return result
+
+    def _register(
+        self, points: np.ndarray, config: RegistrationConfig, guess: np.ndarray | None
+    ) -> RegistrationResult | None:
+        if self.target is None:
+            return None
+        try:
+            result = register(points, self.target, config, init_T_target_source=guess)
+        except RegistrationError:
+            return None
+        return replace(result, span=max(self._span, 1))
+
+    def _renew(self) -> bool:
+        k = self.keyframes
+        turned = np.arccos(np.clip((np.trace(self._since[:3, :3]) - 1) / 2, -1.0, 1.0))
+        return bool(np.linalg.norm(self._since[:3, 3]) >= k.distance or turned >= k.turn or self._span >= k.steps)
 
 
 @dataclass
@@ -122,7 +178,8 @@ class LocalizationPipeline:
         pred, failed = judged or safe_predict(self.detector, detector_points, registration, T_w_s)
         icp, hessian = (registration.in_frame(self.T_b_s) if registration is not None else None) or (None, None)
         sigmas = odometry_sigmas(odom_increment, self.odometry)
-        T, report = self.backend.add_step(odom_increment, sigmas, icp, pred.mask, hessian)
+        span = registration.span if registration is not None else 1
+        T, report = self.backend.add_step(odom_increment, sigmas, icp, pred.mask, hessian, icp_span=span)
         if self.attitude_sigmas is not None and self.steps % ATTITUDE_EVERY == 0:
             if attitude is None:
                 raise ValueError(f"fusion.attitude is {self.attitude_mode!r}: every step needs the IMU's attitude")
@@ -154,7 +211,9 @@ class OnlineFusion:
             registration = from_dict(RegistrationConfig, registration)
         # with the classifier in a process of its own, the target is prepared on one thread: the other core is its
         self.registrar = ScanRegistrar(
-            registration or registration_of([detector]), threads=1 if config.detector_process else None
+            registration or registration_of([detector]),
+            threads=1 if config.detector_process else None,
+            keyframes=Keyframes(distance=config.keyframe_distance),
         )
         # an environment reports the newest estimate only: the graph keeps a window (bounded cost per step)
         self.pipeline = LocalizationPipeline(
@@ -201,7 +260,8 @@ class OnlineFusion:
         T_w_s = T_w_b_true @ self.T_b_s
         if self.ahead is not None:
             self.ahead.submit(points, T_w_s)
-        registration = self.registrar.next(points)
+        motion = inverse(self.T_b_s) @ odom_increment @ self.T_b_s  # the sensor's, the keyframe guess's step
+        registration = self.registrar.next(points, motion)
         judged = self.ahead.result() if self.ahead is not None else None
         out = self.pipeline.step(odom_increment, registration, points, T_w_s, attitude, judged)
         self.counts["icp_failed"] += not out.icp_used

@@ -64,6 +64,9 @@ class RegistrationResult:
     num_inliers: int
     num_source: int
     error: float
+    # steps from the target scan to the source scan: 1 where consecutive scans were registered, more
+    # where a registrar registers each scan onto a keyframe (detection.pipeline.ScanRegistrar)
+    span: int = 1
 
     @property
     def ok(self) -> bool:

@@ -10,8 +10,8 @@ from fusion import FusionConfig
 from l3e_env.config import FusionSettings, LidarConfig, OdometryConfig
 from l3e_env.core.transforms import inverse, matrix_to_pose, pose_to_matrix
 from l3e_env.detection.detectors import NoDetector, Prediction
-from l3e_env.detection.pipeline import LocalizationPipeline, OnlineFusion, ScanRegistrar
-from l3e_env.localizability.registration import RegistrationConfig
+from l3e_env.detection.pipeline import Keyframes, LocalizationPipeline, OnlineFusion, ScanRegistrar
+from l3e_env.localizability.registration import RegistrationConfig, RegistrationResult
 from l3e_env.sim.imu import ATTITUDE_EVERY
 from l3e_env.sim.lidar import Lidar
 from l3e_env.sim.raycast import EmbreeCaster
@@ -54,6 +54,52 @@ def test_the_registrar_registers_each_scan_to_the_last_and_skips_a_scan_too_smal
     assert registrar.next(np.zeros((10, 3))) is None  # too few points: no registration ...
     assert registrar.next(office.scan(_at(0.2), rng).points) is None  # ... and no target for the next
     assert registrar.next(office.scan(_at(0.3), rng).points) is not None  # then it goes on
+
+
+def test_with_keyframes_each_scan_registers_onto_the_keyframe_until_it_has_moved_far_enough(office):
+    rng = np.random.default_rng(0)
+    registrar = ScanRegistrar(RegistrationConfig(), threads=1, keyframes=Keyframes(distance=0.45))
+    registrar.start(office.scan(_at(0.0), rng).points)
+    step = inverse(_at(0.0)) @ _at(0.1)  # the sensor's motion from one scan to the next
+    biased = step @ pose_to_matrix(np.array([0.01, -0.005, 0.0, 0.0, 0.0, 0.004]))  # the legs' guess, off
+    spans = []
+    for k in range(1, 8):
+        result = registrar.next(office.scan(_at(0.1 * k), rng).points, biased)
+        assert result is not None and result.converged
+        spans.append(result.span)
+        true = inverse(_at(0.1 * (k - result.span))) @ _at(0.1 * k)  # from the keyframe's pose
+        error = matrix_to_pose(inverse(true) @ result.T_target_source)
+        assert np.abs(error[:3]).max() < 0.02 and np.abs(error[3:]).max() < np.radians(0.3)
+    assert spans == [1, 2, 3, 4, 5, 1, 2]  # renewed once 0.5 m from the keyframe (at least 0.45)
+    with pytest.raises(ValueError, match="at least 1 step"):
+        Keyframes(distance=1.0, steps=0)
+
+
+def test_a_keyframes_factor_ties_the_new_pose_to_the_keyframes_pose():
+    odometry = OdometryConfig()
+    step = pose_to_matrix(np.array([0.1, 0.0, 0.0, 0.0, 0.0, 0.0]))
+    short = pose_to_matrix(np.array([0.05, 0.0, 0.0, 0.0, 0.0, 0.0]))  # what the legs read: half the step
+    pipeline = LocalizationPipeline(NoDetector(), "graph", FusionConfig(), odometry, np.eye(4))
+    pipeline.start(np.eye(4))
+    for _ in range(3):
+        pipeline.step(short, None, np.zeros((0, 3)), None)
+    icp = RegistrationResult(np.linalg.matrix_power(step, 3), 1e6 * np.eye(6), True, 3, 900, 1000, 0.0, span=3)
+    out = pipeline.step(short, icp, np.zeros((0, 3)), None)
+    # pose 4 held 0.3 m ahead of pose 1 by the stiff factor, against the legs' 0.05 m a step
+    trajectory = pipeline.trajectory()
+    assert out.icp_used and (inverse(trajectory[1]) @ trajectory[4])[0, 3] == pytest.approx(0.3, abs=1e-3)
+    with pytest.raises(ValueError, match="spans 1 to 5 steps"):
+        pipeline.step(
+            step, RegistrationResult(step, np.eye(6), True, 3, 900, 1000, 0.0, span=9), np.zeros((0, 3)), None
+        )
+    ekf = LocalizationPipeline(NoDetector(), "ekf", FusionConfig(), odometry, np.eye(4))
+    ekf.start(np.eye(4))
+    with pytest.raises(ValueError, match="need the graph backend"):
+        ekf.step(step, icp, np.zeros((0, 3)), None)
+    with pytest.raises(ValueError, match="use backend graph"):
+        FusionSettings(backend="ekf", keyframe_distance=4.0)
+    with pytest.raises(ValueError, match="at least 0"):
+        FusionSettings(keyframe_distance=-1.0)
 
 
 def test_a_step_fuses_odometry_alone_where_every_axis_is_masked_and_counts_a_failing_detector():
