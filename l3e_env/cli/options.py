@@ -69,6 +69,14 @@ def add_fusion_options(parser: argparse.ArgumentParser) -> None:
         "scale (the stride's), comma-separated or repeated (default none; see "
         "docs/decisions.md)",
     )
+    parser.add_argument(
+        "--keyframe-distance",
+        type=float,
+        default=FusionSettings().keyframe_distance,
+        metavar="METRES",
+        help="register each scan onto a keyframe renewed every that many metres, from the leg odometry's "
+        "guess (0: each scan onto the one before; default %(default)s)",
+    )
 
 
 class CommandError(ValueError):
@@ -88,6 +96,7 @@ def fusion_settings(args: argparse.Namespace) -> FusionSettings:
         deskew=getattr(args, "deskew", default.deskew),
         attitude=getattr(args, "attitude", default.attitude),
         odometry_bias=axes,
+        keyframe_distance=args.keyframe_distance,
     )
 
 

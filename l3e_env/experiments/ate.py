@@ -28,6 +28,7 @@ from l3e_env.detection.detectors import (
     make_detector,
     registration_of,
 )
+from l3e_env.detection.pipeline import Keyframes
 from l3e_env.localizability.registration import RegistrationConfig
 from l3e_env.sim.lidar import Lidar, get_pattern
 from l3e_env.sim.odometry import odometry_fusion_config
@@ -170,7 +171,8 @@ def run_ate(
     out = Path(out_dir)
     drive = prepare_drive(out, scene, detectors, options, progress)
     t0 = time.perf_counter()
-    regs = register_sequence(drive.rec, drive.registration, progress)
+    keyframes = Keyframes(distance=options.fusion_settings.keyframe_distance)
+    regs = register_sequence(drive.rec, drive.registration, progress, keyframes)
     icp_seconds = time.perf_counter() - t0
     ahead = judge_ahead(drive, options.workers, progress)
     dets = drive.detectors

@@ -16,7 +16,7 @@ from tqdm import tqdm
 from l3e_env.config import DESKEW_SOURCES, EnvConfig, LidarConfig, RobotConfig
 from l3e_env.core.files import write_atomic
 from l3e_env.core.transforms import inverse
-from l3e_env.detection.pipeline import ScanRegistrar
+from l3e_env.detection.pipeline import Keyframes, ScanRegistrar
 from l3e_env.envs.navigation import NavigationEnv
 from l3e_env.localizability.registration import RegistrationConfig
 from l3e_env.sim.follower import RouteFollower
@@ -246,14 +246,18 @@ def deskewed(rec: DriveRecord, source: str = "gyro") -> DriveRecord:
     )
 
 
-def register_sequence(rec: DriveRecord, config: RegistrationConfig, progress: bool = True) -> list:
-    """Scan k registered to scan k-1 from identity, as the pipeline's `ScanRegistrar` does on line; None
-    where registration is impossible. Registered once, the steps serve every detector's fusion."""
-    registrar = ScanRegistrar(config)
+def register_sequence(
+    rec: DriveRecord, config: RegistrationConfig, progress: bool = True, keyframes: Keyframes | None = None
+) -> list:
+    """Scan k registered to scan k-1 from identity, or onto a keyframe from the leg odometry's guess
+    (`keyframes`), as the pipeline's `ScanRegistrar` does on line; None where registration is
+    impossible. Registered once, the steps serve every detector's fusion."""
+    registrar = ScanRegistrar(config, keyframes=keyframes)
     results = []
+    T_s_b = inverse(rec.T_b_s)
     for k, scan in enumerate(tqdm(rec.scans, desc="registering scans", unit="scan", disable=not progress)):
         if k == 0:
             registrar.start(scan)
         else:
-            results.append(registrar.next(scan))
+            results.append(registrar.next(scan, T_s_b @ rec.odometry[k - 1] @ rec.T_b_s))  # into pose k
     return results

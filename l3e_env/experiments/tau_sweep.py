@@ -21,6 +21,7 @@ from l3e_env.detection.detectors import (
     make_detector,
     registration_of,
 )
+from l3e_env.detection.pipeline import Keyframes
 from l3e_env.sim.odometry import odometry_fusion_config
 
 from .drive import DriveOptions, DriveRecord, record_run, register_sequence
@@ -75,7 +76,8 @@ def run_sweep(
         if not given:
             rec.save(out / f"recording_{scene}.npz")
         refs = [make_detector(r) for r in options.references]
-        regs = register_sequence(rec, registration_of(refs), progress)
+        keyframes = Keyframes(distance=options.fusion_settings.keyframe_distance)
+        regs = register_sequence(rec, registration_of(refs), progress, keyframes)
         row: dict = {"fusion": options.fusion_settings.record(), "odometry only": odometry_only(rec).ate}
         for field_name, make, key in SWEPT:
             values = getattr(options, field_name)
