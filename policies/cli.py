@@ -21,7 +21,7 @@ from l3e_env.cli.options import (
     scene_params,
     sensor_name,
 )
-from l3e_env.config import ATTITUDE_MODES
+from l3e_env.config import ATTITUDE_MODES, NAVIGATION_FUSION
 from l3e_env.config.detector_spec import DETECTOR_GRAMMAR, MAP_DETECTORS, parse_detector
 from l3e_env.io.mesh_lists import meshes_file
 
@@ -157,7 +157,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         lam=args.lam,
         workers=args.workers,
         steer_on=args.steer_on,
-        fusion_settings=fusion_settings(args),
+        fusion_settings=fusion_settings(args, NAVIGATION_FUSION),
         recovery=args.recovery,
         avoid=args.avoid,
         scene_params={k: v for k, v in scenes.items() if v},
@@ -199,7 +199,10 @@ def map_detector(text: str) -> str:
 def _add_map(psub: argparse._SubParsersAction, common: argparse.ArgumentParser) -> None:
     g = psub.add_parser("map", parents=[common], help="build (or load) and plot localizability maps")
     g.add_argument(
-        "--scene", type=scene_names, action="append", help="scene names, comma-separated or repeated (default: bypass, the family's first variant)"
+        "--scene",
+        type=scene_names,
+        action="append",
+        help="scene names, comma-separated or repeated (default: bypass, the family's first variant)",
     )
     g.add_argument(
         "--detector", default="learned", type=map_detector, help=f"{DETECTOR_GRAMMAR}, not none (default: learned)"
@@ -306,13 +309,12 @@ def _add_evaluate(psub: argparse._SubParsersAction, common: argparse.ArgumentPar
         default="estimate",
         help="pose the policies steer on (default: the fused estimate); ATE is measured either way",
     )
-    add_fusion_options(g)
+    add_fusion_options(g, NAVIGATION_FUSION)
     g.add_argument(
         "--attitude",
         choices=ATTITUDE_MODES,
-        default="none",
         help="fuse the IMU's orientation once a second: tilt = roll and pitch, which gravity holds, "
-        "full = with the magnetometer's heading (default: none)",
+        f"full = with the magnetometer's heading, or none (default: {NAVIGATION_FUSION.attitude})",
     )
     g.add_argument("--seed", type=int, default=0)
     g.add_argument("--out", help="output folder (default: l3e_out/policy-eval-<time>)")

@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from l3e_env.config import FusionSettings, OdometryConfig, settings_changed
+from l3e_env.config import NAVIGATION_FUSION, FusionSettings, OdometryConfig, settings_changed
 from l3e_env.core.transforms import yaw_of
 from l3e_env.core.workers import worker_start
 from l3e_env.envs import NavigationEnv
@@ -198,7 +198,7 @@ class EvalOptions:
     lam: float = 50.0
     workers: int = 1
     steer_on: str = "estimate"
-    fusion_settings: FusionSettings = FusionSettings()
+    fusion_settings: FusionSettings = NAVIGATION_FUSION
     recovery: bool | None = None
     avoid: bool | None = None
     scene_params: dict[str, dict] = field(default_factory=dict)

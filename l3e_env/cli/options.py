@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+from typing import Any
 
 from l3e_env.config import FusionSettings
 from l3e_env.io.mesh_lists import meshes_file
@@ -56,26 +57,25 @@ def bias_axes(text: str) -> tuple[str, ...]:
     return axes
 
 
-def add_fusion_options(parser: argparse.ArgumentParser) -> None:
-    """--odometry-bias, read back by `fusion_settings` (`l3e ate`, `l3e sweep`,
-    `l3e policy evaluate`)."""
+def add_fusion_options(parser: argparse.ArgumentParser, default: FusionSettings = FusionSettings()) -> None:
+    """--odometry-bias and --keyframe-distance, read back by `fusion_settings` (`l3e ate`, `l3e sweep`,
+    `l3e policy evaluate`); an option not given takes `default`'s value (the command's own fusion)."""
+    shown = ",".join(default.odometry_bias) or "none"
     parser.add_argument(
         "--odometry-bias",
         type=bias_axes,
         action="extend",
-        default=[],
         metavar="AXES",
         help="estimate the leg odometry's biases as states of the fusion: yaw, z (per metre), "
-        "scale (the stride's), comma-separated or repeated (default none; see "
+        f"scale (the stride's), comma-separated or repeated, or none (default {shown}; see "
         "docs/decisions.md)",
     )
     parser.add_argument(
         "--keyframe-distance",
         type=float,
-        default=FusionSettings().keyframe_distance,
         metavar="METRES",
         help="register each scan onto a keyframe renewed every that many metres, from the leg odometry's "
-        "guess (0: each scan onto the one before; default %(default)s)",
+        f"guess (0: each scan onto the one before; default {default.keyframe_distance:g})",
     )
 
 
@@ -84,19 +84,23 @@ class CommandError(ValueError):
     with 2, as it does every library error (the one way a command reports one)."""
 
 
-def fusion_settings(args: argparse.Namespace) -> FusionSettings:
+def fusion_settings(args: argparse.Namespace, default: FusionSettings = FusionSettings()) -> FusionSettings:
     """The fusion's settings from the options that `add_fusion_options` added, and from --backend,
-    --deskew and --attitude where the command has them (the defaults where not)."""
-    axes = tuple(args.odometry_bias)
+    --deskew and --attitude where the command has them; `default`'s where an option is not given."""
+    axes = default.odometry_bias if args.odometry_bias is None else tuple(args.odometry_bias)
     if len(set(axes)) < len(axes):
         raise ValueError(f"--odometry-bias names an axis twice: {', '.join(axes)}")
-    default = FusionSettings()
+
+    def given(name: str) -> Any:
+        value = getattr(args, name, None)
+        return getattr(default, name) if value is None else value
+
     return FusionSettings(
-        backend=getattr(args, "backend", default.backend),
-        deskew=getattr(args, "deskew", default.deskew),
-        attitude=getattr(args, "attitude", default.attitude),
+        backend=given("backend"),
+        deskew=given("deskew"),
+        attitude=given("attitude"),
         odometry_bias=axes,
-        keyframe_distance=args.keyframe_distance,
+        keyframe_distance=given("keyframe_distance"),
     )
 
 

@@ -120,6 +120,12 @@ class FusionSettings:
         return {f.name: list(v) if isinstance(v := getattr(self, f.name), tuple) else v for f in fields(self)}
 
 
+# the fusion the policies' evaluation runs unless told otherwise: a legged robot's estimator (the IMU's
+# roll and pitch, the legs' heading and stride biases as states) with its scans registered onto
+# keyframes (docs/decisions.md, "Navigation")
+NAVIGATION_FUSION = FusionSettings(attitude="tilt", odometry_bias=("yaw", "scale"), keyframe_distance=4.0)
+
+
 @dataclass
 class EnvConfig:
     """Gymnasium environment options."""

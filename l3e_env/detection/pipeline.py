@@ -36,17 +36,25 @@ from .detectors import UNKNOWN, Detector, Prediction, make_detector, registratio
 @dataclass(frozen=True)
 class Keyframes:
     """When a registrar's keyframe is renewed: once the scans registered onto it have moved `distance`
-    metres or turned `turn` radians from it, or `steps` scans have been registered onto it, or one
-    failed to register. A distance of 0 registers each scan to the one before (no keyframes)."""
+    metres (as registered, or as the legs walked, whichever is more) or turned `turn` radians from
+    it, or `steps` scans have been registered onto it; or where one failed to register, or moved
+    from the guess (the last registration advanced by the legs' step) by more than `gate` metres or
+    `gate_turn` radians. The gate is what keeps a degenerate place's registration from spanning
+    metres: there the registration slides back towards the keyframe along the axis it cannot hold,
+    and one scan that the detector does not flag would hand the fusion that slide whole. A distance
+    of 0 registers each scan to the one before (no keyframes)."""
 
     distance: float = 0.0
     turn: float = 0.8
     steps: int = 100
+    gate: float = 0.03
+    gate_turn: float = 0.01
 
     def __post_init__(self) -> None:
-        if not (self.distance >= 0 and self.turn > 0 and self.steps >= 1):
+        if not (self.distance >= 0 and self.turn > 0 and self.steps >= 1 and self.gate > 0 and self.gate_turn > 0):
             raise ValueError(
-                f"keyframes: a distance of at least 0 m, a turn above 0 rad and at least 1 step, got {self}"
+                "keyframes: a distance of at least 0 m, a turn, a gate and a gate's turn above 0 and at least "
+                f"1 step, got {self}"
             )
 
     @property
@@ -76,6 +84,7 @@ class ScanRegistrar:
         self.target: PreparedTarget | None = None
         self._since = np.eye(4)  # the newest scan's pose in the keyframe's sensor frame
         self._span = 0  # scans registered onto the keyframe
+        self._walked = 0.0  # metres the legs' steps have moved the sensor since the keyframe
 
     def _prepare(self, points: np.ndarray) -> PreparedTarget | None:
         try:
@@ -85,7 +94,7 @@ class ScanRegistrar:
 
     def start(self, points: np.ndarray) -> None:
         self.target = self._prepare(points)
-        self._since, self._span = np.eye(4), 0
+        self._since, self._span, self._walked = np.eye(4), 0, 0.0
 
     def next(self, points: np.ndarray, motion: np.ndarray | None = None) -> RegistrationResult | None:
         """The registration of `points` onto the keyframe (the scan before, without keyframes);
@@ -95,10 +104,12 @@ class ScanRegistrar:
             self.target = self._prepare(points)
             return result
         self._span += 1
+        self._walked += 0.0 if motion is None else float(np.linalg.norm(motion[:3, 3]))
         guess = nearest_rigid(self._since @ motion) if motion is not None else self._since
         result = self._register(points, self._from_guess, guess)
-        self._since = result.T_target_source if result is not None and result.converged else guess
-        if result is None or not result.converged or self._renew():
+        ok = result is not None and result.converged
+        self._since = result.T_target_source if result is not None and ok else guess
+        if not ok or self._renew() or self._beyond_gate(guess):
             self.start(points)
         return result
 
@@ -115,8 +126,17 @@ class ScanRegistrar:
 
     def _renew(self) -> bool:
         k = self.keyframes
-        turned = np.arccos(np.clip((np.trace(self._since[:3, :3]) - 1) / 2, -1.0, 1.0))
-        return bool(np.linalg.norm(self._since[:3, 3]) >= k.distance or turned >= k.turn or self._span >= k.steps)
+        moved = max(float(np.linalg.norm(self._since[:3, 3])), self._walked)
+        return bool(moved >= k.distance or _angle(self._since) >= k.turn or self._span >= k.steps)
+
+    def _beyond_gate(self, guess: np.ndarray) -> bool:
+        off = inverse(guess) @ self._since
+        return bool(np.linalg.norm(off[:3, 3]) > self.keyframes.gate or _angle(off) > self.keyframes.gate_turn)
+
+
+def _angle(T: np.ndarray) -> float:
+    """The rotation angle of T (rad)."""
+    return float(np.arccos(np.clip((np.trace(T[:3, :3]) - 1) / 2, -1.0, 1.0)))
 
 
 @dataclass

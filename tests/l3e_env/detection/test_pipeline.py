@@ -71,6 +71,10 @@ def test_with_keyframes_each_scan_registers_onto_the_keyframe_until_it_has_moved
         error = matrix_to_pose(inverse(true) @ result.T_target_source)
         assert np.abs(error[:3]).max() < 0.02 and np.abs(error[3:]).max() < np.radians(0.3)
     assert spans == [1, 2, 3, 4, 5, 1, 2]  # renewed once 0.5 m from the keyframe (at least 0.45)
+    # a registration 0.1 m from the guess (the legs far off, or a slide) is kept, and renews the keyframe
+    off = step @ pose_to_matrix(np.array([0.1, 0.0, 0.0, 0.0, 0.0, 0.0]))
+    assert registrar.next(office.scan(_at(0.8), rng).points, off).span == 3
+    assert registrar.next(office.scan(_at(0.9), rng).points, step).span == 1
     with pytest.raises(ValueError, match="at least 1 step"):
         Keyframes(distance=1.0, steps=0)
 
