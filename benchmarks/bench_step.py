@@ -1,11 +1,14 @@
 """CPU cost of one full-pipeline step of a navigation episode, by part: the scan, the ICP target's
 preparation (normals, k-d tree), ICP, the detector, the fusion, the local layer and the follower, and
 the rest (the walk, odometry, collision checks). The reference in the same run is the scan alone.
+The fusion is the policies' evaluation's (NAVIGATION_FUSION: scans registered onto keyframes, so
+that a target is prepared once a keyframe).
 
 CPU time (time.process_time: every thread of the process counted), as a policy evaluation on 2 cores
 pays it; the follower walks the scene's route steering on the fused estimate, as `l3e policy evaluate`.
 
 Run: python benchmarks/bench_step.py [--scene bypass-100] [--steps 400] [--detector learned]
+     [--keyframe-distance 0]
 """
 
 from __future__ import annotations
@@ -14,13 +17,14 @@ import argparse
 import time
 from collections import defaultdict
 from collections.abc import Callable
+from dataclasses import asdict
 from typing import Any
 
 import numpy as np
 import torch
 
 import l3e_env.detection.pipeline as pipeline_module
-from l3e_env.config import FusionSettings
+from l3e_env.config import NAVIGATION_FUSION
 from l3e_env.envs.navigation import NavigationEnv
 from l3e_env.sim.avoidance import FreeHeadings
 from l3e_env.sim.follower import RouteFollower
@@ -45,11 +49,11 @@ class Clock:
         return timed
 
 
-def instrumented_env(scene: str, detector: str, clock: Clock) -> NavigationEnv:
+def instrumented_env(scene: str, detector: str, clock: Clock, keyframe_distance: float) -> NavigationEnv:
     """The evaluation's environment with each part's calls timed."""
-    env = NavigationEnv(
-        scene=scene, arrival="estimate", fusion={**FusionSettings().__dict__, "enabled": True, "detector": detector}
-    )
+    settings = {**asdict(NAVIGATION_FUSION), "keyframe_distance": keyframe_distance}  # the evaluation's
+    fusion = {**settings, "enabled": True, "detector": detector}
+    env = NavigationEnv(scene=scene, arrival="estimate", fusion=fusion)
     online = env.fusion
     env.lidar.scan = clock.wrap("scan", env.lidar.scan)  # type: ignore[method-assign]
     online.registrar._prepare = clock.wrap("ICP target", online.registrar._prepare)  # type: ignore[method-assign]
@@ -72,10 +76,16 @@ def main() -> None:
     parser.add_argument("--scene", default="bypass-100")
     parser.add_argument("--steps", type=int, default=400)
     parser.add_argument("--detector", default="learned")
+    parser.add_argument(
+        "--keyframe-distance",
+        type=float,
+        default=NAVIGATION_FUSION.keyframe_distance,
+        help="0: each scan registered onto the one before (default: the evaluation's)",
+    )
     args = parser.parse_args()
     torch.set_num_threads(1)  # as each evaluation worker
     clock = Clock()
-    env = instrumented_env(args.scene, args.detector, clock)
+    env = instrumented_env(args.scene, args.detector, clock, args.keyframe_distance)
     local = FreeHeadings()
     follow = RouteFollower(env.route, avoid=local)
 
@@ -97,7 +107,10 @@ def main() -> None:
     total = (time.process_time() - t0) / steps
     env.close()
     scan = clock.spent["scan"] / steps
-    print(f"{args.scene}, detector {args.detector}: {total * 1e3:.1f} ms of CPU a step over {steps} steps")
+    print(
+        f"{args.scene}, detector {args.detector}, keyframes every {args.keyframe_distance:g} m: "
+        f"{total * 1e3:.1f} ms of CPU a step over {steps} steps"
+    )
     for part in PARTS:
         print(f"  {part:26s} {clock.spent[part] / steps * 1e3:6.2f} ms")
     rest = total - sum(clock.spent[p] for p in PARTS) / steps
