@@ -39,16 +39,18 @@ class Keyframes:
     metres (as registered, or as the legs walked, whichever is more) or turned `turn` radians from
     it, or `steps` scans have been registered onto it; or where one failed to register, or moved
     from the guess (the last registration advanced by the legs' step) by more than `gate` metres or
-    `gate_turn` radians. The gate is what keeps a degenerate place's registration from spanning
-    metres: there the registration slides back towards the keyframe along the axis it cannot hold,
-    and one scan that the detector does not flag would hand the fusion that slide whole. A distance
-    of 0 registers each scan to the one before (no keyframes)."""
+    `gate_turn` radians (about twice the 99th percentile of that move on the bypass's way round).
+    In a degenerate place the registration slides back towards the keyframe along the axis it cannot
+    hold, and one scan that the detector does not flag would hand the fusion that slide whole: the
+    fusion renews the keyframe at every scan its detector flags (`keyframe_here`), and the gate
+    catches a slide where no detector is asked. A distance of 0 registers each scan to the one
+    before (no keyframes)."""
 
     distance: float = 0.0
     turn: float = 0.8
     steps: int = 100
-    gate: float = 0.03
-    gate_turn: float = 0.01
+    gate: float = 0.05
+    gate_turn: float = 0.02
 
     def __post_init__(self) -> None:
         if not (self.distance >= 0 and self.turn > 0 and self.steps >= 1 and self.gate > 0 and self.gate_turn > 0):
@@ -85,6 +87,7 @@ class ScanRegistrar:
         self._since = np.eye(4)  # the newest scan's pose in the keyframe's sensor frame
         self._span = 0  # scans registered onto the keyframe
         self._walked = 0.0  # metres the legs' steps have moved the sensor since the keyframe
+        self._last: np.ndarray | None = None  # the newest scan
 
     def _prepare(self, points: np.ndarray) -> PreparedTarget | None:
         try:
@@ -103,7 +106,7 @@ class ScanRegistrar:
             result = self._register(points, self.config, None)
             self.target = self._prepare(points)
             return result
-        self._span += 1
+        self._span, self._last = self._span + 1, points
         self._walked += 0.0 if motion is None else float(np.linalg.norm(motion[:3, 3]))
         guess = nearest_rigid(self._since @ motion) if motion is not None else self._since
         result = self._register(points, self._from_guess, guess)
@@ -112,6 +115,11 @@ class ScanRegistrar:
         if not ok or self._renew() or self._beyond_gate(guess):
             self.start(points)
         return result
+
+    def keyframe_here(self) -> None:
+        """The newest scan becomes the keyframe (where the detector flagged an axis of it)."""
+        if self.keyframes.enabled and self._span > 0 and self._last is not None:
+            self.start(self._last)
 
     def _register(
         self, points: np.ndarray, config: RegistrationConfig, guess: np.ndarray | None
@@ -284,6 +292,8 @@ class OnlineFusion:
         registration = self.registrar.next(points, motion)
         judged = self.ahead.result() if self.ahead is not None else None
         out = self.pipeline.step(odom_increment, registration, points, T_w_s, attitude, judged)
+        if out.prediction.mask.any() or not out.prediction.known:  # a degenerate place: no keyframe behind it
+            self.registrar.keyframe_here()
         self.counts["icp_failed"] += not out.icp_used
         self.counts["detector_errors"] += out.detector_failed
         self.counts["unknown"] += not out.prediction.known

@@ -75,6 +75,9 @@ def test_with_keyframes_each_scan_registers_onto_the_keyframe_until_it_has_moved
     off = step @ pose_to_matrix(np.array([0.1, 0.0, 0.0, 0.0, 0.0, 0.0]))
     assert registrar.next(office.scan(_at(0.8), rng).points, off).span == 3
     assert registrar.next(office.scan(_at(0.9), rng).points, step).span == 1
+    assert registrar.next(office.scan(_at(1.0), rng).points, step).span == 2
+    registrar.keyframe_here()  # where the detector flags the scan: it becomes the keyframe
+    assert registrar.next(office.scan(_at(1.1), rng).points, step).span == 1
     with pytest.raises(ValueError, match="at least 1 step"):
         Keyframes(distance=1.0, steps=0)
 
