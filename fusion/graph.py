@@ -131,23 +131,7 @@ class FusionGraph:
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         i, j = self.k, self.k + 1
         key = self._icp_key(j, icp_span)
-        odometry = None
-        if self.bias_axes and has_odom:
-            assert odom_T_prev_cur is not None
-            self._next_bias_knot(float(np.linalg.norm(odom_T_prev_cur[:3, 3])), graph, values)
-        if has_odom:
-            assert odom_T_prev_cur is not None  # resolve_step: has_odom says it is given
-            precision = 1.0 / np.maximum(check_odometry_sigmas(odom_sigmas), 1e-9) ** 2
-            if self.bias_axes:
-                odometry = corrected_increment(odom_T_prev_cur, self.odometry_bias, self.bias_axes)[0]
-                graph.add(
-                    odometry_bias_factor(
-                        odom_T_prev_cur, i, j, bias_key(self._knot), self._noise(precision), self.bias_axes
-                    )
-                )
-            else:
-                odometry = _pose3(odom_T_prev_cur)
-                graph.add(gtsam.BetweenFactorPose3(i, j, odometry, self._noise(precision)))
+        odometry = self._add_odometry(graph, values, odom_T_prev_cur, odom_sigmas, i, j) if has_odom else None
         if has_icp:
             assert icp_T_prev_cur is not None
             information = icp_information(self.config, icp_hessian, mask)
@@ -171,6 +155,28 @@ class FusionGraph:
         if self.bias_axes:
             self.odometry_bias = np.asarray(self.isam.calculateEstimateVector(bias_key(self._knot)), dtype=np.float64)
         return self.estimate.matrix(), step.report()
+
+    def _add_odometry(
+        self,
+        graph: gtsam.NonlinearFactorGraph,
+        values: gtsam.Values,
+        odom_T_prev_cur: np.ndarray | None,
+        odom_sigmas: np.ndarray | None,
+        i: int,
+        j: int,
+    ) -> gtsam.Pose3:
+        """The legs' factor from pose i to j (through the bias state in use, with its knot where one
+        is due); returns the increment as the factor reads it, the new pose's guess."""
+        assert odom_T_prev_cur is not None  # resolve_step: has_odom says it is given
+        precision = 1.0 / np.maximum(check_odometry_sigmas(odom_sigmas), 1e-9) ** 2
+        if not self.bias_axes:
+            odometry = _pose3(odom_T_prev_cur)
+            graph.add(gtsam.BetweenFactorPose3(i, j, odometry, self._noise(precision)))
+            return odometry
+        self._next_bias_knot(float(np.linalg.norm(odom_T_prev_cur[:3, 3])), graph, values)
+        noise = self._noise(precision)
+        graph.add(odometry_bias_factor(odom_T_prev_cur, i, j, bias_key(self._knot), noise, self.bias_axes))
+        return corrected_increment(odom_T_prev_cur, self.odometry_bias, self.bias_axes)[0]
 
     def _icp_key(self, j: int, span: int) -> int:
         """The pose an ICP factor of `span` steps ties pose j to, or a ValueError where there is none
