@@ -43,6 +43,11 @@ def nearest_rigid(T: np.ndarray) -> np.ndarray:
     return out
 
 
+def rotation_angle(T: np.ndarray) -> float:
+    """The angle (rad) of T's rotation."""
+    return float(np.arccos(np.clip((np.trace(T[:3, :3]) - 1) / 2, -1.0, 1.0)))
+
+
 def yaw_of(T: np.ndarray) -> float:
     return float(np.arctan2(T[1, 0], T[0, 0]))
 

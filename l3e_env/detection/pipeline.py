@@ -17,7 +17,7 @@ import numpy as np
 from fusion import EKFFusion, FusionConfig, FusionGraph, check_backend, make_fusion
 from l3e_env.config import FusionSettings, OdometryConfig, from_dict
 from l3e_env.core.threads import part_threads
-from l3e_env.core.transforms import inverse, nearest_rigid
+from l3e_env.core.transforms import inverse, nearest_rigid, rotation_angle
 from l3e_env.localizability.registration import (
     PreparedTarget,
     RegistrationConfig,
@@ -111,7 +111,7 @@ class ScanRegistrar:
         guess = nearest_rigid(self._since @ motion) if motion is not None else self._since
         result = self._register(points, self._from_guess, guess)
         ok = result is not None and result.converged
-        self._since = result.T_target_source if result is not None and ok else guess
+        self._since = result.T_target_source if ok and result is not None else guess
         if not ok or self._renew() or self._beyond_gate(guess):
             self.start(points)
         return result
@@ -135,16 +135,11 @@ class ScanRegistrar:
     def _renew(self) -> bool:
         k = self.keyframes
         moved = max(float(np.linalg.norm(self._since[:3, 3])), self._walked)
-        return bool(moved >= k.distance or _angle(self._since) >= k.turn or self._span >= k.steps)
+        return bool(moved >= k.distance or rotation_angle(self._since) >= k.turn or self._span >= k.steps)
 
     def _beyond_gate(self, guess: np.ndarray) -> bool:
         off = inverse(guess) @ self._since
-        return bool(np.linalg.norm(off[:3, 3]) > self.keyframes.gate or _angle(off) > self.keyframes.gate_turn)
-
-
-def _angle(T: np.ndarray) -> float:
-    """The rotation angle of T (rad)."""
-    return float(np.arccos(np.clip((np.trace(T[:3, :3]) - 1) / 2, -1.0, 1.0)))
+        return bool(np.linalg.norm(off[:3, 3]) > self.keyframes.gate or rotation_angle(off) > self.keyframes.gate_turn)
 
 
 @dataclass
