@@ -76,19 +76,28 @@ class FusionGraph:
             if self.lag is None:
                 self.isam.update(graph, values)
             else:  # every state the new factors touch is stamped with this step: the bias state in use stays
-                self._keep_leaving(k)
-                self.isam.update(graph, values, {key: float(k) for key in graph.keyVector()})
+                stamp = self._stamp(k)
+                self._keep_leaving(stamp)
+                self.isam.update(graph, values, {key: stamp for key in graph.keyVector()})
         except RuntimeError as exc:  # GTSAM's C++ exceptions (IndeterminantLinearSystem, ...) arrive as this
             first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
             raise FusionError(
                 f"fusion step {k}: GTSAM could not solve the graph ({first}); this graph cannot take more steps"
             ) from exc
 
-    def _keep_leaving(self, k: int) -> None:
-        """Before the update stamped k: the estimates of the poses it marginalizes (GTSAM's smoother
-        drops the states stamped before k - lag; pose m was last stamped m + 1, by the next step)."""
+    def _stamp(self, k: int) -> float:
+        """The smoother's time of step k: the step rounded down to a multiple of `marginalize_every`,
+        so that the poses leave the window in batches. GTSAM's smoother re-eliminates its whole window
+        whenever it marginalizes (its ordering puts the leaving states first), which at every step
+        cost tens of milliseconds on a 300-step window (benchmarks/bench_fusion.py)."""
+        return float(k - k % self.config.marginalize_every)
+
+    def _keep_leaving(self, stamp: float) -> None:
+        """Before an update stamped `stamp`: the estimates of the poses it marginalizes (GTSAM's
+        smoother drops the states stamped before stamp - lag; pose m was last stamped by step m + 1
+        at the latest)."""
         assert self.lag is not None  # only the windowed smoother marginalizes
-        while len(self._left) + 1 < k - self.lag:
+        while self._stamp(len(self._left) + 1) < stamp - self.lag:
             self._left.append(self.isam.calculateEstimatePose3(len(self._left)).matrix())
 
     def _noise(self, information_project: np.ndarray) -> gtsam.noiseModel.Base:

@@ -33,7 +33,10 @@ class FusionConfig:
     trajectory; a number of steps keeps only that many poses (and the bias states they use) in an
     incremental fixed-lag smoother and marginalizes the older ones, which bounds each step's cost
     for a consumer of the newest estimate alone (an environment): with the odometry bias states,
-    whose revision moves every later pose, the full smoother's step grows with the drive."""
+    whose revision moves every later pose, the full smoother's step grows with the drive.
+    `marginalize_every`: the window's oldest poses leave it in batches of this many steps (the
+    window holds `smoother_lag` to `smoother_lag + marginalize_every` steps), since each
+    marginalization costs GTSAM's smoother a re-elimination of the whole window."""
 
     mode: str = "mask"
     icp_covariance: str = "hessian"
@@ -48,6 +51,7 @@ class FusionConfig:
     odometry_bias_sigmas: tuple[float, ...] = (0.001, 0.005, 0.02)
     odometry_bias_walk: tuple[float, ...] = (0.0003, 0.0005, 0.0001)
     smoother_lag: int | None = None
+    marginalize_every: int = 25
 
 
 def check_config(config: FusionConfig) -> FusionConfig:
@@ -60,6 +64,9 @@ def check_config(config: FusionConfig) -> FusionConfig:
     lag = config.smoother_lag
     if lag is not None and (isinstance(lag, bool) or not isinstance(lag, int) or lag < 1):
         raise ValueError(f"smoother_lag must be None (the whole drive) or a number of steps >= 1, got {lag!r}")
+    every = config.marginalize_every
+    if isinstance(every, bool) or not isinstance(every, int) or every < 1:
+        raise ValueError(f"marginalize_every must be a number of steps >= 1, got {every!r}")
     config.odometry_bias = tuple(config.odometry_bias)
     check_bias_settings(config.odometry_bias, config.odometry_bias_sigmas, config.odometry_bias_walk)
     return config

@@ -213,7 +213,13 @@ class LocalizationPipeline:
         return self.backend.trajectory()
 
 
-ONLINE_LAG = 300  # steps (30 s at 10 Hz) the environment's graph keeps before marginalizing
+# steps (20 s at 10 Hz) the environment's graph keeps before marginalizing: twice a keyframe's longest
+# run (Keyframes.steps), as an ICP factor must reach its keyframe within half the window
+ONLINE_LAG = 200
+# the window relinearizes a state once its estimate has moved 0.1 (rad or m) from its linearization
+# point, GTSAM's default: at FusionConfig's 0.01, made for the whole drive's smoothed trajectory,
+# relinearizing the window cost the environment's step several milliseconds on average
+ONLINE_RELINEARIZE = 0.1
 
 
 class OnlineFusion:
@@ -242,7 +248,7 @@ class OnlineFusion:
         self.pipeline = LocalizationPipeline(
             detector,
             config.backend,
-            odometry_fusion_config(odometry, config, smoother_lag=ONLINE_LAG),
+            odometry_fusion_config(odometry, config, smoother_lag=ONLINE_LAG, relinearize_threshold=ONLINE_RELINEARIZE),
             odometry,
             T_b_s,
             config.attitude,

@@ -342,12 +342,33 @@ def test_a_fixed_lag_keeps_the_newest_estimate_of_the_whole_smoother_in_a_bounde
     assert np.abs(lagged[:, :3, 3] - full[:, :3, 3]).max() < 0.01
     assert np.abs(lagged[:, :3, :3] - full[:, :3, :3]).max() < 1e-3
     assert np.abs(full[-1][:3, 3] - graph.trajectory()[-1][:3, 3]).max() < 0.01
-    assert len(graph.isam.calculateEstimate().keys()) <= 40 + 3 + 5  # the window's poses and bias states
+    # the window's poses (up to a batch of marginalize_every beyond the lag) and bias states
+    assert len(graph.isam.calculateEstimate().keys()) <= 40 + graph.config.marginalize_every + 3 + 5
     trajectory = graph.trajectory()
     assert len(trajectory) == 301 and np.abs(trajectory[1:251, :3, 3] - full[:250, :3, 3]).max() < 0.02
     for bad in (0, -5, 2.5, True):
         with pytest.raises(ValueError, match="smoother_lag"):
             FusionGraph(np.eye(4), FusionConfig(smoother_lag=bad))
+        with pytest.raises(ValueError, match="marginalize_every"):
+            FusionGraph(np.eye(4), FusionConfig(smoother_lag=40, marginalize_every=bad))
+
+
+def test_the_window_marginalizes_in_batches():
+    """With `marginalize_every`, the poses leave the window in batches: it holds between the lag and
+    the lag plus a batch of steps, and the trajectory still keeps every pose."""
+    sizes = {}
+    for every in (1, 5):
+        graph = FusionGraph(np.eye(4), FusionConfig(smoother_lag=10, marginalize_every=every))
+        held = []
+        for _ in range(60):
+            graph.add_step(pose(0.1), np.full(6, 0.01), pose(0.1), np.zeros(6, dtype=bool))
+            held.append(len(graph.isam.calculateEstimate().keys()))
+        sizes[every] = held[20:]
+        trajectory = graph.trajectory()
+        assert len(trajectory) == 61
+        np.testing.assert_allclose(trajectory[:, 0, 3], 0.1 * np.arange(61), atol=1e-6)
+    assert max(sizes[1]) - min(sizes[1]) <= 1
+    assert min(sizes[5]) >= min(sizes[1]) and max(sizes[5]) - min(sizes[5]) >= 4
 
 
 def test_robust_kernels_build():
