@@ -88,8 +88,8 @@ class FusionGraph:
     def _stamp(self, k: int) -> float:
         """The smoother's time of step k: the step rounded down to a multiple of `marginalize_every`,
         so that the poses leave the window in batches. GTSAM's smoother re-eliminates its whole window
-        whenever it marginalizes (its ordering puts the leaving states first), which at every step
-        cost tens of milliseconds on a 300-step window (benchmarks/bench_fusion.py)."""
+        whenever it marginalizes (its ordering puts the leaving states first): once a step, that
+        re-elimination dominated the step's cost (docs/fusion.md)."""
         return float(k - k % self.config.marginalize_every)
 
     def _keep_leaving(self, stamp: float) -> None:

@@ -217,8 +217,8 @@ class LocalizationPipeline:
 # run (Keyframes.steps), as an ICP factor must reach its keyframe within half the window
 ONLINE_LAG = 200
 # the window relinearizes a state once its estimate has moved 0.1 (rad or m) from its linearization
-# point, GTSAM's default: at FusionConfig's 0.01, made for the whole drive's smoothed trajectory,
-# relinearizing the window cost the environment's step several milliseconds on average
+# point, GTSAM's default; FusionConfig's 0.01 is the whole drive's, whose smoothed trajectory is scored,
+# and relinearizes the window far more often (docs/fusion.md)
 ONLINE_RELINEARIZE = 0.1
 
 
