@@ -21,7 +21,7 @@ from l3e_env.cli.options import (
     scene_params,
     sensor_name,
 )
-from l3e_env.config import ATTITUDE_MODES, NAVIGATION_FUSION
+from l3e_env.config import ATTITUDE_MODES, NAVIGATION_FUSION, EnvConfig
 from l3e_env.config.detector_spec import DETECTOR_GRAMMAR, MAP_DETECTORS, parse_detector
 from l3e_env.io.mesh_lists import meshes_file
 
@@ -157,6 +157,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         lam=args.lam,
         workers=args.workers,
         steer_on=args.steer_on,
+        stop_radius=args.stop_radius,
         fusion_settings=fusion_settings(args, NAVIGATION_FUSION),
         recovery=args.recovery,
         avoid=args.avoid,
@@ -308,6 +309,15 @@ def _add_evaluate(psub: argparse._SubParsersAction, common: argparse.ArgumentPar
         choices=["estimate", "truth"],
         default="estimate",
         help="pose the policies steer on (default: the fused estimate); ATE is measured either way",
+    )
+    g.add_argument(
+        "--stop-radius",
+        dest="stop_radius",
+        type=float,
+        default=EnvConfig().stop_radius,
+        metavar="METRES",
+        help="steering on the estimate, the robot stops once its estimate is this close to the goal; it "
+        f"succeeds where its true pose is within {EnvConfig().goal_radius:g} m (default %(default)s)",
     )
     add_fusion_options(g, NAVIGATION_FUSION)
     g.add_argument(

@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from l3e_env.config import NAVIGATION_FUSION, FusionSettings, OdometryConfig, settings_changed
+from l3e_env.config import NAVIGATION_FUSION, EnvConfig, FusionSettings, OdometryConfig, settings_changed
 from l3e_env.core.transforms import yaw_of
 from l3e_env.core.workers import worker_start
 from l3e_env.envs import NavigationEnv
@@ -189,7 +189,9 @@ class EvalOptions:
     and a resumed evaluation must match them. `lam`: the planner's weight of expected drift; `steer_on`:
     the pose the robot steers and stops on (STEER_ON); `recovery`: a wedged robot backs off (BackOff);
     `avoid`: the policies keep off the obstacles the scan shows ahead (FreeHeadings), both None: as the
-    folder's episodes so far, else on; `scene_params`: make_scene's arguments by scene name."""
+    folder's episodes so far, else on; `scene_params`: make_scene's arguments by scene name;
+    `stop_radius`: steering on the estimate, the robot stops once its estimate is this close to the
+    goal (EnvConfig.stop_radius), and succeeds where its true pose is within the goal radius."""
 
     episodes: int = 50
     seed: int = 0
@@ -202,6 +204,7 @@ class EvalOptions:
     recovery: bool | None = None
     avoid: bool | None = None
     scene_params: dict[str, dict] = field(default_factory=dict)
+    stop_radius: float = EnvConfig().stop_radius
 
     def source(self, scene: str) -> MapSource:
         return MapSource(scene, self.detector, self.cache_dir, self.scene_params.get(scene))
@@ -232,6 +235,7 @@ def run_episode(job: EpisodeJob) -> Episode:
         scene=job.scene,
         scene_params=source.scene_params or {},
         arrival=options.steer_on,
+        stop_radius=options.stop_radius,
         fusion={**asdict(options.fusion_settings), "enabled": True, "detector": options.detector},
     )
     try:
@@ -430,6 +434,11 @@ def _check_evaluation(policies: list[str], options: EvalOptions) -> None:
     """Bad options and policies fail here, not in every episode, and before the maps are built (minutes)."""
     if options.steer_on not in STEER_ON:
         raise ValueError(f"steer_on must be one of {STEER_ON}, got {options.steer_on!r}")
+    goal = EnvConfig().goal_radius
+    if not 0 < options.stop_radius <= goal:
+        raise ValueError(
+            f"stop_radius must be above 0 and at most the goal radius of {goal} m, got {options.stop_radius!r}"
+        )
     odometry_fusion_config(OdometryConfig(), options.fusion_settings)
     for policy in policies:
         check_policy(policy)
@@ -451,6 +460,7 @@ def _run_record(options: EvalOptions) -> dict[str, Any]:
         "lam": options.lam,
         "steer_on": options.steer_on,
         "arrival": options.steer_on,
+        "stop_radius": options.stop_radius,
         "fusion": {**options.fusion_settings.record(), "enabled": True, "detector": options.detector},
         "recovery": options.recovery,
         "avoid": options.avoid,

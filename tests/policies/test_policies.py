@@ -527,6 +527,7 @@ def test_full_pipeline_evaluation_on_the_small_fork(small_fork, monkeypatch, tmp
     assert (tmp_path / "routes.png").stat().st_size > 10_000 and "rich route" in (tmp_path / "summary.txt").read_text()
     settings = json.loads((tmp_path / "settings.json").read_text())
     assert settings["recovery"] is True and settings["avoid"] is True and settings["lam"] == 200.0
+    assert settings["stop_radius"] == 0.5  # the environment's, where the robot stops on its estimate
     # a second run (or one after a kill) reuses the finished episodes
     monkeypatch.setattr(evaluation, "run_episode", lambda job: pytest.fail(f"episode {job.key} ran again"))
     again = evaluation.evaluate_policies(tmp_path, ["shortest", "planner"], ["fork-0"], options, progress=False)
@@ -538,6 +539,10 @@ def test_full_pipeline_evaluation_on_the_small_fork(small_fork, monkeypatch, tmp
     with pytest.raises(ValueError, match="odometry_bias takes distinct axes"):
         bad = dataclasses.replace(options, fusion_settings=FusionSettings(odometry_bias=("roll",)))
         evaluation.evaluate_policies(tmp_path / "bad", ["shortest"], ["fork-0"], bad)
+    assert not (tmp_path / "bad").exists()
+    for radius in (0.0, 1.5):
+        with pytest.raises(ValueError, match="stop_radius must be above 0 and at most the goal radius"):
+            evaluation.evaluate_policies(tmp_path / "bad", ["shortest"], ["fork-0"], EvalOptions(stop_radius=radius))
     assert not (tmp_path / "bad").exists()
     # a run whose first episode fails leaves nothing that looks like a result
     monkeypatch.setattr(evaluation, "run_episodes", lambda *a: (_ for _ in ()).throw(RuntimeError("episode 0 died")))
