@@ -268,29 +268,9 @@ def _add_train(psub: argparse._SubParsersAction, common: argparse.ArgumentParser
     g.set_defaults(func=_cmd_train)
 
 
-def _add_evaluate(psub: argparse._SubParsersAction, common: argparse.ArgumentParser) -> None:
-    g = psub.add_parser("evaluate", parents=[common], help="seeded full-pipeline episodes: success, route, ATE, length")
-    g.add_argument(
-        "--policy",
-        action="append",
-        help="shortest | planner | ppo:<run folder>; repeat (default: shortest and planner)",
-    )
-    g.add_argument(
-        "--scene",
-        type=scene_names,
-        action="append",
-        help="evaluation variants, comma-separated or repeated, a range as family-A..B such as "
-        "bypass-100..149 (default: bypass-100..109; the fork family as fork-100..109)",
-    )
-    g.add_argument("--episodes", type=int, default=50, help="episodes per policy (default 50)")
-    g.add_argument(
-        "--detector",
-        default="learned",
-        type=map_detector,
-        help="detector of the fusion and the planner's map (default: learned)",
-    )
-    g.add_argument("--lam", type=float, default=50.0, help="the planner's drift weight (default 50)")
-    g.add_argument("--workers", type=int, default=1, help="episodes run in parallel processes")
+def _add_driving_options(g: argparse.ArgumentParser) -> None:
+    """How the evaluation's robot drives: its recovery, its local layer, the pose it steers on and
+    where it stops."""
     g.add_argument(
         "--recovery",
         action=argparse.BooleanOptionalAction,
@@ -319,6 +299,32 @@ def _add_evaluate(psub: argparse._SubParsersAction, common: argparse.ArgumentPar
         help="steering on the estimate, the robot stops once its estimate is this close to the goal; it "
         f"succeeds where its true pose is within {EnvConfig().goal_radius:g} m (default %(default)s)",
     )
+
+
+def _add_evaluate(psub: argparse._SubParsersAction, common: argparse.ArgumentParser) -> None:
+    g = psub.add_parser("evaluate", parents=[common], help="seeded full-pipeline episodes: success, route, ATE, length")
+    g.add_argument(
+        "--policy",
+        action="append",
+        help="shortest | planner | ppo:<run folder>; repeat (default: shortest and planner)",
+    )
+    g.add_argument(
+        "--scene",
+        type=scene_names,
+        action="append",
+        help="evaluation variants, comma-separated or repeated, a range as family-A..B such as "
+        "bypass-100..149 (default: bypass-100..109; the fork family as fork-100..109)",
+    )
+    g.add_argument("--episodes", type=int, default=50, help="episodes per policy (default 50)")
+    g.add_argument(
+        "--detector",
+        default="learned",
+        type=map_detector,
+        help="detector of the fusion and the planner's map (default: learned)",
+    )
+    g.add_argument("--lam", type=float, default=50.0, help="the planner's drift weight (default 50)")
+    g.add_argument("--workers", type=int, default=1, help="episodes run in parallel processes")
+    _add_driving_options(g)
     add_fusion_options(g, NAVIGATION_FUSION)
     g.add_argument(
         "--attitude",
