@@ -28,7 +28,7 @@ from tqdm import tqdm
 from l3e_env.config import NAVIGATION_FUSION, EnvConfig, FusionSettings, OdometryConfig, settings_changed
 from l3e_env.core.transforms import yaw_of
 from l3e_env.core.workers import worker_start
-from l3e_env.envs import NavigationEnv
+from l3e_env.envs import NavigationEnv, check_env_config
 from l3e_env.sim.avoidance import FreeHeadings
 from l3e_env.sim.follower import RouteFollower
 from l3e_env.sim.odometry import odometry_fusion_config
@@ -434,11 +434,7 @@ def _check_evaluation(policies: list[str], options: EvalOptions) -> None:
     """Bad options and policies fail here, not in every episode, and before the maps are built (minutes)."""
     if options.steer_on not in STEER_ON:
         raise ValueError(f"steer_on must be one of {STEER_ON}, got {options.steer_on!r}")
-    goal = EnvConfig().goal_radius
-    if not 0 < options.stop_radius <= goal:
-        raise ValueError(
-            f"stop_radius must be above 0 and at most the goal radius of {goal} m, got {options.stop_radius!r}"
-        )
+    check_env_config(replace(EnvConfig(), stop_radius=options.stop_radius))
     odometry_fusion_config(OdometryConfig(), options.fusion_settings)
     for policy in policies:
         check_policy(policy)

@@ -1,3 +1,3 @@
-from .navigation import NavigationEnv
+from .navigation import NavigationEnv, check_env_config
 
-__all__ = ["NavigationEnv"]
+__all__ = ["NavigationEnv", "check_env_config"]

@@ -23,12 +23,15 @@ from scenes.geometry import polyline_length
 ARRIVAL = ("truth", "estimate")  # EnvConfig.arrival: which pose ends an episode at the goal
 
 
-def _check_config(config: EnvConfig) -> None:
+def check_env_config(config: EnvConfig) -> None:
     """ValueError for an arrival, stop radius or fusion the episode cannot use."""
     if config.arrival not in ARRIVAL:
         raise ValueError(f"arrival must be one of {ARRIVAL}, got {config.arrival!r}")
     if not 0 < config.stop_radius <= config.goal_radius:
-        raise ValueError(f"stop_radius must be in (0, goal_radius], got {config.stop_radius}")
+        raise ValueError(
+            f"stop_radius must be above 0 and at most the goal radius of {config.goal_radius} m, "
+            f"got {config.stop_radius!r}"
+        )
     if config.arrival == "estimate" and not config.fusion.enabled:
         raise ValueError(
             "arrival 'estimate' ends an episode on the fused estimate: turn the fusion on "
@@ -73,7 +76,7 @@ class NavigationEnv(gym.Env):
             raise ValueError("pass either an EnvConfig or keyword options, not both")
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
-        _check_config(config)
+        check_env_config(config)
         self.config, self.render_mode = config, render_mode
         self.scene = scene_object or make_scene(config.scene, **config.scene_params)
         if config.route not in self.scene.routes:
