@@ -24,7 +24,7 @@ from .steps import (
     icp_information,
     resolve_step,
 )
-from .tangent import GTSAM_FROM_PROJECT, to_gtsam_order
+from .tangent import GTSAM_FROM_PROJECT, to_gtsam_order, to_project_order
 
 
 class EKFFusion:
@@ -67,9 +67,10 @@ class EKFFusion:
             sigmas = check_odometry_sigmas(odom_sigmas)
             motion, G = corrected_increment(odom_T_prev_cur, self.odometry_bias, self.bias_axes)
             walked = float(np.linalg.norm(np.asarray(odom_T_prev_cur)[:3, 3]))
-        elif step.has_icp:  # no odometry: ICP carries the motion, as in the graph
-            motion, sigmas = gtsam.Pose3(np.asarray(step.icp_T_prev_cur)), np.asarray(self.config.icp_sigmas)
-            walked = 0.0
+        elif step.has_icp:  # no odometry: ICP carries the motion, its masked axes stand still, as in the graph
+            held = to_project_order(gtsam.Pose3.Logmap(gtsam.Pose3(np.asarray(step.icp_T_prev_cur))))
+            motion = gtsam.Pose3.Expmap(to_gtsam_order(np.where(step.mask, 0.0, held)))
+            sigmas, walked = np.where(step.mask, 1.0, np.asarray(self.config.icp_sigmas)), 0.0
         else:
             motion, sigmas, walked = gtsam.Pose3(), np.ones(6), 0.0  # the graph's weak constant-position tie
         P = self.P.copy()

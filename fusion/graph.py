@@ -47,6 +47,10 @@ class FusionGraph:
         self.config = check_config(config or FusionConfig())
         params = gtsam.ISAM2Params()
         params.setRelinearizeThreshold(self.config.relinearize_threshold)
+        # QR, not GTSAM's default Cholesky: a long drive's newest pose is known far less well than each
+        # step (its marginal grows with the drive while the factors stay sharp), and Cholesky, which
+        # squares that condition number, meets an indeterminate system after a few thousand steps.
+        params.setFactorization("QR")
         self.lag = self.config.smoother_lag
         # with a lag, the poses that left the window keep the estimate they had when they left
         self.isam: Any = (  # ISAM2 or the fixed-lag smoother: the same update and estimate calls
@@ -133,7 +137,8 @@ class FusionGraph:
 
         Missing odometry with every ICP axis masked leaves the new pose unconstrained: then the
         ICP factor is kept whole (documented fallback), and with no ICP either the pose is tied to
-        the previous one by a weak constant-position factor. A step never fails for that.
+        the previous one by a weak constant-position factor; with some axes masked, those axes are.
+        Every pose is held on every axis, so a step never fails for that.
         """
         step = resolve_step(self.config.mode, odom_T_prev_cur, icp_T_prev_cur, non_localizable)
         has_odom, has_icp, mask, icp_T_prev_cur = step.has_odom, step.has_icp, step.mask, step.icp_T_prev_cur
@@ -145,9 +150,9 @@ class FusionGraph:
             assert icp_T_prev_cur is not None
             information = icp_information(self.config, icp_hessian, mask)
             graph.add(gtsam.BetweenFactorPose3(key, j, _pose3(icp_T_prev_cur), self._noise(information)))
-        if not has_odom and not has_icp:
-            weak = gtsam.noiseModel.Isotropic.Sigma(6, 1.0)
-            graph.add(gtsam.BetweenFactorPose3(i, j, gtsam.Pose3(), weak))
+        still = np.zeros(6, dtype=bool) if has_odom else (mask if has_icp else np.ones(6, dtype=bool))
+        if still.any():  # the axes nothing else holds stay where they were, weakly (sigma 1 m and 1 rad)
+            graph.add(gtsam.BetweenFactorPose3(i, j, gtsam.Pose3(), self._noise(still.astype(np.float64))))
         guess = (
             self.estimate.compose(odometry)
             if odometry is not None

@@ -140,7 +140,8 @@ def resolve_step(
     """Apply the mode (mask: drop the flagged axes; full: keep every axis; drop: drop the ICP
     factor when any axis is flagged) and the documented fallbacks: missing odometry with every
     ICP axis masked keeps the ICP factor whole; with neither, the caller adds a weak
-    constant-position tie. Non-finite inputs count as missing."""
+    constant-position tie, and without odometry it ties the masked axes so (else nothing would hold
+    them). Non-finite inputs count as missing."""
     if mode not in MASK_MODES:
         raise ValueError(f"fusion mode must be one of {MASK_MODES}, got '{mode}'")
     mask = np.zeros(6, dtype=bool) if non_localizable is None else np.asarray(non_localizable, dtype=bool).copy()
@@ -156,4 +157,6 @@ def resolve_step(
         mask[:], has_icp, fallback = False, True, "all axes masked and no odometry: full ICP factor"
     if not has_odom and not has_icp:
         fallback = "no odometry and no ICP: constant-position factor"
+    elif not has_odom and mask.any():
+        fallback = "masked axes and no odometry: constant-position factor on the masked axes"
     return StepInputs(has_odom, has_icp, mask, icp_T_prev_cur if icp_ok else None, fallback)
