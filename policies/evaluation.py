@@ -58,6 +58,9 @@ class Episode:
     # environment's odometry): what the cost model expects of this route, beside final_ate
     expected_drift: float | None = None
     planned_drift: float | None = None  # m, the same model over the plan a route policy follows
+    # m, the fused estimate less the truth at the end, (x, y, z) in the world: arrival is judged
+    # across the ground, so its horizontal part is what a stop on the estimate misses by
+    final_offset: list | None = None
 
 
 class BackOff:
@@ -259,6 +262,7 @@ def run_episode(job: EpisodeJob) -> Episode:
             controller.recoveries,
             expected,
             planned,
+            (info["fused_T_w_b"][:3, 3] - info["T_w_b"][:3, 3]).round(4).tolist(),
         )
     finally:
         env.close()
@@ -293,6 +297,7 @@ def summarize(episodes: list[Episode]) -> list[dict[str, Any]]:
         group = [e for e in episodes if e.policy == name]
         marked = [e.rich_route for e in group if e.rich_route is not None]
         expected = [e.expected_drift for e in group if e.expected_drift is not None]
+        horizontal = [float(np.hypot(*e.final_offset[:2])) for e in group if e.final_offset is not None]
         rows.append(
             {
                 "policy": name,
@@ -301,6 +306,7 @@ def summarize(episodes: list[Episode]) -> list[dict[str, Any]]:
                 "rich_route": float(np.mean(marked)) if marked else None,
                 "expected_drift": float(np.mean(expected)) if expected else None,
                 "final_ate": float(np.mean([e.final_ate for e in group])),
+                "final_xy": float(np.mean(horizontal)) if horizontal else None,
                 "mean_ate": float(np.mean([e.mean_ate for e in group])),
                 "path_length": float(np.mean([e.path_length for e in group])),
                 "recoveries": int(sum(e.recoveries for e in group)),
@@ -321,15 +327,16 @@ def drift_correlation(episodes: list[Episode]) -> tuple[float | None, int]:
 def format_rows(rows: list[dict[str, Any]]) -> str:
     head = (
         f"{'policy':28s} {'episodes':>8s} {'success':>8s} {'rich route':>10s} {'expected':>9s} {'final ATE':>10s} "
-        f"{'mean ATE':>9s} {'path [m]':>9s} {'backed off':>10s}"
+        f"{'of it, xy':>9s} {'mean ATE':>9s} {'path [m]':>9s} {'backed off':>10s}"
     )
     lines = [head, "-" * len(head)]
     for r in rows:
         rich = "n/a" if r["rich_route"] is None else f"{r['rich_route']:.0%}"
         expected = "n/a" if r.get("expected_drift") is None else f"{r['expected_drift']:.2f}"
+        xy = "n/a" if r.get("final_xy") is None else f"{r['final_xy']:.2f}"
         lines.append(
             f"{r['policy'][:28]:28s} {r['episodes']:8d} {r['success']:8.0%} {rich:>10s} {expected:>9s} "
-            f"{r['final_ate']:10.2f} {r['mean_ate']:9.2f} {r['path_length']:9.1f} {r['recoveries']:10d}"
+            f"{r['final_ate']:10.2f} {xy:>9s} {r['mean_ate']:9.2f} {r['path_length']:9.1f} {r['recoveries']:10d}"
         )
     return "\n".join(lines)
 

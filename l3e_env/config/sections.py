@@ -141,9 +141,10 @@ class EnvConfig:
     # what ends an episode: the true pose within goal_radius of the goal ("truth"), or the fused
     # estimate, the pose the robot believes ("estimate", with the fusion on): a robot stops where
     # it believes the goal is, within stop_radius of it, and whether it truly arrived (within
-    # goal_radius) is info's distance_to_goal
+    # goal_radius) is info's distance_to_goal. A robot stopping at stop_radius is sure to arrive only
+    # while its error stays under goal_radius - stop_radius; 0.25 m is Nav2's default goal tolerance
     arrival: str = "truth"
-    stop_radius: float = 0.5
+    stop_radius: float = 0.25
     max_episode_steps: int | None = None  # None: 3x the route length at full speed
     progress_reward: float = 1.0  # per metre of progress to the goal
     step_penalty: float = 0.01

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from l3e_env.config import FusionSettings, plain, to_dict
+from l3e_env.config import EnvConfig, FusionSettings, plain, to_dict
 from l3e_env.localizability.registration import RegistrationConfig
 from policies.context import SceneContext, free_space
 from policies.fastenv import FastEnvConfig, MapNavigationEnv
@@ -246,7 +246,8 @@ def test_fast_env_rewards_progress_and_penalises_drift(fast_env):
     assert terminated and not truncated  # straight ahead reaches the goal
     assert info["tight_length"] == 0.0  # the corridor's middle is 1.5 m from its walls
     straight = np.hypot(*(fast_env.view.goal - fast_env.contexts[0].scene.start[:2]))
-    assert info["path_length"] == pytest.approx(straight - 1, abs=0.6)
+    short = straight - fast_env.config.goal_radius  # it stops at the first 0.5 m decision within the goal radius
+    assert short - 1e-6 <= info["path_length"] < short + 0.5
     assert info["expected_drift"] == pytest.approx(12 * drift_rates()[0], rel=0.15)
     # the reward is progress minus lam times that drift (plus the goal, minus step penalties)
     cfg = fast_env.config
@@ -523,11 +524,15 @@ def test_full_pipeline_evaluation_on_the_small_fork(small_fork, monkeypatch, tmp
     assert not shortest.rich_route and planner.rich_route
     assert planner.path_length > shortest.path_length
     assert shortest.final_ate > 0 and np.isfinite(planner.mean_ate)
+    for episode, row in zip((shortest, planner), rows):  # the end's error, and its part across the ground
+        assert episode.final_offset is not None
+        assert np.linalg.norm(episode.final_offset) == pytest.approx(episode.final_ate, abs=1e-3)
+        assert row["final_xy"] == pytest.approx(np.hypot(*episode.final_offset[:2]), abs=1e-3)
     assert [r["policy"] for r in rows] == ["shortest", "planner"] and rows[1]["rich_route"] == 1.0
     assert (tmp_path / "routes.png").stat().st_size > 10_000 and "rich route" in (tmp_path / "summary.txt").read_text()
     settings = json.loads((tmp_path / "settings.json").read_text())
     assert settings["recovery"] is True and settings["avoid"] is True and settings["lam"] == 200.0
-    assert settings["stop_radius"] == 0.5  # the environment's, where the robot stops on its estimate
+    assert settings["stop_radius"] == EnvConfig().stop_radius  # the environment's own
     # a second run (or one after a kill) reuses the finished episodes
     monkeypatch.setattr(evaluation, "run_episode", lambda job: pytest.fail(f"episode {job.key} ran again"))
     again = evaluation.evaluate_policies(tmp_path, ["shortest", "planner"], ["fork-0"], options, progress=False)

@@ -343,8 +343,9 @@ def test_an_episode_ends_where_the_pose_that_arrival_names_reaches_the_goal(arri
     env.close()
     assert terminated
     if arrival == "estimate":
-        assert 0.35 <= np.linalg.norm(info["fused_T_w_b"][:2, 3] - (8.0, 0.0)) <= 0.5  # at the goal, it believes
-        assert info["distance_to_goal"] == pytest.approx(3.5, abs=0.15)  # stopped 3 m short in truth
+        stop = env.config.stop_radius
+        assert stop - 0.15 <= np.linalg.norm(info["fused_T_w_b"][:2, 3] - (8.0, 0.0)) <= stop  # at its goal
+        assert info["distance_to_goal"] == pytest.approx(3.0 + stop, abs=0.15)  # stopped 3 m short in truth
     else:
         assert info["distance_to_goal"] == pytest.approx(1.0, abs=0.15)
 
