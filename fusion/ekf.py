@@ -69,8 +69,8 @@ class EKFFusion:
             walked = float(np.linalg.norm(np.asarray(odom_T_prev_cur)[:3, 3]))
         elif step.has_icp:  # no odometry: ICP carries the motion, its masked axes stand still, as in the graph
             held = to_project_order(gtsam.Pose3.Logmap(gtsam.Pose3(np.asarray(step.icp_T_prev_cur))))
-            motion = gtsam.Pose3.Expmap(to_gtsam_order(np.where(step.mask, 0.0, held)))
-            sigmas, walked = np.where(step.mask, 1.0, np.asarray(self.config.icp_sigmas)), 0.0
+            motion = gtsam.Pose3.Expmap(to_gtsam_order(np.where(step.still, 0.0, held)))
+            sigmas, walked = np.where(step.still, 1.0, np.asarray(self.config.icp_sigmas)), 0.0
         else:
             motion, sigmas, walked = gtsam.Pose3(), np.ones(6), 0.0  # the graph's weak constant-position tie
         P = self.P.copy()

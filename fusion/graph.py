@@ -150,9 +150,8 @@ class FusionGraph:
             assert icp_T_prev_cur is not None
             information = icp_information(self.config, icp_hessian, mask)
             graph.add(gtsam.BetweenFactorPose3(key, j, _pose3(icp_T_prev_cur), self._noise(information)))
-        still = np.zeros(6, dtype=bool) if has_odom else (mask if has_icp else np.ones(6, dtype=bool))
-        if still.any():  # the axes nothing else holds stay where they were, weakly (sigma 1 m and 1 rad)
-            graph.add(gtsam.BetweenFactorPose3(i, j, gtsam.Pose3(), self._noise(still.astype(np.float64))))
+        if step.still.any():  # the axes nothing else holds stay where they were, weakly (sigma 1 m and 1 rad)
+            graph.add(gtsam.BetweenFactorPose3(i, j, gtsam.Pose3(), self._noise(step.still.astype(np.float64))))
         guess = (
             self.estimate.compose(odometry)
             if odometry is not None

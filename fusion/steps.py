@@ -100,6 +100,9 @@ class StepInputs:
     mask: np.ndarray  # (6,) bool in project order, True = no information on that axis
     icp_T_prev_cur: np.ndarray | None
     fallback: str | None
+    # (6,) bool in project order: the axes nothing else holds without odometry, which a weak
+    # constant-position factor keeps where they were
+    still: np.ndarray
 
     def report(self) -> StepReport:
         return StepReport(self.has_icp, int(self.mask.sum()) if self.has_icp else 6, self.fallback)
@@ -155,8 +158,9 @@ def resolve_step(
     has_icp = icp_ok and not mask.all()
     if not has_odom and icp_ok and mask.all():
         mask[:], has_icp, fallback = False, True, "all axes masked and no odometry: full ICP factor"
+    still = np.zeros(6, dtype=bool) if has_odom else (mask.copy() if has_icp else np.ones(6, dtype=bool))
     if not has_odom and not has_icp:
         fallback = "no odometry and no ICP: constant-position factor"
-    elif not has_odom and mask.any():
+    elif still.any():
         fallback = "masked axes and no odometry: constant-position factor on the masked axes"
-    return StepInputs(has_odom, has_icp, mask, icp_T_prev_cur if icp_ok else None, fallback)
+    return StepInputs(has_odom, has_icp, mask, icp_T_prev_cur if icp_ok else None, fallback, still)

@@ -248,13 +248,14 @@ def run_episode(job: EpisodeJob) -> Episode:
         controller = BackOff(steer)
         path, length, info = _drive(env, controller, job, local)
         expected = expected_drift_along(path, ctx.locmap, drift_rates(env.config.odometry))
+        offset = info["fused_T_w_b"][:3, 3] - info["T_w_b"][:3, 3]
         return Episode(
             job.policy,
             job.scene,
             job.seed,
             bool(info["terminated"]) and info["distance_to_goal"] <= env.config.goal_radius,
             avoided_corridor(path, env.scene),
-            float(np.linalg.norm(info["fused_T_w_b"][:3, 3] - info["T_w_b"][:3, 3])),
+            float(np.linalg.norm(offset)),
             float(info["running_ate"]),
             length,
             env.steps,
@@ -262,7 +263,7 @@ def run_episode(job: EpisodeJob) -> Episode:
             controller.recoveries,
             expected,
             planned,
-            (info["fused_T_w_b"][:3, 3] - info["T_w_b"][:3, 3]).round(4).tolist(),
+            offset.round(4).tolist(),
         )
     finally:
         env.close()
