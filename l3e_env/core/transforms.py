@@ -65,3 +65,36 @@ def adjoint(T: np.ndarray) -> np.ndarray:
     A[:3, :3] = A[3:, 3:] = R
     A[:3, 3:] = skew @ R
     return A
+
+
+def level_rotation(up: np.ndarray) -> np.ndarray:
+    """R_l_s: the rotation from a sensor's frame into its level frame, given the up direction
+    (against gravity) in the sensor's frame. The level frame's z is up, its x the sensor's x
+    projected onto the level plane (the sensor's heading), its y completes it; roll, pitch and yaw
+    are the turns about those axes. A sensor pointing its x straight up or down has no heading:
+    its -z (or z) projected onto the level plane stands in for it."""
+    u = np.asarray(up, dtype=np.float64).reshape(-1)
+    if u.shape != (3,) or not np.isfinite(u).all():
+        raise ValueError(f"an up vector is three finite numbers, got {np.asarray(up).tolist()}")
+    norm = float(np.linalg.norm(u))
+    if norm < 1e-9:
+        raise ValueError("the up vector is zero: give the direction against gravity in the sensor's frame")
+    z = u / norm
+    for axis in (np.array([1.0, 0.0, 0.0]), -np.sign(z[0]) * np.array([0.0, 0.0, 1.0])):
+        x = axis - (axis @ z) * z
+        if np.linalg.norm(x) > 1e-6:
+            break
+    x /= np.linalg.norm(x)
+    return np.stack([x, np.cross(z, x), z])
+
+
+def level_rotation_of(T_w_s: np.ndarray) -> np.ndarray:
+    """R_l_s of a sensor posed in a world whose z is up."""
+    return level_rotation(np.asarray(T_w_s, dtype=np.float64)[2, :3])
+
+
+def conjugate(T: np.ndarray, R_b_a: np.ndarray) -> np.ndarray:
+    """A transform of frame a's points written in frame b (same origin, b = R_b_a a): R T R^T."""
+    A = np.eye(4)
+    A[:3, :3] = R_b_a
+    return A @ T @ inverse(A)

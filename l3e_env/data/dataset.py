@@ -31,6 +31,7 @@ from tqdm import tqdm
 
 from l3e_env.config import LABELLERS, LidarConfig, from_dict, settings_changed, with_defaults
 from l3e_env.core.files import folder_lock, write_atomic
+from l3e_env.core.transforms import level_rotation_of
 from l3e_env.core.workers import worker_start
 from l3e_env.localizability.labels import (
     AXES,
@@ -187,7 +188,9 @@ def _label(config: DatasetConfig, lidar: Lidar, T_w_p: np.ndarray, rng: np.rando
     if config.labeller == "scene":
         return label_parent(lidar, T_w_p, rng, config.labels, config.registration)
     parent = lidar.scan(T_w_p, rng)
-    found = scan_errors(parent.points, config.lidar, config.registration, config.labels, config.scan_mc, rng)
+    found = scan_errors(
+        parent.points, config.lidar, config.registration, config.labels, config.scan_mc, rng, level_rotation_of(T_w_p)
+    )
     labels = (found.errors > config.labels.threshold_vector()).astype(np.uint8)
     return ParentLabel(T_w_p, parent.points, found.errors, labels, found.children - len(found.child_errors), 0)
 

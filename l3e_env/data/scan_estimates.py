@@ -8,6 +8,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from l3e_env.config import LidarConfig, from_dict
+from l3e_env.core.transforms import level_rotation_of
 from l3e_env.core.workers import ordered_map
 from l3e_env.localizability.registration import RegistrationConfig, RegistrationError
 from l3e_env.localizability.scan_mc import ScanEstimate, ScanMCConfig, ScanPatternError, scan_errors
@@ -51,6 +52,7 @@ def row_estimate(scans: DatasetScans, row: int) -> ScanEstimate | None:
             part.label_config,
             scans.config,
             np.random.default_rng([scans.seed, int(row)]),
+            level_rotation_of(part.poses[at]),
         )
     except (RegistrationError, ScanPatternError):
         return None

@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from l3e_env.core.transforms import inverse, matrix_to_pose, pose_to_matrix
+from l3e_env.core.transforms import conjugate, inverse, level_rotation_of, matrix_to_pose, pose_to_matrix
 from l3e_env.sim.lidar import Lidar
 from l3e_env.sim.raycast import RayCaster
 
@@ -22,12 +22,14 @@ AXES = ("x", "y", "z", "roll", "pitch", "yaw")
 # The label protocol, recorded in every dataset and checkpoint: 1 was the paper's (translation
 # thresholds of 0.1 m, the neighbours' normals), under which an ICP that held still along a free
 # axis labelled it localizable; 2 asks whether the registration corrects the offset (thresholds at
-# most half of what holding still leaves, the ground plane's normals). Data of another protocol is
-# refused by name, never mixed.
-LABEL_PROTOCOL = 2
+# most half of what holding still leaves, the ground plane's normals); 3 draws the children and
+# writes the errors in the parent scan's level frame (z along gravity), so that a tilted sensor does
+# not turn a tunnel's free slide into z. Data of another protocol is refused by name, never mixed.
+LABEL_PROTOCOL = 3
 PROTOCOLS = {
     1: "the paper's 0.1 m translation thresholds and the neighbours' normals",
     2: "thresholds that ask whether ICP corrects the offset, and the ground plane's normals",
+    3: "protocol 2's thresholds, children and errors in each scan's level frame",
 }
 
 
@@ -122,10 +124,21 @@ def _probe_directions() -> np.ndarray:
     return np.vstack([g, [[0, 0, -1]]]).astype(np.float32)
 
 
-def registration_error(T_est: np.ndarray, T_true: np.ndarray, frame: str = "parent") -> np.ndarray:
-    """|gamma| of the error transform, (x, y, z, roll, pitch, yaw), absolute values."""
+def registration_error(
+    T_est: np.ndarray, T_true: np.ndarray, frame: str = "parent", R_l_s: np.ndarray | None = None
+) -> np.ndarray:
+    """|gamma| of the error transform, (x, y, z, roll, pitch, yaw), absolute values; with `R_l_s`
+    (the parent's level rotation, `level_rotation`) written in the parent's level frame."""
     E = T_est @ inverse(T_true) if frame == "parent" else inverse(T_est) @ T_true
+    if R_l_s is not None:
+        E = conjugate(E, R_l_s)
     return np.abs(matrix_to_pose(E))
+
+
+def child_offset(rng: np.random.Generator, sigma: np.ndarray, R_l_s: np.ndarray) -> np.ndarray:
+    """T_p_c: a child's pose in its parent's sensor frame, drawn with `sigma` along the axes of the
+    parent's level frame (so that a tilted parent's children move as a level one's do)."""
+    return conjugate(pose_to_matrix(rng.normal(0, 1, 6) * sigma), R_l_s.T)
 
 
 def label_parent(
@@ -136,16 +149,17 @@ def label_parent(
     registration: RegistrationConfig,
 ) -> ParentLabel:
     """Scan at the parent pose, then M children: perturb, ray-cast anew, register from identity.
+    Children are drawn and errors written in the parent's level frame (the world's z is up).
 
     Raises RegistrationError if the parent scan itself is unusable. A child whose scan cannot be
     registered is counted and left out of the mean; more than half failing raises.
     """
     parent = lidar.scan(T_w_p, rng)
     target = PreparedTarget(parent.points, registration)
-    sigma = config.sigma_vector("child")
+    sigma, R_l_s = config.sigma_vector("child"), level_rotation_of(T_w_p)
     errors, failed, not_converged = [], 0, 0
     for _ in range(config.children):
-        T_p_c = pose_to_matrix(rng.normal(0, 1, 6) * sigma)
+        T_p_c = child_offset(rng, sigma, R_l_s)
         child = lidar.scan(T_w_p @ T_p_c, rng)
         try:
             result = register(prepare_source(child.points, registration), target, registration, with_hessian=False)
@@ -153,7 +167,7 @@ def label_parent(
             failed += 1
             continue
         not_converged += not result.converged
-        errors.append(registration_error(result.T_target_source, T_p_c, config.error_frame))
+        errors.append(registration_error(result.T_target_source, T_p_c, config.error_frame, R_l_s))
     if failed > config.children // 2:
         raise RegistrationError(f"{failed} of {config.children} child scans could not be registered")
     e = np.mean(errors, axis=0)

@@ -23,7 +23,6 @@ from typing import TYPE_CHECKING, NamedTuple
 import numpy as np
 
 from l3e_env.config import LidarConfig
-from l3e_env.core.transforms import pose_to_matrix
 from l3e_env.sim.lidar import Lidar
 from l3e_env.sim.patterns import BEAM_TOLERANCE, BeamPattern, get_pattern
 from l3e_env.sim.raycast import EmbreeCaster
@@ -31,7 +30,7 @@ from l3e_env.sim.raycast import EmbreeCaster
 if TYPE_CHECKING:
     import trimesh
 
-from .labels import LabelConfig, registration_error
+from .labels import LabelConfig, child_offset, registration_error
 from .registration import PreparedTarget, RegistrationConfig, RegistrationError, prepare_source, register
 
 
@@ -213,11 +212,13 @@ def scan_errors(
     labels: LabelConfig,
     config: ScanMCConfig,
     rng: np.random.Generator,
+    R_l_s: np.ndarray,
 ) -> ScanEstimate:
     """The scan's estimated mean registration errors (metres, radians), as labels.py computes
-    them in the full scene, times the calibration, from as many children as settle every axis
-    against `labels`' thresholds. Raises RegistrationError where the scan itself cannot be
-    registered, or more than half of the children cannot."""
+    them in the full scene, in the scan's level frame (`R_l_s`, from the up direction:
+    `core.transforms.level_rotation`), times the calibration, from as many children as settle
+    every axis against `labels`' thresholds. Raises RegistrationError where the scan itself cannot
+    be registered, or more than half of the children cannot."""
     if config.column_stride < 1:
         raise ValueError(f"the scan estimate casts every k-th column, k >= 1, got {config.column_stride}")
     if config.children < 1 or config.first < 1:
@@ -243,13 +244,13 @@ def scan_errors(
     drawn, stage = 0, min(config.first, config.children)
     while True:
         for _ in range(stage - drawn):
-            T_p_c = pose_to_matrix(rng.normal(0, 1, 6) * sigma)
+            T_p_c = child_offset(rng, sigma, R_l_s)
             child = sensor.scan(T_p_c, rng)
             try:
                 result = register(prepare_source(child.points, registration), target, registration, with_hessian=False)
             except RegistrationError:
                 continue
-            errors.append(registration_error(result.T_target_source, T_p_c, labels.error_frame))
+            errors.append(registration_error(result.T_target_source, T_p_c, labels.error_frame, R_l_s))
         drawn = stage
         if len(errors) < max(1, drawn // 2):
             raise RegistrationError(
