@@ -20,8 +20,9 @@ from .steps import (
     StepReport,
     check_attitude,
     check_config,
+    check_mask_basis,
     check_odometry_sigmas,
-    icp_information,
+    masked_information,
     resolve_step,
 )
 from .tangent import GTSAM_FROM_PROJECT, to_gtsam_order, to_project_order
@@ -53,7 +54,10 @@ class EKFFusion:
         non_localizable: np.ndarray | None = None,
         icp_hessian: np.ndarray | None = None,
         icp_span: int = 1,
+        mask_basis: np.ndarray | None = None,
     ) -> tuple[np.ndarray, StepReport]:
+        """`FusionGraph.add_step` as a filter step: the ICP factor updates the axes the mask keeps, on
+        the mask's own axes (`mask_basis`)."""
         if icp_span != 1:
             raise ValueError(
                 "the EKF keeps the newest pose only: its ICP factor ties consecutive poses (icp_span 1); "
@@ -88,8 +92,10 @@ class EKFFusion:
         ekf.P = M @ P @ M.T
         ekf.P[6:12, 6:12] += Q
         if step.has_odom and step.has_icp:
-            information = icp_information(self.config, icp_hessian, step.mask)
-            self._partial_update(ekf, prev, pred, gtsam.Pose3(np.asarray(step.icp_T_prev_cur)), step.mask, information)
+            basis = check_mask_basis(mask_basis)
+            information = masked_information(self.config, icp_hessian, step.mask, basis)
+            icp = gtsam.Pose3(np.asarray(step.icp_T_prev_cur))
+            self._partial_update(ekf, prev, pred, icp, step.mask, information, basis)
         self.T = pred.retract(ekf.x[6:12])  # the previous pose is marginalised: a filter does not revise the past
         self.odometry_bias = self.odometry_bias + ekf.x[12:]
         self.P = 0.5 * (ekf.P[6:, 6:] + ekf.P[6:, 6:].T)
@@ -105,14 +111,17 @@ class EKFFusion:
         icp: gtsam.Pose3,
         mask_project: np.ndarray,
         information_project: np.ndarray,
+        basis_project: np.ndarray,
     ) -> None:
-        """ICP measures T_prev^-1 T_cur; residual Log(rel_pred^-1 icp) ~ d_cur - Ad(rel^-1) d_prev.
+        """ICP measures T_prev^-1 T_cur; residual Log(rel_pred^-1 icp) ~ d_cur - Ad(rel^-1) d_prev,
+        read on the mask's axes (B d, `basis_project`; `information_project` is written on them).
         The localizable rows' covariance is the inverse of their block of the information (a
         floor of 1e-9 keeps an unheld direction among them finite and all but ignored)."""
         rel = prev.between(pred)
         keep = ~np.asarray(mask_project, dtype=bool)[GTSAM_FROM_PROJECT]  # rows in GTSAM order
-        H = np.hstack([-rel.inverse().AdjointMap(), np.eye(6), np.zeros((6, ekf.dim_x - 12))])[keep]
-        z = gtsam.Pose3.Logmap(rel.between(icp))[keep]
+        B = to_gtsam_order(basis_project)
+        H = (B @ np.hstack([-rel.inverse().AdjointMap(), np.eye(6), np.zeros((6, ekf.dim_x - 12))]))[keep]
+        z = (B @ gtsam.Pose3.Logmap(rel.between(icp)))[keep]
         block = to_gtsam_order(information_project)[np.ix_(keep, keep)]
         R = np.linalg.inv(block + 1e-9 * np.eye(len(block)))
         ekf.dim_z = int(keep.sum())
@@ -135,6 +144,11 @@ class EKFFusion:
             self.P = 0.5 * (ekf.P + ekf.P.T)
             self.poses[-1] = self.T.matrix()
         return self.T.matrix()
+
+    @property
+    def newest(self) -> np.ndarray:
+        """The newest pose's estimate (4x4)."""
+        return np.asarray(self.T.matrix())
 
     def trajectory(self) -> np.ndarray:
         """The filtered poses (k+1, 4, 4)."""

@@ -129,10 +129,12 @@ class FusionGraph:
         non_localizable: np.ndarray | None = None,
         icp_hessian: np.ndarray | None = None,
         icp_span: int = 1,
+        mask_basis: np.ndarray | None = None,
     ) -> tuple[np.ndarray, StepReport]:
         """Add pose k+1 with its factors; returns (estimate of pose k+1, report). `icp_hessian`:
         the registration's point-to-plane Hessian in the body frame, project order (see
-        FusionConfig.icp_covariance). `icp_span`: the ICP factor ties pose k+1 to pose k+1-icp_span
+        FusionConfig.icp_covariance). `mask_basis`: the axes `non_localizable` names (see
+        `icp_information`; the body frame's own where None). `icp_span`: the ICP factor ties pose k+1 to pose k+1-icp_span
         (a keyframe's; 1: pose k), which must still be in the smoother's window.
 
         Missing odometry with every ICP axis masked leaves the new pose unconstrained: then the
@@ -148,7 +150,7 @@ class FusionGraph:
         odometry = self._add_odometry(graph, values, odom_T_prev_cur, odom_sigmas, i, j) if has_odom else None
         if has_icp:
             assert icp_T_prev_cur is not None
-            information = icp_information(self.config, icp_hessian, mask)
+            information = icp_information(self.config, icp_hessian, mask, mask_basis)
             graph.add(gtsam.BetweenFactorPose3(key, j, _pose3(icp_T_prev_cur), self._noise(information)))
         if step.still.any():  # the axes nothing else holds stay where they were, weakly (sigma 1 m and 1 rad)
             graph.add(gtsam.BetweenFactorPose3(i, j, gtsam.Pose3(), self._noise(step.still.astype(np.float64))))
@@ -231,6 +233,11 @@ class FusionGraph:
         self._update(graph, gtsam.Values(), self.k)
         self.estimate = self.isam.calculateEstimatePose3(self.k)
         return self.estimate.matrix()
+
+    @property
+    def newest(self) -> np.ndarray:
+        """The newest pose's estimate (4x4)."""
+        return np.asarray(self.estimate.matrix())
 
     def trajectory(self) -> np.ndarray:
         """All smoothed poses (k+1, 4, 4); with a lag, those that left the window as they left it."""

@@ -72,15 +72,40 @@ def check_config(config: FusionConfig) -> FusionConfig:
     return config
 
 
-def icp_information(config: FusionConfig, hessian: np.ndarray | None, mask: np.ndarray) -> np.ndarray:
-    """The ICP factor's 6x6 information in project order, its masked rows and columns zero: the
-    Hessian (project order, the body frame) over the residual variance, or diag(1 / icp_sigmas^2)."""
+def check_mask_basis(basis: np.ndarray | None) -> np.ndarray:
+    """The 6x6 map from the factor's tangent (project order) onto the axes the mask names, checked;
+    the identity where None (the mask names the factor's own axes)."""
+    if basis is None:
+        return np.eye(6)
+    B = np.asarray(basis, dtype=np.float64)
+    if B.shape != (6, 6) or not np.isfinite(B).all() or abs(np.linalg.det(B)) < 1e-9:
+        raise ValueError(f"a mask basis is an invertible, finite 6x6 matrix, got {np.asarray(basis).tolist()!r}")
+    return B
+
+
+def icp_information(
+    config: FusionConfig, hessian: np.ndarray | None, mask: np.ndarray, basis: np.ndarray | None = None
+) -> np.ndarray:
+    """The ICP factor's 6x6 information in project order (the body frame), its masked axes zero: the
+    Hessian (project order, the body frame) over the residual variance, or diag(1 / icp_sigmas^2).
+    `basis` (B, 6x6): the mask names the axes of d' = B d (a scan's level frame), so the information
+    is written on those axes, their masked rows and columns zeroed there, and turned back."""
+    B = check_mask_basis(basis)
+    information = masked_information(config, hessian, mask, B)
+    return B.T @ information @ B
+
+
+def masked_information(config: FusionConfig, hessian: np.ndarray | None, mask: np.ndarray, basis: np.ndarray) -> np.ndarray:
+    """`icp_information` on the mask's axes (d' = basis d), before it is turned back."""
     H = None if hessian is None else np.asarray(hessian, dtype=np.float64)
     if config.icp_covariance == "hessian" and H is not None and H.shape == (6, 6) and np.isfinite(H).all():
         w, V = np.linalg.eigh(0.5 * (H + H.T))  # rounding can leave a free direction a little below zero
         information = (V * np.maximum(w, 0.0)) @ V.T / config.icp_residual_variance
     else:
         information = np.diag(1.0 / np.asarray(config.icp_sigmas, dtype=np.float64) ** 2)
+    inverse = np.linalg.inv(basis)
+    information = inverse.T @ information @ inverse
+    information = 0.5 * (information + information.T)
     information[mask, :] = 0.0
     information[:, mask] = 0.0
     return information

@@ -166,7 +166,7 @@ class MapJudge:
         and whether the scan's estimate judged it."""
         if self.kind == "learned+scanmc":
             return self.detector.scores_at_half(points, rng, T)
-        pred = self.detector.judge(points, rng)
+        pred = self.detector.judge(points, rng, T)
         return (pred.probabilities if pred.known else np.full(6, np.nan)), True
 
     def __call__(self, poses: list[np.ndarray], rngs: list[np.random.Generator]) -> np.ndarray:

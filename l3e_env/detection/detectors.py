@@ -4,7 +4,9 @@ it is unsure.
 
 Every detector maps one scan (and, where it needs it, the registration of that scan against
 the previous one, or the true pose) to six probabilities of non-localizability and a mask,
-in (x, y, z, roll, pitch, yaw) order, 1/True = not localizable.
+in (x, y, z, roll, pitch, yaw) order of the scan's level frame (z along gravity, x the sensor's
+heading levelled: core.transforms.level_rotation), 1/True = not localizable. The pose `T_w_s`
+(world z up) gives the tilt; a detector given none takes the sensor as level.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ import numpy as np
 
 from l3e_env.config import LidarConfig, from_dict
 from l3e_env.config.detector_spec import parse_detector
+from l3e_env.core.transforms import level_rotation_of
 from l3e_env.localizability.degeneracy import drpm_mask, scan_rows, xicp_mask
 from l3e_env.localizability.labels import LabelConfig, label_parent
 from l3e_env.localizability.registration import (
@@ -26,6 +29,7 @@ from l3e_env.localizability.registration import (
     RegistrationResult,
     dcreg_mask,
     eigen_mask,
+    hessian_in_level,
 )
 from l3e_env.localizability.scan_mc import ScanMCConfig, ScanPatternError, scan_errors
 from l3e_env.sim.lidar import Lidar
@@ -47,6 +51,16 @@ class Detector(Protocol):
 
 
 UNKNOWN = Prediction(np.full(6, np.nan), np.zeros(6, dtype=bool), known=False)
+
+
+def level_of(T_w_s: np.ndarray | None) -> np.ndarray:
+    """R_l_s of a scan posed at T_w_s; the identity for a scan given without a pose (taken as level)."""
+    return np.eye(3) if T_w_s is None else level_rotation_of(T_w_s)
+
+
+def pose_or_level(T_w_s: np.ndarray | None) -> np.ndarray:
+    """T_w_s, or the identity for a scan given without a pose (taken as level)."""
+    return np.eye(4) if T_w_s is None else np.asarray(T_w_s, dtype=np.float64)
 
 
 class NoDetector:
@@ -72,7 +86,7 @@ class HessianDetector:
     def predict(self, points, registration=None, T_w_s=None) -> Prediction:
         if registration is None or not np.isfinite(registration.hessian).all():
             return UNKNOWN
-        return Prediction(*self.mask_of(registration.hessian, self.threshold))
+        return Prediction(*self.mask_of(hessian_in_level(registration.hessian, level_of(T_w_s)), self.threshold))
 
 
 class EigenvalueDetector(HessianDetector):
@@ -123,7 +137,7 @@ class CorrespondenceDetector:
             return UNKNOWN
         if len(rows.points) < 6:
             return UNKNOWN
-        return Prediction(*self.judge(rows))
+        return Prediction(*self.judge(rows.turned(level_of(T_w_s))))
 
     def judge(self, rows) -> tuple[np.ndarray, np.ndarray]:
         raise NotImplementedError
@@ -214,12 +228,15 @@ class ScanMCDetector:
     def predict(self, points, registration=None, T_w_s=None) -> Prediction:
         rng = np.random.default_rng([self.seed, self._calls])
         self._calls += 1
-        return self.judge(points, rng)
+        return self.judge(points, rng, T_w_s)
 
-    def judge(self, points: np.ndarray, rng: np.random.Generator) -> Prediction:
-        """One scan judged with `rng`'s children (a map seeds each pose by itself)."""
+    def judge(self, points: np.ndarray, rng: np.random.Generator, T_w_s: np.ndarray | None = None) -> Prediction:
+        """One scan judged with `rng`'s children (a map seeds each pose by itself), in the level frame
+        of its pose's tilt."""
         try:
-            errors = scan_errors(points, self.lidar, self.registration, self.labels, self.config, rng).errors
+            errors = scan_errors(
+                points, self.lidar, self.registration, self.labels, self.config, rng, level_of(T_w_s)
+            ).errors
         except (RegistrationError, ScanPatternError):
             return UNKNOWN
         ratio = errors / self.labels.threshold_vector()
@@ -255,7 +272,7 @@ class LearnedDetector:
         from l3e_env.model.classifier import ScanError
 
         try:
-            p, mask = self.classifier.predict(points, T_w_s)
+            p, mask = self.classifier.predict(points, pose_or_level(T_w_s))
         except ScanError:
             return UNKNOWN
         if not np.isfinite(p).all():  # a broken model answers "unknown", never "localizable"
@@ -334,7 +351,7 @@ class CascadeDetector:
         if not unsure:
             return first, False
         self.checked += 1
-        return self.scan_mc.judge(points, rng), True
+        return self.scan_mc.judge(points, rng, T_w_s), True
 
 
 def safe_predict(det: Detector, points: np.ndarray, reg, T_w_s: np.ndarray) -> tuple[Prediction, bool]:

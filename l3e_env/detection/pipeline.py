@@ -17,7 +17,7 @@ import numpy as np
 from fusion import EKFFusion, FusionConfig, FusionGraph, check_backend, make_fusion
 from l3e_env.config import FusionSettings, OdometryConfig, from_dict
 from l3e_env.core.threads import part_threads
-from l3e_env.core.transforms import inverse, nearest_rigid, rotation_angle
+from l3e_env.core.transforms import adjoint, inverse, level_rotation_of, nearest_rigid, rotation_angle
 from l3e_env.localizability.registration import (
     PreparedTarget,
     RegistrationConfig,
@@ -151,6 +151,16 @@ class StepOutcome:
     fallback: bool  # the fusion had to fall back (no odometry and every axis masked, or neither)
 
 
+def level_basis(T_w_b: np.ndarray, T_b_s: np.ndarray) -> np.ndarray:
+    """The 6x6 map (project order) from a body-frame step's tangent onto the axes of the sensor's level
+    frame at body pose T_w_b (the estimator's; only its tilt counts): where the detector's mask names
+    its axes, so that the fusion removes a level tunnel's slide along its length, not along the tilted
+    sensor's x and z."""
+    T_l_s = np.eye(4)
+    T_l_s[:3, :3] = level_rotation_of(T_w_b @ T_b_s)
+    return adjoint(T_l_s @ inverse(T_b_s))
+
+
 class LocalizationPipeline:
     """Detect and fuse, one step at a time, along one drive: `start` at the first pose, then `step`
     with each step's odometry increment and registration (from a `ScanRegistrar`)."""
@@ -202,7 +212,9 @@ class LocalizationPipeline:
         icp, hessian = (registration.in_frame(self.T_b_s) if registration is not None else None) or (None, None)
         sigmas = odometry_sigmas(odom_increment, self.odometry)
         span = registration.span if registration is not None else 1
-        T, report = self.backend.add_step(odom_increment, sigmas, icp, pred.mask, hessian, icp_span=span)
+        guess = next((m for m in (odom_increment, icp) if m is not None and np.isfinite(m).all()), np.eye(4))
+        basis = level_basis(self.backend.newest @ guess, self.T_b_s)  # the new pose's level frame, as guessed
+        T, report = self.backend.add_step(odom_increment, sigmas, icp, pred.mask, hessian, span, basis)
         if self.attitude_sigmas is not None and self.steps % ATTITUDE_EVERY == 0:
             if attitude is None:
                 raise ValueError(f"fusion.attitude is {self.attitude_mode!r}: every step needs the IMU's attitude")

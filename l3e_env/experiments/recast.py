@@ -35,7 +35,7 @@ class RecastScans:
 
     def judge_step(self, step: int, T_w_s: np.ndarray) -> Prediction:
         scan = self.lidar.scan(T_w_s, np.random.default_rng([self.seed, 2, step]))
-        return self.detector.judge(scan.points, np.random.default_rng([self.seed, 3, step]))
+        return self.detector.judge(scan.points, np.random.default_rng([self.seed, 3, step]), T_w_s)
 
     def judgement(self, step: int, T_w_s: np.ndarray) -> Prediction:
         """The step's judgement: the one made ahead, or made now."""

@@ -14,6 +14,7 @@ import numpy as np
 from tqdm import tqdm
 
 from l3e_env.config import from_dict
+from l3e_env.core.transforms import level_rotation_of
 from l3e_env.data.dataset import DatasetUnion, LabelDataset, check_ground_truth, open_datasets, row_thresholds
 from l3e_env.data.scan_estimates import dataset_scan_errors
 from l3e_env.detection.detectors import near_threshold
@@ -24,6 +25,7 @@ from l3e_env.localizability.registration import (
     RegistrationError,
     dcreg_mask,
     eigen_mask,
+    hessian_in_level,
     scan_hessian,
 )
 from l3e_env.localizability.scan_mc import ScanMCConfig
@@ -389,7 +391,7 @@ def dataset_rows(data: LabelDataset | DatasetUnion, rows: np.ndarray, progress: 
     out: list[PlaneRows | None] = []
     for i in tqdm(rows, desc="correspondences", disable=not progress, leave=False):
         try:
-            out.append(scan_rows(data.scan(int(i)), config))
+            out.append(scan_rows(data.scan(int(i)), config).turned(level_rotation_of(data.poses[int(i)])))
         except RegistrationError:
             out.append(None)
     return out
@@ -584,7 +586,7 @@ def dataset_hessians(data: LabelDataset | DatasetUnion, rows: np.ndarray, progre
     out = np.full((len(rows), 6, 6), np.nan)
     for k, i in enumerate(tqdm(rows, desc="Hessians", disable=not progress, leave=False)):
         with contextlib.suppress(RegistrationError):
-            out[k] = scan_hessian(data.scan(int(i)), config)
+            out[k] = hessian_in_level(scan_hessian(data.scan(int(i)), config), level_rotation_of(data.poses[int(i)]))
     return out
 
 

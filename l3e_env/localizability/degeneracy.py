@@ -30,6 +30,13 @@ class PlaneRows:
     normals: np.ndarray  # (N, 3) unit normals of the matched target voxels
     normal_spread: np.ndarray  # (N, 3, 3) normal covariance over the point noise variance
 
+    def turned(self, R: np.ndarray) -> PlaneRows:
+        """The same problem written in a frame turned by R (points and normals R p, R n) about the
+        sensor: a scan's level frame (core.transforms.level_rotation)."""
+        R = np.asarray(R, dtype=np.float64)
+        spread = np.einsum("ij,njk,lk->nil", R, self.normal_spread, R)
+        return PlaneRows(self.points @ R.T, self.normals @ R.T, spread)
+
     @property
     def jacobian(self) -> np.ndarray:
         """(N, 6) rows [n, p x n]: J^T J is the registration's Hessian at identity."""

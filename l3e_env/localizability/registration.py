@@ -379,6 +379,15 @@ def hessian_in_frame(hessian: np.ndarray, T_b_s: np.ndarray) -> np.ndarray:
     return back.T @ np.asarray(hessian, dtype=np.float64) @ back
 
 
+def hessian_in_level(hessian: np.ndarray, R_l_s: np.ndarray) -> np.ndarray:
+    """A registration's Hessian (project order, sensor frame) on the axes of the scan's level frame,
+    R_l_s its rotation (core.transforms.level_rotation): the information the classical tests split
+    into per-axis answers, written where the labels are."""
+    T_l_s = np.eye(4)
+    T_l_s[:3, :3] = R_l_s
+    return hessian_in_frame(hessian, T_l_s)
+
+
 def scan_hessian(points: np.ndarray, config: RegistrationConfig | None = None) -> np.ndarray:
     """The point-to-plane Hessian of a scan registered onto itself at identity: what Zhang's test
     sees in a single scan (the same source thinning, normals and distance as `register`), so that

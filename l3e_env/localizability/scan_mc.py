@@ -212,11 +212,11 @@ def scan_errors(
     labels: LabelConfig,
     config: ScanMCConfig,
     rng: np.random.Generator,
-    R_l_s: np.ndarray,
+    R_l_s: np.ndarray | None = None,
 ) -> ScanEstimate:
     """The scan's estimated mean registration errors (metres, radians), as labels.py computes
     them in the full scene, in the scan's level frame (`R_l_s`, from the up direction:
-    `core.transforms.level_rotation`), times the calibration, from as many children as settle
+    `core.transforms.level_rotation`; None takes the sensor as level), times the calibration, from as many children as settle
     every axis against `labels`' thresholds. Raises RegistrationError where the scan itself cannot
     be registered, or more than half of the children cannot."""
     if config.column_stride < 1:
@@ -239,6 +239,7 @@ def scan_errors(
     cast = replace(pattern, n_azimuth=pattern.n_azimuth // config.column_stride) if config.column_stride > 1 else None
     sensor = Lidar(EmbreeCaster(mesh, threads=1), lidar, cast)
     sigma, thresholds = labels.sigma_vector("child"), labels.threshold_vector()
+    R_l_s = np.eye(3) if R_l_s is None else np.asarray(R_l_s, dtype=np.float64)
     calibration, spread = np.asarray(config.calibration), np.asarray(config.spread)
     errors: list[np.ndarray] = []
     drawn, stage = 0, min(config.first, config.children)

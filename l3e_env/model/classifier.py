@@ -23,6 +23,7 @@ from torch import nn
 from l3e_env.config import from_dict, plain, with_defaults
 from l3e_env.core.files import write_atomic
 from l3e_env.core.points import out_of_reach
+from l3e_env.core.transforms import level_rotation_of
 from l3e_env.localizability.labels import LABEL_PROTOCOL, protocol_name
 from l3e_env.localizability.registration import RegistrationConfig
 
@@ -83,6 +84,10 @@ class ModelConfig:
     # the world's up direction in the sensor frame (what an IMU gives a legged robot) enters the
     # head beside the pooled feature: on uneven ground the scan alone does not show the tilt
     gravity: bool = False
+    # each scan is turned into its level frame (z along gravity, x the sensor's heading levelled:
+    # core.transforms.level_rotation) before the network, which answers in that frame, as the labels
+    # of protocol 3 are written; the scan's pose (its tilt, from an IMU) then comes with every scan
+    level: bool = True
     # a per-axis logistic layer over the network's logit and the scan's point-to-plane Hessian
     # (l3e_env.model.constraints), fitted after the network on its training scenes (l3e fit-constraints)
     constraints: bool = False
@@ -386,8 +391,22 @@ def sample_points(points: np.ndarray, count: int, rng: np.random.Generator) -> t
     return torch.from_numpy(np.ascontiguousarray(points, dtype=np.float32))
 
 
+def level_scan(points: np.ndarray, T_w_s: np.ndarray | None, cfg: ModelConfig) -> np.ndarray:
+    """The scan as a model of this config reads it: turned into its level frame (ModelConfig.level)
+    by the pose's tilt, or as it is. A level model given no pose raises ValueError."""
+    if not cfg.level:
+        return points
+    if T_w_s is None:
+        raise ValueError(
+            "this classifier reads each scan in its level frame: give the scan's pose or up direction "
+            "(an IMU's roll and pitch suffice)"
+        )
+    return (points @ level_rotation_of(T_w_s).T.astype(np.float32)).astype(np.float32, copy=False)
+
+
 def model_input(points: np.ndarray, cfg: ModelConfig, rng: np.random.Generator) -> torch.Tensor:
-    """The point set a model of this config reads from one scan (see ModelConfig.sampling)."""
+    """The point set a model of this config reads from one scan already in its frame (level_scan;
+    see ModelConfig.sampling)."""
     if cfg.sampling == "voxels":
         points = one_per_voxel(points, cfg.voxel, rng)
     return sample_points(points, cfg.points, rng)
@@ -589,19 +608,23 @@ class Classifier:
 
     @property
     def needs_pose(self) -> bool:
-        """Whether the model reads the sensor's tilt (from the pose's rotation) beside the scan."""
-        return self.model.config.gravity
+        """Whether the model reads the sensor's tilt (from the pose's rotation) with the scan."""
+        return self.model.config.gravity or self.model.config.level
 
     def probabilities(self, scans: list[np.ndarray], poses: np.ndarray | None = None) -> np.ndarray:
         """(B, 6) probabilities of non-localizability; ScanError for a scan that cannot be judged.
         `poses` (B, 4, 4) world-from-sensor: only their tilt is read, by a model that needs it."""
         rng = np.random.default_rng(self.seed)
-        batch = [model_input(check_scan(s), self.model.config, rng) for s in scans]
         if self.needs_pose and poses is None:
             raise ValueError(
                 "this classifier reads the sensor's tilt: give the scans' poses (an IMU's roll and pitch suffice)"
             )
-        up = up_vector(poses) if self.needs_pose else None
+        cfg = self.model.config
+        batch = [
+            model_input(level_scan(check_scan(s), None if poses is None else poses[k], cfg), cfg, rng)
+            for k, s in enumerate(scans)
+        ]
+        up = up_vector(poses) if cfg.gravity else None
         return model_probabilities(self.model, batch, self.symmetric, up)
 
     def predict(self, points: np.ndarray, T_w_s: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:

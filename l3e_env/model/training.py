@@ -40,6 +40,7 @@ from .classifier import (
     ModelConfig,
     load_checkpoint,
     model_from_checkpoint,
+    level_scan,
     model_input,
     model_probabilities,
     save_checkpoint,
@@ -216,7 +217,14 @@ def _dataset_batches(
     ups = up_vector(data.poses[rows]) if model.config.gravity else None
     for start in tqdm(range(0, len(rows), batch_size), desc="predicting", disable=not progress, leave=False):
         chunk = rows[start : start + batch_size]
-        batch = [model_input(data.scan(int(i)), model.config, np.random.default_rng([seed, int(i)])) for i in chunk]
+        batch = [
+            model_input(
+                level_scan(data.scan(int(i)), data.poses[int(i)], model.config),
+                model.config,
+                np.random.default_rng([seed, int(i)]),
+            )
+            for i in chunk
+        ]
         yield start, batch, None if ups is None else ups[start : start + len(chunk)]
 
 
@@ -375,6 +383,7 @@ class _Run:
     train_rows: np.ndarray
     val_rows: np.ndarray
     targets: np.ndarray
+    poses: np.ndarray  # (N, 4, 4) the scans' poses, whose tilt levels each scan (ModelConfig.level)
     up: np.ndarray | None
     meta: dict[str, Any]
     model: LocalizabilityNet
@@ -451,6 +460,7 @@ def _start(cfg: TrainConfig, data: LabelDataset | DatasetUnion, out: Path) -> _R
         train_rows,
         val_rows,
         training_targets(data, cfg.soft_labels),
+        np.asarray(data.poses),
         up_vector(data.poses) if cfg.model.gravity else None,
         meta,
         model,
@@ -492,7 +502,8 @@ def _train_epoch(run: _Run, epoch: int, progress: bool) -> list[float]:
         rows = order[start : start + cfg.batch_size]
         batch, targets, ups = [], [], []
         for i in rows:
-            pts, lab, up = run.data.scan(int(i)), run.targets[i], run.up[i] if run.up is not None else None
+            pts = level_scan(run.data.scan(int(i)), run.poses[i], cfg.model)
+            lab, up = run.targets[i], run.up[i] if run.up is not None else None
             if cfg.augment:
                 pts, lab, up = augment(pts, lab, rng, up)
             pts = scaled(pts, cfg.scale_augment, rng)

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from l3e_env.config import LidarConfig
+from l3e_env.core.transforms import level_rotation_of
 from l3e_env.data.dataset import (
     DatasetError,
     DatasetUnion,
@@ -50,6 +51,7 @@ def test_a_scan_labelled_dataset_holds_each_scans_own_estimate(distill_dataset):
         LabelConfig(),
         ScanMCConfig(children=10, first=10),
         np.random.default_rng(123),
+        level_rotation_of(data.poses[0]),  # the estimate is written in the scan's level frame, as labels are
     )
     assert np.all(np.abs(np.log(again.errors / data.errors[0])) < 1.5)
 

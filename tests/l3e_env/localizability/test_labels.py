@@ -8,7 +8,13 @@ import trimesh
 
 from l3e_env.core.transforms import matrix_to_pose, pose_to_matrix
 from l3e_env.data.dataset import DatasetError, LabelDataset, config_for, generate, label_statistics
-from l3e_env.localizability.labels import LabelConfig, SamplingError, label_parent, sample_parent_pose
+from l3e_env.localizability.labels import (
+    LABEL_PROTOCOL,
+    LabelConfig,
+    SamplingError,
+    label_parent,
+    sample_parent_pose,
+)
 from l3e_env.localizability.registration import RegistrationConfig
 from l3e_env.sim.lidar import Lidar
 from l3e_env.sim.raycast import EmbreeCaster
@@ -34,6 +40,23 @@ def test_straight_tunnel_flags_its_axis_only():
 def test_tunnel_axis_follows_the_sensor_frame():
     res = labels_at("tunnel", [50, 0, 0.85, 0, 0, np.pi / 2])  # sensor yawed: the tunnel runs along its y
     assert res.labels.tolist() == [0, 1, 0, 0, 0, 0], res.errors
+
+
+@pytest.mark.parametrize("roll_pitch_deg", [(0, 3), (0, 8), (10, 10), (-10, 6)])
+def test_a_tilted_parent_gets_the_level_parents_labels(roll_pitch_deg):
+    """Protocol 3: the labels are written in the parent's level frame, so a tilted sensor does not turn
+    the tunnel's free slide into z (in the sensor's frame a parent pitched 8 deg reads z 0.2 m)."""
+    level = labels_at("tunnel", [50, 0, 0.85, 0, 0, 0], children=40)
+    roll, pitch = np.radians(roll_pitch_deg)
+    tilted = labels_at("tunnel", [50, 0, 0.85, roll, pitch, 0], children=40)
+    assert tilted.labels.tolist() == level.labels.tolist() == [1, 0, 0, 0, 0, 0], (tilted.errors, level.errors)
+    assert tilted.errors[2] < 0.02 and tilted.errors[1] < 0.02, tilted.errors  # held well below the 0.04 m threshold
+
+
+def test_a_yawed_tunnel_flags_x_and_y_by_their_share_of_its_axis():
+    res = labels_at("tunnel", [50, 0, 0.85, np.radians(8), 0, np.pi / 4], children=40)  # rolled, 45 deg across
+    assert res.labels[:3].tolist() == [1, 1, 0], res.errors
+    assert 0.5 < res.errors[0] / res.errors[1] < 2.0, res.errors
 
 
 def test_feature_rich_room_is_localizable_everywhere():
@@ -413,8 +436,20 @@ def test_a_dataset_of_the_papers_protocol_is_refused_with_the_command_that_label
     for read in (lambda: LabelDataset(old), lambda: generate(old, config_for(None, **manifest["settings"]))):
         with pytest.raises(
             DatasetError,
-            match=r"label protocol 1 .*l3e dataset generate --out .*old-p2 --scenes "
+            match=rf"label protocol 1 .*l3e dataset generate --out .*old-p{LABEL_PROTOCOL} --scenes "
             r"tunnel-0,office-0,field-0 --parents 4 --seed 0",
         ):
             read()
-    assert LabelDataset(tiny_dataset).manifest["protocol"] == 2
+    assert LabelDataset(tiny_dataset).manifest["protocol"] == LABEL_PROTOCOL == 3
+
+
+def test_a_dataset_of_protocol_2_is_refused_by_name(tiny_dataset, tmp_path):
+    import shutil
+
+    old = tmp_path / "sensor-frame"
+    shutil.copytree(tiny_dataset, old)
+    manifest = json.loads((old / "manifest.json").read_text())
+    manifest["protocol"] = 2  # labels written in the sensor's frame: never mixed with the level frame's
+    (old / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(DatasetError, match=r"label protocol 2 .*label protocol 3 .*level frame.*sensor-frame-p3"):
+        LabelDataset(old)
