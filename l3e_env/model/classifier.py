@@ -393,14 +393,9 @@ def sample_points(points: np.ndarray, count: int, rng: np.random.Generator) -> t
 
 def level_scan(points: np.ndarray, T_w_s: np.ndarray | None, cfg: ModelConfig) -> np.ndarray:
     """The scan as a model of this config reads it: turned into its level frame (ModelConfig.level)
-    by the pose's tilt, or as it is. A level model given no pose raises ValueError."""
-    if not cfg.level:
+    by the pose's tilt (none: the sensor is taken as level), or as it is."""
+    if not cfg.level or T_w_s is None:
         return points
-    if T_w_s is None:
-        raise ValueError(
-            "this classifier reads each scan in its level frame: give the scan's pose or up direction "
-            "(an IMU's roll and pitch suffice)"
-        )
     return (points @ level_rotation_of(T_w_s).T.astype(np.float32)).astype(np.float32, copy=False)
 
 
@@ -612,10 +607,11 @@ class Classifier:
         return self.model.config.gravity or self.model.config.level
 
     def probabilities(self, scans: list[np.ndarray], poses: np.ndarray | None = None) -> np.ndarray:
-        """(B, 6) probabilities of non-localizability; ScanError for a scan that cannot be judged.
-        `poses` (B, 4, 4) world-from-sensor: only their tilt is read, by a model that needs it."""
+        """(B, 6) probabilities of non-localizability, on the axes of each scan's level frame; ScanError
+        for a scan that cannot be judged. `poses` (B, 4, 4) world-from-sensor: only their tilt is read
+        (None: every sensor taken as level)."""
         rng = np.random.default_rng(self.seed)
-        if self.needs_pose and poses is None:
+        if self.model.config.gravity and poses is None:
             raise ValueError(
                 "this classifier reads the sensor's tilt: give the scans' poses (an IMU's roll and pitch suffice)"
             )

@@ -26,6 +26,7 @@ from l3e_env.model.classifier import (
     canonical_view,
     check_scan,
     fold_batch_norms,
+    level_scan,
     load_checkpoint,
     model_from_checkpoint,
     model_input,
@@ -477,7 +478,8 @@ def test_a_gravity_model_reads_the_tilt_and_refuses_to_guess_without_it(tiny_dat
     roll = 0.3
     T = pose_to_matrix(np.array([1.0, 2.0, 0.5, roll, 0.0, 0.0]))
     assert np.allclose(up_vector(T), [0.0, np.sin(roll), np.cos(roll)])  # the world's up seen from the sensor
-    train(tiny_dataset, tmp_path / "g", _train_cfg(model=dataclasses.replace(SMALL, gravity=True)), progress=False)
+    sensor_frame = dataclasses.replace(SMALL, gravity=True, level=False)  # the up vector as an input instead
+    train(tiny_dataset, tmp_path / "g", _train_cfg(model=sensor_frame), progress=False)
     clf = Classifier.load(tmp_path / "g" / "model.pt")
     assert clf.needs_pose and clf.model.head[0].in_features == SMALL.feature + 3
     scan = _scan(rng, 500)
@@ -487,8 +489,7 @@ def test_a_gravity_model_reads_the_tilt_and_refuses_to_guess_without_it(tiny_dat
     assert not np.allclose(level, tilted)  # the tilt changes the answer for the same points
     det = LearnedDetector(str(tmp_path / "g" / "model.pt"))
     assert np.allclose(det.predict(scan, None, T).probabilities, tilted)
-    with pytest.raises(ValueError, match="tilt"):  # a caller that gives no pose is told, not guessed for
-        det.predict(scan)
+    assert np.allclose(det.predict(scan).probabilities, level)  # a detector given no pose takes the sensor as level
     # symmetric inference turns the up vector with each view: mirrored scan and pose, same answer
     probs = [
         model_probabilities(clf.model, [torch.from_numpy(s)], True, u[None])[0]
@@ -500,6 +501,28 @@ def test_a_gravity_model_reads_the_tilt_and_refuses_to_guess_without_it(tiny_dat
     expected = [
         model_probabilities(clf.model, [pts], False, up_vector(data.poses[i])[None])[0] for i, pts in enumerate(sampled)
     ]
+    assert np.allclose(predict_dataset(clf.model, data, np.arange(3)), expected, atol=1e-6)
+
+
+def test_a_level_model_reads_a_tilted_scan_as_the_level_one(tiny_dataset, tmp_path, rng):
+    """ModelConfig.level (the default): the scan is turned into its level frame by its pose's tilt, so
+    a tilted sensor's view of the same surfaces gets the level sensor's answer, on the level frame's
+    axes; a dataset's scans are levelled by their own poses."""
+    train(tiny_dataset, tmp_path / "l", _train_cfg(), progress=False)
+    clf = Classifier.load(tmp_path / "l" / "model.pt", int8=False)
+    assert clf.model.config.level and clf.needs_pose
+    scan = _scan(rng, 500)
+    T = pose_to_matrix(np.array([1.0, 2.0, 0.5, 0.25, -0.15, 0.0]))
+    tilted = (scan @ T[:3, :3]).astype(np.float32)  # the same points seen from the tilted sensor
+    level, from_tilted, unlevelled = clf.probabilities([scan, tilted, tilted], np.stack([np.eye(4), T, np.eye(4)]))
+    np.testing.assert_allclose(from_tilted, level, atol=1e-5)
+    assert not np.allclose(unlevelled, level, atol=1e-5)  # read without its tilt, the scan is another scan
+    data = LabelDataset(tiny_dataset)
+    sampled = [
+        sample_points(level_scan(data.scan(i), data.poses[i], clf.model.config), SMALL.points, np.random.default_rng([0, i]))
+        for i in range(3)
+    ]
+    expected = [model_probabilities(clf.model, [pts])[0] for pts in sampled]
     assert np.allclose(predict_dataset(clf.model, data, np.arange(3)), expected, atol=1e-6)
 
 
