@@ -26,6 +26,33 @@ def _judge_usage_problem(args: argparse.Namespace) -> str | None:
     return None
 
 
+def _gravity(text: str | None):
+    """--gravity's up direction(s): one vector X,Y,Z, or a text file of one X Y Z row per scan; None where
+    not given. CommandError naming what is wrong."""
+    import numpy as np
+
+    if text is None:
+        return None
+    parts = text.split(",")
+    if len(parts) == 3 and not Path(text).exists():
+        try:
+            return np.array([float(v) for v in parts])
+        except ValueError:
+            raise CommandError(f"--gravity {text!r}: three numbers X,Y,Z, or a file of one per scan") from None
+    path = Path(text)
+    if not path.is_file():
+        raise CommandError(f"--gravity {text!r}: give X,Y,Z (the up direction in the sensor's frame) or a text file")
+    try:
+        with path.open() as f:
+            delimiter = "," if "," in f.readline() else None
+        rows = np.loadtxt(path, delimiter=delimiter, ndmin=2, comments="#")
+    except (OSError, ValueError, UnicodeDecodeError) as exc:
+        raise CommandError(f"--gravity {path}: not a text file of X Y Z rows ({exc})") from None
+    if rows.ndim != 2 or rows.shape[1] != 3 or not len(rows):
+        raise CommandError(f"--gravity {path}: one X Y Z row per scan, got an array of shape {rows.shape}")
+    return rows
+
+
 def _judge_all(args: argparse.Namespace, scans, specs: list[str]) -> tuple[list, str | None]:
     """Every scan judged and printed as it is (an unreadable one named, and the next one read); returns
     the judgements and the sensor the scans were read as."""
@@ -55,6 +82,7 @@ def _judge_all(args: argparse.Namespace, scans, specs: list[str]) -> tuple[list,
         workers=args.workers,
         on_sensor=recognised,
         sensor_index=args.sensor_index,
+        gravity=_gravity(args.gravity),
     ):
         judgements.append(j)
         stamp = "" if j.stamp is None else f"[t = {j.stamp:.3f} s] "
@@ -195,6 +223,13 @@ def _add_judge(sub: argparse._SubParsersAction) -> None:
         metavar="I",
         help="judge only the I-th sensor's scans of an Ouster capture of several (default: every sensor's, "
         "each with its own beams)",
+    )
+    p.add_argument(
+        "--gravity",
+        metavar="X,Y,Z|FILE",
+        help="the up direction (against gravity) in the sensor's frame, which the answers' axes are levelled "
+        "by: one vector (--gravity=-0.2,0,1 where a number is negative), or a text file of one X Y Z row per "
+        "scan (default: each scan's ground plane's fit)",
     )
     p.add_argument("--seed", type=int, default=0, help="seed of scanmc's children")
     p.add_argument("--workers", type=int, default=1, help="scans judged side by side in processes (default 1)")

@@ -1,7 +1,8 @@
 """One's own scans, read from files or a ROS bag and judged by the detectors: along which axes
 scan-to-scan registration would fail there (`l3e judge`). A scan is in its sensor's frame, as
 the driver writes it; points that are NaN, infinite or at the origin (no return, as organised
-clouds keep them) are dropped and counted."""
+clouds keep them) are dropped and counted. The axes are those of the scan's level frame (z up):
+the up direction is given (`gravity`), or else the ground plane's fit, and the judgement says which."""
 
 from __future__ import annotations
 
@@ -15,6 +16,7 @@ import numpy as np
 
 from l3e_env.config import LidarConfig
 from l3e_env.core.points import out_of_reach, too_many_points
+from l3e_env.core.transforms import level_rotation
 from l3e_env.core.workers import ordered_map
 from l3e_env.detection.detectors import (
     CascadeDetector,
@@ -29,7 +31,13 @@ from l3e_env.io.ouster import expand_captures
 from l3e_env.io.recorded import RecordedScan
 from l3e_env.io.scan_files import ScanFileError, read_scan
 from l3e_env.localizability.labels import AXES
-from l3e_env.localizability.registration import RegistrationConfig, RegistrationError, RegistrationResult, scan_hessian
+from l3e_env.localizability.up import ground_up
+from l3e_env.localizability.registration import (
+    RegistrationConfig,
+    RegistrationError,
+    RegistrationResult,
+    scan_hessian,
+)
 from l3e_env.sim.patterns import BeamPattern, PatternError, fit_pattern, get_pattern, in_lidar_frame, register_pattern
 
 # what each detector's score means, printed under the table
@@ -56,6 +64,58 @@ class Judgement:
     stamp: float | None = None  # seconds, for a scan read from a bag
     frame: str | None = None  # how the cloud was turned into its sensor's lidar frame, where it was
     sensor: str | None = None  # the beam pattern it was judged with, where there was one
+    up: str | None = None  # where the up direction (the level frame's z) came from, and the sensor's tilt
+
+
+MAX_UP_FROM_GROUND_DEG = 60.0  # a given up direction this far from the ground plane's normal is refused
+
+
+class UpError(ValueError):
+    """No up direction for a scan: none given and no ground plane to fit, or one given that the scan's
+    own ground contradicts."""
+
+
+def up_direction(
+    points: np.ndarray, gravity: np.ndarray | None, registration: RegistrationConfig | None = None
+) -> tuple[np.ndarray, str]:
+    """The up direction (against gravity) in the scan's sensor frame, and where it came from: `gravity`
+    where given (checked against the ground plane where one can be fitted), else the ground plane's
+    normal. UpError where there is none, or where the given one lies more than MAX_UP_FROM_GROUND_DEG
+    from the ground's normal (a vector in another frame, or pointing down)."""
+    if len(points) < (registration or RegistrationConfig()).min_points and gravity is None:
+        return np.array([0.0, 0.0, 1.0]), "too few points to fit a ground plane: the sensor taken as level"
+    found = ground_up(points)
+    ground = None if found is None else found[0]
+    if gravity is not None:
+        up = level_rotation(gravity)[2]  # refuses a zero or non-finite vector by name
+        if ground is not None:
+            off = float(np.degrees(np.arccos(np.clip(up @ ground, -1.0, 1.0))))
+            if off > MAX_UP_FROM_GROUND_DEG:
+                raise UpError(
+                    f"the given up direction {np.round(up, 3).tolist()} lies {off:.0f} deg from the scan's ground "
+                    f"plane (at most {MAX_UP_FROM_GROUND_DEG:.0f}): give the direction against gravity in the "
+                    "sensor's own frame (--gravity)"
+                )
+        return up, f"up as given, the sensor tilted {tilt_deg(up):.1f} deg"
+    if ground is None:
+        raise UpError(
+            "no ground plane could be fitted to find the up direction: give it with --gravity X,Y,Z (against "
+            "gravity, in the sensor's frame; 0,0,1 for a level sensor) or a file of one per scan"
+        )
+    return ground, f"up from the ground plane's fit, the sensor tilted {tilt_deg(ground):.1f} deg"
+
+
+def tilt_deg(up: np.ndarray) -> float:
+    """The angle between the sensor's z and the up direction."""
+    return float(np.degrees(np.arccos(np.clip(up[2] / np.linalg.norm(up), -1.0, 1.0))))
+
+
+def level_pose(up: np.ndarray) -> np.ndarray:
+    """A sensor pose (4x4, world z up) with the tilt of `up` and no heading of its own: what the
+    detectors read the level frame from."""
+    T = np.eye(4)
+    T[:3, :3] = level_rotation(up)
+    return T
 
 
 def judge_points(
@@ -63,8 +123,10 @@ def judge_points(
     detectors: list[Detector],
     registration: RegistrationConfig | None = None,
     rng: np.random.Generator | None = None,
+    T_w_s: np.ndarray | None = None,
 ) -> dict[str, Prediction]:
-    """Each detector's prediction for one scan (UNKNOWN where it cannot judge it). The eigenvalue
+    """Each detector's prediction for one scan (UNKNOWN where it cannot judge it), on the axes of the
+    level frame of `T_w_s`'s tilt (`level_pose`; None: the sensor taken as level). The eigenvalue
     test and DCReg read the Hessian of the scan registered onto itself, as `l3e evaluate` scores it; scanmc
     draws its children from `rng` where given."""
     onto_itself = None  # eigen and dcreg answer UNKNOWN without it; the others do not read it
@@ -75,9 +137,9 @@ def judge_points(
         except RegistrationError:
             pass
     return {
-        d.name: d.judge(points, rng)
+        d.name: d.judge(points, rng, T_w_s)
         if rng is not None and isinstance(d, (ScanMCDetector, CascadeDetector))
-        else d.predict(points, onto_itself, None)
+        else d.predict(points, onto_itself, T_w_s)
         for d in detectors
     }
 
@@ -89,9 +151,15 @@ class _Panel:
     inherit it."""
 
     def __init__(
-        self, specs: list[str], sensor: LidarConfig, seed: int, pattern: BeamPattern | None, given: bool
+        self,
+        specs: list[str],
+        sensor: LidarConfig,
+        seed: int,
+        pattern: BeamPattern | None,
+        given: bool,
+        gravity: np.ndarray | None = None,
     ) -> None:
-        self.specs, self.seed, self.pattern, self.given = specs, seed, pattern, given
+        self.specs, self.seed, self.pattern, self.given, self.gravity = specs, seed, pattern, given, gravity
         self._detectors: dict[str, list[Detector]] = {}
         self.detectors(pattern, sensor)  # a bad spec fails here, before any scan is read
 
@@ -145,16 +213,30 @@ class _Panel:
             except PatternError as exc:
                 return Judgement(name, len(returns), dropped, {}, error=f"{name}: {exc}", stamp=stamp)
             frame = note or frame
-        predictions = judge_points(returns, self.detectors(pattern), rng=np.random.default_rng([self.seed, index]))
+        try:
+            up, how = up_direction(returns, self.gravity_of(index))
+        except (UpError, ValueError) as exc:
+            return Judgement(name, len(returns), dropped, {}, error=f"{name}: {exc}", stamp=stamp, frame=frame)
+        detectors = self.detectors(pattern)
+        rng = np.random.default_rng([self.seed, index])
         return Judgement(
             name,
             len(returns),
             dropped,
-            predictions,
+            judge_points(returns, detectors, rng=rng, T_w_s=level_pose(up)),
             stamp=stamp,
             frame=frame,
             sensor=pattern.name if pattern is not None else None,
+            up=how,
         )
+
+    def gravity_of(self, index: int) -> np.ndarray | None:
+        """The up direction given for the index-th scan: the one vector, or that scan's row of a list."""
+        if self.gravity is None or self.gravity.ndim == 1:
+            return self.gravity
+        if index >= len(self.gravity):
+            raise UpError(f"--gravity gives {len(self.gravity)} up directions, one per scan; scan {index + 1} has none")
+        return self.gravity[index]
 
 
 def _judge_job(panel: _Panel, job: tuple[int, str | RecordedScan]) -> Judgement:
@@ -225,6 +307,7 @@ def judge_scans(
     workers: int = 1,
     on_sensor: Callable[[BeamPattern, str], None] | None = None,
     sensor_index: int | None = None,
+    gravity: np.ndarray | None = None,
 ) -> Iterator[Judgement]:
     """Judge each scan, a file to read (an Ouster capture read scan by scan, `read_capture`, with the
     metadata JSON given as `sensor` where there is one) or a recording's scan (`read_bag`), with each detector
@@ -234,7 +317,9 @@ def judge_scans(
     recognised from the first scans (the default where none fits), reported to `on_sensor`
     with what was found or why not. An Ouster capture of several sensors gives every sensor's scans, each
     judged with its own sensor's detectors, or `sensor_index`'s only. A scan that cannot be read gives a
-    Judgement with its `error`, and the next one is read."""
+    Judgement with its `error`, and the next one is read. `gravity`: the up direction in the sensor's frame,
+    (3,) for every scan or (N, 3) one per scan in order; None: each scan's ground plane's fit
+    (`up_direction`)."""
     if workers < 1:
         raise ValueError(f"workers must be at least 1, got {workers}")
     metadata = sensor.model if sensor and sensor.model.lower().endswith(".json") else None
@@ -251,9 +336,12 @@ def judge_scans(
     given = sensor is not None
     # a sensor not recognised is taken as the default; scanmc answers unknown for scans not of it
     sensor = sensor or LidarConfig(model=pattern.name if pattern else LidarConfig().model)
-    panel = _Panel(specs, sensor, seed, pattern, given)
+    gravity = None if gravity is None else np.asarray(gravity, dtype=np.float64)
+    if gravity is not None and gravity.shape != (3,) and (gravity.ndim != 2 or gravity.shape[1] != 3):
+        raise ValueError(f"gravity is one up vector (3,) or one per scan (N, 3), got shape {gravity.shape}")
+    panel = _Panel(specs, sensor, seed, pattern, given, gravity)
     jobs = ((i, scan if isinstance(scan, RecordedScan) else str(scan)) for i, scan in enumerate(scans))
-    yield from ordered_map(_judge_job, jobs, panel, _Panel, (specs, sensor, seed, pattern, given), workers)
+    yield from ordered_map(_judge_job, jobs, panel, _Panel, (specs, sensor, seed, pattern, given, gravity), workers)
 
 
 def _width(name: str) -> int:
@@ -269,7 +357,8 @@ def format_judgement(j: Judgement) -> str:
     lines = [
         f"{j.path}: {j.points} points"
         + (f" ({j.dropped} without a return dropped)" if j.dropped else "")
-        + (f", {j.frame}" if j.frame else ""),
+        + (f", {j.frame}" if j.frame else "")
+        + (f"; {j.up}" if j.up else ""),
         f"  {'axis':6s}" + "".join(f"{n:>{_width(n)}s}" for n in names),
     ]
     for a, axis in enumerate(AXES):
@@ -303,6 +392,7 @@ def judgement_record(j: Judgement, sensor: str | None) -> dict:
         "dropped": j.dropped,
         "sensor": j.sensor or sensor,
         "frame": j.frame or "as given",
+        "up": j.up,
         "detectors": {
             name: {
                 "known": p.known,

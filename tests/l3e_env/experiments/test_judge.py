@@ -186,7 +186,7 @@ def test_files_judged_by_two_workers_are_judged_alike_and_in_order(tmp_path, rng
 
 def test_the_cascade_judges_a_file_with_the_estimate_where_it_is_unsure(tmp_path, rng):
     from l3e_env.detection.detectors import make_detector
-    from l3e_env.experiments.judge import needs_sensor, score_legend
+    from l3e_env.experiments.judge import level_pose, needs_sensor, score_legend, up_direction
 
     points = _corridor_scan(rng)
     np.save(tmp_path / "corridor.npy", points)
@@ -194,7 +194,9 @@ def test_the_cascade_judges_a_file_with_the_estimate_where_it_is_unsure(tmp_path
         [tmp_path / "corridor.npy"], ["learned+scanmc:100", "learned+scanmc:0", "learned"], LidarConfig()
     )
     checked = judged.predictions["learned+scanmc:100"]  # always unsure: the estimate, seeded by the file's place
-    estimate = make_detector("scanmc", sensor=LidarConfig()).judge(points, np.random.default_rng([0, 0]))
+    up, how = up_direction(points, None)  # levelled by the ground plane's fit, as the judgement says
+    assert how.startswith("up from the ground plane's fit") and judged.up == how
+    estimate = make_detector("scanmc", sensor=LidarConfig()).judge(points, np.random.default_rng([0, 0]), level_pose(up))
     assert checked.known and checked.mask.tolist() == [True] + [False] * 5
     assert np.array_equal(checked.probabilities, estimate.probabilities)
     assert np.array_equal(
@@ -259,3 +261,53 @@ def test_a_long_detector_name_keeps_its_columns_apart():
     header, yaw = table[1], table[-3]
     assert f"  {names[0]}" in header and f"  {names[1]}" in header  # two spaces before each name
     assert len(header) == len(yaw) and yaw.endswith("0.60*")  # each score ends under its name, then its flag
+
+
+def _tilted_corridor_scan(rng, pitch_deg: float) -> tuple[np.ndarray, np.ndarray]:
+    """A VLP-16 pitched `pitch_deg` in the corridor, and the up direction in its frame."""
+    from l3e_env.core.transforms import pose_to_matrix
+
+    corridor = trimesh.creation.box([200, 4, 3]).apply_translation([0, 0, 0.5])
+    T = pose_to_matrix([0, 0, 0, 0, np.radians(pitch_deg), 0])
+    points = Lidar(EmbreeCaster(corridor, threads=1), LidarConfig()).scan(T, rng).points.astype(np.float64)
+    return points, T[2, :3]
+
+
+def test_a_tilted_scan_is_judged_in_its_level_frame_from_the_given_up_or_the_ground(tmp_path, rng, capsys):
+    """Pitched 12 deg, the corridor's free axis is the sensor's x and z together; in the level frame it
+    is x alone, whether the up direction is given or fitted to the ground, and the judgement says which."""
+    points, up = _tilted_corridor_scan(rng, 12.0)
+    np.save(tmp_path / "tilted.npy", points)
+    specs = ["eigen:30", "dcreg:10", "xicp:100"]
+    (fitted,) = judge_scans([tmp_path / "tilted.npy"], specs)
+    (given,) = judge_scans([tmp_path / "tilted.npy"], specs, gravity=up)
+    (unlevelled,) = judge_scans([tmp_path / "tilted.npy"], specs, gravity=np.array([0.0, 0.0, 1.0]))
+    assert "ground plane's fit, the sensor tilted 12.0 deg" in fitted.up and "as given" in given.up
+    for judged in (fitted, given):
+        for name in ("eigen:30", "dcreg:10"):
+            assert judged.predictions[name].mask[:3].tolist() == [True, False, False], (name, judged.predictions)
+    share = unlevelled.predictions["eigen:30"].probabilities  # the free axis seen in the tilted sensor's own axes
+    assert share[2] > 0.03 > given.predictions["eigen:30"].probabilities[2]
+    given_up = "--gravity=" + ",".join(map(str, up))  # a negative first number: one word with its option
+    assert main(["judge", str(tmp_path / "tilted.npy"), "--detector", "eigen:30", given_up]) == 0
+    assert "up as given, the sensor tilted 12.0 deg" in capsys.readouterr().out
+
+
+def test_bad_up_directions_are_refused_by_name(tmp_path, rng, capsys):
+    points, up = _tilted_corridor_scan(rng, 0.0)
+    np.save(tmp_path / "scan.npy", points)
+    (down,) = judge_scans([tmp_path / "scan.npy"], ["eigen:30"], gravity=np.array([1.0, 0.0, 0.1]))
+    assert down.error and "deg from the scan's ground plane" in down.error and not down.predictions
+    (zero,) = judge_scans([tmp_path / "scan.npy"], ["eigen:30"], gravity=np.zeros(3))
+    assert zero.error and "up vector is zero" in zero.error
+    rows = tmp_path / "up.txt"
+    rows.write_text("0 0 1\n")
+    judged = list(judge_scans([tmp_path / "scan.npy", tmp_path / "scan.npy"], ["eigen:30"], gravity=np.loadtxt(rows, ndmin=2)))
+    assert judged[0].error is None and "scan 2 has none" in judged[1].error
+    assert main(["judge", str(tmp_path / "scan.npy"), "--detector", "eigen:30", "--gravity", "0,0,nan"]) == 2
+    rows.write_text("0 0\n")
+    assert main(["judge", str(tmp_path / "scan.npy"), "--detector", "eigen:30", "--gravity", str(rows)]) == 2
+    assert "one X Y Z row per scan" in capsys.readouterr().err
+    np.save(tmp_path / "walls.npy", points[points[:, 2] > -0.3])  # walls and ceiling: nothing level below the sensor
+    (none,) = judge_scans([tmp_path / "walls.npy"], ["eigen:30"])
+    assert none.error and "no ground plane could be fitted" in none.error and "--gravity" in none.error

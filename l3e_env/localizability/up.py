@@ -1,0 +1,85 @@
+"""The up direction of a scan from its own ground, for scans whose tilt nobody measured (a user's
+files without an IMU): the plane under the sensor that holds the most returns whose own surface lies
+along it (a wall's rings cut by a slanted plane do not count), among planes within MAX_TILT_DEG of
+the sensor's own z. Registration's `ground_plane` assumes a sensor within a few
+degrees of level (it fits heights over x and y); a scan tilted 20-30 deg needs a fit that does not.
+Hand-written: a RANSAC over a few hundred planes of a thinned scan is a few lines of numpy, and
+the libraries that offer one (Open3D, pyransac3d) would be a heavy or unkept dependency for it."""
+
+from __future__ import annotations
+
+import numpy as np
+
+MAX_TILT_DEG = 45.0  # the ground's normal lies within this of the sensor's z
+MIN_BELOW = 0.3  # m: the sensor stands at least this far above its ground
+BAND = 0.05  # m: a return this close to the plane is the ground's
+MIN_SHARE = 0.02  # the ground holds at least this share of the thinned returns
+MIN_RETURNS = 30  # and at least this many (a level surface under the sensor: a floor, or a table indoors)
+VOXEL = 0.2  # m: the scan is thinned to one point a voxel first
+TRIES = 500
+NEIGHBOURS = 8  # a return's own surface normal: the plane fitted to its nearest thinned returns
+ALONG_DEG = 20.0  # a return counts for a plane where its own normal lies within this of the plane's
+
+
+def ground_up(points: np.ndarray, seed: int = 0) -> tuple[np.ndarray, float] | None:
+    """The ground plane's unit normal (pointing at the sensor: up) in the sensor's frame and the share of
+    the thinned returns on it; None where no plane under the sensor holds MIN_SHARE of them."""
+    cloud = _thinned(np.asarray(points, dtype=np.float64))
+    if len(cloud) < 30:
+        return None
+    normals = _normals(cloud)
+    cos_tilt, cos_along = np.cos(np.radians(MAX_TILT_DEG)), np.cos(np.radians(ALONG_DEG))
+    # the planes are drawn through returns under the sensor whose own surface could be ground
+    below = cloud[(cloud[:, 2] < -MIN_BELOW) & (np.abs(normals[:, 2]) > cos_tilt)]
+    if len(below) < 3:
+        return None
+    rng = np.random.default_rng(seed)
+    best, best_d, best_count = None, 0.0, 0
+    for _ in range(TRIES):
+        a, b, c = below[rng.choice(len(below), 3, replace=False)]
+        n = np.cross(b - a, c - a)
+        norm = np.linalg.norm(n)
+        if norm < 1e-9:
+            continue
+        n = n / norm * (1.0 if n[2] >= 0 else -1.0)  # turned towards the sensor's z
+        d = float(n @ a)  # plane n.p = d; the sensor (origin) lies -d above it
+        if n[2] < cos_tilt or -d < MIN_BELOW:
+            continue
+        count = int(((np.abs(cloud @ n - d) < BAND) & (np.abs(normals @ n) > cos_along)).sum())
+        if count > best_count:
+            best, best_d, best_count = n, d, count
+    if best is None or best_count < max(MIN_SHARE * len(cloud), MIN_RETURNS):
+        return None
+    return _refined(cloud, best, best_d), best_count / len(cloud)
+
+
+def _thinned(points: np.ndarray) -> np.ndarray:
+    """One point a VOXEL cube (the first of each), finite points only."""
+    points = points[np.isfinite(points).all(axis=1)]
+    if not len(points):
+        return points
+    _, first = np.unique(np.floor(points / VOXEL).astype(np.int64), axis=0, return_index=True)
+    return points[np.sort(first)]
+
+
+def _normals(cloud: np.ndarray) -> np.ndarray:
+    """Each thinned return's unit normal (unsigned), from its NEIGHBOURS nearest returns."""
+    from scipy.spatial import cKDTree
+
+    k = min(NEIGHBOURS, len(cloud))
+    _, near = cKDTree(cloud).query(cloud, k)
+    hood = cloud[near] - cloud[near].mean(axis=1, keepdims=True)
+    return np.linalg.eigh(np.einsum("nki,nkj->nij", hood, hood))[1][:, :, 0]
+
+
+def _refined(cloud: np.ndarray, n: np.ndarray, d: float) -> np.ndarray:
+    """The normal refitted (least squares, twice) to the returns within BAND of the plane n.p = d."""
+    for _ in range(2):
+        near = cloud[np.abs(cloud @ n - d) < BAND]
+        if len(near) < 3:
+            break
+        centre = near.mean(axis=0)
+        normal = np.linalg.svd(near - centre, full_matrices=False)[2][-1]
+        n = normal if normal @ n >= 0 else -normal
+        d = float(n @ centre)
+    return n
