@@ -1,7 +1,7 @@
 """CPU cost of one full-pipeline step of a navigation episode, by part: the scan, the ICP target's
 preparation (normals, k-d tree), ICP, the detector, the fusion, the local layer and the follower, and
 the rest (the walk, odometry, collision checks). The reference in the same run is the scan alone.
-The fusion is the policies' evaluation's (NAVIGATION_FUSION: scans registered onto keyframes, so
+The fusion is the policies' evaluation's (FusionSettings(): scans registered onto keyframes, so
 that a target is prepared once a keyframe).
 
 CPU time (time.process_time: every thread of the process counted), as a policy evaluation on 2 cores
@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 import l3e_env.detection.pipeline as pipeline_module
-from l3e_env.config import NAVIGATION_FUSION
+from l3e_env.config import FusionSettings
 from l3e_env.core.threads import one_thread_per_part
 from l3e_env.detection.pipeline import ONLINE_LAG
 from l3e_env.envs.navigation import NavigationEnv
@@ -56,7 +56,7 @@ class Clock:
 
 def instrumented_env(scene: str, detector: str, clock: Clock, keyframe_distance: float) -> NavigationEnv:
     """The evaluation's environment with each part's calls timed."""
-    settings = {**asdict(NAVIGATION_FUSION), "keyframe_distance": keyframe_distance}  # the evaluation's
+    settings = {**asdict(FusionSettings()), "keyframe_distance": keyframe_distance}  # the evaluation's
     fusion = {**settings, "enabled": True, "detector": detector}
     env = NavigationEnv(scene=scene, arrival="estimate", fusion=fusion)
     online = env.fusion
@@ -84,7 +84,7 @@ def main() -> None:
     parser.add_argument(
         "--keyframe-distance",
         type=float,
-        default=NAVIGATION_FUSION.keyframe_distance,
+        default=FusionSettings().keyframe_distance,
         help="0: each scan registered onto the one before (default: the evaluation's)",
     )
     args = parser.parse_args()

@@ -134,8 +134,9 @@ class FusionGraph:
         """Add pose k+1 with its factors; returns (estimate of pose k+1, report). `icp_hessian`:
         the registration's point-to-plane Hessian in the body frame, project order (see
         FusionConfig.icp_covariance). `mask_basis`: the axes `non_localizable` names (see
-        `icp_information`; the body frame's own where None). `icp_span`: the ICP factor ties pose k+1 to pose k+1-icp_span
-        (a keyframe's; 1: pose k), which must still be in the smoother's window.
+        `icp_information`; the body frame's own where None). `icp_span`: the ICP factor ties pose
+        k+1 to pose k+1-icp_span (a keyframe's; 1: pose k), which must still be in the smoother's
+        window.
 
         Missing odometry with every ICP axis masked leaves the new pose unconstrained: then the
         ICP factor is kept whole (documented fallback), and with no ICP either the pose is tied to

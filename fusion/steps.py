@@ -95,7 +95,9 @@ def icp_information(
     return B.T @ information @ B
 
 
-def masked_information(config: FusionConfig, hessian: np.ndarray | None, mask: np.ndarray, basis: np.ndarray) -> np.ndarray:
+def masked_information(
+    config: FusionConfig, hessian: np.ndarray | None, mask: np.ndarray, basis: np.ndarray
+) -> np.ndarray:
     """`icp_information` on the mask's axes (d' = basis d), before it is turned back."""
     H = None if hessian is None else np.asarray(hessian, dtype=np.float64)
     if config.icp_covariance == "hessian" and H is not None and H.shape == (6, 6) and np.isfinite(H).all():

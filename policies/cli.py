@@ -21,7 +21,7 @@ from l3e_env.cli.options import (
     scene_params,
     sensor_name,
 )
-from l3e_env.config import ATTITUDE_MODES, NAVIGATION_FUSION, EnvConfig
+from l3e_env.config import EnvConfig
 from l3e_env.config.detector_spec import DETECTOR_GRAMMAR, MAP_DETECTORS, parse_detector
 from l3e_env.io.mesh_lists import meshes_file
 
@@ -158,7 +158,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         workers=args.workers,
         steer_on=args.steer_on,
         stop_radius=args.stop_radius,
-        fusion_settings=fusion_settings(args, NAVIGATION_FUSION),
+        fusion_settings=fusion_settings(args),
         recovery=args.recovery,
         avoid=args.avoid,
         scene_params={k: v for k, v in scenes.items() if v},
@@ -325,13 +325,7 @@ def _add_evaluate(psub: argparse._SubParsersAction, common: argparse.ArgumentPar
     g.add_argument("--lam", type=float, default=50.0, help="the planner's drift weight (default 50)")
     g.add_argument("--workers", type=int, default=1, help="episodes run in parallel processes")
     _add_driving_options(g)
-    add_fusion_options(g, NAVIGATION_FUSION)
-    g.add_argument(
-        "--attitude",
-        choices=ATTITUDE_MODES,
-        help="fuse the IMU's orientation once a second: tilt = roll and pitch, which gravity holds, "
-        f"full = with the magnetometer's heading, or none (default: {NAVIGATION_FUSION.attitude})",
-    )
+    add_fusion_options(g)
     g.add_argument("--seed", type=int, default=0)
     g.add_argument("--out", help="output folder (default: l3e_out/policy-eval-<time>)")
     add_mesh_options(g, several=True)

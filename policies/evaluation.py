@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from l3e_env.config import NAVIGATION_FUSION, EnvConfig, FusionSettings, OdometryConfig, settings_changed
+from l3e_env.config import EnvConfig, FusionSettings, OdometryConfig, settings_changed
 from l3e_env.core.transforms import yaw_of
 from l3e_env.core.workers import worker_start
 from l3e_env.envs import NavigationEnv, check_env_config
@@ -203,7 +203,7 @@ class EvalOptions:
     lam: float = 50.0
     workers: int = 1
     steer_on: str = "estimate"
-    fusion_settings: FusionSettings = NAVIGATION_FUSION
+    fusion_settings: FusionSettings = field(default_factory=FusionSettings)
     recovery: bool | None = None
     avoid: bool | None = None
     scene_params: dict[str, dict] = field(default_factory=dict)

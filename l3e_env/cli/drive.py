@@ -6,7 +6,7 @@ import argparse
 import time
 from pathlib import Path
 
-from l3e_env.config import ATTITUDE_MODES, DESKEW_SOURCES, FUSION_BACKENDS
+from l3e_env.config import DESKEW_SOURCES, FUSION_BACKENDS
 from l3e_env.config.detector_spec import DEFAULT_ATE_DETECTORS, DETECTOR_GRAMMAR, detector_spec
 
 from .options import (
@@ -272,14 +272,6 @@ def _add_ate(sub: argparse._SubParsersAction) -> None:
         default="gyro",
         help="a swept recording's scans are deskewed with the leg odometry's motion, turned by the "
         "gyro's rotation (default) or the odometry's own",
-    )
-    p.add_argument(
-        "--attitude",
-        choices=ATTITUDE_MODES,
-        default="none",
-        help="fuse the IMU's orientation once a second: tilt = roll and pitch, which gravity holds "
-        "(no heading: underground a magnetometer reads the rock), full = with the magnetometer's "
-        "heading; adds a row of the odometry fused with it alone (default: none)",
     )
     add_fusion_options(p)
     p.add_argument("--out", help="output folder (default: l3e_out/ate-<scene>-<time>)")

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from l3e_env.config import FusionSettings
+from l3e_env.config import ATTITUDE_MODES, FusionSettings
 from l3e_env.io.mesh_lists import meshes_file
 
 
@@ -57,10 +57,19 @@ def bias_axes(text: str) -> tuple[str, ...]:
     return axes
 
 
-def add_fusion_options(parser: argparse.ArgumentParser, default: FusionSettings = FusionSettings()) -> None:
-    """--odometry-bias and --keyframe-distance, read back by `fusion_settings` (`l3e ate`, `l3e sweep`,
-    `l3e policy evaluate`); an option not given takes `default`'s value (the command's own fusion)."""
+def add_fusion_options(parser: argparse.ArgumentParser) -> None:
+    """--attitude, --odometry-bias and --keyframe-distance, read back by `fusion_settings` (`l3e ate`,
+    `l3e sweep`, `l3e policy evaluate`); an option not given takes the one estimator's default
+    (`FusionSettings()`)."""
+    default = FusionSettings()
     shown = ",".join(default.odometry_bias) or "none"
+    parser.add_argument(
+        "--attitude",
+        choices=ATTITUDE_MODES,
+        help="fuse the IMU's orientation once a second: tilt = roll and pitch, which gravity holds "
+        "(no heading: underground a magnetometer reads the rock), full = with the magnetometer's "
+        f"heading, none = not at all (default: {default.attitude})",
+    )
     parser.add_argument(
         "--odometry-bias",
         type=bias_axes,
@@ -84,9 +93,10 @@ class CommandError(ValueError):
     with 2, as it does every library error (the one way a command reports one)."""
 
 
-def fusion_settings(args: argparse.Namespace, default: FusionSettings = FusionSettings()) -> FusionSettings:
-    """The fusion's settings from the options that `add_fusion_options` added, and from --backend,
-    --deskew and --attitude where the command has them; `default`'s where an option is not given."""
+def fusion_settings(args: argparse.Namespace) -> FusionSettings:
+    """The fusion's settings from the options that `add_fusion_options` added, and from --backend and
+    --deskew where the command has them; the one estimator's defaults where an option is not given."""
+    default = FusionSettings()
     axes = default.odometry_bias if args.odometry_bias is None else tuple(args.odometry_bias)
     if len(set(axes)) < len(axes):
         raise ValueError(f"--odometry-bias names an axis twice: {', '.join(axes)}")

@@ -82,20 +82,25 @@ class FusionSettings:
     odometry config's); detector_process: a learned detector judges each scan in a process of its
     own while the step registers it (detection.ahead; the same answers, faster where a core is
     free). The fusion's ICP is the detectors' registration (the one their labels were made with),
-    its factor weighed by the registration's Hessian (fusion.FusionConfig). keyframe_distance: each
+    its factor weighed by the registration's Hessian (fusion.FusionConfig) and masked on the axes of
+    the scan's level frame. keyframe_distance: each
     scan is registered onto a keyframe renewed every that many metres (or 0.8 rad of turn, or 100
     scans), from the odometry's guess, and the ICP factor ties the keyframe's pose to the scan's
-    (detection.pipeline.ScanRegistrar; the graph backend); 0: each scan onto the one before."""
+    (detection.pipeline.ScanRegistrar; the graph backend); 0: each scan onto the one before.
+
+    The defaults are a legged robot's estimator, one for every command (docs/decisions.md, "One
+    estimator"): the IMU's roll and pitch, the legs' heading and stride-scale biases as states; each
+    part stays one option away (attitude "none", odometry_bias (), keyframe_distance 0)."""
 
     enabled: bool = False
     detector: str = "learned"
     backend: str = "graph"
     mode: str = "mask"
     deskew: str = "gyro"
-    attitude: str = "none"
-    odometry_bias: tuple[str, ...] = ()
+    attitude: str = "tilt"
+    odometry_bias: tuple[str, ...] = ("yaw", "scale")
     detector_process: bool = False
-    keyframe_distance: float = 0.0
+    keyframe_distance: float = 4.0
 
     def __post_init__(self) -> None:
         for name, value, allowed in (
@@ -118,12 +123,6 @@ class FusionSettings:
         """The settings whole, as results.json, sweep.json and a policy evaluation's settings hold them
         (under "fusion")."""
         return {f.name: list(v) if isinstance(v := getattr(self, f.name), tuple) else v for f in fields(self)}
-
-
-# the fusion the policies' evaluation runs unless told otherwise: a legged robot's estimator (the IMU's
-# roll and pitch, the legs' heading and stride biases as states) with its scans registered onto
-# keyframes (docs/decisions.md, "Navigation")
-NAVIGATION_FUSION = FusionSettings(attitude="tilt", odometry_bias=("yaw", "scale"), keyframe_distance=4.0)
 
 
 @dataclass

@@ -31,13 +31,13 @@ from l3e_env.io.ouster import expand_captures
 from l3e_env.io.recorded import RecordedScan
 from l3e_env.io.scan_files import ScanFileError, read_scan
 from l3e_env.localizability.labels import AXES
-from l3e_env.localizability.up import ground_up
 from l3e_env.localizability.registration import (
     RegistrationConfig,
     RegistrationError,
     RegistrationResult,
     scan_hessian,
 )
+from l3e_env.localizability.up import ground_up
 from l3e_env.sim.patterns import BeamPattern, PatternError, fit_pattern, get_pattern, in_lidar_frame, register_pattern
 
 # what each detector's score means, printed under the table

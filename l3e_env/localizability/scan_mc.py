@@ -216,9 +216,9 @@ def scan_errors(
 ) -> ScanEstimate:
     """The scan's estimated mean registration errors (metres, radians), as labels.py computes
     them in the full scene, in the scan's level frame (`R_l_s`, from the up direction:
-    `core.transforms.level_rotation`; None takes the sensor as level), times the calibration, from as many children as settle
-    every axis against `labels`' thresholds. Raises RegistrationError where the scan itself cannot
-    be registered, or more than half of the children cannot."""
+    `core.transforms.level_rotation`; None takes the sensor as level), times the calibration, from
+    as many children as settle every axis against `labels`' thresholds. Raises RegistrationError
+    where the scan itself cannot be registered, or more than half of the children cannot."""
     if config.column_stride < 1:
         raise ValueError(f"the scan estimate casts every k-th column, k >= 1, got {config.column_stride}")
     if config.children < 1 or config.first < 1:

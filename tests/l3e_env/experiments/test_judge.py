@@ -196,7 +196,9 @@ def test_the_cascade_judges_a_file_with_the_estimate_where_it_is_unsure(tmp_path
     checked = judged.predictions["learned+scanmc:100"]  # always unsure: the estimate, seeded by the file's place
     up, how = up_direction(points, None)  # levelled by the ground plane's fit, as the judgement says
     assert how.startswith("up from the ground plane's fit") and judged.up == how
-    estimate = make_detector("scanmc", sensor=LidarConfig()).judge(points, np.random.default_rng([0, 0]), level_pose(up))
+    estimate = make_detector("scanmc", sensor=LidarConfig()).judge(
+        points, np.random.default_rng([0, 0]), level_pose(up)
+    )
     assert checked.known and checked.mask.tolist() == [True] + [False] * 5
     assert np.array_equal(checked.probabilities, estimate.probabilities)
     assert np.array_equal(
@@ -302,7 +304,9 @@ def test_bad_up_directions_are_refused_by_name(tmp_path, rng, capsys):
     assert zero.error and "up vector is zero" in zero.error
     rows = tmp_path / "up.txt"
     rows.write_text("0 0 1\n")
-    judged = list(judge_scans([tmp_path / "scan.npy", tmp_path / "scan.npy"], ["eigen:30"], gravity=np.loadtxt(rows, ndmin=2)))
+    judged = list(
+        judge_scans([tmp_path / "scan.npy", tmp_path / "scan.npy"], ["eigen:30"], gravity=np.loadtxt(rows, ndmin=2))
+    )
     assert judged[0].error is None and "scan 2 has none" in judged[1].error
     assert main(["judge", str(tmp_path / "scan.npy"), "--detector", "eigen:30", "--gravity", "0,0,nan"]) == 2
     rows.write_text("0 0\n")

@@ -519,7 +519,9 @@ def test_a_level_model_reads_a_tilted_scan_as_the_level_one(tiny_dataset, tmp_pa
     assert not np.allclose(unlevelled, level, atol=1e-5)  # read without its tilt, the scan is another scan
     data = LabelDataset(tiny_dataset)
     sampled = [
-        sample_points(level_scan(data.scan(i), data.poses[i], clf.model.config), SMALL.points, np.random.default_rng([0, i]))
+        sample_points(
+            level_scan(data.scan(i), data.poses[i], clf.model.config), SMALL.points, np.random.default_rng([0, i])
+        )
         for i in range(3)
     ]
     expected = [model_probabilities(clf.model, [pts])[0] for pts in sampled]
