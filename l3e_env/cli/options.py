@@ -6,6 +6,7 @@ import argparse
 from typing import Any
 
 from l3e_env.config import ATTITUDE_MODES, FusionSettings
+from l3e_env.config.sections import KEYFRAME_DISTANCE
 from l3e_env.io.mesh_lists import meshes_file
 
 
@@ -84,7 +85,7 @@ def add_fusion_options(parser: argparse.ArgumentParser) -> None:
         type=float,
         metavar="METRES",
         help="register each scan onto a keyframe renewed every that many metres, from the leg odometry's "
-        f"guess (0: each scan onto the one before; default {default.keyframe_distance:g})",
+        f"guess (0: each scan onto the one before; default {KEYFRAME_DISTANCE:g} with the graph, 0 with the EKF)",
     )
 
 
@@ -110,7 +111,7 @@ def fusion_settings(args: argparse.Namespace) -> FusionSettings:
         deskew=given("deskew"),
         attitude=given("attitude"),
         odometry_bias=axes,
-        keyframe_distance=given("keyframe_distance"),
+        keyframe_distance=getattr(args, "keyframe_distance", None),  # None: the backend's default
     )
 
 

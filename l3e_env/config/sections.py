@@ -67,6 +67,9 @@ FUSION_MODES = ("mask", "full", "drop")  # see fusion.FusionConfig
 DESKEW_SOURCES = ("gyro", "odometry")  # where a deskewing's rotation comes from; its translation is the odometry's
 
 
+KEYFRAME_DISTANCE = 4.0  # m: the graph's scans registered onto keyframes renewed this often (docs/decisions.md)
+
+
 @dataclass(frozen=True)
 class FusionSettings:
     """The fusion that l3e_env runs, in the environments' loop (`EnvConfig.fusion`, off by default: it
@@ -86,7 +89,8 @@ class FusionSettings:
     the scan's level frame. keyframe_distance: each
     scan is registered onto a keyframe renewed every that many metres (or 0.8 rad of turn, or 100
     scans), from the odometry's guess, and the ICP factor ties the keyframe's pose to the scan's
-    (detection.pipeline.ScanRegistrar; the graph backend); 0: each scan onto the one before.
+    (detection.pipeline.ScanRegistrar; the graph backend); 0: each scan onto the one before; None:
+    KEYFRAME_DISTANCE with the graph, 0 with the EKF (which keeps no earlier pose to tie to).
 
     The defaults are a legged robot's estimator, one for every command (docs/decisions.md, "One
     estimator"): the IMU's roll and pitch, the legs' heading and stride-scale biases as states; each
@@ -100,9 +104,11 @@ class FusionSettings:
     attitude: str = "tilt"
     odometry_bias: tuple[str, ...] = ("yaw", "scale")
     detector_process: bool = False
-    keyframe_distance: float = 4.0
+    keyframe_distance: float | None = None
 
     def __post_init__(self) -> None:
+        if self.keyframe_distance is None:  # frozen: set once, where the settings are made
+            object.__setattr__(self, "keyframe_distance", KEYFRAME_DISTANCE if self.backend == "graph" else 0.0)
         for name, value, allowed in (
             ("backend", self.backend, FUSION_BACKENDS),
             ("mode", self.mode, FUSION_MODES),

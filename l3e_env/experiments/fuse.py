@@ -23,6 +23,7 @@ from l3e_env.detection.detectors import (
 )
 from l3e_env.detection.pipeline import LocalizationPipeline
 from l3e_env.sim.imu import attitude_readings, attitude_sigmas
+from l3e_env.sim.odometry import odometry_fusion_config
 
 from .drive import DriveRecord
 
@@ -63,11 +64,12 @@ def fuse_recording(
     """The recording's odometry and registrations through the localization pipeline with each
     detector, on the settings' backend; with their attitude ("tilt" or "full", see
     `imu.attitude_sigmas`) the IMU's orientation joins every ATTITUDE_EVERY steps, the same readings
-    for every detector (drawn from the recording's seed). `fusion`: the estimator's parameters (the
-    defaults where None)."""
+    for every detector (drawn from the recording's seed). `fusion`: the estimator's parameters (where
+    None, the settings' own: `sim.odometry.odometry_fusion_config`, as `l3e ate` runs them)."""
     backend, attitude = settings.backend, settings.attitude
     check_backend(backend)
-    fusion, odometry = fusion or FusionConfig(), odometry or OdometryConfig()
+    odometry = odometry or OdometryConfig()
+    fusion = fusion or odometry_fusion_config(odometry, settings)
     gt = rec.ground_truth
     readings = (
         None

@@ -6,6 +6,7 @@ import yaml
 
 from l3e_env.cli.main import build_parser, main
 from l3e_env.cli.options import scene_params
+from l3e_env.config import FusionSettings
 
 
 def test_help_lists_the_subcommands():
@@ -152,7 +153,11 @@ def test_odometry_bias_axes_are_gathered_from_every_repeat_and_a_file():
     assert fusion_settings(args).odometry_bias == ("yaw", "scale", "z")
     args = resolve(build_parser(), ["ate", "--set", "odometry-bias=[yaw, scale]"])
     assert fusion_settings(args).odometry_bias == ("yaw", "scale")
-    assert fusion_settings(resolve(build_parser(), ["ate"])).odometry_bias == ()
+    default = fusion_settings(resolve(build_parser(), ["ate"]))  # the one estimator's
+    assert default == FusionSettings() and default.odometry_bias == ("yaw", "scale") and default.attitude == "tilt"
+    assert fusion_settings(resolve(build_parser(), ["ate", "--odometry-bias", "none"])).odometry_bias == ()
+    ekf = fusion_settings(resolve(build_parser(), ["ate", "--backend", "ekf"]))
+    assert ekf.keyframe_distance == 0.0 and default.keyframe_distance == 4.0  # the EKF keeps no keyframe's pose
     with pytest.raises(ValueError, match="names an axis twice"):
         fusion_settings(resolve(build_parser(), ["ate", "--odometry-bias", "yaw", "--odometry-bias", "yaw"]))
 

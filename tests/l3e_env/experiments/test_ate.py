@@ -63,12 +63,16 @@ def test_ate_from_a_recording_writes_results_and_figures(walls_run, tmp_path):
     rows = run.rows
     assert all(path.is_file() for path in run.written) and not run.swept
     tracks = {
-        f"{stem}.{kind}" for stem in ("ground_truth", "odometry_only", "eigen_30", "none") for kind in ("tum", "kitti")
+        f"{stem}.{kind}"
+        for stem in ("ground_truth", "odometry_only", "odometry_attitude", "eigen_30", "none")
+        for kind in ("tum", "kitti")
     }
     assert {p.name for p in run.written} == {
         "results.json",
         "trajectories.png",
         "timeline.png",
+        "map_odometry_attitude.png",
+        "map_odometry_attitude.ply",
         "map_eigen_30.png",
         "map_eigen_30.ply",
         "map_none.png",
@@ -89,7 +93,7 @@ def test_ate_from_a_recording_writes_results_and_figures(walls_run, tmp_path):
     kitti = evo_file.read_kitti_poses_file(tmp_path / "out" / "trajectories" / "none.kitti")
     tum = evo_file.read_tum_trajectory_file(tmp_path / "out" / "trajectories" / "none.tum")
     np.testing.assert_allclose(kitti.positions_xyz, tum.positions_xyz, atol=1e-6)
-    assert [r.detector for r in rows] == ["odometry only", "eigen:30", "none"]
+    assert [r.detector for r in rows] == ["odometry only", "odometry + attitude", "eigen:30", "none"]
     written = {p.name for p in (tmp_path / "out").iterdir()}
     assert {"results.json", "trajectories.png", "timeline.png", "map_eigen_30.png", "map_none.png"} <= written
     assert "recording.npz" not in written
@@ -142,18 +146,24 @@ def test_the_hessian_weighs_the_icp_factor_and_the_settings_are_written(walls_ru
     (fixed,) = fuse_recording(rec, [NoDetector()], regs, fusion=FusionConfig(icp_covariance="fixed"), progress=False)
     (weighed,) = fuse_recording(rec, [NoDetector()], regs, progress=False)
     assert weighed.ate != pytest.approx(fixed.ate, rel=1e-3)  # the library's fixed sigmas are another estimator
-    rows = run_ate(tmp_path / "out", "mine", ["none"], AteOptions(recording=tmp_path / "rec.npz"), progress=False).rows
-    assert rows[1].ate_m == round(weighed.ate, 3)  # rows are rounded
-    assert json.loads((tmp_path / "out" / "results.json").read_text())["fusion"]["odometry_bias"] == []
+    scan_to_scan = FusionSettings(keyframe_distance=0.0)  # as `regs` were registered
+    options = AteOptions(recording=tmp_path / "rec.npz", fusion_settings=scan_to_scan)
+    rows = run_ate(tmp_path / "out", "mine", ["none"], options, progress=False).rows
+    assert next(r for r in rows if r.detector == "none").ate_m == round(weighed.ate, 3)  # rows are rounded
+    written = json.loads((tmp_path / "out" / "results.json").read_text())["fusion"]
+    assert written["odometry_bias"] == ["yaw", "scale"] and written["attitude"] == "tilt"  # the one estimator
     from l3e_env.experiments.tau_sweep import SweepOptions, run_sweep
 
-    options = SweepOptions(taus=(1e12,), kappas=(1e15,), xicps=(1e9,), drpms=(1e-3,), references=("none",))
+    options = SweepOptions(
+        taus=(1e12,), kappas=(1e15,), xicps=(1e9,), drpms=(1e-3,), references=("none",), fusion_settings=scan_to_scan
+    )
     swept = run_sweep(tmp_path / "sweep", ["primitives-1"], options, {"primitives-1": str(tmp_path / "rec.npz")}, False)
     row = swept["primitives-1"]
-    assert row["xicp_ate"][0] == pytest.approx(row["odometry only"], rel=1e-6)  # no axis that well held: the legs
+    # no axis that well held, or every axis flagged: the legs and the IMU's tilt alone, the same fusion
+    assert row["xicp_ate"][0] == pytest.approx(row["eigen_ate"][0], rel=1e-6)
     assert row["drpm_flagged"][0][1:] == [0.0] * 5  # a tiny signal-to-noise factor: only the walls' free axis
-    assert row["fusion"]["odometry_bias"] == [] and row["none"] == pytest.approx(weighed.ate, rel=1e-9)
-    assert row["eigen_ate"][0] == pytest.approx(row["odometry only"], rel=1e-6)  # every axis flagged: the legs alone
+    assert row["fusion"]["odometry_bias"] == ["yaw", "scale"] and row["none"] == pytest.approx(weighed.ate, rel=1e-9)
+    assert row["eigen_flagged"][0] == [1.0] * 6 and row["xicp_flagged"][0] == [1.0] * 6
     assert row["dcreg_ate"][0] == pytest.approx(row["none"], rel=1e-9)  # no ratio that high: nothing flagged
     assert row["dcreg_flagged"][0] == [0.0] * 6 and (tmp_path / "sweep" / "tau_sweep.png").stat().st_size > 0
 
@@ -184,6 +194,8 @@ def test_the_legs_bias_as_a_fusion_state_from_the_command_line(walls_run, tmp_pa
                 "none",
                 "--odometry-bias",
                 "yaw,z",
+                "--keyframe-distance",
+                "0",
                 "--out",
                 str(tmp_path / "out"),
                 "--quiet",
@@ -192,7 +204,8 @@ def test_the_legs_bias_as_a_fusion_state_from_the_command_line(walls_run, tmp_pa
         == 0
     )
     summary = json.loads((tmp_path / "out" / "results.json").read_text())
-    assert summary["fusion"]["odometry_bias"] == ["yaw", "z"] and summary["rows"][1]["ate_m"] == round(learnt.ate, 3)
+    none = next(r for r in summary["rows"] if r["detector"] == "none")
+    assert summary["fusion"]["odometry_bias"] == ["yaw", "z"] and none["ate_m"] == round(learnt.ate, 3)
     with pytest.raises(SystemExit):
         main(["ate", "--recording", str(tmp_path / "rec.npz"), "--odometry-bias", "roll", "--quiet"])
     assert "expected none or distinct axes among yaw, z, scale" in capsys.readouterr().err
@@ -293,7 +306,7 @@ def test_a_recast_detector_judges_every_stride_steps_alike_in_workers_and_holds_
     class Failing:
         name = "failing"
 
-        def judge(self, points, rng):
+        def judge(self, points, rng, T_w_s=None):
             raise RuntimeError("a detector bug")
 
     failing = RecastScans(Failing(), lidar, stride=4)
