@@ -11,6 +11,7 @@ import atexit
 import json
 import shutil
 import tempfile
+import warnings
 from collections.abc import Iterable, Iterator
 from itertools import chain
 from pathlib import Path
@@ -34,6 +35,12 @@ def is_capture(path: str | Path) -> bool:
     return Path(path).suffix.lower() in CAPTURES
 
 
+# the SDK logs a chunk it cannot decode at its warning level too ("Invalid chunk at file offset 0"): a
+# warning naming one of these is damage, the others (out-of-order legacy data, sensors taken as
+# synchronised) are not
+DAMAGE_WORDS = ("invalid", "crc", "corrupt", "fail", "error", "truncat", "bad ", "cannot", "unable")
+
+
 class _SdkLog:
     """The SDK reports a chunk it cannot decode only in its log, and reads on: the log goes to a
     file of this process, read after each scan, so that a damaged scan is named, not judged."""
@@ -44,17 +51,40 @@ class _SdkLog:
         self.path = Path(folder) / "sdk.log"
         core.init_logger("warning", str(self.path))
         self.read = 0
+        self.warned: list[str] = []
+        self.errors: list[str] = []
 
-    def news(self) -> list[str]:
-        """What the SDK logged since the last call, each message once, without its time and level."""
+    def _read(self) -> None:
+        """What the SDK logged since the last read, sorted into errors and warnings."""
         if not self.path.exists():
-            return []
+            return
         with self.path.open("rb") as log:
             log.seek(self.read)
             text = log.read()
         self.read += len(text)
-        lines = [line.rsplit("] ", 1)[-1].strip() for line in text.decode("utf-8", "replace").splitlines()]
-        return list(dict.fromkeys(line for line in lines if line))
+        for line in text.decode("utf-8", "replace").splitlines():
+            message = line.rsplit("] ", 1)[-1].strip()
+            if not message:
+                continue
+            level = line.rsplit("] ", 1)[0].rsplit("[", 1)[-1].lower() if "] " in line else "error"
+            benign = level in ("warning", "warn", "info", "debug", "trace") and not any(
+                word in message.lower() for word in DAMAGE_WORDS
+            )
+            (self.warned if benign else self.errors).append(message)
+
+    def news(self) -> list[str]:
+        """The errors the SDK logged since the last call, each once, without their time and level; its
+        warnings (an out-of-order legacy file, sensors taken as synchronised) wait in `warnings_said`:
+        a warning is no damage, the SDK decodes the scans it warns of."""
+        self._read()
+        said, self.errors = list(dict.fromkeys(self.errors)), []
+        return said
+
+    def warnings_said(self) -> list[str]:
+        """The warnings logged since the last call, each once."""
+        self._read()
+        said, self.warned = list(dict.fromkeys(self.warned)), []
+        return said
 
 
 _LOG: _SdkLog | None = None
@@ -114,6 +144,7 @@ def read_capture(
         raise CaptureError(f"{path}: the file is empty; give an Ouster .osf or .pcap that holds scans")
     sdk, core, log = _sdk()
     log.news()
+    log.warnings_said()
     source = _open(sdk, path, metadata)
     infos = list(source.sensor_info)
     chosen = _chosen_sensors(path, infos, sensor_index, one_sensor)
@@ -198,8 +229,12 @@ def _scans(
     `start` and `end` seconds after the first scan of any."""
     every, start, end = window
     began, counts = None, dict.fromkeys(sensors, 0)
+    warned: set[str] = set()
     for i, scan in frames:
         said = log.news()  # the SDK decodes a scan while it is read: what it logged belongs to this one
+        for warning in set(log.warnings_said()) - warned:  # once per file, beside its scans: no damage
+            warned.add(warning)
+            warnings.warn(f"{path.name}: the Ouster SDK warns: {warning}", stacklevel=2)
         k = counts[i]
         counts[i] += 1
         stamps = np.asarray(scan.timestamp)

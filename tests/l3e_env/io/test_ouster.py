@@ -230,3 +230,31 @@ def test_a_capture_of_two_sensors_gives_each_sensors_scans_with_its_own_beams(tw
     assert "pick one with --sensor-index" in capsys.readouterr().err
     assert main(["sensor", str(two_sensors), "--sensor-index", "1"]) == 0
     assert "128 beams" in capsys.readouterr().out
+
+
+POSE_DELTA = DATA / "pose_delta_2_128.osf"
+
+
+def test_the_sdks_warnings_are_no_damage_and_are_said_once_per_file():
+    """A legacy two-sensor OSF on which the SDK logs warnings when it opens it: both sensors' scans are
+    read whole, neither is called damaged, and the warning is said once, whichever sensor is read."""
+    for index in (None, 0, 1):
+        with pytest.warns(UserWarning, match="the Ouster SDK warns: Legacy OSF contains out-of-order data") as said:
+            scans = list(read_capture(POSE_DELTA, sensor_index=index))
+        assert len([w for w in said if "Ouster SDK warns" in str(w.message)]) == 1
+        assert scans and all(s.error is None and len(s.points) > 200_000 for s in scans), [s.error for s in scans]
+    for broken in BROKEN:  # what the SDK reports as an error stays damage: refused, or its scans named
+        try:
+            read = list(read_capture(broken))
+        except CaptureError as exc:
+            assert "damaged" in str(exc) or "empty" in str(exc), exc
+        else:
+            assert any(s.error and "damaged" in s.error for s in read), broken
+
+
+@pytest.mark.slow
+def test_every_sensor_of_a_real_two_sensor_capture_is_judged_by_the_classifier_and_scanmc(tmp_path):
+    judged = list(judge_scans([POSE_DELTA], ["learned", "scanmc"]))
+    assert [j.error for j in judged] == [None, None]
+    assert all(p.known for j in judged for p in j.predictions.values()), [j.predictions for j in judged]
+    assert all(j.up and "tilted" in j.up for j in judged)
