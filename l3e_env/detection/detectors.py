@@ -40,6 +40,7 @@ class Prediction:
     probabilities: np.ndarray  # (6,) float
     mask: np.ndarray  # (6,) bool, True = not localizable
     known: bool = True  # False: the detector could not judge this scan (mask is all False then)
+    reason: str | None = None  # why it could not, where it said
 
 
 class Detector(Protocol):
@@ -51,6 +52,11 @@ class Detector(Protocol):
 
 
 UNKNOWN = Prediction(np.full(6, np.nan), np.zeros(6, dtype=bool), known=False)
+
+
+def unknown(reason: str) -> Prediction:
+    """UNKNOWN, with why the scan could not be judged."""
+    return dataclasses.replace(UNKNOWN, reason=reason)
 
 
 def level_of(T_w_s: np.ndarray | None) -> np.ndarray:
@@ -237,8 +243,8 @@ class ScanMCDetector:
             errors = scan_errors(
                 points, self.lidar, self.registration, self.labels, self.config, rng, level_of(T_w_s)
             ).errors
-        except (RegistrationError, ScanPatternError):
-            return UNKNOWN
+        except (RegistrationError, ScanPatternError) as exc:
+            return unknown(str(exc))
         ratio = errors / self.labels.threshold_vector()
         return Prediction(ratio / (1 + ratio), ratio > 1)
 
@@ -273,8 +279,8 @@ class LearnedDetector:
 
         try:
             p, mask = self.classifier.predict(points, pose_or_level(T_w_s))
-        except ScanError:
-            return UNKNOWN
+        except ScanError as exc:
+            return unknown(str(exc))
         if not np.isfinite(p).all():  # a broken model answers "unknown", never "localizable"
             return UNKNOWN
         return Prediction(p, mask)

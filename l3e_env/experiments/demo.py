@@ -87,12 +87,14 @@ def _drive(env: NavigationEnv, detector, classify_every: int, progress: bool) ->
     poses, snapshots, judged = [env.robot.T_w_b.copy()], {}, []
     route_len = len(follower.route)
     done, reached = False, False
-    bar = tqdm(total=env.max_steps, desc=f"driving {env.scene.name}", unit="step", disable=not progress)
+    # metres of route, not steps: the step limit is far above what a drive that arrives takes
+    length = float(np.linalg.norm(np.diff(np.asarray(follower.route)[:, :2], axis=0), axis=1).sum())
+    bar = tqdm(total=round(length, 1), desc=f"driving {env.scene.name}", unit="m", disable=not progress)
     while not done:
         _, _, terminated, truncated, info = env.step(follower(env.robot.T_w_b))
+        bar.update(round(float(np.linalg.norm(info["T_w_b"][:2, 3] - poses[-1][:2, 3])), 3))
         poses.append(info["T_w_b"])
         reached, done = terminated, terminated or truncated
-        bar.update()
         if env.scene.regions:  # named places (the mine's yard, tunnel, quarry): a scan from the middle of each
             place = env.scene.region_of(info["T_w_b"][:2, 3])
             shot = place if place and _centred(info["T_w_b"], env.scene.regions.get(place)) else None
@@ -106,6 +108,8 @@ def _drive(env: NavigationEnv, detector, classify_every: int, progress: bool) ->
             pred = detector.predict(env.scan.points, None, env.robot.T_w_s)
             if pred.known:
                 judged.append((len(poses) - 1, place or "", pred.probabilities, pred.mask))
+    if reached:
+        bar.n = bar.total  # arrived: the route is done whatever was walked round it
     bar.close()
     return _Drove(poses, snapshots, judged, bool(reached))
 

@@ -372,7 +372,7 @@ def format_judgement(j: Judgement) -> str:
     for n in names:
         p = j.predictions[n]
         said = (
-            "cannot judge this scan (too few points, or not a full revolution of the sensor)"
+            f"cannot judge this scan ({p.reason or 'too few points, or not a full revolution of the sensor'})"
             if not p.known
             else "not localizable along " + ", ".join(a for a, m in zip(AXES, p.mask) if m)
             if p.mask.any()
@@ -396,6 +396,7 @@ def judgement_record(j: Judgement, sensor: str | None) -> dict:
         "detectors": {
             name: {
                 "known": p.known,
+                **({"reason": p.reason} if p.reason else {}),
                 "scores": [float(v) if np.isfinite(v) else None for v in p.probabilities],
                 "not_localizable": [a for a, m in zip(AXES, p.mask) if m],
             }

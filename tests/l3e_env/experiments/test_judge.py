@@ -315,3 +315,15 @@ def test_bad_up_directions_are_refused_by_name(tmp_path, rng, capsys):
     np.save(tmp_path / "walls.npy", points[points[:, 2] > -0.3])  # walls and ceiling: nothing level below the sensor
     (none,) = judge_scans([tmp_path / "walls.npy"], ["eigen:30"])
     assert none.error and "no ground plane could be fitted" in none.error and "--gravity" in none.error
+
+
+def test_a_scan_a_detector_cannot_judge_is_told_with_the_detectors_own_reason(tmp_path, rng):
+    points = _corridor_scan(rng)
+    np.save(tmp_path / "few.npy", points[:40])
+    (few,) = judge_scans([tmp_path / "few.npy"], ["learned"], gravity=np.array([0.0, 0.0, 1.0]))
+    assert not few.predictions["learned"].known
+    assert "cannot judge this scan (the scan has 40 points; the classifier needs at least 50)" in format_judgement(few)
+    thinned = tmp_path / "thinned.npy"
+    np.save(thinned, points[::3])  # every third return: no longer a revolution of the sensor's beams
+    (sparse,) = judge_scans([thinned], ["scanmc:4"], LidarConfig())
+    assert "returns have one beside them" in sparse.predictions["scanmc:4"].reason
