@@ -107,8 +107,10 @@ class FusionSettings:
     keyframe_distance: float | None = None
 
     def __post_init__(self) -> None:
-        if self.keyframe_distance is None:  # frozen: set once, where the settings are made
-            object.__setattr__(self, "keyframe_distance", KEYFRAME_DISTANCE if self.backend == "graph" else 0.0)
+        distance = self.keyframe_distance
+        if distance is None:  # the backend's default; frozen: set once, where the settings are made
+            distance = KEYFRAME_DISTANCE if self.backend == "graph" else 0.0
+            object.__setattr__(self, "keyframe_distance", distance)
         for name, value, allowed in (
             ("backend", self.backend, FUSION_BACKENDS),
             ("mode", self.mode, FUSION_MODES),
@@ -117,9 +119,9 @@ class FusionSettings:
         ):
             if value not in allowed:
                 raise ValueError(f"fusion.{name} must be one of {allowed}, got {value!r}")
-        if not self.keyframe_distance >= 0:
-            raise ValueError(f"fusion.keyframe_distance is metres, at least 0, not {self.keyframe_distance!r}")
-        if self.keyframe_distance > 0 and self.backend != "graph":
+        if not distance >= 0:
+            raise ValueError(f"fusion.keyframe_distance is metres, at least 0, not {distance!r}")
+        if distance > 0 and self.backend != "graph":
             raise ValueError(
                 "fusion.keyframe_distance ties a scan to an earlier keyframe's pose, which the EKF no longer "
                 "holds: use backend graph, or keyframe_distance 0"
