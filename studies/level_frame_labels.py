@@ -62,7 +62,8 @@ def main() -> None:
     heading = float(np.arctan2(*(path[-1, 1::-1] - path[0, 1::-1])))  # along the path
     thresholds = LabelConfig().threshold_vector()
     print(f"{args.scene}, {args.children} children, heading along the path; errors in cm")
-    print(f"{'roll, pitch':>12s} | {'sensor frame x / y / z':>24s} {'labels':>12s} | {'level frame x / y / z':>24s} labels")
+    header = f"{'sensor frame x / y / z':>24s} {'labels':>12s} | {'level frame x / y / z':>24s} labels"
+    print(f"{'roll, pitch':>12s} | {header}")
     for tilt in args.tilts:
         roll, pitch = (np.radians(float(v)) for v in tilt.split(","))
         T = pose_to_matrix([*ground[:2], ground[2] + LabelConfig().sensor_height, roll, pitch, heading])
