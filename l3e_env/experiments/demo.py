@@ -89,10 +89,11 @@ def _drive(env: NavigationEnv, detector, classify_every: int, progress: bool) ->
     done, reached = False, False
     # metres of route, not steps: the step limit is far above what a drive that arrives takes
     length = float(np.linalg.norm(np.diff(np.asarray(follower.route)[:, :2], axis=0), axis=1).sum())
-    bar = tqdm(total=round(length, 1), desc=f"driving {env.scene.name}", unit="m", disable=not progress)
+    shown = "{l_bar}{bar}| {n:.0f}/{total:.0f} m [{elapsed}<{remaining}]"
+    bar = tqdm(total=length, desc=f"driving {env.scene.name}", bar_format=shown, disable=not progress)
     while not done:
         _, _, terminated, truncated, info = env.step(follower(env.robot.T_w_b))
-        bar.update(round(float(np.linalg.norm(info["T_w_b"][:2, 3] - poses[-1][:2, 3])), 3))
+        bar.update(float(np.linalg.norm(info["T_w_b"][:2, 3] - poses[-1][:2, 3])))
         poses.append(info["T_w_b"])
         reached, done = terminated, terminated or truncated
         if env.scene.regions:  # named places (the mine's yard, tunnel, quarry): a scan from the middle of each
