@@ -25,7 +25,7 @@ from .steps import (
     masked_information,
     resolve_step,
 )
-from .tangent import GTSAM_FROM_PROJECT, to_gtsam_order, to_project_order
+from .tangent import to_gtsam_order, to_project_order
 
 
 class EKFFusion:
@@ -95,7 +95,7 @@ class EKFFusion:
             basis = check_mask_basis(mask_basis)
             information = masked_information(self.config, icp_hessian, step.mask, basis)
             icp = gtsam.Pose3(np.asarray(step.icp_T_prev_cur))
-            self._partial_update(ekf, prev, pred, icp, step.mask, information, basis)
+            self._partial_update(ekf, prev, pred, icp, information, basis)
         self.T = pred.retract(ekf.x[6:12])  # the previous pose is marginalised: a filter does not revise the past
         self.odometry_bias = self.odometry_bias + ekf.x[12:]
         self.P = 0.5 * (ekf.P[6:, 6:] + ekf.P[6:, 6:].T)
@@ -109,23 +109,22 @@ class EKFFusion:
         prev: gtsam.Pose3,
         pred: gtsam.Pose3,
         icp: gtsam.Pose3,
-        mask_project: np.ndarray,
         information_project: np.ndarray,
         basis_project: np.ndarray,
     ) -> None:
         """ICP measures T_prev^-1 T_cur; residual Log(rel_pred^-1 icp) ~ d_cur - Ad(rel^-1) d_prev,
-        read on the mask's axes (B d, `basis_project`; `information_project` is written on them).
-        The localizable rows' covariance is the inverse of their block of the information (a
-        floor of 1e-9 keeps an unheld direction among them finite and all but ignored)."""
+        read on the mask's axes (B d, `basis_project`), where `information_project` is written with
+        its masked part removed. The update runs along the information's held directions (its
+        eigenvectors there), each with its own precision; a direction it does not hold (a masked
+        axis, or one the scan leaves free) is left out."""
         rel = prev.between(pred)
-        keep = ~np.asarray(mask_project, dtype=bool)[GTSAM_FROM_PROJECT]  # rows in GTSAM order
-        B = to_gtsam_order(basis_project)
-        H = (B @ np.hstack([-rel.inverse().AdjointMap(), np.eye(6), np.zeros((6, ekf.dim_x - 12))]))[keep]
-        z = (B @ gtsam.Pose3.Logmap(rel.between(icp)))[keep]
-        block = to_gtsam_order(information_project)[np.ix_(keep, keep)]
-        R = np.linalg.inv(block + 1e-9 * np.eye(len(block)))
-        ekf.dim_z = int(keep.sum())
-        ekf.update(z, lambda x: H, lambda x: H @ x, R=R)
+        w, V = np.linalg.eigh(to_gtsam_order(information_project))
+        held = w > 1e-12 * max(float(w.max(initial=0.0)), 1e-300)
+        rows = V[:, held].T @ to_gtsam_order(basis_project)  # held directions, on the body's tangent
+        H = rows @ np.hstack([-rel.inverse().AdjointMap(), np.eye(6), np.zeros((6, ekf.dim_x - 12))])
+        z = rows @ gtsam.Pose3.Logmap(rel.between(icp))
+        ekf.dim_z = int(held.sum())
+        ekf.update(z, lambda x: H, lambda x: H @ x, R=np.diag(1.0 / w[held]))
 
     def add_attitude(self, R_w_b: np.ndarray, sigmas: np.ndarray) -> np.ndarray:
         """`FusionGraph.add_attitude` as a filter update of the newest pose: the residual

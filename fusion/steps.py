@@ -8,15 +8,17 @@ import numpy as np
 
 from .bias import check_bias_settings
 
-MASK_MODES = ("mask", "full", "drop")
+MASK_MODES = ("mask", "full", "drop", "directions")
 ICP_COVARIANCES = ("hessian", "fixed")
 
 
 @dataclass
 class FusionConfig:
     """mask: drop only the flagged axes; full: keep the whole ICP factor (no detector);
-    drop: drop the whole ICP factor when any axis is flagged. Sigmas in project order
-    (m, m, m, rad, rad, rad).
+    drop: drop the whole ICP factor when any axis is flagged; directions: drop, of the information's
+    own directions (its eigenvectors on the mask's axes), those that lie mostly along a flagged axis,
+    so that a direction a flagged axis shares with a held one (a tilted floor's z) keeps its weight.
+    Sigmas in project order (m, m, m, rad, rad, rad).
 
     icp_covariance "hessian": the ICP factor's information is the registration's point-to-plane
     Hessian over `icp_residual_variance`, so that a weakly held axis weighs little even where no
@@ -108,6 +110,10 @@ def masked_information(
     inverse = np.linalg.inv(basis)
     information = inverse.T @ information @ inverse
     information = 0.5 * (information + information.T)
+    if config.mode == "directions" and mask.any():
+        w, V = np.linalg.eigh(information)
+        along = np.argmax(V**2, axis=0)  # the axis each direction lies mostly along
+        return (V * np.where(mask[along], 0.0, w)) @ V.T
     information[mask, :] = 0.0
     information[:, mask] = 0.0
     return information

@@ -65,6 +65,13 @@ def add_fusion_options(parser: argparse.ArgumentParser) -> None:
     default = FusionSettings()
     shown = ",".join(default.odometry_bias) or "none"
     parser.add_argument(
+        "--mask",
+        choices=("mask", "directions"),
+        help="how a flagged axis leaves the ICP factor: mask = its rows and columns on the scan's level axes, "
+        "directions = only the information's own directions that lie mostly along it "
+        f"(default: {default.mode})",
+    )
+    parser.add_argument(
         "--attitude",
         choices=ATTITUDE_MODES,
         help="fuse the IMU's orientation once a second: tilt = roll and pitch, which gravity holds "
@@ -106,8 +113,10 @@ def fusion_settings(args: argparse.Namespace) -> FusionSettings:
         value = getattr(args, name, None)
         return getattr(default, name) if value is None else value
 
+    mask = getattr(args, "mask", None)
     return FusionSettings(
         backend=given("backend"),
+        mode=default.mode if mask is None else mask,
         deskew=given("deskew"),
         attitude=given("attitude"),
         odometry_bias=axes,

@@ -63,7 +63,7 @@ ATTITUDE_MODES = ("none", "tilt", "full")  # the IMU's orientation in the fusion
 LABELLERS = ("scene", "scan")
 DATASET_PRESETS = ("small", "paper", "level", "distill")  # l3e_env.data.dataset.PRESETS, by name
 FUSION_BACKENDS = ("graph", "ekf")  # iSAM2 smoother, filterpy EKF
-FUSION_MODES = ("mask", "full", "drop")  # see fusion.FusionConfig
+FUSION_MODES = ("mask", "full", "drop", "directions")  # see fusion.FusionConfig
 DESKEW_SOURCES = ("gyro", "odometry")  # where a deskewing's rotation comes from; its translation is the odometry's
 
 

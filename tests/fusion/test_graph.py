@@ -517,3 +517,22 @@ def test_a_mask_in_the_level_frame_drops_a_tilted_tunnels_slide_and_keeps_its_he
     assert abs(T[2, 3] - truth[2, 3]) > 0.5, T[:3, 3]  # the body's z held by the stuck ICP: off by metres
     with pytest.raises(ValueError, match="invertible, finite 6x6"):
         icp_information(FusionConfig(), None, mask, np.zeros((6, 6)))
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_masking_the_informations_own_directions_keeps_what_a_flagged_axis_shares_with_a_held_one(backend):
+    """Mode "directions": a Hessian whose weak direction is x and whose strong one mixes x and z
+    (a floor seen tilted). Flagging x drops only the weak direction: the factor still holds the
+    strong mix, where the axis mask drops every row and column of x."""
+    strong = np.array([0.3, 0, 1, 0, 0, 0]) / np.hypot(0.3, 1)
+    weak = np.array([1, 0, -0.3, 0, 0, 0]) / np.hypot(0.3, 1)
+    hessian = 1e6 * np.outer(strong, strong) + 1e-3 * np.outer(weak, weak) + 1e6 * np.diag([0, 1, 0, 1, 1, 1])
+    mask = np.r_[True, np.zeros(5, bool)]
+    directions = icp_information(FusionConfig(mode="directions"), hessian, mask)
+    axes = icp_information(FusionConfig(), hessian, mask)
+    assert strong @ directions @ strong == pytest.approx(strong @ hessian @ strong / FusionConfig().icp_residual_variance)
+    assert abs(weak @ directions @ weak) < 1e-3 and not axes[0].any()
+    assert strong @ axes @ strong < 0.95 * strong @ directions @ strong  # the axis mask lost part of the strong mix
+    fusion = BACKENDS[backend](np.eye(4), FusionConfig(mode="directions"))
+    T, report = fusion.add_step(pose(0.1), np.full(6, 0.05), pose(0.0), mask, hessian)
+    assert report.icp_used and np.isfinite(T).all()
