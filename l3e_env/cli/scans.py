@@ -172,6 +172,37 @@ def _cmd_sensor(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_judging_options(p: argparse.ArgumentParser) -> None:
+    """`l3e judge`'s detectors, sensor and up direction."""
+    p.add_argument(
+        "--detector",
+        action="append",
+        type=detector_spec,
+        help=f"{DETECTOR_GRAMMAR} (not oracle: it needs a scene); repeat for several (default: learned, "
+        "eigen:30 and scanmc)",
+    )
+    p.add_argument(
+        "--sensor",
+        type=sensor_name,
+        help="the LiDAR that took the scans, for scanmc's beams: vlp16, os0-128 or a beam pattern file "
+        "(.yaml/.json, or an Ouster metadata .json); default: recognised from the scans",
+    )
+    p.add_argument(
+        "--sensor-index",
+        type=int,
+        metavar="I",
+        help="judge only the I-th sensor's scans of an Ouster capture of several (default: every sensor's, "
+        "each with its own beams)",
+    )
+    p.add_argument(
+        "--gravity",
+        metavar="X,Y,Z|FILE",
+        help="the up direction (against gravity) in the sensor's frame, which the answers' axes are levelled "
+        "by: one vector (--gravity=-0.2,0,1 where a number is negative), or a text file of one X Y Z row per "
+        "scan (default: each scan's ground plane's fit)",
+    )
+
+
 def _add_judge(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "judge",
@@ -204,33 +235,7 @@ def _add_judge(sub: argparse._SubParsersAction) -> None:
         "PoseWithCovarianceStamped (default: the only Odometry topic); it also "
         "writes each scan's position into --json",
     )
-    p.add_argument(
-        "--detector",
-        action="append",
-        type=detector_spec,
-        help=f"{DETECTOR_GRAMMAR} (not oracle: it needs a scene); repeat for several (default: learned, "
-        "eigen:30 and scanmc)",
-    )
-    p.add_argument(
-        "--sensor",
-        type=sensor_name,
-        help="the LiDAR that took the scans, for scanmc's beams: vlp16, os0-128 or a beam pattern file "
-        "(.yaml/.json, or an Ouster metadata .json); default: recognised from the scans",
-    )
-    p.add_argument(
-        "--sensor-index",
-        type=int,
-        metavar="I",
-        help="judge only the I-th sensor's scans of an Ouster capture of several (default: every sensor's, "
-        "each with its own beams)",
-    )
-    p.add_argument(
-        "--gravity",
-        metavar="X,Y,Z|FILE",
-        help="the up direction (against gravity) in the sensor's frame, which the answers' axes are levelled "
-        "by: one vector (--gravity=-0.2,0,1 where a number is negative), or a text file of one X Y Z row per "
-        "scan (default: each scan's ground plane's fit)",
-    )
+    _add_judging_options(p)
     p.add_argument("--seed", type=int, default=0, help="seed of scanmc's children")
     p.add_argument("--workers", type=int, default=1, help="scans judged side by side in processes (default 1)")
     p.add_argument("--json", help="also write the scores here")

@@ -530,9 +530,11 @@ def test_masking_the_informations_own_directions_keeps_what_a_flagged_axis_share
     mask = np.r_[True, np.zeros(5, bool)]
     directions = icp_information(FusionConfig(mode="directions"), hessian, mask)
     axes = icp_information(FusionConfig(), hessian, mask)
-    assert strong @ directions @ strong == pytest.approx(strong @ hessian @ strong / FusionConfig().icp_residual_variance)
+    assert strong @ directions @ strong == pytest.approx(
+        strong @ hessian @ strong / FusionConfig().icp_residual_variance
+    )
     assert abs(weak @ directions @ weak) < 1e-3 and not axes[0].any()
-    assert strong @ axes @ strong < 0.95 * strong @ directions @ strong  # the axis mask lost part of the strong mix
+    assert strong @ axes @ strong < 0.95 * strong @ directions @ strong  # the axis mask lost part of the mix
     fusion = BACKENDS[backend](np.eye(4), FusionConfig(mode="directions"))
     T, report = fusion.add_step(pose(0.1), np.full(6, 0.05), pose(0.0), mask, hessian)
     assert report.icp_used and np.isfinite(T).all()
