@@ -411,7 +411,10 @@ def test_judge_recognises_the_sensor_or_takes_a_pattern_file_for_scanmc(tmp_path
     assert json.loads(out.read_text())[0]["sensor"] == "fitted-64x512"
     # a cloud that is no sensor's revolution: said so, and scanmc answers unknown, not a guess
     np.save(tmp_path / "blob.npy", np.random.default_rng(3).normal(size=(4000, 3)) * 5)
-    assert main(["judge", str(tmp_path / "blob.npy"), "--detector", "scanmc:4", "--detector", "eigen:30"]) == 0
+    blob = ["judge", str(tmp_path / "blob.npy"), "--detector", "scanmc:4", "--detector", "eigen:30"]
+    assert main(blob) == 2  # no level surface under it to find up by: said so, with the option that gives it
+    assert "no ground plane could be fitted" in capsys.readouterr().err
+    assert main([*blob, "--gravity", "0,0,1"]) == 0
     printed = capsys.readouterr().out
     assert "sensor: not recognised from" in printed and "not on a few beams" in printed
     assert "scanmc:4: cannot judge this scan" in printed and "eigen:30: " in printed
