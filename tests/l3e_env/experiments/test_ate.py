@@ -504,10 +504,10 @@ def test_ate_over_several_seeds_drives_each_and_writes_the_summary(tmp_path, cap
         == 0
     )
     summary = json.loads((out / "seeds.json").read_text())
-    assert [r["detector"] for r in summary] == ["odometry only", "none", "eigen:30"]
+    assert [r["detector"] for r in summary] == ["odometry only", "odometry + attitude", "none", "eigen:30"]
     first = json.loads((out / "seed-7" / "results.json").read_text())["rows"]
     second = json.loads((out / "seed-8" / "results.json").read_text())["rows"]
-    assert summary[2]["ate_m"] == [first[2]["ate_m"], second[2]["ate_m"]] and first[2]["ate_m"] != second[2]["ate_m"]
+    assert summary[3]["ate_m"] == [first[3]["ate_m"], second[3]["ate_m"]] and first[3]["ate_m"] != second[3]["ate_m"]
     assert (out / "seeds.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert "over 2 drives (seeds 7-8)" in capsys.readouterr().out
     assert main(["ate", "--recording", "r.npz", "--seeds", "2"]) == 2

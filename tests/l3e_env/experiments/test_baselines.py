@@ -85,8 +85,10 @@ def test_kiss_icp_and_genz_icp_rows_in_the_ate_table(tmp_path):
     names = [r.detector for r in run.rows]
     assert names == [
         "odometry only",
+        "odometry + attitude",  # the one estimator fuses the IMU's tilt: its row of the legs with it alone
         "none",
         "eigen:30",
+        "odometry + attitude @genz-icp",
         "none @genz-icp",
         "eigen:30 @genz-icp",
         "kiss-icp",
