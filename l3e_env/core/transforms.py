@@ -93,8 +93,14 @@ def level_rotation_of(T_w_s: np.ndarray) -> np.ndarray:
     return level_rotation(np.asarray(T_w_s, dtype=np.float64)[2, :3])
 
 
+def rotation_pose(R: np.ndarray) -> np.ndarray:
+    """The 4x4 transform of a rotation alone (no translation)."""
+    T = np.eye(4)
+    T[:3, :3] = R
+    return T
+
+
 def conjugate(T: np.ndarray, R_b_a: np.ndarray) -> np.ndarray:
     """A transform of frame a's points written in frame b (same origin, b = R_b_a a): R T R^T."""
-    A = np.eye(4)
-    A[:3, :3] = R_b_a
+    A = rotation_pose(R_b_a)
     return A @ T @ inverse(A)

@@ -17,7 +17,14 @@ import numpy as np
 from fusion import EKFFusion, FusionConfig, FusionGraph, check_backend, make_fusion
 from l3e_env.config import FusionSettings, OdometryConfig, from_dict
 from l3e_env.core.threads import part_threads
-from l3e_env.core.transforms import adjoint, inverse, level_rotation_of, nearest_rigid, rotation_angle
+from l3e_env.core.transforms import (
+    adjoint,
+    inverse,
+    level_rotation_of,
+    nearest_rigid,
+    rotation_angle,
+    rotation_pose,
+)
 from l3e_env.localizability.registration import (
     PreparedTarget,
     RegistrationConfig,
@@ -156,9 +163,7 @@ def level_basis(T_w_b: np.ndarray, T_b_s: np.ndarray) -> np.ndarray:
     frame at body pose T_w_b (the estimator's; only its tilt counts): where the detector's mask names
     its axes, so that the fusion removes a level tunnel's slide along its length, not along the tilted
     sensor's x and z."""
-    T_l_s = np.eye(4)
-    T_l_s[:3, :3] = level_rotation_of(T_w_b @ T_b_s)
-    return adjoint(T_l_s @ inverse(T_b_s))
+    return adjoint(rotation_pose(level_rotation_of(T_w_b @ T_b_s)) @ inverse(T_b_s))
 
 
 class LocalizationPipeline:

@@ -16,7 +16,7 @@ import numpy as np
 
 from l3e_env.config import LidarConfig
 from l3e_env.core.points import out_of_reach, too_many_points
-from l3e_env.core.transforms import level_rotation
+from l3e_env.core.transforms import level_rotation, rotation_pose
 from l3e_env.core.workers import ordered_map
 from l3e_env.detection.detectors import (
     CascadeDetector,
@@ -113,9 +113,7 @@ def tilt_deg(up: np.ndarray) -> float:
 def level_pose(up: np.ndarray) -> np.ndarray:
     """A sensor pose (4x4, world z up) with the tilt of `up` and no heading of its own: what the
     detectors read the level frame from."""
-    T = np.eye(4)
-    T[:3, :3] = level_rotation(up)
-    return T
+    return rotation_pose(level_rotation(up))
 
 
 def judge_points(
@@ -215,7 +213,7 @@ class _Panel:
             frame = note or frame
         try:
             up, how = up_direction(returns, self.gravity_of(index))
-        except (UpError, ValueError) as exc:
+        except ValueError as exc:  # an UpError, or an up vector level_rotation refuses
             return Judgement(name, len(returns), dropped, {}, error=f"{name}: {exc}", stamp=stamp, frame=frame)
         detectors = self.detectors(pattern)
         rng = np.random.default_rng([self.seed, index])

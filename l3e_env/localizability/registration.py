@@ -14,7 +14,7 @@ import small_gicp
 from numba import njit
 
 from l3e_env.core.normals import neighbourhood_normals
-from l3e_env.core.transforms import adjoint, inverse
+from l3e_env.core.transforms import adjoint, inverse, rotation_pose
 
 # small_gicp's tangent order is (rx, ry, rz, tx, ty, tz); the project's is (x, y, z, roll, pitch, yaw).
 TO_PROJECT_ORDER = np.array([3, 4, 5, 0, 1, 2])
@@ -383,9 +383,7 @@ def hessian_in_level(hessian: np.ndarray, R_l_s: np.ndarray) -> np.ndarray:
     """A registration's Hessian (project order, sensor frame) on the axes of the scan's level frame,
     R_l_s its rotation (core.transforms.level_rotation): the information the classical tests split
     into per-axis answers, written where the labels are."""
-    T_l_s = np.eye(4)
-    T_l_s[:3, :3] = R_l_s
-    return hessian_in_frame(hessian, T_l_s)
+    return hessian_in_frame(hessian, rotation_pose(R_l_s))
 
 
 def scan_hessian(points: np.ndarray, config: RegistrationConfig | None = None) -> np.ndarray:
