@@ -2,6 +2,7 @@
 
 from .mesh_io import file_sha256, is_mesh_path, load_mesh, load_route, scene_from_mesh
 from .registry import (
+    COMPOSITION_SCENES,
     DATASET_SCENES,
     DISTILL_SCENES,
     HELDOUT_SCENES,
@@ -36,4 +37,5 @@ __all__ = [
     "HELDOUT_SCENES",
     "DATASET_SCENES",
     "DISTILL_SCENES",
+    "COMPOSITION_SCENES",
 ]

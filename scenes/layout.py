@@ -20,7 +20,7 @@ from .scene import Scene
 PROFILES = ("circular", "horseshoe", "rectangular")
 
 
-def _walk(rng: np.random.Generator) -> np.ndarray:
+def walk_legs(rng: np.random.Generator) -> np.ndarray:
     """A ground poly-line of 3-5 straight legs of 8-25 m, turning by up to 70 deg between legs."""
     heading, point, points = float(rng.uniform(-np.pi, np.pi)), np.zeros(2), [np.zeros(2)]
     for _ in range(int(rng.integers(3, 6))):
@@ -31,7 +31,7 @@ def _walk(rng: np.random.Generator) -> np.ndarray:
     return resample_polyline(np.column_stack([xy, np.zeros(len(xy))]), 0.5)
 
 
-def _ground(rng: np.random.Generator, lo: np.ndarray, hi: np.ndarray) -> tuple[trimesh.Trimesh, callable]:
+def ground_surface(rng: np.random.Generator, lo: np.ndarray, hi: np.ndarray) -> tuple[trimesh.Trimesh, callable]:
     """A ground grid over the box lo-hi that is flat, gently tilted or rolling; and its height at (x, y)."""
     kind = rng.choice(["flat", "tilted", "rolling"], p=[0.5, 0.2, 0.3])
     slope = rng.uniform(-0.08, 0.08, 2) if kind == "tilted" else np.zeros(2)
@@ -54,12 +54,12 @@ def _ground(rng: np.random.Generator, lo: np.ndarray, hi: np.ndarray) -> tuple[t
     return trimesh.Trimesh(verts, faces, process=False), height
 
 
-def _clear_of(walk: np.ndarray, xy: np.ndarray, radius: float) -> bool:
+def clear_of(walk: np.ndarray, xy: np.ndarray, radius: float) -> bool:
     """Whether a footprint of `radius` around xy stays 1.2 m clear of the walk."""
     return bool(np.min(np.linalg.norm(walk[:, :2] - xy, axis=1)) > radius + 1.2)
 
 
-def _keeps_clear(part: trimesh.Trimesh, walk: np.ndarray, height) -> bool:
+def keeps_clear(part: trimesh.Trimesh, walk: np.ndarray, height) -> bool:
     """Whether the part's surface lower than 2.5 m over the ground stays 1 m clear of the walk (a tree's
     crown or a rock's bulge may reach further than its footprint, a long wall cross the walk between
     the points its placement checked): its vertices and points sampled over it, every 0.25 m or so."""
@@ -72,7 +72,7 @@ def _keeps_clear(part: trimesh.Trimesh, walk: np.ndarray, height) -> bool:
     return bool(gap > 1.0)
 
 
-def _beside(rng: np.random.Generator, walk: np.ndarray, near: float, far: float) -> tuple[np.ndarray, float]:
+def beside(rng: np.random.Generator, walk: np.ndarray, near: float, far: float) -> tuple[np.ndarray, float]:
     """A point `near`-`far` m to the side of a random station of the walk, and the walk's heading there."""
     k = int(rng.integers(1, len(walk) - 1))
     d = walk[k + 1, :2] - walk[k - 1, :2]
@@ -81,24 +81,24 @@ def _beside(rng: np.random.Generator, walk: np.ndarray, near: float, far: float)
     return walk[k, :2] + side * rng.uniform(near, far), heading
 
 
-def _piece(rng: np.random.Generator, kind: str, xy: np.ndarray, heading: float, z0: float, walk: np.ndarray) -> list:
+def piece(rng: np.random.Generator, kind: str, xy: np.ndarray, heading: float, z0: float, walk: np.ndarray) -> list:
     """One piece of furniture of `kind` at `xy` (none where it would stand on the walk)."""
     out: list[trimesh.Trimesh] = []
     if kind == "box":
         size = rng.uniform(0.4, 1.0, 3) * rng.choice([1.5, 4.0, 12.0])
-        if _clear_of(walk, xy, 0.5 * float(np.hypot(size[0], size[1]))):
+        if clear_of(walk, xy, 0.5 * float(np.hypot(size[0], size[1]))):
             out.append(box((xy[0], xy[1], z0 + size[2] / 2), tuple(size), yaw=float(rng.uniform(0, np.pi))))
     elif kind in ("pillar", "tree"):
         r = float(rng.uniform(0.1, 0.6)) if kind == "pillar" else float(rng.uniform(0.1, 0.3))
         h = float(rng.uniform(2.5, 8.0))
-        if _clear_of(walk, xy, r if kind == "pillar" else 2.0):
+        if clear_of(walk, xy, r if kind == "pillar" else 2.0):
             out.append(cylinder((xy[0], xy[1]), r, h, z0=z0))
             if kind == "tree":
                 crown = trimesh.creation.icosphere(1, radius=float(rng.uniform(1.0, 2.5)))
                 out.append(crown.apply_translation((xy[0], xy[1], z0 + h)))
     elif kind == "rock":
         r = float(rng.uniform(0.3, 3.0))
-        if _clear_of(walk, xy, r * 1.3):
+        if clear_of(walk, xy, r * 1.3):
             rock = trimesh.creation.icosphere(2, radius=r)
             rock.vertices *= 1 + 0.25 * rng.standard_normal((len(rock.vertices), 1))
             out.append(rock.apply_translation((xy[0], xy[1], z0 + 0.3)))
@@ -109,7 +109,7 @@ def _piece(rng: np.random.Generator, kind: str, xy: np.ndarray, heading: float, 
         centre = xy + wall_len / 2 * np.array([np.cos(yaw), np.sin(yaw)]) * (0 if along else 1)
         ends = centre + np.outer([-0.5, 0.5], [np.cos(yaw), np.sin(yaw)]) * wall_len
         samples = ends[0] + np.linspace(0, 1, 12)[:, None] * (ends[1] - ends[0])
-        if all(_clear_of(walk, p, 0.3) for p in samples):
+        if all(clear_of(walk, p, 0.3) for p in samples):
             h = float(rng.uniform(1.0, 6.0))
             out.append(box((centre[0], centre[1], z0 + h / 2), (wall_len, 0.3, h), yaw=yaw))
     return out
@@ -131,9 +131,9 @@ def _tunnel_stretch(rng: np.random.Generator, walk: np.ndarray) -> trimesh.Trime
 def make_layout(seed: int = 0) -> Scene:
     """One procedural layout (see the module's text); the walk is its route and sampling path."""
     rng = np.random.default_rng(seed + 9000)
-    walk = _walk(rng)
+    walk = walk_legs(rng)
     lo, hi = walk[:, :2].min(axis=0) - 35, walk[:, :2].max(axis=0) + 35
-    ground, height = _ground(rng, lo, hi)
+    ground, height = ground_surface(rng, lo, hi)
     walk[:, 2] = height(walk[:, :2])
     parts = [ground]
     spread = float(np.exp(rng.uniform(np.log(2.0), np.log(25.0))))  # how far from the walk the furniture stands
@@ -149,10 +149,10 @@ def make_layout(seed: int = 0) -> Scene:
             heading = float(np.arctan2(d[1], d[0]))
             xy = walk[k, :2] + np.array([-np.sin(heading), np.cos(heading)]) * (spread / 2 + 1.5) * (-1) ** i
         else:
-            xy, heading = _beside(rng, walk, 1.5, 1.5 + spread)
+            xy, heading = beside(rng, walk, 1.5, 1.5 + spread)
         z0 = float(height(xy)[0]) - 0.3  # sunk a little: rolling ground leaves no gap beneath
-        furniture += _piece(rng, str(kind), xy, heading, z0, walk)
-    parts += [part for part in furniture if _keeps_clear(part, walk, height)]
+        furniture += piece(rng, str(kind), xy, heading, z0, walk)
+    parts += [part for part in furniture if keeps_clear(part, walk, height)]
     if rng.random() < 0.25:  # a ceiling over the whole walk: a hall
         z = float(rng.uniform(3.0, 8.0))
         parts.append(box(((lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, z + 0.1), (hi[0] - lo[0], hi[1] - lo[1], 0.2)))

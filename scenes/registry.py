@@ -8,6 +8,7 @@ from pathlib import Path
 from .bypass import make_bypass
 from .cave import make_cave
 from .chamber import make_chamber
+from .composition import make_composition
 from .field import make_field
 from .fork import make_fork
 from .gallery import make_gallery
@@ -35,6 +36,7 @@ BUILDERS: dict[str, Callable[..., Scene]] = {
     "piperack": make_piperack,
     "layout": make_layout,
     "bypass": make_bypass,
+    "composition": make_composition,
 }
 
 
@@ -121,6 +123,10 @@ HELDOUT_SCENES = [f"piperack-{s}" for s in range(6)]
 # more places than the Monte-Carlo labels can afford are seen; never a test or held-out family.
 DISTILL_FAMILIES = ["tunnel", "primitives", "field", "office", "fork", "gallery", "cave", "chamber", "layout"]
 DISTILL_SCENES = [f"{family}-{s}" for s in range(10, 22) for family in DISTILL_FAMILIES]
+# Randomised places (scenes.composition), labelled by their own estimate for training only: a family no
+# split uses, so that their seeds are their own; 1 000 places, cut in three for three sensors
+# (`l3e dataset generate --preset random`, `random-32`, `random-128`)
+COMPOSITION_SCENES = [f"composition-{s}" for s in range(1000)]
 # The order of scenes in a dataset matters (parent i of the s-th scene is seeded by (seed, s, i)):
 # scenes added to the split later are appended, so that earlier ones keep their labels.
 DATASET_SCENES = TRAIN_SCENES + VALIDATION_SCENES + TEST_SCENES[:1]

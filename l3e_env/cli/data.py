@@ -71,7 +71,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         default="small",
         help="small: a first look; paper: the paper's protocol; level: operating poses "
         "(level, heading along or across the paths); distill: many places of the training families, "
-        "each scan labelled by its own estimate (a distillation set for training)",
+        "each scan labelled by its own estimate (a distillation set for training); random, random-32, "
+        "random-128: randomised places (scenes.composition) seen by a VLP-16, a 32-beam and a 128-beam "
+        "sensor, each scan labelled by its own estimate",
     )
     g.add_argument(
         "--labeller",

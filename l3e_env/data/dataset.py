@@ -47,7 +47,7 @@ from l3e_env.localizability.registration import RegistrationConfig, Registration
 from l3e_env.localizability.scan_mc import ScanMCConfig, ScanPatternError, scan_errors
 from l3e_env.sim.lidar import Lidar, get_pattern
 from l3e_env.sim.raycast import EmbreeCaster
-from scenes import DATASET_SCENES, DISTILL_SCENES, check_scene_name, file_sha256, is_mesh_path, make_scene
+from scenes import COMPOSITION_SCENES, DATASET_SCENES, DISTILL_SCENES, check_scene_name, file_sha256, is_mesh_path, make_scene
 
 FORMAT_VERSION = 1
 ARRAYS = ("points", "offsets", "poses", "errors", "labels", "scene", "children_failed")
@@ -92,6 +92,23 @@ PRESETS: dict[str, dict[str, Any]] = {
     # a distillation set: 108 places of the training families and layouts, each scan labelled by
     # its own estimate (no child is cast in the scene)
     "distill": {"scenes": DISTILL_SCENES, "parents_per_scene": 24, "seed": 10, "labeller": "scan"},
+    # randomised places (scenes.composition), each scan labelled by its own estimate: 600 places
+    # seen by a VLP-16, 200 by a 32-beam and 200 by a 128-beam sensor, 10 scans each
+    "random": {"scenes": COMPOSITION_SCENES[:600], "parents_per_scene": 10, "seed": 20, "labeller": "scan"},
+    "random-32": {
+        "scenes": COMPOSITION_SCENES[600:800],
+        "parents_per_scene": 10,
+        "seed": 21,
+        "labeller": "scan",
+        "lidar": {"model": "hdl32e"},
+    },
+    "random-128": {
+        "scenes": COMPOSITION_SCENES[800:],
+        "parents_per_scene": 10,
+        "seed": 22,
+        "labeller": "scan",
+        "lidar": {"model": "os1-128"},
+    },
 }
 
 

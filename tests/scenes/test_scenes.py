@@ -277,3 +277,28 @@ def test_a_bypass_offers_a_long_smooth_gallery_or_a_clear_way_round_at_most_half
         for point in scene.routes["rich"][::3]:
             assert caster.cast(point + (0, 0, 0.5), rays, 5.0).min() > 0.6, (seed, point)
     assert min(lengths) >= 60 and max(lengths) <= 150 and max(lengths) - min(lengths) > 30
+
+
+def test_compositions_span_open_to_enclosed_places_and_keep_their_walk_clear():
+    """The randomised places (scenes.composition): the walk stays walkable, and the seeds span open
+    ground to enclosed, roofed to open-sky places; the same seed builds the same mesh."""
+    enclosed, roofed = [], []
+    for seed in range(8):
+        place = make_scene(f"composition-{seed}")
+        walk = place.route
+        assert _horizontal_clearance(place, walk[::3], height=0.85).min() > 0.5
+        walled = np.isfinite(_horizontal_clearance(place, walk[::4], max_range=8.0)).mean(axis=1)
+        enclosed.append(float(walled.mean()))
+        above = place.mesh.ray.intersects_any(ray_origins=walk[::4] + (0, 0, 0.7), ray_directions=np.tile((0, 0, 1.0), (len(walk[::4]), 1)))
+        roofed.append(float(above.mean()))
+    assert min(enclosed) < 0.4 < max(enclosed) and min(roofed) < 0.2 and max(roofed) > 0.8
+    assert np.array_equal(make_scene("composition-5").mesh.vertices, make_scene("composition-5").mesh.vertices)
+
+
+def test_randomised_places_are_used_by_no_split():
+    """Their seeds are their own: no training, validation, test or held-out scene is a composition,
+    and the three sensors' presets draw disjoint places."""
+    from scenes import COMPOSITION_SCENES, HELDOUT_SCENES
+
+    assert not {scene_family(s) for s in TRAIN_SCENES + VALIDATION_SCENES + TEST_SCENES + HELDOUT_SCENES} & {"composition"}
+    assert len(set(COMPOSITION_SCENES)) == len(COMPOSITION_SCENES) >= 1000

@@ -21,6 +21,7 @@ from l3e_env.data.dataset import (
 from l3e_env.localizability.labels import LabelConfig
 from l3e_env.localizability.registration import RegistrationConfig
 from l3e_env.localizability.scan_mc import ScanMCConfig, scan_errors
+from l3e_env.sim.patterns import get_pattern
 
 
 def _distill_config(**kw):
@@ -141,3 +142,14 @@ def test_distilled_training_learns_the_distillation_sets_places_and_never_a_test
     assert main(args) == 2
     said = capsys.readouterr().err
     assert "mine-0" in said and "never trained on" in said and not (tmp_path / "m").exists()
+
+
+def test_the_randomised_presets_cover_three_sensors_on_disjoint_places():
+    """1 000 randomised places, 10 000 scans, seen by a 16-, a 32- and a 128-beam sensor; each scan
+    labelled by its own estimate (scenes.composition)."""
+    configs = [config_for(p) for p in ("random", "random-32", "random-128")]
+    places = [set(c.scenes) for c in configs]
+    assert sum(len(p) for p in places) == len(set().union(*places)) >= 1000
+    assert sum(len(c.scenes) * c.parents_per_scene for c in configs) >= 10_000
+    assert [get_pattern(c.lidar.model).n_beams for c in configs] == [16, 32, 128]
+    assert {c.labeller for c in configs} == {"scan"} and len({c.seed for c in configs}) == 3
