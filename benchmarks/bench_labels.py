@@ -17,7 +17,7 @@ import time
 import numpy as np
 
 from l3e_env.core.transforms import pose_to_matrix
-from l3e_env.data.dataset import config_for, generate
+from l3e_env.data.generation import config_for, generate
 from l3e_env.localizability.labels import LabelConfig, sample_parent_pose
 from l3e_env.localizability.registration import register
 from l3e_env.sim.lidar import Lidar

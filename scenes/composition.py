@@ -35,9 +35,11 @@ def _stretches(rng: np.random.Generator, walk: np.ndarray) -> list[np.ndarray]:
 
 def _size(rng: np.random.Generator, kind: str, scale: float) -> tuple[float, float]:
     """Width and height of a space of `kind`, scaled; a corridor leaves the robot at least 1.8 m."""
-    low, high = {"corridor": ((1.8, 2.2), (5.0, 5.0)), "hall": ((8.0, 4.0), (30.0, 12.0)), "room": ((4.0, 2.5), (16.0, 5.0))}[
-        kind
-    ]
+    low, high = {
+        "corridor": ((1.8, 2.2), (5.0, 5.0)),
+        "hall": ((8.0, 4.0), (30.0, 12.0)),
+        "room": ((4.0, 2.5), (16.0, 5.0)),
+    }[kind]
     width, height = rng.uniform(low, high) * scale
     return max(float(width), 1.8), max(float(height), 2.2)
 

@@ -11,6 +11,7 @@ import numpy as np
 import trimesh
 
 from .geometry import polyline_length, resample_polyline
+from .names import FORMATS
 from .scene import Scene, SceneError, validate_mesh
 
 UP_AXES = {
@@ -18,12 +19,6 @@ UP_AXES = {
     "y": np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]]),
     "x": np.array([[0, 0, -1.0], [0, 1, 0], [1, 0, 0]]),
 }
-FORMATS = (".obj", ".stl", ".ply", ".glb", ".gltf", ".off")
-
-
-def is_mesh_path(name: str | Path) -> bool:
-    """Whether a scene name is a mesh file to load (by its suffix) rather than a procedural family."""
-    return str(name).lower().endswith(FORMATS)
 
 
 def file_sha256(path: str | Path) -> str:

@@ -23,7 +23,8 @@ import numpy as np
 from tqdm import tqdm
 
 from l3e_env.config import LidarConfig, from_dict
-from l3e_env.data.dataset import LabelDataset, scene_tools
+from l3e_env.data.dataset import LabelDataset
+from l3e_env.data.generation import scene_tools
 from l3e_env.localizability.labels import AXES, LabelConfig, label_parent
 from l3e_env.localizability.registration import RegistrationConfig, RegistrationError
 from l3e_env.model.scores import axis_scores, mean_scores

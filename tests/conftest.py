@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from l3e_env.data.dataset import config_for, generate
+from l3e_env.data.generation import config_for, generate
 from scenes import make_scene
 
 

@@ -11,7 +11,8 @@ from .options import SENSOR_HELP, add_mesh_options, dataset_scenes, scene_names,
 
 
 def _cmd_dataset_generate(args: argparse.Namespace) -> int:
-    from l3e_env.data.dataset import config_for, format_statistics, generate
+    from l3e_env.data.dataset import format_statistics
+    from l3e_env.data.generation import config_for, generate
 
     scenes, params = dataset_scenes(args)
     overrides = {

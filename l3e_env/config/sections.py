@@ -61,7 +61,15 @@ ATTITUDE_MODES = ("none", "tilt", "full")  # the IMU's orientation in the fusion
 # where a dataset's errors come from: children ray-cast in the scene (the Monte-Carlo labels, ground
 # truth) or the parent scan's own estimate (a distillation set, for training only)
 LABELLERS = ("scene", "scan")
-DATASET_PRESETS = ("small", "paper", "level", "distill", "random", "random-32", "random-128")  # l3e_env.data.dataset.PRESETS, by name
+DATASET_PRESETS = (
+    "small",
+    "paper",
+    "level",
+    "distill",
+    "random",
+    "random-32",
+    "random-128",
+)  # l3e_env.data.dataset.PRESETS, by name
 FUSION_BACKENDS = ("graph", "ekf")  # iSAM2 smoother, filterpy EKF
 FUSION_MODES = ("mask", "full", "drop", "directions")  # see fusion.FusionConfig
 DESKEW_SOURCES = ("gyro", "odometry")  # where a deskewing's rotation comes from; its translation is the odometry's

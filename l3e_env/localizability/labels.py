@@ -15,62 +15,15 @@ from l3e_env.sim.raycast import RayCaster
 if TYPE_CHECKING:  # scenes (trimesh) loads slowly: judging a scan needs none
     from scenes import Scene
 
+# the labels' settings and the protocol live with the configuration (a model and a dataset read them
+# without the simulation); named here too, where the labels are made
+from l3e_env.config.labelling import AXES as AXES
+from l3e_env.config.labelling import LABEL_PROTOCOL as LABEL_PROTOCOL
+from l3e_env.config.labelling import PROTOCOLS as PROTOCOLS
+from l3e_env.config.labelling import LabelConfig
+from l3e_env.config.labelling import protocol_name as protocol_name
+
 from .registration import PreparedTarget, RegistrationConfig, RegistrationError, prepare_source, register
-
-AXES = ("x", "y", "z", "roll", "pitch", "yaw")
-
-# The label protocol, recorded in every dataset and checkpoint: 1 was the paper's (translation
-# thresholds of 0.1 m, the neighbours' normals), under which an ICP that held still along a free
-# axis labelled it localizable; 2 asks whether the registration corrects the offset (thresholds at
-# most half of what holding still leaves, the ground plane's normals); 3 draws the children and
-# writes the errors in the parent scan's level frame (z along gravity), so that a tilted sensor does
-# not turn a tunnel's free slide into z. Data of another protocol is refused by name, never mixed.
-LABEL_PROTOCOL = 3
-PROTOCOLS = {
-    1: "the paper's 0.1 m translation thresholds and the neighbours' normals",
-    2: "thresholds that ask whether ICP corrects the offset, and the ground plane's normals",
-    3: "protocol 2's thresholds, children and errors in each scan's level frame",
-}
-
-
-def protocol_name(protocol: int) -> str:
-    return f"label protocol {protocol} ({PROTOCOLS.get(protocol, 'unknown')})"
-
-
-@dataclass
-class LabelConfig:
-    """The paper's protocol; rotations in degrees as in its text."""
-
-    children: int = 200
-    parent_sigma: tuple[float, ...] = (0.2, 0.2, 0.4, 15.0, 15.0, 180.0)  # m, m, m, deg, deg, deg
-    child_sigma: tuple[float, ...] = (0.1, 0.1, 0.1, 5.0, 5.0, 10.0)
-    # at most half of what an ICP that holds still leaves (0.1 m * sqrt(2/pi) = 0.080 m for the
-    # children's 0.1 m sigma; 4 and 8 deg for 5 and 10 deg): an axis is localizable where the
-    # registration corrects the offset, not where it merely stays put (the paper's 0.1 m,
-    # docs/decisions.md)
-    thresholds: tuple[float, ...] = (0.04, 0.04, 0.04, 2.0, 2.0, 2.0)
-    sensor_height: float = 0.85  # ground to sensor of the robot stand-in
-    clearance: float = 0.3  # a sampled sensor must be this far from any surface
-    max_tries: int = 200  # parent samples drawn before giving up on a scene
-    # Error frame: the paper writes gamma(T_est^-1 T_true), the error in the child frame. A child
-    # is yawed ~10 deg from its parent, so in a tunnel the axis error leaks into y (measured:
-    # tunnel y flagged). Labels describe the parent scan, so the default is the parent frame.
-    error_frame: str = "parent"  # parent | child
-    # Parent heading: "free" draws yaw around 0 with parent_sigma (the paper); "path" draws it
-    # around the path's direction turned by a random multiple of 90 deg, as a robot walking the
-    # path (forwards, backwards or sideways) holds it. With a small roll/pitch sigma this gives
-    # the operating poses that a policy's localizability map asks about.
-    heading: str = "free"  # free | path
-
-    def sigma_vector(self, which: str) -> np.ndarray:
-        s = np.array(self.parent_sigma if which == "parent" else self.child_sigma, dtype=np.float64)
-        s[3:] = np.radians(s[3:])
-        return s
-
-    def threshold_vector(self) -> np.ndarray:
-        t = np.array(self.thresholds, dtype=np.float64)
-        t[3:] = np.radians(t[3:])
-        return t
 
 
 @dataclass

@@ -13,6 +13,7 @@ import numpy as np
 import small_gicp
 from numba import njit
 
+from l3e_env.config.labelling import RegistrationConfig
 from l3e_env.core.normals import neighbourhood_normals
 from l3e_env.core.transforms import adjoint, inverse, rotation_pose
 
@@ -22,37 +23,6 @@ TO_PROJECT_ORDER = np.array([3, 4, 5, 0, 1, 2])
 
 class RegistrationError(ValueError):
     """Input that registration cannot use (too few or non-finite points)."""
-
-
-@dataclass
-class RegistrationConfig:
-    """Point-to-plane ICP settings. They shape the labels: they go into every dataset manifest
-    and checkpoint.
-
-    `max_correspondence_distance` is a coarse-to-fine schedule (metres), each stage starting
-    from the previous estimate, as a tuned scan-to-scan odometry does: the coarse stage pulls in
-    children that start 20-30 cm off, the fine one rejects wrong matches near convergence.
-
-    Voxels of 0.15 m with normals from 20 neighbours. Both scans are voxelised in their own
-    sensor frame, and at 0.3 m that grid pulls ICP towards zero motion: a 0.1 m step came out
-    as 0.08 m beside the fork's corridor (`studies/icp_step_bias.py`). 20 neighbours keep the
-    finer normals as smooth as the coarse ones; with 10, the mine yard's labels turned noisy.
-    """
-
-    downsampling_resolution: float = 0.15
-    num_neighbors: int = 20  # for target normals
-    max_correspondence_distance: tuple[float, ...] = (2.0, 0.5)
-    max_iterations: int = 15  # per stage
-    max_source_points: int = 1000  # evenly strided subset of the downsampled source (0: all)
-    rotation_epsilon: float = 1e-3  # rad, convergence
-    translation_epsilon: float = 1e-3  # m, convergence
-    min_points: int = 100  # fewer points after downsampling: refuse
-    min_inlier_ratio: float = 0.3  # fewer final correspondences: failed
-    # the target's ground voxels take the normal of the plane fitted to the ground's returns, in
-    # place of the one from their neighbours, which leans where a neighbourhood reaches across a
-    # wall's foot and holds each step back beside walls (docs/decisions.md); a curved floor keeps
-    # its neighbours' normals (GROUND_FLAT)
-    ground_normals: bool = True
 
 
 @dataclass

@@ -17,12 +17,13 @@ gets exactly the estimate of M children.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
 from l3e_env.config import LidarConfig
+from l3e_env.config.labelling import ScanMCConfig
 from l3e_env.sim.lidar import Lidar
 from l3e_env.sim.patterns import BEAM_TOLERANCE, BeamPattern, get_pattern
 from l3e_env.sim.raycast import EmbreeCaster
@@ -32,34 +33,6 @@ if TYPE_CHECKING:
 
 from .labels import LabelConfig, child_offset, registration_error
 from .registration import PreparedTarget, RegistrationConfig, RegistrationError, prepare_source, register
-
-
-@dataclass
-class ScanMCConfig:
-    """How the scan's own Monte-Carlo estimate is made."""
-
-    # most registrations a scan (the labels use 200). With the stages below, 60 draw 36-38 a scan on
-    # the validation and test scenes, for test F1 0.63 against 0.53-0.56 from 20 drawn every time
-    children: int = 60
-    first: int = 10  # children of the first stage; each further stage doubles them, up to `children`
-    settle: float = 2.0  # stop once every axis is this many spreads from its threshold (0: always all children)
-    # Spread (log standard deviation) of a 20-child estimate between independent draws, x ... yaw,
-    # measured on 768 validation and test scans; it shrinks as 1 / sqrt(children).
-    spread: tuple[float, ...] = (0.45, 0.45, 0.3, 0.3, 0.3, 0.65)
-    max_range_ratio: float = 1.5  # two returns whose ranges differ more are not joined (a depth jump)
-    # What a child sees that the scan did not (range_image_mesh): a surface behind the returns beside
-    # a depth jump, as far as the farthest surface within this many degrees (0: none), and the edge
-    # beams' surfaces continued this far past the field of view (children are pitched and rolled by
-    # 5 deg). Chosen on the validation scenes (docs/decisions.md).
-    shadow_deg: float = 3.0
-    beyond_deg: float = 4.0
-    # Estimated errors are multiplied by these: 1 / the median of estimate over label on 240 scans
-    # of the training scenes with 20 children (`studies/scan_mc_calibration.py --shadow-deg 3
-    # --beyond-deg 4`; 1.23 1.23 1.21 1.17 1.20 1.11 for the scan's bare mesh).
-    calibration: tuple[float, ...] = (1.16, 1.20, 1.16, 1.16, 1.16, 1.12)
-    # each child casts every k-th column of the revolution (1: all): the registration keeps one point
-    # a 0.15 m voxel and then at most 1000, so most columns never reach it
-    column_stride: int = 1
 
 
 class ScanEstimate(NamedTuple):

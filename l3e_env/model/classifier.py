@@ -21,11 +21,10 @@ import torch
 from torch import nn
 
 from l3e_env.config import from_dict, plain, with_defaults
+from l3e_env.config.labelling import LABEL_PROTOCOL, RegistrationConfig, protocol_name
 from l3e_env.core.files import write_atomic
 from l3e_env.core.points import out_of_reach
 from l3e_env.core.transforms import level_rotation_of
-from l3e_env.localizability.labels import LABEL_PROTOCOL, protocol_name
-from l3e_env.localizability.registration import RegistrationConfig
 
 from .constraints import FEATURES, SURFACE_FEATURES, AxisStacker, scan_features, surface_rows
 from .information import InformationPool

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from l3e_env.localizability.labels import AXES
+from l3e_env.config.labelling import AXES
 
 
 def axis_scores(labels: np.ndarray, predicted: np.ndarray) -> dict[str, np.ndarray]:

@@ -289,7 +289,9 @@ def test_compositions_span_open_to_enclosed_places_and_keep_their_walk_clear():
         assert _horizontal_clearance(place, walk[::3], height=0.85).min() > 0.5
         walled = np.isfinite(_horizontal_clearance(place, walk[::4], max_range=8.0)).mean(axis=1)
         enclosed.append(float(walled.mean()))
-        above = place.mesh.ray.intersects_any(ray_origins=walk[::4] + (0, 0, 0.7), ray_directions=np.tile((0, 0, 1.0), (len(walk[::4]), 1)))
+        above = place.mesh.ray.intersects_any(
+            ray_origins=walk[::4] + (0, 0, 0.7), ray_directions=np.tile((0, 0, 1.0), (len(walk[::4]), 1))
+        )
         roofed.append(float(above.mean()))
     assert min(enclosed) < 0.4 < max(enclosed) and min(roofed) < 0.2 and max(roofed) > 0.8
     assert np.array_equal(make_scene("composition-5").mesh.vertices, make_scene("composition-5").mesh.vertices)
@@ -300,5 +302,7 @@ def test_randomised_places_are_used_by_no_split():
     and the three sensors' presets draw disjoint places."""
     from scenes import COMPOSITION_SCENES, HELDOUT_SCENES
 
-    assert not {scene_family(s) for s in TRAIN_SCENES + VALIDATION_SCENES + TEST_SCENES + HELDOUT_SCENES} & {"composition"}
+    assert not {scene_family(s) for s in TRAIN_SCENES + VALIDATION_SCENES + TEST_SCENES + HELDOUT_SCENES} & {
+        "composition"
+    }
     assert len(set(COMPOSITION_SCENES)) == len(COMPOSITION_SCENES) >= 1000

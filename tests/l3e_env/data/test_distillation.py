@@ -10,14 +10,8 @@ import pytest
 
 from l3e_env.config import LidarConfig
 from l3e_env.core.transforms import level_rotation_of
-from l3e_env.data.dataset import (
-    DatasetError,
-    DatasetUnion,
-    LabelDataset,
-    config_for,
-    generate,
-    scan_labelled,
-)
+from l3e_env.data.dataset import DatasetError, DatasetUnion, LabelDataset, scan_labelled
+from l3e_env.data.generation import config_for, generate
 from l3e_env.localizability.labels import LabelConfig
 from l3e_env.localizability.registration import RegistrationConfig
 from l3e_env.localizability.scan_mc import ScanMCConfig, scan_errors

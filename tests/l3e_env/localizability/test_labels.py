@@ -7,7 +7,8 @@ import pytest
 import trimesh
 
 from l3e_env.core.transforms import matrix_to_pose, pose_to_matrix
-from l3e_env.data.dataset import DatasetError, LabelDataset, config_for, generate, label_statistics
+from l3e_env.data.dataset import DatasetError, LabelDataset, label_statistics
+from l3e_env.data.generation import config_for, generate
 from l3e_env.localizability.labels import (
     LABEL_PROTOCOL,
     LabelConfig,
@@ -370,7 +371,7 @@ def test_ray_backend_gives_the_same_dataset(tmp_path):
 def test_a_full_disk_is_a_clear_error_and_keeps_finished_shards(tmp_path, monkeypatch):
     import errno
 
-    import l3e_env.data.dataset as ds
+    import l3e_env.data.generation as ds
 
     cfg = config_for(None, scenes=["office-0"], parents_per_scene=2, shard_size=1, labels={"children": 6})
     real_savez, calls = np.savez, []
@@ -394,7 +395,8 @@ def test_a_damaged_dataset_names_the_file_that_is_damaged(tiny_dataset, tmp_path
     """A cut-short shard, manifest or array gives an error naming the file, not a zipfile or JSON traceback."""
     import shutil
 
-    from l3e_env.data.dataset import DatasetError, LabelDataset, config_for, consolidate
+    from l3e_env.data.dataset import DatasetError, LabelDataset
+    from l3e_env.data.generation import config_for, consolidate
 
     copy = tmp_path / "copy"
     shutil.copytree(tiny_dataset, copy)
@@ -416,7 +418,7 @@ def test_a_damaged_dataset_names_the_file_that_is_damaged(tiny_dataset, tmp_path
 
 def test_two_runs_into_one_dataset_folder_are_refused_by_name(tmp_path):
     from l3e_env.core.files import FolderBusyError, folder_lock
-    from l3e_env.data.dataset import config_for, generate
+    from l3e_env.data.generation import config_for, generate
 
     cfg = config_for(None, scenes=["tunnel-0"], parents_per_scene=1, labels={"children": 4})
     busy = f"{tmp_path / 'd'}: another run \\(pid {os.getpid()}\\)"

@@ -11,7 +11,8 @@ import pytest
 import torch
 
 from l3e_env.core.transforms import pose_to_matrix
-from l3e_env.data.dataset import DatasetError, LabelDataset, config_for, error_ratios, generate, open_datasets
+from l3e_env.data.dataset import DatasetError, LabelDataset, error_ratios, open_datasets
+from l3e_env.data.generation import config_for, generate
 from l3e_env.detection.detectors import LearnedDetector, make_detector
 from l3e_env.localizability.labels import LABEL_PROTOCOL, LabelConfig
 from l3e_env.model.classifier import (
