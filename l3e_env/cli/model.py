@@ -6,11 +6,15 @@ import argparse
 import time
 from pathlib import Path
 
+from .options import add_device_option
+
 
 def _cmd_train(args: argparse.Namespace) -> int:
     from l3e_env.config import from_dict, load_yaml
+    from l3e_env.model.classifier import torch_device
     from l3e_env.model.training import TrainConfig, train
 
+    torch_device(args.device)  # a missing GPU is named before anything is read or written
     cfg = load_yaml(TrainConfig, args.config) if args.config else TrainConfig()
     overrides = {
         k: v
@@ -49,7 +53,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         f"training {cfg.model.architecture} on {' + '.join(args.dataset)} -> {Path(args.out).resolve()} "
         f"({cfg.epochs} epochs of {cfg.samples_per_epoch or 'all'} samples, {cfg.optimizer}, seed {cfg.seed})"
     )
-    best = train(args.dataset, args.out, cfg, progress=not args.quiet)
+    best = train(args.dataset, args.out, cfg, progress=not args.quiet, device=args.device)
     print(
         f"best epoch {best['best_epoch']}: validation F1 {best.get('val_f1', float('nan')):.3f}, "
         f"accuracy {best.get('val_accuracy', float('nan')):.3f}; thresholds {best.get('thresholds')}"
@@ -80,8 +84,9 @@ def _asdict(cfg) -> dict:
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     from l3e_env.experiments.table3 import Table3Options, run_table3
-    from l3e_env.model.classifier import DEFAULT_CHECKPOINT
+    from l3e_env.model.classifier import DEFAULT_CHECKPOINT, torch_device
 
+    torch_device(args.device)  # a missing GPU is named before anything is read or written
     out = Path(args.out or f"l3e_out/evaluate-{time.strftime('%Y%m%d-%H%M%S')}")
     args.out = str(out)  # the resolved options are written beside it
     options = Table3Options(
@@ -98,6 +103,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         workers=args.workers,
         draws=args.draws,
         cascade=args.cascade or [],
+        device=args.device,
     )
     results = run_table3(args.checkpoint or [DEFAULT_CHECKPOINT], args.dataset, out, options, progress=not args.quiet)
     print(results.table)
@@ -181,6 +187,7 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--optimizer", choices=["sgd", "adamw"])
     p.add_argument("--lr", type=float)
     p.add_argument("--threads", type=int, help="torch threads (default 2)")
+    add_device_option(p)
     p.add_argument("--seed", type=int)
     p.add_argument(
         "--soft-labels",
@@ -268,6 +275,7 @@ def _add_detector_options(p: argparse.ArgumentParser) -> None:
 
 def _add_evaluate(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("evaluate", help="Table III: per-axis scores on train, validation and test, PR curves")
+    add_device_option(p)
     p.add_argument(
         "--checkpoint", action="append", help="model.pt of a run; repeat to compare (default: the shipped model)"
     )

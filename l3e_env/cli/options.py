@@ -248,3 +248,13 @@ def add_max_steps(parser: argparse.ArgumentParser) -> None:
         dest="max_steps",
         help="stop the drive after this many steps of 0.1 s (a short run; default: the route's end)",
     )
+
+
+def add_device_option(parser: argparse.ArgumentParser) -> None:
+    """--device: where the network runs (cpu, cuda, auto); the classifier names a missing GPU."""
+    parser.add_argument(
+        "--device",
+        default="cpu",
+        help="where the network runs: cpu (default), cuda (or cuda:N; an error where torch sees no GPU), "
+        "auto (a GPU where there is one)",
+    )

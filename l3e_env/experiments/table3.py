@@ -141,6 +141,7 @@ class Table3Options:
     xicp: list[float] = field(default_factory=list)
     drpm: list[float] = field(default_factory=list)
     int8: bool = True
+    device: str = "cpu"  # where the networks run (classifier.torch_device's names); int8 on the CPU only
     by_family: bool = False
     by_region: bool = False
     scan_mc: int = 0
@@ -311,7 +312,7 @@ def score_checkpoints(
         {} if checkpoints else {column: (d, np.arange(len(d))) for column, d in board.others.items()}
     )
     for path in map(Path, checkpoints):
-        clf = Classifier.load(path, symmetric=options.symmetric, int8=options.int8)
+        clf = Classifier.load(path, symmetric=options.symmetric, int8=options.int8, device=options.device)
         name = model_name(clf, path, set(board.table))
         splits = (
             {}

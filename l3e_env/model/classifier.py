@@ -165,7 +165,7 @@ class ResUNet(nn.Module):
         # where in its voxel the surface passes (sub-voxel shape, e.g. wall roughness) and where
         # the voxel is in the scan (range and direction matter for the constraint it gives)
         inside = means / self.voxel - level.coords[:, 1:] - 0.5
-        x = torch.cat([torch.ones(len(means), 1), inside, means / self.scale], dim=1)
+        x = torch.cat([means.new_ones((len(means), 1)), inside, means / self.scale], dim=1)
         rows = surface_rows(level, means) if self.surface_rows or self.information is not None else None
         if self.surface_rows and rows is not None:
             x = torch.cat([x, rows[:, :3], rows[:, 3:6] / self.scale, rows[:, 6:]], dim=1)
@@ -201,9 +201,9 @@ class PointNet(nn.Module):
         self.scale = cfg.coordinate_scale
 
     def forward(self, points: list[torch.Tensor]) -> torch.Tensor:
-        lengths = torch.tensor([len(p) for p in points])
         x = self.mlp(torch.cat(points) / self.scale)
-        batch = torch.repeat_interleave(torch.arange(len(points)), lengths)
+        lengths = torch.tensor([len(p) for p in points], device=x.device)
+        batch = torch.repeat_interleave(torch.arange(len(points), device=x.device), lengths)
         pooled = x.new_full((len(points), x.shape[1]), -torch.inf)
         pooled = pooled.scatter_reduce(0, batch[:, None].expand_as(x), x, reduce="amax")
         return self.out(pooled)
@@ -269,7 +269,7 @@ class LocalizabilityNet(nn.Module):
         points = [symmetry_view(p, v) for p, v in zip(points, views)]
         if up is not None:
             up = torch.stack([symmetry_view(u[None], v)[0] for u, v in zip(up, views)])
-        return points, up, torch.tensor([swap for _, _, swap in views], dtype=torch.bool)
+        return points, up, torch.tensor([swap for _, _, swap in views], dtype=torch.bool, device=points[0].device)
 
     def parts(
         self, points: list[torch.Tensor], up: torch.Tensor | None = None, constraints: bool | None = None
@@ -292,7 +292,7 @@ class LocalizabilityNet(nn.Module):
                 "this classifier was trained with the gravity direction: give the up vector of "
                 "each scan's sensor frame, (B, 3)"
             )
-        return self.head(torch.cat([feature, up.to(feature.dtype)], dim=1)), features
+        return self.head(torch.cat([feature, up.to(feature)], dim=1)), features
 
 
 def _norm_sites(backbone: nn.Module) -> list[tuple[nn.Module, nn.Module, str]]:
@@ -352,9 +352,37 @@ def up_vector(T_w_s: np.ndarray) -> np.ndarray:
     return np.asarray(T_w_s)[..., 2, :3]
 
 
-def up_tensor(up: np.ndarray | None) -> torch.Tensor | None:
-    """Up vectors (B, 3) as the model's float32 input; None stays None."""
-    return None if up is None else torch.from_numpy(np.array(up, dtype=np.float32).reshape(-1, 3))
+def up_tensor(up: np.ndarray | None, device: torch.device | str = "cpu") -> torch.Tensor | None:
+    """Up vectors (B, 3) as the model's float32 input on `device`; None stays None."""
+    return None if up is None else torch.from_numpy(np.array(up, dtype=np.float32).reshape(-1, 3)).to(device)
+
+
+class DeviceError(ValueError):
+    """A device that this torch cannot use (no CUDA GPU visible, or an unknown name)."""
+
+
+DEVICES = ("cpu", "cuda", "auto")
+
+
+def torch_device(name: str = "cpu") -> torch.device:
+    """'cpu'; 'cuda' or 'cuda:N' (DeviceError where torch sees no CUDA GPU); 'auto': a CUDA GPU where
+    one is visible, else the CPU."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cpu":
+        return torch.device("cpu")
+    if name == "cuda" or name.startswith("cuda:"):
+        if not torch.cuda.is_available():
+            raise DeviceError(
+                f"--device {name}: this torch sees no CUDA GPU (a CPU build, or no driver); use --device cpu"
+            )
+        return torch.device(name)
+    raise DeviceError(f"unknown device '{name}' (cpu, cuda, cuda:N, auto)")
+
+
+def model_device(model: nn.Module) -> torch.device:
+    """The device of a model's weights."""
+    return next(model.parameters()).device
 
 
 def check_scan(points: np.ndarray) -> np.ndarray:
@@ -432,12 +460,15 @@ def model_probabilities(
     """(B, 6) probabilities; symmetric: the mean over the eight mirror/swap views of each scan (one
     forward pass of 8 B scans), each view's output mapped back onto the scan's own axes. `up`
     (B, 3): see LocalizabilityNet.forward."""
-    ups = up_tensor(up)
+    device = model_device(model)
+    batch = [p.to(device) for p in batch]
+    ups = up_tensor(up, device)
     if not symmetric:
-        return torch.sigmoid(model(batch, ups)).numpy().astype(np.float64)
+        return torch.sigmoid(model(batch, ups)).cpu().numpy().astype(np.float64)
     views = [symmetry_view(p, sym) for sym in SYMMETRIES for p in batch]
     view_ups = None if ups is None else torch.cat([symmetry_view(ups, sym) for sym in SYMMETRIES])
-    probs = torch.sigmoid(model(views, view_ups)).numpy().astype(np.float64).reshape(len(SYMMETRIES), len(batch), 6)
+    probs = torch.sigmoid(model(views, view_ups)).cpu().numpy().astype(np.float64)
+    probs = probs.reshape(len(SYMMETRIES), len(batch), 6)
     swapped = np.array([swap for _, _, swap in SYMMETRIES])
     probs[swapped] = probs[swapped][..., SWAP_LABELS]
     return probs.mean(axis=0)
@@ -471,7 +502,7 @@ def save_checkpoint(
         "format": CHECKPOINT_FORMAT,
         "version": CHECKPOINT_VERSION,
         "model": plain(dataclasses.asdict(model.config)),
-        "state_dict": model.state_dict(),
+        "state_dict": {k: v.cpu() for k, v in model.state_dict().items()},  # read on any device
         "thresholds": [float(t) for t in thresholds],
         **meta,
         **(extra or {}),
@@ -537,9 +568,13 @@ class Classifier:
     symmetric: bool = False
 
     @classmethod
-    def load(cls, path: str | Path | None = None, symmetric: bool = False, int8: bool = True) -> Classifier:
-        """`int8`: the ResUNet's convolutions in int8 (quantize_int8), its ResBlocks fused: faster than
-        float32, with the same decisions (docs/decisions.md)."""
+    def load(
+        cls, path: str | Path | None = None, symmetric: bool = False, int8: bool = True, device: str = "cpu"
+    ) -> Classifier:
+        """`int8`: on the CPU, the ResUNet's convolutions in int8 (quantize_int8), its ResBlocks fused:
+        faster than float32, with the same decisions (docs/decisions.md). `device`: where the network
+        runs (torch_device's names); on a GPU in float32."""
+        where = torch_device(device)
         path = Path(path) if path is not None else DEFAULT_CHECKPOINT
         state = load_checkpoint(path)
         broken = [
@@ -553,8 +588,9 @@ class Classifier:
                 f"{' ...' if len(broken) > 3 else ''}: the file is corrupt or its training diverged"
             )
         model = fold_batch_norms(model_from_checkpoint(state, str(path)))
-        if int8:
+        if int8 and where.type == "cpu":
             quantize_int8(model)
+        model.to(where)
         meta = {k: v for k, v in state.items() if k not in ("state_dict", "optimizer", "scheduler")}
         if "thresholds" not in state:
             raise CheckpointError(f"{path} holds no thresholds")

@@ -124,16 +124,16 @@ def surface_rows(level: Level, means: torch.Tensor) -> torch.Tensor:
     """(V, 7) float32 per voxel: its point-to-plane row J = [n, p x n] (the normal facing the sensor)
     and 1 where its 3x3x3 block is planar; zeros where it is not. The Hessian is the sum of J J^T;
     a network fed J sees what each voxel constrains, in any scene."""
-    rows = np.zeros((len(means), SURFACE_FEATURES))
-    _planar_rows(level.neighbours().numpy(), means.numpy().astype(np.float64), rows)
-    return torch.from_numpy(rows.astype(np.float32))
+    rows = np.zeros((len(means), SURFACE_FEATURES))  # compiled loops on the CPU, whatever the device
+    _planar_rows(level.neighbours().cpu().numpy(), means.detach().cpu().numpy().astype(np.float64), rows)
+    return torch.from_numpy(rows.astype(np.float32)).to(means.device)
 
 
 def coarser_means(level: Level, means: np.ndarray) -> tuple[Level, np.ndarray]:
     """The next coarser level (the network's own, cached on `level`) and the mean of each coarse
     voxel's finer mean points: every finer voxel weighs one, whatever its point count."""
     coarse, _, parent, _ = level.coarser()
-    parent, size = parent.numpy(), len(coarse.coords)
+    parent, size = parent.cpu().numpy(), len(coarse.coords)
     summed = np.stack([np.bincount(parent, weights=means[:, k], minlength=size) for k in range(3)], axis=1)
     return coarse, summed / np.bincount(parent, minlength=size)[:, None]  # float64, as the moments
 
@@ -141,16 +141,16 @@ def coarser_means(level: Level, means: np.ndarray) -> tuple[Level, np.ndarray]:
 def scan_features(level: Level, means: torch.Tensor, batch_size: int, levels: tuple[int, ...] = (0,)) -> torch.Tensor:
     """(B, FEATURES * len(levels)): the Hessian features of each of `levels` (0: the finest voxels)."""
     hessians = np.zeros((len(levels), batch_size, 6, 6))
-    points = means.numpy().astype(np.float64)
+    device, points = means.device, means.detach().cpu().numpy().astype(np.float64)
     for k in range(max(levels) + 1):
-        if k in levels:
+        if k in levels:  # compiled loops on the CPU, whatever the device
             _add_planar_hessians(
-                level.neighbours().numpy(), points, level.coords[:, 0].numpy(), hessians[levels.index(k)]
+                level.neighbours().cpu().numpy(), points, level.coords[:, 0].cpu().numpy(), hessians[levels.index(k)]
             )
         if k < max(levels):
             level, points = coarser_means(level, points)
     per_level = hessian_features(hessians.reshape(-1, 6, 6)).reshape(len(levels), batch_size, FEATURES)
-    return torch.from_numpy(np.ascontiguousarray(per_level.transpose(1, 0, 2).reshape(batch_size, -1)))
+    return torch.from_numpy(np.ascontiguousarray(per_level.transpose(1, 0, 2).reshape(batch_size, -1))).to(device)
 
 
 def hessian_features(hessian: np.ndarray) -> np.ndarray:

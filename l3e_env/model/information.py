@@ -51,7 +51,7 @@ class InformationPool(nn.Module):
 def information_features(h: torch.Tensor) -> torch.Tensor:
     """(N, FEATURES) of (N, 6, 6) information matrices: log diag(H^-1) and log eigenvalues, a small
     ridge keeping an unconstrained axis finite, as l3e_env.model.constraints.hessian_features."""
-    eye = torch.eye(ROW, dtype=h.dtype)
+    eye = torch.eye(ROW, dtype=h.dtype, device=h.device)
     ridge = 1e-6 * torch.diagonal(h, dim1=1, dim2=2).sum(1).clamp_min(1e-6)
     h = h + ridge[:, None, None] * eye
     variances = torch.diagonal(torch.linalg.inv(h), dim1=1, dim2=2).clamp_min(1e-12)

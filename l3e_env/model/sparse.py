@@ -11,7 +11,9 @@ Coordinates are int64 (N, 4) rows (batch, x, y, z) in voxel units of the current
 levels and their kernel maps are index bookkeeping on a few thousand sites, where nothing needs a
 gradient: loops compiled with numba, one site at a time, because numpy's and torch's per-operation
 overhead on arrays this small costs several times the work (docs/log.md); the sorts stay
-in numpy, whose sort is several times faster than numba's. voxelize sorts the sites once, by Morton
+in numpy, whose sort is several times faster than numba's. On a GPU the same bookkeeping runs as
+whole-array torch operations (sorts, searchsorted, scatters: the `_torch` functions below), where one
+site at a time would be the slow way; both give the same tables. voxelize sorts the sites once, by Morton
 key (the batch, then the bits of x, y and z interleaved), so that the eight children of every
 coarser site are consecutive rows and each coarser level follows from the finer one without
 another sort.
@@ -172,6 +174,92 @@ def _parents(keys: np.ndarray, coords: np.ndarray) -> tuple[np.ndarray, ...]:
     return coarse_keys, coarse, children, parent, slot
 
 
+def _by_torch(t: torch.Tensor) -> bool:
+    """Whether the index bookkeeping of tensors like `t` runs as torch operations (on a GPU) rather
+    than the compiled loops (on the CPU)."""
+    return t.device.type != "cpu"
+
+
+# the same bookkeeping on a torch device (see the module's text): tensors in, tensors out
+_SPREAD_T = torch.from_numpy(_SPREAD)
+_DELTAS_T = torch.from_numpy(_NEIGHBOUR_DELTAS)
+_PARENT_OFFSET_T = torch.from_numpy(_PARENT_OFFSET)
+_CHILD_SLOT_T = torch.from_numpy(_CHILD_SLOT)
+
+
+def _shifted_torch(xyz: torch.Tensor) -> torch.Tensor:
+    """Voxel coordinates (N, 3) moved into 0 .. 2^16 - 1, or ValueError (as _shifted)."""
+    v = xyz + _SHIFT
+    if len(v) and bool(((v < 0) | (v >= 1 << _BITS)).any()):
+        raise ValueError(_TOO_FAR)
+    return v
+
+
+def morton_keys_torch(coords: torch.Tensor) -> torch.Tensor:
+    """morton_keys of (N, 4) int64 rows on any device."""
+    v = _shifted_torch(coords[:, 1:])
+    spread = _SPREAD_T.to(coords.device)
+    s = spread[v & 255] | (spread[v >> 8] << 24)
+    return (coords[:, 0] << 3 * _BITS) | (s[:, 0] << 2) | (s[:, 1] << 1) | s[:, 2]
+
+
+def _searched_neighbours_torch(coords: torch.Tensor) -> torch.Tensor:
+    """_searched_neighbours on any device: every wanted key found by a binary search of the sorted keys."""
+    n = len(coords)
+    if n == 0:
+        return coords.new_zeros((0, 27))
+    v = _shifted_torch(coords[:, 1:])
+    keys = (coords[:, 0] << 3 * _BITS) | (v[:, 0] << 2 * _BITS) | (v[:, 1] << _BITS) | v[:, 2]
+    sorted_keys, order = torch.sort(keys)
+    wanted = keys[:, None] + _DELTAS_T.to(keys.device)[None, :]
+    at = torch.searchsorted(sorted_keys, wanted).clamp_max(n - 1)
+    return torch.where(sorted_keys[at] == wanted, order[at], n)
+
+
+def _child_table_torch(
+    coarse_table: torch.Tensor, children: torch.Tensor, parent: torch.Tensor, slot: torch.Tensor
+) -> torch.Tensor:
+    """_child_table on any device."""
+    n, m = len(parent), len(coarse_table)
+    if n == 0 or m == 0:
+        return parent.new_full((n, 27), n)
+    q = coarse_table[parent[:, None], _PARENT_OFFSET_T.to(slot.device)[slot]]
+    child = children[q.clamp_max(m - 1), _CHILD_SLOT_T.to(slot.device)[slot]]
+    return torch.where(q < m, child, n)
+
+
+def _parents_torch(keys: torch.Tensor, coords: torch.Tensor, in_order: bool) -> tuple[torch.Tensor, ...]:
+    """_parents on any device; `in_order`: the keys ascend (each parent's children are consecutive)."""
+    n = len(keys)
+    if in_order:
+        coarse_keys, parent = torch.unique_consecutive(keys >> 3, return_inverse=True)
+    else:
+        coarse_keys, parent = torch.unique(keys >> 3, return_inverse=True)
+    m = len(coarse_keys)
+    rows = torch.arange(n, device=keys.device)
+    first = torch.full((m,), n, device=keys.device, dtype=torch.int64).scatter_reduce_(0, parent, rows, "amin")
+    coarse = coords[first].clone()
+    coarse[:, 1:] >>= 1  # floor(x / 2)
+    slot = keys & 7  # the lowest bits of x, y and z: 4 dx + 2 dy + dz
+    children = torch.full((m, 8), n, device=keys.device, dtype=torch.int64)
+    children[parent, slot] = rows
+    return coarse_keys, coarse, children, parent, slot
+
+
+def _voxels_torch(points: torch.Tensor, lengths: list[int], voxel: float) -> tuple[torch.Tensor, ...]:
+    """voxelize's cells, mean points, voxel of every point and keys, on the points' device."""
+    device = points.device
+    batch = torch.repeat_interleave(torch.arange(len(lengths), device=device), torch.tensor(lengths, device=device))
+    # float32 division, as numpy (and _cells) divide float32 points
+    cells = torch.floor(points / torch.tensor(voxel, dtype=torch.float32, device=device)).to(torch.int64)
+    cells = torch.cat([batch[:, None], cells], dim=1)
+    keys, inverse, counts = torch.unique(morton_keys_torch(cells), return_inverse=True, return_counts=True)
+    summed = torch.zeros((len(keys), 3), dtype=torch.float64, device=device).index_add_(0, inverse, points.double())
+    coords = torch.empty((len(keys), 4), dtype=torch.int64, device=device)
+    coords[inverse] = cells  # every point of a voxel has its cell
+    return coords, (summed / counts[:, None]).float(), inverse, keys
+
+
 @dataclass
 class Level:
     """The active sites of one resolution level and the kernel maps built on them (cached,
@@ -179,8 +267,9 @@ class Level:
 
     coords: torch.Tensor  # (N, 4) int64
     stride: int  # in units of the finest voxel
-    # the rows' Morton keys when the rows come in ascending Morton order (as from voxelize and coarser)
-    morton: np.ndarray | None = field(default=None, repr=False)
+    # the rows' Morton keys when the rows come in ascending Morton order (as from voxelize and coarser);
+    # a tensor on the coords' device where that is not the CPU
+    morton: np.ndarray | torch.Tensor | None = field(default=None, repr=False)
     _neighbours: torch.Tensor | None = field(default=None, repr=False)
     _one_scan: bool | None = field(default=None, repr=False)
     _coarser: tuple[Level, torch.Tensor, torch.Tensor, torch.Tensor] | None = field(default=None, repr=False)
@@ -197,6 +286,12 @@ class Level:
         every neighbour of a site is a child of a neighbour of the site's parent, so two table
         lookups per neighbour replace a search of the keys (exact, and several times faster); the
         coarsest level's table comes from _searched_neighbours."""
+        if self._neighbours is None and _by_torch(self.coords):
+            if self._coarser is not None:
+                coarse, children, parent, slot = self._coarser
+                self._neighbours = _child_table_torch(coarse.neighbours(), children, parent, slot)
+            else:
+                self._neighbours = _searched_neighbours_torch(self.coords)
         if self._neighbours is None:
             if self._coarser is not None:
                 coarse, children, parent, slot = self._coarser
@@ -210,9 +305,13 @@ class Level:
         """The level at twice the voxel size (in Morton order), plus (children table (M, 8) of this
         level's rows (N where none), parent row of each site here (N,), child slot of each site here
         (N,), an OFFSETS_2 row)."""
+        if self._coarser is None and _by_torch(self.coords):
+            keys = self.morton if isinstance(self.morton, torch.Tensor) else morton_keys_torch(self.coords)
+            coarse_keys, coarse, children, parent, slot = _parents_torch(keys, self.coords, self.morton is not None)
+            self._coarser = (Level(coarse, self.stride * 2, coarse_keys), children, parent, slot)
         if self._coarser is None:
             coords = self.coords.numpy()
-            if self.morton is not None:  # each parent's children are consecutive rows: no sort
+            if isinstance(self.morton, np.ndarray):  # each parent's children are consecutive rows: no sort
                 coarse_keys, coarse, children, parent, slot = _parents(self.morton, coords)
             else:
                 keys = morton_keys(coords)
@@ -450,7 +549,10 @@ class UpConv(nn.Module):
 def voxelize(points: list[torch.Tensor], voxel: float) -> tuple[Level, torch.Tensor, torch.Tensor]:
     """Quantize a batch of point sets: the finest level (rows in Morton order, scans in order), each
     voxel's mean point (float, (N, 3)), and the voxel row of every input point (for per-point
-    features)."""
+    features). The bookkeeping runs on the points' device."""
+    if points and _by_torch(points[0]):
+        coords, mean, inverse, keys = _voxels_torch(torch.cat(points), [len(q) for q in points], voxel)
+        return Level(coords, 1, keys), mean, inverse
     p = torch.cat(points).numpy()
     batch = np.repeat(np.arange(len(points)), [len(q) for q in points])
     cells = _cells(p, np.float32(voxel), batch)

@@ -40,10 +40,12 @@ from .classifier import (
     ModelConfig,
     level_scan,
     load_checkpoint,
+    model_device,
     model_from_checkpoint,
     model_input,
     model_probabilities,
     save_checkpoint,
+    torch_device,
     up_tensor,
     up_vector,
 )
@@ -264,12 +266,14 @@ def network_parts(
     logits = np.zeros((len(rows), 6))
     features = np.zeros((len(rows), FEATURES * len(model.config.constraint_levels)))
     swapped = np.zeros(len(rows), dtype=bool)
+    device = model_device(model)
     for start, batch, up in _dataset_batches(model, data, rows, seed, batch_size, progress):
-        views, view_up, swap = model.canonical(batch, up_tensor(up))
+        views, view_up, swap = model.canonical([p.to(device) for p in batch], up_tensor(up, device))
         net, feats = model.parts(views, view_up, constraints=True)
-        logits[start : start + len(batch)], features[start : start + len(batch)] = net.numpy(), feats.numpy()
+        logits[start : start + len(batch)] = net.cpu().numpy()
+        features[start : start + len(batch)] = feats.cpu().numpy()
         if swap is not None:
-            swapped[start : start + len(batch)] = swap.numpy()
+            swapped[start : start + len(batch)] = swap.cpu().numpy()
     return logits, features, swapped
 
 
@@ -386,7 +390,7 @@ class _Run:
     poses: np.ndarray  # (N, 4, 4) the scans' poses, whose tilt levels each scan (ModelConfig.level)
     up: np.ndarray | None
     meta: dict[str, Any]
-    model: LocalizabilityNet
+    model: LocalizabilityNet  # on the run's device
     optimizer: torch.optim.Optimizer
     scheduler: torch.optim.lr_scheduler.ExponentialLR
     pool: np.ndarray
@@ -397,11 +401,17 @@ class _Run:
 
 
 def train(
-    dataset: str | Path | list[str | Path], out_dir: str | Path, cfg: TrainConfig, progress: bool = True
+    dataset: str | Path | list[str | Path],
+    out_dir: str | Path,
+    cfg: TrainConfig,
+    progress: bool = True,
+    device: str = "cpu",
 ) -> dict[str, Any]:
     """Train (or resume) into `out_dir` on one dataset or several read as one; returns the
-    summary of the best epoch."""
+    summary of the best epoch. `device`: where the network trains (classifier.torch_device's names);
+    a run may resume on another."""
     check_train_config(cfg)
+    where = torch_device(device)
     # a mesh scene by its absolute path, as its dataset names it, whatever folder the config was written in
     cfg = replace(
         cfg,
@@ -412,7 +422,7 @@ def train(
     data = open_datasets(dataset)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    run = _start(cfg, data, out)
+    run = _start(cfg, data, out, where)
     for epoch in range(run.first_epoch, cfg.epochs):
         t0 = time.perf_counter()
         losses = _train_epoch(run, epoch, progress)
@@ -433,7 +443,7 @@ def train(
     return finalize(data, out, cfg, run.val_rows, run.meta)
 
 
-def _start(cfg: TrainConfig, data: LabelDataset | DatasetUnion, out: Path) -> _Run:
+def _start(cfg: TrainConfig, data: LabelDataset | DatasetUnion, out: Path, device: torch.device) -> _Run:
     """The run in `out`: a new one, or the one its last.pt holds, resumed where it stopped (refused
     where its settings differ)."""
     train_rows, val_rows = _split(data, cfg)
@@ -451,6 +461,7 @@ def _start(cfg: TrainConfig, data: LabelDataset | DatasetUnion, out: Path) -> _R
     else:
         model = _initial_model(cfg)
         dump_yaml(cfg, out / "config.yaml")
+    model.to(device)  # before the optimiser, whose state follows the weights
     optimizer = _optimizer(cfg, model)
     pool = balanced_pool(data.labels[train_rows], cfg.max_upsampling) if cfg.balance else np.arange(len(train_rows))
     run = _Run(
@@ -510,13 +521,15 @@ def _train_epoch(run: _Run, epoch: int, progress: bool) -> list[float]:
             batch.append(model_input(pts, cfg.model, rng))
             targets.append(lab)
             ups.append(up)
-        up_batch = torch.tensor(np.array(ups), dtype=torch.float32) if run.up is not None else None
-        logits, truth = model(batch, up_batch), torch.tensor(np.array(targets), dtype=torch.float32)
+        device = model_device(model)
+        up_batch = up_tensor(np.array(ups), device) if run.up is not None else None
+        logits = model([p.to(device) for p in batch], up_batch)
+        truth = torch.tensor(np.array(targets), dtype=torch.float32, device=device)
         if run.groups is None:
             loss = torch.nn.functional.binary_cross_entropy_with_logits(logits, truth)
-        else:
+        else:  # the families' weights are kept on the CPU
             per_scan = torch.nn.functional.binary_cross_entropy_with_logits(logits, truth, reduction="none").mean(1)
-            loss = run.groups.loss(per_scan, torch.tensor([run.row_family[int(i)] for i in rows]))
+            loss = run.groups.loss(per_scan.cpu(), torch.tensor([run.row_family[int(i)] for i in rows]))
         run.optimizer.zero_grad()
         loss.backward()
         run.optimizer.step()

@@ -219,3 +219,59 @@ def test_voxelize_orders_sites_so_that_coarser_levels_need_no_sort():
         level = coarse
         sizes.append(len(level.coords))
     assert sizes == sorted(sizes, reverse=True) and sizes[-1] < sizes[0] / 2
+
+
+def _scans(seed: int, count: int = 3) -> list[torch.Tensor]:
+    g = torch.Generator().manual_seed(seed)
+    return [(torch.rand(400 + 150 * k, 3, generator=g) - 0.5) * torch.tensor([30.0, 20.0, 6.0]) for k in range(count)]
+
+
+def _levels(points: list[torch.Tensor], depth: int = 3) -> list[tuple]:
+    """voxelize and the coarser levels' tables, as the network builds them (coarser levels first)."""
+    level, mean, inverse = voxelize(points, 0.2)
+    levels = [level]
+    for _ in range(depth):
+        levels.append(levels[-1].coarser()[0])
+    parts = [(mean, inverse)]
+    for lv in levels:
+        parts.append((lv.coords, lv.neighbours(), *(lv.coarser()[1:] if lv is not levels[-1] else ())))
+    return parts
+
+
+def test_the_torch_bookkeeping_gives_the_compiled_loops_tables(monkeypatch):
+    """On a GPU the voxels, kernel maps and parent tables are made by whole-array torch operations;
+    here both ways run on the CPU and must give the same tables (the means to float rounding)."""
+    import l3e_env.model.sparse as sparse
+
+    points = _scans(3)
+    compiled = _levels(points)
+    monkeypatch.setattr(sparse, "_by_torch", lambda t: True)
+    by_torch = _levels(points)
+    assert torch.allclose(compiled[0][0], by_torch[0][0], atol=1e-5) and torch.equal(compiled[0][1], by_torch[0][1])
+    for ours, theirs in zip(compiled[1:], by_torch[1:]):
+        assert all(torch.equal(a, b) for a, b in zip(ours, theirs))
+    sparse_level = Level(torch.tensor([[0, 5, 5, 5], [0, 40000, 0, 0]]), 1)
+    with pytest.raises(ValueError, match="beyond"):
+        sparse_level.neighbours()
+
+
+def test_the_network_answers_alike_by_either_bookkeeping(monkeypatch):
+    """The whole ResUNet (surface rows, information pooling, constraint features) gives the same
+    logits and gradients with the torch bookkeeping as with the compiled loops."""
+    import l3e_env.model.sparse as sparse
+    from l3e_env.model.classifier import LocalizabilityNet, ModelConfig
+
+    torch.manual_seed(0)
+    model = LocalizabilityNet(ModelConfig(pooling="information", surface_rows=True, constraints=True)).eval()
+    points = _scans(5, count=2)
+
+    def run() -> tuple[torch.Tensor, torch.Tensor]:
+        model.zero_grad()
+        logits = model(points)
+        logits.square().sum().backward()
+        return logits.detach(), model.backbone.stem.weight.grad.clone()
+
+    logits, grad = run()
+    monkeypatch.setattr(sparse, "_by_torch", lambda t: True)
+    logits_t, grad_t = run()
+    assert torch.allclose(logits, logits_t, atol=1e-5) and torch.allclose(grad, grad_t, rtol=1e-4, atol=1e-6)
