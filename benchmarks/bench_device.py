@@ -23,7 +23,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from l3e_env.data.dataset import ARRAYS, LabelDataset, label_statistics  # noqa: E402
-from l3e_env.model.classifier import Classifier  # noqa: E402
+from l3e_env.model.classifier import Classifier, ModelConfig  # noqa: E402
 from l3e_env.model.training import TrainConfig, train  # noqa: E402
 
 POINTS = 6000  # per carried scan: more than the 4000 the model reads, so that its sampling still draws
@@ -106,8 +106,10 @@ def inference(folder: Path) -> dict:
 
 
 def training(folder: Path, out: Path, epochs: int) -> dict:
-    """The same short training on the CPU and on the GPU: the two loss curves and the epochs' seconds."""
-    config = TrainConfig(epochs=epochs, samples_per_epoch=96, threads=2)
+    """The same short training on the CPU and on the GPU: the two loss curves and the epochs' seconds.
+    Without dropout, whose masks come from each device's own random generator: the curves then differ
+    by the float rounding of the two devices alone."""
+    config = TrainConfig(model=ModelConfig(dropout=0.0), epochs=epochs, samples_per_epoch=96, threads=2)
     curves = {}
     for device in ("cpu", "cuda"):
         run = out / f"train-{device}"

@@ -153,13 +153,14 @@ def comparable_settings(manifest: dict[str, Any], key: str) -> dict[str, Any]:
 class DatasetUnion:
     """Datasets of one sensor and one registration read as one, e.g. the paper's poses and the
     level operating poses of the same scenes: scenes matched by name, rows in the given order.
-    Offers what training and evaluation read of a LabelDataset."""
+    Offers what training and evaluation read of a LabelDataset. `mixed_sensors`: the parts may come
+    from different sensors (a network trained on several beam patterns), one registration still."""
 
-    def __init__(self, folders: list[str | Path]):
+    def __init__(self, folders: list[str | Path], mixed_sensors: bool = False):
         self.parts = [LabelDataset(f) for f in folders]
         first = self.parts[0].manifest
         for part in self.parts[1:]:
-            for key in ("lidar", "registration"):
+            for key in ("registration",) if mixed_sensors else ("lidar", "registration"):
                 ours, theirs = comparable_settings(first, key), comparable_settings(part.manifest, key)
                 if theirs != ours:
                     raise DatasetError(
@@ -244,10 +245,15 @@ def check_ground_truth(data: LabelDataset | DatasetUnion, use: str) -> None:
             )
 
 
-def open_datasets(folders: str | Path | list[str | Path]) -> LabelDataset | DatasetUnion:
-    """One dataset folder, or several read as one."""
+def open_datasets(folders: str | Path | list[str | Path], mixed_sensors: bool = False) -> LabelDataset | DatasetUnion:
+    """One dataset folder, or several read as one (of several sensors where `mixed_sensors`)."""
     if isinstance(folders, (str, Path)):
         return LabelDataset(folders)
     if not folders:
         raise DatasetError("no dataset folder given")
-    return LabelDataset(folders[0]) if len(folders) == 1 else DatasetUnion(list(folders))
+    return LabelDataset(folders[0]) if len(folders) == 1 else DatasetUnion(list(folders), mixed_sensors)
+
+
+def sensors_of(data: LabelDataset | DatasetUnion) -> list[str]:
+    """The sensors whose scans a dataset holds, in the order of its parts."""
+    return list(dict.fromkeys(str(p.manifest["settings"]["lidar"]["model"]) for p in data.parts))

@@ -613,11 +613,12 @@ class Classifier:
 
     def check_settings(self, lidar_model: str | None = None, registration: dict | None = None) -> None:
         """Warn when the scans or the registration differ from those the labels were made with."""
-        trained = self.meta.get("lidar", {}).get("model")
+        trained = self.meta.get("sensors") or [self.meta.get("lidar", {}).get("model")]
         # the calibrated VLP-16 is the same sensor: its beams leave at most 11 mm off the axis
-        if lidar_model is not None and trained is not None and lidar_model.removesuffix("-calibrated") != trained:
+        if lidar_model is not None and None not in trained and lidar_model.removesuffix("-calibrated") not in trained:
             warnings.warn(
-                f"the classifier was trained on {trained} scans and now sees {lidar_model} scans", stacklevel=2
+                f"the classifier was trained on {', '.join(trained)} scans and now sees {lidar_model} scans",
+                stacklevel=2,
             )
         protocol = self.meta.get("protocol", 1)
         if protocol != LABEL_PROTOCOL:

@@ -29,6 +29,7 @@ from l3e_env.data.dataset import (
     error_ratios,
     open_datasets,
     scan_labelled,
+    sensors_of,
 )
 from scenes import HELDOUT_SCENES, TEST_SCENES, TRAIN_SCENES, VALIDATION_SCENES, canonical_scene_name, scene_family
 
@@ -286,11 +287,12 @@ def _optimizer(cfg: TrainConfig, model: torch.nn.Module) -> torch.optim.Optimize
 
 
 def _label_meta(data: LabelDataset | DatasetUnion) -> dict[str, Any]:
-    """What a checkpoint records of the labels it learnt: their protocol, sensor and registration."""
+    """What a checkpoint records of the labels it learnt: their protocol, sensors and registration."""
     settings = data.manifest["settings"]
     return {
         "protocol": data.manifest["protocol"],
-        "lidar": settings["lidar"],
+        "lidar": settings["lidar"],  # the first part's
+        "sensors": sensors_of(data),
         "registration": settings["registration"],
         "labels": settings["labels"],
     }
@@ -419,7 +421,7 @@ def train(
         validation_scenes=[canonical_scene_name(s) for s in cfg.validation_scenes],
     )
     torch.set_num_threads(cfg.threads)
-    data = open_datasets(dataset)
+    data = open_datasets(dataset, mixed_sensors=True)  # a network may learn several sensors' scans
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     run = _start(cfg, data, out, where)

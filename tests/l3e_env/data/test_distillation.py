@@ -147,3 +147,32 @@ def test_the_randomised_presets_cover_three_sensors_on_disjoint_places():
     assert sum(len(c.scenes) * c.parents_per_scene for c in configs) >= 10_000
     assert [get_pattern(c.lidar.model).n_beams for c in configs] == [16, 32, 128]
     assert {c.labeller for c in configs} == {"scan"} and len({c.seed for c in configs}) == 3
+
+
+def test_a_network_learns_several_sensors_scans_and_says_which(distill_dataset, tiny_dataset, tmp_path):
+    """Distillation sets of a 128-beam and a 16-beam sensor train one network: the checkpoint names
+    both sensors, warns for neither and for a third; evaluation still reads one sensor at a time."""
+    import warnings
+
+    from l3e_env.model.classifier import Classifier
+    from l3e_env.model.training import train
+
+    ouster = tmp_path / "os1"
+    generate(
+        ouster,
+        _distill_config(scenes=["office-10"], parents_per_scene=2, lidar={"model": "os1-128"}),
+        workers=1,
+        progress=False,
+    )
+    with pytest.raises(DatasetError, match="lidar settings"):
+        DatasetUnion([distill_dataset, ouster])
+    cfg = _train_cfg(["tunnel-0", "field-0", "tunnel-10", "office-10"], ["office-0"])
+    train([tiny_dataset, distill_dataset, ouster], tmp_path / "m", cfg, progress=False)
+    clf = Classifier.load(tmp_path / "m" / "model.pt")
+    assert clf.meta["sensors"] == ["vlp16", "os1-128"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        clf.check_settings("os1-128")
+        clf.check_settings("vlp16-calibrated")
+    with pytest.warns(UserWarning, match="trained on vlp16, os1-128 scans and now sees hdl32e"):
+        clf.check_settings("hdl32e")
