@@ -19,7 +19,7 @@ import numpy as np
 
 from l3e_env.config import LidarConfig
 from l3e_env.detection.detectors import make_detector
-from l3e_env.experiments.judge import judge_scans
+from l3e_env.experiments.judge import JudgeOptions, judge_scans
 from l3e_env.io.ouster import read_capture
 from l3e_env.localizability.labels import AXES
 
@@ -40,7 +40,7 @@ def main() -> None:
     masks: dict[str, list[np.ndarray]] = {}
     print("| capture | scans | " + " | ".join(specs) + " |\n|---|---|" + "---|" * len(specs))
     for capture in CAPTURES:
-        judged = [j for j in judge_scans([DATA / capture], specs, seed=args.seed) if not j.error]
+        judged = [j for j in judge_scans([DATA / capture], specs, options=JudgeOptions(seed=args.seed)) if not j.error]
         names = list(judged[0].predictions)
         cells = []
         for name in names:

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from l3e_env.config.detector_spec import DETECTOR_GRAMMAR, detector_spec
 
-from .options import CommandError, sensor_name
+from .options import CommandError, add_device_option, sensor_name
 
 
 def _judge_usage_problem(args: argparse.Namespace) -> str | None:
@@ -57,7 +57,7 @@ def _judge_all(args: argparse.Namespace, scans, specs: list[str]) -> tuple[list,
     """Every scan judged and printed as it is (an unreadable one named, and the next one read); returns
     the judgements and the sensor the scans were read as."""
     from l3e_env.config import LidarConfig
-    from l3e_env.experiments.judge import format_judgement, judge_scans
+    from l3e_env.experiments.judge import JudgeOptions, format_judgement, judge_scans
 
     sensor = [args.sensor]
 
@@ -78,11 +78,9 @@ def _judge_all(args: argparse.Namespace, scans, specs: list[str]) -> tuple[list,
         scans,
         specs,
         LidarConfig(model=args.sensor) if args.sensor else None,
-        seed=args.seed,
-        workers=args.workers,
+        JudgeOptions(args.seed, args.workers, _gravity(args.gravity), args.device),
         on_sensor=recognised,
         sensor_index=args.sensor_index,
-        gravity=_gravity(args.gravity),
     ):
         judgements.append(j)
         stamp = "" if j.stamp is None else f"[t = {j.stamp:.3f} s] "
@@ -113,6 +111,10 @@ def _cmd_judge(args: argparse.Namespace) -> int:
     from l3e_env.io.recordings import read_recording
     from l3e_env.io.rosbag import read_path
 
+    if args.device != "cpu":  # a missing GPU is named before any scan is read
+        from l3e_env.model.classifier import torch_device
+
+        torch_device(args.device)
     problem = _judge_usage_problem(args)
     if problem:
         raise CommandError(problem)
@@ -238,6 +240,7 @@ def _add_judge(sub: argparse._SubParsersAction) -> None:
     _add_judging_options(p)
     p.add_argument("--seed", type=int, default=0, help="seed of scanmc's children")
     p.add_argument("--workers", type=int, default=1, help="scans judged side by side in processes (default 1)")
+    add_device_option(p)
     p.add_argument("--json", help="also write the scores here")
     p.add_argument("--plot", help="also draw the flagged axes scan by scan (over time for a bag) into this image")
     p.set_defaults(func=_cmd_judge)

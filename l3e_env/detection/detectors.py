@@ -262,10 +262,11 @@ class LearnedDetector:
         lidar_model: str | None = None,
         registration: RegistrationConfig | None = None,
         symmetric: bool = False,
+        device: str = "cpu",
     ):
         from l3e_env.model.classifier import Classifier  # torch is imported only when a learned detector is made
 
-        self.classifier = Classifier.load(checkpoint, symmetric=symmetric)
+        self.classifier = Classifier.load(checkpoint, symmetric=symmetric, device=device)
         self.name = ("learned-sym" if symmetric else "learned") + (f":{checkpoint}" if checkpoint else "")
         stored = self.classifier.meta.get("registration")
         # the registration its labels were made with: the pipeline runs the same (pipeline.registration_of)
@@ -369,18 +370,20 @@ def safe_predict(det: Detector, points: np.ndarray, reg, T_w_s: np.ndarray) -> t
         return UNKNOWN, True
 
 
-def make_detector(spec: str, lidar: Lidar | None = None, seed: int = 0, sensor: LidarConfig | None = None) -> Detector:
+def make_detector(
+    spec: str, lidar: Lidar | None = None, seed: int = 0, sensor: LidarConfig | None = None, device: str = "cpu"
+) -> Detector:
     """The detector of `spec` (DETECTOR_GRAMMAR): 'learned' is the shipped model, 'learned-sym' averages
     it over the eight mirror/swap views of each scan, 'learned+scanmc' is the shipped model checked by
     scanmc where it is unsure (CascadeDetector). `sensor`: the LiDAR's settings where there is no scene
     LiDAR (scans read from files): scanmc needs its beams, and the learned detector warns if it differs
-    from training."""
+    from training. `device`: where a learned detector's network runs (classifier.torch_device)."""
     sensor = lidar.config if lidar is not None else sensor
     parsed = parse_detector(spec)
     if parsed.kind == "learned+scanmc":
         margin = CASCADE_MARGIN if parsed.margin is None else parsed.margin
         return CascadeDetector(
-            make_detector("learned", lidar, seed, sensor),  # type: ignore[arg-type]
+            make_detector("learned", lidar, seed, sensor, device),  # type: ignore[arg-type]
             make_detector("scanmc", lidar, seed, sensor),
             margin,
         )  # type: ignore[arg-type]
@@ -404,6 +407,7 @@ def make_detector(spec: str, lidar: Lidar | None = None, seed: int = 0, sensor: 
         parsed.checkpoint,
         lidar_model=sensor.model if sensor is not None else None,
         symmetric=parsed.kind == "learned-sym",
+        device=device,
     )
 
 

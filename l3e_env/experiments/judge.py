@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Callable, Iterable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from itertools import chain
 from pathlib import Path
 
@@ -65,6 +65,18 @@ class Judgement:
     frame: str | None = None  # how the cloud was turned into its sensor's lidar frame, where it was
     sensor: str | None = None  # the beam pattern it was judged with, where there was one
     up: str | None = None  # where the up direction (the level frame's z) came from, and the sensor's tilt
+
+
+@dataclass(frozen=True)
+class JudgeOptions:
+    """How a run judges its scans: scanmc's seed, the scans judged at a time, the up direction in the
+    sensor's frame ((3,) for every scan or (N, 3) one per scan in order; None: each scan's ground
+    plane's fit, `up_direction`), and where a learned detector's network runs."""
+
+    seed: int = 0
+    workers: int = 1
+    gravity: np.ndarray | None = None
+    device: str = "cpu"
 
 
 MAX_UP_FROM_GROUND_DEG = 60.0  # a given up direction this far from the ground plane's normal is refused
@@ -152,12 +164,12 @@ class _Panel:
         self,
         specs: list[str],
         sensor: LidarConfig,
-        seed: int,
         pattern: BeamPattern | None,
         given: bool,
-        gravity: np.ndarray | None = None,
+        options: JudgeOptions,
     ) -> None:
-        self.specs, self.seed, self.pattern, self.given, self.gravity = specs, seed, pattern, given, gravity
+        self.specs, self.pattern, self.given, self.options = specs, pattern, given, options
+        self.seed, self.gravity = options.seed, options.gravity
         self._detectors: dict[str, list[Detector]] = {}
         self.detectors(pattern, sensor)  # a bad spec fails here, before any scan is read
 
@@ -167,7 +179,9 @@ class _Panel:
             if pattern is not None:
                 register_pattern(pattern)
             sensor = sensor or LidarConfig(model=pattern.name if pattern is not None else LidarConfig().model)
-            self._detectors[key] = [make_detector(spec, seed=self.seed, sensor=sensor) for spec in self.specs]
+            self._detectors[key] = [
+                make_detector(spec, seed=self.seed, sensor=sensor, device=self.options.device) for spec in self.specs
+            ]
         return self._detectors[key]
 
     def own_pattern(self, points: np.ndarray) -> BeamPattern | None:
@@ -301,25 +315,21 @@ def judge_scans(
     scans: Iterable[str | Path | RecordedScan],
     specs: list[str],
     sensor: LidarConfig | None = None,
-    seed: int = 0,
-    workers: int = 1,
+    options: JudgeOptions = JudgeOptions(),
     on_sensor: Callable[[BeamPattern, str], None] | None = None,
     sensor_index: int | None = None,
-    gravity: np.ndarray | None = None,
 ) -> Iterator[Judgement]:
     """Judge each scan, a file to read (an Ouster capture read scan by scan, `read_capture`, with the
     metadata JSON given as `sensor` where there is one) or a recording's scan (`read_bag`), with each detector
     (config.detector_spec.DETECTOR_GRAMMAR; make_detector refuses the oracle,
     which needs a scene), after dropping its points without a return, in the order given,
-    `workers` scans at a time. Without `sensor`, a detector that needs one gets the pattern
+    `options.workers` scans at a time. Without `sensor`, a detector that needs one gets the pattern
     recognised from the first scans (the default where none fits), reported to `on_sensor`
     with what was found or why not. An Ouster capture of several sensors gives every sensor's scans, each
     judged with its own sensor's detectors, or `sensor_index`'s only. A scan that cannot be read gives a
-    Judgement with its `error`, and the next one is read. `gravity`: the up direction in the sensor's frame,
-    (3,) for every scan or (N, 3) one per scan in order; None: each scan's ground plane's fit
-    (`up_direction`)."""
-    if workers < 1:
-        raise ValueError(f"workers must be at least 1, got {workers}")
+    Judgement with its `error`, and the next one is read. `options`: see JudgeOptions."""
+    if options.workers < 1:
+        raise ValueError(f"workers must be at least 1, got {options.workers}")
     metadata = sensor.model if sensor and sensor.model.lower().endswith(".json") else None
     scans = expand_captures(scans, metadata, sensor_index)
     pattern = None
@@ -334,12 +344,13 @@ def judge_scans(
     given = sensor is not None
     # a sensor not recognised is taken as the default; scanmc answers unknown for scans not of it
     sensor = sensor or LidarConfig(model=pattern.name if pattern else LidarConfig().model)
-    gravity = None if gravity is None else np.asarray(gravity, dtype=np.float64)
+    gravity = None if options.gravity is None else np.asarray(options.gravity, dtype=np.float64)
     if gravity is not None and gravity.shape != (3,) and (gravity.ndim != 2 or gravity.shape[1] != 3):
         raise ValueError(f"gravity is one up vector (3,) or one per scan (N, 3), got shape {gravity.shape}")
-    panel = _Panel(specs, sensor, seed, pattern, given, gravity)
+    options = replace(options, gravity=gravity)
+    panel = _Panel(specs, sensor, pattern, given, options)
     jobs = ((i, scan if isinstance(scan, RecordedScan) else str(scan)) for i, scan in enumerate(scans))
-    yield from ordered_map(_judge_job, jobs, panel, _Panel, (specs, sensor, seed, pattern, given, gravity), workers)
+    yield from ordered_map(_judge_job, jobs, panel, _Panel, (specs, sensor, pattern, given, options), options.workers)
 
 
 def _width(name: str) -> int:

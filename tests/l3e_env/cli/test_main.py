@@ -2,6 +2,7 @@ import subprocess
 import sys
 
 import pytest
+import torch
 import yaml
 
 from l3e_env.cli.main import build_parser, main
@@ -286,3 +287,22 @@ def test_every_command_reports_an_error_one_way(tmp_path, capsys):
         assert main(argv) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert err == [err[0]] and err[0].startswith(said), (argv, err)
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="a GPU is present: --device cuda runs")
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["train", "--dataset", "{tmp}/nowhere", "--out", "{tmp}/run"],
+        ["evaluate", "--dataset", "{tmp}/nowhere", "--out", "{tmp}/run"],
+        ["judge", "{tmp}/scan.npy", "--detector", "learned"],
+    ],
+)
+def test_a_missing_gpu_is_named_in_one_line_before_anything_is_read(argv, tmp_path, capsys):
+    """--device cuda on a machine without a GPU: one line naming the fix, exit 2, nothing written."""
+    assert main([a.format(tmp=tmp_path) for a in argv] + ["--device", "cuda"]) == 2
+    said = capsys.readouterr().err.strip().splitlines()
+    assert len(said) == 1 and "sees no CUDA GPU" in said[0] and "--device cpu" in said[0]
+    assert not (tmp_path / "run").exists()
+    assert main([a.format(tmp=tmp_path) for a in argv] + ["--device", "tpu"]) == 2
+    assert "unknown device 'tpu'" in capsys.readouterr().err

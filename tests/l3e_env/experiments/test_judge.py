@@ -8,7 +8,7 @@ import trimesh
 
 from l3e_env.cli.main import main
 from l3e_env.config import LidarConfig
-from l3e_env.experiments.judge import format_judgement, judge_scans
+from l3e_env.experiments.judge import JudgeOptions, format_judgement, judge_scans
 from l3e_env.io.scan_files import ScanFileError, read_scan
 from l3e_env.sim.lidar import Lidar
 from l3e_env.sim.raycast import EmbreeCaster
@@ -173,7 +173,7 @@ def test_files_judged_by_two_workers_are_judged_alike_and_in_order(tmp_path, rng
     np.save(tmp_path / "c.npy", _corridor_scan(rng))
     paths = [tmp_path / n for n in ("a.npy", "b.npy", "c.npy")]
     alone = list(judge_scans(paths, ["scanmc:4", "eigen:30"]))
-    shared = list(judge_scans(paths, ["scanmc:4", "eigen:30"], workers=2))
+    shared = list(judge_scans(paths, ["scanmc:4", "eigen:30"], options=JudgeOptions(workers=2)))
     assert [j.path for j in shared] == [str(p) for p in paths] and "b.npy" in shared[1].error
     for a, b in zip(alone, shared):
         assert a.predictions.keys() == b.predictions.keys()
@@ -181,7 +181,7 @@ def test_files_judged_by_two_workers_are_judged_alike_and_in_order(tmp_path, rng
             assert np.array_equal(a.predictions[name].probabilities, b.predictions[name].probabilities)
     assert shared[0].predictions["scanmc:4"].mask.tolist() == [True] + [False] * 5
     with pytest.raises(ValueError, match="workers must be at least 1"):
-        list(judge_scans(paths, ["none"], workers=0))
+        list(judge_scans(paths, ["none"], options=JudgeOptions(workers=0)))
 
 
 def test_the_cascade_judges_a_file_with_the_estimate_where_it_is_unsure(tmp_path, rng):
@@ -282,8 +282,10 @@ def test_a_tilted_scan_is_judged_in_its_level_frame_from_the_given_up_or_the_gro
     np.save(tmp_path / "tilted.npy", points)
     specs = ["eigen:30", "dcreg:10", "xicp:100"]
     (fitted,) = judge_scans([tmp_path / "tilted.npy"], specs)
-    (given,) = judge_scans([tmp_path / "tilted.npy"], specs, gravity=up)
-    (unlevelled,) = judge_scans([tmp_path / "tilted.npy"], specs, gravity=np.array([0.0, 0.0, 1.0]))
+    (given,) = judge_scans([tmp_path / "tilted.npy"], specs, options=JudgeOptions(gravity=up))
+    (unlevelled,) = judge_scans(
+        [tmp_path / "tilted.npy"], specs, options=JudgeOptions(gravity=np.array([0.0, 0.0, 1.0]))
+    )
     assert "ground plane's fit, the sensor tilted 12.0 deg" in fitted.up and "as given" in given.up
     for judged in (fitted, given):
         for name in ("eigen:30", "dcreg:10"):
@@ -298,14 +300,20 @@ def test_a_tilted_scan_is_judged_in_its_level_frame_from_the_given_up_or_the_gro
 def test_bad_up_directions_are_refused_by_name(tmp_path, rng, capsys):
     points, up = _tilted_corridor_scan(rng, 0.0)
     np.save(tmp_path / "scan.npy", points)
-    (down,) = judge_scans([tmp_path / "scan.npy"], ["eigen:30"], gravity=np.array([1.0, 0.0, 0.1]))
+    (down,) = judge_scans(
+        [tmp_path / "scan.npy"], ["eigen:30"], options=JudgeOptions(gravity=np.array([1.0, 0.0, 0.1]))
+    )
     assert down.error and "deg from the scan's ground plane" in down.error and not down.predictions
-    (zero,) = judge_scans([tmp_path / "scan.npy"], ["eigen:30"], gravity=np.zeros(3))
+    (zero,) = judge_scans([tmp_path / "scan.npy"], ["eigen:30"], options=JudgeOptions(gravity=np.zeros(3)))
     assert zero.error and "up vector is zero" in zero.error
     rows = tmp_path / "up.txt"
     rows.write_text("0 0 1\n")
     judged = list(
-        judge_scans([tmp_path / "scan.npy", tmp_path / "scan.npy"], ["eigen:30"], gravity=np.loadtxt(rows, ndmin=2))
+        judge_scans(
+            [tmp_path / "scan.npy", tmp_path / "scan.npy"],
+            ["eigen:30"],
+            options=JudgeOptions(gravity=np.loadtxt(rows, ndmin=2)),
+        )
     )
     assert judged[0].error is None and "scan 2 has none" in judged[1].error
     assert main(["judge", str(tmp_path / "scan.npy"), "--detector", "eigen:30", "--gravity", "0,0,nan"]) == 2
@@ -320,7 +328,7 @@ def test_bad_up_directions_are_refused_by_name(tmp_path, rng, capsys):
 def test_a_scan_a_detector_cannot_judge_is_told_with_the_detectors_own_reason(tmp_path, rng):
     points = _corridor_scan(rng)
     np.save(tmp_path / "few.npy", points[:40])
-    (few,) = judge_scans([tmp_path / "few.npy"], ["learned"], gravity=np.array([0.0, 0.0, 1.0]))
+    (few,) = judge_scans([tmp_path / "few.npy"], ["learned"], options=JudgeOptions(gravity=np.array([0.0, 0.0, 1.0])))
     assert not few.predictions["learned"].known
     assert "cannot judge this scan (the scan has 40 points; the classifier needs at least 50)" in format_judgement(few)
     thinned = tmp_path / "thinned.npy"

@@ -12,7 +12,7 @@ import trimesh
 from l3e_env.cli.main import main
 from l3e_env.config import LidarConfig
 from l3e_env.core.transforms import pose_to_matrix
-from l3e_env.experiments.judge import format_judgement, judge_scans, recognise_sensor
+from l3e_env.experiments.judge import JudgeOptions, format_judgement, judge_scans, recognise_sensor
 from l3e_env.localizability.scan_mc import range_image_mesh
 from l3e_env.sim.lidar import Lidar
 from l3e_env.sim.patterns import (
@@ -401,7 +401,9 @@ def test_judge_recognises_the_sensor_or_takes_a_pattern_file_for_scanmc(tmp_path
         f"min_range: 0.3\nazimuth_offsets_deg: {[float(a) for a in OUSTER_LIKE.azimuth_offsets_deg]}\n"
         "beam_origin_offset: 0.027\n"
     )
-    [given] = judge_scans([tmp_path / "scan.npy"], ["scanmc:4"], LidarConfig(model=str(spec)), workers=2)
+    [given] = judge_scans(
+        [tmp_path / "scan.npy"], ["scanmc:4"], LidarConfig(model=str(spec)), options=JudgeOptions(workers=2)
+    )
     a, b = auto.predictions["scanmc:4"].probabilities, given.predictions["scanmc:4"].probabilities
     assert given.predictions["scanmc:4"].known and np.abs(a - b).max() < 0.15
     out = tmp_path / "j.json"
