@@ -6,7 +6,7 @@ import argparse
 import time
 from pathlib import Path
 
-from .options import add_device_option
+from .options import add_device_option, sensor_name
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
@@ -365,8 +365,61 @@ def _add_fit_constraints(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_cmd_fit_constraints)
 
 
+def _cmd_adapt(args: argparse.Namespace) -> int:
+    from l3e_env.experiments.adapt import AdaptOptions, adapt, describe
+
+    given = {
+        "checkpoint": args.checkpoint,
+        "sensor": args.sensor,
+        "place": args.place,
+        "every": args.every,
+        "max_scans": args.max_scans,
+        "children": args.children,
+        "epochs": args.epochs,
+        "samples_per_epoch": args.samples_per_epoch,
+        "learning_rate": args.lr,
+        "workers": args.workers,
+        "seed": args.seed,
+        "device": args.device,
+    }
+    options = AdaptOptions(**{k: v for k, v in given.items() if v is not None})
+    for line in describe(adapt(args.scans, args.out, options, progress=not args.quiet)):
+        print(line)
+    return 0
+
+
+def _add_adapt(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "adapt",
+        help="adapt the classifier to a new place from its own scans: scanmc labels them, the network is fine-tuned",
+    )
+    p.add_argument(
+        "--scans",
+        required=True,
+        help="the place's scans: a folder of scan files, an Ouster capture (.osf .pcap) or a ROS bag (at least 20)",
+    )
+    p.add_argument(
+        "--out", required=True, help="run folder; model.pt is the adapted model (an unfinished run is resumed)"
+    )
+    p.add_argument("--checkpoint", help="the model to adapt (default: the shipped model); trained on the scans' sensor")
+    p.add_argument("--sensor", type=sensor_name, help="the scans' sensor (default: a recording's own, else recognised)")
+    p.add_argument("--place", help="the place's name among the model's training scenes (default: the folder's name)")
+    p.add_argument("--every", type=int, help="of a recording, every k-th scan (default 1)")
+    p.add_argument("--max-scans", type=int, dest="max_scans", help="at most this many scans (default 240)")
+    p.add_argument("--children", type=int, help="scanmc's children per scan, at most (default 60)")
+    p.add_argument("--epochs", type=int, help="fine-tuning epochs (default 6)")
+    p.add_argument("--samples-per-epoch", type=int, dest="samples_per_epoch", help="default 160")
+    p.add_argument("--lr", type=float, help="the fine-tune's learning rate (default 3e-4)")
+    p.add_argument("--workers", type=int, help="processes labelling scans side by side (default 2)")
+    p.add_argument("--seed", type=int)
+    add_device_option(p)
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=_cmd_adapt)
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     _add_train(sub)
+    _add_adapt(sub)
     _add_evaluate(sub)
     _add_calibrate(sub)
     _add_fit_constraints(sub)

@@ -184,62 +184,29 @@ class _Panel:
             ]
         return self._detectors[key]
 
-    def own_pattern(self, points: np.ndarray) -> BeamPattern | None:
-        """A scan file's own sensor, recognised from its returns (files given together may come from
-        several sensors); None where it cannot be told, and the run's sensor is used."""
-        try:
-            return fit_pattern(points)[0]
-        except PatternError:
-            return None
-
     def judge(self, index: int, source: str | Path | RecordedScan) -> Judgement:
         """A scan file read, or a recording's scan, and judged; scanmc's children are seeded by the
-        scan's place in the list, so that a scan is judged alike alone or in a worker. A cloud of a
-        sensor whose SDK gives another frame (an Ouster's, `pattern.lidar_to_sensor`) is judged in the
-        lidar frame. A recording's own sensor is used where the run was not given one."""
-        pattern = self.pattern
-        if isinstance(source, RecordedScan):
-            name, stamp, points, error, frame = source.name, source.stamp, source.points, source.error, source.frame
-            if source.pattern is not None and not self.given:
-                pattern = source.pattern
-        else:
-            name, stamp, error, frame = str(source), None, None, None
-            try:
-                points = read_scan(source)
-            except ScanFileError as exc:
-                error = str(exc)
-        if error is None and (many := too_many_points(len(points))) is not None:
-            error = f"{name}: {many}"
-        if error is not None:
-            return Judgement(name, 0, 0, {}, error=error, stamp=stamp)
-        kept = np.isfinite(points).all(axis=1) & (np.abs(points).sum(axis=1) > 0)
-        returns, dropped = points[kept], int((~kept).sum())
-        far = out_of_reach(returns)
-        if far is not None:
-            return Judgement(name, len(returns), dropped, {}, error=f"{name}: {far}", stamp=stamp)
-        if not isinstance(source, RecordedScan) and not self.given and needs_sensor(self.specs):
-            pattern = self.own_pattern(returns) or pattern
-        if pattern is not None:
-            try:
-                returns, note = in_lidar_frame(returns, pattern)
-            except PatternError as exc:
-                return Judgement(name, len(returns), dropped, {}, error=f"{name}: {exc}", stamp=stamp)
-            frame = note or frame
+        scan's place in the list, so that a scan is judged alike alone or in a worker (see read_levelled)."""
         try:
-            up, how = up_direction(returns, self.gravity_of(index))
-        except ValueError as exc:  # an UpError, or an up vector level_rotation refuses
-            return Judgement(name, len(returns), dropped, {}, error=f"{name}: {exc}", stamp=stamp, frame=frame)
-        detectors = self.detectors(pattern)
+            gravity = self.gravity_of(index)
+        except UpError as exc:
+            return Judgement(
+                str(getattr(source, "name", source)), 0, 0, {}, error=f"{getattr(source, 'name', source)}: {exc}"
+            )
+        scan = read_levelled(source, self.pattern, self.given, gravity, needs_sensor(self.specs))
+        if scan.error is not None:
+            return Judgement(scan.name, len(scan.points), scan.dropped, {}, scan.error, scan.stamp, scan.frame)
+        detectors = self.detectors(scan.pattern)
         rng = np.random.default_rng([self.seed, index])
         return Judgement(
-            name,
-            len(returns),
-            dropped,
-            judge_points(returns, detectors, rng=rng, T_w_s=level_pose(up)),
-            stamp=stamp,
-            frame=frame,
-            sensor=pattern.name if pattern is not None else None,
-            up=how,
+            scan.name,
+            len(scan.points),
+            scan.dropped,
+            judge_points(scan.points, detectors, rng=rng, T_w_s=level_pose(scan.up)),
+            stamp=scan.stamp,
+            frame=scan.frame,
+            sensor=scan.pattern.name if scan.pattern is not None else None,
+            up=scan.how,
         )
 
     def gravity_of(self, index: int) -> np.ndarray | None:
@@ -249,6 +216,76 @@ class _Panel:
         if index >= len(self.gravity):
             raise UpError(f"--gravity gives {len(self.gravity)} up directions, one per scan; scan {index + 1} has none")
         return self.gravity[index]
+
+
+@dataclass
+class LevelledScan:
+    """A scan read as the detectors judge it: its returns in the sensor's lidar frame, its up direction
+    and where that came from; or why it cannot be judged (`error`, and then no points)."""
+
+    name: str
+    points: np.ndarray
+    dropped: int = 0
+    stamp: float | None = None
+    frame: str | None = None
+    pattern: BeamPattern | None = None
+    up: np.ndarray | None = None
+    how: str | None = None
+    error: str | None = None
+
+
+def _read_points(source: str | Path | RecordedScan) -> tuple[str, float | None, np.ndarray | None, str | None]:
+    """A scan file's or a recording scan's name, stamp, points, and the error where it has none."""
+    if isinstance(source, RecordedScan):
+        return source.name, source.stamp, source.points, source.error
+    try:
+        return str(source), None, read_scan(source), None
+    except ScanFileError as exc:
+        return str(source), None, None, str(exc)
+
+
+def read_levelled(
+    source: str | Path | RecordedScan,
+    pattern: BeamPattern | None,
+    given: bool,
+    gravity: np.ndarray | None,
+    own_pattern: bool,
+) -> LevelledScan:
+    """A scan file read, or a recording's scan, its points without a return dropped. A cloud of a
+    sensor whose SDK gives another frame (an Ouster's, `pattern.lidar_to_sensor`) is put in the lidar
+    frame. The sensor: `pattern` where `given`, else a recording's own, else (`own_pattern`) the one
+    recognised from a file's returns, else `pattern`. The up direction: `gravity`, else the ground's fit."""
+    name, stamp, points, error = _read_points(source)
+    frame = source.frame if isinstance(source, RecordedScan) else None
+    if isinstance(source, RecordedScan) and source.pattern is not None and not given:
+        pattern = source.pattern
+    if error is None and (many := too_many_points(len(points))) is not None:
+        error = f"{name}: {many}"
+    if error is not None or points is None:
+        return LevelledScan(name, np.zeros((0, 3)), stamp=stamp, error=error or f"{name}: no points")
+    kept = np.isfinite(points).all(axis=1) & (np.abs(points).sum(axis=1) > 0)
+    scan = LevelledScan(name, points[kept], int((~kept).sum()), stamp, frame, pattern)
+    if (far := out_of_reach(scan.points)) is not None:
+        return replace(scan, error=f"{name}: {far}")
+    if own_pattern and not isinstance(source, RecordedScan) and not given:
+        scan.pattern = _recognised(scan.points) or pattern
+    try:
+        if scan.pattern is not None:
+            scan.points, note = in_lidar_frame(scan.points, scan.pattern)
+            scan.frame = note or frame
+        scan.up, scan.how = up_direction(scan.points, gravity)
+    except (PatternError, ValueError) as exc:  # an UpError, or an up vector level_rotation refuses
+        return replace(scan, error=f"{name}: {exc}")
+    return scan
+
+
+def _recognised(points: np.ndarray) -> BeamPattern | None:
+    """A scan file's own sensor, recognised from its returns (files given together may come from
+    several sensors); None where it cannot be told, and the run's sensor is used."""
+    try:
+        return fit_pattern(points)[0]
+    except PatternError:
+        return None
 
 
 def _judge_job(panel: _Panel, job: tuple[int, str | RecordedScan]) -> Judgement:

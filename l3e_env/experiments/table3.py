@@ -29,7 +29,7 @@ from l3e_env.localizability.registration import (
     scan_hessian,
 )
 from l3e_env.localizability.scan_mc import ScanMCConfig
-from l3e_env.model.classifier import Classifier
+from l3e_env.model.classifier import Classifier, load_checkpoint
 from l3e_env.model.scores import (
     MIN_POSITIVES,
     axis_scores,
@@ -187,8 +187,17 @@ class Scoreboard:
     detector) and column, the PR curves of the checkpoints; a split's family and region columns are
     found once and shared by every model."""
 
-    def __init__(self, results: dict[str, Any], others: dict[str, LabelDataset], options: Table3Options):
+    def __init__(
+        self,
+        results: dict[str, Any],
+        others: dict[str, LabelDataset],
+        options: Table3Options,
+        seen: set[str] | None = None,
+    ):
         self.results, self.others, self.options = results, others, options
+        # each other dataset's rows of scenes no checkpoint was trained or adapted on: every detector is
+        # scored on these alone, so an adapted model is never scored on the scans it was adapted on
+        self.other_rows = {column: unseen_rows(d, seen or set()) for column, d in others.items()}
         self.table: dict[str, dict[str, dict[str, np.ndarray]]] = {}
         self.curves: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = {}
         self.intervals: dict[tuple[str, str], dict[str, tuple[float, float]]] = {}
@@ -270,6 +279,7 @@ def run_table3(
     if data is not None:
         check_ground_truth(data, "score a classifier against (score the training scenes' own datasets)")
     others = other_columns(options.others)
+    seen = seen_scenes(checkpoints)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)  # once every dataset is read: a run refused leaves no folder
     board = Scoreboard(
@@ -279,9 +289,11 @@ def run_table3(
             "symmetric": options.symmetric,
             "int8": options.int8,
             "models": {},
+            "left_out": {c: sorted(set(d.manifest["scenes"]) & seen) for c, d in others.items()},
         },
         others,
         options,
+        seen,
     )
     first_splits = score_checkpoints(board, checkpoints, data, progress)
     score_hessian_detectors(board, first_splits, progress)
@@ -291,6 +303,20 @@ def run_table3(
     text = table_text(board, estimates)
     written = write_table3(board, text, out)
     return Table3Result(board.results, text, written)
+
+
+def seen_scenes(checkpoints: list[str | Path]) -> set[str]:
+    """The scenes any of the checkpoints was trained (or adapted, `l3e adapt`) on."""
+    seen: set[str] = set()
+    for path in checkpoints:
+        seen.update((load_checkpoint(path).get("training") or {}).get("train_scenes") or [])
+    return seen
+
+
+def unseen_rows(data: LabelDataset, seen: set[str]) -> np.ndarray:
+    """The rows of a dataset whose scene is not among `seen`."""
+    fresh = np.array([name not in seen for name in data.manifest["scenes"]], dtype=bool)
+    return np.flatnonzero(fresh[np.asarray(data.arrays["scene"])])
 
 
 def other_columns(others: list[str | Path]) -> dict[str, LabelDataset]:
@@ -309,7 +335,7 @@ def score_checkpoints(
     which the detectors without a checkpoint are scored (the others' alone without a checkpoint)."""
     options = board.options
     first_splits: dict[str, Split] = (
-        {} if checkpoints else {column: (d, np.arange(len(d))) for column, d in board.others.items()}
+        {} if checkpoints else {column: (d, board.other_rows[column]) for column, d in board.others.items()}
     )
     for path in map(Path, checkpoints):
         clf = Classifier.load(path, symmetric=options.symmetric, int8=options.int8, device=options.device)
@@ -319,7 +345,7 @@ def score_checkpoints(
             if data is None
             else {split: (data, rows) for split, rows in split_rows(data, clf.meta["training"]).items()}
         )
-        splits.update({column: (d, np.arange(len(d))) for column, d in board.others.items()})
+        splits.update({column: (d, board.other_rows[column]) for column, d in board.others.items()})
         splits = {split: (ds, rows) for split, (ds, rows) in splits.items() if len(rows)}
         first_splits = first_splits or splits
         board.add_model(name, {"checkpoint": str(path), "thresholds": clf.thresholds.tolist()})
@@ -559,6 +585,9 @@ def table_text(board: Scoreboard, estimates: ScanEstimates) -> str:
                 )
                 + "\n"
             )
+    for column, scenes in board.results.get("left_out", {}).items():
+        if scenes:
+            text += f"{column}: {', '.join(scenes)} left out (a checkpoint was trained or adapted there)\n"
     if options.symmetric:
         text = "probabilities averaged over the eight mirror/swap views of each scan\n" + text
     return text

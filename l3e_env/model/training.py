@@ -655,7 +655,7 @@ def calibrate_symmetric(
     return thresholds
 
 
-def _with_fitted_layer(
+def with_fitted_layer(
     base: LocalizabilityNet,
     data: LabelDataset | DatasetUnion,
     rows: np.ndarray,
@@ -717,7 +717,7 @@ def fit_constraints(
         raise TrainingError(f"the dataset holds no scans of {checkpoint}'s training or validation scenes")
     Path(out).parent.mkdir(parents=True, exist_ok=True)  # before minutes of fitting, not after
     seed = int(training.get("seed", 0))
-    model, stacker = _with_fitted_layer(base, data, train_rows, seed, (tuple(levels), frame), progress)
+    model, stacker = with_fitted_layer(base, data, train_rows, seed, (tuple(levels), frame), progress)
     beta = float(state.get("threshold_beta", 1.0) if beta is None else beta)
     val_labels, val_probs = data.labels[val_rows], predict_dataset(model, data, val_rows, seed)
     thresholds = best_thresholds(val_labels, val_probs, beta=beta)
