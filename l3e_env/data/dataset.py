@@ -76,6 +76,85 @@ def format_statistics(stats: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def _refuse(where: Path, problems: list[str]) -> None:
+    if problems:
+        raise DatasetError(
+            f"{where}: {'; '.join(problems)}; the dataset is damaged or not this version's: generate it again"
+        )
+
+
+def _is_int(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _thresholds_problem(labels: Any) -> str | None:
+    parts = labels if isinstance(labels, list) else [labels]
+    for part in parts:
+        t = part.get("thresholds") if isinstance(part, dict) else None
+        ok = isinstance(t, list) and len(t) == 6 and all(isinstance(v, (int, float)) and v > 0 for v in t)
+        if not ok:
+            return f"settings.labels.thresholds must be six positive numbers, not {t!r}"
+    return None
+
+
+def manifest_problems(manifest: dict[str, Any]) -> list[str]:
+    """What a finished dataset's manifest.json holds that this version cannot read (its schema)."""
+    problems = []
+    if manifest.get("format_version", FORMAT_VERSION) != FORMAT_VERSION:
+        problems.append(f"format_version {manifest.get('format_version')!r} (this version reads {FORMAT_VERSION})")
+    settings = manifest.get("settings")
+    if not isinstance(settings, dict):
+        return [*problems, f"settings must be a mapping, not {settings!r}"]
+    for key in ("lidar", "registration"):
+        if not isinstance(settings.get(key), dict):
+            problems.append(f"settings.{key} must be a mapping, not {settings.get(key)!r}")
+    if isinstance(settings.get("lidar"), dict) and not isinstance(settings["lidar"].get("model"), str):
+        problems.append(f"settings.lidar.model must be a sensor's name, not {settings['lidar'].get('model')!r}")
+    if (problem := _thresholds_problem(settings.get("labels"))) is not None:
+        problems.append(problem)
+    scenes = manifest.get("scenes")
+    if not isinstance(scenes, list) or not scenes or not all(isinstance(s, str) for s in scenes):
+        problems.append(f"scenes must be a list of scene names, not {scenes!r}")
+    if not _is_int(manifest.get("count")) or manifest["count"] < 0:
+        problems.append(f"count must be a whole number of scans, not {manifest.get('count')!r}")
+    return problems
+
+
+def array_problems(arrays: dict[str, np.ndarray], manifest: dict[str, Any]) -> list[str]:
+    """What the arrays hold that no generation writes: shapes, types, labels other than 0 and 1,
+    offsets or scene indices out of range (each a pass over the small arrays; the points are not read)."""
+    n, scenes = manifest["count"], len(manifest["scenes"])
+    expected = {
+        "labels": ((n, 6), "iub"),
+        "errors": ((n, 6), "f"),
+        "poses": ((n, 4, 4), "f"),
+        "offsets": ((n + 1,), "iu"),
+        "scene": ((n,), "iu"),
+        "children_failed": ((n,), "iu"),
+    }
+    problems = [
+        f"{k}.npy is {a.dtype} {a.shape}, not {shape} of {kinds}"
+        for k, (shape, kinds) in expected.items()
+        if (a := arrays[k]).shape != shape or a.dtype.kind not in kinds
+    ]
+    points = arrays["points"]
+    if points.ndim != 2 or points.shape[1] != 3 or points.dtype.kind != "f":
+        problems.append(f"points.npy is {points.dtype} {points.shape}, not (M, 3) floats")
+    if problems:  # the checks below read these arrays
+        return problems
+    labels, offsets, scene = np.asarray(arrays["labels"]), np.asarray(arrays["offsets"]), np.asarray(arrays["scene"])
+    if not np.isin(labels, (0, 1)).all():
+        others = sorted({float(v) for v in np.unique(labels)} - {0.0, 1.0})[:5]
+        problems.append(f"labels.npy holds values other than 0 and 1: {[f'{v:g}' for v in others]}")
+    if not (np.isfinite(arrays["errors"]).all() and np.isfinite(arrays["poses"]).all()):
+        problems.append("errors.npy or poses.npy holds NaN or infinite values")
+    if n and (offsets[0] != 0 or offsets[-1] != len(points) or (np.diff(offsets) < 0).any()):
+        problems.append(f"offsets.npy does not cut the {len(points)} points into scans (from 0, rising, to the end)")
+    if n and (scene.min() < 0 or scene.max() >= scenes):
+        problems.append(f"scene.npy holds indices outside the manifest's {scenes} scenes")
+    return problems
+
+
 class LabelDataset:
     """Random access to a finished dataset through memory maps."""
 
@@ -91,6 +170,7 @@ class LabelDataset:
         if not isinstance(self.manifest, dict) or not self.manifest.get("complete"):
             raise DatasetError(f"{self.folder}: generation has not finished; run the same command again to resume")
         check_protocol(self.manifest, self.folder, "read it")
+        _refuse(self.folder / "manifest.json", manifest_problems(self.manifest))
         self.arrays = {}
         for k in ARRAYS:
             try:
@@ -99,6 +179,7 @@ class LabelDataset:
                 raise DatasetError(
                     f"{self.folder / f'{k}.npy'} cannot be read ({exc}); the dataset is damaged: generate it again"
                 ) from exc
+        _refuse(self.folder, array_problems(self.arrays, self.manifest))
 
     def __len__(self) -> int:
         return len(self.arrays["labels"])

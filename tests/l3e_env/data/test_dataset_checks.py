@@ -1,0 +1,83 @@
+"""A dataset is checked once where it is opened: a tampered manifest or array is refused by name."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from l3e_env.data.dataset import DatasetError, LabelDataset
+
+
+def _copy(tiny_dataset, tmp_path):
+    folder = tmp_path / "d"
+    if folder.exists():
+        shutil.rmtree(folder)
+    shutil.copytree(tiny_dataset, folder)
+    return folder
+
+
+def _manifest(folder, change):
+    path = folder / "manifest.json"
+    manifest = json.loads(path.read_text())
+    change(manifest)
+    path.write_text(json.dumps(manifest))
+
+
+def _array(folder, name, change):
+    array = np.load(folder / f"{name}.npy")
+    np.save(folder / f"{name}.npy", change(array))
+
+
+MANIFESTS = {
+    "format_version": (lambda m: m.update(format_version=99), "format_version 99"),
+    "settings": (lambda m: m.update(settings=None), "settings must be a mapping"),
+    "lidar": (lambda m: m["settings"].update(lidar="vlp16"), "settings.lidar must be a mapping"),
+    "thresholds": (lambda m: m["settings"]["labels"].update(thresholds=[0.04] * 5), "six positive numbers"),
+    "scenes": (lambda m: m.update(scenes=[5]), "scenes must be a list of scene names"),
+    "count": (lambda m: m.update(count="four"), "count must be a whole number"),
+}
+ARRAYS = {
+    "labels 7": ("labels", lambda a: np.where(a == 1, 7, a).astype(np.uint8), "other than 0 and 1: \\['7'\\]"),
+    "labels short": ("labels", lambda a: a[:-1], "labels.npy is uint8 \\(11, 6\\)"),
+    "labels float": ("labels", lambda a: a.astype(np.float32) * 0.5, "labels.npy is float32"),
+    "errors nan": ("errors", lambda a: np.where(np.arange(a.size).reshape(a.shape) == 3, np.nan, a), "NaN"),
+    "offsets scaled": ("offsets", lambda a: a * 2, "offsets.npy does not cut"),
+    "scene -1": ("scene", lambda a: np.where(np.arange(len(a)) == 0, -1, a).astype(a.dtype), "indices outside"),
+    "scene beyond": ("scene", lambda a: a + 3, "indices outside the manifest's 3 scenes"),
+    "points 2 columns": ("points", lambda a: a[:, :2], "points.npy is float32"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(MANIFESTS))
+def test_a_tampered_manifest_is_refused_by_its_field(case, tiny_dataset, tmp_path):
+    change, said = MANIFESTS[case]
+    folder = _copy(tiny_dataset, tmp_path)
+    _manifest(folder, change)
+    with pytest.raises(DatasetError, match=said):
+        LabelDataset(folder)
+
+
+@pytest.mark.parametrize("case", sorted(ARRAYS))
+def test_a_tampered_array_is_refused_by_its_file(case, tiny_dataset, tmp_path):
+    name, change, said = ARRAYS[case]
+    folder = _copy(tiny_dataset, tmp_path)
+    _array(folder, name, change)
+    with pytest.raises(DatasetError, match=said):
+        LabelDataset(folder)
+
+
+@settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(row=st.integers(0, 11), axis=st.integers(0, 5), value=st.integers(2, 255))
+def test_any_label_but_0_or_1_is_refused(tiny_dataset, tmp_path, row, axis, value):
+    folder = _copy(tiny_dataset, tmp_path)
+    labels = np.load(folder / "labels.npy")
+    labels[row, axis] = value
+    np.save(folder / "labels.npy", labels)
+    with pytest.raises(DatasetError, match="other than 0 and 1"):
+        LabelDataset(folder)
+    assert len(LabelDataset(tiny_dataset)) == 12  # the original stays readable
