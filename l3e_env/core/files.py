@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import fcntl
 import os
+import shutil
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -54,3 +55,19 @@ def folder_lock(folder: str | Path) -> Iterator[None]:
             yield
         finally:
             fcntl.flock(fh, fcntl.LOCK_UN)
+
+
+@contextmanager
+def new_folder(folder: str | Path) -> Iterator[Path]:
+    """`folder` created for the block (with its parents), and removed again, with what the block wrote
+    there, where the block fails and the folder did not exist before it: a refused run leaves nothing
+    behind. A folder that existed (a run resumed) is left as it is."""
+    folder = Path(folder)
+    fresh = not folder.exists()
+    folder.mkdir(parents=True, exist_ok=True)
+    try:
+        yield folder
+    except BaseException:
+        if fresh:
+            shutil.rmtree(folder, ignore_errors=True)
+        raise

@@ -14,6 +14,7 @@ import numpy as np
 from tqdm import tqdm
 
 from l3e_env.config import from_dict
+from l3e_env.core.files import new_folder
 from l3e_env.core.transforms import level_rotation_of
 from l3e_env.data.dataset import DatasetUnion, LabelDataset, check_ground_truth, open_datasets, row_thresholds
 from l3e_env.data.scan_estimates import dataset_scan_errors
@@ -281,7 +282,6 @@ def run_table3(
     others = other_columns(options.others)
     seen = seen_scenes(checkpoints)
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)  # once every dataset is read: a run refused leaves no folder
     board = Scoreboard(
         {
             "dataset": data.name if data is not None else None,
@@ -295,7 +295,8 @@ def run_table3(
         options,
         seen,
     )
-    first_splits = score_checkpoints(board, checkpoints, data, progress)
+    with new_folder(out):  # a checkpoint refused leaves no folder behind
+        first_splits = score_checkpoints(board, checkpoints, data, progress)
     score_hessian_detectors(board, first_splits, progress)
     score_correspondence_detectors(board, first_splits, progress)
     estimates = score_scan_estimate(board, first_splits, out, progress)

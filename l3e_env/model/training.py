@@ -22,6 +22,7 @@ import torch
 from tqdm import tqdm
 
 from l3e_env.config import dump_yaml, plain, settings_changed, to_dict
+from l3e_env.core.files import new_folder
 from l3e_env.data.dataset import (
     DatasetUnion,
     LabelDataset,
@@ -423,8 +424,8 @@ def train(
     torch.set_num_threads(cfg.threads)
     data = open_datasets(dataset, mixed_sensors=True)  # a network may learn several sensors' scans
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    run = _start(cfg, data, out, where)
+    with new_folder(out):  # a run refused at its start leaves no folder behind
+        run = _start(cfg, data, out, where)
     for epoch in range(run.first_epoch, cfg.epochs):
         t0 = time.perf_counter()
         losses = _train_epoch(run, epoch, progress)

@@ -81,3 +81,28 @@ def test_any_label_but_0_or_1_is_refused(tiny_dataset, tmp_path, row, axis, valu
     with pytest.raises(DatasetError, match="other than 0 and 1"):
         LabelDataset(folder)
     assert len(LabelDataset(tiny_dataset)) == 12  # the original stays readable
+
+
+def test_a_run_refused_at_its_start_leaves_no_folder(tiny_dataset, tmp_path):
+    """l3e train with no training scene in the data, l3e evaluate with a checkpoint of broken weights:
+    refused, and nothing left where the run would have written (issue 90: leftovers)."""
+    import torch
+
+    from l3e_env.experiments.table3 import Table3Options, run_table3
+    from l3e_env.model.classifier import DEFAULT_CHECKPOINT, CheckpointError
+    from l3e_env.model.training import TrainConfig, TrainingError, train
+
+    with pytest.raises(TrainingError, match="are not in dataset"):
+        train(tiny_dataset, tmp_path / "run", TrainConfig(train_scenes=["cave-9"], epochs=1), progress=False)
+    assert not (tmp_path / "run").exists()
+    state = torch.load(DEFAULT_CHECKPOINT, weights_only=True)
+    first = next(k for k, v in state["state_dict"].items() if v.is_floating_point())
+    state["state_dict"][first] = state["state_dict"][first] * float("nan")
+    torch.save(state, tmp_path / "broken.pt")
+    with pytest.raises(CheckpointError, match="non-finite weights"):
+        run_table3([tmp_path / "broken.pt"], None, tmp_path / "eval", Table3Options(others=[str(tiny_dataset)]), False)
+    assert not (tmp_path / "eval").exists()
+    (tmp_path / "kept").mkdir()
+    with pytest.raises(TrainingError):
+        train(tiny_dataset, tmp_path / "kept", TrainConfig(train_scenes=["cave-9"], epochs=1), progress=False)
+    assert (tmp_path / "kept").is_dir()  # a folder that was there stays
