@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import math
+from collections.abc import Callable
 from typing import Any
 
 from l3e_env.config import ATTITUDE_MODES, FusionSettings
@@ -161,7 +163,9 @@ def add_mesh_options(parser: argparse.ArgumentParser, several: bool = False) -> 
         "are sampled along all of them (the galleries of a mine)",
     )
     g.add_argument("--up-axis", dest="up_axis", choices=["x", "y", "z"], help="the mesh's up axis (default z)")
-    g.add_argument("--scale", type=float, help="metres per mesh unit (default 1; 0.001 for millimetres)")
+    g.add_argument(
+        "--scale", type=number_between(1e-6, 1e6), help="metres per mesh unit (default 1; 0.001 for millimetres)"
+    )
     g.add_argument(
         "--snap-route",
         dest="snap_route",
@@ -230,14 +234,42 @@ def dataset_scenes(args: argparse.Namespace) -> tuple[list[str] | None, dict[str
 
 
 def positive_int(text: str) -> int:
-    """argparse type: a whole number of 1 or more."""
-    try:
-        value = int(text)
-    except ValueError:
-        value = 0
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a whole number, 1 or more, got {text!r}")
-    return value
+    """argparse type: a whole number of 1 or more (at most a million steps, scans or runs)."""
+    return count_between(1, 1_000_000)(text)
+
+
+def count_between(low: int, high: int) -> Callable[[str], int]:
+    """argparse type: a whole number from `low` to `high`, checked where it enters (every count has a
+    practical bound: work is sized before it is allocated)."""
+
+    def count(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            value = low - 1
+        if not low <= value <= high:
+            raise argparse.ArgumentTypeError(f"expected a whole number from {low} to {high}, got {text!r}")
+        return value
+
+    return count
+
+
+def number_between(low: float, high: float) -> Callable[[str], float]:
+    """argparse type: a finite number from `low` to `high`."""
+
+    def number(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            value = math.nan
+        if not low <= value <= high:  # NaN fails too
+            raise argparse.ArgumentTypeError(f"expected a number from {low:g} to {high:g}, got {text!r}")
+        return value
+
+    return number
+
+
+WORKERS = count_between(1, 64)  # processes: more is no machine's work, and each holds a scene
 
 
 def add_max_steps(parser: argparse.ArgumentParser) -> None:

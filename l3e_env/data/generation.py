@@ -356,11 +356,11 @@ def _execute(config: DatasetConfig, todo: list, workers: int, backend: str, ray_
         yield from run_with_ray(run_shard, config, todo, workers, ray_address)
     elif backend != "local":
         raise DatasetError(f"unknown backend '{backend}' (local, ray)")
-    elif workers <= 1:
+    elif workers <= 1 or len(todo) <= 1:
         for shard in todo:
             yield run_shard(config, shard)
     else:
-        with ProcessPoolExecutor(workers, initializer=worker_start) as pool:
+        with ProcessPoolExecutor(min(workers, len(todo)), initializer=worker_start) as pool:  # no idle workers
             futures = [pool.submit(run_shard, config, s) for s in todo]
             for fut in as_completed(futures):
                 yield fut.result()

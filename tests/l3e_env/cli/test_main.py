@@ -306,3 +306,34 @@ def test_a_missing_gpu_is_named_in_one_line_before_anything_is_read(argv, tmp_pa
     assert not (tmp_path / "run").exists()
     assert main([a.format(tmp=tmp_path) for a in argv] + ["--device", "tpu"]) == 2
     assert "unknown device 'tpu'" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["judge", "x.npy", "--workers", "1e12"],
+        ["judge", "x.npy", "--start", "1e300"],
+        ["judge", "x.npy", "--every", "0"],
+        ["dataset", "generate", "--out", "{tmp}/d", "--parents", "1e12"],
+        ["dataset", "generate", "--out", "{tmp}/d", "--children", "100001"],
+        ["ate", "--seeds", "100000"],
+        ["record", "--out", "{tmp}/x.bag", "--imu-rate", "1e12"],
+        ["policy", "map", "--resolution", "0.001"],
+        ["policy", "evaluate", "--episodes", "1e12"],
+        ["policy", "train", "--envs", "1e12", "--out", "{tmp}/p"],
+        ["demo", "--scale", "nan"],
+        ["train", "--dataset", "{tmp}/d", "--out", "{tmp}/r", "--epochs", "0"],
+        ["adapt", "--scans", "{tmp}", "--out", "{tmp}/a", "--max-scans", "5"],
+    ],
+)
+def test_every_count_and_size_has_bounds_checked_where_it_enters(argv, tmp_path, capsys):
+    """Issue 90: a count or a size beyond any practical run is refused by name before work is sized."""
+    with pytest.raises(SystemExit) as stop:
+        main([a.format(tmp=tmp_path) for a in argv])
+    assert stop.value.code == 2
+    said = capsys.readouterr().err
+    assert (
+        f"argument {next(a for a in argv if a.startswith('--') and a not in ('--out', '--dataset', '--scans'))}" in said
+    )
+    assert "expected a" in said and " to " in said
+    assert not any(tmp_path.iterdir())
