@@ -7,7 +7,7 @@ from pathlib import Path
 
 from l3e_env.config import DATASET_PRESETS, LABELLERS
 
-from .options import SENSOR_HELP, WORKERS, add_mesh_options, count_between, dataset_scenes, scene_names, sensor_name
+from .options import SENSOR_HELP, add_mesh_options, dataset_scenes, scene_names, sensor_name
 
 
 def _cmd_dataset_generate(args: argparse.Namespace) -> int:
@@ -87,11 +87,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         type=scene_names,
         help="comma-separated scene names (overrides the preset); one may be a mesh file, with --route",
     )
-    g.add_argument("--parents", type=count_between(1, 100_000), help="parents per scene")
-    g.add_argument("--children", type=count_between(1, 10_000), help="M, children per parent (paper: 200)")
+    g.add_argument("--parents", type=int, help="parents per scene")
+    g.add_argument("--children", type=int, help="M, children per parent (paper: 200)")
     g.add_argument("--sensor", type=sensor_name, help=SENSOR_HELP)
     g.add_argument("--seed", type=int)
-    g.add_argument("--workers", type=WORKERS, default=2)
+    g.add_argument("--workers", type=int, default=2)
     g.add_argument("--backend", choices=["local", "ray"], default="local")
     g.add_argument("--address", help="Ray cluster address (default: start a local Ray instance)")
     g.add_argument("--quiet", action="store_true")

@@ -6,7 +6,7 @@ import argparse
 import time
 from pathlib import Path
 
-from .options import WORKERS, add_device_option, count_between, sensor_name
+from .options import add_device_option, sensor_name
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
@@ -182,8 +182,8 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--init", help="model.pt to start from (fine-tuning; its model settings are kept)")
     p.add_argument("--config", help="YAML of TrainConfig (defaults: the shipped model's settings)")
     _add_model_options(p)
-    p.add_argument("--epochs", type=count_between(1, 10_000))
-    p.add_argument("--samples-per-epoch", type=count_between(0, 10_000_000), dest="samples_per_epoch")
+    p.add_argument("--epochs", type=int)
+    p.add_argument("--samples-per-epoch", type=int, dest="samples_per_epoch")
     p.add_argument("--optimizer", choices=["sgd", "adamw"])
     p.add_argument("--lr", type=float)
     p.add_argument("--threads", type=int, help="torch threads (default 2)")
@@ -270,7 +270,7 @@ def _add_detector_options(p: argparse.ArgumentParser) -> None:
         "lies within MARGIN (log-odds) of its threshold, as the learned+scanmc detector does "
         "(1 is its default); repeat for several",
     )
-    p.add_argument("--workers", type=WORKERS, default=1, help="processes for --scan-mc (default 1)")
+    p.add_argument("--workers", type=int, default=1, help="processes for --scan-mc (default 1)")
 
 
 def _add_evaluate(sub: argparse._SubParsersAction) -> None:
@@ -404,17 +404,13 @@ def _add_adapt(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--checkpoint", help="the model to adapt (default: the shipped model); trained on the scans' sensor")
     p.add_argument("--sensor", type=sensor_name, help="the scans' sensor (default: a recording's own, else recognised)")
     p.add_argument("--place", help="the place's name among the model's training scenes (default: the folder's name)")
-    p.add_argument("--every", type=count_between(1, 100_000), help="of a recording, every k-th scan (default 1)")
-    p.add_argument(
-        "--max-scans", type=count_between(20, 100_000), dest="max_scans", help="at most this many scans (default 240)"
-    )
-    p.add_argument("--children", type=count_between(1, 1000), help="scanmc's children per scan, at most (default 60)")
-    p.add_argument("--epochs", type=count_between(1, 1000), help="fine-tuning epochs (default 6)")
-    p.add_argument(
-        "--samples-per-epoch", type=count_between(1, 1_000_000), dest="samples_per_epoch", help="default 160"
-    )
+    p.add_argument("--every", type=int, help="of a recording, every k-th scan (default 1)")
+    p.add_argument("--max-scans", type=int, dest="max_scans", help="at most this many scans (default 240)")
+    p.add_argument("--children", type=int, help="scanmc's children per scan, at most (default 60)")
+    p.add_argument("--epochs", type=int, help="fine-tuning epochs (default 6)")
+    p.add_argument("--samples-per-epoch", type=int, dest="samples_per_epoch", help="default 160")
     p.add_argument("--lr", type=float, help="the fine-tune's learning rate (default 3e-4)")
-    p.add_argument("--workers", type=WORKERS, help="processes labelling scans side by side (default 2)")
+    p.add_argument("--workers", type=int, help="processes labelling scans side by side (default 2)")
     p.add_argument("--seed", type=int)
     add_device_option(p)
     p.add_argument("--quiet", action="store_true")

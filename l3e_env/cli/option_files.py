@@ -75,20 +75,47 @@ MINIMUM = {
     "scan_mc": 0,
     "imu_rate": 0.0,
     "lam": 0.0,
-    "resolution": 1e-3,
+    "resolution": 0.25,
+    "max_scans": 20,
     "scale": 1e-9,
     "lr": 0.0,
     "beta": 1e-9,
+}
+# and at most (issue 90): a count or a size beyond any practical run is refused where it enters, before
+# work is sized by it (processes: more than 64 is no machine's; each holds a scene)
+MAXIMUM = {
+    "workers": 64,
+    "every": 100_000,
+    "episodes": 10_000,
+    "seeds": 1000,
+    "parents": 100_000,
+    "children": 10_000,
+    "epochs": 10_000,
+    "points": 1_000_000,
+    "threads": 256,
+    "envs": 64,
+    "timesteps": 1_000_000_000,
+    "samples_per_epoch": 10_000_000,
+    "draws": 100_000,
+    "max_steps": 1_000_000,
+    "max_scans": 100_000,
+    "sensor_index": 64,
+    "start": 1e7,
+    "end": 1e7,
+    "scan_mc": 10_000,
+    "imu_rate": 2000.0,
+    "resolution": 50.0,
+    "scale": 1e6,
 }
 
 
 def checked_type(action: argparse.Action, name: str) -> Any:
     """The action's type, made strict: a whole number for `int` (never 2.5 or true), a finite number for
-    `float` (never nan), and at least the option's MINIMUM; the message names the option."""
+    `float` (never nan), at least the option's MINIMUM and at most its MAXIMUM; the message names the option."""
     base = action.type
     if base not in (int, float):
         return base
-    least = MINIMUM.get(action.dest)
+    least, most = MINIMUM.get(action.dest), MAXIMUM.get(action.dest)
 
     def check(text: str) -> int | float:
         try:
@@ -100,6 +127,8 @@ def checked_type(action: argparse.Action, name: str) -> Any:
             raise argparse.ArgumentTypeError(f"{name} takes a finite number, got {text!r}")
         if least is not None and value < least:
             raise argparse.ArgumentTypeError(f"{name} takes {least} or more, got {text!r}")
+        if most is not None and value > most:
+            raise argparse.ArgumentTypeError(f"{name} takes at most {most:g}, got {text!r}")
         return value
 
     check.__name__ = base.__name__  # argparse names the type in its own messages

@@ -163,9 +163,7 @@ def add_mesh_options(parser: argparse.ArgumentParser, several: bool = False) -> 
         "are sampled along all of them (the galleries of a mine)",
     )
     g.add_argument("--up-axis", dest="up_axis", choices=["x", "y", "z"], help="the mesh's up axis (default z)")
-    g.add_argument(
-        "--scale", type=number_between(1e-6, 1e6), help="metres per mesh unit (default 1; 0.001 for millimetres)"
-    )
+    g.add_argument("--scale", type=float, help="metres per mesh unit (default 1; 0.001 for millimetres)")
     g.add_argument(
         "--snap-route",
         dest="snap_route",
@@ -233,27 +231,6 @@ def dataset_scenes(args: argparse.Namespace) -> tuple[list[str] | None, dict[str
     return [canonical_scene_name(s) for s in args.scenes], {canonical_scene_name(meshes[0]): params}
 
 
-def positive_int(text: str) -> int:
-    """argparse type: a whole number of 1 or more (at most a million steps, scans or runs)."""
-    return count_between(1, 1_000_000)(text)
-
-
-def count_between(low: int, high: int) -> Callable[[str], int]:
-    """argparse type: a whole number from `low` to `high`, checked where it enters (every count has a
-    practical bound: work is sized before it is allocated)."""
-
-    def count(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            value = low - 1
-        if not low <= value <= high:
-            raise argparse.ArgumentTypeError(f"expected a whole number from {low} to {high}, got {text!r}")
-        return value
-
-    return count
-
-
 def number_between(low: float, high: float) -> Callable[[str], float]:
     """argparse type: a finite number from `low` to `high`."""
 
@@ -269,14 +246,11 @@ def number_between(low: float, high: float) -> Callable[[str], float]:
     return number
 
 
-WORKERS = count_between(1, 64)  # processes: more is no machine's work, and each holds a scene
-
-
 def add_max_steps(parser: argparse.ArgumentParser) -> None:
     """--max-steps: a short drive (`l3e demo`, `l3e ate`, `l3e record`)."""
     parser.add_argument(
         "--max-steps",
-        type=positive_int,
+        type=int,
         dest="max_steps",
         help="stop the drive after this many steps of 0.1 s (a short run; default: the route's end)",
     )

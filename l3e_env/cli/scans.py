@@ -8,7 +8,7 @@ from pathlib import Path
 
 from l3e_env.config.detector_spec import DETECTOR_GRAMMAR, detector_spec
 
-from .options import WORKERS, CommandError, add_device_option, count_between, number_between, sensor_name
+from .options import CommandError, add_device_option, sensor_name
 
 
 def _judge_usage_problem(args: argparse.Namespace) -> str | None:
@@ -230,9 +230,9 @@ def _add_judge(sub: argparse._SubParsersAction) -> None:
         ".pcap (a .pcap's metadata JSON beside it or given as --sensor)",
     )
     g.add_argument("--topic", help="the bag's sensor_msgs/PointCloud2 topic (default: the only one)")
-    g.add_argument("--every", type=count_between(1, 100_000), default=1, help="judge every N-th scan (default 1: all)")
-    g.add_argument("--start", type=number_between(0, 1e7), help="seconds after the recording's start to begin at")
-    g.add_argument("--end", type=number_between(0, 1e7), help="seconds after the recording's start to stop at")
+    g.add_argument("--every", type=int, default=1, help="judge every N-th scan (default 1: all)")
+    g.add_argument("--start", type=float, help="seconds after the recording's start to begin at")
+    g.add_argument("--end", type=float, help="seconds after the recording's start to stop at")
     g.add_argument("--path-plot", help="also draw the judged scans on a map of the bag's path into this image")
     g.add_argument(
         "--pose-topic",
@@ -242,7 +242,7 @@ def _add_judge(sub: argparse._SubParsersAction) -> None:
     )
     _add_judging_options(p)
     p.add_argument("--seed", type=int, default=0, help="seed of scanmc's children")
-    p.add_argument("--workers", type=WORKERS, default=1, help="scans judged side by side in processes (default 1)")
+    p.add_argument("--workers", type=int, default=1, help="scans judged side by side in processes (default 1)")
     add_device_option(p)
     p.add_argument("--json", help="also write the scores here")
     p.add_argument("--plot", help="also draw the flagged axes scan by scan (over time for a bag) into this image")

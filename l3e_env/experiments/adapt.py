@@ -12,7 +12,7 @@ resumable in the run folder:
             the base checkpoint, the scans, their sensor, the place's name
 
 A model adapted on a place is scored on other places of its family, never on the scans it was adapted
-on: its place is among its training scenes, which `l3e evaluate` leaves out of every dataset it scores.
+on: `l3e evaluate` leaves its place out of every dataset it scores.
 """
 
 from __future__ import annotations

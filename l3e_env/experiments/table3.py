@@ -196,8 +196,8 @@ class Scoreboard:
         seen: set[str] | None = None,
     ):
         self.results, self.others, self.options = results, others, options
-        # each other dataset's rows of scenes no checkpoint was trained or adapted on: every detector is
-        # scored on these alone, so an adapted model is never scored on the scans it was adapted on
+        # each other dataset's rows of scenes no checkpoint was adapted on: every detector is scored on
+        # these alone, so an adapted model is never scored on the place it was adapted on
         self.other_rows = {column: unseen_rows(d, seen or set()) for column, d in others.items()}
         self.table: dict[str, dict[str, dict[str, np.ndarray]]] = {}
         self.curves: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = {}
@@ -307,11 +307,9 @@ def run_table3(
 
 
 def seen_scenes(checkpoints: list[str | Path]) -> set[str]:
-    """The scenes any of the checkpoints was trained (or adapted, `l3e adapt`) on."""
-    seen: set[str] = set()
-    for path in checkpoints:
-        seen.update((load_checkpoint(path).get("training") or {}).get("train_scenes") or [])
-    return seen
+    """The places any of the checkpoints was adapted on (`l3e adapt`): their scans are never scored."""
+    places = ((load_checkpoint(path).get("adapted") or {}).get("place") for path in checkpoints)
+    return {place for place in places if isinstance(place, str)}
 
 
 def unseen_rows(data: LabelDataset, seen: set[str]) -> np.ndarray:
@@ -588,7 +586,7 @@ def table_text(board: Scoreboard, estimates: ScanEstimates) -> str:
             )
     for column, scenes in board.results.get("left_out", {}).items():
         if scenes:
-            text += f"{column}: {', '.join(scenes)} left out (a checkpoint was trained or adapted there)\n"
+            text += f"{column}: {', '.join(scenes)} left out (a checkpoint was adapted there)\n"
     if options.symmetric:
         text = "probabilities averaged over the eight mirror/swap views of each scan\n" + text
     return text

@@ -308,20 +308,24 @@ def test_a_missing_gpu_is_named_in_one_line_before_anything_is_read(argv, tmp_pa
     assert "unknown device 'tpu'" in capsys.readouterr().err
 
 
+BIG = "1000000000000"
+
+
 @pytest.mark.parametrize(
     "argv",
     [
-        ["judge", "x.npy", "--workers", "1e12"],
+        ["judge", "x.npy", "--workers", BIG],
         ["judge", "x.npy", "--start", "1e300"],
         ["judge", "x.npy", "--every", "0"],
-        ["dataset", "generate", "--out", "{tmp}/d", "--parents", "1e12"],
+        ["dataset", "generate", "--out", "{tmp}/d", "--parents", BIG],
         ["dataset", "generate", "--out", "{tmp}/d", "--children", "100001"],
         ["ate", "--seeds", "100000"],
         ["record", "--out", "{tmp}/x.bag", "--imu-rate", "1e12"],
         ["policy", "map", "--resolution", "0.001"],
-        ["policy", "evaluate", "--episodes", "1e12"],
-        ["policy", "train", "--envs", "1e12", "--out", "{tmp}/p"],
-        ["demo", "--scale", "nan"],
+        ["policy", "map", "--resolution", "1e300"],
+        ["policy", "evaluate", "--episodes", BIG],
+        ["policy", "train", "--envs", BIG, "--out", "{tmp}/p"],
+        ["demo", "--scale", "1e300"],
         ["train", "--dataset", "{tmp}/d", "--out", "{tmp}/r", "--epochs", "0"],
         ["adapt", "--scans", "{tmp}", "--out", "{tmp}/a", "--max-scans", "5"],
     ],
@@ -332,8 +336,6 @@ def test_every_count_and_size_has_bounds_checked_where_it_enters(argv, tmp_path,
         main([a.format(tmp=tmp_path) for a in argv])
     assert stop.value.code == 2
     said = capsys.readouterr().err
-    assert (
-        f"argument {next(a for a in argv if a.startswith('--') and a not in ('--out', '--dataset', '--scans'))}" in said
-    )
-    assert "expected a" in said and " to " in said
+    option = next(a for a in argv if a.startswith("--") and a not in ("--out", "--dataset", "--scans"))
+    assert f"argument {option}: {option} takes" in said and ("or more" in said or "at most" in said)
     assert not any(tmp_path.iterdir())

@@ -79,7 +79,7 @@ def test_an_adapted_model_is_refused_nowhere_and_says_what_it_was_adapted_on(off
 @pytest.mark.slow
 def test_evaluation_leaves_out_the_place_a_model_was_adapted_on(office_scans, tiny_dataset, tmp_path):
     """The adapted place's scans are never scored: `l3e evaluate` drops every dataset's rows of the
-    scenes a checkpoint was trained or adapted on, for every detector alike."""
+    place a checkpoint was adapted on, for every detector alike."""
     from l3e_env.experiments.table3 import Table3Options, run_table3
 
     result = adapt(office_scans, tmp_path / "run", QUICK, progress=False)
