@@ -6,6 +6,7 @@ Printed per scene and height: the mean z error over its threshold from the scene
 the scan's own estimate, and the same for x beside it.
 
 Run: python studies/scan_mc_open_ground.py [--scenes piperack-0,field-0,yard-0,fork-0] [--heights 0.5,0.85,1.2]
+     [--ground-reach 0]
 """
 
 from __future__ import annotations
@@ -29,6 +30,9 @@ def main() -> None:
     parser.add_argument("--scenes", default="piperack-0,piperack-3,field-0,yard-0,fork-0")
     parser.add_argument("--heights", default="0.5,0.85,1.2")
     parser.add_argument("--children", type=int, default=40)
+    parser.add_argument(
+        "--ground-reach", type=float, default=ScanMCConfig().ground_reach, help="0: the scan's mesh alone, as before"
+    )
     args = parser.parse_args()
     thresholds = LabelConfig().threshold_vector()
     print("| scene | sensor height (m) | z: scene / scanmc (error over threshold) | x: scene / scanmc |")
@@ -47,7 +51,7 @@ def main() -> None:
                 LidarConfig(),
                 RegistrationConfig(),
                 LabelConfig(),
-                ScanMCConfig(),
+                ScanMCConfig(ground_reach=args.ground_reach),
                 np.random.default_rng(0),
                 level_rotation_of(T_w_s),
             ).errors

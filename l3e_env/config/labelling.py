@@ -123,3 +123,8 @@ class ScanMCConfig:
     # each child casts every k-th column of the revolution (1: all): the registration keeps one point
     # a 0.15 m voxel and then at most 1000, so most columns never reach it
     column_stride: int = 1
+    # the scan's ground plane (its fit, localizability.up) continued this far (m) under the children
+    # beyond the returns (0: not at all): in the scene the ground goes on where the scan's returns end,
+    # and a child that slides along a free axis off the scan's own mesh lost z where the scene keeps it
+    # (studies/scan_mc_open_ground.py)
+    ground_reach: float = 300.0

@@ -232,7 +232,10 @@ def _settings(config: DatasetConfig, meshes: dict[str, str] | None = None) -> di
 def _stored_settings(stored: dict[str, Any]) -> dict[str, Any]:
     """A manifest's settings with every option it predates at its default (as `comparable_settings`
     does for training): a folder begun before an option existed was made as that default makes it,
-    and resumes. Settings no config can read are returned as stored, to be reported as different."""
+    and resumes. Settings no config can read are returned as stored, to be reported as different. The
+    scan estimate's continued ground is the exception: a set labelled before it was labelled without it."""
+    if isinstance(stored.get("scan_mc"), dict) and "ground_reach" not in stored["scan_mc"]:
+        stored = {**stored, "scan_mc": {**stored["scan_mc"], "ground_reach": 0.0}}
     try:
         config = from_dict(DatasetConfig, {k: v for k, v in stored.items() if k != "mesh_sha256"})
     except (TypeError, ValueError):

@@ -33,6 +33,7 @@ if TYPE_CHECKING:
 
 from .labels import LabelConfig, child_offset, registration_error
 from .registration import PreparedTarget, RegistrationConfig, RegistrationError, prepare_source, register
+from .up import ground_plane
 
 
 class ScanEstimate(NamedTuple):
@@ -178,6 +179,29 @@ def range_image_mesh(
     return trimesh.Trimesh(np.concatenate(vertices), np.concatenate(faces), process=False)
 
 
+GROUND_FACES = np.array([[0, 1, 2], [0, 2, 3]])
+# m: the continued ground lies this far under the fitted plane, so that where the scan's own floor is
+# meshed its noisy returns are what a child sees (a plane through them cut it, and a closed room's z
+# errors rose by a half); beyond them the ground the scene has, a centimetre low
+GROUND_BELOW = 0.01
+
+
+def continued_ground(points: np.ndarray, reach: float) -> np.ndarray | None:
+    """The four corners (4, 3) of a square `reach` m to each side on the scan's fitted ground plane
+    (localizability.up.ground_plane), GROUND_BELOW under it; None where no ground plane is found. A hole
+    where the scan's ground returns lie would leave the gaps between its unjoined far rings open, and
+    open ground lost z again (studies/scan_mc_open_ground.py)."""
+    found = ground_plane(points)
+    if found is None:
+        return None
+    n, d, _ = found
+    u = np.cross(n, (1.0, 0.0, 0.0) if abs(n[0]) < 0.9 else (0.0, 1.0, 0.0))
+    u /= np.linalg.norm(u)
+    v = np.cross(n, u)
+    centre = n * (d - GROUND_BELOW)
+    return np.array([centre + reach * (a * u + b * v) for a, b in ((-1, -1), (1, -1), (1, 1), (-1, 1))])
+
+
 def scan_errors(
     points: np.ndarray,
     lidar: LidarConfig,
@@ -207,6 +231,10 @@ def scan_errors(
     target = PreparedTarget(points, registration)  # checks shape, NaN and size first
     pattern = get_pattern(lidar.model)
     mesh = range_image_mesh(points, pattern, config.max_range_ratio, config.shadow_deg, config.beyond_deg)
+    if config.ground_reach > 0 and (ground := continued_ground(points, config.ground_reach)) is not None:
+        mesh = type(mesh)(
+            np.vstack([mesh.vertices, ground]), np.vstack([mesh.faces, len(mesh.vertices) + GROUND_FACES])
+        )
     if len(mesh.faces) == 0:
         raise RegistrationError("no two neighbouring returns of the scan could be joined into a surface")
     cast = replace(pattern, n_azimuth=pattern.n_azimuth // config.column_stride) if config.column_stride > 1 else None

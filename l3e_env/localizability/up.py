@@ -24,6 +24,13 @@ ALONG_DEG = 20.0  # a return counts for a plane where its own normal lies within
 def ground_up(points: np.ndarray, seed: int = 0) -> tuple[np.ndarray, float] | None:
     """The ground plane's unit normal (pointing at the sensor: up) in the sensor's frame and the share of
     the thinned returns on it; None where no plane under the sensor holds MIN_SHARE of them."""
+    found = ground_plane(points, seed)
+    return None if found is None else (found[0], found[2])
+
+
+def ground_plane(points: np.ndarray, seed: int = 0) -> tuple[np.ndarray, float, float] | None:
+    """The ground plane n.p = d under the sensor (n its unit normal pointing up, at the sensor; d < 0)
+    and the share of the thinned returns on it; None where no plane holds MIN_SHARE of them."""
     cloud = _thinned(np.asarray(points, dtype=np.float64))
     if len(cloud) < 30:
         return None
@@ -50,7 +57,8 @@ def ground_up(points: np.ndarray, seed: int = 0) -> tuple[np.ndarray, float] | N
             best, best_d, best_count = n, d, count
     if best is None or best_count < max(MIN_SHARE * len(cloud), MIN_RETURNS):
         return None
-    return _refined(cloud, best, best_d), best_count / len(cloud)
+    n, d = _refined(cloud, best, best_d)
+    return n, d, best_count / len(cloud)
 
 
 def _thinned(points: np.ndarray) -> np.ndarray:
@@ -72,8 +80,8 @@ def _normals(cloud: np.ndarray) -> np.ndarray:
     return np.linalg.eigh(np.einsum("nki,nkj->nij", hood, hood))[1][:, :, 0]
 
 
-def _refined(cloud: np.ndarray, n: np.ndarray, d: float) -> np.ndarray:
-    """The normal refitted (least squares, twice) to the returns within BAND of the plane n.p = d."""
+def _refined(cloud: np.ndarray, n: np.ndarray, d: float) -> tuple[np.ndarray, float]:
+    """The plane n.p = d refitted (least squares, twice) to the returns within BAND of it."""
     for _ in range(2):
         near = cloud[np.abs(cloud @ n - d) < BAND]
         if len(near) < 3:
@@ -82,4 +90,4 @@ def _refined(cloud: np.ndarray, n: np.ndarray, d: float) -> np.ndarray:
         normal = np.linalg.svd(near - centre, full_matrices=False)[2][-1]
         n = normal if normal @ n >= 0 else -normal
         d = float(n @ centre)
-    return n
+    return n, d
