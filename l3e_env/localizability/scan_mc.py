@@ -202,6 +202,18 @@ def continued_ground(points: np.ndarray, reach: float) -> np.ndarray | None:
     return np.array([centre + reach * (a * u + b * v) for a, b in ((-1, -1), (1, -1), (1, 1), (-1, 1))])
 
 
+def scan_surface(points: np.ndarray, pattern: BeamPattern, config: ScanMCConfig) -> trimesh.Trimesh:
+    """What the children are cast against: the scan's range-image mesh (range_image_mesh) and its ground
+    continued (continued_ground); RegistrationError where no two returns join into a surface."""
+    mesh = range_image_mesh(points, pattern, config.max_range_ratio, config.shadow_deg, config.beyond_deg)
+    if len(mesh.faces) == 0:
+        raise RegistrationError("no two neighbouring returns of the scan could be joined into a surface")
+    if config.ground_reach > 0 and (ground := continued_ground(points, config.ground_reach)) is not None:
+        faces = np.vstack([mesh.faces, len(mesh.vertices) + GROUND_FACES])
+        mesh = type(mesh)(np.vstack([mesh.vertices, ground]), faces, process=False)
+    return mesh
+
+
 def scan_errors(
     points: np.ndarray,
     lidar: LidarConfig,
@@ -230,13 +242,7 @@ def scan_errors(
     points = np.asarray(points, dtype=np.float64)
     target = PreparedTarget(points, registration)  # checks shape, NaN and size first
     pattern = get_pattern(lidar.model)
-    mesh = range_image_mesh(points, pattern, config.max_range_ratio, config.shadow_deg, config.beyond_deg)
-    if config.ground_reach > 0 and (ground := continued_ground(points, config.ground_reach)) is not None:
-        mesh = type(mesh)(
-            np.vstack([mesh.vertices, ground]), np.vstack([mesh.faces, len(mesh.vertices) + GROUND_FACES])
-        )
-    if len(mesh.faces) == 0:
-        raise RegistrationError("no two neighbouring returns of the scan could be joined into a surface")
+    mesh = scan_surface(points, pattern, config)
     cast = replace(pattern, n_azimuth=pattern.n_azimuth // config.column_stride) if config.column_stride > 1 else None
     sensor = Lidar(EmbreeCaster(mesh, threads=1), lidar, cast)
     sigma, thresholds = labels.sigma_vector("child"), labels.threshold_vector()
