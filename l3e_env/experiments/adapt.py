@@ -117,7 +117,7 @@ def adapt(
         if len(data) < MIN_SCANS:
             raise AdaptError(f"scanmc could label {len(data)} of the {len(scans)} scans; a fine-tune needs {MIN_SCANS}")
         t0 = time.perf_counter()
-        network = _fine_tune(out / "network", checkpoint, base, place, options, progress)
+        network = _fine_tune(out / "labels", out / "network", checkpoint, base, place, options, progress)
         seconds["fine-tuning"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         provenance = {
@@ -276,7 +276,8 @@ def _labelled(
     bar.close()
     errors = np.concatenate([np.load(shards / f"chunk-{k:05d}.npy") for k in range(len(chunks))])
     kept = np.flatnonzero(np.isfinite(errors).all(axis=1))
-    failed = [f"{scans[i].name}: scanmc cannot judge it" for i in range(len(scans)) if i not in set(kept.tolist())]
+    judged = set(kept.tolist())
+    failed = [f"{scans[i].name}: scanmc cannot judge it" for i in range(len(scans)) if i not in judged]
     _write_dataset(folder, [scans[i] for i in kept], errors[kept], labeller, place)
     return LabelDataset(folder), failed
 
@@ -321,9 +322,15 @@ def _write_dataset(
 
 
 def _fine_tune(
-    folder: Path, checkpoint: Path, base: dict[str, Any], place: str, options: AdaptOptions, progress: bool
+    labels: Path,
+    folder: Path,
+    checkpoint: Path,
+    base: dict[str, Any],
+    place: str,
+    options: AdaptOptions,
+    progress: bool,
 ) -> Path:
-    """The checkpoint's network fine-tuned (into `folder`) on the labels beside it, by its own recipe."""
+    """The checkpoint's network fine-tuned (into `folder`) on the place's labelled scans, by its own recipe."""
     recipe = {**(base.get("training") or {})}
     for key in ("init", "train_scenes", "validation_scenes", "epochs", "samples_per_epoch", "learning_rate"):
         recipe.pop(key, None)
@@ -343,7 +350,7 @@ def _fine_tune(
             "seed": options.seed,
         },
     )
-    train(folder.parent / "labels", folder, cfg, progress=progress, device=options.device)  # as `adapt` lays them out
+    train(labels, folder, cfg, progress=progress, device=options.device)
     return folder / "model.pt"
 
 
