@@ -102,13 +102,23 @@ def _sdk():
     return sdk, core, _LOG
 
 
+def _not_a_number(word: str) -> float:
+    raise ValueError(f"{word} is no number a sensor writes")
+
+
 def _check_metadata(path: Path, metadata: str | Path | None) -> None:
     """CaptureError naming a .pcap's metadata file (the one given, else those the SDK would take beside
-    it) where it is not a JSON object: the SDK's own message names neither the file nor the fix."""
+    it) where it is not a JSON object describing a sensor's beams (fields that disagree or lie outside
+    the sensor's physics named), checked before the SDK sizes its buffers from it: the SDK's own
+    message names neither the file nor the fix, and a column count of 1e12 exhausts memory there."""
     candidates = [Path(metadata)] if metadata else sorted(path.parent.glob(f"{path.stem}*.json"))
     for meta in candidates:
         try:
-            found = json.loads(meta.read_text())
+            found = json.loads(meta.read_text(), parse_constant=_not_a_number)
+        except RecursionError as exc:
+            raise CaptureError(
+                f"{meta}: the metadata of {path.name} is nested too deep to be a sensor's metadata"
+            ) from exc
         except (OSError, UnicodeDecodeError, ValueError) as exc:
             raise CaptureError(
                 f"{meta}: the metadata of {path.name} is not readable JSON ({exc}); give the sensor's metadata "
@@ -116,6 +126,10 @@ def _check_metadata(path: Path, metadata: str | Path | None) -> None:
             ) from exc
         if not isinstance(found, dict):
             raise CaptureError(f"{meta}: the metadata of {path.name} is not a JSON object")
+        try:
+            ouster_pattern(meta.name, found)
+        except (PatternError, RecursionError) as exc:
+            raise CaptureError(f"{meta}: the metadata of {path.name} does not describe a sensor: {exc}") from exc
 
 
 def read_capture(

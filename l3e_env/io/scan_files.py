@@ -40,16 +40,29 @@ def _read_pcd(path: Path) -> np.ndarray:
     fields = header.get("FIELDS", [])
     if not {"x", "y", "z"} <= set(fields):
         raise ScanFileError(f"{path}: the PCD has fields {fields}, not x, y and z")
-    sizes = [int(s) for s in header.get("SIZE", [])]
-    types, counts = header.get("TYPE", []), [int(c) for c in header.get("COUNT", ["1"] * len(fields))]
-    n = (
-        int(header["POINTS"][0])
-        if "POINTS" in header
-        else int(header.get("WIDTH", ["0"])[0]) * int(header.get("HEIGHT", ["1"])[0])
-    )
+    sizes = _pcd_numbers(path, header, "SIZE", len(fields), None)
+    types = header.get("TYPE", [])
+    if len(types) != len(fields):
+        raise ScanFileError(f"{path}: the PCD header's TYPE names {len(types)} types for its {len(fields)} FIELDS")
+    counts = _pcd_numbers(path, header, "COUNT", len(fields), 1)
+    n = _pcd_numbers(path, header, "POINTS", 1, None)[0] if "POINTS" in header else None
+    shape = [_pcd_numbers(path, header, key, 1, None)[0] for key in ("WIDTH", "HEIGHT") if key in header]
+    if n is None and len(shape) < 2:
+        raise ScanFileError(
+            f"{path}: the PCD header has no POINTS (nor WIDTH and HEIGHT): it does not say how many points it holds"
+        )
+    n = shape[0] * shape[1] if n is None else n
+    if len(shape) == 2 and shape[0] * shape[1] != n:
+        raise ScanFileError(
+            f"{path}: the PCD header's WIDTH x HEIGHT ({shape[0]} x {shape[1]}) disagrees with its POINTS {n}"
+        )
     kind = header["DATA"][0].lower()
     if kind == "ascii":
         table = np.loadtxt(raw[offset:].decode("ascii").splitlines(), ndmin=2)
+        if table.size and table.shape[1] != sum(counts):
+            raise ScanFileError(
+                f"{path}: the PCD header describes {sum(counts)} numbers a point and its rows hold {table.shape[1]}"
+            )
         if len(table) != n:  # a file cut short, or rows added: either way not the cloud the header describes
             raise ScanFileError(
                 f"{path}: the PCD header says {n} points and the file holds {len(table)} rows; "
@@ -75,15 +88,42 @@ def _read_pcd(path: Path) -> np.ndarray:
         dtype = np.dtype([(f, codes[t, s], (c,)) for f, t, s, c in zip(fields, types, sizes, counts)])
     except KeyError as exc:
         raise ScanFileError(f"{path}: PCD field type {exc} is not read") from exc
-    if len(raw) - offset < n * dtype.itemsize:
+    extra = len(raw) - offset - n * dtype.itemsize
+    if extra < 0:
         raise ScanFileError(f"{path}: the PCD is cut short ({len(raw) - offset} bytes of data for {n} points)")
+    if extra >= dtype.itemsize or raw[len(raw) - extra :].strip():  # a writer's closing newline is no point
+        raise ScanFileError(
+            f"{path}: the PCD header says {n} points and its data holds {(len(raw) - offset) / dtype.itemsize:.0f}: "
+            "the header disagrees with the data; fix POINTS (and WIDTH, HEIGHT) or save the cloud again"
+        )
     data = np.frombuffer(raw, dtype=dtype, count=n, offset=offset)
     return np.stack([data[a][:, 0] for a in "xyz"], axis=1)
 
 
+def _pcd_numbers(path: Path, header: dict[str, list[str]], key: str, count: int, default: int | None) -> list[int]:
+    """`count` whole numbers of a PCD header line (each at least 1, POINTS at least 0), or the default's,
+    or ScanFileError naming the line."""
+    words = header.get(key, [str(default)] * count if default is not None else [])
+    least = 0 if key in ("POINTS", "WIDTH", "HEIGHT") else 1
+    if len(words) != count or not all(w.isdigit() and int(w) >= least for w in words):
+        raise ScanFileError(
+            f"{path}: the PCD header's {key} is {' '.join(words) or 'missing'}; it must be {count} whole "
+            f"number(s) of at least {least}"
+        )
+    return [int(w) for w in words]
+
+
+PLY_SIZES = {
+    "char": 1, "int8": 1, "uchar": 1, "uint8": 1, "short": 2, "int16": 2, "ushort": 2, "uint16": 2,
+    "int": 4, "int32": 4, "uint": 4, "uint32": 4, "float": 4, "float32": 4, "double": 8, "float64": 8,
+}  # fmt: skip
+PLY_FORMATS = ("ascii", "binary_little_endian", "binary_big_endian")
+
+
 def _check_ply_header(path: Path) -> None:
-    """ScanFileError where the file does not open with a PLY header that declares its vertices (a
-    header is text up to `end_header`; trimesh's own errors on a broken one name no cause)."""
+    """ScanFileError where the file does not open with a PLY header that declares its vertices, or
+    where the header disagrees with the data after it (the rows of an ascii file, the bytes of a binary
+    one): trimesh reads what the header says, and names no cause where the two disagree."""
     with open(path, "rb") as f:
         head = f.read(65536)
     lines = head.split(b"end_header")[0].splitlines() if b"end_header" in head else []
@@ -95,6 +135,41 @@ def _check_ply_header(path: Path) -> None:
         raise ScanFileError(
             f"{path}: not a PLY point cloud: its header must open with 'ply', declare 'element vertex N' "
             "and close with 'end_header'"
+        )
+    words = [line.decode("ascii", "replace").split() for line in lines]
+    kind = next((w[1] for w in words if w[:1] == ["format"] and len(w) > 1), None)
+    if kind not in PLY_FORMATS:
+        raise ScanFileError(f"{path}: PLY format {kind!r} is not read; save it as one of {', '.join(PLY_FORMATS)}")
+    elements: list[list] = []  # [name, count, bytes a row or None where a row holds a list]
+    for w in words:
+        if w[:1] == ["element"]:
+            if len(w) != 3 or not w[2].isdigit():
+                raise ScanFileError(
+                    f"{path}: the PLY header's '{' '.join(w)}' must name an element and a count of at least 0"
+                )
+            elements.append([w[1], int(w[2]), 0])
+        elif w[:1] == ["property"] and elements and elements[-1][2] is not None:
+            elements[-1][2] = (
+                None if w[1:2] == ["list"] else elements[-1][2] + PLY_SIZES.get(w[1] if len(w) > 1 else "", 0)
+            )
+    data = path.stat().st_size - (head.index(b"end_header") + len(b"end_header"))
+    if kind == "ascii":
+        with open(path, "rb") as f:
+            f.seek(head.index(b"end_header") + len(b"end_header"))
+            rows = sum(1 for line in f if line.strip())
+        if rows != sum(e[1] for e in elements):
+            raise ScanFileError(
+                f"{path}: the PLY header declares {' + '.join(f'{e[1]} {e[0]}' for e in elements)} rows and the file "
+                f"holds {rows}: the header disagrees with the data"
+            )
+        return
+    sized = [e for e in elements if e[2] is not None]
+    needed = sum(e[1] * e[2] for e in sized) if len(sized) == len(elements) else None
+    first = elements[0][1] * elements[0][2] if elements[0][2] is not None else 0
+    if (needed is not None and not 0 <= data - needed <= 2) or data < first:  # after the header, a line end
+        raise ScanFileError(
+            f"{path}: the PLY header declares {' + '.join(f'{e[1]} {e[0]}' for e in elements)} and the file holds "
+            f"{data} bytes of data: the header disagrees with the data"
         )
 
 
@@ -158,6 +233,13 @@ def read_scan(path: str | Path) -> np.ndarray:
     except Exception as exc:  # noqa: BLE001 - whatever the reader raises, name the file and the problem
         raise ScanFileError(f"{path}: cannot be read as {FORMATS[suffix]}: {exc}") from exc
     points = np.asarray(points)
+    if points.dtype.names and {"x", "y", "z"} <= set(points.dtype.names):  # a structured cloud's fields
+        points = np.stack([points[a].ravel() for a in "xyz"], axis=1)
+    if points.dtype.kind not in "fiu":
+        raise ScanFileError(
+            f"{path}: holds {points.dtype} values, not real numbers (float or integer x y z; a structured "
+            "array needs fields x, y and z)"
+        )
     if points.ndim != 2 or points.shape[1] < 3:
         raise ScanFileError(f"{path}: points of shape {points.shape}, not (N, 3) or more columns")
     if points.shape[0] in (3, 4) and points.shape[1] > points.shape[0]:  # x, y, z (, intensity) as rows

@@ -428,35 +428,110 @@ def _find(tree: dict, key: str):
     return None
 
 
+def _angles(name: str, key: str, value: object, limit: float, count: int | None = None) -> tuple[float, ...]:
+    """A metadata field of beam angles: a list of 1 to MAX_BEAMS finite degrees within +-limit (and
+    `count` of them where given), or PatternError naming the field."""
+    if not isinstance(value, list) or not 1 <= len(value) <= MAX_BEAMS:
+        raise PatternError(
+            f"{name}: the Ouster metadata's {key} is a list of 1 to {MAX_BEAMS} angles, got {value!r:.80}"
+        )
+    if count is not None and len(value) != count:
+        raise PatternError(f"{name}: the Ouster metadata has {count} beam_altitude_angles and {len(value)} {key}")
+    if not all(isinstance(a, (int, float)) and not isinstance(a, bool) and abs(a) <= limit for a in value):
+        bad = next(
+            a for a in value if not (isinstance(a, (int, float)) and not isinstance(a, bool) and abs(a) <= limit)
+        )
+        raise PatternError(f"{name}: the Ouster metadata's {key} holds {bad!r}, not an angle within +-{limit:g} deg")
+    return tuple(float(a) for a in value)
+
+
+OUSTER_COLUMNS = (512, 1024, 2048, 4096)  # the lidar modes' columns (Ouster's software manual)
+
+
+def _ouster_columns(name: str, meta: dict) -> int:
+    """The columns a revolution of an Ouster's metadata has: columns_per_frame and lidar_mode
+    ('1024x10') agree where both are given, and are one of the sensor's modes."""
+    columns, mode = _find(meta, "columns_per_frame"), _find(meta, "lidar_mode")
+    from_mode = None
+    if mode is not None:
+        head = str(mode).split("x")[0]
+        if not isinstance(mode, str) or not head.isdigit() or int(head) not in OUSTER_COLUMNS:
+            raise PatternError(
+                f"{name}: the Ouster metadata's lidar_mode is {mode!r}, not one of 512x10, 1024x10, 2048x10, ..."
+            )
+        from_mode = int(head)
+    if columns is None:
+        if from_mode is None:
+            raise PatternError(f"{name}: Ouster metadata without columns_per_frame or lidar_mode")
+        return from_mode
+    if isinstance(columns, bool) or not isinstance(columns, int) or columns not in OUSTER_COLUMNS:
+        raise PatternError(
+            f"{name}: the Ouster metadata's columns_per_frame is {columns!r}, not one of {OUSTER_COLUMNS}"
+        )
+    if from_mode is not None and from_mode != columns:
+        raise PatternError(
+            f"{name}: the Ouster metadata's lidar_mode {mode!r} disagrees with its columns_per_frame {columns}"
+        )
+    return columns
+
+
+def _ouster_transform(name: str, value: object) -> tuple[float, ...]:
+    """lidar_to_sensor_transform: 16 finite numbers, a rigid 4x4 (translation in mm, at most 1 m), in metres."""
+    numbers = np.asarray(value if isinstance(value, list) else [], dtype=object).ravel()
+    if len(numbers) != 16 or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in numbers):
+        raise PatternError(
+            f"{name}: the Ouster metadata's lidar_to_sensor_transform is 16 numbers (a 4x4), got {value!r:.80}"
+        )
+    matrix = numbers.astype(np.float64).reshape(4, 4)
+    rotation = matrix[:3, :3]
+    if (
+        not np.isfinite(matrix).all()
+        or not np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-3)
+        or not np.allclose(matrix[3], [0, 0, 0, 1])
+        or np.abs(matrix[:3, 3]).max() > 1000.0
+    ):
+        raise PatternError(
+            f"{name}: the Ouster metadata's lidar_to_sensor_transform is not a rigid transform with its "
+            "translation in millimetres (at most 1 m)"
+        )
+    matrix[:3, 3] /= 1e3  # Ouster writes the translation in millimetres
+    return tuple(float(v) for v in matrix.ravel())
+
+
 def ouster_pattern(name: str, meta: dict) -> BeamPattern:
-    """The beam pattern an Ouster sensor's metadata (its JSON, as a dict) describes."""
-    altitudes = _find(meta, "beam_altitude_angles")
-    azimuths = _find(meta, "beam_azimuth_angles") or [0.0] * len(altitudes)
-    columns = _find(meta, "columns_per_frame")
-    if columns is None and isinstance(mode := _find(meta, "lidar_mode"), str):
-        columns = int(mode.split("x")[0])
-    if not columns:
-        raise PatternError(f"{name}: Ouster metadata without columns_per_frame or lidar_mode")
+    """The beam pattern an Ouster sensor's metadata (its JSON, as a dict) describes; a field that
+    disagrees with another or lies outside the sensor's physics raises PatternError naming it."""
+    altitudes = _angles(name, "beam_altitude_angles", _find(meta, "beam_altitude_angles"), 90.0)
+    found = _find(meta, "beam_azimuth_angles")
+    azimuths = (
+        (0.0,) * len(altitudes) if found is None else _angles(name, "beam_azimuth_angles", found, 360.0, len(altitudes))
+    )
+    columns = _ouster_columns(name, meta)
+    rows = _find(meta, "pixels_per_column")
+    if rows is not None and rows != len(altitudes):
+        raise PatternError(
+            f"{name}: the Ouster metadata has {len(altitudes)} beam angles and pixels_per_column {rows!r}"
+        )
     product = str(_find(meta, "prod_line") or "").upper()
     far, near = next((r for p, r in _OUSTER_RANGES.items() if product.startswith(p)), (100.0, 0.3))
     # Ouster counts azimuth clockwise from the encoder angle: a beam's offset is the negative
-    origin_mm = float(_find(meta, "lidar_origin_to_beam_origin_mm") or 0.0)
+    origin_mm = _find(meta, "lidar_origin_to_beam_origin_mm") or 0.0
+    if isinstance(origin_mm, bool) or not isinstance(origin_mm, (int, float)) or not abs(origin_mm) <= 100.0:
+        raise PatternError(
+            f"{name}: the Ouster metadata's lidar_origin_to_beam_origin_mm is {origin_mm!r}, not within 100 mm"
+        )
     to_sensor = _find(meta, "lidar_to_sensor_transform")
-    if to_sensor is not None:
-        matrix = np.asarray(to_sensor, dtype=np.float64).reshape(4, 4)
-        matrix[:3, 3] /= 1e3  # Ouster writes the translation in millimetres
-        to_sensor = tuple(float(v) for v in matrix.ravel())
     return BeamPattern(
         name,
-        tuple(float(a) for a in altitudes),
-        int(columns),
+        altitudes,
+        columns,
         far,
         near,
-        _image_width(int(columns)),
-        tuple(-float(a) for a in azimuths),
-        origin_mm / 1e3,
+        _image_width(columns),
+        tuple(-a for a in azimuths),
+        float(origin_mm) / 1e3,
         time_field="t",
-        lidar_to_sensor=to_sensor or (),
+        lidar_to_sensor=() if to_sensor is None else _ouster_transform(name, to_sensor),
     )
 
 
