@@ -510,6 +510,7 @@ def _plot_evaluation(out: Path, results: list[Episode], policies: list[str], fir
 
 
 def _ppo_detector(policy: str, default: str) -> str:
-    meta = Path(policy.partition(":")[2])
-    meta = (meta if meta.is_dir() else meta.parent) / "policy.json"
-    return json.loads(meta.read_text()).get("detector", default) if meta.exists() else default
+    from .ppo import recorded_detector
+
+    folder = Path(policy.partition(":")[2])
+    return recorded_detector(folder if folder.is_dir() else folder.parent, default)

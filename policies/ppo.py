@@ -88,6 +88,16 @@ def _checked_meta(path: Path, meta: Any) -> dict[str, Any]:
         raise PolicyCheckpointError(
             f"{path}: fast_env.action_repeat must be a whole number of 1 or more, got {repeat!r}"
         )
+    detector = meta.get("detector")
+    if detector is not None:
+        from l3e_env.config.detector_spec import parse_detector
+
+        try:
+            parse_detector(detector if isinstance(detector, str) else repr(detector))
+        except ValueError as exc:
+            raise PolicyCheckpointError(
+                f"{path}: detector {detector!r} is no detector this version runs ({exc})"
+            ) from None
     arch = meta.get("net_arch", NET_ARCH)
     if not isinstance(arch, list) or not arch or not all(type(n) is int and 0 < n <= 4096 for n in arch):
         raise PolicyCheckpointError(f"{path}: net_arch must be a list of layer widths (1 to 4096), got {arch!r}")
@@ -339,6 +349,19 @@ def _write_record(
     }
     (out / META_FILE).write_text(json.dumps(summary, indent=2))
     return summary
+
+
+def recorded_detector(folder: str | Path, default: str) -> str:
+    """The detector a policy folder's policy.json says its policy was trained with, checked (else
+    `default` where the folder has no policy.json); PolicyCheckpointError naming the file."""
+    meta_path = Path(folder) / META_FILE
+    if not meta_path.exists():
+        return default
+    try:
+        meta = json.loads(meta_path.read_text())
+    except (OSError, ValueError) as exc:
+        raise PolicyCheckpointError(f"{meta_path}: cannot be read ({exc})") from exc
+    return str(_checked_meta(meta_path, meta).get("detector", default))
 
 
 class PPOPolicy:

@@ -48,7 +48,12 @@ def add_option_files(parser: argparse.ArgumentParser) -> None:
             metavar="KEY=VALUE",
             help="set one option (KEY as in --help, without the dashes; VALUE in YAML); repeat",
         )
-        leaf.set_defaults(_parser=leaf, _options_file=not own)
+        # a required option may come from --config or --set: checked after them (`resolve`), not by argparse
+        required = [(a.dest, a.option_strings[-1]) for a in leaf._actions if a.required and a.option_strings]
+        for action in leaf._actions:
+            if action.option_strings:
+                action.required = False
+        leaf.set_defaults(_parser=leaf, _options_file=not own, _required=required)
 
 
 # The least value of each counted or measured option, by its name, on every command that has it: the
@@ -151,6 +156,26 @@ def _actions(leaf: argparse.ArgumentParser) -> dict[str, argparse.Action]:
     }
 
 
+def _one(action: argparse.Action, key: str, v: Any) -> Any:
+    """One value of an option as argparse would have made it from text; ValueError naming the key."""
+    if action.type is None and not isinstance(v, str):  # a path or a name: text, or a number as text
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            raise ValueError(f"option {key}: takes text (a path or a name), got {v!r}")
+        v = str(v)
+    if action.type is not None and not isinstance(v, str):  # a YAML number, list, map or boolean
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            raise ValueError(f"option {key}: {v!r} is not a value of this option")
+        v = str(v)
+    if isinstance(v, str) and action.type is not None:
+        try:
+            v = action.type(v)
+        except (argparse.ArgumentTypeError, TypeError, ValueError) as exc:
+            raise ValueError(f"option {key}: {exc}") from None
+    if action.choices is not None and v not in action.choices:
+        raise ValueError(f"option {key}: {v!r} is not one of {list(action.choices)}")
+    return v
+
+
 def _converted(action: argparse.Action, key: str, value: Any) -> Any:
     """`value` as argparse would have made it from the command line; ValueError naming the key. None is
     an option not given, as the defaults have it."""
@@ -158,18 +183,7 @@ def _converted(action: argparse.Action, key: str, value: Any) -> Any:
         return None
 
     def one(v: Any) -> Any:
-        if action.type is not None and not isinstance(v, str):  # a YAML number, list, map or boolean
-            if isinstance(v, bool) or not isinstance(v, (int, float)):
-                raise ValueError(f"option {key}: {v!r} is not a value of this option")
-            v = str(v)
-        if isinstance(v, str) and action.type is not None:
-            try:
-                v = action.type(v)
-            except (argparse.ArgumentTypeError, TypeError, ValueError) as exc:
-                raise ValueError(f"option {key}: {exc}") from None
-        if action.choices is not None and v not in action.choices:
-            raise ValueError(f"option {key}: {v!r} is not one of {list(action.choices)}")
-        return v
+        return _one(action, key, v)
 
     if isinstance(action, (argparse._StoreTrueAction, argparse._StoreFalseAction, argparse.BooleanOptionalAction)):
         if not isinstance(value, bool):
@@ -206,8 +220,8 @@ def read_options(path: str | Path, leaf: argparse.ArgumentParser) -> dict[str, A
     """The options in a YAML file, checked and converted; ValueError naming the file and the problem."""
     try:
         loaded = yaml.safe_load(Path(path).read_text())
-    except (OSError, yaml.YAMLError) as exc:
-        raise ValueError(f"{path}: cannot read the options ({exc})") from None
+    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
+        raise ValueError(f"{path}: cannot read the options as YAML ({str(exc).splitlines()[0]})") from None
     if loaded is None:
         return {}
     if not isinstance(loaded, dict):
@@ -246,6 +260,10 @@ def resolve(parser: argparse.ArgumentParser, argv: list[str] | None) -> argparse
             setattr(args, key, value)
     except ValueError as exc:
         leaf.error(str(exc))
+    if missing := [option for dest, option in args._required if getattr(args, dest, None) in (None, [])]:
+        leaf.error(
+            f"the following arguments are required: {', '.join(missing)} (on the command line, or in --config/--set)"
+        )
     return args
 
 

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import dataclasses
+import types
+import typing
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -19,6 +21,7 @@ def from_dict(cls: type[T], data: dict[str, Any] | None) -> T:
     """Build a (nested) config dataclass, rejecting unknown keys by name."""
     data = dict(data or {})
     names = {f.name: f for f in dataclasses.fields(cls)}  # type: ignore[arg-type]  # a dataclass by contract
+    hints = _hints(cls)
     unknown = sorted(set(data) - set(names))
     if unknown:
         raise ValueError(f"{cls.__name__}: unknown option(s) {unknown}; known: {sorted(names)}")
@@ -30,8 +33,50 @@ def from_dict(cls: type[T], data: dict[str, Any] | None) -> T:
             value = from_dict(type(default), value)
         elif isinstance(value, list):
             value = tuple(value)
+        if (problem := _type_problem(hints.get(key), value)) is not None:
+            raise ValueError(f"{cls.__name__}: option {key} takes {problem}, got {value!r:.80}")
         kwargs[key] = value
     return cls(**kwargs)
+
+
+def _hints(cls: type) -> dict[str, Any]:
+    try:
+        return typing.get_type_hints(cls)
+    except Exception:  # noqa: BLE001 - a hint that does not resolve is not checked
+        return {}
+
+
+def _type_problem(hint: Any, value: Any) -> str | None:
+    """What `hint` takes where `value` is not of it, else None: numbers, text, truth values, sequences,
+    mappings, choices and their optional forms are checked; other hints are taken as they come (a
+    YAML "8" for a whole number is a mistake to name before the work starts, not a TypeError after)."""
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if hint is None or hint is Any:
+        return None
+    if origin in (typing.Union, types.UnionType):
+        problems = [_type_problem(a, value) for a in args]
+        return None if any(p is None for p in problems) else " or ".join(p for p in problems if p)
+    if hint is type(None):
+        return None if value is None else "nothing"
+    if origin is typing.Literal:
+        return None if value in args else f"one of {list(args)}"
+    if hint is bool:
+        return None if isinstance(value, bool) else "true or false"
+    if hint is int:
+        return None if isinstance(value, int) and not isinstance(value, bool) else "a whole number"
+    if hint is float:
+        return None if isinstance(value, (int, float)) and not isinstance(value, bool) else "a number"
+    if hint is str:
+        return None if isinstance(value, str) else "text"
+    if hint is Path:
+        return None if isinstance(value, (str, Path)) else "a path"
+    if origin in (tuple, list) or hint in (tuple, list):
+        return None if isinstance(value, (tuple, list)) else "a list"
+    if origin is dict or hint is dict:
+        return None if isinstance(value, dict) else "a mapping"
+    if dataclasses.is_dataclass(hint):
+        return None if isinstance(value, (dict, hint)) else "a mapping of its settings"
+    return None
 
 
 def dump_yaml(cfg: Any, path: str | Path) -> None:
@@ -39,7 +84,18 @@ def dump_yaml(cfg: Any, path: str | Path) -> None:
 
 
 def load_yaml(cls: type[T], path: str | Path) -> T:
-    return from_dict(cls, yaml.safe_load(Path(path).read_text()))
+    """A config from a YAML file (read safely: a tag that would run code is refused); ValueError naming
+    the file where it is not readable YAML, not a mapping, or holds an unknown option or a mistyped value."""
+    try:
+        loaded = yaml.safe_load(Path(path).read_text())
+    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
+        raise ValueError(f"{path}: cannot be read as {cls.__name__} YAML ({str(exc).splitlines()[0]})") from None
+    if loaded is not None and not isinstance(loaded, dict):
+        raise ValueError(f"{path}: give a YAML mapping of {cls.__name__}'s options, not a {type(loaded).__name__}")
+    try:
+        return from_dict(cls, loaded)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{path}: {exc}") from None
 
 
 def plain(x: Any) -> Any:

@@ -359,7 +359,7 @@ def test_policy_view_sees_the_corridor_ahead(small_fork):
 
 def test_ppo_trains_resumes_and_refuses_other_observations(tmp_path, small_fork):
     pytest.importorskip("stable_baselines3")
-    from policies.ppo import OBSERVATION, PolicyCheckpointError, PPOPolicy, PPOTraining, train_ppo
+    from policies.ppo import OBSERVATION, PolicyCheckpointError, PPOPolicy, PPOTraining, recorded_detector, train_ppo
 
     scene, space, cache = small_fork
     contexts = [SceneContext(scene, space, get_map(scene, space, "eigen:30", cache, grid=MapGrid(resolution=4.0)))]
@@ -396,10 +396,15 @@ def test_ppo_trains_resumes_and_refuses_other_observations(tmp_path, small_fork)
         (without, "fast_env.action_repeat must be a whole number of 1 or more, got None"),
         ({**good, "fast_env": {**good["fast_env"], "action_repeat": 0}}, "fast_env.action_repeat must be .* got 0"),
         ({**good, "net_arch": "wide"}, "net_arch must be a list of layer widths"),
+        ({**good, "detector": 5}, "detector 5 is no detector this version runs"),
+        ({**good, "detector": "bogus"}, "detector 'bogus' is no detector this version runs"),
     ):
         (out / "policy.json").write_text(json.dumps(broken))
         with pytest.raises(PolicyCheckpointError, match=f"policy.json: {words}"):
             PPOPolicy(out)
+        if "detector" in broken:  # the evaluation reads the policy's detector through the same check
+            with pytest.raises(PolicyCheckpointError, match=f"policy.json: {words}"):
+                recorded_detector(out, "learned")
     (out / "policy.json").write_text(json.dumps(good))
     import torch
 

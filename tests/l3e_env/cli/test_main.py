@@ -6,6 +6,7 @@ import torch
 import yaml
 
 from l3e_env.cli.main import build_parser, main
+from l3e_env.cli.option_files import resolve
 from l3e_env.cli.options import scene_params
 from l3e_env.config import FusionSettings
 
@@ -174,14 +175,17 @@ def test_odometry_bias_axes_are_gathered_from_every_repeat_and_a_file():
         (["ate", "--set", "quiet=maybe"], "option quiet: give true or false"),
         (["ate", "--config", "CONFIG"], "give a YAML mapping of option names to values, not a list"),
         (["ate", "--config", "MISSING"], "cannot read the options"),
+        (["ate", "--config", "BINARY"], "binary.yaml: cannot read the options as YAML"),
+        (["ate", "--set", "out={a: 1}"], "option out: takes text (a path or a name), got {'a': 1}"),
+        (["judge", "--set", "json=[a]", "x.npy"], "option json: takes text (a path or a name), got ['a']"),
+        (["dataset", "generate", "--preset", "small"], "required: --out (on the command line, or in --config"),
     ],
 )
 def test_a_bad_option_file_or_pair_is_refused_by_name_before_anything_runs(tmp_path, capsys, argv, message):
     (tmp_path / "list.yaml").write_text("[1, 2]\n")
-    argv = [
-        str(tmp_path / "list.yaml") if a == "CONFIG" else str(tmp_path / "none.yaml") if a == "MISSING" else a
-        for a in argv
-    ]
+    (tmp_path / "binary.yaml").write_bytes(bytes(range(256)))
+    files = {"CONFIG": "list.yaml", "MISSING": "none.yaml", "BINARY": "binary.yaml"}
+    argv = [str(tmp_path / files[a]) if a in files else a for a in argv]
     with pytest.raises(SystemExit) as exit_info:
         main(argv)
     assert exit_info.value.code == 2 and message in capsys.readouterr().err
@@ -339,3 +343,38 @@ def test_every_count_and_size_has_bounds_checked_where_it_enters(argv, tmp_path,
     option = next(a for a in argv if a.startswith("--") and a not in ("--out", "--dataset", "--scans"))
     assert f"argument {option}: {option} takes" in said and ("or more" in said or "at most" in said)
     assert not any(tmp_path.iterdir())
+
+
+def test_a_required_option_may_come_from_the_runs_own_options_file(tmp_path):
+    (tmp_path / "options.yaml").write_text(f"out: {tmp_path / 'data'}\npreset: small\n")
+    args = resolve(build_parser(), ["dataset", "generate", "--config", str(tmp_path / "options.yaml")])
+    assert args.out == str(tmp_path / "data") and args.preset == "small"
+    args = resolve(build_parser(), ["dataset", "generate", "--set", "out=elsewhere"])
+    assert args.out == "elsewhere"
+
+
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ('batch_size: "8"\n', "TrainConfig: option batch_size takes a whole number, got '8'"),
+        ("epochs: 2.5\n", "option epochs takes a whole number"),
+        ("optimizer: [adam]\n", "option optimizer takes"),
+        ('epochs: !!python/object/apply:os.system ["echo ran"]\n', "cannot be read as TrainConfig YAML"),
+        ("[1, 2]\n", "give a YAML mapping of TrainConfig's options, not a list"),
+    ],
+)
+def test_a_train_config_of_wrong_types_or_a_code_tag_is_refused_naming_the_file(tmp_path, capsys, text, message):
+    (tmp_path / "train.yaml").write_text(text)
+    argv = [
+        "train",
+        "--config",
+        str(tmp_path / "train.yaml"),
+        "--dataset",
+        str(tmp_path),
+        "--out",
+        str(tmp_path / "run"),
+    ]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert f"{tmp_path / 'train.yaml'}: " in err and message in err and "Traceback" not in err
+    assert not (tmp_path / "run").exists()
