@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from l3e_env.config import DATASET_PRESETS, LABELLERS
@@ -40,6 +41,13 @@ def _cmd_dataset_generate(args: argparse.Namespace) -> int:
     for failure in manifest["failures"][:3]:
         print(f"  failed: {failure['scene']} parent {failure['parent']}: {failure['reason']}")
     print(format_statistics(manifest["statistics"]))
+    if manifest["count"] == 0:
+        print(
+            f"l3e dataset generate: no parent could be labelled in {args.out}; the failures above say why "
+            "(a mesh's scale or route, a sensor that sees nothing)",
+            file=sys.stderr,
+        )
+        return 2
     return 0
 
 
@@ -50,14 +58,14 @@ def _children(config) -> str:
 
 
 def _cmd_dataset_stats(args: argparse.Namespace) -> int:
-    from l3e_env.data.dataset import LabelDataset, format_statistics
+    from l3e_env.data.dataset import LabelDataset, format_statistics, label_statistics
 
     data = LabelDataset(args.folder)
     print(
         f"{args.folder}: {len(data)} parents, sensor {data.manifest['sensor']}, "
         f"scenes {', '.join(data.manifest['scenes'])}"
     )
-    print(format_statistics(data.manifest["statistics"]))
+    print(format_statistics(label_statistics(data.labels)))  # the arrays' own, not the manifest's word
     return 0
 
 

@@ -141,7 +141,9 @@ def _cmd_judge(args: argparse.Namespace) -> int:
         _judge_path_plot(args, judgements, where, route)
     failed = sum(j.error is not None for j in judgements)
     if not judgements:
-        print("l3e judge: no scan in the recording between --start and --end", file=sys.stderr)
+        window = " between --start and --end" if args.start is not None or args.end is not None else ""
+        where = f" on topic {args.topic}" if args.topic else ""
+        print(f"l3e judge: no scan in the recording{where}{window}", file=sys.stderr)
     elif failed:
         print(f"l3e judge: {failed} of {len(judgements)} scans could not be read or judged", file=sys.stderr)
     return 2 if failed or not judgements else 0

@@ -304,6 +304,8 @@ def recognise_sensor(
     again from the first."""
     seen: list[str | Path | RecordedScan] = []
     refused: list[str] = []
+    unreadable: list[str] = []
+    scan_error = ""
     for scan in scans:
         seen.append(scan)
         if isinstance(scan, RecordedScan) and scan.pattern is not None:
@@ -314,9 +316,10 @@ def recognise_sensor(
             name, rings = str(scan), None
             try:
                 points = read_scan(scan)
-            except ScanFileError:
-                points = None
+            except ScanFileError as exc:
+                points, scan_error = None, str(exc)
         if points is None:
+            unreadable.append(scan.error or f"{name}: no points" if isinstance(scan, RecordedScan) else scan_error)
             continue
         try:
             if (many := too_many_points(len(points))) is not None:
@@ -339,7 +342,9 @@ def recognise_sensor(
         )
     if refused:
         return chain(seen, scans), None, f"not recognised from {refused[0]}"
-    return iter(seen), None, "no scan could be read to recognise it from"
+    if unreadable:
+        return iter(seen), None, f"none of its {len(unreadable)} scan(s) could be read: the first, {unreadable[0]}"
+    return iter(seen), None, "the recording holds no scan to recognise it from"
 
 
 def needs_sensor(specs: list[str]) -> bool:

@@ -106,3 +106,35 @@ def test_a_run_refused_at_its_start_leaves_no_folder(tiny_dataset, tmp_path):
     with pytest.raises(TrainingError):
         train(tiny_dataset, tmp_path / "kept", TrainConfig(train_scenes=["cave-9"], epochs=1), progress=False)
     assert (tmp_path / "kept").is_dir()  # a folder that was there stays
+
+
+def test_dataset_stats_counts_the_arrays_labels_not_the_manifests_word(tiny_dataset, tmp_path, capsys):
+    from l3e_env.cli.main import main
+
+    folder = _copy(tiny_dataset, tmp_path)
+    labels = np.load(folder / "labels.npy")
+    told = {a: 0.123 for a in ("x", "y", "z", "roll", "pitch", "yaw")}
+    _manifest(folder, lambda m: m.update(statistics={**m["statistics"], "positive_rate": told}))
+    assert main(["dataset", "stats", str(folder)]) == 0
+    said = capsys.readouterr().out
+    rates = labels.mean(axis=0)
+    assert f"x {rates[0]:.2f}" in said and f"yaw {rates[5]:.2f}" in said and "0.12" not in said
+
+
+def test_a_generation_that_labels_no_parent_fails_naming_the_folder(tmp_path, capsys, monkeypatch):
+    import l3e_env.data.generation as generation
+    from l3e_env.cli.main import main
+    from l3e_env.data.dataset import label_statistics
+
+    failure = {"scene": "tunnel-0", "parent": 0, "reason": "the sensor saw nothing"}
+    empty = {
+        "count": 0,
+        "failures": [failure],
+        "statistics": label_statistics(np.zeros((0, 6), np.uint8)),
+        "generation_seconds_last_run": 0.0,
+    }
+    monkeypatch.setattr(generation, "generate", lambda *a, **k: empty)
+    out = tmp_path / "none"
+    assert main(["dataset", "generate", "--scene", "tunnel-0", "--parents", "1", "--out", str(out)]) == 2
+    captured = capsys.readouterr()
+    assert "the sensor saw nothing" in captured.out and f"no parent could be labelled in {out}" in captured.err

@@ -458,3 +458,17 @@ def test_a_file_that_is_no_recording_is_named_with_what_to_give(tmp_path, name, 
     with pytest.raises(RecordingError, match=words) as caught:
         list(read_recording(path))
     assert str(path) in str(caught.value)
+
+
+def test_an_empty_bag_or_one_of_unreadable_scans_says_why_without_blaming_options_not_given(tmp_path, rng, capsys):
+    empty, broken = tmp_path / "empty.bag", tmp_path / "broken.bag"
+    _write_bag(empty, [])
+    assert main(["judge", "--bag", str(empty), "--detector", "none"]) == 2
+    err = capsys.readouterr().err
+    assert "no scan in the recording" in err and "--start" not in err
+    _write_bag(broken, _corridor_scans(rng, 1), broken=0)
+    assert main(["sensor", "--bag", str(broken)]) == 2
+    err = capsys.readouterr().err
+    assert "none of its 1 scan(s) could be read: the first, broken.bag /velodyne_points #0" in err
+    assert main(["sensor", "--bag", str(empty)]) == 2
+    assert "holds no scan" in capsys.readouterr().err
