@@ -164,7 +164,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         avoid=args.avoid,
         scene_params={k: v for k, v in scenes.items() if v},
     )
-    rows = evaluate_policies(out, args.policy or ["shortest", "planner"], list(scenes), options, not args.quiet)
+    rows = evaluate_policies(out, args.policy or ["shortest", "planner"], list(scenes), options, not args.quiet, _say)
     print(format_rows(rows))
     print(f"routes: {out / 'routes.png'}")
     return 0
@@ -176,7 +176,7 @@ def _context(args: argparse.Namespace, name: str, params: dict | None, resolutio
 
     grid = map_grid(args.sensor, resolution)
     workers = getattr(args, "workers", 1)
-    return scene_context(name, args.detector, args.cache_dir, True, grid, not args.quiet, params, workers)
+    return scene_context(name, args.detector, args.cache_dir, True, grid, not args.quiet, params, workers, _say)
 
 
 def map_grid(sensor: str, resolution: float | None = None):
@@ -196,6 +196,10 @@ def map_detector(text: str) -> str:
     except ValueError as exc:
         raise argparse.ArgumentTypeError(str(exc)) from None
     return text
+
+
+def _say(message: str) -> None:
+    print(message, flush=True)
 
 
 def _add_map(psub: argparse._SubParsersAction, common: argparse.ArgumentParser) -> None:

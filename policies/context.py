@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -70,14 +71,16 @@ def scene_context(
     progress: bool = False,
     scene_params: dict | None = None,
     workers: int = 1,
+    announce: Callable[[str], None] | None = None,
 ) -> SceneContext:
     """Scene, free space and (unless detector is None) its localizability map on `grid` (positions
     MAP_RESOLUTION apart by default), built by `workers` processes where it is not cached;
-    `scene_params` go to make_scene (a mesh scene's up axis, scale and route)."""
+    `scene_params` go to make_scene (a mesh scene's up axis, scale and route); `announce` is told of a
+    map that is built (get_map)."""
     scene = make_scene(name, **(scene_params or {}))
     space = free_space(scene, cache_dir, progress=progress)
     locmap = None
     if detector is not None:
         grid = grid or MapGrid(resolution=MAP_RESOLUTION)
-        locmap = get_map(scene, space, detector, cache_dir, build, grid, progress, workers)
+        locmap = get_map(scene, space, detector, cache_dir, build, grid, progress, workers, announce)
     return SceneContext(scene, space, locmap)

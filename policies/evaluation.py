@@ -390,16 +390,21 @@ def _remove_unstarted(out: Path, created: bool) -> None:
 
 
 def evaluate_policies(
-    out: str | Path, policies: list[str], scenes: list[str], options: EvalOptions | None = None, progress: bool = True
+    out: str | Path,
+    policies: list[str],
+    scenes: list[str],
+    options: EvalOptions | None = None,
+    progress: bool = True,
+    announce: Callable[[str], None] | None = None,
 ) -> list[dict[str, Any]]:
     """Episode i of every policy runs on scenes[i % len(scenes)] with environment seed options.seed + i.
     Writes episodes.jsonl, summary.json, summary.txt, routes.png and drift.png (the drift model's
     expectation of each path against the final error measured) into `out`; a killed evaluation resumes
-    where it stopped, with the settings it started with."""
+    where it stopped, with the settings it started with. `announce` is told of each map built first."""
     options = options or EvalOptions()
     _check_evaluation(policies, options)
     out = Path(out)
-    _build_maps(policies, scenes, options, progress)
+    _build_maps(policies, scenes, options, progress, announce)
     settings_file = out / "settings.json"
     held = json.loads(settings_file.read_text()) if settings_file.exists() else None
     options = replace(
@@ -448,13 +453,20 @@ def _check_evaluation(policies: list[str], options: EvalOptions) -> None:
         check_policy(policy)
 
 
-def _build_maps(policies: list[str], scenes: list[str], options: EvalOptions, progress: bool) -> None:
+def _build_maps(
+    policies: list[str],
+    scenes: list[str],
+    options: EvalOptions,
+    progress: bool,
+    announce: Callable[[str], None] | None = None,
+) -> None:
     """Every map the episodes read, built here once, not in every worker: the evaluation detector's
     (expected_drift weighs every policy's episodes with it) and each PPO policy's own."""
     detectors = {_ppo_detector(p, options.detector) if p.startswith("ppo:") else options.detector for p in policies}
     for name in dict.fromkeys(scenes):
         for d in sorted(detectors | {options.detector}):
-            scene_context(name, d, options.cache_dir, progress=progress, scene_params=options.scene_params.get(name))
+            params = options.scene_params.get(name)
+            scene_context(name, d, options.cache_dir, progress=progress, scene_params=params, announce=announce)
 
 
 def _run_record(options: EvalOptions) -> dict[str, Any]:

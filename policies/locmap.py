@@ -8,6 +8,8 @@ import contextlib
 import hashlib
 import json
 import os
+import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -340,9 +342,11 @@ def get_map(
     grid: MapGrid | None = None,
     progress: bool = False,
     workers: int = 1,
+    announce: Callable[[str], None] | None = None,
 ) -> LocalizabilityMap:
     """The cached map for these settings; built (by `workers` processes) and cached when missing if
-    `build`, else MapCacheError."""
+    `build`, else MapCacheError. `announce` is told what is built, where it is cached and how long it
+    took (minutes on one core, which a progress bar hidden by --quiet would not say)."""
     grid = grid or MapGrid()
     judge = MapJudge(detector, scene_lidar(scene, grid.lidar), grid.seed)
     settings = map_settings(scene, free, grid, judge)
@@ -357,6 +361,15 @@ def get_map(
             f"no {detector} localizability map of scene '{scene.name}' cached for these settings "
             f"({path}); make it with `l3e policy map --scene {scene.name} --detector {detector}`"
         )
+    if announce is not None:
+        positions = len(map_positions(free, grid.resolution))
+        announce(
+            f"building the {detector} localizability map of {scene.name} ({positions} positions x {grid.yaw_bins} "
+            f"headings, {workers} process(es)); it is cached in {path.parent} for every later run"
+        )
+    began = time.perf_counter()
     result = build_map(scene, free, detector, grid, progress=progress, workers=workers)
     result.save(path)
+    if announce is not None:
+        announce(f"built in {time.perf_counter() - began:.0f} s: {path}")
     return result

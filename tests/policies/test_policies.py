@@ -160,8 +160,12 @@ def test_eigen_map_is_cached_and_a_missing_cache_is_named(small_fork):
     scene, space, cache = small_fork
     with pytest.raises(MapCacheError, match="l3e policy map"):
         get_map(scene, space, "eigen:30", cache, build=False, grid=MapGrid(resolution=4.0))
-    built = get_map(scene, space, "eigen:30", cache, grid=MapGrid(resolution=4.0))
-    cached = get_map(scene, space, "eigen:30", cache, build=False, grid=MapGrid(resolution=4.0))
+    said: list[str] = []
+    built = get_map(scene, space, "eigen:30", cache, grid=MapGrid(resolution=4.0), announce=said.append)
+    assert len(said) == 2 and said[0].startswith(f"building the eigen:30 localizability map of {scene.name} (")
+    assert f"cached in {cache}" in said[0] and said[1].startswith("built in ") and said[1].endswith(".npz")
+    cached = get_map(scene, space, "eigen:30", cache, build=False, grid=MapGrid(resolution=4.0), announce=said.append)
+    assert len(said) == 2  # a cached map is read, not announced
     assert np.array_equal(built.probabilities, cached.probabilities, equal_nan=True)
     assert cached.estimated.shape == built.probabilities.shape[:2] and not cached.estimated.any()
     # other ICP settings make another file
