@@ -55,10 +55,10 @@ def _cmd_map(args: argparse.Namespace) -> int:
     scenes = _scenes_with_params(args)
     out = Path(args.out or "l3e_out/maps")
     args.out = str(out)  # the resolved options are written beside it
-    out.mkdir(parents=True, exist_ok=True)
     for name, params in scenes.items():
         t0 = time.perf_counter()
         ctx = _context(args, name, params, args.resolution)
+        out.mkdir(parents=True, exist_ok=True)  # once there is a map to draw: a refused scene leaves no folder
         figure = out / f"{ctx.scene.name}-{args.detector.replace(':', '')}.png"
         plot_locmap(figure, ctx.scene, ctx.locmap, ctx.space)
         share = " ".join(
@@ -89,9 +89,9 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     scenes = _scenes_with_params(args)
     out = Path(args.out or "l3e_out/plans")
     args.out = str(out)  # the resolved options are written beside it
-    out.mkdir(parents=True, exist_ok=True)
     for name, params in scenes.items():
         ctx = _context(args, name, params)
+        out.mkdir(parents=True, exist_ok=True)
         start = np.array(args.start, dtype=float) if args.start else ctx.scene.start[:2]
         goal = np.array(args.goal, dtype=float) if args.goal else ctx.scene.goal
         plans = {

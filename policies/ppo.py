@@ -21,7 +21,7 @@ import numpy as np
 from tqdm import tqdm
 
 from l3e_env.config import plain
-from l3e_env.core.files import write_atomic
+from l3e_env.core.files import new_folder, write_atomic
 from l3e_env.sim.follower import walk_towards
 
 from .context import SceneContext
@@ -246,18 +246,18 @@ def train_ppo(
     from stable_baselines3.common.logger import configure
 
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     torch.set_num_threads(1)
     config = config or FastEnvConfig()
     last = out / STATE_FILE
-    model = _ppo_model(out, contexts, config, training)
-    if last.exists():
-        _resume(model, last)
-    elif training.warm is not None:
-        observations, actions, returns = demonstrations(contexts, config, training.warm, training.seed)
-        cloned = clone(model.policy, observations, actions, returns, training.warm, training.seed)
-        record = {**dataclasses.asdict(training.warm), "samples": len(observations), "action_mse": cloned}
-        (out / WARM_FILE).write_text(json.dumps(record, indent=2))
+    with new_folder(out):  # a run refused while it is set up leaves no folder; once it learns, it is kept
+        model = _ppo_model(out, contexts, config, training)
+        if last.exists():
+            _resume(model, last)
+        elif training.warm is not None:
+            observations, actions, returns = demonstrations(contexts, config, training.warm, training.seed)
+            cloned = clone(model.policy, observations, actions, returns, training.warm, training.seed)
+            record = {**dataclasses.asdict(training.warm), "samples": len(observations), "action_mse": cloned}
+            (out / WARM_FILE).write_text(json.dumps(record, indent=2))
     model.set_logger(configure(str(out), ["csv", *(["tensorboard"] if _has_tensorboard() else [])]))
     done = model.num_timesteps
     if training.timesteps > done:

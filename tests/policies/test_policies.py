@@ -731,3 +731,12 @@ def test_policy_train_without_the_rl_extra_says_so_before_building_maps(monkeypa
     monkeypatch.setattr("policies.context.scene_context", lambda *a, **k: pytest.fail("a map was built first"))
     assert main(["policy", "train", "--scene", "fork-0", "--out", str(tmp_path / "ppo"), "--quiet"]) == 2
     assert "PPO needs stable-baselines3: pip install -e '.[rl]'" in capsys.readouterr().err
+
+
+def test_a_policy_training_refused_while_it_is_set_up_leaves_no_folder(tmp_path):
+    pytest.importorskip("stable_baselines3")
+    from policies.ppo import train_ppo
+
+    with pytest.raises(ValueError, match="at least one scene context"):
+        train_ppo(tmp_path / "run", [], progress=False)
+    assert not (tmp_path / "run").exists()
