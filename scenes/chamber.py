@@ -40,7 +40,7 @@ def make_chamber(seed: int = 0, roughness: float | None = None, radius: float | 
         name=f"chamber-{seed}",
         mesh=merge([wall, cap]),
         sampling_paths=paths,
-        start=(paths[0][0, 0], 0.0, 0.0),
+        start=np.array((paths[0][0, 0], 0.0, 0.0)),
         goal=paths[0][-1, :2],
         routes={"main": paths[0]},
         family="chamber",

@@ -86,7 +86,8 @@ def _space(rng: np.random.Generator, stretch: np.ndarray, scale: float) -> list[
 def _beam(rng: np.random.Generator, walk: np.ndarray, height, scale: float) -> list[trimesh.Trimesh]:
     """A horizontal beam 2.9-7 m over the ground, at any angle to the walk."""
     xy, heading = beside(rng, walk, 0.0, 6.0 * scale)
-    size = (float(rng.uniform(3, 30) * scale), *(float(v) for v in rng.uniform(0.15, 0.6, 2)))
+    width, depth = (float(v) for v in rng.uniform(0.15, 0.6, 2))
+    size = (float(rng.uniform(3, 30) * scale), width, depth)
     z = float(height(xy)[0]) + float(rng.uniform(2.9, 7.0))
     return [box((xy[0], xy[1], z), size, yaw=heading + float(rng.uniform(-np.pi / 2, np.pi / 2)))]
 

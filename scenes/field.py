@@ -32,7 +32,7 @@ def make_field(seed: int = 0, size: float = 300.0, structures: int | None = None
         name=f"field-{seed}",
         mesh=merge(parts),
         sampling_paths=[route, np.array([[-15.0, 0, 0], [0.0, 0, 0]])],
-        start=(0.0, 0.0, 0.0),
+        start=np.array((0.0, 0.0, 0.0)),
         goal=route[-1, :2],
         routes={"main": route},
         family="field",

@@ -140,4 +140,5 @@ def polyline_length(points: np.ndarray) -> float:
 
 def merge(parts: list[trimesh.Trimesh]) -> trimesh.Trimesh:
     mesh = trimesh.util.concatenate(parts)
+    assert isinstance(mesh, trimesh.Trimesh)  # meshes joined are a mesh (trimesh types it as any geometry)
     return trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)

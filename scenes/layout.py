@@ -11,6 +11,8 @@ constrain rather than which family a scan comes from.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import trimesh
 
@@ -31,7 +33,9 @@ def walk_legs(rng: np.random.Generator) -> np.ndarray:
     return resample_polyline(np.column_stack([xy, np.zeros(len(xy))]), 0.5)
 
 
-def ground_surface(rng: np.random.Generator, lo: np.ndarray, hi: np.ndarray) -> tuple[trimesh.Trimesh, callable]:
+def ground_surface(
+    rng: np.random.Generator, lo: np.ndarray, hi: np.ndarray
+) -> tuple[trimesh.Trimesh, Callable[[np.ndarray], np.ndarray]]:
     """A ground grid over the box lo-hi that is flat, gently tilted or rolling; and its height at (x, y)."""
     kind = rng.choice(["flat", "tilted", "rolling"], p=[0.5, 0.2, 0.3])
     slope = rng.uniform(-0.08, 0.08, 2) if kind == "tilted" else np.zeros(2)

@@ -187,8 +187,7 @@ def scene_from_mesh(
         start = (x0, y0, float(np.arctan2(y1 - y0, x1 - x0)))
     elif start is None:
         c = mesh.bounds.mean(axis=0)
-        start = (c[0], c[1], 0.0)
-    if goal is None:
-        goal = paths[0][-1, :2] if paths else start[:2]
+        start = (float(c[0]), float(c[1]), 0.0)
+    end = np.asarray(goal if goal is not None else paths[0][-1, :2] if paths else start[:2], dtype=np.float64)
     routes = {"main": paths[0]} if paths else {}
-    return Scene(name=Path(path).stem, mesh=mesh, sampling_paths=paths, start=start, goal=goal, routes=routes)
+    return Scene(name=Path(path).stem, mesh=mesh, sampling_paths=paths, start=np.array(start), goal=end, routes=routes)

@@ -77,7 +77,7 @@ def make_mine(seed: int = 0, tunnel_length: float = 100.0, tunnel_width: float =
         name=f"mine-{seed}",
         mesh=merge(parts),
         sampling_paths=paths,
-        start=(route[0, 0], route[0, 1], 0.0),
+        start=np.array((route[0, 0], route[0, 1], 0.0)),
         goal=route[-1, :2],
         routes={"main": route},
         family="mine",

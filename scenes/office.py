@@ -63,7 +63,7 @@ def make_office(seed: int = 0, rooms_per_side: int | None = None) -> Scene:
         name=f"office-{seed}",
         mesh=merge(parts),
         sampling_paths=paths,
-        start=(route[0, 0], route[0, 1], 0.0),
+        start=np.array((route[0, 0], route[0, 1], 0.0)),
         goal=route[-1, :2],
         routes={"main": route},
         family="office",

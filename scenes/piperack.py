@@ -64,7 +64,7 @@ def make_piperack(seed: int = 0, bay: float | None = None, length: float | None 
         name=f"piperack-{seed}",
         mesh=merge(parts),
         sampling_paths=[route],
-        start=(0.0, 0.0, 0.0),
+        start=np.array((0.0, 0.0, 0.0)),
         goal=route[-1, :2],
         routes={"main": route},
         family="piperack",

@@ -54,7 +54,7 @@ def make_yard(seed: int = 0, structures: int | None = None, radius: float | None
         name=f"yard-{seed}",
         mesh=merge(parts),
         sampling_paths=[lane, loop],
-        start=(lane[0, 0], lane[0, 1], 0.0),
+        start=np.array((lane[0, 0], lane[0, 1], 0.0)),
         goal=lane[-1, :2],
         routes={"main": lane},
         family="yard",

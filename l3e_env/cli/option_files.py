@@ -166,7 +166,7 @@ def _one(action: argparse.Action, key: str, v: Any) -> Any:
         if isinstance(v, bool) or not isinstance(v, (int, float)):
             raise ValueError(f"option {key}: {v!r} is not a value of this option")
         v = str(v)
-    if isinstance(v, str) and action.type is not None:
+    if isinstance(v, str) and callable(action.type):
         try:
             v = action.type(v)
         except (argparse.ArgumentTypeError, TypeError, ValueError) as exc:

@@ -142,8 +142,8 @@ def _cmd_judge(args: argparse.Namespace) -> int:
     failed = sum(j.error is not None for j in judgements)
     if not judgements:
         window = " between --start and --end" if args.start is not None or args.end is not None else ""
-        where = f" on topic {args.topic}" if args.topic else ""
-        print(f"l3e judge: no scan in the recording{where}{window}", file=sys.stderr)
+        topic = f" on topic {args.topic}" if args.topic else ""
+        print(f"l3e judge: no scan in the recording{topic}{window}", file=sys.stderr)
     elif failed:
         print(f"l3e judge: {failed} of {len(judgements)} scans could not be read or judged", file=sys.stderr)
     return 2 if failed or not judgements else 0
@@ -167,9 +167,10 @@ def _cmd_sensor(args: argparse.Namespace) -> int:
             scans = iter([args.source])
         else:
             scans = read_recording(recording, args.topic, sensor_index=args.sensor_index, one_sensor=True)
-        _, pattern, how = recognise_sensor(scans)
-        if pattern is None:
+        _, found, how = recognise_sensor(scans)
+        if found is None:
             raise CommandError(how)
+        pattern = found
     print(describe_pattern(pattern) + f"\n  ({how})")
     if args.out:
         print(f"written: {save_pattern(pattern, args.out)} (give it as --sensor)")

@@ -75,7 +75,7 @@ def _type_problem(hint: Any, value: Any) -> str | None:
     if origin is dict or hint is dict:
         return None if isinstance(value, dict) else "a mapping"
     if dataclasses.is_dataclass(hint):
-        return None if isinstance(value, (dict, hint)) else "a mapping of its settings"
+        return None if isinstance(value, dict) or dataclasses.is_dataclass(value) else "a mapping of its settings"
     return None
 
 

@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import BinaryIO
 
 
-def write_atomic(path: str | Path, write: Callable[[BinaryIO], None]) -> None:
+def write_atomic(path: str | Path, write: Callable[[BinaryIO], object]) -> None:
     """Write through a temporary file beside `path`, fsync, rename. On any failure the temporary
     file is removed and whatever was at `path` before is left untouched."""
     path = Path(path)

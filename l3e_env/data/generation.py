@@ -51,7 +51,7 @@ from scenes import (
 from .dataset import FORMAT_VERSION, DatasetError, check_protocol, label_statistics
 
 
-def _write_atomic(path: Path, write: Callable[[BinaryIO], None]) -> None:
+def _write_atomic(path: Path, write: Callable[[BinaryIO], object]) -> None:
     """A full disk leaves what was finished in place (`write_atomic`), with an error that says so."""
     try:
         write_atomic(path, write)
@@ -311,6 +311,14 @@ def _open_folder(out: Path, config: DatasetConfig) -> dict[str, Any]:
     return manifest
 
 
+def _saved_arrays(arrays: dict[str, Any]) -> Callable[[BinaryIO], None]:
+    return lambda fh: np.savez(fh, **arrays)
+
+
+def _saved_array(array: np.ndarray) -> Callable[[BinaryIO], None]:
+    return lambda fh: np.save(fh, array)
+
+
 def _write_json(path: Path, data: dict) -> None:
     _write_atomic(path, lambda fh: fh.write(json.dumps(data, indent=1).encode()))
 
@@ -342,7 +350,7 @@ def _generate(
     )
     t0 = time.perf_counter()
     for result in _execute(config, todo, workers, backend, ray_address):
-        _write_atomic(out / "shards" / f"{result['shard']}.npz", lambda fh, r=result: np.savez(fh, **r))
+        _write_atomic(out / "shards" / f"{result['shard']}.npz", _saved_arrays(result))
         shard = next(s for s in todo if s[0] == result["shard"])
         bar.update(shard[3] - shard[2])
     bar.close()
@@ -381,7 +389,7 @@ def consolidate(out: Path, config: DatasetConfig, manifest: dict[str, Any]) -> d
         except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
             raise DatasetError(f"shard {path} is unreadable ({exc}); delete it and run again to redo it") from exc
     lengths = np.concatenate([p["lengths"] for p in parts])
-    arrays = {
+    arrays: dict[str, np.ndarray] = {
         "points": np.concatenate([p["points"] for p in parts]).astype(np.float32),
         "offsets": np.concatenate([[0], np.cumsum(lengths)]).astype(np.int64),
         "poses": np.concatenate([p["poses"] for p in parts]),
@@ -391,7 +399,7 @@ def consolidate(out: Path, config: DatasetConfig, manifest: dict[str, Any]) -> d
         "children_failed": np.concatenate([p["children_failed"] for p in parts]),
     }
     for name, arr in arrays.items():
-        _write_atomic(out / f"{name}.npy", lambda fh, a=arr: np.save(fh, a))
+        _write_atomic(out / f"{name}.npy", _saved_array(arr))
     failures = [f for p in parts for f in json.loads(str(p["failures"]))]
     manifest.update(
         {

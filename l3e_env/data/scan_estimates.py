@@ -3,6 +3,7 @@ worker processes: what `l3e evaluate --scan-mc` scores against the labels."""
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -27,7 +28,7 @@ class DatasetScans(NamedTuple):
     seed: int
 
 
-def open_dataset_scans(folders: list[str], config: ScanMCConfig, seed: int) -> DatasetScans:
+def open_dataset_scans(folders: list[str | Path], config: ScanMCConfig, seed: int) -> DatasetScans:
     """The dataset(s) `folders` opened for `row_estimate`, once per worker process."""
     data = open_datasets(folders)
     settings = data.manifest["settings"]

@@ -12,7 +12,7 @@ import json
 import shutil
 import tempfile
 import warnings
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from itertools import chain
 from pathlib import Path
 from typing import NamedTuple
@@ -217,7 +217,7 @@ def _chosen_sensors(path: Path, infos: list, index: int | None, one: bool) -> li
 
 class _Sensor(NamedTuple):
     pattern: BeamPattern
-    lut: object  # the SDK's XYZLut
+    lut: Callable[[np.ndarray], np.ndarray]  # the SDK's XYZLut
 
 
 def _sensor(path: Path, infos: list, i: int, core) -> _Sensor:

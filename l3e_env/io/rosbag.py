@@ -13,6 +13,7 @@ import shutil
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -294,8 +295,10 @@ class BagRecorder:
         self.writer = Writer2(self.partial, version=9) if ros2 else Writer1(self.partial)
         self.writer.open()
         self.steps = 0
-        self.covariance, self.last_odom = DeadReckoningCovariance(odometry), None
-        self.imu, self.seed, self.truth, self.swept = imu, seed, [], False
+        self.covariance = DeadReckoningCovariance(odometry)
+        self.last_odom: np.ndarray | None = None
+        self.truth: list = []
+        self.imu, self.seed, self.swept = imu, seed, False
         self.topics = {}
         for topic, msgtype in (
             ("/points", POINTCLOUD2),
@@ -305,7 +308,7 @@ class BagRecorder:
             ("/tf_static", "tf2_msgs/msg/TFMessage"),
             *((("/imu", "sensor_msgs/msg/Imu"),) if imu is not None else ()),
         ):
-            extra = {"latching": 1} if topic == "/tf_static" and not ros2 else {}
+            extra: dict[str, Any] = {"latching": 1} if topic == "/tf_static" and not ros2 else {}
             self.topics[topic] = self.writer.add_connection(topic, msgtype, typestore=self.store, **extra)
 
     def _header(self, stamp: float, frame: str, seq: int | None = None):
@@ -457,7 +460,8 @@ def _remove(path: Path) -> None:
 def _quaternion(T: np.ndarray) -> tuple[float, float, float, float]:
     from scipy.spatial.transform import Rotation
 
-    return tuple(float(v) for v in Rotation.from_matrix(T[:3, :3]).as_quat())  # x, y, z, w
+    x, y, z, w = (float(v) for v in Rotation.from_matrix(T[:3, :3]).as_quat())
+    return x, y, z, w
 
 
 def bag_size_bound(rays_per_scan: int, scans: int, swept: bool) -> int:

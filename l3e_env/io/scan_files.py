@@ -221,7 +221,7 @@ def read_scan(path: str | Path) -> np.ndarray:
             import trimesh
 
             _check_ply_header(path)
-            points = np.asarray(trimesh.load(path, process=False).vertices)
+            points = np.asarray(getattr(trimesh.load(path, process=False), "vertices", np.zeros((0, 3))))
         elif suffix == ".pcd":
             points = _read_pcd(path)
         else:

@@ -24,6 +24,7 @@ from __future__ import annotations
 import itertools
 import math
 from dataclasses import dataclass, field
+from typing import cast
 
 import numpy as np
 import torch
@@ -310,24 +311,32 @@ class Level:
             coarse_keys, coarse, children, parent, slot = _parents_torch(keys, self.coords, self.morton is not None)
             self._coarser = (Level(coarse, self.stride * 2, coarse_keys), children, parent, slot)
         if self._coarser is None:
-            coords = self.coords.numpy()
-            if isinstance(self.morton, np.ndarray):  # each parent's children are consecutive rows: no sort
-                coarse_keys, coarse, children, parent, slot = _parents(self.morton, coords)
-            else:
-                keys = morton_keys(coords)
-                coarse_keys, first, parent = np.unique(keys >> 3, return_index=True, return_inverse=True)
-                coarse = np.take(coords, first, axis=0)
-                coarse[:, 1:] >>= 1  # floor(x / 2)
-                slot = keys & 7  # the lowest bits of x, y and z: 4 dx + 2 dy + dz
-                children = np.full((len(first), 8), len(coords), dtype=np.int64)
-                children[parent, slot] = np.arange(len(coords))
+            tables = _coarser_tables(self.coords.numpy(), self.morton)
             self._coarser = (
-                Level(torch.from_numpy(coarse), self.stride * 2, coarse_keys),
-                torch.from_numpy(children),
-                torch.from_numpy(parent),
-                torch.from_numpy(slot),
+                Level(torch.from_numpy(tables[1]), self.stride * 2, tables[0]),
+                torch.from_numpy(tables[2]),
+                torch.from_numpy(tables[3]),
+                torch.from_numpy(tables[4]),
             )
         return self._coarser
+
+
+def _coarser_tables(
+    coords: np.ndarray, morton: np.ndarray | torch.Tensor | None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Level.coarser's tables on the CPU: the coarse keys, coarse coordinates, children table,
+    parent row and child slot of each site."""
+    if isinstance(morton, np.ndarray):  # each parent's children are consecutive rows: no sort
+        coarse_keys, coarse, children, parent, slot = _parents(morton, coords)
+        return coarse_keys, coarse, children, parent, slot
+    keys = morton_keys(coords)
+    coarse_keys, first, parent = np.unique(keys >> 3, return_index=True, return_inverse=True)
+    coarse = np.take(coords, first, axis=0)
+    coarse[:, 1:] >>= 1  # floor(x / 2)
+    slot = keys & 7  # the lowest bits of x, y and z: 4 dx + 2 dy + dz
+    children = np.full((len(first), 8), len(coords), dtype=np.int64)
+    children[parent, slot] = np.arange(len(coords))
+    return coarse_keys, coarse, children, parent, slot
 
 
 def _gather_matmul(
@@ -363,18 +372,19 @@ def _int8_rows(x: torch.Tensor, batch: torch.Tensor | None) -> tuple[torch.Tenso
     """x rounded to int8 with one scale per scan (so that a scan's answer does not depend on the
     other scans of its batch), a zero row appended for the empty neighbour; and the scales, one
     per scan ((B,); a float for one scan, which saves the tensor operations on a scalar)."""
+    out = torch.empty(len(x) + 1, x.shape[1], dtype=torch.int8)
+    out[-1] = 0
     if batch is None:
         rows, scale = _scan_rows(x.detach().contiguous().numpy())
         if scale > 0:
             return torch.from_numpy(rows), scale
         scale = max(float(x.abs().max()), 127 * _TINY) / 127  # a negative entry: not after a ReLU
-    else:
-        scale = x.new_zeros(int(batch[-1]) + 1).scatter_reduce_(0, batch, x.abs().amax(1), "amax") / 127
-        scale = scale.clamp_min(_TINY)
-    rows = torch.empty(len(x) + 1, x.shape[1], dtype=torch.int8)
-    rows[-1] = 0
-    rows[:-1] = torch.round(x * (1 / scale) if batch is None else x / scale[batch, None])
-    return rows, scale
+        out[:-1] = torch.round(x * (1 / scale))
+        return out, scale
+    scales = x.new_zeros(int(batch[-1]) + 1).scatter_reduce_(0, batch, x.abs().amax(1), "amax") / 127
+    scales = scales.clamp_min(_TINY)
+    out[:-1] = torch.round(x / scales[batch, None])
+    return out, scales
 
 
 @njit(cache=True, nogil=True)
@@ -465,22 +475,24 @@ class GatherConv(nn.Module):
         if rows.shape[1] == 16:  # a 16-byte row as one complex128: index_select copies elements, not rows
             rows = rows.view(torch.complex128).reshape(-1)
         gathered = rows.index_select(0, table.reshape(-1)).view(torch.int8).reshape(len(table), -1)
+        if self.int8_weight is None:
+            raise RuntimeError("int8_products needs quantize() first")
         return torch._int_mm(gathered, self.int8_weight)
 
     def product(self, x: torch.Tensor, table: torch.Tensor, rows_in: Level, rows_out: Level) -> torch.Tensor:
         """sum_k x[table[:, k]] @ weight[k] (+ bias): one output row per row of `table`, whose
         entries index `x` (len(x): no neighbour); the levels say which scan each row is of."""
-        if self.int8_weight is None:
+        if self.int8_weight is None or self.int8_scale is None:
             return _gather_matmul(x, table, self.weight, self.bias)
         batch_in, batch_out = rows_in.batch_index(), rows_out.batch_index()
         rows, scale = _int8_rows(x, batch_in)
         products = self.int8_products(rows, table)  # int32, scaled to float below
-        if batch_out is None:  # one scan: its scale as addcmul's value saves a product
+        if not isinstance(scale, torch.Tensor):  # one scan: its scale as addcmul's value saves a product
             if self.bias is None:
                 return products * (self.int8_scale * scale)
             return torch.addcmul(self.bias, products, self.int8_scale, value=scale)
-        scale = self.int8_scale * scale[batch_out, None]
-        return products * scale if self.bias is None else torch.addcmul(self.bias, products, scale)
+        scales = self.int8_scale * scale[batch_out, None]
+        return products * scales if self.bias is None else torch.addcmul(self.bias, products, scales)
 
 
 def int8_residual_block(conv1: GatherConv, conv2: GatherConv, x: torch.Tensor, level: Level) -> torch.Tensor | None:
@@ -491,6 +503,8 @@ def int8_residual_block(conv1: GatherConv, conv2: GatherConv, x: torch.Tensor, l
     negative entry in x."""
     if level.batch_index() is not None or any(c.int8_weight is None or c.bias is None for c in (conv1, conv2)):
         return None
+    assert conv1.int8_scale is not None and conv2.int8_scale is not None  # quantised, as checked above
+    assert conv1.bias is not None and conv2.bias is not None
     features = x.detach().contiguous().numpy()
     rows, scale = _scan_rows(features)
     if scale < 0:
@@ -543,7 +557,9 @@ class UpConv(nn.Module):
         _, _, parent, slot = fine.coarser()
         weight = self.weight.permute(1, 0, 2).reshape(x.shape[1], -1)  # (C_in, 8 C_out): every slot at once
         out = (x @ weight).reshape(-1, self.c_out).index_select(0, parent * 8 + slot)
-        return out if self.bias is None else out.add_(self.bias)  # after the gather: bias.repeat(8) costs more
+        return (
+            out if self.bias is None else out.add_(cast(torch.Tensor, self.bias))
+        )  # after the gather: bias.repeat(8) costs more
 
 
 def voxelize(points: list[torch.Tensor], voxel: float) -> tuple[Level, torch.Tensor, torch.Tensor]:
@@ -556,10 +572,10 @@ def voxelize(points: list[torch.Tensor], voxel: float) -> tuple[Level, torch.Ten
     p = torch.cat(points).numpy()
     batch = np.repeat(np.arange(len(points)), [len(q) for q in points])
     cells = _cells(p, np.float32(voxel), batch)
-    keys = _interleaved(cells)
-    coords, mean, inverse, keys = _voxels(keys, np.argsort(keys), cells, p)  # numpy's sort: faster than numba's
-    level = Level(torch.from_numpy(coords), 1, keys)
-    return level, torch.from_numpy(mean), torch.from_numpy(inverse)
+    cell_keys = _interleaved(cells)
+    found = _voxels(cell_keys, np.argsort(cell_keys), cells, p)  # numpy's sort: faster than numba's
+    level = Level(torch.from_numpy(found[0]), 1, found[3])
+    return level, torch.from_numpy(found[1]), torch.from_numpy(found[2])
 
 
 @njit(cache=True, nogil=True)

@@ -67,11 +67,11 @@ def imu_samples(
         raise ValueError(
             f"the IMU needs at least two poses at increasing times, got {len(poses)} poses at {len(stamps)} times"
         )
-    poses = np.asarray(poses, dtype=np.float64)
+    T_w_b = np.asarray(poses, dtype=np.float64)
     from scipy.interpolate import CubicSpline  # scipy.interpolate loads slowly: only where an IMU is simulated
 
-    position = CubicSpline(stamps, poses[:, :3, 3])
-    rotation = RotationSpline(stamps, Rotation.from_matrix(poses[:, :3, :3]))
+    position = CubicSpline(stamps, T_w_b[:, :3, 3])
+    rotation = RotationSpline(stamps, Rotation.from_matrix(T_w_b[:, :3, :3]))
     t = np.arange(stamps[0], stamps[-1] + 0.5 / config.rate, 1.0 / config.rate)
     t = t[t <= stamps[-1] + 1e-9]  # the last pose's own sample, whatever the rounding of the steps
     gyro = rotation(t, 1)  # scipy gives the rate in the rotating (body) frame

@@ -718,7 +718,7 @@ def _known_pattern(points: np.ndarray) -> tuple[BeamPattern, str] | None:
     """The registered pattern with the fewest beams that every return lies on, with a return on one of
     its end beams (of two with the same beams, the one the returns lie closer to), at the scan's column
     count and encoder phases; None where none fits."""
-    fits = []
+    fits: list[tuple] = []
     for known in PATTERNS.values():
         beam, _, off = known.locate(points)
         ends = {int(np.argmin(known.elevations_deg)), int(np.argmax(known.elevations_deg))}
