@@ -13,8 +13,9 @@ from __future__ import annotations
 
 import dataclasses
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Protocol, cast
 
 import numpy as np
 
@@ -83,7 +84,7 @@ class HessianDetector:
     named '<kind>:<threshold>'; UNKNOWN where there is no finite Hessian."""
 
     kind = ""
-    mask_of = staticmethod(eigen_mask)
+    mask_of: Callable[[np.ndarray, float], tuple[np.ndarray, np.ndarray]] = staticmethod(eigen_mask)
 
     def __init__(self, threshold: float):
         self.threshold = float(threshold)
@@ -361,7 +362,7 @@ class CascadeDetector:
         return self.scan_mc.judge(points, rng, T_w_s), True
 
 
-def safe_predict(det: Detector, points: np.ndarray, reg, T_w_s: np.ndarray) -> tuple[Prediction, bool]:
+def safe_predict(det: Detector, points: np.ndarray, reg, T_w_s: np.ndarray | None) -> tuple[Prediction, bool]:
     """The detector's prediction, or UNKNOWN (nothing masked) if it raises: one bad scan or a
     detector bug must not end a run; the caller counts these."""
     try:
@@ -383,20 +384,21 @@ def make_detector(
     if parsed.kind == "learned+scanmc":
         margin = CASCADE_MARGIN if parsed.margin is None else parsed.margin
         return CascadeDetector(
-            make_detector("learned", lidar, seed, sensor, device),  # type: ignore[arg-type]
-            make_detector("scanmc", lidar, seed, sensor),
+            cast(LearnedDetector, make_detector("learned", lidar, seed, sensor, device)),
+            cast(ScanMCDetector, make_detector("scanmc", lidar, seed, sensor)),
             margin,
-        )  # type: ignore[arg-type]
+        )
     if parsed.kind == "none":
         return NoDetector()
+    tau = float("nan") if parsed.tau is None else parsed.tau  # parse_detector gives these kinds theirs
     if parsed.kind == "eigen":
-        return EigenvalueDetector(parsed.tau)
+        return EigenvalueDetector(tau)
     if parsed.kind == "dcreg":
-        return DCRegDetector(parsed.tau)
+        return DCRegDetector(tau)
     if parsed.kind == "xicp":
-        return XICPDetector(parsed.tau)
+        return XICPDetector(tau)
     if parsed.kind == "drpm":
-        return DRPMDetector(parsed.tau, point_sigma=(sensor or LidarConfig()).range_noise_std or 0.03)
+        return DRPMDetector(tau, point_sigma=(sensor or LidarConfig()).range_noise_std or 0.03)
     if parsed.kind == "oracle":
         if lidar is None:
             raise ValueError("the oracle detector needs the scene's LiDAR")
@@ -415,7 +417,7 @@ def registration_of(detectors: list[Detector]) -> RegistrationConfig:
     """The registration the pipeline runs: the one the learned detectors' labels were made with (their
     checkpoints store it), else the defaults. Detectors whose checkpoints disagree get the defaults and
     a warning, as a checkpoint made with other settings than the ones in use does."""
-    stored = [d.labelled_with for d in detectors if getattr(d, "labelled_with", None) is not None]
+    stored = [found for d in detectors if (found := getattr(d, "labelled_with", None)) is not None]
     if not stored:
         return RegistrationConfig()
     if any(s != stored[0] for s in stored[1:]):

@@ -259,7 +259,7 @@ class OnlineFusion:
         self.registrar = ScanRegistrar(
             registration or registration_of([detector]),
             threads=1 if config.detector_process else None,
-            keyframes=Keyframes(distance=config.keyframe_distance),
+            keyframes=Keyframes(distance=config.keyframe_distance or 0.0),  # set by its __post_init__
         )
         # an environment reports the newest estimate only: the graph keeps a window (bounded cost per step)
         self.pipeline = LocalizationPipeline(

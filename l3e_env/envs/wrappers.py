@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, cast
 
 import gymnasium as gym
 import numpy as np
@@ -28,12 +28,13 @@ class FlatObservation(gym.ObservationWrapper):
                 "FlatObservation wraps the navigation environment, whose observation is a Dict with "
                 f"{' and '.join(self.FLAT)}"
             )
-        flat = {}
-        for key, box in space.spaces.items():
+        flat: dict[str, spaces.Space] = {}
+        for key, space_of in space.spaces.items():
             if key in self.FLAT:
+                box = cast(spaces.Box, space_of)  # the navigation environment's arrays
                 flat[key] = spaces.Box(box.low.reshape(-1), box.high.reshape(-1), (int(np.prod(box.shape)),), box.dtype)
             else:
-                flat[key] = box
+                flat[key] = space_of
         self.observation_space = spaces.Dict(flat)
 
     def observation(self, observation: dict[str, Any]) -> dict[str, Any]:

@@ -14,7 +14,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import torch
@@ -306,7 +306,7 @@ def _norm_sites(backbone: nn.Module) -> list[tuple[nn.Module, nn.Module, str]]:
             sites += [
                 (backbone.down[i], backbone.down_norm[i], "0"),
                 (backbone.up[i], backbone.up_norm[i], "0"),
-                (backbone.up_mix[i][0], backbone.up_mix[i][1], "0"),
+                (cast(nn.Sequential, backbone.up_mix[i])[0], cast(nn.Sequential, backbone.up_mix[i])[1], "0"),
             ]
     elif isinstance(backbone, PointNet):
         sites += [(backbone.mlp[i], backbone.mlp[i + 1], "0") for i in range(0, len(backbone.mlp), 2)]
@@ -324,11 +324,13 @@ def fold_batch_norms(model: LocalizabilityNet) -> LocalizabilityNet:
         norm = getattr(owner, name)
         if not isinstance(norm, nn.BatchNorm1d):
             raise ValueError(f"{type(owner).__name__}.{name} is {type(norm).__name__}, not a batch norm: folded twice?")
-        scale = norm.weight / torch.sqrt(norm.running_var + norm.eps)
-        shift = norm.bias - norm.running_mean * scale
+        running_mean, running_var = cast(torch.Tensor, norm.running_mean), cast(torch.Tensor, norm.running_var)
+        scale = norm.weight / torch.sqrt(running_var + norm.eps)
+        shift = norm.bias - running_mean * scale
         # output channels: the last axis of a sparse convolution's weight, the first of a linear layer's
-        layer.weight.mul_(scale[:, None] if isinstance(layer, nn.Linear) else scale)
-        bias = shift if layer.bias is None else layer.bias * scale + shift
+        weight, old_bias = cast(torch.Tensor, layer.weight), cast(torch.Tensor | None, layer.bias)
+        weight.mul_(scale[:, None] if isinstance(layer, nn.Linear) else scale)
+        bias = shift if old_bias is None else old_bias * scale + shift
         layer.bias = nn.Parameter(bias)
         setattr(owner, name, nn.Identity())
     return model
@@ -407,7 +409,7 @@ def one_per_voxel(points: np.ndarray, voxel: float, rng: np.random.Generator) ->
     cells -= cells.min(axis=0)
     keys = np.ravel_multi_index(cells.T, tuple(cells.max(axis=0) + 1))
     order = rng.permutation(len(points))
-    _, first = np.unique(keys[order], return_index=True)  # the first of each voxel in a random order
+    first = np.unique(np.asarray(keys)[order], return_index=True)[1]  # the first of each voxel in a random order
     return points[order[first]]
 
 
@@ -656,7 +658,7 @@ class Classifier:
             model_input(level_scan(check_scan(s), None if poses is None else poses[k], cfg), cfg, rng)
             for k, s in enumerate(scans)
         ]
-        up = up_vector(poses) if cfg.gravity else None
+        up = up_vector(poses) if cfg.gravity and poses is not None else None
         return model_probabilities(self.model, batch, self.symmetric, up)
 
     def predict(self, points: np.ndarray, T_w_s: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:

@@ -132,8 +132,8 @@ def surface_rows(level: Level, means: torch.Tensor) -> torch.Tensor:
 def coarser_means(level: Level, means: np.ndarray) -> tuple[Level, np.ndarray]:
     """The next coarser level (the network's own, cached on `level`) and the mean of each coarse
     voxel's finer mean points: every finer voxel weighs one, whatever its point count."""
-    coarse, _, parent, _ = level.coarser()
-    parent, size = parent.cpu().numpy(), len(coarse.coords)
+    coarse, _, parents, _ = level.coarser()
+    parent, size = parents.cpu().numpy(), len(coarse.coords)
     summed = np.stack([np.bincount(parent, weights=means[:, k], minlength=size) for k in range(3)], axis=1)
     return coarse, summed / np.bincount(parent, minlength=size)[:, None]  # float64, as the moments
 
@@ -173,6 +173,9 @@ def axis_rows(logits: torch.Tensor, features: torch.Tensor) -> torch.Tensor:
 class AxisStacker(nn.Module):
     """Per axis, a logistic layer over (the network's logit for that axis, the scan's features),
     on features standardised with the statistics of the rows it was fitted on."""
+
+    mean: torch.Tensor  # buffers, registered below
+    std: torch.Tensor
 
     def __init__(self, features: int = FEATURES) -> None:
         super().__init__()

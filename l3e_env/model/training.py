@@ -51,7 +51,7 @@ from .classifier import (
     up_tensor,
     up_vector,
 )
-from .constraints import FEATURES, fit_stacker
+from .constraints import FEATURES, AxisStacker, fit_stacker
 from .scores import axis_scores, best_thresholds, mean_scores, micro_f1
 
 
@@ -272,6 +272,8 @@ def network_parts(
     for start, batch, up in _dataset_batches(model, data, rows, seed, batch_size, progress):
         views, view_up, swap = model.canonical([p.to(device) for p in batch], up_tensor(up, device))
         net, feats = model.parts(views, view_up, constraints=True)
+        if feats is None:
+            raise TrainingError("the model gives no constraint features: it has no constraint levels")
         logits[start : start + len(batch)] = net.cpu().numpy()
         features[start : start + len(batch)] = feats.cpu().numpy()
         if swap is not None:
@@ -430,7 +432,7 @@ def train(
         t0 = time.perf_counter()
         losses = _train_epoch(run, epoch, progress)
         run.scheduler.step()
-        record = {
+        record: dict[str, Any] = {
             "epoch": epoch + 1,
             "train_loss": float(np.mean(losses)),
             "lr": run.scheduler.get_last_lr()[0],
@@ -663,7 +665,7 @@ def with_fitted_layer(
     seed: int,
     layer: tuple[tuple[int, ...], str | None],
     progress: bool,
-) -> tuple[LocalizabilityNet, torch.nn.Module]:
+) -> tuple[LocalizabilityNet, AxisStacker]:
     """The base network with a constraint layer over the ResUNet levels `layer[0]`, read in the view
     `layer[1]` (the base's own where None), fitted on `rows` (each row's labels in the view it was read
     in); the model and the fitted layer."""
@@ -679,6 +681,8 @@ def with_fitted_layer(
     labels = np.array(data.labels[rows])
     labels[swapped] = labels[swapped][:, SWAP_LABELS]
     stacker = fit_stacker(logits, features, labels)
+    if model.stacker is None:
+        raise TrainingError("the model has no constraint layer to fit")
     model.stacker.load_state_dict(stacker.state_dict())
     return model.eval(), stacker
 
