@@ -173,10 +173,11 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 def _context(args: argparse.Namespace, name: str, params: dict | None, resolution: float | None = None):
     """The scene with the map of the command's detector on its sensor's grid, built where not cached."""
     from .context import scene_context
+    from .locmap import MapBuild
 
     grid = map_grid(args.sensor, resolution)
-    workers = getattr(args, "workers", 1)
-    return scene_context(name, args.detector, args.cache_dir, True, grid, not args.quiet, params, workers, _say)
+    build = MapBuild(getattr(args, "workers", 1), not args.quiet, _say)
+    return scene_context(name, args.detector, args.cache_dir, build, grid, not args.quiet, params)
 
 
 def map_grid(sensor: str, resolution: float | None = None):

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -13,7 +12,7 @@ from l3e_env.core.files import write_atomic
 from scenes import Scene, make_scene
 
 from .freespace import FreeSpace, build_free_space, reachable_from
-from .locmap import LocalizabilityMap, MapGrid, default_cache_dir, get_map, settings_digest
+from .locmap import LocalizabilityMap, MapBuild, MapGrid, default_cache_dir, get_map, settings_digest
 
 MAP_RESOLUTION = 2.0  # m between mapped positions; 4 headings each (about 40 s per fork variant)
 
@@ -23,6 +22,13 @@ class SceneContext:
     scene: Scene
     space: FreeSpace  # the part connected to the start
     locmap: LocalizabilityMap | None
+
+    @property
+    def built_map(self) -> LocalizabilityMap:
+        """The localizability map, or ValueError where the context was made without one."""
+        if self.locmap is None:
+            raise ValueError(f"scene {self.scene.name} has no localizability map here (made with detector None)")
+        return self.locmap
 
 
 def free_space(
@@ -66,21 +72,19 @@ def scene_context(
     name: str,
     detector: str | None = "learned",
     cache_dir: str | Path | None = None,
-    build: bool = True,
+    build: bool | MapBuild = True,
     grid: MapGrid | None = None,
     progress: bool = False,
     scene_params: dict | None = None,
-    workers: int = 1,
-    announce: Callable[[str], None] | None = None,
 ) -> SceneContext:
     """Scene, free space and (unless detector is None) its localizability map on `grid` (positions
-    MAP_RESOLUTION apart by default), built by `workers` processes where it is not cached;
-    `scene_params` go to make_scene (a mesh scene's up axis, scale and route); `announce` is told of a
-    map that is built (get_map)."""
+    MAP_RESOLUTION apart by default), built as `build` says where it is not cached (get_map; True:
+    with `progress`); `scene_params` go to make_scene (a mesh scene's up axis, scale and route)."""
     scene = make_scene(name, **(scene_params or {}))
     space = free_space(scene, cache_dir, progress=progress)
     locmap = None
     if detector is not None:
         grid = grid or MapGrid(resolution=MAP_RESOLUTION)
-        locmap = get_map(scene, space, detector, cache_dir, build, grid, progress, workers, announce)
+        how = MapBuild(progress=progress) if build is True else build
+        locmap = get_map(scene, space, detector, cache_dir, how, grid)
     return SceneContext(scene, space, locmap)

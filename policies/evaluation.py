@@ -34,6 +34,7 @@ from l3e_env.sim.follower import RouteFollower
 from l3e_env.sim.odometry import odometry_fusion_config
 
 from .context import SceneContext, scene_context
+from .locmap import MapBuild
 from .observation import PolicyView
 from .planner import Planner, drift_rates, expected_drift_along, route_of
 
@@ -168,7 +169,7 @@ def make_controller(
 
         model = PPOPolicy(policy.partition(":")[2])
         ctx = source.context(model.meta.get("detector", source.detector))
-        view = PolicyView(ctx.space, ctx.locmap, ctx.scene.goal, float(model.meta["fast_env"]["lam"]))
+        view = PolicyView(ctx.space, ctx.built_map, ctx.scene.goal, float(model.meta["fast_env"]["lam"]))
         held = {"action": np.zeros(3, dtype=np.float32)}
 
         def act(T: np.ndarray, i: int, obstacles: np.ndarray | None) -> np.ndarray:
@@ -247,7 +248,7 @@ def run_episode(job: EpisodeJob) -> Episode:
         steer, planned = make_controller(job.policy, source, options.lam, env.config.odometry, ctx, local)
         controller = BackOff(steer)
         path, length, info = _drive(env, controller, job, local)
-        expected = expected_drift_along(path, ctx.locmap, drift_rates(env.config.odometry))
+        expected = expected_drift_along(path, ctx.built_map, drift_rates(env.config.odometry))
         offset = info["fused_T_w_b"][:3, 3] - info["T_w_b"][:3, 3]
         return Episode(
             job.policy,
@@ -466,7 +467,8 @@ def _build_maps(
     for name in dict.fromkeys(scenes):
         for d in sorted(detectors | {options.detector}):
             params = options.scene_params.get(name)
-            scene_context(name, d, options.cache_dir, progress=progress, scene_params=params, announce=announce)
+            build = MapBuild(progress=progress, announce=announce)
+            scene_context(name, d, options.cache_dir, build, progress=progress, scene_params=params)
 
 
 def _run_record(options: EvalOptions) -> dict[str, Any]:

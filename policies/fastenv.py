@@ -89,7 +89,7 @@ class MapNavigationEnv(gym.Env):
         if missing:
             raise ValueError(f"scenes without a localizability map: {missing}")
         self.config = config or FastEnvConfig()
-        self.views = [PolicyView(c.space, c.locmap, c.scene.goal, self.config.lam) for c in contexts]
+        self.views = [PolicyView(c.space, c.built_map, c.scene.goal, self.config.lam) for c in contexts]
         self.contexts = contexts
         self.observation_space = self.views[0].observation_space
         self.action_space = spaces.Box(-1.0, 1.0, (len(action_layout(self.config.sideways)),), dtype=np.float32)

@@ -12,7 +12,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import trimesh
@@ -102,7 +102,8 @@ class LocalizabilityMap:
         }
         if self.estimated is not None:
             arrays["estimated"] = self.estimated
-        write_atomic(path, lambda fh: np.savez_compressed(fh, **arrays))
+        stored: dict[str, Any] = arrays
+        write_atomic(path, lambda fh: np.savez_compressed(fh, **stored))
 
     @classmethod
     def load(cls, path: str | Path) -> LocalizabilityMap:
@@ -148,7 +149,8 @@ class MapJudge:
             self.thresholds = self.classifier.thresholds.copy()
             self.identity = f"{kind}-{file_digest(parsed.checkpoint or DEFAULT_CHECKPOINT)}"
         else:
-            self.detector = make_detector(spec, lidar, seed)
+            # one of several detector classes, each read by what it offers below (its labels, its estimate)
+            self.detector: Any = cast(Any, make_detector(spec, lidar, seed))
             self.thresholds = np.full(6, 0.5)
             self.identity = self.detector.name.replace(":", "")
             if kind == "learned+scanmc":
@@ -305,14 +307,17 @@ def build_map(
     jobs = [
         (
             [
-                planar_pose(*positions[n], free.ground[tuple(cells[n])] + robot.standing_height, yaws[k]) @ T_b_s
+                planar_pose(
+                    positions[n][0], positions[n][1], free.ground[tuple(cells[n])] + robot.standing_height, yaws[k]
+                )
+                @ T_b_s
                 for n, k in chunk
             ],
             [[seed, n, k] for n, k in chunk],
         )
         for chunk in chunks
     ]
-    judged = ordered_map(
+    found = ordered_map(
         _judge_batch,
         jobs,
         judge,
@@ -321,7 +326,7 @@ def build_map(
         workers,
     )
     judged = list(
-        tqdm(judged, total=len(jobs), desc=f"{judge.spec} map of {scene.name}", unit="batch", disable=not progress)
+        tqdm(found, total=len(jobs), desc=f"{judge.spec} map of {scene.name}", unit="batch", disable=not progress)
     )
     for chunk, (p, by_estimate) in zip(chunks, judged):
         for (n, k), row, e in zip(chunk, p, by_estimate):
@@ -333,20 +338,27 @@ def scene_lidar(scene: Scene, lidar: LidarConfig | None = None) -> Lidar:
     return Lidar(make_caster("embree", scene.mesh), lidar or LidarConfig())
 
 
+@dataclass(frozen=True)
+class MapBuild:
+    """How a map that is not cached is built: by `workers` processes, with a progress bar, and
+    `announce` told what is built, where it is cached and how long it took (minutes on one core,
+    which a progress bar hidden by --quiet would not say)."""
+
+    workers: int = 1
+    progress: bool = False
+    announce: Callable[[str], None] | None = None
+
+
 def get_map(
     scene: Scene,
     free: FreeSpace,
     detector: str = "learned",
     cache_dir: str | Path | None = None,
-    build: bool = True,
+    build: bool | MapBuild = True,
     grid: MapGrid | None = None,
-    progress: bool = False,
-    workers: int = 1,
-    announce: Callable[[str], None] | None = None,
 ) -> LocalizabilityMap:
-    """The cached map for these settings; built (by `workers` processes) and cached when missing if
-    `build`, else MapCacheError. `announce` is told what is built, where it is cached and how long it
-    took (minutes on one core, which a progress bar hidden by --quiet would not say)."""
+    """The cached map for these settings; where it is missing, built as `build` says (True: MapBuild's
+    defaults) and cached, or MapCacheError where `build` is False."""
     grid = grid or MapGrid()
     judge = MapJudge(detector, scene_lidar(scene, grid.lidar), grid.seed)
     settings = map_settings(scene, free, grid, judge)
@@ -361,15 +373,16 @@ def get_map(
             f"no {detector} localizability map of scene '{scene.name}' cached for these settings "
             f"({path}); make it with `l3e policy map --scene {scene.name} --detector {detector}`"
         )
-    if announce is not None:
+    how = build if isinstance(build, MapBuild) else MapBuild()
+    if how.announce is not None:
         positions = len(map_positions(free, grid.resolution))
-        announce(
+        how.announce(
             f"building the {detector} localizability map of {scene.name} ({positions} positions x {grid.yaw_bins} "
-            f"headings, {workers} process(es)); it is cached in {path.parent} for every later run"
+            f"headings, {how.workers} process(es)); it is cached in {path.parent} for every later run"
         )
     began = time.perf_counter()
-    result = build_map(scene, free, detector, grid, progress=progress, workers=workers)
+    result = build_map(scene, free, detector, grid, progress=how.progress, workers=how.workers)
     result.save(path)
-    if announce is not None:
-        announce(f"built in {time.perf_counter() - began:.0f} s: {path}")
+    if how.announce is not None:
+        how.announce(f"built in {time.perf_counter() - began:.0f} s: {path}")
     return result

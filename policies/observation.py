@@ -78,7 +78,7 @@ class PolicyView:
         idx = self.space.index(xy)
         ok = self.space.inside(idx)
         ix, iy = np.where(ok, idx[..., 0], 0), np.where(ok, idx[..., 1], 0)
-        lo, hi, w = heading_bins(heading, self.table.shape[2])
+        lo, hi, w = heading_bins(np.asarray(heading), self.table.shape[2])
         value = (1 - w) * self.table[ix, iy, lo] + w * self.table[ix, iy, hi]
         return np.where(ok, value, 0.0)
 

@@ -109,12 +109,14 @@ class Planner:
                 mid = space.center(cells[a] + 0.5 * np.array([dx, dy]))
                 masked = locmap.lookup(mid, np.full(len(a), np.arctan2(dy, dx)))
                 drift = length * masked @ self.rates
-            rows.append(a), cols.append(b), drifts.append(drift)
+            rows.append(a)
+            cols.append(b)
+            drifts.append(drift)
             costs.append(length * (1 + 0.5 * (near[a] + near[b])) + self.lam * drift)
-        rows, cols, n = np.concatenate(rows), np.concatenate(cols), len(cells)
-        self.graph = coo_matrix((np.concatenate(costs), (rows, cols)), shape=(n, n)).tocsr()
+        row, col, n = np.concatenate(rows), np.concatenate(cols), len(cells)
+        self.graph = coo_matrix((np.concatenate(costs), (row, col)), shape=(n, n)).tocsr()
         # same sparsity as the cost graph: a plan reads its edges' drift back by (from, to)
-        self.drift_graph = coo_matrix((np.concatenate(drifts), (rows, cols)), shape=(n, n)).tocsr()
+        self.drift_graph = coo_matrix((np.concatenate(drifts), (row, col)), shape=(n, n)).tocsr()
 
     def _node(self, xy: np.ndarray, what: str) -> int:
         xy = np.asarray(xy, dtype=np.float64)[:2]

@@ -75,7 +75,7 @@ def plot_locmap(path: str | Path, scene: Scene, locmap: LocalizabilityMap, space
 def plot_paths(
     path: str | Path,
     scene: Scene,
-    paths: dict[str, np.ndarray],
+    paths: dict[str, np.ndarray] | dict[str, list[np.ndarray]],
     space: FreeSpace | None = None,
     title: str = "",
     colors: dict[str, str] | None = None,
@@ -85,8 +85,8 @@ def plot_paths(
     _floor_plan(ax, scene, space)
     colors = colors or {}
     cycle = plt.rcParams["axes.prop_cycle"].by_key()["color"]
-    for j, (name, group) in enumerate(paths.items()):
-        group = group if isinstance(group, list) else [group]
+    for j, (name, drawn) in enumerate(paths.items()):
+        group = drawn if isinstance(drawn, list) else [drawn]
         for k, xy in enumerate(group):
             ax.plot(
                 xy[:, 0],

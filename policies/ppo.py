@@ -128,7 +128,8 @@ def resumed_config(out: str | Path, **given: float | bool | None) -> FastEnvConf
     did), else the default."""
     own = run_record(out).get("fast_env") or {}
     default = FastEnvConfig()
-    return FastEnvConfig(**{k: own.get(k, getattr(default, k)) if v is None else v for k, v in given.items()})
+    chosen: dict[str, Any] = {k: own.get(k, getattr(default, k)) if v is None else v for k, v in given.items()}
+    return FastEnvConfig(**chosen)
 
 
 def _has_tensorboard() -> bool:
@@ -179,7 +180,8 @@ def demonstrations(
             rewards, done = [], False
             while not done:
                 label = teacher_action(obs, config.sideways)
-                observations.append(obs), actions.append(label)
+                observations.append(obs)
+                actions.append(label)
                 act = np.clip(label + rng.normal(0.0, warm.noise, len(label)), -1.0, 1.0)
                 obs, reward, terminated, truncated, _ = env.step(act)
                 rewards.append(reward)

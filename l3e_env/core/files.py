@@ -10,6 +10,13 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import BinaryIO
 
+import numpy as np
+
+
+def npy_writer(array: np.ndarray) -> Callable[[BinaryIO], None]:
+    """What write_atomic calls to write `array` as a .npy file."""
+    return lambda fh: np.save(fh, array)
+
 
 def write_atomic(path: str | Path, write: Callable[[BinaryIO], object]) -> None:
     """Write through a temporary file beside `path`, fsync, rename. On any failure the temporary

@@ -25,7 +25,7 @@ from tqdm import tqdm
 
 from l3e_env.config import LABELLERS, LidarConfig, from_dict, settings_changed
 from l3e_env.config.labelling import LABEL_PROTOCOL, LabelConfig, RegistrationConfig, ScanMCConfig
-from l3e_env.core.files import folder_lock, write_atomic
+from l3e_env.core.files import folder_lock, npy_writer, write_atomic
 from l3e_env.core.transforms import level_rotation_of
 from l3e_env.core.workers import worker_start
 from l3e_env.localizability.labels import (
@@ -315,10 +315,6 @@ def _saved_arrays(arrays: dict[str, Any]) -> Callable[[BinaryIO], None]:
     return lambda fh: np.savez(fh, **arrays)
 
 
-def _saved_array(array: np.ndarray) -> Callable[[BinaryIO], None]:
-    return lambda fh: np.save(fh, array)
-
-
 def _write_json(path: Path, data: dict) -> None:
     _write_atomic(path, lambda fh: fh.write(json.dumps(data, indent=1).encode()))
 
@@ -399,7 +395,7 @@ def consolidate(out: Path, config: DatasetConfig, manifest: dict[str, Any]) -> d
         "children_failed": np.concatenate([p["children_failed"] for p in parts]),
     }
     for name, arr in arrays.items():
-        _write_atomic(out / f"{name}.npy", _saved_array(arr))
+        _write_atomic(out / f"{name}.npy", npy_writer(arr))
     failures = [f for p in parts for f in json.loads(str(p["failures"]))]
     manifest.update(
         {

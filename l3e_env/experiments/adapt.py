@@ -32,7 +32,7 @@ from tqdm import tqdm
 
 from l3e_env.config import LidarConfig, from_dict, plain, settings_changed
 from l3e_env.config.labelling import LABEL_PROTOCOL, LabelConfig, RegistrationConfig, ScanMCConfig
-from l3e_env.core.files import folder_lock, write_atomic
+from l3e_env.core.files import folder_lock, npy_writer, write_atomic
 from l3e_env.core.transforms import level_rotation_of
 from l3e_env.core.workers import ordered_map
 from l3e_env.data.dataset import ARRAYS, FORMAT_VERSION, LabelDataset, label_statistics
@@ -227,7 +227,9 @@ class _Labeller:
         register_pattern(self.pattern)
 
 
-def _label_chunk(labeller: _Labeller, chunk: list[tuple[int, np.ndarray, np.ndarray]]) -> list[np.ndarray | None]:
+def _label_chunk(
+    labeller: _Labeller, chunk: list[tuple[int, np.ndarray, np.ndarray | None]]
+) -> list[np.ndarray | None]:
     """scanmc's errors of each scan of a chunk, seeded by the scan's place in the run; None where it cannot judge it."""
     found: list[np.ndarray | None] = []
     lidar = LidarConfig(model=labeller.pattern.name)
@@ -271,7 +273,7 @@ def _labelled(
     args = (labeller.pattern, labeller.registration, labeller.labels, labeller.scan_mc, labeller.seed)
     for k, found in zip(todo, ordered_map(_label_chunk, jobs, None, _Labeller, args, options.workers)):
         rows = np.array([np.full(6, np.nan) if f is None else f for f in found], dtype=np.float64)
-        write_atomic(shards / f"chunk-{k:05d}.npy", lambda fh, r=rows: np.save(fh, r))
+        write_atomic(shards / f"chunk-{k:05d}.npy", npy_writer(rows))
         bar.update(len(found))
     bar.close()
     errors = np.concatenate([np.load(shards / f"chunk-{k:05d}.npy") for k in range(len(chunks))])
@@ -287,7 +289,7 @@ def _write_dataset(
 ) -> None:
     """The labelled scans in the dataset format (`data.dataset`), labelled by their own estimate."""
     thresholds = labeller.labels.threshold_vector()
-    arrays = {
+    arrays: dict[str, np.ndarray] = {
         "points": np.concatenate([s.points for s in scans]).astype(np.float32),
         "offsets": np.concatenate([[0], np.cumsum([len(s.points) for s in scans])]).astype(np.int64),
         "poses": np.array([level_pose(s.up) for s in scans], dtype=np.float64),
@@ -298,7 +300,7 @@ def _write_dataset(
     }
     assert set(arrays) == set(ARRAYS)
     for name, array in arrays.items():
-        write_atomic(folder / f"{name}.npy", lambda fh, a=array: np.save(fh, a))
+        write_atomic(folder / f"{name}.npy", npy_writer(array))
     settings = {
         "scenes": [place],
         "seed": labeller.seed,

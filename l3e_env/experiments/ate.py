@@ -171,7 +171,7 @@ def run_ate(
     out = Path(out_dir)
     drive = prepare_drive(out, scene, detectors, options, progress)
     t0 = time.perf_counter()
-    keyframes = Keyframes(distance=options.fusion_settings.keyframe_distance)
+    keyframes = Keyframes(distance=options.fusion_settings.keyframe_distance or 0.0)  # set by its __post_init__
     regs = register_sequence(drive.rec, drive.registration, progress, keyframes)
     icp_seconds = time.perf_counter() - t0
     ahead = judge_ahead(drive, options.workers, progress)
@@ -272,8 +272,9 @@ def fuse_frontends(
     whose odometry failed, its rows' names with the error."""
     fused, lost = [], []
     for frontend in options.frontends:
-        if frontend != "icp" and runs[frontend].error is not None:
-            lost += [(f"{det.name} @{frontend}", runs[frontend].error) for det in dets]
+        failed = runs[frontend].error if frontend != "icp" else None
+        if failed is not None:
+            lost += [(f"{det.name} @{frontend}", failed) for det in dets]
             continue
         steps = regs if frontend == "icp" else runs[frontend].registrations(regs)
         by_front = fuse_recording(rec, dets, steps, fusion, progress=progress, settings=options.fusion_settings)
@@ -291,7 +292,7 @@ def score_rows(
     lost: list[tuple[str, str]],
     runs: dict[str, BaselineRun],
     options: AteOptions,
-) -> tuple[list, list[dict]]:
+) -> tuple[list, list[AteRow]]:
     """The results (odometry only first, the fusions, the baselines alone) and the table's rows with
     each one's drift inside each named region; a failed row says why."""
     rec, scene = drive.rec, drive.scene
@@ -304,8 +305,8 @@ def score_rows(
     rows += [AteRow.failed(name, error, scene) for name, error in lost]
     for name in options.baselines:
         run = runs[name]
-        if run.error is not None:
-            rows.append(AteRow.failed(name, run.error, scene))
+        if run.error is not None or run.trajectory is None:
+            rows.append(AteRow.failed(name, run.error or "no trajectory", scene))
             continue
         steps = len(rec.odometry)
         masks, probabilities = np.zeros((steps, 6), bool), np.full((steps, 6), np.nan)

@@ -136,10 +136,10 @@ def summarize_seeds(runs: dict[int, list[AteRow]]) -> list[dict]:
         drifts: dict[str, dict[str, float | None]] = {}
         for g in regions:  # the mean over the drives that moved inside the region
             found = [runs[k][i].drift[g] for k in seeds]
-            drifts[g] = {
-                unit: round(float(np.mean(v)), 3) if (v := [d[unit] for d in found if d[unit] is not None]) else None
-                for unit in UNITS
-            }
+            drifts[g] = {}
+            for unit in UNITS:
+                moved = [float(value) for d in found if (value := d[unit]) is not None]
+                drifts[g][unit] = round(float(np.mean(moved)), 3) if moved else None
         ate = np.array([runs[k][i].ate_m for k in seeds], dtype=float)  # NaN where an estimate failed
         aligned = np.array([runs[k][i].ate_aligned_m for k in seeds], dtype=float)
         ratio = ate / np.array([runs[k][0].ate_m for k in seeds])  # row 0: odometry only

@@ -8,6 +8,7 @@ import zipfile
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import small_gicp
@@ -121,7 +122,7 @@ class DriveRecord:
         return self.samples[k] if self.samples else self.scans[k]
 
 
-def _ragged(name: str, arrays: list[np.ndarray]) -> dict[str, np.ndarray]:
+def _ragged(name: str, arrays: list[np.ndarray]) -> dict[str, Any]:
     lengths = np.array([len(a) for a in arrays], dtype=np.int64)
     flat = np.concatenate(arrays) if arrays else np.zeros((0, 3), np.float32)
     return {name: flat, f"{name}_offsets" if name != "points" else "offsets": np.concatenate([[0], np.cumsum(lengths)])}

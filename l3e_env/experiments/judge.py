@@ -122,10 +122,10 @@ def tilt_deg(up: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip(up[2] / np.linalg.norm(up), -1.0, 1.0))))
 
 
-def level_pose(up: np.ndarray) -> np.ndarray:
+def level_pose(up: np.ndarray | None) -> np.ndarray:
     """A sensor pose (4x4, world z up) with the tilt of `up` and no heading of its own: what the
-    detectors read the level frame from."""
-    return rotation_pose(level_rotation(up))
+    detectors read the level frame from (None: a level sensor)."""
+    return np.eye(4) if up is None else rotation_pose(level_rotation(up))
 
 
 def judge_points(
@@ -259,7 +259,7 @@ def read_levelled(
     frame = source.frame if isinstance(source, RecordedScan) else None
     if isinstance(source, RecordedScan) and source.pattern is not None and not given:
         pattern = source.pattern
-    if error is None and (many := too_many_points(len(points))) is not None:
+    if error is None and points is not None and (many := too_many_points(len(points))) is not None:
         error = f"{name}: {many}"
     if error is not None or points is None:
         return LevelledScan(name, np.zeros((0, 3)), stamp=stamp, error=error or f"{name}: no points")
@@ -358,7 +358,7 @@ def judge_scans(
     specs: list[str],
     sensor: LidarConfig | None = None,
     options: JudgeOptions = JudgeOptions(),
-    on_sensor: Callable[[BeamPattern, str], None] | None = None,
+    on_sensor: Callable[[BeamPattern | None, str], None] | None = None,
     sensor_index: int | None = None,
 ) -> Iterator[Judgement]:
     """Judge each scan, a file to read (an Ouster capture read scan by scan, `read_capture`, with the

@@ -49,10 +49,12 @@ def plot_timeline(judgements: list[Judgement], path: str | Path) -> None:
 
     names = _detectors(judgements)
     sensors = list(dict.fromkeys(j.sensor for j in judgements if j.sensor is not None))
-    groups = {s: [j for j in judgements if j.sensor == s] for s in sensors} if len(sensors) > 1 else {None: judgements}
+    groups: dict[str | None, list[Judgement]] = (
+        {s: [j for j in judgements if j.sensor == s] for s in sensors} if len(sensors) > 1 else {None: judgements}
+    )
     panels = [(s, n) for s, group in groups.items() for n in names if any(n in j.predictions for j in group)]
-    stamps = [j.stamp for j in judgements]
-    timed = all(s is not None for s in stamps)
+    stamps = [float(s) for j in judgements if (s := j.stamp) is not None]
+    timed = len(stamps) == len(judgements)
     cmap = matplotlib.colormaps["Reds"].resampled(2).with_extremes(bad="0.8")
     fig, axes = plt.subplots(len(panels), 1, figsize=(10, 1.4 + 1.1 * len(panels)), sharex=timed, squeeze=False)
     for ax, (sensor, name) in zip(axes[:, 0], panels):

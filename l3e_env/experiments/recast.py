@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 from tqdm import tqdm
 
+from l3e_env.config import LidarConfig
 from l3e_env.core.workers import ordered_map
 from l3e_env.detection.detectors import (
     UNKNOWN,
@@ -31,7 +32,8 @@ class RecastScans:
             raise ValueError(f"a detector is judged every stride >= 1 steps, got {stride}")
         self.detector, self.lidar, self.stride, self.seed = detector, lidar, stride, seed
         self.name = detector.name
-        self._calls, self._last, self._ahead = 0, UNKNOWN, {}
+        self._calls, self._last = 0, UNKNOWN
+        self._ahead: dict[int, Prediction] = {}
 
     def judge_step(self, step: int, T_w_s: np.ndarray) -> Prediction:
         scan = self.lidar.scan(T_w_s, np.random.default_rng([self.seed, 2, step]))
@@ -83,7 +85,8 @@ class RecastCascade:
     def __init__(self, cascade: CascadeDetector, lidar: Lidar, stride: int = 5, seed: int = 0):
         self.cascade, self.recast = cascade, RecastScans(cascade.scan_mc, lidar, stride, seed)
         self.name = cascade.name
-        self._calls, self._held = 0, {}
+        self._calls = 0
+        self._held: dict[int, Prediction] = {}
         self._classified: dict[int, tuple[Prediction, bool]] = {}  # by judge_ahead, for predict to take
 
     def predict(self, points: np.ndarray, registration=None, T_w_s: np.ndarray | None = None) -> Prediction:
@@ -91,7 +94,8 @@ class RecastCascade:
             raise ValueError(f"{self.name} in a replay casts the scan again at the true sensor pose: give T_w_s")
         step, self._calls = self._calls, self._calls + 1
         self.cascade.calls += 1
-        first, unsure = self._classified.pop(step, None) or self.cascade.classify(points, T_w_s)
+        classified = self._classified.pop(step, None)
+        first, unsure = classified if classified is not None else self.cascade.classify(points, T_w_s)
         if not unsure:
             return first
         self.cascade.checked += 1
@@ -120,7 +124,8 @@ class RecastCascade:
 
 def _recast_on(recast: RecastScans, mesh) -> RecastScans:
     """A worker's own copy, with a LiDAR on its own copy of the scene."""
-    recast.lidar = Lidar(EmbreeCaster(mesh, threads=1), recast.lidar)
+    config = recast.lidar if isinstance(recast.lidar, LidarConfig) else recast.lidar.config  # pickled as its config
+    recast.lidar = Lidar(EmbreeCaster(mesh, threads=1), config)
     return recast
 
 

@@ -453,11 +453,11 @@ def score_scan_estimate(board: Scoreboard, first_splits: dict[str, Split], out: 
             unjudged=int((~known).sum()),
             mean_children=float(found.drawn[split][known].mean()) if known.any() else 0.0,
         )
-    np.savez(
-        out / "scan_mc.npz",
+    stored: dict[str, Any] = {
         **{split.replace(" ", "_"): e for split, e in found.errors.items()},
         **{f"children_{split.replace(' ', '_')}": n for split, n in found.drawn.items()},
-    )
+    }
+    np.savez(out / "scan_mc.npz", **stored)
     return found
 
 
@@ -630,7 +630,8 @@ def draw_scores(
 ) -> dict[str, list[float]]:
     """Mean accuracy and F1 over axes at the stored thresholds, one per draw of the scans' points
     (`first`: draw 0's probabilities, already computed)."""
-    y, out = data.labels[rows], {"mean_accuracy": [], "mean_f1": []}
+    y = data.labels[rows]
+    out: dict[str, list[float]] = {"mean_accuracy": [], "mean_f1": []}
     for seed in range(draws):
         probs = (
             first

@@ -76,7 +76,7 @@ def run_sweep(
         if not given:
             rec.save(out / f"recording_{scene}.npz")
         refs = [make_detector(r) for r in options.references]
-        keyframes = Keyframes(distance=options.fusion_settings.keyframe_distance)
+        keyframes = Keyframes(distance=options.fusion_settings.keyframe_distance or 0.0)  # set by its __post_init__
         regs = register_sequence(rec, registration_of(refs), progress, keyframes)
         row: dict = {"fusion": options.fusion_settings.record(), "odometry only": odometry_only(rec).ate}
         for field_name, make, key in SWEPT:

@@ -23,10 +23,8 @@ class ScanFileError(ValueError):
     """A scan file that cannot be read as points."""
 
 
-def _read_pcd(path: Path) -> np.ndarray:
-    """PCD's header names the fields; x, y, z are read from ascii or binary data. Hand-written:
-    the libraries that read PCD (open3d, pypcd) are large or unmaintained."""
-    raw = path.read_bytes()
+def _pcd_header(path: Path, raw: bytes) -> tuple[dict[str, list[str]], int]:
+    """A PCD's header lines by their keyword, and where its data begins."""
     header: dict[str, list[str]] = {}
     offset = 0
     while "DATA" not in header:
@@ -37,14 +35,11 @@ def _read_pcd(path: Path) -> np.ndarray:
         offset = end + 1
         if words and not words[0].startswith("#"):
             header[words[0].upper()] = words[1:]
-    fields = header.get("FIELDS", [])
-    if not {"x", "y", "z"} <= set(fields):
-        raise ScanFileError(f"{path}: the PCD has fields {fields}, not x, y and z")
-    sizes = _pcd_numbers(path, header, "SIZE", len(fields), None)
-    types = header.get("TYPE", [])
-    if len(types) != len(fields):
-        raise ScanFileError(f"{path}: the PCD header's TYPE names {len(types)} types for its {len(fields)} FIELDS")
-    counts = _pcd_numbers(path, header, "COUNT", len(fields), 1)
+    return header, offset
+
+
+def _pcd_count(path: Path, header: dict[str, list[str]]) -> int:
+    """The points a PCD header declares: POINTS, which WIDTH x HEIGHT must agree with."""
     n = _pcd_numbers(path, header, "POINTS", 1, None)[0] if "POINTS" in header else None
     shape = [_pcd_numbers(path, header, key, 1, None)[0] for key in ("WIDTH", "HEIGHT") if key in header]
     if n is None and len(shape) < 2:
@@ -56,6 +51,24 @@ def _read_pcd(path: Path) -> np.ndarray:
         raise ScanFileError(
             f"{path}: the PCD header's WIDTH x HEIGHT ({shape[0]} x {shape[1]}) disagrees with its POINTS {n}"
         )
+    return n
+
+
+def _read_pcd(path: Path) -> np.ndarray:
+    """PCD's header names the fields; x, y, z are read from ascii or binary data, where the header
+    agrees with the data. Hand-written: the libraries that read PCD (open3d, pypcd) are large or
+    unmaintained."""
+    raw = path.read_bytes()
+    header, offset = _pcd_header(path, raw)
+    fields = header.get("FIELDS", [])
+    if not {"x", "y", "z"} <= set(fields):
+        raise ScanFileError(f"{path}: the PCD has fields {fields}, not x, y and z")
+    sizes = _pcd_numbers(path, header, "SIZE", len(fields), None)
+    types = header.get("TYPE", [])
+    if len(types) != len(fields):
+        raise ScanFileError(f"{path}: the PCD header's TYPE names {len(types)} types for its {len(fields)} FIELDS")
+    counts = _pcd_numbers(path, header, "COUNT", len(fields), 1)
+    n = _pcd_count(path, header)
     kind = header["DATA"][0].lower()
     if kind == "ascii":
         table = np.loadtxt(raw[offset:].decode("ascii").splitlines(), ndmin=2)

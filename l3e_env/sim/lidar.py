@@ -134,7 +134,7 @@ DESKEW_STEPS = 2  # odometry steps averaged into the motion a revolution is desk
 
 
 def deskew_motion(
-    steps: list[np.ndarray], gyro: np.ndarray | None = None, mounting: np.ndarray | None = None
+    steps: list[np.ndarray] | np.ndarray, gyro: np.ndarray | None = None, mounting: np.ndarray | None = None
 ) -> np.ndarray:
     """The motion to deskew a revolution with, from the odometry's last steps (oldest first; the
     result is in their frame): the mean of the last DESKEW_STEPS, rotations averaged on SO(3). One

@@ -15,7 +15,7 @@ from l3e_env.localizability.registration import RegistrationConfig
 from policies.context import SceneContext, free_space
 from policies.fastenv import FastEnvConfig, MapNavigationEnv
 from policies.freespace import FreeSpace, FreeSpaceError, build_free_space, reachable_from
-from policies.locmap import LocalizabilityMap, MapCacheError, MapGrid, build_map, get_map
+from policies.locmap import LocalizabilityMap, MapBuild, MapCacheError, MapGrid, build_map, get_map
 from policies.observation import PolicyView
 from policies.planner import Planner, PlanningError, drift_rates
 from scenes import make_scene
@@ -161,10 +161,10 @@ def test_eigen_map_is_cached_and_a_missing_cache_is_named(small_fork):
     with pytest.raises(MapCacheError, match="l3e policy map"):
         get_map(scene, space, "eigen:30", cache, build=False, grid=MapGrid(resolution=4.0))
     said: list[str] = []
-    built = get_map(scene, space, "eigen:30", cache, grid=MapGrid(resolution=4.0), announce=said.append)
+    built = get_map(scene, space, "eigen:30", cache, MapBuild(announce=said.append), MapGrid(resolution=4.0))
     assert len(said) == 2 and said[0].startswith(f"building the eigen:30 localizability map of {scene.name} (")
     assert f"cached in {cache}" in said[0] and said[1].startswith("built in ") and said[1].endswith(".npz")
-    cached = get_map(scene, space, "eigen:30", cache, build=False, grid=MapGrid(resolution=4.0), announce=said.append)
+    cached = get_map(scene, space, "eigen:30", cache, build=False, grid=MapGrid(resolution=4.0))
     assert len(said) == 2  # a cached map is read, not announced
     assert np.array_equal(built.probabilities, cached.probabilities, equal_nan=True)
     assert cached.estimated.shape == built.probabilities.shape[:2] and not cached.estimated.any()
