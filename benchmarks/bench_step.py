@@ -14,7 +14,7 @@ The fusion's window fills after ONLINE_LAG steps, and only then does it marginal
 an episode, and the fusion's cost is printed over its second half too, with the window full.
 
 Run: python benchmarks/bench_step.py [--scene bypass-100] [--steps 1200] [--detector learned]
-     [--keyframe-distance 0]
+     [--keyframe-distance 0] [--detector-every 4]
 """
 
 from __future__ import annotations
@@ -58,9 +58,11 @@ class Clock:
         return timed
 
 
-def instrumented_env(scene: str, detector: str, clock: Clock, keyframe_distance: float) -> NavigationEnv:
+def instrumented_env(
+    scene: str, detector: str, clock: Clock, keyframe_distance: float, detector_every: int
+) -> NavigationEnv:
     """The evaluation's environment with each part's calls timed."""
-    settings = {**asdict(FusionSettings()), "keyframe_distance": keyframe_distance}  # the evaluation's
+    settings = {**asdict(FusionSettings()), "keyframe_distance": keyframe_distance, "detector_every": detector_every}
     fusion = {**settings, "enabled": True, "detector": detector}
     env = NavigationEnv(scene=scene, arrival="estimate", fusion=fusion)
     online = env.fusion
@@ -102,11 +104,17 @@ def main() -> None:
         default=FusionSettings().keyframe_distance,
         help="0: each scan registered onto the one before (default: the evaluation's)",
     )
+    parser.add_argument(
+        "--detector-every",
+        type=int,
+        default=FusionSettings().detector_every,
+        help="the detector judges every K-th scan, its answer held between (default: the evaluation's)",
+    )
     args = parser.parse_args()
     torch.set_num_threads(1)  # as each evaluation worker
     one_thread_per_part()
     clock = Clock()
-    env = instrumented_env(args.scene, args.detector, clock, args.keyframe_distance)
+    env = instrumented_env(args.scene, args.detector, clock, args.keyframe_distance, args.detector_every)
     local = FreeHeadings()
     follow = RouteFollower(env.route, avoid=local)
 
@@ -133,7 +141,8 @@ def main() -> None:
     raw = raw_cast_seconds(env, poses)
     env.close()
     print(
-        f"{args.scene}, detector {args.detector}, keyframes every {args.keyframe_distance:g} m: "
+        f"{args.scene}, detector {args.detector} every {args.detector_every} scan(s), keyframes every "
+        f"{args.keyframe_distance:g} m: "
         f"{total * 1e3:.1f} ms of CPU a step over {steps} steps = {total / raw:.2f} raw casts"
     )
     rest = total - sum(clock.spent[p] for p in PARTS) / steps

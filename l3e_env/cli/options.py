@@ -96,6 +96,13 @@ def add_fusion_options(parser: argparse.ArgumentParser) -> None:
         help="register each scan onto a keyframe renewed every that many metres, from the leg odometry's "
         f"guess (0: each scan onto the one before; default {KEYFRAME_DISTANCE:g} with the graph, 0 with the EKF)",
     )
+    parser.add_argument(
+        "--detector-every",
+        type=int,
+        metavar="K",
+        help="the detector judges every K-th scan and its answer holds in between: K times less detector "
+        f"work, a flag late by at most K-1 steps (default {default.detector_every})",
+    )
 
 
 class CommandError(ValueError):
@@ -123,6 +130,7 @@ def fusion_settings(args: argparse.Namespace) -> FusionSettings:
         attitude=given("attitude"),
         odometry_bias=axes,
         keyframe_distance=getattr(args, "keyframe_distance", None),  # None: the backend's default
+        detector_every=given("detector_every"),
     )
 
 

@@ -76,6 +76,7 @@ DESKEW_SOURCES = ("gyro", "odometry")  # where a deskewing's rotation comes from
 
 
 KEYFRAME_DISTANCE = 4.0  # m: the graph's scans registered onto keyframes renewed this often (docs/decisions.md)
+MAX_DETECTOR_EVERY = 100  # steps (10 s at 10 Hz) a detector's answer may hold
 
 
 @dataclass(frozen=True)
@@ -94,7 +95,8 @@ class FusionSettings:
     own while the step registers it (detection.ahead; the same answers, faster where a core is
     free). The fusion's ICP is the detectors' registration (the one their labels were made with),
     its factor weighed by the registration's Hessian (fusion.FusionConfig) and masked on the axes of
-    the scan's level frame. keyframe_distance: each
+    the scan's level frame. detector_every: the detector judges every that many scans and its answer
+    holds in between (a flag is late by at most that many steps less one). keyframe_distance: each
     scan is registered onto a keyframe renewed every that many metres (or 0.8 rad of turn, or 100
     scans), from the odometry's guess, and the ICP factor ties the keyframe's pose to the scan's
     (detection.pipeline.ScanRegistrar; the graph backend); 0: each scan onto the one before; None:
@@ -113,6 +115,7 @@ class FusionSettings:
     odometry_bias: tuple[str, ...] = ("yaw", "scale")
     detector_process: bool = False
     keyframe_distance: float | None = None
+    detector_every: int = 1
 
     def __post_init__(self) -> None:
         distance = self.keyframe_distance
@@ -129,6 +132,11 @@ class FusionSettings:
                 raise ValueError(f"fusion.{name} must be one of {allowed}, got {value!r}")
         if not distance >= 0:
             raise ValueError(f"fusion.keyframe_distance is metres, at least 0, not {distance!r}")
+        every = self.detector_every
+        if isinstance(every, bool) or not isinstance(every, int) or not 1 <= every <= MAX_DETECTOR_EVERY:
+            raise ValueError(
+                f"fusion.detector_every is a whole number of steps from 1 to {MAX_DETECTOR_EVERY}, not {every!r}"
+            )
         if distance > 0 and self.backend != "graph":
             raise ValueError(
                 "fusion.keyframe_distance ties a scan to an earlier keyframe's pose, which the EKF no longer "

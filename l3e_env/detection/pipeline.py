@@ -168,7 +168,8 @@ def level_basis(T_w_b: np.ndarray, T_b_s: np.ndarray) -> np.ndarray:
 
 class LocalizationPipeline:
     """Detect and fuse, one step at a time, along one drive: `start` at the first pose, then `step`
-    with each step's odometry increment and registration (from a `ScanRegistrar`)."""
+    with each step's odometry increment and registration (from a `ScanRegistrar`). The detector judges
+    the first scan and every `detector_every`-th after it; its answer holds in between."""
 
     def __init__(
         self,
@@ -178,8 +179,13 @@ class LocalizationPipeline:
         odometry: OdometryConfig,
         T_b_s: np.ndarray,
         attitude: str = "none",
+        detector_every: int = 1,
     ):
         check_backend(backend)
+        if detector_every < 1:
+            raise ValueError(f"the detector judges every detector_every >= 1 steps, got {detector_every}")
+        self.detector_every = detector_every
+        self._held: tuple[Prediction, bool] | None = None
         self.detector, self.backend_name, self.fusion, self.odometry = detector, backend, fusion, odometry
         self.T_b_s = T_b_s
         self.attitude_sigmas = attitude_sigmas(attitude)
@@ -190,6 +196,11 @@ class LocalizationPipeline:
     def start(self, T_w_b: np.ndarray) -> None:
         self._backend = make_fusion(self.backend_name, T_w_b, self.fusion)
         self.steps = 0
+        self._held = None
+
+    def judges_next(self) -> bool:
+        """Whether the next `step` asks the detector (else its last answer holds)."""
+        return self._held is None or self.steps % self.detector_every == 0
 
     @property
     def backend(self) -> FusionGraph | EKFFusion:
@@ -211,9 +222,14 @@ class LocalizationPipeline:
         it); `T_w_s`: the sensor's pose where a detector needs one (the oracle, a model reading the
         tilt); `attitude`: the IMU's orientation of the body (3x3), fused every ATTITUDE_EVERY steps
         where the pipeline was built with an attitude mode; `judged`: the detector's answer and
-        whether it failed, where it was judged elsewhere (a DetectorProcess)."""
+        whether it failed, where it was judged elsewhere (a DetectorProcess). On a step the detector
+        does not judge (`judges_next`), its last answer holds and `judged` is not read."""
+        if self.judges_next():
+            self._held = judged or safe_predict(self.detector, detector_points, registration, T_w_s)
+            pred, failed = self._held
+        else:
+            pred, failed = self._held[0] if self._held is not None else UNKNOWN, False
         self.steps += 1
-        pred, failed = judged or safe_predict(self.detector, detector_points, registration, T_w_s)
         icp, hessian = (registration.in_frame(self.T_b_s) if registration is not None else None) or (None, None)
         sigmas = odometry_sigmas(odom_increment, self.odometry)
         span = registration.span if registration is not None else 1
@@ -269,6 +285,7 @@ class OnlineFusion:
             odometry,
             T_b_s,
             config.attitude,
+            config.detector_every,
         )
         # the classifier beside the registration, in a process of its own (detection.ahead)
         self.ahead = DetectorProcess(config.detector, lidar.config, seed) if config.detector_process else None
@@ -304,11 +321,12 @@ class OnlineFusion:
         """`attitude`: the IMU's orientation of the body (3x3), fused every ATTITUDE_EVERY steps
         where `FusionSettings.attitude` asks for it."""
         T_w_s = T_w_b_true @ self.T_b_s
-        if self.ahead is not None:
-            self.ahead.submit(points, T_w_s)
+        ahead = self.ahead if self.pipeline.judges_next() else None  # a held answer asks no process
+        if ahead is not None:
+            ahead.submit(points, T_w_s)
         motion = inverse(self.T_b_s) @ odom_increment @ self.T_b_s  # the sensor's, the keyframe guess's step
         registration = self.registrar.next(points, motion)
-        judged = self.ahead.result() if self.ahead is not None else None
+        judged = ahead.result() if ahead is not None else None
         out = self.pipeline.step(odom_increment, registration, points, T_w_s, attitude, judged)
         if out.prediction.mask.any() or not out.prediction.known:  # a degenerate place: no keyframe behind it
             self.registrar.keyframe_here()

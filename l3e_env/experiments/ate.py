@@ -174,7 +174,7 @@ def run_ate(
     keyframes = Keyframes(distance=options.fusion_settings.keyframe_distance or 0.0)  # set by its __post_init__
     regs = register_sequence(drive.rec, drive.registration, progress, keyframes)
     icp_seconds = time.perf_counter() - t0
-    ahead = judge_ahead(drive, options.workers, progress)
+    ahead = judge_ahead(drive, options.workers, progress, options.fusion_settings.detector_every)
     dets = drive.detectors
     if options.fusion_settings.attitude != "none":
         dets, ahead = [OdometryAttitude(), *dets], [0.0, *ahead]
@@ -241,19 +241,19 @@ def prepare_drive(out: Path, scene: str, specs: list[str], options: AteOptions, 
     return AteDrive(scene_obj, lidar, deskewed(rec, options.fusion_settings.deskew), rec, dets, registration)
 
 
-def judge_ahead(drive: AteDrive, workers: int, progress: bool) -> list[float]:
+def judge_ahead(drive: AteDrive, workers: int, progress: bool, every: int = 1) -> list[float]:
     """The scan estimates of the route judged over `workers` processes before the fusion; returns the
-    seconds each detector spent so (counted in its time)."""
+    seconds each detector spent so (counted in its time). The fusion asks its detector every `every`
+    steps: call k is at scan every k + 1's pose."""
     ahead = [0.0] * len(drive.detectors)
-    poses = [T @ drive.rec.T_b_s for T in drive.rec.ground_truth[1:]]  # call k of the fusion is at scan k + 1's pose
+    scans = range(1, len(drive.rec.ground_truth), every)
+    poses = [drive.rec.ground_truth[k] @ drive.rec.T_b_s for k in scans]
     for i, det in enumerate(drive.detectors):
         t0 = time.perf_counter()
         if isinstance(det, RecastScans) and workers > 1:
             det.judge_ahead(poses, drive.scene, workers, progress)
         elif isinstance(det, RecastCascade) and workers > 1:
-            det.judge_ahead(
-                [drive.rec.detector_input(k + 1) for k in range(len(poses))], poses, drive.scene, workers, progress
-            )
+            det.judge_ahead([drive.rec.detector_input(k) for k in scans], poses, drive.scene, workers, progress)
         ahead[i] = time.perf_counter() - t0
     return ahead
 

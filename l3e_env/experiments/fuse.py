@@ -79,7 +79,7 @@ def fuse_recording(
     out = []
     for det in detectors:
         t0 = time.perf_counter()
-        pipeline = LocalizationPipeline(det, backend, fusion, odometry, rec.T_b_s, attitude)
+        pipeline = LocalizationPipeline(det, backend, fusion, odometry, rec.T_b_s, attitude, settings.detector_every)
         pipeline.start(gt[0])
         masks, probs, unknown, fallbacks, errors = [], [], 0, 0, 0
         for k, reg in enumerate(tqdm(registrations, desc=f"fusing with {det.name}", unit="step", disable=not progress)):

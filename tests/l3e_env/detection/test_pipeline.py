@@ -146,3 +146,40 @@ def test_the_online_fusion_follows_a_drive_and_counts_what_it_did(office):
     assert info["fusion_counts"] == {"icp_failed": 0, "unknown": 0, "detector_errors": 0, "fallbacks": 0}
     assert fusion.detector.name == "eigen:30" and fusion.registration == RegistrationConfig()
     fusion.close()
+
+
+class _FlagsFromStep:
+    """Flags x from scan `flip` on (read off the scan's one point), counting its calls."""
+
+    name = "flags-from-step"
+
+    def __init__(self, flip: int) -> None:
+        self.flip, self.calls = flip, []
+
+    def predict(self, points, registration=None, T_w_s=None) -> Prediction:
+        k = int(points[0, 0])
+        self.calls.append(k)
+        mask = np.zeros(6, dtype=bool)
+        mask[0] = k >= self.flip
+        return Prediction(mask.astype(float), mask)
+
+
+@pytest.mark.parametrize("every", [1, 3, 4])
+def test_a_detector_judging_every_kth_scan_holds_its_answer_and_is_late_by_at_most_k_minus_1(every):
+    step = pose_to_matrix(np.array([0.1, 0.0, 0.0, 0.0, 0.0, 0.0]))
+    detector = _FlagsFromStep(flip=7)
+    pipeline = LocalizationPipeline(
+        detector, "graph", FusionConfig(), OdometryConfig(), np.eye(4), detector_every=every
+    )
+    pipeline.start(np.eye(4))
+    flagged = [bool(pipeline.step(step, None, np.full((1, 3), float(k)), None).prediction.mask[0]) for k in range(20)]
+    assert detector.calls == list(range(0, 20, every))  # the first scan and every k-th after it
+    first = flagged.index(True)
+    assert 7 <= first <= 7 + every - 1 and all(flagged[first:])  # late by at most k - 1 steps, then held
+    pipeline.start(np.eye(4))  # a new drive judges its first scan again
+    pipeline.step(step, None, np.full((1, 3), 3.0), None)
+    assert detector.calls[-1] == 3
+    with pytest.raises(ValueError, match="detector_every is a whole number of steps from 1 to 100"):
+        FusionSettings(detector_every=0)
+    with pytest.raises(ValueError, match="detector_every >= 1"):
+        LocalizationPipeline(detector, "graph", FusionConfig(), OdometryConfig(), np.eye(4), detector_every=0)
