@@ -207,7 +207,8 @@ def _add_judging_options(p: argparse.ArgumentParser) -> None:
         metavar="X,Y,Z|FILE",
         help="the up direction (against gravity) in the sensor's frame, which the answers' axes are levelled "
         "by: one vector (--gravity=-0.2,0,1 where a number is negative), or a text file of one X Y Z row per "
-        "scan (default: each scan's ground plane's fit)",
+        "scan (default: a bag's own IMU, turned into the cloud's frame by its /tf_static; else each scan's "
+        "ground plane's fit)",
     )
 
 

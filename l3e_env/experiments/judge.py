@@ -88,12 +88,15 @@ class UpError(ValueError):
 
 
 def up_direction(
-    points: np.ndarray, gravity: np.ndarray | None, registration: RegistrationConfig | None = None
+    points: np.ndarray,
+    gravity: np.ndarray | None,
+    registration: RegistrationConfig | None = None,
+    source: str = "as given",
 ) -> tuple[np.ndarray, str]:
     """The up direction (against gravity) in the scan's sensor frame, and where it came from: `gravity`
-    where given (checked against the ground plane where one can be fitted), else the ground plane's
-    normal. UpError where there is none, or where the given one lies more than MAX_UP_FROM_GROUND_DEG
-    from the ground's normal (a vector in another frame, or pointing down)."""
+    where given (`source` says by what; checked against the ground plane where one can be fitted), else
+    the ground plane's normal. UpError where there is none, or where the given one lies more than
+    MAX_UP_FROM_GROUND_DEG from the ground's normal (a vector in another frame, or pointing down)."""
     if len(points) < (registration or RegistrationConfig()).min_points and gravity is None:
         return np.array([0.0, 0.0, 1.0]), "too few points to fit a ground plane: the sensor taken as level"
     found = ground_up(points)
@@ -108,7 +111,7 @@ def up_direction(
                     f"plane (at most {MAX_UP_FROM_GROUND_DEG:.0f}): give the direction against gravity in the "
                     "sensor's own frame (--gravity)"
                 )
-        return up, f"up as given, the sensor tilted {tilt_deg(up):.1f} deg"
+        return up, f"up {source}, the sensor tilted {tilt_deg(up):.1f} deg"
     if ground is None:
         raise UpError(
             "no ground plane could be fitted to find the up direction: give it with --gravity X,Y,Z (against "
@@ -254,7 +257,8 @@ def read_levelled(
     """A scan file read, or a recording's scan, its points without a return dropped. A cloud of a
     sensor whose SDK gives another frame (an Ouster's, `pattern.lidar_to_sensor`) is put in the lidar
     frame. The sensor: `pattern` where `given`, else a recording's own, else (`own_pattern`) the one
-    recognised from a file's returns, else `pattern`. The up direction: `gravity`, else the ground's fit."""
+    recognised from a file's returns, else `pattern`. The up direction: `gravity`, else the recording's
+    IMU's (a bag's), else the ground's fit."""
     name, stamp, points, error = _read_points(source)
     frame = source.frame if isinstance(source, RecordedScan) else None
     if isinstance(source, RecordedScan) and source.pattern is not None and not given:
@@ -273,10 +277,24 @@ def read_levelled(
         if scan.pattern is not None:
             scan.points, note = in_lidar_frame(scan.points, scan.pattern)
             scan.frame = note or frame
-        scan.up, scan.how = up_direction(scan.points, gravity)
+        scan.up, scan.how = _levelled_up(scan.points, gravity, source)
     except (PatternError, ValueError) as exc:  # an UpError, or an up vector level_rotation refuses
         return replace(scan, error=f"{name}: {exc}")
     return scan
+
+
+def _levelled_up(
+    points: np.ndarray, gravity: np.ndarray | None, source: str | Path | RecordedScan
+) -> tuple[np.ndarray, str]:
+    """up_direction with --gravity, else a recording's IMU, else the ground's fit; the ground's fit
+    says why a recording's IMU gave none."""
+    recorded = source if isinstance(source, RecordedScan) else None
+    if gravity is None and recorded is not None and recorded.up is not None:
+        return up_direction(points, recorded.up, source=recorded.up_source or "from the recording")
+    up, how = up_direction(points, gravity)
+    if gravity is None and recorded is not None and recorded.up_source is not None:
+        how += f" ({recorded.up_source})"
+    return up, how
 
 
 def _recognised(points: np.ndarray) -> BeamPattern | None:

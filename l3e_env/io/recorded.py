@@ -23,3 +23,5 @@ class RecordedScan:
     rings: np.ndarray | None = None  # (N,) the beam of each point, where the recording tells it
     pattern: BeamPattern | None = None  # the sensor's beams, where the recording carries its metadata
     frame: str | None = None  # how the points were turned into the sensor's lidar frame, where they were
+    up: np.ndarray | None = None  # the up direction in the scan's frame, where the recording's IMU gives it
+    up_source: str | None = None  # where `up` came from, or why the recording's IMU gave none

@@ -24,6 +24,8 @@ from l3e_env.sim.imu import ImuConfig, imu_samples
 from l3e_env.sim.odometry import DeadReckoningCovariance
 from l3e_env.sim.patterns import TIME_FIELDS
 
+from .imu_up import ImuUp, read_imu_up
+
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 # sensor_msgs/PointField datatypes
 _DATATYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
@@ -144,14 +146,26 @@ def read_bag(
     first = reader.start_time
     lo = None if start is None else first + int(start * 1e9)
     hi = None if end is None else first + int(end * 1e9) + 1
-    return _scans(reader, connections, f"{path.name} {topic}", every, lo, hi)
+    try:
+        imu, said = read_imu_up(reader, lo, hi)
+    except BaseException:
+        reader.close()
+        raise
+    return _scans(reader, connections, f"{path.name} {topic}", every, (lo, hi), (imu, said))
 
 
 def _scans(
-    reader, connections: list, prefix: str, every: int, lo: int | None, hi: int | None
+    reader,
+    connections: list,
+    prefix: str,
+    every: int,
+    window: tuple[int | None, int | None],
+    imu: tuple[ImuUp | None, str],
 ) -> Iterator[RecordedScan]:
+    """Each cloud message of `connections` as a RecordedScan, with the up direction the bag's IMU
+    gives in the cloud's frame where it has one (`imu_up`), or why not."""
     try:
-        for k, (connection, received, raw) in enumerate(reader.messages(connections, start=lo, stop=hi)):
+        for k, (connection, received, raw) in enumerate(reader.messages(connections, start=window[0], stop=window[1])):
             if k % every:
                 continue
             name, stamp = f"{prefix} #{k}", received * 1e-9
@@ -159,7 +173,10 @@ def _scans(
                 msg = reader.deserialize(raw, connection.msgtype)
                 stamp = _stamp(msg, received)
                 points, rings = _cloud_arrays(msg, with_rings=True)
-                yield RecordedScan(name, stamp, points, rings=rings)
+                up, source = (
+                    imu[0].up_in(msg.header.frame_id.lstrip("/"), stamp) if imu[0] is not None else (None, imu[1])
+                )
+                yield RecordedScan(name, stamp, points, rings=rings, up=up, up_source=source)
             except Exception as exc:  # noqa: BLE001 - one bad message is named, the next is read
                 yield RecordedScan(name, stamp, None, f"{name}: cannot be read as a point cloud: {exc}")
     finally:

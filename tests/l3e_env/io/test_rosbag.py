@@ -384,7 +384,9 @@ def test_record_cli_writes_a_drive_that_judge_reads_back(tmp_path, capsys):
     scans = list(read_bag(bag, every=200))
     assert len(scans) == len(range(0, len(recording.ground_truth), 200))
     assert main(["judge", "--bag", str(bag), "--every", "200", "--detector", "eigen:30"]) == 0
-    assert capsys.readouterr().out.count("eigen:30: not localizable along x") == len(scans)  # between two walls
+    said = capsys.readouterr().out
+    assert said.count("eigen:30: not localizable along x") == len(scans)  # between two walls
+    assert said.count("up from the bag's IMU /imu, the sensor tilted") == len(scans)  # not the ground's fit
     assert main(["record", "--scene", "primitives-1", "--out", str(bag), "--quiet"]) == 2
     assert "walls.bag exists" in capsys.readouterr().err
     with pytest.raises(SystemExit):  # refused where the options are read, before the drive
@@ -472,3 +474,42 @@ def test_an_empty_bag_or_one_of_unreadable_scans_says_why_without_blaming_option
     assert "none of its 1 scan(s) could be read: the first, broken.bag /velodyne_points #0" in err
     assert main(["sensor", "--bag", str(empty)]) == 2
     assert "holds no scan" in capsys.readouterr().err
+
+
+def test_the_up_direction_of_a_bags_imu_is_turned_into_the_clouds_frame_by_its_static_transforms():
+    from scipy.spatial.transform import Rotation
+
+    from l3e_env.io.imu_up import ImuUp
+
+    # the IMU in base_link, the LiDAR pitched 20 deg on a mast (base_link -> mast -> lidar)
+    mast = np.eye(4)
+    mast[:3, 3] = (0.1, 0.0, 0.5)
+    lidar = np.eye(4)
+    lidar[:3, :3] = Rotation.from_euler("y", 20, degrees=True).as_matrix()
+    stamps = np.arange(0.0, 2.0, 0.005)
+    rng = np.random.default_rng(0)
+    accel = np.tile([0.0, 0.0, 9.81], (len(stamps), 1)) + rng.normal(0.0, 0.5, (len(stamps), 3))
+    imu = ImuUp("/imu", "base_link", stamps, accel, {"mast": ("base_link", mast), "lidar": ("mast", lidar)})
+    up, said = imu.up_in("lidar", 1.0)
+    assert up is not None and said == "from the bag's IMU /imu"
+    expected = lidar[:3, :3].T @ [0.0, 0.0, 1.0]  # the world's up seen from the pitched LiDAR
+    assert np.degrees(np.arccos(np.clip(up @ expected, -1, 1))) < 0.5
+    assert imu.up_in("base_link", 1.0)[0] @ [0.0, 0.0, 1.0] > 0.999
+    none, why = imu.up_in("camera", 1.0)
+    assert none is None and "no /tf_static path to camera" in why
+    none, why = imu.up_in("lidar", 10.0)
+    assert none is None and "0 readings within 0.5 s" in why
+    falling = ImuUp("/imu", "base_link", stamps, accel * 0.1, {})
+    assert "not gravity" in falling.up_in("base_link", 1.0)[1]
+
+
+def test_a_bag_without_an_imu_is_levelled_by_the_ground_and_says_why(tmp_path, rng, capsys):
+    bag = tmp_path / "run.bag"
+    _write_bag(bag, _corridor_scans(rng, 1))
+    scan = next(iter(read_bag(bag)))
+    assert scan.up is None and scan.up_source == "the bag has no IMU topic"
+    assert main(["judge", "--bag", str(bag), "--detector", "eigen:30"]) == 0
+    assert (
+        "up from the ground plane's fit, the sensor tilted 0.0 deg (the bag has no IMU topic)"
+        in capsys.readouterr().out
+    )
