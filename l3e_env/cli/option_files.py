@@ -81,6 +81,8 @@ MINIMUM = {
     "detector_every": 1,
     "imu_rate": 0.0,
     "lam": 0.0,
+    "keyframe_distance": 0.0,
+    "stop_radius": 1e-3,
     "resolution": 0.25,
     "max_scans": 20,
     "scale": 1e-9,
@@ -113,6 +115,10 @@ MAXIMUM = {
     "imu_rate": 2000.0,
     "resolution": 50.0,
     "scale": 1e6,
+    "lam": 1e6,
+    "keyframe_distance": 1000.0,
+    "stop_radius": 1.0,  # the goal radius (EnvConfig.goal_radius): a stop farther out never arrives
+    "lr": 10.0,
 }
 
 

@@ -332,6 +332,13 @@ BIG = "1000000000000"
         ["demo", "--scale", "1e300"],
         ["train", "--dataset", "{tmp}/d", "--out", "{tmp}/r", "--epochs", "0"],
         ["adapt", "--scans", "{tmp}", "--out", "{tmp}/a", "--max-scans", "5"],
+        ["ate", "--keyframe-distance", "1e300"],
+        ["ate", "--keyframe-distance", "-5"],
+        ["ate", "--detector-every", "0"],
+        ["ate", "--detector-every", "101"],
+        ["policy", "evaluate", "--lam", "1e300"],
+        ["policy", "evaluate", "--stop-radius", "5"],
+        ["train", "--dataset", "{tmp}/d", "--out", "{tmp}/r", "--lr", "1e300"],
     ],
 )
 def test_every_count_and_size_has_bounds_checked_where_it_enters(argv, tmp_path, capsys):
