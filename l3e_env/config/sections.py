@@ -77,6 +77,9 @@ DESKEW_SOURCES = ("gyro", "odometry")  # where a deskewing's rotation comes from
 
 KEYFRAME_DISTANCE = 4.0  # m: the graph's scans registered onto keyframes renewed this often (docs/decisions.md)
 MAX_DETECTOR_EVERY = 100  # steps (10 s at 10 Hz) a detector's answer may hold
+# the detector judges every 4th scan (0.4 s at 10 Hz) and its answer holds between: a quarter of its cost
+# a step (chosen in docs/decisions.md, "Fusion")
+DETECTOR_EVERY = 4
 
 
 @dataclass(frozen=True)
@@ -104,7 +107,7 @@ class FusionSettings:
 
     The defaults are a legged robot's estimator, one for every command (docs/decisions.md, "One
     estimator"): the IMU's roll and pitch, the legs' heading and stride-scale biases as states; each
-    part stays one option away (attitude "none", odometry_bias (), keyframe_distance 0)."""
+    part stays one option away (attitude "none", odometry_bias (), keyframe_distance 0, detector_every 1)."""
 
     enabled: bool = False
     detector: str = "learned"
@@ -115,7 +118,7 @@ class FusionSettings:
     odometry_bias: tuple[str, ...] = ("yaw", "scale")
     detector_process: bool = False
     keyframe_distance: float | None = None
-    detector_every: int = 1
+    detector_every: int = DETECTOR_EVERY
 
     def __post_init__(self) -> None:
         distance = self.keyframe_distance
