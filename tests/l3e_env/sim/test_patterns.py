@@ -266,7 +266,7 @@ def test_pattern_files_in_the_projects_own_keys_and_as_ouster_metadata(tmp_path)
     }
     nested = {
         "sensor_info": {"prod_line": "OS-1-64"},
-        "config_params": {"lidar_mode": "1024x10"},
+        "config_params": {"lidar_mode": "2048x10"},  # agreeing with its columns (disagreeing: refused)
         "lidar_data_format": {"columns_per_frame": 2048},
         "beam_intrinsics": {
             "beam_altitude_angles": altitudes,
