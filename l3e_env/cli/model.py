@@ -381,6 +381,8 @@ def _cmd_adapt(args: argparse.Namespace) -> int:
         "workers": args.workers,
         "seed": args.seed,
         "device": args.device,
+        "replay": tuple(args.replay) if args.replay else None,
+        "replay_share": args.replay_share,
     }
     options = AdaptOptions(**{k: v for k, v in given.items() if v is not None})
     for line in describe(adapt(args.scans, args.out, options, progress=not args.quiet)):
@@ -411,6 +413,19 @@ def _add_adapt(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--samples-per-epoch", type=int, dest="samples_per_epoch", help="default 160")
     p.add_argument("--lr", type=float, help="the fine-tune's learning rate (default 3e-4)")
     p.add_argument("--workers", type=int, help="processes labelling scans side by side (default 2)")
+    p.add_argument(
+        "--replay",
+        action="append",
+        metavar="DATASET",
+        help="a labelled dataset whose scans of the model's own training places are replayed beside the "
+        "place's, so that the model is not taught the place alone; repeat (default: none)",
+    )
+    p.add_argument(
+        "--replay-share",
+        type=float,
+        dest="replay_share",
+        help="the replayed scans' share of each epoch's samples (default 0.5)",
+    )
     p.add_argument("--seed", type=int)
     add_device_option(p)
     p.add_argument("--quiet", action="store_true")

@@ -85,6 +85,10 @@ class AdaptOptions:
     workers: int = 2
     seed: int = 0
     device: str = "cpu"
+    # labelled datasets whose scans of the base's own training places are replayed beside the place's
+    # (TrainConfig.replay_scenes), as `replay_share` of each epoch: () fine-tunes on the place alone
+    replay: tuple[str, ...] = ()
+    replay_share: float = 0.5
 
 
 @dataclass
@@ -337,6 +341,7 @@ def _fine_tune(
     for key in ("init", "train_scenes", "validation_scenes", "epochs", "samples_per_epoch", "learning_rate"):
         recipe.pop(key, None)
     network = network_config(model_from_checkpoint(base, str(checkpoint)).config)
+    replayed = _replayed_scenes(base, options.replay)
     cfg = from_dict(
         TrainConfig,
         {
@@ -346,14 +351,29 @@ def _fine_tune(
             "epochs": options.epochs,
             "samples_per_epoch": options.samples_per_epoch,
             "learning_rate": options.learning_rate,
-            "train_scenes": [place],
+            "train_scenes": [place, *replayed],
+            "replay_scenes": replayed,
+            "replay_share": options.replay_share,
             "validation_scenes": [],
             "group_dro": 0.0,  # one place: no families to weigh
             "seed": options.seed,
         },
     )
-    train(labels, folder, cfg, progress=progress, device=options.device)
+    train([labels, *options.replay], folder, cfg, progress=progress, device=options.device)
     return folder / "model.pt"
+
+
+def _replayed_scenes(base: dict[str, Any], replay: tuple[str, ...]) -> list[str]:
+    """The base's own training places among the replay datasets' scenes (what it learnt, replayed);
+    AdaptError where the datasets hold none of them."""
+    if not replay:
+        return []
+    learnt = (base.get("training") or {}).get("train_scenes") or []
+    held = [s for folder in replay for s in LabelDataset(folder).manifest["scenes"]]
+    found = [s for s in dict.fromkeys(held) if s in learnt]
+    if not found:
+        raise AdaptError(f"the replay datasets {list(replay)} hold none of the base model's training places")
+    return found
 
 
 def _finish(

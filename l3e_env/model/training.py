@@ -93,6 +93,11 @@ class TrainConfig:
     # [1/f, f], labels kept: a corridor stays degenerate along its axis at any width, so the
     # network is taught shapes rather than the training scenes' sizes
     scale_augment: float = 1.0
+    # fine-tuning with replay: training scenes whose scans are replayed beside the new ones (the
+    # base's own places), drawn as `replay_share` of each epoch's samples, so that a network taught a
+    # place does not forget the others (and is not taught only the place's few scans)
+    replay_scenes: list[str] = field(default_factory=list)
+    replay_share: float = 0.5
 
 
 class TrainingError(RuntimeError):
@@ -170,6 +175,30 @@ class GroupWeights:
 
     def state(self) -> dict[str, float]:
         return {f: float(w) for f, w in zip(self.families, self.q)}
+
+
+def _training_pool(data: LabelDataset | DatasetUnion, train_rows: np.ndarray, cfg: TrainConfig) -> np.ndarray:
+    """Positions in `train_rows` that an epoch draws from: the balanced pool (or every row); with
+    replay scenes, the new scenes' pool and the replayed ones' each balanced on their own, the
+    replayed drawn to `replay_share` of the whole (seeded by cfg.seed)."""
+
+    def pool_of(positions: np.ndarray) -> np.ndarray:
+        if not cfg.balance or not len(positions):
+            return positions
+        return positions[balanced_pool(data.labels[train_rows[positions]], cfg.max_upsampling)]
+
+    every = np.arange(len(train_rows))
+    if not cfg.replay_scenes:
+        return pool_of(every)
+    replayed = np.isin(train_rows, split_indices(data, cfg.replay_scenes))
+    new, old = pool_of(every[~replayed]), pool_of(every[replayed])
+    if not len(new) or not len(old):
+        raise TrainingError(
+            f"replay needs new scans and replayed ones among the training scenes: {len(new)} new, {len(old)} replayed"
+        )
+    wanted = int(round(len(new) * cfg.replay_share / (1 - cfg.replay_share)))
+    rng = np.random.default_rng([cfg.seed, 7])
+    return np.concatenate([new, rng.choice(old, wanted, replace=wanted > len(old))])
 
 
 def balanced_pool(labels: np.ndarray, max_upsampling: float) -> np.ndarray:
@@ -323,6 +352,7 @@ def check_train_config(cfg: TrainConfig) -> None:
             ("optimizer", cfg.optimizer, cfg.optimizer in ("sgd", "adamw"), "sgd or adamw"),
             ("group_dro", cfg.group_dro, cfg.group_dro >= 0, "0 (off) or more"),
             ("scale_augment", cfg.scale_augment, cfg.scale_augment >= 1, "1 (off) or more"),
+            ("replay_share", cfg.replay_share, 0 <= cfg.replay_share < 1, "in [0, 1)"),
         ]
         if not ok
     ]
@@ -468,7 +498,7 @@ def _start(cfg: TrainConfig, data: LabelDataset | DatasetUnion, out: Path, devic
         dump_yaml(cfg, out / "config.yaml")
     model.to(device)  # before the optimiser, whose state follows the weights
     optimizer = _optimizer(cfg, model)
-    pool = balanced_pool(data.labels[train_rows], cfg.max_upsampling) if cfg.balance else np.arange(len(train_rows))
+    pool = _training_pool(data, train_rows, cfg)
     run = _Run(
         cfg,
         data,

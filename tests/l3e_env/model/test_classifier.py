@@ -862,3 +862,21 @@ def test_the_kept_epoch_is_the_best_by_the_validation_micro_f1(tiny_dataset, tmp
     assert load_checkpoint(tmp_path / "m" / "best.pt")["epoch"] == int(np.argmax(finite))
     kept = load_checkpoint(tmp_path / "m" / "last.pt")["best"]
     assert kept["epoch"] == int(np.argmax(finite)) + 1 and kept["micro_f1"] == pytest.approx(max(finite), nan_ok=True)
+
+
+def test_replayed_places_take_their_share_of_the_training_pool(tiny_dataset):
+    from l3e_env.data.dataset import LabelDataset
+    from l3e_env.model.training import TrainConfig, TrainingError, _training_pool, split_indices
+
+    data = LabelDataset(tiny_dataset)
+    scenes = ["tunnel-0", "office-0", "field-0"]
+    rows = split_indices(data, scenes)
+    old = np.isin(rows, split_indices(data, ["office-0", "field-0"]))
+    for share in (0.5, 0.8):
+        cfg = TrainConfig(train_scenes=scenes, replay_scenes=["office-0", "field-0"], replay_share=share)
+        pool = _training_pool(data, rows, cfg)
+        replayed = old[pool].mean()
+        assert abs(replayed - share) < 0.1  # the share asked for, whatever the places' scan counts
+        assert np.array_equal(pool, _training_pool(data, rows, cfg))  # seeded
+    with pytest.raises(TrainingError, match="replay needs new scans and replayed ones"):
+        _training_pool(data, rows, TrainConfig(train_scenes=scenes, replay_scenes=scenes))
