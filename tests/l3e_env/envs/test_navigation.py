@@ -146,8 +146,10 @@ def test_fusion_in_the_loop_reports_estimate_mask_and_running_ate(odometry_bias)
     env.close()
 
 
-def test_a_failing_detector_is_counted_and_the_episode_goes_on():
-    env = NavigationEnv(dict(scene="office", fusion=dict(enabled=True, detector="none", backend="ekf")))
+@pytest.mark.parametrize("every", [1, 4])
+def test_a_failing_detector_is_counted_and_the_episode_goes_on(every):
+    fusion = dict(enabled=True, detector="none", backend="ekf", detector_every=every)
+    env = NavigationEnv(dict(scene="office", fusion=fusion))
     _, info = env.reset(seed=0)
 
     def broken(*args, **kwargs):
@@ -156,14 +158,18 @@ def test_a_failing_detector_is_counted_and_the_episode_goes_on():
     env.fusion.detector.predict = broken
     for _ in range(5):
         _, _, _, _, info = env.step(np.zeros(3))
-    assert info["fusion_counts"]["detector_errors"] == 5 and np.isfinite(info["fused_T_w_b"]).all()
+    counts = info["fusion_counts"]
+    # each judged step's failure counted (every 4th: steps 0 and 4); its unknown answer holds between
+    assert counts["detector_errors"] == len(range(0, 5, every)) and counts["unknown"] == 5
+    assert np.isfinite(info["fused_T_w_b"]).all()
     env.close()
 
 
-def test_the_classifier_in_a_process_of_its_own_gives_the_same_episode_and_a_dead_one_answers_unknown():
+@pytest.mark.parametrize("every", [1, 4])
+def test_the_classifier_in_a_process_of_its_own_gives_the_same_episode_and_a_dead_one_answers_unknown(every):
     runs = []
     for beside in (False, True):
-        fusion = dict(enabled=True, detector="learned", detector_process=beside)
+        fusion = dict(enabled=True, detector="learned", detector_process=beside, detector_every=every)
         env = NavigationEnv(dict(scene="office", fusion=fusion))
         _, info = env.reset(seed=0)
         follow = RouteFollower(env.route)
@@ -177,7 +183,8 @@ def test_the_classifier_in_a_process_of_its_own_gives_the_same_episode_and_a_dea
             env.fusion.ahead._process.join()
             for _ in range(3):
                 _, _, _, _, info = env.step(follow(info["T_w_b"]))
-            assert info["fusion_counts"]["detector_errors"] == 3 and not info["localizability_known"]
+            asked = sum(k % every == 0 for k in (12, 13, 14))  # a held answer asks no process
+            assert info["fusion_counts"]["detector_errors"] == asked and not info["localizability_known"]
         env.close()
     for (T_inline, p_inline), (T_beside, p_beside) in zip(*runs):
         np.testing.assert_array_equal(p_inline, p_beside)
