@@ -9,6 +9,7 @@ file is read with `yaml.safe_load`: it cannot run code."""
 from __future__ import annotations
 
 import argparse
+import functools
 import math
 from pathlib import Path
 from typing import Any
@@ -168,15 +169,13 @@ def _actions(leaf: argparse.ArgumentParser) -> dict[str, argparse.Action]:
 
 def _one(action: argparse.Action, key: str, v: Any) -> Any:
     """One value of an option as argparse would have made it from text; ValueError naming the key."""
-    if action.type is None and not isinstance(v, str):  # a path or a name: text, or a number as text
+    if not isinstance(v, str):  # a YAML number is read as its text; a list, map or boolean is no value here
         if isinstance(v, bool) or not isinstance(v, (int, float)):
-            raise ValueError(f"option {key}: takes text (a path or a name), got {v!r}")
-        v = str(v)
-    if action.type is not None and not isinstance(v, str):  # a YAML number, list, map or boolean
-        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            if action.type is None:
+                raise ValueError(f"option {key}: takes text (a path or a name), got {v!r}")
             raise ValueError(f"option {key}: {v!r} is not a value of this option")
         v = str(v)
-    if isinstance(v, str) and callable(action.type):
+    if callable(action.type):
         try:
             v = action.type(v)
         except (argparse.ArgumentTypeError, TypeError, ValueError) as exc:
@@ -192,9 +191,7 @@ def _converted(action: argparse.Action, key: str, value: Any) -> Any:
     if value is None:
         return None
 
-    def one(v: Any) -> Any:
-        return _one(action, key, v)
-
+    one = functools.partial(_one, action, key)
     if isinstance(action, (argparse._StoreTrueAction, argparse._StoreFalseAction, argparse.BooleanOptionalAction)):
         if not isinstance(value, bool):
             raise ValueError(f"option {key}: give true or false, got {value!r}")
