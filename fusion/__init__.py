@@ -8,6 +8,7 @@ GTSAM's rotation-first tangent order.
 from .bias import BIAS_AXES
 from .ekf import EKFFusion
 from .graph import FusionError, FusionGraph
+from .ground import plane_in_frame
 from .metrics import MetricError, ate, ate_aligned, rpe, rpe_pairs, stretch_drift, umeyama, write_kitti, write_tum
 from .steps import ICP_COVARIANCES, FusionConfig, StepReport, check_config, icp_information
 from .tangent import to_gtsam_order, to_project_order
@@ -38,6 +39,7 @@ __all__ = [
     "FusionConfig",
     "FusionError",
     "FusionGraph",
+    "plane_in_frame",
     "StepReport",
     "MetricError",
     "ate",

@@ -13,6 +13,7 @@ import gtsam
 import numpy as np
 
 from .bias import BIAS_KNOT_METRES, bias_prior, corrected_increment, odometry_bias_factor
+from .ground import GroundPatches, check_ground_sigmas, check_plane, ground_key
 from .steps import (
     FusionConfig,
     StepReport,
@@ -69,6 +70,8 @@ class FusionGraph:
         )
         self.odometry_bias = np.zeros(len(self.bias_axes))
         self._knot, self._walked = 0, 0.0
+        # a ground patch unseen for half the window may be marginalized before it is seen again
+        self.ground = GroundPatches(None if self.lag is None else self.lag // 2)
         if self.bias_axes:
             spread_noise = gtsam.noiseModel.Diagonal.Sigmas(spread)
             graph.add(gtsam.PriorFactorVector(bias_key(0), self.odometry_bias, spread_noise))
@@ -165,6 +168,7 @@ class FusionGraph:
             )
         )
         values.insert(j, guess)
+        self.ground.moved(self.estimate.between(guess))
         self._update(graph, values, j)
         self.k = j
         self.estimate = self.isam.calculateEstimatePose3(j)
@@ -232,6 +236,23 @@ class FusionGraph:
         graph = gtsam.NonlinearFactorGraph()
         graph.add(gtsam.PriorFactorPose3(self.k, _pose3(T), noise))
         self._update(graph, gtsam.Values(), self.k)
+        self.estimate = self.isam.calculateEstimatePose3(self.k)
+        return self.estimate.matrix()
+
+    def add_ground(self, plane_b: np.ndarray) -> np.ndarray:
+        """The ground plane (n, d; n . p = d, body frame) that the newest pose's scan fitted under it,
+        as a measurement of the ground patch it stands on (fusion.ground), with the config's
+        `ground_sigmas`. Returns the new estimate of that pose."""
+        measured = check_plane(plane_b)
+        normal_sigma, distance_sigma = check_ground_sigmas(self.config.ground_sigmas)
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        if self.ground.patch(self.estimate, measured, self.k):  # a new patch, where this pose sees it
+            assert self.ground.plane is not None  # patch(): a new patch's plane is set
+            values.insert(ground_key(self.ground.index), self.ground.plane)
+        noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([normal_sigma, normal_sigma, distance_sigma]))
+        coefficients = np.r_[measured[:3], -measured[3]]  # GTSAM's n . p + d = 0
+        graph.add(gtsam.OrientedPlane3Factor(coefficients, noise, self.k, ground_key(self.ground.index)))
+        self._update(graph, values, self.k)
         self.estimate = self.isam.calculateEstimatePose3(self.k)
         return self.estimate.matrix()
 

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .bias import check_bias_settings
+from .ground import GROUND_SIGMAS, check_ground_sigmas
 
 MASK_MODES = ("mask", "full", "drop", "directions")
 ICP_COVARIANCES = ("hessian", "fixed")
@@ -54,6 +55,7 @@ class FusionConfig:
     odometry_bias_walk: tuple[float, ...] = (0.0003, 0.0005, 0.0001)
     smoother_lag: int | None = None
     marginalize_every: int = 25
+    ground_sigmas: tuple[float, ...] = GROUND_SIGMAS
 
 
 def check_config(config: FusionConfig) -> FusionConfig:
@@ -70,6 +72,7 @@ def check_config(config: FusionConfig) -> FusionConfig:
     if isinstance(every, bool) or not isinstance(every, int) or every < 1:
         raise ValueError(f"marginalize_every must be a number of steps >= 1, got {every!r}")
     config.odometry_bias = tuple(config.odometry_bias)
+    check_ground_sigmas(config.ground_sigmas)
     check_bias_settings(config.odometry_bias, config.odometry_bias_sigmas, config.odometry_bias_walk)
     return config
 

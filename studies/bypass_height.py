@@ -7,7 +7,7 @@ whether ICP was used. The height error's growth is summed by what was under the 
 or a slope, z flagged or held) and printed with the steps where it grew most.
 
 Run: python studies/bypass_height.py [--scene bypass-104] [--seed 4] [--odometry-bias yaw,scale,z]
-     [--attitude none] [--keyframe-distance 0]
+     [--attitude none] [--keyframe-distance 0] [--ground none]
 """
 
 from __future__ import annotations
@@ -34,6 +34,16 @@ def trace(scene: str, seed: int, settings: FusionSettings) -> dict[str, np.ndarr
     steer, _ = make_controller("planner", source, 50.0, env.config.odometry, ctx, local)
     controller = BackOff(steer)
     _, info = env.reset(seed=seed)
+    imu_pitch: list[float] = []  # the nine-axis unit's own pitch error on each reading (deg)
+    if env.attitude is not None:
+        unit, measure = env.attitude, env.attitude.measure
+
+        def recorded(R_w_b: np.ndarray, dt: float) -> np.ndarray:
+            R = measure(R_w_b, dt)
+            imu_pitch.append(float(np.degrees(np.arcsin(-R[2, 0]) - np.arcsin(-R_w_b[2, 0]))))
+            return R
+
+        unit.measure = recorded  # type: ignore[method-assign]
     rows = []
     done = False
     while not done:
@@ -60,6 +70,7 @@ def trace(scene: str, seed: int, settings: FusionSettings) -> dict[str, np.ndarr
         "icp_failed": np.array([counts["icp_failed"]]),
         "xy_masked": table[:, 6].astype(bool),
         "pitch_error": table[:, 7],
+        "imu_pitch_error": np.array(imu_pitch[-len(table) :] if imu_pitch else [np.nan] * len(table)),
     }
 
 
@@ -70,10 +81,16 @@ def main() -> None:
     parser.add_argument("--odometry-bias", default=",".join(FusionSettings().odometry_bias), help="e.g. yaw,scale,z")
     parser.add_argument("--attitude", default=FusionSettings().attitude)
     parser.add_argument("--keyframe-distance", type=float, default=FusionSettings().keyframe_distance)
+    parser.add_argument("--ground", default=FusionSettings().ground)
     args = parser.parse_args()
     bias = tuple(a for a in args.odometry_bias.split(",") if a)
-    settings = FusionSettings(odometry_bias=bias, attitude=args.attitude, keyframe_distance=args.keyframe_distance)
-    print(f"odometry bias states {bias or 'none'}, attitude {args.attitude}, keyframes {args.keyframe_distance:g} m")
+    settings = FusionSettings(
+        odometry_bias=bias, attitude=args.attitude, keyframe_distance=args.keyframe_distance, ground=args.ground
+    )
+    print(
+        f"odometry bias states {bias or 'none'}, attitude {args.attitude}, keyframes {args.keyframe_distance:g} m, "
+        f"ground {args.ground}"
+    )
     t = trace(args.scene, args.seed, settings)
     error = t["fused_z"] - t["true_z"]
     growth = np.diff(np.r_[0.0, error])
@@ -85,6 +102,11 @@ def main() -> None:
     print(
         f"  the estimate's pitch error: mean {t['pitch_error'].mean():+.3f} deg (sd {t['pitch_error'].std():.3f}); "
         f"walked {walked.sum():.1f} m; the height it tilts the walk by: {from_pitch:+.3f} m"
+    )
+    imu_from_pitch = -float(np.sum(np.radians(t["imu_pitch_error"]) * walked))
+    print(
+        f"  the IMU's own pitch error: mean {t['imu_pitch_error'].mean():+.3f} deg "
+        f"(sd {t['imu_pitch_error'].std():.3f}); the height it would tilt the walk by: {imu_from_pitch:+.3f} m"
     )
     for name, where in (
         ("level ground", ~sloped),

@@ -7,7 +7,7 @@ import math
 from collections.abc import Callable
 from typing import Any
 
-from l3e_env.config import ATTITUDE_MODES, FusionSettings
+from l3e_env.config import ATTITUDE_MODES, GROUND_MODES, FusionSettings
 from l3e_env.config.sections import KEYFRAME_DISTANCE
 from l3e_env.io.mesh_lists import meshes_file
 
@@ -61,7 +61,7 @@ def bias_axes(text: str) -> tuple[str, ...]:
 
 
 def add_fusion_options(parser: argparse.ArgumentParser) -> None:
-    """--attitude, --odometry-bias and --keyframe-distance, read back by `fusion_settings` (`l3e ate`,
+    """--attitude, --odometry-bias, --keyframe-distance and --ground, read back by `fusion_settings` (`l3e ate`,
     `l3e sweep`, `l3e policy evaluate`); an option not given takes the one estimator's default
     (`FusionSettings()`)."""
     default = FusionSettings()
@@ -95,6 +95,13 @@ def add_fusion_options(parser: argparse.ArgumentParser) -> None:
         metavar="METRES",
         help="register each scan onto a keyframe renewed every that many metres, from the leg odometry's "
         f"guess (0: each scan onto the one before; default {KEYFRAME_DISTANCE:g} with the graph, 0 with the EKF)",
+    )
+    parser.add_argument(
+        "--ground",
+        choices=GROUND_MODES,
+        help="plane = each keyframe's fitted ground plane holds the robot's height above and tilt against the "
+        "ground patch it stands on (a new patch where the ground the legs walk steps or tilts), none = not "
+        "used (default plane with the graph, none with the EKF)",
     )
     parser.add_argument(
         "--detector-every",
@@ -131,6 +138,7 @@ def fusion_settings(args: argparse.Namespace) -> FusionSettings:
         odometry_bias=axes,
         keyframe_distance=getattr(args, "keyframe_distance", None),  # None: the backend's default
         detector_every=given("detector_every"),
+        ground=getattr(args, "ground", None),  # None: the backend's default
     )
 
 

@@ -6,6 +6,7 @@ from .sections import (
     DESKEW_SOURCES,
     FUSION_BACKENDS,
     FUSION_MODES,
+    GROUND_MODES,
     LABELLERS,
     EnvConfig,
     FusionSettings,
@@ -17,6 +18,7 @@ from .serialize import dump_yaml, from_dict, load_yaml, plain, settings_changed,
 
 __all__ = [
     "ATTITUDE_MODES",
+    "GROUND_MODES",
     "DESKEW_SOURCES",
     "DATASET_PRESETS",
     "FUSION_BACKENDS",

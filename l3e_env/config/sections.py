@@ -70,6 +70,7 @@ DATASET_PRESETS = (
     "random-32",
     "random-128",
 )  # l3e_env.data.dataset.PRESETS, by name
+GROUND_MODES = ("none", "plane")  # the scans' ground planes in the fusion: not used, or as patches (fusion.ground)
 FUSION_BACKENDS = ("graph", "ekf")  # iSAM2 smoother, filterpy EKF
 FUSION_MODES = ("mask", "full", "drop", "directions")  # see fusion.FusionConfig
 DESKEW_SOURCES = ("gyro", "odometry")  # where a deskewing's rotation comes from; its translation is the odometry's
@@ -119,17 +120,21 @@ class FusionSettings:
     detector_process: bool = False
     keyframe_distance: float | None = None
     detector_every: int = DETECTOR_EVERY
+    ground: str | None = None
 
     def __post_init__(self) -> None:
         distance = self.keyframe_distance
         if distance is None:  # the backend's default; frozen: set once, where the settings are made
             distance = KEYFRAME_DISTANCE if self.backend == "graph" else 0.0
             object.__setattr__(self, "keyframe_distance", distance)
+        if self.ground is None:
+            object.__setattr__(self, "ground", "plane" if self.backend == "graph" else "none")
         for name, value, allowed in (
             ("backend", self.backend, FUSION_BACKENDS),
             ("mode", self.mode, FUSION_MODES),
             ("deskew", self.deskew, DESKEW_SOURCES),
             ("attitude", self.attitude, ATTITUDE_MODES),
+            ("ground", self.ground, GROUND_MODES),
         ):
             if value not in allowed:
                 raise ValueError(f"fusion.{name} must be one of {allowed}, got {value!r}")
@@ -139,6 +144,11 @@ class FusionSettings:
         if isinstance(every, bool) or not isinstance(every, int) or not 1 <= every <= MAX_DETECTOR_EVERY:
             raise ValueError(
                 f"fusion.detector_every is a whole number of steps from 1 to {MAX_DETECTOR_EVERY}, not {every!r}"
+            )
+        if self.ground == "plane" and self.backend != "graph":
+            raise ValueError(
+                "fusion.ground 'plane' makes the ground under the robot a landmark of the graph, which the EKF "
+                "does not keep: use backend graph, or ground none"
             )
         if distance > 0 and self.backend != "graph":
             raise ValueError(

@@ -14,8 +14,8 @@ from typing import Any
 
 import numpy as np
 
-from fusion import EKFFusion, FusionConfig, FusionGraph, check_backend, make_fusion
-from l3e_env.config import FusionSettings, OdometryConfig, from_dict
+from fusion import EKFFusion, FusionConfig, FusionGraph, check_backend, make_fusion, plane_in_frame
+from l3e_env.config import GROUND_MODES, FusionSettings, OdometryConfig, from_dict
 from l3e_env.core.threads import part_threads
 from l3e_env.core.transforms import (
     adjoint,
@@ -106,13 +106,18 @@ class ScanRegistrar:
         self.target = self._prepare(points)
         self._since, self._span, self._walked = np.eye(4), 0, 0.0
 
+    @property
+    def ground(self) -> np.ndarray | None:
+        """The keyframe's ground plane (n, d in its sensor frame), where one was found."""
+        return None if self.target is None else self.target.ground
+
     def next(self, points: np.ndarray, motion: np.ndarray | None = None) -> RegistrationResult | None:
         """The registration of `points` onto the keyframe (the scan before, without keyframes);
         `motion`: the sensor's motion since the scan before (4x4), the guess's step with keyframes."""
         if not self.keyframes.enabled:
             result = self._register(points, self.config, None)
             self.target = self._prepare(points)
-            return result
+            return self._with_ground(result)
         self._span, self._last = self._span + 1, points
         self._walked += 0.0 if motion is None else float(np.linalg.norm(motion[:3, 3]))
         guess = nearest_rigid(self._since @ motion) if motion is not None else self._since
@@ -121,12 +126,22 @@ class ScanRegistrar:
         self._since = result.T_target_source if ok and result is not None else guess
         if not ok or self._renew() or self._beyond_gate(guess):
             self.start(points)
+            return self._with_ground(result)
         return result
 
-    def keyframe_here(self) -> None:
-        """The newest scan becomes the keyframe (where the detector flagged an axis of it)."""
+    def keyframe_here(self) -> np.ndarray | None:
+        """The newest scan becomes the keyframe (where the detector flagged an axis of it); returns
+        its ground plane where it became one and a plane was found (see `RegistrationResult.ground`)."""
         if self.keyframes.enabled and self._span > 0 and self._last is not None:
             self.start(self._last)
+            return self.ground
+        return None
+
+    def _with_ground(self, result: RegistrationResult | None) -> RegistrationResult | None:
+        """The registration of the scan just prepared as the target, with that scan's ground plane."""
+        if result is None or self.target is None or self.target.ground is None:
+            return result
+        return replace(result, ground=self.target.ground)
 
     def _register(
         self, points: np.ndarray, config: RegistrationConfig, guess: np.ndarray | None
@@ -180,10 +195,14 @@ class LocalizationPipeline:
         T_b_s: np.ndarray,
         attitude: str = "none",
         detector_every: int = 1,
+        ground: str = "none",
     ):
         check_backend(backend)
         if detector_every < 1:
             raise ValueError(f"the detector judges every detector_every >= 1 steps, got {detector_every}")
+        if ground not in GROUND_MODES or (ground == "plane" and backend != "graph"):
+            raise ValueError(f"ground is one of {GROUND_MODES}, and 'plane' needs the graph backend; got {ground!r}")
+        self.ground = ground == "plane"
         self.detector_every = detector_every
         self._held: tuple[Prediction, bool] | None = None
         self.detector, self.backend_name, self.fusion, self.odometry = detector, backend, fusion, odometry
@@ -193,10 +212,13 @@ class LocalizationPipeline:
         self._backend: FusionGraph | EKFFusion | None = None
         self.steps = 0
 
-    def start(self, T_w_b: np.ndarray) -> None:
+    def start(self, T_w_b: np.ndarray, ground: np.ndarray | None = None) -> None:
+        """The drive's first pose, and its scan's ground plane (n, d in the sensor frame) where one was found."""
         self._backend = make_fusion(self.backend_name, T_w_b, self.fusion)
         self.steps = 0
         self._held = None
+        if ground is not None:
+            self.add_ground(ground, T_w_b)
 
     def judges_next(self) -> bool:
         """Whether the next `step` asks the detector (else its last answer holds)."""
@@ -240,7 +262,18 @@ class LocalizationPipeline:
             if attitude is None:
                 raise ValueError(f"fusion.attitude is {self.attitude_mode!r}: every step needs the IMU's attitude")
             T = self.backend.add_attitude(attitude, self.attitude_sigmas)
+        if registration is not None and registration.ground is not None:
+            T = self.add_ground(registration.ground, T)
         return StepOutcome(T, pred, failed, icp is not None, report.fallback is not None)
+
+    def add_ground(self, plane_s: np.ndarray, T_w_b: np.ndarray) -> np.ndarray:
+        """The newest scan's ground plane (n, d in the sensor frame) as a measurement of the ground
+        patch under the robot (fusion.ground), where the pipeline takes the ground; returns the
+        newest pose's estimate (`T_w_b` where it does not)."""
+        if not self.ground:
+            return T_w_b
+        assert isinstance(self.backend, FusionGraph)  # __init__: the ground needs the graph
+        return self.backend.add_ground(plane_in_frame(plane_s, self.T_b_s))
 
     def trajectory(self) -> np.ndarray:
         return self.backend.trajectory()
@@ -286,6 +319,7 @@ class OnlineFusion:
             T_b_s,
             config.attitude,
             config.detector_every,
+            config.ground or "none",  # set by its __post_init__
         )
         # the classifier beside the registration, in a process of its own (detection.ahead)
         self.ahead = DetectorProcess(config.detector, lidar.config, seed) if config.detector_process else None
@@ -309,8 +343,8 @@ class OnlineFusion:
         return self.pipeline.backend
 
     def reset(self, T_w_b: np.ndarray, points: np.ndarray) -> dict[str, Any]:
-        self.pipeline.start(T_w_b)
         self.registrar.start(points)
+        self.pipeline.start(T_w_b, self.registrar.ground)
         self.squared_errors: list[float] = [0.0]
         self.counts = {"icp_failed": 0, "unknown": 0, "detector_errors": 0, "fallbacks": 0}
         return self._info(T_w_b, UNKNOWN)
@@ -329,7 +363,9 @@ class OnlineFusion:
         judged = ahead.result() if ahead is not None else None
         out = self.pipeline.step(odom_increment, registration, points, T_w_s, attitude, judged)
         if out.prediction.mask.any() or not out.prediction.known:  # a degenerate place: no keyframe behind it
-            self.registrar.keyframe_here()
+            ground = self.registrar.keyframe_here()
+            if ground is not None:
+                out = replace(out, T_w_b=self.pipeline.add_ground(ground, out.T_w_b))
         self.counts["icp_failed"] += not out.icp_used
         self.counts["detector_errors"] += out.detector_failed
         self.counts["unknown"] += not out.prediction.known

@@ -247,18 +247,27 @@ def deskewed(rec: DriveRecord, source: str = "gyro") -> DriveRecord:
     )
 
 
+class RegisteredSteps(list):
+    """A drive's registrations, one a step (scan k into pose k, k >= 1; None where impossible), and
+    the first scan's ground plane (n, d in its sensor frame; None where none was found), which the
+    fusion's ground takes at the start."""
+
+    start_ground: np.ndarray | None = None
+
+
 def register_sequence(
     rec: DriveRecord, config: RegistrationConfig, progress: bool = True, keyframes: Keyframes | None = None
-) -> list:
+) -> RegisteredSteps:
     """Scan k registered to scan k-1 from identity, or onto a keyframe from the leg odometry's guess
     (`keyframes`), as the pipeline's `ScanRegistrar` does on line; None where registration is
     impossible. Registered once, the steps serve every detector's fusion."""
     registrar = ScanRegistrar(config, keyframes=keyframes)
-    results = []
+    results = RegisteredSteps()
     T_s_b = inverse(rec.T_b_s)
     for k, scan in enumerate(tqdm(rec.scans, desc="registering scans", unit="scan", disable=not progress)):
         if k == 0:
             registrar.start(scan)
+            results.start_ground = registrar.ground
         else:
             results.append(registrar.next(scan, T_s_b @ rec.odometry[k - 1] @ rec.T_b_s))  # into pose k
     return results

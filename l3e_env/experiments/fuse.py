@@ -79,8 +79,10 @@ def fuse_recording(
     out = []
     for det in detectors:
         t0 = time.perf_counter()
-        pipeline = LocalizationPipeline(det, backend, fusion, odometry, rec.T_b_s, attitude, settings.detector_every)
-        pipeline.start(gt[0])
+        pipeline = LocalizationPipeline(
+            det, backend, fusion, odometry, rec.T_b_s, attitude, settings.detector_every, settings.ground or "none"
+        )
+        pipeline.start(gt[0], getattr(registrations, "start_ground", None))  # drive.RegisteredSteps
         masks, probs, unknown, fallbacks, errors = [], [], 0, 0, 0
         for k, reg in enumerate(tqdm(registrations, desc=f"fusing with {det.name}", unit="step", disable=not progress)):
             step = pipeline.step(

@@ -37,6 +37,9 @@ class RegistrationResult:
     # steps from the target scan to the source scan: 1 where consecutive scans were registered, more
     # where a registrar registers each scan onto a keyframe (detection.pipeline.ScanRegistrar)
     span: int = 1
+    # the source scan's ground plane (n, d; n . p = d in its sensor frame), where a registrar prepared
+    # the source as its next target (a keyframe) and found one (detection.pipeline.ScanRegistrar)
+    ground: np.ndarray | None = None
 
     @property
     def ok(self) -> bool:

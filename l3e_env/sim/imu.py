@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation, RotationSpline
 
-from l3e_env.config import ATTITUDE_MODES
+from l3e_env.config import ATTITUDE_MODES, RobotConfig
 
 GRAVITY = 9.81
 
@@ -172,16 +172,27 @@ def footfall_jolts(walking: np.ndarray, config: ImuConfig, rng: np.random.Genera
 ATTITUDE_EVERY = 10  # steps between two attitude factors in the fusion (1 s at 10 Hz)
 
 
-def attitude_sigmas(mode: str, config: ImuConfig | None = None) -> np.ndarray | None:
+def attitude_sigmas(
+    mode: str, config: ImuConfig | None = None, every: float = ATTITUDE_EVERY * RobotConfig.dt
+) -> np.ndarray | None:
     """The sigmas (rad, about the body's x, y, z) with which the fusion takes the nine-axis unit's
-    orientation: "tilt" takes roll and pitch, which gravity holds, and leaves the heading out
-    (inf), as underground, where a magnetometer reads the rock and the machines; "full" takes
-    the magnetometer's heading too; "none" takes nothing (None)."""
+    orientation, one reading every `every` seconds: "tilt" takes roll and pitch, which gravity
+    holds, and leaves the heading out (inf), as underground, where a magnetometer reads the rock
+    and the machines; "full" takes the magnetometer's heading too; "none" takes nothing (None).
+
+    The unit's error lasts `orientation_time` (a first-order Gauss-Markov process, correlation
+    r = exp(-every / time) from one reading to the next), and the fusion takes each reading as
+    independent: each is weighted as the share of one independent reading that it is, its sigma
+    the error's times sqrt((1 + r) / (1 - r)), so that readings over a long walk hold the tilt as
+    well as the error's mean over that walk, not as well as that many independent readings would
+    (about 8 times the error's sigma with a reading a second and a 30 s error)."""
     if mode not in ATTITUDE_MODES:
         raise ValueError(f"attitude must be one of {ATTITUDE_MODES}, got {mode!r}")
     if mode == "none":
         return None
-    sigmas = (config or ImuConfig()).orientation_sigmas()
+    config = config or ImuConfig()
+    r = float(np.exp(-every / config.orientation_time))
+    sigmas = config.orientation_sigmas() * np.sqrt((1.0 + r) / (1.0 - r))
     return sigmas if mode == "full" else np.r_[sigmas[:2], np.inf]
 
 

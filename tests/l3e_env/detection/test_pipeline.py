@@ -82,6 +82,52 @@ def test_with_keyframes_each_scan_registers_onto_the_keyframe_until_it_has_moved
         Keyframes(distance=1.0, steps=0)
 
 
+def test_a_keyframes_ground_plane_comes_with_the_registration_that_made_it_one(office):
+    rng = np.random.default_rng(0)
+    registrar = ScanRegistrar(RegistrationConfig(), threads=1, keyframes=Keyframes(distance=0.45))
+    registrar.start(office.scan(_at(0.0), rng).points)
+    level = np.array([0.0, 0.0, 1.0, -0.85])  # the office's floor under the level sensor, 0.85 m up
+    assert registrar.ground == pytest.approx(level, abs=0.005)
+    step = inverse(_at(0.0)) @ _at(0.1)
+    made = []
+    for k in range(1, 8):
+        result = registrar.next(office.scan(_at(0.1 * k), rng).points, step)
+        assert result is not None
+        made.append(result.ground is not None)
+        if result.ground is not None:
+            assert result.ground == pytest.approx(level, abs=0.005)
+    assert made == [False, False, False, False, True, False, False]  # the 5th became the keyframe
+    assert registrar.keyframe_here() == pytest.approx(level, abs=0.005)
+    assert registrar.keyframe_here() is None  # already the keyframe: nothing new
+
+
+def test_the_pipeline_takes_the_ground_where_its_settings_say_and_refuses_it_on_the_filter(office):
+    odometry = OdometryConfig()
+    level = np.array([0.0, 0.0, 1.0, -0.85])
+    sensor_up = pose_to_matrix(np.array([0.0, 0.0, 0.3, 0.0, 0.0, 0.0]))  # the sensor 0.3 m above the body
+    T_w_b = pose_to_matrix(np.array([0.0, 0.0, 0.55, 0.0, 0.0, 0.0]))
+    for ground, patches in (("plane", 1), ("none", 0)):
+        pipeline = LocalizationPipeline(NoDetector(), "graph", FusionConfig(), odometry, sensor_up, ground=ground)
+        pipeline.start(T_w_b, level)
+        assert pipeline.backend.ground.index + 1 == patches
+    walked = LocalizationPipeline(NoDetector(), "graph", FusionConfig(), odometry, sensor_up, ground="plane")
+    walked.start(T_w_b, level)
+    up = pose_to_matrix(np.array([0.1, 0.0, 0.05, 0.0, 0.0, 0.0]))  # the legs say 5 cm up; the ground says level
+    for _ in range(3):
+        out = walked.step(
+            up,
+            RegistrationResult(np.eye(4), np.full((6, 6), np.nan), False, 0, 0, 0, 0.0, ground=level),
+            np.zeros((0, 3)),
+            None,
+        )
+    assert out.T_w_b[2, 3] < 0.55 + 0.05  # held near its patch, not 15 cm up
+    with pytest.raises(ValueError, match="graph backend"):
+        LocalizationPipeline(NoDetector(), "ekf", FusionConfig(), odometry, sensor_up, ground="plane")
+    with pytest.raises(ValueError, match="ground 'plane'.*EKF"):
+        FusionSettings(backend="ekf", ground="plane")
+    assert FusionSettings().ground == "plane" and FusionSettings(backend="ekf").ground == "none"
+
+
 def test_a_keyframes_factor_ties_the_new_pose_to_the_keyframes_pose():
     odometry = OdometryConfig()
     step = pose_to_matrix(np.array([0.1, 0.0, 0.0, 0.0, 0.0, 0.0]))

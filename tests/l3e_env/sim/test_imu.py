@@ -108,9 +108,17 @@ def test_the_step_rate_attitude_is_the_body_s_own_off_by_the_orientation_s_error
     error = Rotation.from_matrix(np.swapaxes(poses[:, :3, :3], 1, 2) @ readings).as_rotvec()
     np.testing.assert_allclose(error.std(axis=0), config.orientation_sigmas(), rtol=0.2)
     assert np.corrcoef(error[:-100, 2], error[100:, 2])[0, 1] == pytest.approx(np.exp(-1), abs=0.12)
-    np.testing.assert_allclose(attitude_sigmas("full", config), config.orientation_sigmas())
-    tilt = attitude_sigmas("tilt", config)
-    assert np.isinf(tilt[2]) and (tilt[:2] == config.orientation_sigmas()[:2]).all()
+    # a reading a second, its error lasting 10 s: each reading weighs as the share of an independent one it is
+    full = attitude_sigmas("full", config, every=1.0)
+    r = np.exp(-0.1)
+    np.testing.assert_allclose(full, config.orientation_sigmas() * np.sqrt((1 + r) / (1 - r)))
+    tilt = attitude_sigmas("tilt", config, every=1.0)
+    assert np.isinf(tilt[2]) and (tilt[:2] == full[:2]).all()
+    # so that the readings over a walk are as sure of the tilt as the error's mean over it is: the spread of
+    # that mean over 300 s walks (30 s apart, each reading 1 s apart) against the weighted readings' sigma
+    per_second = error[::10, 0]
+    means = [per_second[k : k + 300].mean() for k in range(0, len(per_second) - 300, 30)]
+    assert np.std(means) == pytest.approx(tilt[0] / np.sqrt(300), rel=0.35)
     assert attitude_sigmas("none") is None
     with pytest.raises(ValueError, match="attitude must be one of"):
         attitude_sigmas("gravity")
