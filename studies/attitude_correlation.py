@@ -1,26 +1,30 @@
-"""Whether the fusion should weigh the IMU's attitude as if each reading's error were its own.
+"""Whether the fusion should weigh the IMU's attitude as the correlated readings they are.
 
 The nine-axis unit's orientation error is a Gauss-Markov process that forgets itself over 30 s
-(`ImuConfig.orientation_time`), and the fusion takes a reading once a second (ATTITUDE_EVERY steps)
-with the process's own sigma, as if the readings were independent. In a long average such a reading
-is worth 1/60 of an independent one (the AR(1) factor (1 + phi) / (1 - phi), phi = exp(-1 / 30)),
-so its sigma times sqrt(60) = 7.74 is the independent reading's equivalent. The mine's drives are
-fused with the attitude's sigmas times each factor ("tilt" and "full"), the learned detector, full
-ICP and the odometry with the attitude alone, the same registrations and readings for every factor.
+(`ImuConfig.orientation_time`), and the fusion takes a reading once a second (ATTITUDE_EVERY steps).
+In a long average such a reading is worth 1/60 of an independent one (the AR(1) factor
+(1 + phi) / (1 - phi), phi = exp(-1 / 30)), so `imu.attitude_sigmas` gives each the error's sigma
+times sqrt(60) = 7.74. The mine's drives are fused with those sigmas times each factor (1: as the
+fusion weighs them; 0.129 = 1 / 7.74: each reading as if its error were its own), "tilt" and
+"full", the learned detector and full ICP, with and without the ground (`--ground`), the same
+registrations (onto keyframes, as `l3e ate`) and readings for every factor.
 
-Run: python studies/attitude_correlation.py [--seeds 0,1,2,3,4] [--factors 1,3,7.74]
-     (13 min on 2 cores for the defaults; per drive and row the ATE in metres, then the means)
+Run: python studies/attitude_correlation.py [--seeds 0,1,2,3,4] [--factors 0.129,1] [--ground plane]
+     (per drive and row the ATE in metres, then the means)
 """
 
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 from unittest import mock
 
 import numpy as np
 
-from l3e_env.config import FusionSettings, LidarConfig, OdometryConfig
+from l3e_env.config import GROUND_MODES, FusionSettings, LidarConfig, OdometryConfig
+from l3e_env.detection import pipeline
 from l3e_env.detection.detectors import make_detector
+from l3e_env.detection.pipeline import Keyframes
 from l3e_env.experiments import drive, fuse, recast
 from l3e_env.localizability.registration import RegistrationConfig
 from l3e_env.sim.imu import attitude_sigmas
@@ -30,14 +34,17 @@ from l3e_env.sim.raycast import EmbreeCaster
 from scenes import make_scene
 
 
-def drive_ates(seed: int, factors: list[float], scene, lidar: Lidar) -> dict[str, float]:
+def drive_ates(seed: int, factors: list[float], scene, lidar: Lidar, ground: str) -> dict[str, float]:
     """ATE (m) per row of one drive: without the attitude, then per mode and factor."""
     rec = drive.deskewed(drive.record_run("mine", drive.DriveOptions(seed=seed), False, scene_object=scene), "gyro")
-    regs = drive.register_sequence(rec, RegistrationConfig(), False)
-    fusion = odometry_fusion_config(OdometryConfig(), FusionSettings())
+    default = FusionSettings(ground=ground)
+    keyframes = Keyframes(distance=default.keyframe_distance or 0.0)
+    regs = drive.register_sequence(rec, RegistrationConfig(), False, keyframes)
+    fusion = odometry_fusion_config(OdometryConfig(), default)
     detectors = [make_detector("learned", lidar, seed), make_detector("none", lidar, seed)]
     ates = {"odometry only": fuse.odometry_only(rec).ate}
-    for r in fuse.fuse_recording(rec, detectors, regs, fusion=fusion, progress=False):
+    none = replace(default, attitude="none")
+    for r in fuse.fuse_recording(rec, detectors, regs, fusion=fusion, progress=False, settings=none):
         ates[f"{r.name}, no attitude"] = r.ate
     for mode in ("tilt", "full"):
         for factor in factors:
@@ -46,9 +53,14 @@ def drive_ates(seed: int, factors: list[float], scene, lidar: Lidar) -> dict[str
                 sigmas = attitude_sigmas(m, config)
                 return None if sigmas is None else sigmas * factor
 
-            with mock.patch.object(fuse, "attitude_sigmas", scaled):
+            with mock.patch.object(pipeline, "attitude_sigmas", scaled):  # where the fusion reads them
                 rows = fuse.fuse_recording(
-                    rec, [recast.OdometryAttitude(), *detectors], regs, fusion=fusion, progress=False, attitude=mode
+                    rec,
+                    [recast.OdometryAttitude(), *detectors],
+                    regs,
+                    fusion=fusion,
+                    progress=False,
+                    settings=replace(default, attitude=mode),
                 )
             for r in rows:
                 ates[f"{r.name}, {mode} x{factor:g}"] = r.ate
@@ -58,13 +70,14 @@ def drive_ates(seed: int, factors: list[float], scene, lidar: Lidar) -> dict[str
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--seeds", default="0,1,2,3,4")
-    parser.add_argument("--factors", default="1,3,7.74")
+    parser.add_argument("--factors", default="0.129,1")
+    parser.add_argument("--ground", default=FusionSettings().ground, choices=GROUND_MODES)
     args = parser.parse_args()
     seeds = [int(s) for s in args.seeds.split(",")]
     factors = [float(f) for f in args.factors.split(",")]
     scene = make_scene("mine")
     lidar = Lidar(EmbreeCaster(scene.mesh), LidarConfig(model="vlp16"))
-    runs = [drive_ates(seed, factors, scene, lidar) for seed in seeds]
+    runs = [drive_ates(seed, factors, scene, lidar, args.ground) for seed in seeds]
     print(f"{'row':34s}" + "".join(f"{'seed ' + str(s):>9s}" for s in seeds) + f"{'mean':>9s}")
     for name in runs[0]:
         values = [run[name] for run in runs]
