@@ -32,6 +32,7 @@ from l3e_env.localizability.registration import (
     RegistrationResult,
     register,
 )
+from l3e_env.localizability.up import ground_plane
 from l3e_env.sim.imu import ATTITUDE_EVERY, attitude_sigmas
 from l3e_env.sim.lidar import Lidar
 from l3e_env.sim.odometry import odometry_fusion_config, odometry_sigmas
@@ -110,6 +111,15 @@ class ScanRegistrar:
     def ground(self) -> np.ndarray | None:
         """The keyframe's ground plane (n, d in its sensor frame), where one was found."""
         return None if self.target is None else self.target.ground
+
+    def first_ground(self, points: np.ndarray) -> np.ndarray | None:
+        """The first scan's ground plane, which ties the fusion's first ground patch to the start pose:
+        the keyframe's fit, or where that found none (a floor whose candidates furniture shares), the
+        search for the best-held plane that levels a user's scans (`localizability.up`), once a drive."""
+        if self.ground is not None:
+            return self.ground
+        found = ground_plane(points)
+        return None if found is None else np.r_[found[0], found[1]]
 
     def next(self, points: np.ndarray, motion: np.ndarray | None = None) -> RegistrationResult | None:
         """The registration of `points` onto the keyframe (the scan before, without keyframes);
@@ -344,7 +354,7 @@ class OnlineFusion:
 
     def reset(self, T_w_b: np.ndarray, points: np.ndarray) -> dict[str, Any]:
         self.registrar.start(points)
-        self.pipeline.start(T_w_b, self.registrar.ground)
+        self.pipeline.start(T_w_b, self.registrar.first_ground(points) if self.pipeline.ground else None)
         self.squared_errors: list[float] = [0.0]
         self.counts = {"icp_failed": 0, "unknown": 0, "detector_errors": 0, "fallbacks": 0}
         return self._info(T_w_b, UNKNOWN)

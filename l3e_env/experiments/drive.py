@@ -267,7 +267,7 @@ def register_sequence(
     for k, scan in enumerate(tqdm(rec.scans, desc="registering scans", unit="scan", disable=not progress)):
         if k == 0:
             registrar.start(scan)
-            results.start_ground = registrar.ground
+            results.start_ground = registrar.first_ground(scan)
         else:
             results.append(registrar.next(scan, T_s_b @ rec.odometry[k - 1] @ rec.T_b_s))  # into pose k
     return results

@@ -99,6 +99,12 @@ def test_a_keyframes_ground_plane_comes_with_the_registration_that_made_it_one(o
     assert made == [False, False, False, False, True, False, False]  # the 5th became the keyframe
     assert registrar.keyframe_here() == pytest.approx(level, abs=0.005)
     assert registrar.keyframe_here() is None  # already the keyframe: nothing new
+    points = office.scan(_at(0.0), rng).points
+    registrar.start(points)
+    assert registrar.first_ground(points) is registrar.ground
+    assert registrar.target is not None
+    registrar.target.ground = None  # a floor the keyframe's fit refuses (furniture among its candidates)
+    assert registrar.first_ground(points) == pytest.approx(level, abs=0.01)  # the search that levels scans
 
 
 def test_the_pipeline_takes_the_ground_where_its_settings_say_and_refuses_it_on_the_filter(office):
