@@ -72,11 +72,13 @@ def instrumented_env(
     online.pipeline.detector.predict = clock.wrap("detector", online.pipeline.detector.predict)  # type: ignore[method-assign]
     start = online.pipeline.start
 
-    def timed_start(T_w_b: np.ndarray) -> None:
-        start(T_w_b)
+    def timed_start(T_w_b: np.ndarray, ground: np.ndarray | None = None) -> None:
+        start(T_w_b, ground)
         backend = online.pipeline.backend
         backend.add_step = clock.wrap("fusion", backend.add_step)  # type: ignore[method-assign]
         backend.add_attitude = clock.wrap("fusion", backend.add_attitude)  # type: ignore[method-assign]
+        if hasattr(backend, "add_ground"):  # the graph's: the EKF keeps no ground
+            backend.add_ground = clock.wrap("fusion", backend.add_ground)  # type: ignore[method-assign]
 
     online.pipeline.start = timed_start  # type: ignore[method-assign]
     return env

@@ -1,4 +1,5 @@
-"""Estimation only (gtsam, filterpy, numpy): factor graph, localizability masks, leg-bias states, ATE/RPE/drift.
+"""Estimation only (gtsam, filterpy, numpy): factor graph, localizability masks, leg-bias states, ground
+patches, ATE/RPE/drift.
 
 Imports nothing from the rest of the project. Axis order in every public array is the
 project's (x, y, z, roll, pitch, yaw); `fusion.tangent` is the one place that converts to
