@@ -3,10 +3,9 @@
 (`OrientedPlane3Factor`). Every pose that sees the same patch is held at the height above it and
 the tilt against it that its scan measured, however long the walk across it: the registrations'
 small height and pitch steps, and the IMU's slow tilt error, no longer add up there. A new patch
-starts where the ground seen departs from the present one (a slope, a step) by more than
-PATCH_TURN or PATCH_STEP, and where the present one was last seen too long ago for the smoother's
-window; a patch is as free as the poses that first see it, so across patches the chain of
-registrations decides, as without the ground.
+starts where the ground seen changes (a slope, a step: `GroundPatches`), and where the present one
+was last seen too long ago for the smoother's window; a patch is as free as the poses that first
+see it, so across patches the chain of registrations decides, as without the ground.
 
 Planes here are (n, d) with n . p = d, n the unit normal pointing up at the sensor (d < 0 for
 ground below the origin), as `l3e_env`'s ground fits give them; GTSAM writes n . p + d = 0.
@@ -17,8 +16,9 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
-# the normal's two directions (rad) and the distance (m) of one scan's ground plane: a fit to
-# hundreds of returns on a floor, whose own unevenness over a few metres is centimetres
+# the normal's two directions (rad) and the distance (m) of one scan's ground plane, a fit to hundreds
+# of returns on the floor: of the order of the registration's own confidence in height and tilt on the
+# same floor, so that the ground's hold of a whole patch and the registrations' step by step weigh alike
 GROUND_SIGMAS = (0.0005, 0.002)
 PATCH_TURN = np.radians(2.0)  # a ground tilted this much against the present patch is a new one
 PATCH_STEP = 0.10  # m: so is one this far above or below it, under the robot
