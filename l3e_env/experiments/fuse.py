@@ -79,8 +79,9 @@ def fuse_recording(
     out = []
     for det in detectors:
         t0 = time.perf_counter()
+        ground = (settings.ground or "none") if getattr(det, "reads_scans", True) else "none"
         pipeline = LocalizationPipeline(
-            det, backend, fusion, odometry, rec.T_b_s, attitude, settings.detector_every, settings.ground or "none"
+            det, backend, fusion, odometry, rec.T_b_s, attitude, settings.detector_every, ground
         )
         pipeline.start(gt[0], getattr(registrations, "start_ground", None))  # drive.RegisteredSteps
         masks, probs, unknown, fallbacks, errors = [], [], 0, 0, 0

@@ -134,10 +134,12 @@ def _judge_recast_step(recast: RecastScans, job: tuple[int, np.ndarray]) -> Pred
 
 
 class OdometryAttitude:
-    """The odometry fused with the IMU's attitude alone: every ICP axis masked, for the reference
-    row against which the detectors' rows show what the scans add to the IMU."""
+    """The odometry fused with the IMU's attitude alone: every ICP axis masked and the scans' ground
+    left out (`reads_scans`), for the reference row against which the detectors' rows show what the
+    scans add to the IMU."""
 
     name = "odometry + attitude"
+    reads_scans = False  # fuse_recording: no ground planes from the scans either
 
     def predict(self, points: np.ndarray, registration=None, T_w_s: np.ndarray | None = None) -> Prediction:
         return Prediction(np.ones(6), np.ones(6, dtype=bool))

@@ -9,7 +9,7 @@ from l3e_env.experiments.ate import AteOptions, run_ate
 from l3e_env.experiments.ate_tables import AteRow, file_stem, format_seed_table, format_table, summarize_seeds
 from l3e_env.experiments.drive import DriveOptions, DriveRecord, record_run, register_sequence
 from l3e_env.experiments.fuse import fuse_recording
-from l3e_env.experiments.recast import RecastCascade, RecastScans
+from l3e_env.experiments.recast import OdometryAttitude, RecastCascade, RecastScans
 from l3e_env.localizability.labels import AXES
 from l3e_env.localizability.registration import RegistrationConfig
 from l3e_env.sim.lidar import Lidar
@@ -112,6 +112,15 @@ def test_the_imu_attitude_joins_every_detector_alike_and_adds_its_own_reference_
     )
     np.testing.assert_array_equal(held.trajectory, again.trajectory)  # the same readings for every detector
     assert np.abs(held.trajectory - plain.trajectory).max() > 1e-6
+    # the reference row has nothing of the scans: no ICP, and no ground from them either
+    rows = {
+        ground: fuse_recording(
+            rec, [OdometryAttitude(), NoDetector()], regs, progress=False, settings=FusionSettings(ground=ground)
+        )
+        for ground in ("plane", "none")
+    }
+    np.testing.assert_array_equal(rows["plane"][0].trajectory, rows["none"][0].trajectory)
+    assert np.abs(rows["plane"][1].trajectory - rows["none"][1].trajectory).max() > 1e-6
     rec.save(tmp_path / "rec.npz")
     assert (
         main(
