@@ -5,7 +5,8 @@ The nine-axis unit's orientation error is a Gauss-Markov process that forgets it
 In a long average such a reading is worth 1/60 of an independent one (the AR(1) factor
 (1 + phi) / (1 - phi), phi = exp(-1 / 30)), so `imu.attitude_sigmas` gives each the error's sigma
 times sqrt(60) = 7.74. The mine's drives are fused with those sigmas times each factor (1: as the
-fusion weighs them; 0.129 = 1 / 7.74: each reading as if its error were its own), "tilt" and
+fusion weighs them with the ground; 0.129 = 1 / 7.74: each reading as if its error were its own, as
+without it), "tilt" and
 "full", the learned detector and full ICP, with and without the ground (`--ground`), the same
 registrations (onto keyframes, as `l3e ate`) and readings for every factor.
 
@@ -49,8 +50,8 @@ def drive_ates(seed: int, factors: list[float], scene, lidar: Lidar, ground: str
     for mode in ("tilt", "full"):
         for factor in factors:
 
-            def scaled(m: str, config=None, factor: float = factor) -> np.ndarray | None:
-                sigmas = attitude_sigmas(m, config)
+            def scaled(m: str, config=None, factor: float = factor, **_: object) -> np.ndarray | None:
+                sigmas = attitude_sigmas(m, config, correlated=True)  # whatever the ground
                 return None if sigmas is None else sigmas * factor
 
             with mock.patch.object(pipeline, "attitude_sigmas", scaled):  # where the fusion reads them

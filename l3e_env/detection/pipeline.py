@@ -217,7 +217,9 @@ class LocalizationPipeline:
         self._held: tuple[Prediction, bool] | None = None
         self.detector, self.backend_name, self.fusion, self.odometry = detector, backend, fusion, odometry
         self.T_b_s = T_b_s
-        self.attitude_sigmas = attitude_sigmas(attitude)
+        # the IMU's readings weigh as the correlated readings they are where the ground holds the tilt
+        # and height they would otherwise hold against the registrations' chain (docs/decisions.md)
+        self.attitude_sigmas = attitude_sigmas(attitude, correlated=self.ground)
         self.attitude_mode = attitude
         self._backend: FusionGraph | EKFFusion | None = None
         self.steps = 0

@@ -173,7 +173,7 @@ ATTITUDE_EVERY = 10  # steps between two attitude factors in the fusion (1 s at 
 
 
 def attitude_sigmas(
-    mode: str, config: ImuConfig | None = None, every: float = ATTITUDE_EVERY * RobotConfig.dt
+    mode: str, config: ImuConfig | None = None, every: float = ATTITUDE_EVERY * RobotConfig.dt, correlated: bool = True
 ) -> np.ndarray | None:
     """The sigmas (rad, about the body's x, y, z) with which the fusion takes the nine-axis unit's
     orientation, one reading every `every` seconds: "tilt" takes roll and pitch, which gravity
@@ -182,17 +182,20 @@ def attitude_sigmas(
 
     The unit's error lasts `orientation_time` (a first-order Gauss-Markov process, correlation
     r = exp(-every / time) from one reading to the next), and the fusion takes each reading as
-    independent: each is weighted as the share of one independent reading that it is, its sigma
-    the error's times sqrt((1 + r) / (1 - r)), so that readings over a long walk hold the tilt as
-    well as the error's mean over that walk, not as well as that many independent readings would
-    (about 8 times the error's sigma with a reading a second and a 30 s error)."""
+    independent. `correlated`: each is weighted as the share of one independent reading that it is,
+    its sigma the error's times sqrt((1 + r) / (1 - r)), so that readings over a long walk hold the
+    tilt as well as the error's mean over that walk, not as well as that many independent readings
+    would (about 8 times the error's sigma with a reading a second and a 30 s error). Else each
+    with the error's own sigma: over-sure of the readings' mean, which is what holds the tilt
+    where nothing else does against the registrations' chain, whose small biases a step are not in
+    its noise either (the fusion's choice: with the ground, correlated; docs/decisions.md)."""
     if mode not in ATTITUDE_MODES:
         raise ValueError(f"attitude must be one of {ATTITUDE_MODES}, got {mode!r}")
     if mode == "none":
         return None
     config = config or ImuConfig()
     r = float(np.exp(-every / config.orientation_time))
-    sigmas = config.orientation_sigmas() * np.sqrt((1.0 + r) / (1.0 - r))
+    sigmas = config.orientation_sigmas() * (np.sqrt((1.0 + r) / (1.0 - r)) if correlated else 1.0)
     return sigmas if mode == "full" else np.r_[sigmas[:2], np.inf]
 
 

@@ -127,6 +127,15 @@ def test_the_pipeline_takes_the_ground_where_its_settings_say_and_refuses_it_on_
             None,
         )
     assert out.T_w_b[2, 3] < 0.55 + 0.05  # held near its patch, not 15 cm up
+    # the IMU's readings weigh as correlated where the ground holds the tilt, as independent where not
+    tilts = [
+        LocalizationPipeline(
+            NoDetector(), "graph", FusionConfig(), odometry, sensor_up, "tilt", ground=g
+        ).attitude_sigmas
+        for g in ("plane", "none")
+    ]
+    assert tilts[0] is not None and tilts[1] is not None
+    assert tilts[0][0] / tilts[1][0] == pytest.approx(np.sqrt((1 + np.exp(-1 / 30)) / (1 - np.exp(-1 / 30))))
     with pytest.raises(ValueError, match="graph backend"):
         LocalizationPipeline(NoDetector(), "ekf", FusionConfig(), odometry, sensor_up, ground="plane")
     with pytest.raises(ValueError, match="ground 'plane'.*EKF"):

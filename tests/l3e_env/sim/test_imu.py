@@ -119,6 +119,10 @@ def test_the_step_rate_attitude_is_the_body_s_own_off_by_the_orientation_s_error
     per_second = error[::10, 0]
     means = [per_second[k : k + 300].mean() for k in range(0, len(per_second) - 300, 30)]
     assert np.std(means) == pytest.approx(tilt[0] / np.sqrt(300), rel=0.35)
+    # each as if independent: the error's own sigma (the fusion's choice without the ground)
+    np.testing.assert_allclose(
+        attitude_sigmas("full", config, every=1.0, correlated=False), config.orientation_sigmas()
+    )
     assert attitude_sigmas("none") is None
     with pytest.raises(ValueError, match="attitude must be one of"):
         attitude_sigmas("gravity")
