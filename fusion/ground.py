@@ -22,6 +22,7 @@ import numpy as np
 GROUND_SIGMAS = (0.0005, 0.002)
 PATCH_TURN = np.radians(2.0)  # a ground tilted this much against the present patch is a new one
 PATCH_STEP = 0.10  # m: so is one this far above or below it, under the robot
+HOLDS_STEPS = 100  # a patch seen within this many steps holds the pose (a keyframe's longest run)
 
 
 def ground_key(n: int) -> int:
@@ -73,6 +74,10 @@ class GroundPatches:
         self.plane: gtsam.OrientedPlane3 | None = None  # the present patch in the world, as first seen
         self._last: gtsam.OrientedPlane3 | None = None  # the last plane measured, in its body frame
         self._moved = gtsam.Pose3()  # the legs' motion since that body frame
+
+    def holds(self, k: int) -> bool:
+        """Whether a patch holds pose k: one was seen within HOLDS_STEPS steps of it."""
+        return self.index >= 0 and k - self.seen <= HOLDS_STEPS
 
     def moved(self, T_prev_cur: gtsam.Pose3) -> None:
         """One step's motion (the legs', or the registration's where the legs gave none)."""

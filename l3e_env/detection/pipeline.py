@@ -217,9 +217,8 @@ class LocalizationPipeline:
         self._held: tuple[Prediction, bool] | None = None
         self.detector, self.backend_name, self.fusion, self.odometry = detector, backend, fusion, odometry
         self.T_b_s = T_b_s
-        # the IMU's readings weigh as the correlated readings they are where the ground holds the tilt
-        # and height they would otherwise hold against the registrations' chain (docs/decisions.md)
-        self.attitude_sigmas = attitude_sigmas(attitude, correlated=self.ground)
+        self.attitude_sigmas = attitude_sigmas(attitude, correlated=False)  # each reading as independent
+        self._correlated_sigmas = attitude_sigmas(attitude, correlated=True)
         self.attitude_mode = attitude
         self._backend: FusionGraph | EKFFusion | None = None
         self.steps = 0
@@ -273,10 +272,19 @@ class LocalizationPipeline:
         if self.attitude_sigmas is not None and self.steps % ATTITUDE_EVERY == 0:
             if attitude is None:
                 raise ValueError(f"fusion.attitude is {self.attitude_mode!r}: every step needs the IMU's attitude")
-            T = self.backend.add_attitude(attitude, self.attitude_sigmas)
+            T = self.backend.add_attitude(attitude, self.attitude_weights())
         if registration is not None and registration.ground is not None:
             T = self.add_ground(registration.ground, T)
         return StepOutcome(T, pred, failed, icp is not None, report.fallback is not None)
+
+    def attitude_weights(self) -> np.ndarray:
+        """The sigmas the IMU's next reading takes: weighed as the correlated reading it is while a
+        ground patch holds the tilt and height (seen within `fusion.ground.HOLDS_STEPS`), else as an
+        independent one, over-sure of the readings' mean, which is then what holds the tilt against the
+        registrations' chain (docs/decisions.md, "Fusion")."""
+        assert self.attitude_sigmas is not None and self._correlated_sigmas is not None  # step(): an attitude mode
+        held = self.ground and isinstance(self.backend, FusionGraph) and self.backend.ground.holds(self.backend.k)
+        return self._correlated_sigmas if held else self.attitude_sigmas
 
     def add_ground(self, plane_s: np.ndarray, T_w_b: np.ndarray) -> np.ndarray:
         """The newest scan's ground plane (n, d in the sensor frame) as a measurement of the ground

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from fusion import FusionConfig
+from fusion.ground import HOLDS_STEPS
 from l3e_env.config import FusionSettings, LidarConfig, OdometryConfig
 from l3e_env.core.transforms import inverse, matrix_to_pose, pose_to_matrix
 from l3e_env.detection.detectors import NoDetector, Prediction
@@ -127,15 +128,19 @@ def test_the_pipeline_takes_the_ground_where_its_settings_say_and_refuses_it_on_
             None,
         )
     assert out.T_w_b[2, 3] < 0.55 + 0.05  # held near its patch, not 15 cm up
-    # the IMU's readings weigh as correlated where the ground holds the tilt, as independent where not
-    tilts = [
-        LocalizationPipeline(
-            NoDetector(), "graph", FusionConfig(), odometry, sensor_up, "tilt", ground=g
-        ).attitude_sigmas
-        for g in ("plane", "none")
-    ]
-    assert tilts[0] is not None and tilts[1] is not None
-    assert tilts[0][0] / tilts[1][0] == pytest.approx(np.sqrt((1 + np.exp(-1 / 30)) / (1 - np.exp(-1 / 30))))
+    # the IMU's readings weigh as correlated while a ground patch holds the pose, as independent where none does
+    factor = np.sqrt((1 + np.exp(-1 / 30)) / (1 - np.exp(-1 / 30)))
+    for ground, start_ground, weighed in (("plane", level, factor), ("plane", None, 1.0), ("none", level, 1.0)):
+        imu = LocalizationPipeline(NoDetector(), "graph", FusionConfig(), odometry, sensor_up, "tilt", ground=ground)
+        imu.start(T_w_b, start_ground)
+        assert imu.attitude_sigmas is not None
+        assert imu.attitude_weights()[0] == pytest.approx(weighed * imu.attitude_sigmas[0])
+    imu = LocalizationPipeline(NoDetector(), "graph", FusionConfig(), odometry, sensor_up, "tilt", ground="plane")
+    imu.start(T_w_b, level)
+    for _ in range(HOLDS_STEPS + 1):  # the patch unseen for longer: independent again
+        imu.backend.add_step(up, np.full(6, 0.01))
+    assert imu.attitude_sigmas is not None
+    assert imu.attitude_weights()[0] == pytest.approx(imu.attitude_sigmas[0])
     with pytest.raises(ValueError, match="graph backend"):
         LocalizationPipeline(NoDetector(), "ekf", FusionConfig(), odometry, sensor_up, ground="plane")
     with pytest.raises(ValueError, match="ground 'plane'.*EKF"):
