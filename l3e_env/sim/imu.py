@@ -188,7 +188,8 @@ def attitude_sigmas(
     would (about 8 times the error's sigma with a reading a second and a 30 s error). Else each
     with the error's own sigma: over-sure of the readings' mean, which is what holds the tilt
     where nothing else does against the registrations' chain, whose small biases a step are not in
-    its noise either (the fusion's choice: with the ground, correlated; docs/decisions.md)."""
+    its noise either (the fusion's choice: correlated while a ground patch holds the pose;
+    detection.pipeline.LocalizationPipeline.attitude_weights, docs/decisions.md)."""
     if mode not in ATTITUDE_MODES:
         raise ValueError(f"attitude must be one of {ATTITUDE_MODES}, got {mode!r}")
     if mode == "none":
