@@ -18,6 +18,8 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
+from .tangent import to_project_order
+
 BIAS_AXES = ("yaw", "z", "scale")
 # The graph holds one bias state per metre walked, not one per scan: the bias wanders by
 # 0.3 mrad/m over a metre, far below what a metre of ICP steps can tell, and ten times fewer
@@ -77,6 +79,39 @@ def corrected_increment(
     return gtsam.Pose3(Z), G
 
 
+def observed_axes(
+    G: np.ndarray, icp_information: np.ndarray | None, odom_sigmas: np.ndarray, span: int, share: float
+) -> np.ndarray:
+    """Which of a step's bias axes its registration observes: those whose motion (G's column, the
+    step's change with that bias, GTSAM order) the ICP factor knows, marginally over its other
+    directions, with at least `share` of the information the legs have of it over the factor's
+    `span` steps. `icp_information`: the factor's 6x6 information as fused (its masked axes zero;
+    project order, body frame); None where the step has no ICP factor.
+
+    A marginal, not a conditional, information: a motion with any part along a masked axis (the stride
+    of a pitched robot in a tunnel whose length is masked moves it along the tunnel and a little in
+    height) is not known at all, however sharply the held part (the height) is measured. Where a bias
+    were moved by such a part, ICP's small height bias on a gentle slope would set the stride's scale."""
+    observed = np.zeros(G.shape[1], dtype=bool)
+    if icp_information is None or not G.size:
+        return observed
+    w, V = np.linalg.eigh(0.5 * (icp_information + icp_information.T))
+    top = float(w.max(initial=0.0))
+    if top <= 0.0:
+        return observed
+    inverse_w = 1.0 / np.maximum(w, 1e-12 * top)  # a held-out direction: a variance beyond any motion's
+    legs_variance = span * np.asarray(odom_sigmas, dtype=np.float64) ** 2
+    for n in range(G.shape[1]):
+        u = to_project_order(G[:, n])
+        length = float(np.linalg.norm(u))
+        if length == 0.0:  # standing still: the bias moves nothing
+            continue
+        u = u / length
+        icp_variance = float(np.sum((V.T @ u) ** 2 * inverse_w))
+        observed[n] = share * icp_variance <= float(np.sum(u**2 * legs_variance))
+    return observed
+
+
 def odometry_bias_factor(
     measured: np.ndarray,
     key_prev: int,
@@ -84,15 +119,24 @@ def odometry_bias_factor(
     key_bias: int,
     noise: gtsam.noiseModel.Base,
     axes: tuple[str, ...],
+    observed: np.ndarray | None = None,
+    held: np.ndarray | None = None,
 ) -> gtsam.CustomFactor:
     """The leg odometry's between-factor with its bias corrected: error Log(Z(b)^-1 X_prev^-1 X_cur).
+    `observed` (per axis, all where None): the axes the step's registration observes
+    (`observed_axes`); the others enter as the constants `held` (their estimate when the step was
+    added), so that nothing this step measures moves them.
     A Python factor because GTSAM has no between-factor whose measurement depends on another
     variable (its IMU factors model accelerometers and gyros, not legs)."""
     M = np.asarray(measured, dtype=np.float64).copy()
+    live = np.ones(len(axes), dtype=bool) if observed is None else np.asarray(observed, dtype=bool).copy()
+    constants = np.zeros(len(axes)) if held is None else np.asarray(held, dtype=np.float64).copy()
 
     def error(this: gtsam.CustomFactor, values: gtsam.Values, jacobians: list | None) -> np.ndarray:
-        X_prev, X_cur, bias = values.atPose3(key_prev), values.atPose3(key_cur), values.atVector(key_bias)
+        X_prev, X_cur = values.atPose3(key_prev), values.atPose3(key_cur)
+        bias = np.where(live, values.atVector(key_bias), constants)
         Z, G = corrected_increment(M, bias, axes)
+        G = G * live
         E = Z.between(X_prev.between(X_cur))
         e = gtsam.Pose3.Logmap(E)
         if jacobians is not None:

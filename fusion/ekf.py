@@ -14,7 +14,7 @@ import gtsam
 import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter
 
-from .bias import bias_prior, corrected_increment
+from .bias import bias_prior, corrected_increment, observed_axes
 from .steps import (
     FusionConfig,
     StepReport,
@@ -41,6 +41,7 @@ class EKFFusion:
             self.bias_axes, self.config.odometry_bias_sigmas, self.config.odometry_bias_walk
         )
         self.odometry_bias = np.zeros(len(self.bias_axes))
+        self.bias_observed = np.zeros(len(self.bias_axes), dtype=int)  # steps whose ICP observed each bias
         # the newest pose's error (GTSAM order), then the biases'
         self.P = np.diag(np.concatenate([to_gtsam_order(np.asarray(self.config.prior_sigmas)), spread]) ** 2)
         self.poses = [self.T.matrix()]
@@ -66,10 +67,18 @@ class EKFFusion:
         step = resolve_step(self.config.mode, odom_T_prev_cur, icp_T_prev_cur, non_localizable)
         nb = len(self.bias_axes)
         G = np.zeros((6, nb))  # how the motion moves with the biases
+        basis = check_mask_basis(mask_basis)
+        information = (
+            masked_information(self.config, icp_hessian, step.mask, basis) if step.has_odom and step.has_icp else None
+        )
+        observed = np.zeros(nb, dtype=bool)
         if step.has_odom:
             assert odom_T_prev_cur is not None  # resolve_step: has_odom says it is given
             sigmas = check_odometry_sigmas(odom_sigmas)
             motion, G = corrected_increment(odom_T_prev_cur, self.odometry_bias, self.bias_axes)
+            body = None if information is None else basis.T @ information @ basis
+            observed = observed_axes(G, body, sigmas, 1, self.config.bias_information_share)
+            self.bias_observed += observed
             walked = float(np.linalg.norm(np.asarray(odom_T_prev_cur)[:3, 3]))
         elif step.has_icp:  # no odometry: ICP carries the motion, its masked axes stand still, as in the graph
             held = to_project_order(gtsam.Pose3.Logmap(gtsam.Pose3(np.asarray(step.icp_T_prev_cur))))
@@ -91,11 +100,9 @@ class EKFFusion:
         ekf.x = np.zeros(12 + nb)
         ekf.P = M @ P @ M.T
         ekf.P[6:12, 6:12] += Q
-        if step.has_odom and step.has_icp:
-            basis = check_mask_basis(mask_basis)
-            information = masked_information(self.config, icp_hessian, step.mask, basis)
+        if information is not None:
             icp = gtsam.Pose3(np.asarray(step.icp_T_prev_cur))
-            self._partial_update(ekf, prev, pred, icp, information, basis)
+            self._partial_update(ekf, prev, pred, icp, information, basis, np.r_[np.zeros(12, bool), ~observed])
         self.T = pred.retract(ekf.x[6:12])  # the previous pose is marginalised: a filter does not revise the past
         self.odometry_bias = self.odometry_bias + ekf.x[12:]
         self.P = 0.5 * (ekf.P[6:, 6:] + ekf.P[6:, 6:].T)
@@ -111,20 +118,21 @@ class EKFFusion:
         icp: gtsam.Pose3,
         information_project: np.ndarray,
         basis_project: np.ndarray,
+        frozen: np.ndarray,
     ) -> None:
         """ICP measures T_prev^-1 T_cur; residual Log(rel_pred^-1 icp) ~ d_cur - Ad(rel^-1) d_prev,
         read on the mask's axes (B d, `basis_project`), where `information_project` is written with
         its masked part removed. The update runs along the information's held directions (its
         eigenvectors there), each with its own precision; a direction it does not hold (a masked
-        axis, or one the scan leaves free) is left out."""
+        axis, or one the scan leaves free) is left out. The states `frozen` marks (the biases this step
+        does not observe) keep their estimate (`consider_update`)."""
         rel = prev.between(pred)
         w, V = np.linalg.eigh(to_gtsam_order(information_project))
         held = w > 1e-12 * max(float(w.max(initial=0.0)), 1e-300)
         rows = V[:, held].T @ to_gtsam_order(basis_project)  # held directions, on the body's tangent
         H = rows @ np.hstack([-rel.inverse().AdjointMap(), np.eye(6), np.zeros((6, ekf.dim_x - 12))])
         z = rows @ gtsam.Pose3.Logmap(rel.between(icp))
-        ekf.dim_z = int(held.sum())
-        ekf.update(z, lambda x: H, lambda x: H @ x, R=np.diag(1.0 / w[held]))
+        consider_update(ekf, z, H, np.diag(1.0 / w[held]), frozen)
 
     def add_attitude(self, R_w_b: np.ndarray, sigmas: np.ndarray) -> np.ndarray:
         """`FusionGraph.add_attitude` as a filter update of the newest pose: the residual
@@ -137,7 +145,8 @@ class EKFFusion:
             ekf = ExtendedKalmanFilter(dim_x=n, dim_z=int(keep.sum()))
             ekf.x, ekf.P = np.zeros(n), self.P.copy()
             z = gtsam.Rot3.Logmap(self.T.rotation().between(gtsam.Rot3(R)))[keep]
-            ekf.update(z, lambda x: H, lambda x: H @ x, R=np.diag(1.0 / precisions[keep]))
+            # an attitude observes no bias: they keep their estimate
+            consider_update(ekf, z, H, np.diag(1.0 / precisions[keep]), np.arange(n) >= 6)
             self.T = self.T.retract(ekf.x[:6])
             self.odometry_bias = self.odometry_bias + ekf.x[6:]
             self.P = 0.5 * (ekf.P + ekf.P.T)
@@ -152,3 +161,20 @@ class EKFFusion:
     def trajectory(self) -> np.ndarray:
         """The filtered poses (k+1, 4, 4)."""
         return np.array(self.poses)
+
+
+def consider_update(ekf: ExtendedKalmanFilter, z: np.ndarray, H: np.ndarray, R: np.ndarray, frozen: np.ndarray) -> None:
+    """The filter's update of its error state by the linear measurement z = H x + v (v ~ R), the
+    states `frozen` marks left where they are (a Schmidt-Kalman "consider" update: their gain is zero,
+    their covariance and their correlation with the others still count). Written here because
+    filterpy's filters have no consider states; where none is frozen it is filterpy's own update."""
+    ekf.dim_z = len(z)
+    if not frozen.any():
+        ekf.update(z, lambda x: H, lambda x: H @ x, R=R)
+        return
+    P = ekf.P
+    K = P @ H.T @ np.linalg.inv(H @ P @ H.T + R)
+    K[frozen] = 0.0
+    ekf.x = ekf.x + K @ (z - H @ ekf.x)
+    I_KH = np.eye(len(P)) - K @ H
+    ekf.P = I_KH @ P @ I_KH.T + K @ R @ K.T  # Joseph's form: right for any gain

@@ -12,7 +12,7 @@ from typing import Any
 import gtsam
 import numpy as np
 
-from .bias import BIAS_KNOT_METRES, bias_prior, corrected_increment, odometry_bias_factor
+from .bias import BIAS_KNOT_METRES, bias_prior, corrected_increment, observed_axes, odometry_bias_factor
 from .ground import GroundPatches, check_ground_sigmas, check_plane, ground_key
 from .steps import (
     FusionConfig,
@@ -69,6 +69,7 @@ class FusionGraph:
             self.bias_axes, self.config.odometry_bias_sigmas, self.config.odometry_bias_walk
         )
         self.odometry_bias = np.zeros(len(self.bias_axes))
+        self.bias_observed = np.zeros(len(self.bias_axes), dtype=int)  # steps whose ICP observed each bias
         self._knot, self._walked = 0, 0.0
         # a ground patch unseen for half the window may be marginalized before it is seen again
         self.ground = GroundPatches(None if self.lag is None else self.lag // 2)
@@ -151,10 +152,14 @@ class FusionGraph:
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         i, j = self.k, self.k + 1
         key = self._icp_key(j, icp_span)
-        odometry = self._add_odometry(graph, values, odom_T_prev_cur, odom_sigmas, i, j) if has_odom else None
-        if has_icp:
+        information = icp_information(self.config, icp_hessian, mask, mask_basis) if has_icp else None
+        odometry = (
+            self._add_odometry(graph, values, odom_T_prev_cur, odom_sigmas, (i, j), (information, icp_span))
+            if has_odom
+            else None
+        )
+        if information is not None:
             assert icp_T_prev_cur is not None
-            information = icp_information(self.config, icp_hessian, mask, mask_basis)
             graph.add(gtsam.BetweenFactorPose3(key, j, _pose3(icp_T_prev_cur), self._noise(information)))
         if step.still.any():  # the axes nothing else holds stay where they were, weakly (sigma 1 m and 1 rad)
             graph.add(gtsam.BetweenFactorPose3(i, j, gtsam.Pose3(), self._noise(step.still.astype(np.float64))))
@@ -182,21 +187,32 @@ class FusionGraph:
         values: gtsam.Values,
         odom_T_prev_cur: np.ndarray | None,
         odom_sigmas: np.ndarray | None,
-        i: int,
-        j: int,
+        poses: tuple[int, int],
+        icp: tuple[np.ndarray | None, int],
     ) -> gtsam.Pose3:
         """The legs' factor from pose i to j (through the bias state in use, with its knot where one
-        is due); returns the increment as the factor reads it, the new pose's guess."""
+        is due; only the biases that the step's ICP factor, its information and span `icp`, observes
+        are variables of it: fusion.bias.observed_axes); returns the increment as the factor reads it,
+        the new pose's guess."""
         assert odom_T_prev_cur is not None  # resolve_step: has_odom says it is given
-        precision = 1.0 / np.maximum(check_odometry_sigmas(odom_sigmas), 1e-9) ** 2
+        i, j = poses
+        sigmas = check_odometry_sigmas(odom_sigmas)
+        noise = self._noise(1.0 / np.maximum(sigmas, 1e-9) ** 2)
         if not self.bias_axes:
             odometry = _pose3(odom_T_prev_cur)
-            graph.add(gtsam.BetweenFactorPose3(i, j, odometry, self._noise(precision)))
+            graph.add(gtsam.BetweenFactorPose3(i, j, odometry, noise))
             return odometry
         self._next_bias_knot(float(np.linalg.norm(odom_T_prev_cur[:3, 3])), graph, values)
-        noise = self._noise(precision)
-        graph.add(odometry_bias_factor(odom_T_prev_cur, i, j, bias_key(self._knot), noise, self.bias_axes))
-        return corrected_increment(odom_T_prev_cur, self.odometry_bias, self.bias_axes)[0]
+        corrected, G = corrected_increment(odom_T_prev_cur, self.odometry_bias, self.bias_axes)
+        observed = observed_axes(G, icp[0], sigmas, icp[1], self.config.bias_information_share)
+        self.bias_observed += observed
+        if observed.any():
+            key = bias_key(self._knot)
+            held = self.odometry_bias
+            graph.add(odometry_bias_factor(odom_T_prev_cur, i, j, key, noise, self.bias_axes, observed, held))
+        else:  # nothing here observes the biases: the legs' step as their present estimate corrects it
+            graph.add(gtsam.BetweenFactorPose3(i, j, corrected, noise))
+        return corrected
 
     def _icp_key(self, j: int, span: int) -> int:
         """The pose an ICP factor of `span` steps ties pose j to, or a ValueError where there is none

@@ -30,7 +30,9 @@ class FusionConfig:
     odometry_bias: which of the leg odometry's biases ("yaw", "z" per metre, "scale" of the
     stride) are estimated as states of the fusion (see fusion.bias), with their prior spread
     `odometry_bias_sigmas` (rad/m, m/m, 1) and random walk `odometry_bias_walk` (per square-root
-    metre), both in BIAS_AXES order; none by default.
+    metre), both in BIAS_AXES order; none by default. A bias moves only on the steps whose ICP
+    factor observes it (`bias_information_share`, fusion.bias.observed_axes); elsewhere it keeps its
+    estimate, so that an axis handed to the legs ends no worse than the legs.
 
     smoother_lag: None smooths the whole drive (iSAM2), so that `trajectory()` is the smoothed
     trajectory; a number of steps keeps only that many poses (and the bias states they use) in an
@@ -53,6 +55,9 @@ class FusionConfig:
     odometry_bias: tuple[str, ...] = ()
     odometry_bias_sigmas: tuple[float, ...] = (0.001, 0.005, 0.02)
     odometry_bias_walk: tuple[float, ...] = (0.0003, 0.0005, 0.0001)
+    # a bias state moves on a step only where the step's ICP knows the motion it explains with at least
+    # this share of the legs' own information (fusion.bias.observed_axes); 0 lets every step move it
+    bias_information_share: float = 0.1
     smoother_lag: int | None = None
     marginalize_every: int = 25
     ground_sigmas: tuple[float, ...] = GROUND_SIGMAS
@@ -65,6 +70,9 @@ def check_config(config: FusionConfig) -> FusionConfig:
         raise ValueError(f"icp_covariance must be one of {ICP_COVARIANCES}, got '{config.icp_covariance}'")
     if not (np.isfinite(config.icp_residual_variance) and config.icp_residual_variance > 0):
         raise ValueError(f"icp_residual_variance must be a positive number, got {config.icp_residual_variance!r}")
+    share = config.bias_information_share
+    if isinstance(share, bool) or not isinstance(share, (int, float)) or not (np.isfinite(share) and share >= 0):
+        raise ValueError(f"bias_information_share must be a number of at least 0, got {share!r}")
     lag = config.smoother_lag
     if lag is not None and (isinstance(lag, bool) or not isinstance(lag, int) or lag < 1):
         raise ValueError(f"smoother_lag must be None (the whole drive) or a number of steps >= 1, got {lag!r}")

@@ -13,8 +13,7 @@ import json
 import re
 import time
 import zipfile
-from collections.abc import Callable, Iterator
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from importlib import metadata
 from pathlib import Path
@@ -27,7 +26,6 @@ from l3e_env.config import LABELLERS, LidarConfig, from_dict, settings_changed
 from l3e_env.config.labelling import LABEL_PROTOCOL, LabelConfig, RegistrationConfig, ScanMCConfig
 from l3e_env.core.files import folder_lock, npy_writer, write_atomic
 from l3e_env.core.transforms import level_rotation_of
-from l3e_env.core.workers import worker_start
 from l3e_env.localizability.labels import (
     ParentLabel,
     SamplingError,
@@ -49,6 +47,7 @@ from scenes import (
 )
 
 from .dataset import FORMAT_VERSION, DatasetError, check_protocol, label_statistics
+from .jobs import JOB_BACKENDS, run_jobs
 
 
 def _write_atomic(path: Path, write: Callable[[BinaryIO], object]) -> None:
@@ -345,7 +344,9 @@ def _generate(
         total=total, initial=done_before, desc="labelling parents", unit="parent", disable=not progress, smoothing=0.05
     )
     t0 = time.perf_counter()
-    for result in _execute(config, todo, workers, backend, ray_address):
+    if backend not in JOB_BACKENDS:
+        raise DatasetError(f"unknown backend '{backend}' ({', '.join(JOB_BACKENDS)})")
+    for result in run_jobs(run_shard, config, todo, workers, backend, ray_address):
         _write_atomic(out / "shards" / f"{result['shard']}.npz", _saved_arrays(result))
         shard = next(s for s in todo if s[0] == result["shard"])
         bar.update(shard[3] - shard[2])
@@ -354,23 +355,6 @@ def _generate(
     manifest["generation_seconds_last_run"] = round(time.perf_counter() - t0, 1)
     _write_json(out / "manifest.json", manifest)
     return manifest
-
-
-def _execute(config: DatasetConfig, todo: list, workers: int, backend: str, ray_address: str | None) -> Iterator[dict]:
-    if backend == "ray":
-        from .ray_backend import run_with_ray
-
-        yield from run_with_ray(run_shard, config, todo, workers, ray_address)
-    elif backend != "local":
-        raise DatasetError(f"unknown backend '{backend}' (local, ray)")
-    elif workers <= 1 or len(todo) <= 1:
-        for shard in todo:
-            yield run_shard(config, shard)
-    else:
-        with ProcessPoolExecutor(min(workers, len(todo)), initializer=worker_start) as pool:  # no idle workers
-            futures = [pool.submit(run_shard, config, s) for s in todo]
-            for fut in as_completed(futures):
-                yield fut.result()
 
 
 def consolidate(out: Path, config: DatasetConfig, manifest: dict[str, Any]) -> dict[str, Any]:

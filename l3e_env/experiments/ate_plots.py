@@ -91,3 +91,28 @@ def plot_seeds(path: Path, summary: list[dict]) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
+
+
+def plot_families(path: Path, families) -> None:
+    """Per scene family, each row's mean ATE over its drives as a bar and its worst drive as a tick
+    (families.FamilyVerdict): where the default stands against its parts, family by family."""
+    rows = [r for r in families[0].ate if r != "odometry only"]
+    fig, ax = plt.subplots(figsize=(2.0 + 1.0 * len(families), 4.5))
+    width = 0.8 / len(rows)
+    for n, row in enumerate(rows):
+        x = np.arange(len(families)) + (n - (len(rows) - 1) / 2) * width
+        have = [bool(f.ate.get(row)) for f in families]
+        means = [f.mean(row) if h else np.nan for f, h in zip(families, have)]
+        worst = [f.worst(row) if h else np.nan for f, h in zip(families, have)]
+        color = plt.cm.tab10(n)
+        ax.bar(x, means, width, color=color, label=row)
+        ax.plot(x, worst, "_", color="k", markersize=6)
+    ax.set_xticks(range(len(families)), [f.family for f in families], rotation=30, ha="right")
+    ax.set_yscale("log")
+    ax.set_ylabel("ATE (m): mean bar, worst drive tick")
+    ax.set_title("every scene family: each row's ATE over its drives")
+    ax.legend(fontsize=7, ncol=3)
+    ax.grid(True, axis="y", which="both", alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
