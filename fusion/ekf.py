@@ -17,11 +17,13 @@ from filterpy.kalman import ExtendedKalmanFilter
 from .bias import bias_prior, corrected_increment, observed_axes
 from .steps import (
     FusionConfig,
+    StepInputs,
     StepReport,
     check_attitude,
     check_config,
     check_mask_basis,
     check_odometry_sigmas,
+    gate_mask,
     masked_information,
     resolve_step,
 )
@@ -68,14 +70,16 @@ class EKFFusion:
         nb = len(self.bias_axes)
         G = np.zeros((6, nb))  # how the motion moves with the biases
         basis = check_mask_basis(mask_basis)
-        information = (
-            masked_information(self.config, icp_hessian, step.mask, basis) if step.has_odom and step.has_icp else None
-        )
+        information = None
         observed = np.zeros(nb, dtype=bool)
         if step.has_odom:
             assert odom_T_prev_cur is not None  # resolve_step: has_odom says it is given
             sigmas = check_odometry_sigmas(odom_sigmas)
             motion, G = corrected_increment(odom_T_prev_cur, self.odometry_bias, self.bias_axes)
+            if step.has_icp:
+                information = masked_information(
+                    self.config, icp_hessian, self._gated(step, motion, sigmas, basis), basis
+                )
             body = None if information is None else basis.T @ information @ basis
             observed = observed_axes(G, body, sigmas, 1, self.config.bias_information_share)
             self.bias_observed += observed
@@ -93,7 +97,7 @@ class EKFFusion:
         M = np.zeros((12 + nb, 6 + nb))
         M[:6, :6] = np.eye(6)
         M[6:12, :6] = motion.inverse().AdjointMap()
-        M[6:12, 6:] = G
+        M[6:12, 6:] = G * observed  # a bias this step does not observe is a constant of it, as in the graph
         M[12:, 6:] = np.eye(nb)
         prev, pred = self.T, self.T.compose(motion)
         ekf = ExtendedKalmanFilter(dim_x=12 + nb, dim_z=6)
@@ -109,6 +113,17 @@ class EKFFusion:
         self.k += 1
         self.poses.append(self.T.matrix())
         return self.T.matrix(), step.report()
+
+    def _gated(self, step: StepInputs, motion: gtsam.Pose3, sigmas: np.ndarray, basis: np.ndarray) -> np.ndarray:
+        """The step's mask; with the mode "gate", of its flagged axes those along which ICP disagrees
+        with the legs' step (`steps.gate_mask`, as the graph's over one step)."""
+        if self.config.mode != "gate" or not step.mask.any():
+            return step.mask
+        covariance = np.diag(sigmas**2)
+        t = motion.translation()
+        covariance[:3, :3] += self.config.odometry_bias_sigmas[2] ** 2 * np.outer(t, t)
+        innovation = to_project_order(gtsam.Pose3.Logmap(motion.between(gtsam.Pose3(np.asarray(step.icp_T_prev_cur)))))
+        return gate_mask(step.mask, basis, innovation, covariance)
 
     def _partial_update(
         self,

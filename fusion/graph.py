@@ -19,11 +19,13 @@ from .steps import (
     StepReport,
     check_attitude,
     check_config,
+    check_mask_basis,
     check_odometry_sigmas,
+    gate_mask,
     icp_information,
     resolve_step,
 )
-from .tangent import to_gtsam_order
+from .tangent import to_gtsam_order, to_project_order
 
 
 class FusionError(RuntimeError):
@@ -70,6 +72,7 @@ class FusionGraph:
         )
         self.odometry_bias = np.zeros(len(self.bias_axes))
         self.bias_observed = np.zeros(len(self.bias_axes), dtype=int)  # steps whose ICP observed each bias
+        self.gated = 0  # flagged axes kept by the gate (mode "gate")
         self._knot, self._walked = 0, 0.0
         # a ground patch unseen for half the window may be marginalized before it is seen again
         self.ground = GroundPatches(None if self.lag is None else self.lag // 2)
@@ -152,6 +155,10 @@ class FusionGraph:
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         i, j = self.k, self.k + 1
         key = self._icp_key(j, icp_span)
+        if self.config.mode == "gate" and has_odom and has_icp and mask.any():
+            assert icp_T_prev_cur is not None and odom_T_prev_cur is not None  # resolve_step: has_icp, has_odom
+            legs = self._legs_step(odom_T_prev_cur)
+            mask = self._gate(mask, legs, _pose3(icp_T_prev_cur), odom_sigmas, key, mask_basis)
         information = icp_information(self.config, icp_hessian, mask, mask_basis) if has_icp else None
         odometry = (
             self._add_odometry(graph, values, odom_T_prev_cur, odom_sigmas, (i, j), (information, icp_span))
@@ -180,6 +187,37 @@ class FusionGraph:
         if self.bias_axes:
             self.odometry_bias = np.asarray(self.isam.calculateEstimateVector(bias_key(self._knot)), dtype=np.float64)
         return self.estimate.matrix(), step.report()
+
+    def _legs_step(self, odom_T_prev_cur: np.ndarray) -> gtsam.Pose3:
+        """The legs' increment as their present bias estimate corrects it."""
+        if not self.bias_axes:
+            return _pose3(odom_T_prev_cur)
+        return corrected_increment(odom_T_prev_cur, self.odometry_bias, self.bias_axes)[0]
+
+    def _gate(
+        self,
+        mask: np.ndarray,
+        legs: gtsam.Pose3,
+        icp: gtsam.Pose3,
+        sigmas: np.ndarray | None,
+        key: int,
+        basis: np.ndarray | None,
+    ) -> np.ndarray:
+        """The mode "gate": of the flagged axes, those along which ICP's step from pose `key` disagrees
+        with the legs' prediction (`steps.gate_mask`). `sigmas`: the legs' of this step; their
+        covariance over the factor's span is that for each step of it, with the stride's scale
+        spread over the whole span's length."""
+        start = self.estimate if key == self.k else self.isam.calculateEstimatePose3(key)
+        predicted = start.between(self.estimate.compose(legs))
+        innovation = to_project_order(gtsam.Pose3.Logmap(predicted.between(icp)))
+        span = self.k + 1 - key
+        across = predicted.inverse().translation()  # the span's length, seen from the new pose
+        scale_sigma = float(self.config.odometry_bias_sigmas[2])
+        covariance = span * np.diag(check_odometry_sigmas(sigmas) ** 2)
+        covariance[:3, :3] += scale_sigma**2 * np.outer(across, across)
+        kept = gate_mask(mask, check_mask_basis(basis), innovation, covariance)
+        self.gated += int(mask.sum() - kept.sum())
+        return kept
 
     def _add_odometry(
         self,

@@ -9,7 +9,9 @@ import numpy as np
 from .bias import check_bias_settings
 from .ground import GROUND_SIGMAS, check_ground_sigmas
 
-MASK_MODES = ("mask", "full", "drop", "directions")
+MASK_MODES = ("mask", "full", "drop", "directions", "gate")
+# gate: a flagged axis keeps ICP where its step lies within this many sigmas of the legs' prediction
+GATE_SIGMAS = 3.0
 ICP_COVARIANCES = ("hessian", "fixed")
 
 
@@ -18,7 +20,10 @@ class FusionConfig:
     """mask: drop only the flagged axes; full: keep the whole ICP factor (no detector);
     drop: drop the whole ICP factor when any axis is flagged; directions: drop, of the information's
     own directions (its eigenvectors on the mask's axes), those that lie mostly along a flagged axis,
-    so that a direction a flagged axis shares with a held one (a tilted floor's z) keeps its weight.
+    so that a direction a flagged axis shares with a held one (a tilted floor's z) keeps its weight;
+    gate: a flagged axis keeps ICP's information where ICP's motion along it agrees with the legs'
+    prediction within GATE_SIGMAS of the legs' uncertainty (`gate_mask`), so that a slide is kept
+    out and a flagged place whose geometry still holds the step (an open yard) keeps what it holds.
     Sigmas in project order (m, m, m, rad, rad, rad).
 
     icp_covariance "hessian": the ICP factor's information is the registration's point-to-plane
@@ -108,16 +113,21 @@ def icp_information(
     return B.T @ information @ B
 
 
+def whole_information(config: FusionConfig, hessian: np.ndarray | None) -> np.ndarray:
+    """The ICP factor's 6x6 information before any mask (project order, the body frame): the Hessian
+    over the residual variance, or diag(1 / icp_sigmas^2) (see FusionConfig.icp_covariance)."""
+    H = None if hessian is None else np.asarray(hessian, dtype=np.float64)
+    if config.icp_covariance == "hessian" and H is not None and H.shape == (6, 6) and np.isfinite(H).all():
+        w, V = np.linalg.eigh(0.5 * (H + H.T))  # rounding can leave a free direction a little below zero
+        return (V * np.maximum(w, 0.0)) @ V.T / config.icp_residual_variance
+    return np.diag(1.0 / np.asarray(config.icp_sigmas, dtype=np.float64) ** 2)
+
+
 def masked_information(
     config: FusionConfig, hessian: np.ndarray | None, mask: np.ndarray, basis: np.ndarray
 ) -> np.ndarray:
     """`icp_information` on the mask's axes (d' = basis d), before it is turned back."""
-    H = None if hessian is None else np.asarray(hessian, dtype=np.float64)
-    if config.icp_covariance == "hessian" and H is not None and H.shape == (6, 6) and np.isfinite(H).all():
-        w, V = np.linalg.eigh(0.5 * (H + H.T))  # rounding can leave a free direction a little below zero
-        information = (V * np.maximum(w, 0.0)) @ V.T / config.icp_residual_variance
-    else:
-        information = np.diag(1.0 / np.asarray(config.icp_sigmas, dtype=np.float64) ** 2)
+    information = whole_information(config, hessian)
     inverse = np.linalg.inv(basis)
     information = inverse.T @ information @ inverse
     information = 0.5 * (information + information.T)
@@ -128,6 +138,21 @@ def masked_information(
     information[mask, :] = 0.0
     information[:, mask] = 0.0
     return information
+
+
+def gate_mask(mask: np.ndarray, basis: np.ndarray, innovation: np.ndarray, legs_covariance: np.ndarray) -> np.ndarray:
+    """The flagged axes (`mask`, on the axes d' = basis d) along which ICP disagrees with the legs:
+    its step's difference from the legs' prediction (`innovation`, project order, the body frame),
+    read on those axes, beyond GATE_SIGMAS of the legs' uncertainty there (`legs_covariance` over the
+    factor's span, 6x6, body frame). The others of `mask` are kept: a flag says ICP cannot correct the
+    labels' offsets, not that it is wrong about the small ones a fusion meets between keyframes.
+    ICP's own variance does not widen the gate: where a scan slides (a tunnel's identical rings
+    register as standing still) its Hessian still claims centimetres, and a slide within them
+    would be taken at that weight on every step."""
+    B = check_mask_basis(basis)
+    legs_variance = np.diag(B @ np.asarray(legs_covariance, dtype=np.float64) @ B.T)
+    r = B @ np.asarray(innovation, dtype=np.float64)
+    return np.asarray(mask, dtype=bool) & (r**2 > GATE_SIGMAS**2 * legs_variance)
 
 
 @dataclass
