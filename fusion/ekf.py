@@ -44,6 +44,7 @@ class EKFFusion:
         )
         self.odometry_bias = np.zeros(len(self.bias_axes))
         self.bias_observed = np.zeros(len(self.bias_axes), dtype=int)  # steps whose ICP observed each bias
+        self.gated = 0  # flagged axes kept by the gate (mode "gate")
         # the newest pose's error (GTSAM order), then the biases'
         self.P = np.diag(np.concatenate([to_gtsam_order(np.asarray(self.config.prior_sigmas)), spread]) ** 2)
         self.poses = [self.T.matrix()]
@@ -123,7 +124,9 @@ class EKFFusion:
         t = motion.translation()
         covariance[:3, :3] += self.config.odometry_bias_sigmas[2] ** 2 * np.outer(t, t)
         innovation = to_project_order(gtsam.Pose3.Logmap(motion.between(gtsam.Pose3(np.asarray(step.icp_T_prev_cur)))))
-        return gate_mask(step.mask, basis, innovation, covariance)
+        kept = gate_mask(step.mask, basis, innovation, covariance)
+        self.gated += int(step.mask.sum() - kept.sum())
+        return kept
 
     def _partial_update(
         self,

@@ -83,6 +83,7 @@ class AteRow:
             result.fallback_steps,
             result.detector_errors,
             drift,
+            extra={"bias_observed": result.observed, "gated_axes": result.gated_axes} if result.observed else {},
         )
 
     @classmethod
@@ -193,12 +194,16 @@ def _name_width(rows: list[dict]) -> int:
 
 def format_table(rows: list[AteRow]) -> str:
     """The ATE table; with regions, a column per region of the drift accumulated there (m and % of the
-    distance travelled inside it)."""
+    distance travelled inside it); with the legs' bias states, the share of steps whose ICP observed
+    each (a state that none observed kept its prior)."""
     w = max([14, *(len(r.detector) for r in rows)])
     regions = regions_of(rows)
+    biases = next((list(o) for r in rows if (o := r.extra.get("bias_observed"))), [])
     head = (
         f"{'detector':{w}s} {'ATE m':>7s} {'aligned':>8s} {'RPE m':>7s} {'RPE deg':>8s}  "
-        f"flagged x/y/z/roll/pitch/yaw      {'s':>6s}" + "".join(f"  {'drift ' + g:>15s}" for g in regions)
+        f"flagged x/y/z/roll/pitch/yaw      {'s':>6s}"
+        + "".join(f"  {'drift ' + g:>15s}" for g in regions)
+        + (f"  observed {'/'.join(biases)}" if biases else "")
     )
     lines = [head, "-" * len(head)]
     for r in rows:
@@ -212,5 +217,7 @@ def format_table(rows: list[AteRow]) -> str:
             for g in regions
         )
         errors = f"{r.ate_m:7.3f} {al:>8s} {r.rpe_m:7.4f} {r.rpe_deg:8.3f}"
-        lines.append(f"{r.detector:{w}s} {errors}  {flags}  {r.seconds:6.1f}{drifts}")
+        observed = r.extra.get("bias_observed") or {}
+        shares = "  " + " ".join(f"{observed[b]:.2f}" for b in biases) if observed else ""
+        lines.append(f"{r.detector:{w}s} {errors}  {flags}  {r.seconds:6.1f}{drifts}{shares}")
     return "\n".join(lines)

@@ -4,7 +4,7 @@
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 
 import numpy as np
 from tqdm import tqdm
@@ -40,6 +40,10 @@ class FusedRun:
     unknown_steps: int = 0
     fallback_steps: int = 0
     detector_errors: int = 0
+    # per bias state of the legs (fusion.bias): the share of steps whose ICP observed it (a state never
+    # observed kept its prior); and the flagged axes the gate kept (FusionConfig.mode "gate")
+    observed: dict[str, float] = field(default_factory=dict)
+    gated_axes: int = 0
 
 
 @dataclass
@@ -98,6 +102,7 @@ def fuse_recording(
             fallbacks += step.fallback
             masks.append(step.prediction.mask)
             probs.append(step.prediction.probabilities)
+        estimator = pipeline.backend
         run = FusedRun(
             det.name,
             pipeline.trajectory(),
@@ -107,6 +112,11 @@ def fuse_recording(
             unknown,
             fallbacks,
             errors,
+            {
+                a: round(n / max(1, len(masks)), 3)
+                for a, n in zip(estimator.bias_axes, estimator.bias_observed.tolist())
+            },
+            estimator.gated,
         )
         out.append(scored(run, gt))
     return out
