@@ -94,7 +94,8 @@ class AteOptions:
     settings go into results.json, and one that fails says so in its row. frontends: the LiDAR front
     ends whose steps the fusion takes ("icp": scan-to-scan ICP; or a baseline's name: its relative
     motions with the ICP's information, BaselineRun.registrations); every detector is fused with each,
-    the rows of a front end other than ICP named "<detector> @<front end>"."""
+    the rows of a front end other than ICP named "<detector> @<front end>". maps: each row's map (a
+    PLY and a top view) written beside the table (a benchmark of many drives leaves them out)."""
 
     sensor: str = "vlp16"
     seed: int = 0
@@ -105,6 +106,7 @@ class AteOptions:
     max_steps: int | None = None
     baselines: list[str] = field(default_factory=list)
     frontends: list[str] = field(default_factory=lambda: ["icp"])
+    maps: bool = True
 
     def check(self) -> None:
         """ValueError naming a setting no drive can use (and a missing baseline package), before the drive."""
@@ -209,7 +211,7 @@ def run_ate(
         },
         "rows": [r.record() for r in rows],
     }
-    written = write_ate(out, summary, drive, results)
+    written = write_ate(out, summary, drive, results, options.maps)
     return AteRun(out, rows, drive.raw.sweep, written)
 
 
@@ -315,7 +317,7 @@ def score_rows(
     return results, rows
 
 
-def write_ate(out: Path, summary: dict, drive: AteDrive, results: list) -> list[Path]:
+def write_ate(out: Path, summary: dict, drive: AteDrive, results: list, maps_too: bool = True) -> list[Path]:
     """results.json, the trajectories' and timeline's plots, a map per row and the trajectories as
     files; returns what was written (the recording first, where the drive made one)."""
     (out / "results.json").write_text(json.dumps(summary, indent=1))
@@ -324,7 +326,7 @@ def write_ate(out: Path, summary: dict, drive: AteDrive, results: list) -> list[
     plot_trajectories(out / "trajectories.png", drive.scene, drive.rec, results)
     plot_timeline(out / "timeline.png", results[1:])
     maps = []
-    for r in results[1:]:
+    for r in results[1:] if maps_too else []:
         maps += plot_map(out / f"map_{file_stem(r.name)}", drive.rec, r.trajectory)
     written = [
         out / "results.json",

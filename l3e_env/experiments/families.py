@@ -153,7 +153,9 @@ def fuse_drive(config: tuple[str, FamiliesOptions], job: tuple[str, int]) -> tup
         folder.mkdir(parents=True, exist_ok=True)
         record_run(scene, DriveOptions(options.sensor, seed), progress=False).save(recording)
     detectors = list(options.detectors) + (["oracle"] if seed < options.oracle_seeds else [])
-    ate = AteOptions(sensor=options.sensor, seed=seed, recording=recording, fusion_settings=options.settings)
+    ate = AteOptions(
+        sensor=options.sensor, seed=seed, recording=recording, fusion_settings=options.settings, maps=False
+    )
     done = _rows_file(out, options, job)
     run = run_ate(done.parent, scene, detectors, ate, progress=False)
     rows = {r.detector: float(r.ate_m) if r.ate_m is not None else float("nan") for r in run.rows}
