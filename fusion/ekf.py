@@ -59,6 +59,7 @@ class EKFFusion:
         icp_hessian: np.ndarray | None = None,
         icp_span: int = 1,
         mask_basis: np.ndarray | None = None,
+        probabilities: np.ndarray | None = None,
     ) -> tuple[np.ndarray, StepReport]:
         """`FusionGraph.add_step` as a filter step: the ICP factor updates the axes the mask keeps, on
         the mask's own axes (`mask_basis`)."""
@@ -79,7 +80,7 @@ class EKFFusion:
             motion, G = corrected_increment(odom_T_prev_cur, self.odometry_bias, self.bias_axes)
             if step.has_icp:
                 information = masked_information(
-                    self.config, icp_hessian, self._gated(step, motion, sigmas, basis), basis
+                    self.config, icp_hessian, self._gated(step, motion, sigmas, basis), basis, probabilities
                 )
             body = None if information is None else basis.T @ information @ basis
             observed = observed_axes(G, body, sigmas, 1, self.config.bias_information_share)

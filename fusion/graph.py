@@ -137,13 +137,14 @@ class FusionGraph:
         icp_hessian: np.ndarray | None = None,
         icp_span: int = 1,
         mask_basis: np.ndarray | None = None,
+        probabilities: np.ndarray | None = None,
     ) -> tuple[np.ndarray, StepReport]:
         """Add pose k+1 with its factors; returns (estimate of pose k+1, report). `icp_hessian`:
         the registration's point-to-plane Hessian in the body frame, project order (see
         FusionConfig.icp_covariance). `mask_basis`: the axes `non_localizable` names (see
         `icp_information`; the body frame's own where None). `icp_span`: the ICP factor ties pose
         k+1 to pose k+1-icp_span (a keyframe's; 1: pose k), which must still be in the smoother's
-        window.
+        window. `probabilities`: the detector's, which the mode "soft" weighs flagged axes by.
 
         Missing odometry with every ICP axis masked leaves the new pose unconstrained: then the
         ICP factor is kept whole (documented fallback), and with no ICP either the pose is tied to
@@ -159,7 +160,7 @@ class FusionGraph:
             assert icp_T_prev_cur is not None and odom_T_prev_cur is not None  # resolve_step: has_icp, has_odom
             legs = self._legs_step(odom_T_prev_cur)
             mask = self._gate(mask, legs, _pose3(icp_T_prev_cur), odom_sigmas, key, mask_basis)
-        information = icp_information(self.config, icp_hessian, mask, mask_basis) if has_icp else None
+        information = icp_information(self.config, icp_hessian, mask, mask_basis, probabilities) if has_icp else None
         odometry = (
             self._add_odometry(graph, values, odom_T_prev_cur, odom_sigmas, (i, j), (information, icp_span))
             if has_odom
