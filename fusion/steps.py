@@ -24,6 +24,9 @@ class FusionConfig:
     gate: a flagged axis keeps ICP's information where ICP's motion along it agrees with the legs'
     prediction within GATE_SIGMAS of the legs' uncertainty (`gate_mask`), so that a slide is kept
     out and a flagged place whose geometry still holds the step (an open yard) keeps what it holds;
+    the axes it still flags leave as in "directions": a slide lies along the information's weak
+    direction, which may turn the heading with the length (a gallery at an angle to the heading), and
+    removing the length's rows alone would keep the heading's part of the slide at full weight;
     soft: a flagged axis keeps 1 - p of its information, p the detector's probability that it is not
     localizable (`add_step(..., probabilities=)`; where none is given, as mask).
     Sigmas in project order (m, m, m, rad, rad, rad).
@@ -142,7 +145,7 @@ def masked_information(
     inverse = np.linalg.inv(basis)
     information = inverse.T @ information @ inverse
     information = 0.5 * (information + information.T)
-    if config.mode == "directions" and mask.any():
+    if config.mode in ("directions", "gate") and mask.any():
         w, V = np.linalg.eigh(information)
         along = np.argmax(V**2, axis=0)  # the axis each direction lies mostly along
         return (V * np.where(mask[along], 0.0, w)) @ V.T
