@@ -128,3 +128,27 @@ def test_gtsam_pose_order_in_the_walk_helpers():
     moved = T @ increment(1.0)
     assert moved[2, 3] == pytest.approx(np.sin(PITCH))
     assert gtsam.Pose3(moved).rotation().pitch() == pytest.approx(-PITCH)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_a_slide_that_turns_the_heading_leaves_the_heading_to_the_other_directions(backend):
+    """ICP's weak direction couples the length with the heading (a gallery at an angle to the sensor's
+    heading); ICP stands still along it, so each step it reads 8 cm short and turns 8 mrad. With x flagged,
+    the hard mask keeps the heading's share of that slide at full weight; the gate, which still flags x,
+    removes the weak direction whole and keeps the heading that the other directions hold."""
+    weak = np.r_[1.0, 0.0, 0.0, 0.0, 0.0, 0.1] / np.hypot(1.0, 0.1)
+    strong = np.diag([0.0, 1e3, 1e3, 1e3, 1e3, 1e3])
+    strong[0, 0], strong[5, 5] = 0.0, 0.0
+    across = np.r_[-0.1, 0.0, 0.0, 0.0, 0.0, 1.0] / np.hypot(1.0, 0.1)
+    hessian = strong + 1e3 * np.outer(across, across) + 1e-2 * np.outer(weak, weak)
+    slide = -0.08 / weak[0] * weak  # 8 cm short along the weak direction
+    icp = increment(STEP + slide[0], yaw=slide[5])
+
+    def heading_error(mode):
+        fusion = BACKENDS[backend](np.eye(4), FusionConfig(mode=mode, odometry_bias=("yaw", "scale")))
+        for _ in range(100):
+            T, _ = fusion.add_step(increment(STEP), SIGMAS, icp, np.r_[True, np.zeros(5, bool)], hessian)
+        return abs(np.arctan2(T[1, 0], T[0, 0]))
+
+    assert heading_error("mask") > 0.3  # rad: most of the slide's 8 mrad a step
+    assert heading_error("gate") < 0.01
