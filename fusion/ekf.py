@@ -123,7 +123,11 @@ class EKFFusion:
             return step.mask
         covariance = np.diag(sigmas**2)
         t = motion.translation()
-        covariance[:3, :3] += self.config.odometry_bias_sigmas[2] ** 2 * np.outer(t, t)
+        scale = self.config.odometry_bias_sigmas[2] ** 2  # the legs' spread, or the state's as known now
+        if "scale" in self.bias_axes:
+            n = 6 + self.bias_axes.index("scale")
+            scale = self.P[n, n]
+        covariance[:3, :3] += scale * np.outer(t, t)
         innovation = to_project_order(gtsam.Pose3.Logmap(motion.between(gtsam.Pose3(np.asarray(step.icp_T_prev_cur)))))
         kept = gate_mask(step.mask, basis, innovation, covariance)
         self.gated += int(step.mask.sum() - kept.sum())

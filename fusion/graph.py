@@ -73,6 +73,7 @@ class FusionGraph:
         self.odometry_bias = np.zeros(len(self.bias_axes))
         self.bias_observed = np.zeros(len(self.bias_axes), dtype=int)  # steps whose ICP observed each bias
         self.gated = 0  # flagged axes kept by the gate (mode "gate")
+        self._scale_known = (-1, 0.0)  # (bias state, the scale's sigma there): see _scale_sigma
         self._knot, self._walked = 0, 0.0
         # a ground patch unseen for half the window may be marginalized before it is seen again
         self.ground = GroundPatches(None if self.lag is None else self.lag // 2)
@@ -156,13 +157,17 @@ class FusionGraph:
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         i, j = self.k, self.k + 1
         key = self._icp_key(j, icp_span)
+        information = icp_information(self.config, icp_hessian, mask, mask_basis, probabilities) if has_icp else None
+        # the biases learn from what the detector trusts: an axis the gate keeps agrees with the legs'
+        # prediction, which their biases make, and its small slides would teach them a wrong one
+        observing = information
         if self.config.mode == "gate" and has_odom and has_icp and mask.any():
             assert icp_T_prev_cur is not None and odom_T_prev_cur is not None  # resolve_step: has_icp, has_odom
             legs = self._legs_step(odom_T_prev_cur)
             mask = self._gate(mask, legs, _pose3(icp_T_prev_cur), odom_sigmas, key, mask_basis)
-        information = icp_information(self.config, icp_hessian, mask, mask_basis, probabilities) if has_icp else None
+            information = icp_information(self.config, icp_hessian, mask, mask_basis, probabilities)
         odometry = (
-            self._add_odometry(graph, values, odom_T_prev_cur, odom_sigmas, (i, j), (information, icp_span))
+            self._add_odometry(graph, values, odom_T_prev_cur, odom_sigmas, (i, j), (observing, icp_span))
             if has_odom
             else None
         )
@@ -207,18 +212,30 @@ class FusionGraph:
         """The mode "gate": of the flagged axes, those along which ICP's step from pose `key` disagrees
         with the legs' prediction (`steps.gate_mask`). `sigmas`: the legs' of this step; their
         covariance over the factor's span is that for each step of it, with the stride's scale
-        spread over the whole span's length."""
+        spread over the whole span's length (its estimate's, `_scale_sigma`)."""
         start = self.estimate if key == self.k else self.isam.calculateEstimatePose3(key)
         predicted = start.between(self.estimate.compose(legs))
         innovation = to_project_order(gtsam.Pose3.Logmap(predicted.between(icp)))
         span = self.k + 1 - key
         across = predicted.inverse().translation()  # the span's length, seen from the new pose
-        scale_sigma = float(self.config.odometry_bias_sigmas[2])
+        scale_sigma = self._scale_sigma()
         covariance = span * np.diag(check_odometry_sigmas(sigmas) ** 2)
         covariance[:3, :3] += scale_sigma**2 * np.outer(across, across)
         kept = gate_mask(mask, check_mask_basis(basis), innovation, covariance)
         self.gated += int(mask.sum() - kept.sum())
         return kept
+
+    def _scale_sigma(self) -> float:
+        """How well the fusion knows the stride's scale now: the marginal of the bias state in use
+        (computed once a state), or the legs' prior spread where the scale is not a state. A scale learnt
+        where ICP held the length narrows the gate where it no longer does."""
+        if "scale" not in self.bias_axes:
+            return float(self.config.odometry_bias_sigmas[2])
+        if self._scale_known[0] != self._knot:
+            covariance = self.isam.marginalCovariance(bias_key(self._knot))
+            n = self.bias_axes.index("scale")
+            self._scale_known = (self._knot, float(np.sqrt(max(covariance[n, n], 0.0))))
+        return self._scale_known[1]
 
     def _add_odometry(
         self,

@@ -96,6 +96,7 @@ def plot_seeds(path: Path, summary: list[dict]) -> None:
 def plot_families(path: Path, families) -> None:
     """Per scene family, each row's mean ATE over its drives as a bar and its worst drive as a tick
     (families.FamilyVerdict): where the default stands against its parts, family by family."""
+    families = [f for f in families if f.ate]
     rows = [r for r in families[0].ate if r != "odometry only"]
     fig, ax = plt.subplots(figsize=(2.0 + 1.0 * len(families), 4.5))
     width = 0.8 / len(rows)

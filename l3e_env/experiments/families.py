@@ -21,11 +21,13 @@ from tqdm import tqdm
 
 from l3e_env.config import FusionSettings
 from l3e_env.data.jobs import JOB_BACKENDS, run_jobs
+from l3e_env.sim.robot import SpawnError
 from scenes import list_scenes
 
 from .ate import AteOptions, run_ate
 from .drive import DriveOptions, record_run
 
+FAILED = "failed"  # a drive's rows: why it could not be driven
 LEGS = "odometry + attitude"  # the legs and the IMU alone: one part of the fusion
 UNMASKED = "none"  # ICP on every axis: the other part
 DEFAULT_DETECTORS = ("none", "learned", "eigen:30", "dcreg:10")
@@ -83,6 +85,7 @@ class FamilyVerdict:
     ate: dict[str, list[float]]  # row -> ATE of each drive (seed order); the oracle's on its seeds only
     mean_ok: bool
     drives_ok: list[bool]
+    failed: list[str] = field(default_factory=list)  # why a drive could not be made
 
     def mean(self, row: str) -> float:
         return float(np.mean(self.ate[row]))
@@ -99,7 +102,7 @@ class FamiliesRun:
 
     @property
     def never_worse(self) -> bool:
-        return all(f.mean_ok and all(f.drives_ok) for f in self.families)
+        return all(f.mean_ok and all(f.drives_ok) for f in self.families if f.ate)
 
     def table(self) -> str:
         return format_families(self.families)
@@ -113,7 +116,7 @@ def run_families(out_dir: str | Path, options: FamiliesOptions | None = None, pr
     out = Path(out_dir)
     (out / "drives").mkdir(parents=True, exist_ok=True)
     jobs = [(f, s) for f in families for s in range(options.seeds)]
-    results: dict[tuple[str, int], dict[str, float]] = {}
+    results: dict[tuple[str, int], dict[str, Any]] = {}
     todo = []
     for job in jobs:
         done = _rows_file(out, options, job)
@@ -141,7 +144,7 @@ def _rows_file(out: Path, options: FamiliesOptions, job: tuple[str, int]) -> Pat
     return out / "drives" / f"{family}-{seed}" / f"fused-{options.key()}" / "rows.json"
 
 
-def fuse_drive(config: tuple[str, FamiliesOptions], job: tuple[str, int]) -> tuple[tuple[str, int], dict[str, float]]:
+def fuse_drive(config: tuple[str, FamiliesOptions], job: tuple[str, int]) -> tuple[tuple[str, int], dict[str, Any]]:
     """One drive of the benchmark (a pool's job): recorded where it is not yet, fused with every row
     (`l3e ate` on the recording, its folder beside it); returns the job and each row's ATE (m)."""
     out, options = Path(config[0]), config[1]
@@ -151,7 +154,10 @@ def fuse_drive(config: tuple[str, FamiliesOptions], job: tuple[str, int]) -> tup
     recording = folder / "recording.npz"
     if not recording.exists():
         folder.mkdir(parents=True, exist_ok=True)
-        record_run(scene, DriveOptions(options.sensor, seed), progress=False).save(recording)
+        try:
+            record_run(scene, DriveOptions(options.sensor, seed), progress=False).save(recording)
+        except SpawnError as exc:  # a scene whose route cannot be driven: said in the table, the rest go on
+            return job, {FAILED: str(exc)}
     detectors = list(options.detectors) + (["oracle"] if seed < options.oracle_seeds else [])
     ate = AteOptions(
         sensor=options.sensor, seed=seed, recording=recording, fusion_settings=options.settings, maps=False
@@ -163,9 +169,14 @@ def fuse_drive(config: tuple[str, FamiliesOptions], job: tuple[str, int]) -> tup
     return job, rows
 
 
-def verdict(family: str, drives: list[dict[str, float]]) -> FamilyVerdict:
+def verdict(family: str, made: list[dict[str, Any]]) -> FamilyVerdict:
     """The family's rows over its drives and whether the default is no worse than its parts (the
-    smaller of `LEGS` and `UNMASKED`): in the mean, and on each drive."""
+    smaller of `LEGS` and `UNMASKED`): in the mean, and on each drive; a drive that could not be made
+    (`FAILED`) is named and left out."""
+    drives = [d for d in made if FAILED not in d]
+    failed = [d[FAILED] for d in made if FAILED in d]
+    if not drives:
+        return FamilyVerdict(family, {}, False, [], failed)
     names = list(drives[0])
     ate = {name: [d[name] for d in drives if name in d] for name in names}
     parts = [min(d[LEGS], d[UNMASKED]) for d in drives]
@@ -173,13 +184,13 @@ def verdict(family: str, drives: list[dict[str, float]]) -> FamilyVerdict:
     drives_ok = [
         bool(d[DEFAULT_ROW] <= DRIVE_RATIO * p or d[DEFAULT_ROW] <= p + DRIVE_SLACK) for d, p in zip(drives, parts)
     ]
-    return FamilyVerdict(family, ate, mean_ok, drives_ok)
+    return FamilyVerdict(family, ate, mean_ok, drives_ok, failed)
 
 
 def format_families(families: list[FamilyVerdict]) -> str:
     """A markdown table: per family and row the mean ATE over its drives and (worst drive); the
     default's verdict."""
-    rows = [r for r in families[0].ate if r != "odometry only"] if families else []
+    rows = next(([r for r in f.ate if r != "odometry only"] for f in families if f.ate), [])
     head = "| family | " + " | ".join(rows) + " | default no worse |"
     lines = [head, "|" + "---|" * (len(rows) + 2)]
     for f in families:
@@ -199,9 +210,10 @@ def write_families(out: Path, options: FamiliesOptions, families: list[FamilyVer
         "detectors": list(options.detectors),
         "seeds": options.seeds,
         "key": options.key(),
-        "never_worse": all(f.mean_ok and all(f.drives_ok) for f in families),
+        "never_worse": all(f.mean_ok and all(f.drives_ok) for f in families if f.ate),
         "families": [
-            {"family": f.family, "ate_m": f.ate, "mean_ok": f.mean_ok, "drives_ok": f.drives_ok} for f in families
+            {"family": f.family, "ate_m": f.ate, "mean_ok": f.mean_ok, "drives_ok": f.drives_ok, "failed": f.failed}
+            for f in families
         ],
     }
     (out / "families.json").write_text(json.dumps(summary, indent=1))
