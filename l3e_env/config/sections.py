@@ -113,7 +113,7 @@ class FusionSettings:
     enabled: bool = False
     detector: str = "learned"
     backend: str = "graph"
-    mode: str = "mask"
+    mode: str = "gate"
     deskew: str = "gyro"
     attitude: str = "tilt"
     odometry_bias: tuple[str, ...] = ("yaw", "scale")

@@ -200,6 +200,7 @@ def format_families(families: list[FamilyVerdict]) -> str:
             if f.mean_ok and all(f.drives_ok)
             else f"no (mean {'ok' if f.mean_ok else 'over'}, {sum(f.drives_ok)}/{len(f.drives_ok)} drives)"
         )
+        ok += "".join(f"; a drive failed: {why}" for why in f.failed)
         lines.append(f"| {f.family} | " + " | ".join(cells) + f" | {ok} |")
     return "\n".join(lines)
 
