@@ -121,8 +121,11 @@ class EKFFusion:
         with the legs' step (`steps.gate_mask`, as the graph's over one step)."""
         if self.config.mode != "gate" or not step.mask.any():
             return step.mask
-        covariance = np.diag(sigmas**2)
+        variance = sigmas**2  # without the stride's spread, which the scale carries (the graph's _gate)
         t = motion.translation()
+        prior = float(self.config.odometry_bias_sigmas[2])
+        variance[:3] = np.maximum(variance[:3] - (prior * t) ** 2, 0.25 * variance[:3])
+        covariance = np.diag(variance)
         scale = self.config.odometry_bias_sigmas[2] ** 2  # the legs' spread, or the state's as known now
         if "scale" in self.bias_axes:
             n = 6 + self.bias_axes.index("scale")

@@ -27,10 +27,6 @@ from .steps import (
 )
 from .tangent import to_gtsam_order, to_project_order
 
-# the gate reads ICP against the legs' chain over at most this many steps (a keyframe's longest run
-# is half the smoother's window; an ICP factor reaches no further)
-LEGS_CHAIN = 256
-
 
 class FusionError(RuntimeError):
     """GTSAM could not solve a step (an under-determined or degenerate system): the message names the step."""
@@ -78,7 +74,6 @@ class FusionGraph:
         self.bias_observed = np.zeros(len(self.bias_axes), dtype=int)  # steps whose ICP observed each bias
         self.gated = 0  # flagged axes kept by the gate (mode "gate")
         self._scale_known = (-1, 0.0)  # (bias state, the scale's sigma there): see _scale_sigma
-        self._legs: dict[int, gtsam.Pose3] = {}  # pose -> the legs' increment into it (mode "gate")
         self._knot, self._walked = 0, 0.0
         # a ground patch unseen for half the window may be marginalized before it is seen again
         self.ground = GroundPatches(None if self.lag is None else self.lag // 2)
@@ -166,13 +161,10 @@ class FusionGraph:
         # the biases learn from what the detector trusts: an axis the gate keeps agrees with the legs'
         # prediction, which their biases make, and its small slides would teach them a wrong one
         observing = information
-        if has_odom and self.config.mode == "gate":  # the legs' own chain, which the gate reads ICP against
-            assert odom_T_prev_cur is not None  # resolve_step: has_odom
-            self._legs[j] = self._legs_step(odom_T_prev_cur)
-            self._legs.pop(j - LEGS_CHAIN, None)
         if self.config.mode == "gate" and has_odom and has_icp and mask.any():
-            assert icp_T_prev_cur is not None  # resolve_step: has_icp
-            mask = self._gate(mask, _pose3(icp_T_prev_cur), odom_sigmas, key, mask_basis)
+            assert icp_T_prev_cur is not None and odom_T_prev_cur is not None  # resolve_step: has_icp, has_odom
+            legs = self._legs_step(odom_T_prev_cur)
+            mask = self._gate(mask, (legs, _pose3(icp_T_prev_cur)), odom_sigmas, key, mask_basis)
             information = icp_information(self.config, icp_hessian, mask, mask_basis, probabilities)
         odometry = (
             self._add_odometry(graph, values, odom_T_prev_cur, odom_sigmas, (i, j), (observing, icp_span))
@@ -209,27 +201,29 @@ class FusionGraph:
         return corrected_increment(odom_T_prev_cur, self.odometry_bias, self.bias_axes)[0]
 
     def _gate(
-        self, mask: np.ndarray, icp: gtsam.Pose3, sigmas: np.ndarray | None, key: int, basis: np.ndarray | None
+        self,
+        mask: np.ndarray,
+        steps: tuple[gtsam.Pose3, gtsam.Pose3],
+        sigmas: np.ndarray | None,
+        key: int,
+        basis: np.ndarray | None,
     ) -> np.ndarray:
         """The mode "gate": of the flagged axes, those along which ICP's motion from pose `key` disagrees
-        with the legs' own over the same steps (`steps.gate_mask`): their chain of increments, not the
-        fused estimate, which holds what the gate let in on the steps before, so that a slide growing a
-        little a step would be read a little at a time. `sigmas`: the legs' of this step; their
-        covariance over the factor's span is that for each step of it, with the stride's scale spread
-        over the whole span's length (its estimate's, `_scale_sigma`)."""
-        steps = [self._legs.get(m) for m in range(key + 1, self.k + 2)]
-        if any(step is None for step in steps):  # a step without odometry: nothing to read ICP against
-            return mask
+        with the legs' prediction, the estimate advanced by their step (`steps.gate_mask`). `steps`: the
+        legs' and ICP's; `sigmas`: the legs' of this step. Their covariance over the factor's span is
+        that for each step of it without the stride's spread, which the scale's state carries over the
+        whole span's length (as it is known now, `_scale_sigma`): the legs' sigmas hold that spread as a
+        step's own noise, which left the gate wide enough to let a mine tunnel's slides of a centimetre
+        a keyframe in after the scale was learnt in its yard."""
+        legs, icp = steps
         start = self.estimate if key == self.k else self.isam.calculateEstimatePose3(key)
-        predicted = start.between(self.estimate.compose(steps[-1]))
+        predicted = start.between(self.estimate.compose(legs))
         innovation = to_project_order(gtsam.Pose3.Logmap(predicted.between(icp)))
         span = self.k + 1 - key
         across = predicted.inverse().translation()  # the span's length, seen from the new pose
         scale_sigma = self._scale_sigma()
-        # the legs' sigmas hold the stride's spread as if it were a step's own noise; here the scale's
-        # state carries it (over the whole span, below), so each step keeps the rest
         variance = check_odometry_sigmas(sigmas) ** 2
-        along = np.abs(steps[-1].translation())
+        along = np.abs(legs.translation())
         prior = float(self.config.odometry_bias_sigmas[2])
         variance[:3] = np.maximum(variance[:3] - (prior * along) ** 2, 0.25 * variance[:3])
         covariance = span * np.diag(variance)

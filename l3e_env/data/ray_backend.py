@@ -13,8 +13,8 @@ from typing import Any
 
 
 def run_with_ray(
-    run_shard: Callable[[Any, Any], dict], config: Any, todo: list, workers: int, address: str | None
-) -> Iterator[dict]:
+    run_shard: Callable[[Any, Any], Any], config: Any, todo: list, workers: int, address: str | None
+) -> Iterator[Any]:
     """`run_shard(config, shard)` for each shard of `todo` as Ray tasks, results as they finish (the local
     backend's function is passed in, so that this module needs nothing of the dataset's)."""
     try:
