@@ -213,8 +213,7 @@ class FusionGraph:
         legs' and ICP's; `sigmas`: the legs' of this step. Their covariance over the factor's span is
         that for each step of it without the stride's spread, which the scale's state carries over the
         whole span's length (as it is known now, `_scale_sigma`): the legs' sigmas hold that spread as a
-        step's own noise, which left the gate wide enough to let a mine tunnel's slides of a centimetre
-        a keyframe in after the scale was learnt in its yard."""
+        step's own noise, which would keep the gate as wide once the scale is learnt as before."""
         legs, icp = steps
         start = self.estimate if key == self.k else self.isam.calculateEstimatePose3(key)
         predicted = start.between(self.estimate.compose(legs))
