@@ -59,7 +59,6 @@ class EKFFusion:
         icp_hessian: np.ndarray | None = None,
         icp_span: int = 1,
         mask_basis: np.ndarray | None = None,
-        probabilities: np.ndarray | None = None,
     ) -> tuple[np.ndarray, StepReport]:
         """`FusionGraph.add_step` as a filter step: the ICP factor updates the axes the mask keeps, on
         the mask's own axes (`mask_basis`)."""
@@ -78,12 +77,8 @@ class EKFFusion:
             assert odom_T_prev_cur is not None  # resolve_step: has_odom says it is given
             sigmas = check_odometry_sigmas(odom_sigmas)
             motion, G = corrected_increment(odom_T_prev_cur, self.odometry_bias, self.bias_axes)
-            if step.has_icp:
-                information = masked_information(
-                    self.config, icp_hessian, self._gated(step, motion, sigmas, basis), basis, probabilities
-                )
-            body = None if information is None else basis.T @ information @ basis
-            observed = observed_axes(G, body, sigmas, 1, self.config.bias_information_share)
+            observing, information = self._informations(step, (motion, sigmas), icp_hessian, basis)
+            observed = observed_axes(G, observing, sigmas, 1, self.config.bias_information_share)
             self.bias_observed += observed
             walked = float(np.linalg.norm(np.asarray(odom_T_prev_cur)[:3, 3]))
         elif step.has_icp:  # no odometry: ICP carries the motion, its masked axes stand still, as in the graph
@@ -115,6 +110,23 @@ class EKFFusion:
         self.k += 1
         self.poses.append(self.T.matrix())
         return self.T.matrix(), step.report()
+
+    def _informations(
+        self,
+        step: StepInputs,
+        legs: tuple[gtsam.Pose3, np.ndarray],
+        hessian: np.ndarray | None,
+        basis: np.ndarray,
+    ) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """As the graph's: the ICP information as the detector masks it, in the body frame, which the
+        biases learn from; and as the update takes it, on the mask's axes (with the mode "gate", the
+        flagged axes it keeps); None without ICP. `legs`: their step and its sigmas."""
+        if not step.has_icp:
+            return None, None
+        masked = masked_information(self.config, hessian, step.mask, basis)
+        kept = self._gated(step, legs[0], legs[1], basis)
+        used = masked if (kept == step.mask).all() else masked_information(self.config, hessian, kept, basis)
+        return basis.T @ masked @ basis, used
 
     def _gated(self, step: StepInputs, motion: gtsam.Pose3, sigmas: np.ndarray, basis: np.ndarray) -> np.ndarray:
         """The step's mask; with the mode "gate", of its flagged axes those along which ICP disagrees

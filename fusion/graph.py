@@ -16,6 +16,7 @@ from .bias import BIAS_KNOT_METRES, bias_prior, corrected_increment, observed_ax
 from .ground import GroundPatches, check_ground_sigmas, check_plane, ground_key
 from .steps import (
     FusionConfig,
+    StepInputs,
     StepReport,
     check_attitude,
     check_config,
@@ -138,14 +139,13 @@ class FusionGraph:
         icp_hessian: np.ndarray | None = None,
         icp_span: int = 1,
         mask_basis: np.ndarray | None = None,
-        probabilities: np.ndarray | None = None,
     ) -> tuple[np.ndarray, StepReport]:
         """Add pose k+1 with its factors; returns (estimate of pose k+1, report). `icp_hessian`:
         the registration's point-to-plane Hessian in the body frame, project order (see
         FusionConfig.icp_covariance). `mask_basis`: the axes `non_localizable` names (see
         `icp_information`; the body frame's own where None). `icp_span`: the ICP factor ties pose
         k+1 to pose k+1-icp_span (a keyframe's; 1: pose k), which must still be in the smoother's
-        window. `probabilities`: the detector's, which the mode "soft" weighs flagged axes by.
+        window.
 
         Missing odometry with every ICP axis masked leaves the new pose unconstrained: then the
         ICP factor is kept whole (documented fallback), and with no ICP either the pose is tied to
@@ -153,19 +153,13 @@ class FusionGraph:
         Every pose is held on every axis, so a step never fails for that.
         """
         step = resolve_step(self.config.mode, odom_T_prev_cur, icp_T_prev_cur, non_localizable)
-        has_odom, has_icp, mask, icp_T_prev_cur = step.has_odom, step.has_icp, step.mask, step.icp_T_prev_cur
+        has_odom, has_icp, icp_T_prev_cur = step.has_odom, step.has_icp, step.icp_T_prev_cur
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         i, j = self.k, self.k + 1
         key = self._icp_key(j, icp_span)
-        information = icp_information(self.config, icp_hessian, mask, mask_basis, probabilities) if has_icp else None
-        # the biases learn from what the detector trusts: an axis the gate keeps agrees with the legs'
-        # prediction, which their biases make, and its small slides would teach them a wrong one
-        observing = information
-        if self.config.mode == "gate" and has_odom and has_icp and mask.any():
-            assert icp_T_prev_cur is not None and odom_T_prev_cur is not None  # resolve_step: has_icp, has_odom
-            legs = self._legs_step(odom_T_prev_cur)
-            mask = self._gate(mask, (legs, _pose3(icp_T_prev_cur)), odom_sigmas, key, mask_basis)
-            information = icp_information(self.config, icp_hessian, mask, mask_basis, probabilities)
+        observing, information = self._icp_informations(
+            step, odom_T_prev_cur, (icp_hessian, odom_sigmas), key, mask_basis
+        )
         odometry = (
             self._add_odometry(graph, values, odom_T_prev_cur, odom_sigmas, (i, j), (observing, icp_span))
             if has_odom
@@ -193,6 +187,30 @@ class FusionGraph:
         if self.bias_axes:
             self.odometry_bias = np.asarray(self.isam.calculateEstimateVector(bias_key(self._knot)), dtype=np.float64)
         return self.estimate.matrix(), step.report()
+
+    def _icp_informations(
+        self,
+        step: StepInputs,
+        odom_T_prev_cur: np.ndarray | None,
+        weights: tuple[np.ndarray | None, np.ndarray | None],
+        key: int,
+        basis: np.ndarray | None,
+    ) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """The ICP factor's information as the detector masks it, which the biases learn from, and as
+        it is fused (the mode "gate": with the flagged axes it keeps, `_gate`); None without ICP.
+        `weights`: ICP's Hessian and the legs' sigmas. An axis the gate keeps teaches no bias: it
+        agrees with the legs' prediction, which their biases make, and its small slides would teach
+        them a wrong one."""
+        if not step.has_icp:
+            return None, None
+        hessian, sigmas = weights
+        masked = icp_information(self.config, hessian, step.mask, basis)
+        if self.config.mode != "gate" or not step.has_odom or not step.mask.any():
+            return masked, masked
+        assert step.icp_T_prev_cur is not None and odom_T_prev_cur is not None  # resolve_step: has_icp, has_odom
+        legs = self._legs_step(odom_T_prev_cur)
+        kept = self._gate(step.mask, (legs, _pose3(step.icp_T_prev_cur)), sigmas, key, basis)
+        return masked, icp_information(self.config, hessian, kept, basis)
 
     def _legs_step(self, odom_T_prev_cur: np.ndarray) -> gtsam.Pose3:
         """The legs' increment as their present bias estimate corrects it."""

@@ -9,7 +9,7 @@ import numpy as np
 from .bias import check_bias_settings
 from .ground import GROUND_SIGMAS, check_ground_sigmas
 
-MASK_MODES = ("mask", "full", "drop", "directions", "gate", "soft")
+MASK_MODES = ("mask", "full", "drop", "directions", "gate")
 # gate: a flagged axis keeps ICP where its step lies within this many sigmas of the legs' prediction
 GATE_SIGMAS = 3.0
 ICP_COVARIANCES = ("hessian", "fixed")
@@ -26,9 +26,7 @@ class FusionConfig:
     out and a flagged place whose geometry still holds the step (an open yard) keeps what it holds;
     the axes it still flags leave as in "directions": a slide lies along the information's weak
     direction, which may turn the heading with the length (a gallery at an angle to the heading), and
-    removing the length's rows alone would keep the heading's part of the slide at full weight;
-    soft: a flagged axis keeps 1 - p of its information, p the detector's probability that it is not
-    localizable (`add_step(..., probabilities=)`; where none is given, as mask).
+    removing the length's rows alone would keep the heading's part of the slide at full weight.
     Sigmas in project order (m, m, m, rad, rad, rad).
 
     icp_covariance "hessian": the ICP factor's information is the registration's point-to-plane
@@ -107,19 +105,14 @@ def check_mask_basis(basis: np.ndarray | None) -> np.ndarray:
 
 
 def icp_information(
-    config: FusionConfig,
-    hessian: np.ndarray | None,
-    mask: np.ndarray,
-    basis: np.ndarray | None = None,
-    probabilities: np.ndarray | None = None,
+    config: FusionConfig, hessian: np.ndarray | None, mask: np.ndarray, basis: np.ndarray | None = None
 ) -> np.ndarray:
     """The ICP factor's 6x6 information in project order (the body frame), its masked axes zero: the
     Hessian (project order, the body frame) over the residual variance, or diag(1 / icp_sigmas^2).
     `basis` (B, 6x6): the mask names the axes of d' = B d (a scan's level frame), so the information
-    is written on those axes, their masked rows and columns zeroed there (in the mode "soft", scaled
-    by sqrt(1 - p) with the detector's `probabilities` p), and turned back."""
+    is written on those axes, their masked rows and columns zeroed there, and turned back."""
     B = check_mask_basis(basis)
-    information = masked_information(config, hessian, mask, B, probabilities)
+    information = masked_information(config, hessian, mask, B)
     return B.T @ information @ B
 
 
@@ -134,11 +127,7 @@ def whole_information(config: FusionConfig, hessian: np.ndarray | None) -> np.nd
 
 
 def masked_information(
-    config: FusionConfig,
-    hessian: np.ndarray | None,
-    mask: np.ndarray,
-    basis: np.ndarray,
-    probabilities: np.ndarray | None = None,
+    config: FusionConfig, hessian: np.ndarray | None, mask: np.ndarray, basis: np.ndarray
 ) -> np.ndarray:
     """`icp_information` on the mask's axes (d' = basis d), before it is turned back."""
     information = whole_information(config, hessian)
@@ -149,10 +138,6 @@ def masked_information(
         w, V = np.linalg.eigh(information)
         along = np.argmax(V**2, axis=0)  # the axis each direction lies mostly along
         return (V * np.where(mask[along], 0.0, w)) @ V.T
-    if config.mode == "soft" and probabilities is not None:
-        p = np.clip(np.nan_to_num(np.asarray(probabilities, dtype=np.float64), nan=1.0), 0.0, 1.0)
-        keep = np.sqrt(np.where(mask, 1.0 - p, 1.0))
-        return keep[:, None] * information * keep[None, :]
     information[mask, :] = 0.0
     information[:, mask] = 0.0
     return information

@@ -68,11 +68,10 @@ def add_fusion_options(parser: argparse.ArgumentParser) -> None:
     shown = ",".join(default.odometry_bias) or "none"
     parser.add_argument(
         "--mask",
-        choices=("mask", "directions", "gate", "soft"),
+        choices=("mask", "directions", "gate"),
         help="how a flagged axis leaves the ICP factor: mask = its rows and columns on the scan's level axes, "
         "directions = only the information's own directions that lie mostly along it, gate = as mask where "
-        "ICP's step along it disagrees with the legs' beyond 3 sigma of theirs, kept where it agrees, soft = "
-        "kept at 1 - p of its information, p the detector's probability "
+        "ICP's step along it disagrees with the legs' beyond 3 sigma of theirs, kept where it agrees "
         f"(default: {default.mode})",
     )
     parser.add_argument(

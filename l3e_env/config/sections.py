@@ -72,7 +72,7 @@ DATASET_PRESETS = (
 )  # l3e_env.data.dataset.PRESETS, by name
 GROUND_MODES = ("none", "plane")  # the scans' ground planes in the fusion: not used, or as patches (fusion.ground)
 FUSION_BACKENDS = ("graph", "ekf")  # iSAM2 smoother, filterpy EKF
-FUSION_MODES = ("mask", "full", "drop", "directions", "gate", "soft")  # see fusion.FusionConfig
+FUSION_MODES = ("mask", "full", "drop", "directions", "gate")  # see fusion.FusionConfig
 DESKEW_SOURCES = ("gyro", "odometry")  # where a deskewing's rotation comes from; its translation is the odometry's
 
 

@@ -268,9 +268,7 @@ class LocalizationPipeline:
         span = registration.span if registration is not None else 1
         guess = next((m for m in (odom_increment, icp) if m is not None and np.isfinite(m).all()), np.eye(4))
         basis = level_basis(self.backend.newest @ guess, self.T_b_s)  # the new pose's level frame, as guessed
-        T, report = self.backend.add_step(
-            odom_increment, sigmas, icp, pred.mask, hessian, span, basis, pred.probabilities
-        )
+        T, report = self.backend.add_step(odom_increment, sigmas, icp, pred.mask, hessian, span, basis)
         if self.attitude_sigmas is not None and self.steps % ATTITUDE_EVERY == 0:
             if attitude is None:
                 raise ValueError(f"fusion.attitude is {self.attitude_mode!r}: every step needs the IMU's attitude")

@@ -102,24 +102,25 @@ def fuse_recording(
             fallbacks += step.fallback
             masks.append(step.prediction.mask)
             probs.append(step.prediction.probabilities)
-        estimator = pipeline.backend
-        run = FusedRun(
-            det.name,
-            pipeline.trajectory(),
-            np.array(masks),
-            np.array(probs),
-            time.perf_counter() - t0,
-            unknown,
-            fallbacks,
-            errors,
-            {
-                a: round(n / max(1, len(masks)), 3)
-                for a, n in zip(estimator.bias_axes, estimator.bias_observed.tolist())
-            },
-            estimator.gated,
-        )
+        counts = (unknown, fallbacks, errors)
+        run = fused_run(det.name, pipeline, (np.array(masks), np.array(probs)), time.perf_counter() - t0, counts)
         out.append(scored(run, gt))
     return out
+
+
+def fused_run(
+    name: str,
+    pipeline: LocalizationPipeline,
+    answers: tuple[np.ndarray, np.ndarray],
+    seconds: float,
+    counts: tuple[int, int, int],
+) -> FusedRun:
+    """A drive's pipeline as a FusedRun: its trajectory, the detector's masks and probabilities, the
+    unknown, fallback and failed steps, and the share of steps whose ICP observed each leg bias."""
+    estimator = pipeline.backend
+    steps = max(1, len(answers[0]))
+    observed = {a: round(n / steps, 3) for a, n in zip(estimator.bias_axes, estimator.bias_observed.tolist())}
+    return FusedRun(name, pipeline.trajectory(), *answers, seconds, *counts, observed, estimator.gated)
 
 
 def odometry_only(rec: DriveRecord) -> DetectorResult:
