@@ -90,6 +90,7 @@ MINIMUM = {
     "scale": 1e-9,
     "lr": 0.0,
     "beta": 1e-9,
+    "soft_labels": 0.0,
 }
 # and at most (issue 90): a count or a size beyond any practical run is refused where it enters, before
 # work is sized by it (processes: more than 64 is no machine's; each holds a scene)
@@ -118,6 +119,7 @@ MAXIMUM = {
     "imu_rate": 2000.0,
     "resolution": 50.0,
     "scale": 1e6,
+    "soft_labels": 1000.0,
     "lam": 1e6,
     "keyframe_distance": 1000.0,
     "stop_radius": 1.0,  # the goal radius (EnvConfig.goal_radius): a stop farther out never arrives

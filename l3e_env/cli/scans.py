@@ -23,6 +23,9 @@ def _judge_usage_problem(args: argparse.Namespace) -> str | None:
         return "--path-plot and --pose-topic read the path from a bag: give --bag"
     if args.bag and is_capture(args.bag) and (args.topic or args.path_plot or args.pose_topic):
         return "--topic, --path-plot and --pose-topic read a ROS bag, not an Ouster capture"
+    captures = [args.bag] if args.bag else list(args.scans)
+    if args.sensor_index is not None and not any(is_capture(c) for c in captures):
+        return "--sensor-index chooses the sensor of an Ouster capture (.osf, .pcap): none is given"
     return None
 
 

@@ -285,6 +285,7 @@ def test_every_command_reports_an_error_one_way(tmp_path, capsys):
         (["sensor"], "l3e sensor: error: give a sensor (name or pattern file), a scan file or --bag"),
         (["ate", "--recording", "r.npz", "--seeds", "2"], "l3e ate: error: --seeds is 1 or more drives"),
         (["judge", "a.npy", "--bag", "b.bag"], "l3e judge: error: give scan files or --bag, not both"),
+        (["judge", "a.npy", "--sensor-index", "5"], "l3e judge: error: --sensor-index chooses the sensor of an Ouster"),
         (["evaluate", "--other", str(tmp_path / "none")], f"l3e evaluate: error: {tmp_path / 'none'} is not a dataset"),
     ]
     for argv, said in cases:
@@ -339,6 +340,7 @@ BIG = "1000000000000"
         ["policy", "evaluate", "--lam", "1e300"],
         ["policy", "evaluate", "--stop-radius", "5"],
         ["train", "--dataset", "{tmp}/d", "--out", "{tmp}/r", "--lr", "1e300"],
+        ["train", "--dataset", "{tmp}/d", "--out", "{tmp}/r", "--soft-labels", "-1"],
     ],
 )
 def test_every_count_and_size_has_bounds_checked_where_it_enters(argv, tmp_path, capsys):
