@@ -393,7 +393,8 @@ def _cmd_adapt(args: argparse.Namespace) -> int:
 def _add_adapt(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "adapt",
-        help="adapt the classifier to a new place from its own scans: scanmc labels them, the network is fine-tuned",
+        help="fine-tune the classifier on a place's own scans, labelled by scanmc (measured not to help on the "
+        "place's other scenes: judge a new place with scanmc or learned+scanmc first, docs/classifier.md)",
     )
     p.add_argument(
         "--scans",
