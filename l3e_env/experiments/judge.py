@@ -114,10 +114,23 @@ def up_direction(
         return up, f"up {source}, the sensor tilted {tilt_deg(up):.1f} deg"
     if ground is None:
         raise UpError(
-            "no ground plane could be fitted to find the up direction: give it with --gravity X,Y,Z (against "
-            "gravity, in the sensor's frame; 0,0,1 for a level sensor) or a file of one per scan"
+            f"no ground plane could be fitted to find the up direction{_degeneracy(points)}: give it with "
+            "--gravity X,Y,Z (against gravity, in the sensor's frame; 0,0,1 for a level sensor) or a file of "
+            "one per scan"
         )
     return ground, f"up from the ground plane's fit, the sensor tilted {tilt_deg(ground):.1f} deg"
+
+
+def _degeneracy(points: np.ndarray) -> str:
+    """Why a scan holds no plane at all, where its points span less than one (all at one place, or on
+    one line), as words to follow the refusal; empty where they do span one."""
+    spread = np.linalg.svd(points - points.mean(axis=0), compute_uv=False) if len(points) > 1 else np.zeros(3)
+    scale = max(float(spread[0]), 1e-12)
+    if spread[0] < 1e-6:
+        return " (every point of the scan lies at one place: it holds no geometry)"
+    if spread[1] < 1e-6 * scale:
+        return " (the scan's points lie on one line: it holds no surface)"
+    return ""
 
 
 def tilt_deg(up: np.ndarray) -> float:

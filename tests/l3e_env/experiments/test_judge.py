@@ -323,6 +323,17 @@ def test_bad_up_directions_are_refused_by_name(tmp_path, rng, capsys):
     np.save(tmp_path / "walls.npy", points[points[:, 2] > -0.3])  # walls and ceiling: nothing level below the sensor
     (none,) = judge_scans([tmp_path / "walls.npy"], ["eigen:30"])
     assert none.error and "no ground plane could be fitted" in none.error and "--gravity" in none.error
+    assert "holds no" not in none.error  # walls are geometry: no degeneracy to name
+
+
+def test_a_scan_without_geometry_is_named_as_such(tmp_path):
+    """Issue 98: every point at one place, or all on one line, is named, not only "no ground plane"."""
+    np.save(tmp_path / "one.npy", np.tile([[2.0, 1.0, 0.5]], (500, 1)).astype(np.float32))
+    line = np.linspace(-5.0, 5.0, 500)[:, None] * np.array([[1.0, 0.5, -0.2]])
+    np.save(tmp_path / "line.npy", line.astype(np.float32))
+    one, on_line = judge_scans([tmp_path / "one.npy", tmp_path / "line.npy"], ["eigen:30"])
+    assert "every point of the scan lies at one place" in one.error and "--gravity" in one.error
+    assert "the scan's points lie on one line" in on_line.error
 
 
 def test_a_scan_a_detector_cannot_judge_is_told_with_the_detectors_own_reason(tmp_path, rng):
