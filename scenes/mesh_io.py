@@ -57,6 +57,9 @@ def load_mesh(path: str | Path, up_axis: str = "z", scale: float = 1.0) -> trime
     return trimesh.Trimesh(loaded.vertices, loaded.faces, process=False)
 
 
+MAX_COORDINATE_M = 1e7  # a waypoint further from the origin is a wrong number or unit, not a place
+
+
 def load_route(path: str | Path, up_axis: str = "z", scale: float = 1.0) -> np.ndarray:
     """Waypoints on the floor from a text file (one 'x y z' or 'x, y, z' per line; 'x y' puts the
     floor at z = 0 in a z-up file), in the mesh file's own axes and units: they are rotated and
@@ -78,6 +81,12 @@ def load_route(path: str | Path, up_axis: str = "z", scale: float = 1.0) -> np.n
         if up_axis != "z":
             raise SceneError(f"{path}: with up axis '{up_axis}' give the waypoints as 'x y z'")
         points = np.column_stack([points, np.zeros(len(points))])
+    far = float(np.abs(points).max()) * abs(scale)
+    if not far <= MAX_COORDINATE_M:  # also where the product overflows
+        raise SceneError(
+            f"{path}: a waypoint lies {far:.3g} m from the origin, beyond any mesh's {MAX_COORDINATE_M:.0e} m: "
+            "check the file's numbers and its units (--scale)"
+        )
     return points @ UP_AXES[up_axis].T * scale
 
 

@@ -110,6 +110,7 @@ def test_a_route_file_is_read_in_the_mesh_files_axes_and_units(tmp_path):
         ("1 2 3\n", "two or more"),
         ("1 2 3 4\n5 6 7 8\n", "two or more"),
         ("0 0 0\nnan 1 0\n", "NaN"),
+        ("1e300 0 0\n-1e300 1 0\n", "beyond any mesh"),
         ("v 0 0 0\nv 1 0 0\n", "not a table"),
     ]:
         (tmp_path / "bad.txt").write_text(text)
