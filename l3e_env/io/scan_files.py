@@ -71,6 +71,8 @@ def _read_pcd(path: Path) -> np.ndarray:
     n = _pcd_count(path, header)
     kind = header["DATA"][0].lower()
     if kind == "ascii":
+        if n == 0 and not raw[offset:].strip():  # an empty cloud, as a binary one of no points reads
+            return np.zeros((0, 3))
         table = np.loadtxt(raw[offset:].decode("ascii").splitlines(), ndmin=2)
         if table.size and table.shape[1] != sum(counts):
             raise ScanFileError(

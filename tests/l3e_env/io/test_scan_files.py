@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import re
+import warnings
 
 import numpy as np
 import pytest
@@ -46,6 +47,10 @@ def test_a_pcd_as_its_header_says_reads_and_the_file_read_back_is_the_cloud(tmp_
     assert np.array_equal(read_scan(path), POINTS)
     path.write_bytes(_pcd(POINTS, binary) + b"\n")  # a writer's closing newline
     assert np.array_equal(read_scan(path), POINTS)
+    path.write_bytes(_pcd(POINTS[:0], binary))  # an empty cloud reads as one, ascii as binary (issue 98)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert read_scan(path).shape == (0, 3)
 
 
 @ANY
