@@ -155,6 +155,7 @@ def _check_ply_header(path: Path) -> None:
     kind = next((w[1] for w in words if w[:1] == ["format"] and len(w) > 1), None)
     if kind not in PLY_FORMATS:
         raise ScanFileError(f"{path}: PLY format {kind!r} is not read; save it as one of {', '.join(PLY_FORMATS)}")
+    _check_ply_properties(path, words)
     elements: list[list] = []  # [name, count, bytes a row or None where a row holds a list]
     for w in words:
         if w[:1] == ["element"]:
@@ -186,6 +187,27 @@ def _check_ply_header(path: Path) -> None:
             f"{path}: the PLY header declares {' + '.join(f'{e[1]} {e[0]}' for e in elements)} and the file holds "
             f"{data} bytes of data: the header disagrees with the data"
         )
+
+
+def _check_ply_properties(path: Path, words: list[list[str]]) -> None:
+    """ScanFileError naming a property of a type PLY does not have, or vertices without x, y and z."""
+    vertex: list[str] = []  # the vertex element's property names
+    in_vertex = False
+    for w in words:
+        if w[:1] == ["element"]:
+            in_vertex = w[1:2] == ["vertex"]
+        elif w[:1] == ["property"]:
+            types = w[2:4] if w[1:2] == ["list"] else w[1:2]
+            unknown = [t for t in types if t not in PLY_SIZES]
+            if unknown or len(w) < (5 if w[1:2] == ["list"] else 3):
+                raise ScanFileError(
+                    f"{path}: the PLY header's '{' '.join(w)}' is no property: PLY's types are "
+                    f"{', '.join(sorted(PLY_SIZES))}"
+                )
+            if in_vertex:
+                vertex.append(w[-1])
+    if not {"x", "y", "z"} <= set(vertex):
+        raise ScanFileError(f"{path}: the PLY's vertices have the properties {vertex}, not x, y and z")
 
 
 TRIPLES_FIX = "if it holds x y z float32 triples, save them as .npy (numpy.save) and give that"

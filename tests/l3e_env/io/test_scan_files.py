@@ -118,6 +118,21 @@ def test_a_ply_of_a_format_that_is_not_read_is_named(tmp_path):
 
 
 @pytest.mark.parametrize(
+    "header, named",
+    [
+        ("property quux x\nproperty float y\nproperty float z\n", "'property quux x' is no property"),
+        ("property float x\nproperty float y\n", r"vertices have the properties \['x', 'y'\], not x, y and z"),
+    ],
+)
+def test_a_ply_property_of_no_ply_type_or_without_z_is_named(tmp_path, header, named):
+    """Issue 98: before, "cannot be read as PLY: 'quux'" and "'z'"."""
+    path = tmp_path / "scan.ply"
+    path.write_text(f"ply\nformat ascii 1.0\nelement vertex 2\n{header}end_header\n1 2 3\n4 5 6\n")
+    with pytest.raises(ScanFileError, match=named):
+        read_scan(path)
+
+
+@pytest.mark.parametrize(
     "values",
     [np.ones((5, 3), bool), np.ones((5, 3), complex), np.array([["2026-01-01"] * 3] * 5, dtype="datetime64[D]")],
     ids=["bool", "complex", "datetime"],
