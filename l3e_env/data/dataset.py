@@ -167,7 +167,12 @@ class LabelDataset:
             self.manifest = json.loads(path.read_text())
         except (OSError, ValueError) as exc:
             raise DatasetError(f"{path} cannot be read ({exc}); the dataset is damaged: generate it again") from exc
-        if not isinstance(self.manifest, dict) or not self.manifest.get("complete"):
+        if not isinstance(self.manifest, dict):
+            raise DatasetError(
+                f"{path} holds a JSON {type(self.manifest).__name__}, not a dataset's manifest (a mapping): "
+                "the dataset is damaged: generate it again"
+            )
+        if not self.manifest.get("complete"):
             raise DatasetError(f"{self.folder}: generation has not finished; run the same command again to resume")
         check_protocol(self.manifest, self.folder, "read it")
         _refuse(self.folder / "manifest.json", manifest_problems(self.manifest))

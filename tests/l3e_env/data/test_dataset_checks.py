@@ -62,6 +62,14 @@ def test_a_tampered_manifest_is_refused_by_its_field(case, tiny_dataset, tmp_pat
         LabelDataset(folder)
 
 
+def test_a_manifest_that_is_no_mapping_is_named_as_such(tiny_dataset, tmp_path):
+    """Issue 98: a JSON list was answered "generation has not finished"."""
+    folder = _copy(tiny_dataset, tmp_path)
+    (folder / "manifest.json").write_text("[1, 2]")
+    with pytest.raises(DatasetError, match="holds a JSON list, not a dataset's manifest"):
+        LabelDataset(folder)
+
+
 @pytest.mark.parametrize("case", sorted(ARRAYS))
 def test_a_tampered_array_is_refused_by_its_file(case, tiny_dataset, tmp_path):
     name, change, said = ARRAYS[case]
