@@ -261,10 +261,14 @@ def resolve(parser: argparse.ArgumentParser, argv: list[str] | None) -> argparse
     if leaf is None:
         return args
     try:
-        path = getattr(args, "config", None) if args._options_file else None
-        if path:
-            leaf.set_defaults(**read_options(path, leaf))
+        path = getattr(args, "config", None)
+        own_run = path and not args._options_file and _is_options_file(path, leaf)
+        if path and (args._options_file or own_run):
+            options = read_options(path, leaf)
+            leaf.set_defaults(**options)
             args = parser.parse_args(argv)  # the command line wins over the file
+            if own_run:  # the run's options.yaml, given where --config names the command's own file
+                args.config = None
         for key, value in set_options(args.set, leaf).items():
             setattr(args, key, value)
     except ValueError as exc:
@@ -274,6 +278,18 @@ def resolve(parser: argparse.ArgumentParser, argv: list[str] | None) -> argparse
             f"the following arguments are required: {', '.join(missing)} (on the command line, or in --config/--set)"
         )
     return args
+
+
+def _is_options_file(path: str, leaf: argparse.ArgumentParser) -> bool:
+    """Whether `path` is a run's options.yaml (a mapping of this command's options, its output among
+    them) rather than the file a command's own --config reads (`l3e train`'s TrainConfig)."""
+    try:
+        loaded = yaml.safe_load(Path(path).read_text())
+    except (OSError, UnicodeDecodeError, yaml.YAMLError):
+        return False  # the command's own reader names what is wrong
+    dests = {a.dest for a in leaf._actions}
+    keys = {str(k).replace("-", "_") for k in loaded} if isinstance(loaded, dict) else set()
+    return "out" in keys and keys <= dests
 
 
 def _plain(value: Any) -> Any:

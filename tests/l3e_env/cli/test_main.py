@@ -360,6 +360,14 @@ def test_a_required_option_may_come_from_the_runs_own_options_file(tmp_path):
     assert args.out == str(tmp_path / "data") and args.preset == "small"
     args = resolve(build_parser(), ["dataset", "generate", "--set", "out=elsewhere"])
     assert args.out == "elsewhere"
+    # l3e train's --config is its TrainConfig; the run's own options.yaml given there is read as options
+    (tmp_path / "train.yaml").write_text(f"dataset: [{tmp_path / 'd'}]\nout: {tmp_path / 'r'}\nsamples-per-epoch: 8\n")
+    args = resolve(build_parser(), ["train", "--config", str(tmp_path / "train.yaml")])
+    assert args.dataset == [str(tmp_path / "d")] and args.out == str(tmp_path / "r") and args.config is None
+    assert args.samples_per_epoch == 8
+    (tmp_path / "recipe.yaml").write_text("epochs: 2\n")
+    args = resolve(build_parser(), ["train", "--config", str(tmp_path / "recipe.yaml"), "--dataset", "d", "--out", "r"])
+    assert args.config == str(tmp_path / "recipe.yaml")
 
 
 @pytest.mark.parametrize(
