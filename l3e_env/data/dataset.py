@@ -190,8 +190,16 @@ class LabelDataset:
         return len(self.arrays["labels"])
 
     def scan(self, i: int) -> np.ndarray:
+        """Scan i's points; DatasetError naming the file and the scan where they are not all finite
+        (the opening checks leave the points unread)."""
         o = self.arrays["offsets"]
-        return np.asarray(self.arrays["points"][o[i] : o[i + 1]])
+        points = np.asarray(self.arrays["points"][o[i] : o[i + 1]])
+        if not np.isfinite(points).all():
+            raise DatasetError(
+                f"{self.folder / 'points.npy'}: scan {i} holds NaN or infinite coordinates, which no generation "
+                "writes: the dataset is damaged; generate it again"
+            )
+        return points
 
     @property
     def name(self) -> str:

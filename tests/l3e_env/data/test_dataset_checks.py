@@ -70,6 +70,15 @@ def test_a_manifest_that_is_no_mapping_is_named_as_such(tiny_dataset, tmp_path):
         LabelDataset(folder)
 
 
+def test_a_scan_of_nan_points_is_named_with_its_file(tiny_dataset, tmp_path):
+    """Issue 98: before, "voxel coordinates beyond +-32768" from the network, naming no file."""
+    folder = _copy(tiny_dataset, tmp_path)
+    _array(folder, "points", lambda a: np.full_like(a, np.nan))
+    data = LabelDataset(folder)
+    with pytest.raises(DatasetError, match=r"points.npy: scan 0 holds NaN or infinite coordinates"):
+        data.scan(0)
+
+
 @pytest.mark.parametrize("case", sorted(ARRAYS))
 def test_a_tampered_array_is_refused_by_its_file(case, tiny_dataset, tmp_path):
     name, change, said = ARRAYS[case]
