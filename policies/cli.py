@@ -91,7 +91,6 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     args.out = str(out)  # the resolved options are written beside it
     for name, params in scenes.items():
         ctx = _context(args, name, params)
-        out.mkdir(parents=True, exist_ok=True)
         start = np.array(args.start, dtype=float) if args.start else ctx.scene.start[:2]
         goal = np.array(args.goal, dtype=float) if args.goal else ctx.scene.goal
         plans = {
@@ -102,6 +101,7 @@ def _cmd_plan(args: argparse.Namespace) -> int:
             print(
                 f"{ctx.scene.name} {label:22s} length {plan.length:6.1f} m, expected drift {plan.expected_drift:5.2f} m"
             )
+        out.mkdir(parents=True, exist_ok=True)  # once there is something to draw: a refused plan leaves no folder
         figure = out / f"{ctx.scene.name}-plans.png"
         plot_paths(
             figure,

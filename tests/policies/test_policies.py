@@ -633,6 +633,9 @@ def test_a_users_mesh_is_mapped_and_planned(tmp_path, capsys):
     assert masked.split()[:4] == ["x", "50%", "y", "50%"]  # along the corridor at two of the four headings
     assert main(["policy", "plan", *mesh_args]) == 0
     assert "corridor shortest" in capsys.readouterr().out
+    outside = ["policy", "plan", *mesh_args, "--goal", "500", "500", "--out", str(tmp_path / "refused")]
+    assert main(outside) == 2 and not (tmp_path / "refused").exists()  # issue 98: no empty folder left behind
+    capsys.readouterr()
     assert main(["policy", "map", *mesh_args, "--scene", "fork-0"]) == 2
     assert "describe one mesh" in capsys.readouterr().err
     # several meshes from a list, each with its own route: the same corridor, and a copy of it
