@@ -456,26 +456,33 @@ def train(
     torch.set_num_threads(cfg.threads)
     data = open_datasets(dataset, mixed_sensors=True)  # a network may learn several sensors' scans
     out = Path(out_dir)
-    with new_folder(out):  # a run refused at its start leaves no folder behind
+    with new_folder(out):  # a new run refused at its start, or failing in its first epoch, leaves no folder
         run = _start(cfg, data, out, where)
-    for epoch in range(run.first_epoch, cfg.epochs):
-        t0 = time.perf_counter()
-        losses = _train_epoch(run, epoch, progress)
-        run.scheduler.step()
-        record: dict[str, Any] = {
-            "epoch": epoch + 1,
-            "train_loss": float(np.mean(losses)),
-            "lr": run.scheduler.get_last_lr()[0],
-            "seconds": round(time.perf_counter() - t0, 1),
-        }
-        if run.groups is not None:
-            record["family_weights"] = {f: round(w, 4) for f, w in run.groups.state().items()}
-        thresholds, improved = _validate(run, record)
-        _save_epoch(run, epoch, record, thresholds, improved)
-        if progress:
-            val = f", val loss {record['val_loss']:.3f}, F1 {record['val_f1']:.3f}" if "val_f1" in record else ""
-            print(f"epoch {epoch + 1}/{cfg.epochs}: train loss {record['train_loss']:.3f}{val} ({record['seconds']} s)")
+        if run.first_epoch < cfg.epochs:
+            _run_epoch(run, run.first_epoch, progress)
+    for epoch in range(run.first_epoch + 1, cfg.epochs):
+        _run_epoch(run, epoch, progress)
     return finalize(data, out, cfg, run.val_rows, run.meta)
+
+
+def _run_epoch(run: _Run, epoch: int, progress: bool) -> None:
+    """One epoch: trained, validated and saved (last.pt, and model.pt where it improved)."""
+    t0 = time.perf_counter()
+    losses = _train_epoch(run, epoch, progress)
+    run.scheduler.step()
+    record: dict[str, Any] = {
+        "epoch": epoch + 1,
+        "train_loss": float(np.mean(losses)),
+        "lr": run.scheduler.get_last_lr()[0],
+        "seconds": round(time.perf_counter() - t0, 1),
+    }
+    if run.groups is not None:
+        record["family_weights"] = {f: round(w, 4) for f, w in run.groups.state().items()}
+    thresholds, improved = _validate(run, record)
+    _save_epoch(run, epoch, record, thresholds, improved)
+    if progress:
+        val = f", val loss {record['val_loss']:.3f}, F1 {record['val_f1']:.3f}" if "val_f1" in record else ""
+        print(f"epoch {epoch + 1}/{run.cfg.epochs}: train loss {record['train_loss']:.3f}{val} ({record['seconds']} s)")
 
 
 def _start(cfg: TrainConfig, data: LabelDataset | DatasetUnion, out: Path, device: torch.device) -> _Run:

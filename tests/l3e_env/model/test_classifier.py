@@ -552,6 +552,21 @@ def test_settings_no_run_can_use_are_refused_before_the_folder(tiny_dataset, tmp
     assert not (tmp_path / "run").exists()
 
 
+def test_a_new_run_that_fails_in_its_first_epoch_leaves_no_folder(tiny_dataset, tmp_path):
+    """Issue 98: a training that failed after it started left its config.yaml behind."""
+    import shutil
+
+    from l3e_env.data.dataset import DatasetError
+
+    broken = tmp_path / "nan"
+    shutil.copytree(tiny_dataset, broken)
+    points = np.load(broken / "points.npy")
+    np.save(broken / "points.npy", np.full_like(points, np.nan))
+    with pytest.raises(DatasetError, match="NaN or infinite coordinates"):
+        train(broken, tmp_path / "run", _train_cfg(), progress=False)
+    assert not (tmp_path / "run").exists()
+
+
 def test_scale_augmentation_draws_factors_log_uniformly_within_its_range(rng):
     pts = rng.normal(size=(50, 3)).astype(np.float32)
     factors = np.array([(scaled(pts, 1.3, rng) / pts).mean() for _ in range(2000)])
