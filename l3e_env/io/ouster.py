@@ -170,7 +170,8 @@ def read_capture(
         why = (
             f"the SDK: {'; '.join(said)}; the file is damaged"
             if said
-            else "the metadata does not match its packets"
+            else f"its {path.stat().st_size} bytes hold no whole revolution for this metadata: the file is cut "
+            "short, or the metadata is another sensor's"
             if path.suffix.lower() == ".pcap"
             else "the capture is empty"
         )

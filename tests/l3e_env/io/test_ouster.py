@@ -80,8 +80,12 @@ def test_a_pcap_without_its_metadata_names_the_fix(tmp_path):
             read_capture(OS1_PCAP, tmp_path / "capture.json")
     (tmp_path / "capture.json").unlink()
     # another sensor's metadata: its packets are not of that sensor
-    with pytest.raises(CaptureError, match="the metadata does not match its packets"):
+    with pytest.raises(CaptureError, match="hold no whole revolution for this metadata: the file is cut short, or"):
         read_capture(alone, _metadata(OS0))
+    cut = tmp_path / "cut.pcap"  # issue 98: a capture cut to 100 bytes, its metadata good
+    cut.write_bytes(OS1_PCAP.read_bytes()[:100])
+    with pytest.raises(CaptureError, match="its 100 bytes hold no whole revolution"):
+        read_capture(cut, _metadata(OS1_PCAP))
     with pytest.raises(CaptureError, match="no such capture"):
         read_capture(tmp_path / "nothere.osf")
 
