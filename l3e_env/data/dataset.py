@@ -97,6 +97,18 @@ def _thresholds_problem(labels: Any) -> str | None:
     return None
 
 
+def _settings_problems(settings: dict[str, Any]) -> list[str]:
+    """The manifest's settings read as the generation's config, each field against its type, and the
+    values no run can use (`generation.value_problems`)."""
+    from .generation import DatasetConfig, value_problems  # generation imports this module
+
+    try:
+        config = from_dict(DatasetConfig, {k: v for k, v in settings.items() if k != "mesh_sha256"})
+    except (TypeError, ValueError) as exc:
+        return [f"settings: {exc}"]
+    return [f"settings.{problem}" for problem in value_problems(config)]
+
+
 def manifest_problems(manifest: dict[str, Any]) -> list[str]:
     """What a finished dataset's manifest.json holds that this version cannot read (its schema)."""
     problems = []
@@ -112,6 +124,7 @@ def manifest_problems(manifest: dict[str, Any]) -> list[str]:
         problems.append(f"settings.lidar.model must be a sensor's name, not {settings['lidar'].get('model')!r}")
     if (problem := _thresholds_problem(settings.get("labels"))) is not None:
         problems.append(problem)
+    problems += _settings_problems(settings)
     scenes = manifest.get("scenes")
     if not isinstance(scenes, list) or not scenes or not all(isinstance(s, str) for s in scenes):
         problems.append(f"scenes must be a list of scene names, not {scenes!r}")

@@ -265,7 +265,16 @@ def check_dataset_config(config: DatasetConfig) -> None:
             problems.append(f"the mesh {name} has no route to sample parents along (--route FILE)")
         else:  # a broken mesh or route fails here, not in every worker
             make_scene(name, **config.scene_params[name])
-    problems += [
+    problems += value_problems(config)
+    if problems:
+        raise DatasetError("; ".join(problems))
+
+
+def value_problems(config: DatasetConfig) -> list[str]:
+    """The settings' values no run can use (counts below 1, an unknown labeller or sensor), without
+    building a scene: what `check_dataset_config` and a manifest's check (`dataset.manifest_problems`)
+    both refuse."""
+    problems = [
         f"{name} must be {rule}, got {value}"
         for name, value, ok, rule in [
             ("scenes", config.scenes, len(config.scenes) > 0, "at least one scene"),
@@ -280,8 +289,7 @@ def check_dataset_config(config: DatasetConfig) -> None:
         get_pattern(config.lidar.model)
     except ValueError as exc:
         problems.append(str(exc))
-    if problems:
-        raise DatasetError("; ".join(problems))
+    return problems
 
 
 def _open_folder(out: Path, config: DatasetConfig) -> dict[str, Any]:

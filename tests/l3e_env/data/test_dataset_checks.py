@@ -40,6 +40,12 @@ MANIFESTS = {
     "thresholds": (lambda m: m["settings"]["labels"].update(thresholds=[0.04] * 5), "six positive numbers"),
     "scenes": (lambda m: m.update(scenes=[5]), "scenes must be a list of scene names"),
     "count": (lambda m: m.update(count="four"), "count must be a whole number"),
+    # issue 98: the settings, each field against its type and range
+    "children float": (lambda m: m["settings"]["labels"].update(children=2.5), "children takes a whole number"),
+    "children 0": (lambda m: m["settings"]["labels"].update(children=0), "labels.children must be at least 1"),
+    "parents text": (lambda m: m["settings"].update(parents_per_scene="four"), "parents_per_scene takes a whole"),
+    "settings scenes": (lambda m: m["settings"].update(scenes=5), "scenes takes a list"),
+    "sensor": (lambda m: m["settings"]["lidar"].update(model="nosuch"), "nosuch"),
 }
 ARRAYS = {
     "labels 7": ("labels", lambda a: np.where(a == 1, 7, a).astype(np.uint8), "other than 0 and 1: \\['7'\\]"),
