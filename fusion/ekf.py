@@ -24,6 +24,7 @@ from .steps import (
     check_mask_basis,
     check_odometry_sigmas,
     gate_mask,
+    legs_covariance,
     masked_information,
     resolve_step,
 )
@@ -133,16 +134,13 @@ class EKFFusion:
         with the legs' step (`steps.gate_mask`, as the graph's over one step)."""
         if self.config.mode != "gate" or not step.mask.any():
             return step.mask
-        variance = sigmas**2  # without the stride's spread, which the scale carries (the graph's _gate)
-        t = motion.translation()
-        prior = float(self.config.odometry_bias_sigmas[2])
-        variance[:3] = np.maximum(variance[:3] - (prior * t) ** 2, 0.25 * variance[:3])
-        covariance = np.diag(variance)
-        scale = self.config.odometry_bias_sigmas[2] ** 2  # the legs' spread, or the state's as known now
+        spread = float(self.config.odometry_bias_sigmas[2])
+        scale_sigma = spread  # the legs' spread, or the state's as known now
         if "scale" in self.bias_axes:
             n = 6 + self.bias_axes.index("scale")
-            scale = self.P[n, n]
-        covariance[:3, :3] += scale * np.outer(t, t)
+            scale_sigma = float(np.sqrt(max(self.P[n, n], 0.0)))
+        t = motion.translation()
+        covariance = legs_covariance(sigmas, t, t, 1, spread, scale_sigma)
         innovation = to_project_order(gtsam.Pose3.Logmap(motion.between(gtsam.Pose3(np.asarray(step.icp_T_prev_cur)))))
         kept = gate_mask(step.mask, basis, innovation, covariance)
         self.gated += int(step.mask.sum() - kept.sum())

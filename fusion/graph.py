@@ -24,6 +24,7 @@ from .steps import (
     check_odometry_sigmas,
     gate_mask,
     icp_information,
+    legs_covariance,
     resolve_step,
 )
 from .tangent import to_gtsam_order, to_project_order
@@ -210,7 +211,7 @@ class FusionGraph:
         assert step.icp_T_prev_cur is not None and odom_T_prev_cur is not None  # resolve_step: has_icp, has_odom
         legs = self._legs_step(odom_T_prev_cur)
         kept = self._gate(step.mask, (legs, _pose3(step.icp_T_prev_cur)), sigmas, key, basis)
-        return masked, icp_information(self.config, hessian, kept, basis)
+        return masked, masked if (kept == step.mask).all() else icp_information(self.config, hessian, kept, basis)
 
     def _legs_step(self, odom_T_prev_cur: np.ndarray) -> gtsam.Pose3:
         """The legs' increment as their present bias estimate corrects it."""
@@ -228,23 +229,17 @@ class FusionGraph:
     ) -> np.ndarray:
         """The mode "gate": of the flagged axes, those along which ICP's motion from pose `key` disagrees
         with the legs' prediction, the estimate advanced by their step (`steps.gate_mask`). `steps`: the
-        legs' and ICP's; `sigmas`: the legs' of this step. Their covariance over the factor's span is
-        that for each step of it without the stride's spread, which the scale's state carries over the
-        whole span's length (as it is known now, `_scale_sigma`): the legs' sigmas hold that spread as a
-        step's own noise, which would keep the gate as wide once the scale is learnt as before."""
+        legs' and ICP's; `sigmas`: the legs' of this step, their covariance over the factor's span
+        `steps.legs_covariance`, the scale as the graph knows it now (`_scale_sigma`)."""
         legs, icp = steps
         start = self.estimate if key == self.k else self.isam.calculateEstimatePose3(key)
         predicted = start.between(self.estimate.compose(legs))
         innovation = to_project_order(gtsam.Pose3.Logmap(predicted.between(icp)))
-        span = self.k + 1 - key
         across = predicted.inverse().translation()  # the span's length, seen from the new pose
-        scale_sigma = self._scale_sigma()
-        variance = check_odometry_sigmas(sigmas) ** 2
-        along = np.abs(legs.translation())
-        prior = float(self.config.odometry_bias_sigmas[2])
-        variance[:3] = np.maximum(variance[:3] - (prior * along) ** 2, 0.25 * variance[:3])
-        covariance = span * np.diag(variance)
-        covariance[:3, :3] += scale_sigma**2 * np.outer(across, across)
+        spread = float(self.config.odometry_bias_sigmas[2])
+        covariance = legs_covariance(
+            check_odometry_sigmas(sigmas), legs.translation(), across, self.k + 1 - key, spread, self._scale_sigma()
+        )
         kept = gate_mask(mask, check_mask_basis(basis), innovation, covariance)
         self.gated += int(mask.sum() - kept.sum())
         return kept

@@ -158,6 +158,21 @@ def gate_mask(mask: np.ndarray, basis: np.ndarray, innovation: np.ndarray, legs_
     return np.asarray(mask, dtype=bool) & (r**2 > GATE_SIGMAS**2 * legs_variance)
 
 
+def legs_covariance(
+    sigmas: np.ndarray, step: np.ndarray, across: np.ndarray, span: int, spread: float, scale_sigma: float
+) -> np.ndarray:
+    """The legs' covariance (6x6, project order, the body frame) over `span` steps like this one, which
+    the gate reads ICP against: each step's (`sigmas`, its translation `step`) without the stride's
+    `spread`, which the legs' sigmas hold as a step's own noise, and the scale as the fusion knows it
+    now (`scale_sigma`) over the span's translation `across`: else the gate would stay as wide once
+    the scale is learnt as before."""
+    variance = np.asarray(sigmas, dtype=np.float64) ** 2
+    variance[:3] = np.maximum(variance[:3] - (spread * np.asarray(step)) ** 2, 0.25 * variance[:3])
+    covariance = span * np.diag(variance)
+    covariance[:3, :3] += scale_sigma**2 * np.outer(across, across)
+    return covariance
+
+
 @dataclass
 class StepReport:
     icp_used: bool
