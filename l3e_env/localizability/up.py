@@ -17,6 +17,9 @@ MIN_SHARE = 0.02  # the ground holds at least this share of the thinned returns
 MIN_RETURNS = 30  # and at least this many (a level surface under the sensor: a floor, or a table indoors)
 VOXEL = 0.2  # m: the scan is thinned to one point a voxel first
 TRIES = 500
+COUNTED = 20_000  # thinned returns (a random sample of them) the planes are counted on
+SCORED = 4000  # of which every tried plane is scored on the first; the FINALISTS best on them all
+FINALISTS = 8
 NEIGHBOURS = 8  # a return's own surface normal: the plane fitted to its nearest thinned returns
 ALONG_DEG = 20.0  # a return counts for a plane where its own normal lies within this of the plane's
 
@@ -34,31 +37,39 @@ def ground_plane(points: np.ndarray, seed: int = 0) -> tuple[np.ndarray, float, 
     cloud = _thinned(np.asarray(points, dtype=np.float64))
     if len(cloud) < 30:
         return None
-    normals = _normals(cloud)
+    rng = np.random.default_rng(seed)
+    # the planes are tried on a sample of the thinned returns (their own normals are the cost)
+    picked = cloud[rng.permutation(len(cloud))[:COUNTED]]  # in random order: any first few are a sample
+    normals = _normals(cloud, picked)
     cos_tilt, cos_along = np.cos(np.radians(MAX_TILT_DEG)), np.cos(np.radians(ALONG_DEG))
     # the planes are drawn through returns under the sensor whose own surface could be ground
-    below = cloud[(cloud[:, 2] < -MIN_BELOW) & (np.abs(normals[:, 2]) > cos_tilt)]
+    below = picked[(picked[:, 2] < -MIN_BELOW) & (np.abs(normals[:, 2]) > cos_tilt)]
     if len(below) < 3:
         return None
-    rng = np.random.default_rng(seed)
-    best, best_d, best_count = None, 0.0, 0
-    for _ in range(TRIES):
-        a, b, c = below[rng.choice(len(below), 3, replace=False)]
-        n = np.cross(b - a, c - a)
-        norm = np.linalg.norm(n)
-        if norm < 1e-9:
-            continue
-        n = n / norm * (1.0 if n[2] >= 0 else -1.0)  # turned towards the sensor's z
-        d = float(n @ a)  # plane n.p = d; the sensor (origin) lies -d above it
-        if n[2] < cos_tilt or -d < MIN_BELOW:
-            continue
-        count = int(((np.abs(cloud @ n - d) < BAND) & (np.abs(normals @ n) > cos_along)).sum())
-        if count > best_count:
-            best, best_d, best_count = n, d, count
-    if best is None or best_count < max(MIN_SHARE * len(cloud), MIN_RETURNS):
+    a, b, c = np.moveaxis(below[rng.integers(0, len(below), (TRIES, 3))], 1, 0)
+    n = np.cross(b - a, c - a)
+    norm = np.linalg.norm(n, axis=1, keepdims=True)
+    n = n / np.maximum(norm, 1e-12) * np.where(n[:, 2:] >= 0, 1.0, -1.0)  # turned towards the sensor's z
+    d = np.einsum("ij,ij->i", n, a)  # planes n.p = d; the sensor (origin) lies -d above each
+    keep = (norm[:, 0] > 1e-9) & (n[:, 2] >= cos_tilt) & (-d >= MIN_BELOW)
+    if not keep.any():
         return None
-    n, d = _refined(cloud, best, best_d)
-    return n, d, best_count / len(cloud)
+    n, d = n[keep], d[keep]
+    # every plane scored on the sample's first returns at once, the best few counted on all of it
+    scores = _on_plane(picked[:SCORED], normals[:SCORED], n, d, cos_along).sum(axis=0)
+    few = np.argsort(-scores, kind="stable")[:FINALISTS]
+    counts = _on_plane(picked, normals, n[few], d[few], cos_along).sum(axis=0)
+    best, share = int(few[int(np.argmax(counts))]), float(counts.max()) / len(picked)
+    if share < MIN_SHARE or share * len(cloud) < MIN_RETURNS:
+        return None
+    normal, offset = _refined(cloud, n[best], float(d[best]))
+    return normal, offset, share
+
+
+def _on_plane(points: np.ndarray, normals: np.ndarray, n: np.ndarray, d: np.ndarray, cos_along: float) -> np.ndarray:
+    """(returns, planes): whether each return lies within BAND of each plane n.p = d with its own
+    surface along it."""
+    return (np.abs(points @ n.T - d) < BAND) & (np.abs(normals @ n.T) > cos_along)
 
 
 def _thinned(points: np.ndarray) -> np.ndarray:
@@ -66,16 +77,23 @@ def _thinned(points: np.ndarray) -> np.ndarray:
     points = points[np.isfinite(points).all(axis=1)]
     if not len(points):
         return points
-    _, first = np.unique(np.floor(points / VOXEL).astype(np.int64), axis=0, return_index=True)
+    cells = np.floor(points / VOXEL).astype(np.int64)
+    cells -= cells.min(axis=0)
+    span = cells.max(axis=0) + 1
+    if np.prod(span.astype(np.float64)) < 2**62:  # one integer a cell: far quicker than unique rows
+        _, first = np.unique(np.ravel_multi_index(cells.T, span), return_index=True)
+    else:
+        _, first = np.unique(cells, axis=0, return_index=True)
     return points[np.sort(first)]
 
 
-def _normals(cloud: np.ndarray) -> np.ndarray:
-    """Each thinned return's unit normal (unsigned), from its NEIGHBOURS nearest returns."""
+def _normals(cloud: np.ndarray, at: np.ndarray) -> np.ndarray:
+    """The unit normal (unsigned) of the cloud's surface at each point of `at`, from its NEIGHBOURS
+    nearest returns of the cloud."""
     from scipy.spatial import cKDTree
 
     k = min(NEIGHBOURS, len(cloud))
-    _, near = cKDTree(cloud).query(cloud, k)
+    _, near = cKDTree(cloud).query(at, k)
     hood = cloud[near] - cloud[near].mean(axis=1, keepdims=True)
     return np.linalg.eigh(np.einsum("nki,nkj->nij", hood, hood))[1][:, :, 0]
 

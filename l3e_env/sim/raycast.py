@@ -126,22 +126,54 @@ class PyBulletCaster:
         return np.array([h[2] * max_range if h[0] >= 0 else np.inf for h in hits])
 
 
-def add_static_mesh(client: int, mesh: trimesh.Trimesh) -> int:
-    """Add `mesh` to a PyBullet client as one static concave triangle mesh; returns the body id."""
+# PyBullet copies a mesh shape through a fixed shared-memory command: at most 131 072 vertices and
+# 524 288 indices a shape (B3_MAX_NUM_VERTICES, B3_MAX_NUM_INDICES); a larger mesh goes in as
+# several shapes of at most this many triangles (3 vertices each at most: under both caps)
+MAX_SHAPE_TRIANGLES = 40_000
+
+
+def add_static_mesh(client: int, mesh: trimesh.Trimesh, max_triangles: int | None = None) -> list[int]:
+    """Add `mesh` to a PyBullet client as static concave triangle meshes, one body per piece of at most
+    `max_triangles` (default MAX_SHAPE_TRIANGLES; pieces of neighbouring triangles, so each body's box
+    stays small); the body ids."""
     pb = import_pybullet()
-    shape = pb.createCollisionShape(
-        pb.GEOM_MESH,
-        vertices=np.asarray(mesh.vertices, dtype=np.float64),
-        indices=np.asarray(mesh.faces, dtype=np.int32).ravel(),
-        flags=pb.GEOM_FORCE_CONCAVE_TRIMESH,
-        physicsClientId=client,
-    )
-    if shape < 0:
-        raise RuntimeError("PyBullet could not build a collision shape from the scene mesh")
-    body = pb.createMultiBody(baseMass=0, baseCollisionShapeIndex=shape, physicsClientId=client)
-    # static bodies default to Bullet's StaticFilter group (2); rays look for group 1
-    pb.setCollisionFilterGroupMask(body, -1, 1, 0xFFFF, physicsClientId=client)
-    return body
+    max_triangles = max_triangles or MAX_SHAPE_TRIANGLES
+    faces = np.asarray(mesh.faces, dtype=np.int64)
+    if not len(faces):
+        raise RuntimeError("the scene mesh holds no triangle: PyBullet has nothing to stand the robot on")
+    bodies = []
+    for piece in _pieces(np.asarray(mesh.vertices, dtype=np.float64), faces, max_triangles):
+        used, local = np.unique(faces[piece], return_inverse=True)
+        shape = pb.createCollisionShape(
+            pb.GEOM_MESH,
+            vertices=np.asarray(mesh.vertices, dtype=np.float64)[used],
+            indices=local.astype(np.int32).ravel(),
+            flags=pb.GEOM_FORCE_CONCAVE_TRIMESH,
+            physicsClientId=client,
+        )
+        if shape < 0:
+            raise RuntimeError(
+                f"PyBullet could not build a collision shape from {len(piece)} of the scene mesh's triangles "
+                f"({len(used)} vertices): check the mesh for triangles with repeated or non-finite corners"
+            )
+        body = pb.createMultiBody(baseMass=0, baseCollisionShapeIndex=shape, physicsClientId=client)
+        # static bodies default to Bullet's StaticFilter group (2); rays look for group 1
+        pb.setCollisionFilterGroupMask(body, -1, 1, 0xFFFF, physicsClientId=client)
+        bodies.append(body)
+    return bodies
+
+
+def _pieces(vertices: np.ndarray, faces: np.ndarray, size: int) -> list[np.ndarray]:
+    """The faces' indices in runs of at most `size`, neighbours together: sorted by the cell of a grid
+    (about `size` faces a cell on average) their centres fall in, then by their x."""
+    if len(faces) <= size:
+        return [np.arange(len(faces))]
+    centres = vertices[faces].mean(axis=1)
+    low, span = centres.min(axis=0), np.ptp(centres, axis=0) + 1e-9
+    cells = max(1, int(np.ceil(np.sqrt(len(faces) / size))))
+    cell = np.minimum((centres[:, :2] - low[:2]) / span[:2] * cells, cells - 1).astype(np.int64)
+    order = np.lexsort((centres[:, 0], cell[:, 1], cell[:, 0]))
+    return [order[lo : lo + size] for lo in range(0, len(order), size)]
 
 
 def make_caster(backend: str, mesh: trimesh.Trimesh, client: int | None = None) -> RayCaster:

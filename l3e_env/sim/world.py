@@ -25,7 +25,10 @@ class World:
         self.scene = scene
         self.robot_config = robot or RobotConfig()
         self.client = pb.connect(pb.DIRECT)
-        self.scene_body = add_static_mesh(self.client, scene.mesh)
+        self.scene_bodies = add_static_mesh(self.client, scene.mesh)
+        self._boxes = np.array(  # (bodies, low/high, xyz): each piece's box, to touch only the pieces near the robot
+            [pb.getAABB(body, physicsClientId=self.client) for body in self.scene_bodies], dtype=np.float64
+        )
         half = np.asarray(self.robot_config.base_size) / 2
         shape = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=half.tolist(), physicsClientId=self.client)
         self.robot_body = pb.createMultiBody(baseMass=0, baseCollisionShapeIndex=shape, physicsClientId=self.client)
@@ -48,8 +51,16 @@ class World:
         pb.resetBasePositionAndOrientation(
             self.robot_body, T_w_b[:3, 3].tolist(), quat.tolist(), physicsClientId=self.client
         )
-        contacts = pb.getClosestPoints(self.robot_body, self.scene_body, distance=0.0, physicsClientId=self.client)
-        return any(c[8] < -tolerance for c in contacts)
+        # the scene's pieces whose boxes the robot's box (turned, in the world's axes) overlaps
+        reach = np.abs(T_w_b[:3, :3]) @ (np.asarray(self.robot_config.base_size) / 2) + 0.05
+        centre = T_w_b[:3, 3]
+        overlap = np.all((self._boxes[:, 0] <= centre + reach) & (self._boxes[:, 1] >= centre - reach), axis=1)
+        near = [body for body, hit in zip(self.scene_bodies, overlap) if hit]
+        return any(
+            c[8] < -tolerance
+            for body in near
+            for c in pb.getClosestPoints(self.robot_body, body, distance=0.0, physicsClientId=self.client)
+        )
 
     def ground_pose(self, x: float, y: float, yaw: float, z_ref: float) -> np.ndarray | None:
         """Base pose standing on the terrain at (x, y, yaw), or None where there is no ground.

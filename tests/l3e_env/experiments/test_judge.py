@@ -346,3 +346,25 @@ def test_a_scan_a_detector_cannot_judge_is_told_with_the_detectors_own_reason(tm
     np.save(thinned, points[::3])  # every third return: no longer a revolution of the sensor's beams
     (sparse,) = judge_scans([thinned], ["scanmc:4"], LidarConfig())
     assert "returns have one beside them" in sparse.predictions["scanmc:4"].reason
+
+
+@pytest.mark.parametrize("height_m", [6.0, 10.0])
+def test_a_scan_from_a_tilted_mast_is_judged_without_a_given_up(tmp_path, rng, height_m):
+    """An OS0-128 on a mast 6 or 10 m above a yard of sheds, tilted 25 deg: the ground is found below it
+    (a small share of the returns, most of them far), and the learned model and scanmc judge the scan
+    in its level frame with no --gravity."""
+    from l3e_env.core.transforms import pose_to_matrix
+
+    parts = [trimesh.creation.box([200, 200, 0.2]).apply_translation([0, 0, -0.1])]
+    for k in range(8):
+        angle, size = k * np.pi / 4, rng.uniform(3, 10, 3)
+        parts.append(
+            trimesh.creation.box(size).apply_translation([20 * np.cos(angle), 20 * np.sin(angle), size[2] / 2])
+        )
+    yard = trimesh.util.concatenate(parts)
+    T = pose_to_matrix([0, 0, height_m, 0, np.radians(25.0), 0])
+    points = Lidar(EmbreeCaster(yard, threads=1), LidarConfig(model="os0-128")).scan(T, rng).points
+    np.save(tmp_path / "mast.npy", points.astype(np.float64))
+    (judged,) = judge_scans([tmp_path / "mast.npy"], ["learned", "scanmc:8"], LidarConfig(model="os0-128"))
+    assert judged.error is None and "ground plane's fit, the sensor tilted 25.0 deg" in judged.up, judged.up
+    assert all(p.known for p in judged.predictions.values()), judged.predictions

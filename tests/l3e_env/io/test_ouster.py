@@ -134,21 +134,24 @@ def _decisions(scans, specs, sensor=None) -> list:
 @pytest.mark.parametrize("capture", [OS1_OSF, OS0, OS0_8], ids=lambda p: p.name)
 def test_every_route_in_gives_the_same_decisions(capture, tmp_path):
     """.osf, .pcap and exported arrays in either frame (with the metadata as --sensor): one set of
-    decisions by every detector, and scanmc judges every full revolution."""
-    specs = ["learned", "eigen:30", "dcreg:50", "scanmc"]
+    decisions by every detector, and scanmc (with a few children: the routes, not its estimate, are
+    what differs; on the routes that give it another frame or file) judges every full revolution."""
+    specs, costly = ["learned", "eigen:30", "dcreg:50"], ["scanmc:8"]
     sensor = LidarConfig(model=str(_metadata(capture)))
     routes = {
-        "capture": _decisions([capture], specs),
+        "capture": _decisions([capture], specs + costly),
         "capture, its metadata given": _decisions([capture], specs, sensor),
-        "lidar-frame arrays": _decisions(_exported(capture, tmp_path, "lidar"), specs, sensor),
+        "lidar-frame arrays": _decisions(_exported(capture, tmp_path, "lidar"), specs + costly, sensor),
         "sensor-frame arrays": _decisions(_exported(capture, tmp_path, "sensor"), specs, sensor),
     }
     if capture == OS1_OSF:
-        routes["pcap"] = _decisions([OS1_PCAP], specs)
+        routes["pcap"] = _decisions([OS1_PCAP], specs + costly)
     first = routes.pop("capture")
     assert all(d is not None and all(known for known, _ in d.values()) for d in first)
     for route, decisions in routes.items():
-        assert decisions == first, route
+        assert len(decisions) == len(first), route
+        for judged, reference in zip(decisions, first):  # each route's detectors decide as the capture's
+            assert judged is not None and judged == {name: reference[name] for name in judged}, route
     assert get_pattern(str(_metadata(capture))).n_beams == GOOD[capture][1]
 
 

@@ -114,3 +114,53 @@ def test_transforms_round_trip():
     T = pose_to_matrix(v)
     np.testing.assert_allclose(matrix_to_pose(T), v, atol=1e-12)
     np.testing.assert_allclose(T @ inverse(T), np.eye(4), atol=1e-12)
+
+
+def test_a_mesh_in_pieces_holds_the_robot_as_one_shape_does(monkeypatch):
+    """Split into shapes of 7 triangles, the ramp stands the robot at the same pose and its wall still
+    stops it: a mesh too large for one PyBullet shape drives as a small one does."""
+    import l3e_env.sim.raycast as raycast
+
+    whole = World(ramp_scene(10.0))
+    monkeypatch.setattr(raycast, "MAX_SHAPE_TRIANGLES", 7)
+    pieces = World(ramp_scene(10.0))
+    assert len(whole.scene_bodies) == 1 and len(pieces.scene_bodies) >= 10
+    robots = [Robot(w) for w in (whole, pieces)]
+    poses = [r.reset(-5.0, 0.0, 0.0, z_ground=np.tan(np.radians(10)) * -5) for r in robots]
+    for _ in range(200):
+        poses = [r.step(np.array([1.0, 0.0, 0.0]))[0] for r in robots]
+    np.testing.assert_allclose(poses[0], poses[1], atol=1e-9)
+    assert 9.0 < poses[1][0, 3] + 0.45 < 9.9  # stopped by the wall, in its own piece
+    whole.close()
+    pieces.close()
+
+
+def _grid(cells: tuple[int, int], origin, u, v) -> trimesh.Trimesh:
+    """A flat rectangle from `origin` along u and v, cut into cells[0] x cells[1] squares of 2 triangles."""
+    i, j = np.meshgrid(np.arange(cells[0] + 1), np.arange(cells[1] + 1), indexing="ij")
+    vertices = np.asarray(origin) + i.reshape(-1, 1) / cells[0] * np.asarray(u) + j.reshape(-1, 1) / cells[1] * v
+    k = (i[:-1, :-1] * (cells[1] + 1) + j[:-1, :-1]).ravel()
+    faces = np.r_[np.c_[k, k + cells[1] + 1, k + 1], np.c_[k + 1, k + cells[1] + 1, k + cells[1] + 2]]
+    return trimesh.Trimesh(vertices, faces, process=False)
+
+
+@pytest.mark.slow
+def test_a_mesh_of_two_million_triangles_is_driven():
+    """A corridor of 2 million triangles (a surveyed tunnel's size; PyBullet takes ~175 000 a shape):
+    the robot stands on its floor, walks it and is stopped by its end wall."""
+    floor = _grid((1000, 500), (-1.0, -2.5, 0.0), (12.0, 0, 0), (0, 5.0, 0))
+    walls = [_grid((1000, 250), (-1.0, y, 0.0), (12.0, 0, 0), (0, 0, 3.0)) for y in (-2.0, 2.0)]
+    end = _grid((10, 10), (9.0, -2.5, 0.0), (0, 5.0, 0), (0, 0, 3.0))
+    mesh = merge([floor, *walls, end])
+    assert len(mesh.faces) >= 2_000_000
+    world = World(Scene("survey", mesh, [np.array([[0.0, 0, 0], [8.0, 0, 0]])], (0, 0, 0), (8, 0)))
+    robot = Robot(world)
+    T = robot.reset(0.0, 0.0, 0.0, z_ground=0.0)
+    assert abs(T[2, 3] - 0.55) < 1e-6  # standing on the floor
+    for _ in range(120):
+        T, blocked = robot.step(np.array([1.0, 0.0, 0.0]))
+    assert blocked and 8.0 < T[0, 3] + 0.45 < 9.0  # at the end wall, not through it
+    side = T.copy()
+    side[1, 3] = 1.95
+    assert world.in_collision(side) and not world.in_collision(T)
+    world.close()
