@@ -7,7 +7,8 @@ checkpoints and policy records. Each case runs `l3e` in this process and is sort
 - unclear: refused, but the message names none of them;
 - traceback: an exception escaped the command;
 - silent: the command succeeded (status 0) on input it should refuse;
-- ran on: accepted, and still working after a minute (a value that should have been refused).
+- ran on: accepted, and still working after a minute (a value that should have been refused);
+- left behind: refused, but the folder the command was to write is there (a case that names one).
 
 Run: python studies/bad_inputs.py [--out runs/bad-inputs] [--show unclear,traceback,silent]
 Writes cases.jsonl (each case, its outcome and message) and prints the counts.
@@ -44,6 +45,7 @@ class Case:
     names: list[str]  # what a clear message names (any of them)
     outcome: str = ""
     message: str = ""
+    out: str = ""  # the folder the command writes, where it makes one: a refusal must leave none
 
 
 class _TooLong(Exception):
@@ -78,6 +80,8 @@ def run_case(case: Case, limit: int = 60) -> Case:
         case.outcome = "clear" if "cannot judge" in out.getvalue() else "silent"
     else:
         case.outcome = "clear" if any(n in err.getvalue() for n in case.names) else "unclear"
+        if case.out and Path(case.out).exists():
+            case.outcome, case.message = "left behind", f"{case.out} is left after: {case.message}"
     return case
 
 
@@ -296,6 +300,83 @@ def checkpoints_and_policies(tmp: Path) -> Iterator[Case]:
         yield Case("policy", name, argv, ["policy.json", "policy.pt", folder.name])
 
 
+def _ply(properties: str, rows: str) -> bytes:
+    head = f"ply\nformat ascii 1.0\nelement vertex {len(rows.splitlines())}\n{properties}end_header\n"
+    return (head + rows).encode()
+
+
+def third_pass(tmp: Path, data: Path) -> Iterator[Case]:
+    """The inputs the third pass over rough edges named: lying headers and degenerate scans, a route far
+    out, options given where they mean nothing, a manifest whose settings lie, and failed commands that
+    must leave no folder."""
+    rng = np.random.default_rng(1)
+    rows = "".join(f"{x:.3f} {y:.3f} {z:.3f}\n" for x, y, z in rng.normal(0, 5, (200, 3)))
+    files: dict[str, bytes | Callable[[Path], None]] = {
+        "points_zero_ascii.pcd": b"VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 0\n"
+        b"HEIGHT 1\nPOINTS 0\nDATA ascii\n",
+        "property_quux.ply": _ply("property quux x\nproperty float y\nproperty float z\n", rows),
+        "no_z.ply": _ply(
+            "property float x\nproperty float y\n", "".join(" ".join(r.split()[:2]) + "\n" for r in rows.splitlines())
+        ),
+        "one_place.npy": lambda p: np.save(p, np.tile([[2.0, 1.0, 0.5]], (500, 1))),
+        "one_line.npy": lambda p: np.save(p, np.linspace(-5, 5, 500)[:, None] * np.array([[1.0, 0.5, -0.2]])),
+    }
+    for name, content in files.items():
+        path = tmp / name
+        path.write_bytes(content) if isinstance(content, bytes) else content(path)
+        yield Case("scan file", name, ["judge", str(path), "--detector", "eigen:30"], [name])
+    yield Case("option", "sensor-index on a .npy", ["judge", "x.npy", "--sensor-index", "5"], ["sensor-index"])
+    yield Case("option", "soft-labels -1", ["train", "--dataset", str(data), "--out", str(tmp / "soft"),
+               "--soft-labels", "-1"], ["soft-labels"], out=str(tmp / "soft"))  # fmt: skip
+    pcap = tmp / "cut.pcap"
+    pcap.write_bytes((OUSTER / "OS-1-128_v2.3.0_1024x10_lb_n3.pcap").read_bytes()[:100])
+    meta = OUSTER / "OS-1-128_v2.3.0_1024x10_lb_n3_metadata.json"
+    yield Case("capture", "pcap cut to 100 bytes", ["judge", str(pcap), "--sensor", str(meta)], ["cut.pcap"])
+    import trimesh
+
+    trimesh.creation.box([10, 4, 0.2]).apply_translation([0, 0, -0.1]).export(tmp / "slab.obj")
+    trimesh.creation.box([1.5, 1.5, 0.2]).apply_translation([0, 0, -0.1]).export(tmp / "tiny.obj")
+    for name, mesh, route in (
+        ("far", "slab.obj", "1e300 0 0\n-1e300 0 0\n"),
+        ("no parent", "tiny.obj", "-0.5 0 0\n0.5 0 0\n"),
+    ):
+        (tmp / f"{name}.txt").write_text(route)
+        argv = ["dataset", "generate", "--scenes", str(tmp / mesh), "--route", str(tmp / f"{name}.txt"),
+                "--out", str(tmp / f"gen-{name}"), "--parents", "2", "--children", "5", "--quiet"]  # fmt: skip
+        yield Case("mesh", f"route {name}", argv, [f"{name}.txt", mesh, "parent"], out=str(tmp / f"gen-{name}"))
+    argv = ["policy", "plan", "--scene", "fork-0", "--goal", "1000", "1000", "--out", str(tmp / "plan")]
+    yield Case("policy", "goal outside the grid", argv, ["goal"], out=str(tmp / "plan"))
+    yield from _lying_manifests(tmp, data)
+
+
+def _lying_manifests(tmp: Path, data: Path) -> Iterator[Case]:
+    """A dataset whose manifest's settings lie, or whose points are NaN, given to `l3e evaluate --other`."""
+
+    def settings(change: Callable[[dict], None]) -> Callable[[Path], None]:
+        def apply(d: Path) -> None:
+            m = json.loads((d / "manifest.json").read_text())
+            change(m["settings"])
+            (d / "manifest.json").write_text(json.dumps(m))
+
+        return apply
+
+    tamperings: dict[str, Callable[[Path], object]] = {
+        "children float": settings(lambda s: s["labels"].update(children=4.5)),
+        "parents text": settings(lambda s: s.update(parents_per_scene="two")),
+        "scenes int": settings(lambda s: s.update(scenes=3)),
+        "scenes text": settings(lambda s: s.update(scenes="tunnel-0")),
+        "lidar unknown": settings(lambda s: s["lidar"].update(model="vlp99")),
+        "manifest list": lambda d: (d / "manifest.json").write_text("[1, 2]"),
+        "points nan": lambda d: np.save(d / "points.npy", np.full_like(np.load(d / "points.npy"), np.nan)),
+    }
+    for name, tamper in tamperings.items():
+        copy = tmp / f"lying-{name.replace(' ', '-')}"
+        shutil.copytree(data, copy)
+        tamper(copy)
+        argv = ["evaluate", "--other", str(copy), "--out", str(tmp / f"eval-{copy.name}")]
+        yield Case("dataset", name, argv, [copy.name], out=str(tmp / f"eval-{copy.name}"))
+
+
 def main_trial() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", default="runs/bad-inputs")
@@ -317,6 +398,7 @@ def main_trial() -> None:
             *option_values(tmp, tiny),
             *datasets(tmp, tiny),
             *checkpoints_and_policies(tmp),
+            *third_pass(tmp, tiny),
         ]
         done = [run_case(c) for c in cases]
     with (out / "cases.jsonl").open("w") as f:

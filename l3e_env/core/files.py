@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import fcntl
 import os
 import shutil
@@ -42,26 +43,36 @@ class FolderBusyError(RuntimeError):
 def folder_lock(folder: str | Path) -> Iterator[None]:
     """Hold `folder` for this process while the block runs: a second run into the same folder is refused
     by name instead of writing over the first's files. The lock is the kernel's (flock on `.lock`), so a
-    killed run leaves no stale lock behind."""
+    killed run leaves no stale lock behind; a run that ends removes the file."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    with open(folder / ".lock", "a+") as fh:
+    path = folder / ".lock"
+    while True:
+        fh = open(path, "a+")  # noqa: SIM115 - held open across the block
         try:
             fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
             fh.seek(0)
             holder = fh.read().strip() or "another process"
+            fh.close()
             raise FolderBusyError(
                 f"{folder}: another run (pid {holder}) is writing into it; wait for it to end or choose another folder"
             ) from None
+        with contextlib.suppress(FileNotFoundError):
+            if os.stat(path).st_ino == os.fstat(fh.fileno()).st_ino:
+                break  # the file at the path is the one locked (not one a finishing run removed)
+        fh.close()
+    try:
         fh.seek(0)
         fh.truncate()
         fh.write(str(os.getpid()))
         fh.flush()
-        try:
-            yield
-        finally:
-            fcntl.flock(fh, fcntl.LOCK_UN)
+        yield
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            path.unlink()  # while still held: a run that opened the old file finds it gone and tries again
+        fcntl.flock(fh, fcntl.LOCK_UN)
+        fh.close()
 
 
 @contextmanager

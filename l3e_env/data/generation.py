@@ -11,6 +11,7 @@ import contextlib
 import dataclasses
 import json
 import re
+import shutil
 import time
 import zipfile
 from collections.abc import Callable
@@ -337,8 +338,31 @@ def generate(
     """Generate (or resume) a dataset; returns the manifest. Finished shards are never redone."""
     out = Path(out_dir)
     check_dataset_config(config)
+    fresh = not out.exists()
     with folder_lock(out):
-        return _generate(out, config, workers, backend, ray_address, progress)
+        manifest = _generate(out, config, workers, backend, ray_address, progress)
+    if manifest["count"] == 0:
+        _nothing_labelled(out, config, manifest, fresh)
+    return manifest
+
+
+def _nothing_labelled(out: Path, config: DatasetConfig, manifest: dict[str, Any], fresh: bool) -> None:
+    """Refuse a run that labelled no parent at all, leaving nothing of it behind (the folder, where the
+    run made it; else its empty shards and arrays, so that a run with other settings can start there)."""
+    reasons = sorted({f["reason"] for f in manifest.get("failures", [])})
+    if fresh:
+        shutil.rmtree(out, ignore_errors=True)
+    else:
+        for path in [*(out / "shards").glob("*.npz"), *out.glob("*.npy"), out / "manifest.json"]:
+            path.unlink(missing_ok=True)
+        with contextlib.suppress(OSError):
+            (out / "shards").rmdir()  # where it is empty
+    raise DatasetError(
+        f"no parent of {', '.join(config.scenes)} could be labelled"
+        + (f" ({'; '.join(reasons[:3])})" if reasons else "")
+        + ": check that the mesh holds surfaces around its route for a scan to see, in metres (--scale); "
+        "nothing is kept"
+    )
 
 
 def _generate(

@@ -425,6 +425,7 @@ def test_two_runs_into_one_dataset_folder_are_refused_by_name(tmp_path):
     with folder_lock(tmp_path / "d"), pytest.raises(FolderBusyError, match=busy):  # a run already writing there
         generate(tmp_path / "d", cfg, workers=1, progress=False)
     assert generate(tmp_path / "d", cfg, workers=1, progress=False)["count"] == 1  # free again: it runs
+    assert not (tmp_path / "d" / ".lock").exists()  # and the run that ended took its lock file with it
 
 
 def test_a_dataset_of_the_papers_protocol_is_refused_with_the_command_that_labels_it_again(tiny_dataset, tmp_path):
@@ -455,3 +456,20 @@ def test_a_dataset_of_protocol_2_is_refused_by_name(tiny_dataset, tmp_path):
     (old / "manifest.json").write_text(json.dumps(manifest))
     with pytest.raises(DatasetError, match=r"label protocol 2 .*label protocol 3 .*level frame.*sensor-frame-p3"):
         LabelDataset(old)
+
+
+def test_a_mesh_where_no_parent_can_be_labelled_is_refused_and_leaves_nothing(tmp_path, capsys):
+    """A floor of 1.5 m square: no scan there holds enough points, so no parent is labelled; the run is
+    refused with the parents' reasons, and neither a dataset of 0 parents nor its lock is left."""
+    from l3e_env.cli.main import main
+
+    trimesh.creation.box([1.5, 1.5, 0.2]).apply_translation([0, 0, -0.1]).export(tmp_path / "tiny.obj")
+    np.savetxt(tmp_path / "route.csv", [[-0.5, 0, 0], [0.5, 0, 0]], delimiter=",")
+    args = ["--scenes", str(tmp_path / "tiny.obj"), "--route", str(tmp_path / "route.csv"), "--parents", "2"]
+    common = ["dataset", "generate", *args, "--children", "5", "--workers", "1", "--quiet"]
+    assert main([*common, "--out", str(tmp_path / "d")]) == 2
+    assert "no parent of" in (err := capsys.readouterr().err) and "points (minimum" in err
+    assert not (tmp_path / "d").exists()
+    (tmp_path / "kept").mkdir()  # a folder the user made: kept, with nothing of the run in it
+    assert main([*common, "--out", str(tmp_path / "kept")]) == 2
+    assert list((tmp_path / "kept").rglob("*")) == []
