@@ -47,3 +47,19 @@ def cad_corridor(tmp_path) -> tuple[Path, Path]:
     mesh.export(tmp_path / "corridor.obj")
     np.savetxt(tmp_path / "route.csv", np.array([[1.0, 0, 0], [8, 0, 0]]) @ to_y_up.T * 1000, delimiter=",")
     return tmp_path / "corridor.obj", tmp_path / "route.csv"
+
+
+@pytest.fixture
+def rerun_table():
+    """A Rerun recording read back as one Arrow table on a time line, by rerun's own catalog reader (in
+    this process; skipped where rerun-sdk's catalog extra is not installed)."""
+    rr = pytest.importorskip("rerun")
+    pytest.importorskip("datafusion")
+
+    def read(path, index: str):
+        with rr.server.Server(datasets={"drive": [str(path)]}) as server:
+            client = server.client()
+            dataset = client.get_dataset("drive")
+            return dataset.reader(index=index).to_arrow_table()
+
+    return read

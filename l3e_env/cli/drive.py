@@ -15,6 +15,7 @@ from .options import (
     add_fusion_options,
     add_max_steps,
     add_mesh_options,
+    add_rerun_option,
     float_list,
     fusion_settings,
     mesh_options_given,
@@ -33,7 +34,10 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     args.out = str(out)  # the resolved options are written beside it
     print(f"writing the demo into {out.resolve()}")
     driving = DriveOptions(args.sensor, args.seed, params, max_steps=args.max_steps)
-    result = run_demo(out, args.scene, driving, args.checkpoint, progress=not args.quiet)
+    from l3e_env.experiments.rerun_log import open_command, rerun_available
+
+    rerun = args.rerun or (out / "drive.rrd" if rerun_available() else None)
+    result = run_demo(out, args.scene, driving, args.checkpoint, progress=not args.quiet, rerun=rerun)
     print(f"{result['steps']} steps, goal {'reached' if result['reached_goal'] else 'NOT reached'}")
     from l3e_env.localizability.labels import AXES
 
@@ -43,6 +47,8 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         print(f"  {place:8s}" + "".join(f"{v:7.2f}" for v in share))
     for f in result["files"]:
         print(f"  {f}")
+    if rerun is not None:
+        print(f"see the drive scan by scan: {open_command(rerun)}")
     return 0 if result["reached_goal"] else 1
 
 
@@ -97,6 +103,7 @@ def _cmd_ate(args: argparse.Namespace) -> int:
         max_steps=args.max_steps,
         baselines=args.baseline or [],
         frontends=args.frontend or ["icp"],
+        rerun=args.rerun,
     )
     if args.seeds > 1:
         seeds = range(args.seed, args.seed + args.seeds)
@@ -211,6 +218,7 @@ def _add_demo(sub: argparse._SubParsersAction) -> None:
     add_max_steps(p)
     p.add_argument("--checkpoint", help="classifier checkpoint (default: the shipped model)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_rerun_option(p, "the drive (default: drive.rrd in the output folder, where rerun-sdk is installed)")
     add_mesh_options(p)
     p.set_defaults(func=_cmd_demo)
 
@@ -282,6 +290,7 @@ def _add_ate(sub: argparse._SubParsersAction) -> None:
         help="processes that judge the route with scanmc before the fusion (default 1)",
     )
     p.add_argument("--quiet", action="store_true")
+    add_rerun_option(p, "the drive, its scans and each row's estimate, flags and error (FILE-seed-N.rrd with --seeds)")
     add_mesh_options(p)
     p.set_defaults(func=_cmd_ate)
 

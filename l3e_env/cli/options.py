@@ -273,6 +273,23 @@ def add_max_steps(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def rerun_file(text: str) -> str:
+    """--rerun's value: a path ending in .rrd."""
+    if not text.lower().endswith(".rrd"):
+        raise argparse.ArgumentTypeError(f"a Rerun recording is a .rrd file, got '{text}'")
+    return text
+
+
+def add_rerun_option(parser: argparse.ArgumentParser, what: str) -> None:
+    """--rerun FILE.rrd: the run as a Rerun recording (experiments.rerun_log; the `viewer` extra)."""
+    parser.add_argument(
+        "--rerun",
+        type=rerun_file,
+        metavar="FILE.rrd",
+        help=f"also write {what} as a Rerun recording, opened with 'rerun FILE.rrd' (needs pip install 'l3e[viewer]')",
+    )
+
+
 def add_device_option(parser: argparse.ArgumentParser) -> None:
     """--device: where the network runs (cpu, cuda, auto); the classifier names a missing GPU."""
     parser.add_argument(

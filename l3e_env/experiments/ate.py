@@ -20,7 +20,7 @@ import numpy as np
 from fusion import (
     FusionConfig,
 )
-from l3e_env.config import FusionSettings, LidarConfig, OdometryConfig, to_dict
+from l3e_env.config import FusionSettings, LidarConfig, OdometryConfig, RobotConfig, to_dict
 from l3e_env.detection.detectors import (
     CascadeDetector,
     Detector,
@@ -95,7 +95,8 @@ class AteOptions:
     ends whose steps the fusion takes ("icp": scan-to-scan ICP; or a baseline's name: its relative
     motions with the ICP's information, BaselineRun.registrations); every detector is fused with each,
     the rows of a front end other than ICP named "<detector> @<front end>". maps: each row's map (a
-    PLY and a top view) written beside the table (a benchmark of many drives leaves them out)."""
+    PLY and a top view) written beside the table (a benchmark of many drives leaves them out). rerun:
+    a Rerun recording of the drive and its rows written there (experiments.rerun_log; rerun-sdk)."""
 
     sensor: str = "vlp16"
     seed: int = 0
@@ -107,6 +108,7 @@ class AteOptions:
     baselines: list[str] = field(default_factory=list)
     frontends: list[str] = field(default_factory=lambda: ["icp"])
     maps: bool = True
+    rerun: str | Path | None = None
 
     def check(self) -> None:
         """ValueError naming a setting no drive can use (and a missing baseline package), before the drive."""
@@ -115,6 +117,10 @@ class AteOptions:
         if not self.frontends or any(f != "icp" and f not in BASELINES for f in self.frontends):
             raise ValueError(f"front ends: icp or one of {', '.join(BASELINES)}, got {self.frontends}")
         check_baselines([*self.baselines, *(f for f in self.frontends if f != "icp")])
+        if self.rerun:
+            from .rerun_log import _rerun
+
+            _rerun()  # rerun-sdk missing: said before the drive
 
 
 def run_ate_seeds(
@@ -128,7 +134,8 @@ def run_ate_seeds(
 ) -> AteSeeds:
     """`run_ate` on one drive per seed, each into `out_dir/seed-<seed>`, then the summary over them
     (`summarize_seeds`) into seeds.json and seeds.png; `on_drive(seed, run)` sees each drive as it ends.
-    `options`: run_ate's (not a recording: that is one drive; their seed is each drive's)."""
+    `options`: run_ate's (not a recording: that is one drive; their seed is each drive's; a Rerun
+    recording FILE.rrd is written per drive as FILE-seed-<seed>.rrd)."""
     options = options or AteOptions()
     if len(seeds) < 1:
         raise ValueError("give one seed or more")
@@ -137,7 +144,8 @@ def run_ate_seeds(
     out = Path(out_dir)
     runs = {}
     for seed in seeds:
-        runs[seed] = run_ate(out / f"seed-{seed}", scene, detectors, replace(options, seed=seed), progress)
+        rerun = Path(options.rerun).with_stem(f"{Path(options.rerun).stem}-seed-{seed}") if options.rerun else None
+        runs[seed] = run_ate(out / f"seed-{seed}", scene, detectors, replace(options, seed=seed, rerun=rerun), progress)
         if on_drive is not None:
             on_drive(seed, runs[seed])
     summary = summarize_seeds({seed: run.rows for seed, run in runs.items()})
@@ -212,6 +220,10 @@ def run_ate(
         "rows": [r.record() for r in rows],
     }
     written = write_ate(out, summary, drive, results, options.maps)
+    if options.rerun:
+        from .rerun_log import log_drive
+
+        written.append(log_drive(options.rerun, drive.scene.mesh, drive.rec, results, RobotConfig.dt))
     return AteRun(out, rows, drive.raw.sweep, written)
 
 

@@ -29,11 +29,13 @@ def run_demo(
     checkpoint: str | None = None,
     classify_every: int = 5,
     progress: bool = True,
+    rerun: str | Path | None = None,
 ) -> dict:
     """Drive the route (as `options` say: the LiDAR, the seed, make_scene's arguments, `max_steps` to
     stop early), save a top view of the path and scan pictures at up to three places, and judge every
     `classify_every`-th scan with the learned detector (the shipped model unless `checkpoint` names
-    another): a timeline of its probabilities and the flagged share per axis.
+    another): a timeline of its probabilities and the flagged share per axis. `rerun`: the drive also
+    written there as a Rerun recording (experiments.rerun_log: the path, each step's scan, the flags).
 
     Returns a summary (steps, reached goal, flagged shares, files written). For the mine the
     places are the yard, the tunnel and the quarry; other scenes use 20 %, 50 % and 80 % of the route.
@@ -53,7 +55,13 @@ def run_demo(
     out.mkdir(parents=True, exist_ok=True)
     dump_yaml(config, out / "config.yaml")
     env.reset(seed=options.seed)
-    drove = _drive(env, detector, classify_every, progress)
+    log = None
+    if rerun is not None:
+        from .rerun_log import DriveLog
+
+        log = DriveLog(rerun, f"demo-{scene}-seed-{options.seed}", [], options.seed)
+        log.scene(env.scene.mesh)
+    drove = _drive(env, detector, classify_every, progress, log)
     env.close()
     trajectory = np.array([T[:3, 3] for T in drove.poses])
     files = [_plot_path(out / "path_topdown.png", env, trajectory, drove.snapshots)]
@@ -64,6 +72,8 @@ def run_demo(
     np.savetxt(out / "trajectory.txt", trajectory, header="x y z (ground truth, world frame, 10 Hz)")
     if drove.judged:
         files.append(_plot_localizability(out / "localizability.png", env, trajectory, drove.judged, detector))
+    if log is not None:
+        files.append(log.close())
     return {
         "steps": len(drove.poses) - 1,
         "reached_goal": drove.reached,
@@ -80,9 +90,9 @@ class _Drove(NamedTuple):
     reached: bool
 
 
-def _drive(env: NavigationEnv, detector, classify_every: int, progress: bool) -> _Drove:
+def _drive(env: NavigationEnv, detector, classify_every: int, progress: bool, log=None) -> _Drove:
     """The route followed to its end: the poses, a scan from each place, and every `classify_every`-th
-    scan judged by the detector."""
+    scan judged by the detector; each step written into `log` (a rerun_log.DriveLog) where given."""
     follower = RouteFollower(env.route)
     poses, snapshots, judged = [env.robot.T_w_b.copy()], {}, []
     route_len = len(follower.route)
@@ -105,14 +115,27 @@ def _drive(env: NavigationEnv, detector, classify_every: int, progress: bool) ->
             shot = next((name for name, at in ROUTE_SHOTS.items() if frac >= at and name not in snapshots), None)
         if shot and shot not in snapshots:
             snapshots[shot] = (info["T_w_b"].copy(), env.scan.points.copy())
+        pred = None
         if (len(poses) - 1) % classify_every == 0:
             pred = detector.predict(env.scan.points, None, env.robot.T_w_s)
             if pred.known:
                 judged.append((len(poses) - 1, place or "", pred.probabilities, pred.mask))
+        if log is not None:
+            log.step(_step_log(len(poses) - 1, env, judged[-1] if judged else None))
     if reached:
         bar.n = bar.total  # arrived: the route is done whatever was walked round it
     bar.close()
     return _Drove(poses, snapshots, judged, bool(reached))
+
+
+def _step_log(step: int, env: NavigationEnv, last: tuple | None):
+    """The step as the recording shows it: the true path, the scan at the true pose, the flags of the
+    last judged scan (held until the next)."""
+    from .rerun_log import StepLog
+
+    flags = (None, None) if last is None else (np.asarray(last[2]), np.asarray(last[3]))
+    T = env.robot.T_w_b
+    return StepLog(step, step * env.robot.config.dt, T, {}, env.scan.points, env.robot.T_w_s, *flags)
 
 
 def _flagged_shares(judged: list) -> dict[str, np.ndarray]:

@@ -86,7 +86,7 @@ def test_sweep_thresholds_must_be_numbers(capsys):
 
 
 @pytest.mark.slow
-def test_demo_drives_the_mine_and_writes_pictures(tmp_path, capsys):
+def test_demo_drives_the_mine_and_writes_pictures(tmp_path, capsys, rerun_table):
     assert main(["demo", "--out", str(tmp_path), "--quiet"]) == 0
     names = {p.name for p in tmp_path.iterdir()}
     assert {
@@ -102,6 +102,13 @@ def test_demo_drives_the_mine_and_writes_pictures(tmp_path, capsys):
     assert all((tmp_path / n).stat().st_size > 10_000 for n in names if n.endswith(".png"))
     assert main(["judge", str(tmp_path / "scan_tunnel.npy"), "--detector", "eigen:30"]) == 0  # the README's
     assert "scan_tunnel.npy" in capsys.readouterr().out  # quickstart
+    if "drive.rrd" in names:  # rerun-sdk installed (the dev extra): the drive's recording, and how to open it
+        assert f"rerun {tmp_path / 'drive.rrd'}" in out and (tmp_path / "drive.rrd").stat().st_size < 100e6
+        table = rerun_table(tmp_path / "drive.rrd", "step")
+        entities = {c.split(":")[0] for c in table.column_names}
+        assert {"/world/truth", "/world/scan", "/flags/x/probability", "/flags/yaw/flagged"} <= entities
+        steps = int(out.split(" steps,")[0].split()[-1])
+        assert table.column("step").to_pylist() == list(range(steps + 1))
 
 
 def test_record_options_give_the_imu_asked_for():

@@ -1,0 +1,212 @@
+"""A drive, or a set of judged scans, as a Rerun recording (`.rrd`): the scene's mesh once, the true
+path and each fused row's estimate growing step by step, the scan of each step in the world frame at
+the estimate's pose coloured by its flags, each axis's probability and flag, and each row's error, on
+the time lines `step` and `sim_time`, with a default layout. Open one with `rerun FILE.rrd`.
+
+The only module of the project that imports rerun-sdk (the `viewer` extra): nothing else needs it.
+Entities (docs/rerun.md): world/scene, world/truth, world/estimate/<row>, world/scan, flags/<axis>/
+probability, flags/<axis>/flagged, error/<row>; a judged file's scan under scans/<name>."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from l3e_env.localizability.labels import AXES
+
+if TYPE_CHECKING:
+    import trimesh
+
+MAX_SCAN_POINTS = 3000  # a logged scan is a random subset of at most this many of its points (the file's size)
+FREE = (90, 200, 90)  # a scan whose axes are all localizable
+FLAGGED = (230, 60, 50)  # a scan with a flagged axis
+UNJUDGED = (160, 160, 160)
+PATH_COLOURS = [(240, 240, 240), (60, 140, 250), (250, 170, 40), (170, 90, 230), (40, 200, 200), (230, 90, 160)]
+
+
+class RerunMissing(RuntimeError):
+    """rerun-sdk is not installed: the message says how to install it."""
+
+
+def rerun_available() -> bool:
+    try:
+        import rerun  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def _rerun() -> Any:
+    try:
+        import rerun
+    except ImportError as exc:
+        raise RerunMissing(
+            "--rerun writes a Rerun recording with rerun-sdk, which is not installed: pip install 'l3e[viewer]'"
+        ) from exc
+    return rerun
+
+
+def open_command(path: str | Path) -> str:
+    """The line that opens a recording (the viewer comes with rerun-sdk)."""
+    return f"rerun {path}"
+
+
+@dataclass(frozen=True)
+class StepLog:
+    """What one step shows: its index and time, the true pose, each row's estimate (body poses, 4x4),
+    the scan (sensor frame) with the pose it is placed at, and the flags of the row that placed it."""
+
+    step: int
+    seconds: float
+    truth: np.ndarray
+    estimates: dict[str, np.ndarray]
+    scan: np.ndarray | None = None
+    T_w_s: np.ndarray | None = None
+    probabilities: np.ndarray | None = None
+    mask: np.ndarray | None = None
+
+
+class DriveLog:
+    """A recording written step by step into `path` (a new file; the folder is made)."""
+
+    def __init__(self, path: str | Path, name: str, rows: list[str], seed: int = 0):
+        rr = _rerun()
+        self.rr, self.path, self.rows = rr, Path(path), list(rows)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.rec = rr.RecordingStream("l3e", recording_id=name)
+        self.rec.save(str(self.path), default_blueprint=_blueprint(rr, self.rows))
+        self.rng = np.random.default_rng(seed)
+        self.last: dict[str, np.ndarray] = {}
+
+    def scene(self, mesh: trimesh.Trimesh) -> None:
+        """The scene's mesh, once (static: on every time line)."""
+        self.rec.log(
+            "world/scene",
+            self.rr.Mesh3D(
+                vertex_positions=np.asarray(mesh.vertices, np.float32),
+                triangle_indices=np.asarray(mesh.faces, np.uint32),
+                albedo_factor=(150, 150, 160, 255),
+            ),
+            static=True,
+        )
+
+    def step(self, s: StepLog) -> None:
+        rr, rec = self.rr, self.rec
+        rec.set_time("step", sequence=s.step)
+        rec.set_time("sim_time", duration=s.seconds)
+        for i, (name, T) in enumerate([("truth", s.truth), *s.estimates.items()]):
+            entity = "world/truth" if name == "truth" else f"world/estimate/{_entity(name)}"
+            here = np.asarray(T[:3, 3], np.float32)
+            before = self.last.get(entity, here)
+            self.last[entity] = here
+            colour = PATH_COLOURS[i % len(PATH_COLOURS)]
+            rec.log(entity, rr.LineStrips3D([[before, here]], colors=[colour], radii=0.04))
+            if name != "truth":
+                rec.log(f"error/{_entity(name)}", rr.Scalars(float(np.linalg.norm(T[:3, 3] - s.truth[:3, 3]))))
+        if s.scan is not None and s.T_w_s is not None:
+            points = _thinned(s.scan, self.rng)
+            world = points @ s.T_w_s[:3, :3].T + s.T_w_s[:3, 3]
+            colour = UNJUDGED if s.mask is None else FLAGGED if np.any(s.mask) else FREE
+            rec.log("world/scan", rr.Points3D(world.astype(np.float32), colors=[colour], radii=0.03))
+        if s.probabilities is not None and s.mask is not None:
+            for axis, p, flagged in zip(AXES, s.probabilities, s.mask):
+                rec.log(f"flags/{axis}/probability", rr.Scalars(float(p)))
+                rec.log(f"flags/{axis}/flagged", rr.Scalars(float(flagged)))
+
+    def close(self) -> Path:
+        self.rec.flush()
+        self.rec.disconnect()
+        return self.path
+
+
+def _entity(name: str) -> str:
+    """A row's name as one entity path part ('eigen:30' -> 'eigen_30', 'odometry only' -> 'odometry_only')."""
+    return "".join(c if c.isalnum() or c in "-_" else "_" for c in name)
+
+
+def _thinned(points: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    points = np.asarray(points)[:, :3]
+    if len(points) <= MAX_SCAN_POINTS:
+        return points
+    return points[np.sort(rng.choice(len(points), MAX_SCAN_POINTS, replace=False))]
+
+
+def _blueprint(rr: Any, rows: list[str]) -> Any:
+    """The default layout: the 3-D view (paths kept from the start, the scan of the moment) beside the
+    flags over time above each row's error."""
+    import rerun.blueprint as rrb
+
+    whole_drive = rrb.VisibleTimeRanges(
+        [
+            rrb.VisibleTimeRange(
+                timeline, start=rrb.TimeRangeBoundary.infinite(), end=rrb.TimeRangeBoundary.cursor_relative()
+            )
+            for timeline in ("step", "sim_time")
+        ]
+    )
+    paths = ["world/truth", *(f"world/estimate/{_entity(r)}" for r in rows)]
+    world = rrb.Spatial3DView(
+        origin="world",
+        name="drive",
+        overrides={path: [whole_drive] for path in paths},
+    )
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            world,
+            rrb.Vertical(
+                rrb.TimeSeriesView(origin="flags", name="flags (probability, flagged)"),
+                rrb.TimeSeriesView(origin="error", name="error against the truth (m)"),
+            ),
+            column_shares=[3, 2],
+        ),
+        collapse_panels=True,
+    )
+
+
+def log_judged(path: str | Path, judged: list[tuple[str, np.ndarray, np.ndarray | None, dict]]) -> Path:
+    """Judged scans (name, points in the level frame, up, {detector: (probabilities, mask)}) as one
+    recording, each scan its own entity scans/<name> with its flags on the time line `scan`."""
+    rr = _rerun()
+    rec = rr.RecordingStream("l3e", recording_id="judged")
+    rec.save(str(path))
+    rng = np.random.default_rng(0)
+    for k, (name, points, _, predictions) in enumerate(judged):
+        rec.set_time("scan", sequence=k)
+        flagged = any(np.any(mask) for _, mask in predictions.values())
+        colour = FLAGGED if flagged else FREE if predictions else UNJUDGED
+        rec.log(f"scans/{_entity(name)}", rr.Points3D(_thinned(points, rng).astype(np.float32), colors=[colour]))
+        for detector, (probabilities, mask) in predictions.items():
+            for axis, p, f in zip(AXES, probabilities, mask):
+                rec.log(f"flags/{_entity(detector)}/{axis}/probability", rr.Scalars(float(p)))
+                rec.log(f"flags/{_entity(detector)}/{axis}/flagged", rr.Scalars(float(f)))
+    rec.flush()
+    rec.disconnect()
+    return Path(path)
+
+
+def log_drive(path: str | Path, mesh: trimesh.Trimesh, drive: Any, results: list, dt: float) -> Path:
+    """A recorded drive (a DriveRecord: truth, scans, the sensor's mount) and its fused rows (each with
+    its trajectory, masks and probabilities) as a recording; the scan of each step is placed by, and
+    coloured with the flags of, the first row that has a detector (else the first row: the legs).
+    Returns the file."""
+    shown = next((r for r in results if not r.name.startswith("odometry")), results[0])
+    log = DriveLog(path, f"{drive.scene}-seed-{drive.seed}", [r.name for r in results], drive.seed)
+    log.scene(mesh)
+    for k, truth in enumerate(drive.ground_truth):
+        judged = 0 < k <= len(shown.masks)
+        log.step(
+            StepLog(
+                k,
+                k * dt,
+                truth,
+                {r.name: r.trajectory[k] for r in results if k < len(r.trajectory)},
+                drive.scans[k] if k < len(drive.scans) else None,
+                shown.trajectory[k] @ drive.T_b_s if k < len(shown.trajectory) else None,
+                np.asarray(shown.probabilities[k - 1]) if judged else None,
+                np.asarray(shown.masks[k - 1]) if judged else None,
+            )
+        )
+    return log.close()
