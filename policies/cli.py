@@ -15,6 +15,7 @@ from l3e_env.cli.options import (
     SENSOR_HELP,
     add_fusion_options,
     add_mesh_options,
+    add_rerun_option,
     fusion_settings,
     mesh_options_given,
     number_between,
@@ -163,6 +164,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         recovery=args.recovery,
         avoid=args.avoid,
         scene_params={k: v for k, v in scenes.items() if v},
+        rerun=args.rerun,
     )
     rows = evaluate_policies(out, args.policy or ["shortest", "planner"], list(scenes), options, not args.quiet, _say)
     print(format_rows(rows))
@@ -336,6 +338,7 @@ def _add_evaluate(psub: argparse._SubParsersAction, common: argparse.ArgumentPar
     add_fusion_options(g)
     g.add_argument("--seed", type=int, default=0)
     g.add_argument("--out", help="output folder (default: l3e_out/policy-eval-<time>)")
+    add_rerun_option(g, "each episode this run drives (map, paths, scans, flags) as FILE-<policy>-<scene>-<seed>.rrd")
     add_mesh_options(g, several=True)
     g.set_defaults(func=_cmd_evaluate)
 

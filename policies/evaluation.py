@@ -195,7 +195,8 @@ class EvalOptions:
     `avoid`: the policies keep off the obstacles the scan shows ahead (FreeHeadings), both None: as the
     folder's episodes so far, else on; `scene_params`: make_scene's arguments by scene name;
     `stop_radius`: steering on the estimate, the robot stops once its estimate is this close to the
-    goal (EnvConfig.stop_radius), and succeeds where its true pose is within the goal radius."""
+    goal (EnvConfig.stop_radius), and succeeds where its true pose is within the goal radius. `rerun`:
+    each episode run also written as a Rerun recording FILE-<policy>-<scene>-<seed>.rrd beside it."""
 
     episodes: int = 50
     seed: int = 0
@@ -209,6 +210,7 @@ class EvalOptions:
     avoid: bool | None = None
     scene_params: dict[str, dict] = field(default_factory=dict)
     stop_radius: float = EnvConfig().stop_radius
+    rerun: str | None = None
 
     def source(self, scene: str) -> MapSource:
         return MapSource(scene, self.detector, self.cache_dir, self.scene_params.get(scene))
@@ -247,7 +249,8 @@ def run_episode(job: EpisodeJob) -> Episode:
         local = FreeHeadings() if options.avoid is not False else None
         steer, planned = make_controller(job.policy, source, options.lam, env.config.odometry, ctx, local)
         controller = BackOff(steer)
-        path, length, info = _drive(env, controller, job, local)
+        log = _episode_log(job, env, ctx) if options.rerun else None
+        path, length, info = _drive(env, controller, job, local, log)
         expected = expected_drift_along(path, ctx.built_map, drift_rates(env.config.odometry))
         offset = info["fused_T_w_b"][:3, 3] - info["T_w_b"][:3, 3]
         return Episode(
@@ -270,11 +273,26 @@ def run_episode(job: EpisodeJob) -> Episode:
         env.close()
 
 
+def _episode_log(job: EpisodeJob, env: NavigationEnv, ctx: SceneContext):
+    """The episode's Rerun recording (experiments.rerun_log), its scene and localizability map logged."""
+    from l3e_env.experiments.ate_tables import file_stem
+    from l3e_env.experiments.rerun_log import DriveLog
+
+    assert job.options.rerun is not None
+    base = Path(job.options.rerun)
+    log = DriveLog(base.with_stem(f"{base.stem}-{file_stem(job.policy)}-{job.scene}-{job.seed}"), job.scene, ["fused"])
+    log.scene(env.scene.mesh)
+    built = ctx.built_map
+    flagged = np.nanmean(built.probabilities >= built.thresholds, axis=(1, 2))  # share of headings and axes
+    log.map(np.c_[built.positions, np.full(len(built.positions), env.robot.T_w_b[2, 3])], flagged)
+    return log
+
+
 def _drive(
-    env: NavigationEnv, controller: BackOff, job: EpisodeJob, local: FreeHeadings | None
+    env: NavigationEnv, controller: BackOff, job: EpisodeJob, local: FreeHeadings | None, log=None
 ) -> tuple[np.ndarray, float, dict[str, Any]]:
     """The episode's steps until it ends: the true path (every fifth step), its length and the last
-    step's info (with whether the episode terminated)."""
+    step's info (with whether the episode terminated); each step written into `log` where given."""
     _, info = env.reset(seed=job.seed)
     trail, length, terminated, truncated = [info["T_w_b"][:2, 3]], 0.0, False, False
     while not (terminated or truncated):
@@ -289,8 +307,29 @@ def _drive(
         length += float(np.linalg.norm(info["T_w_b"][:3, 3] - previous))
         if env.steps % 5 == 0:
             trail.append(info["T_w_b"][:2, 3])
+        if log is not None:
+            log.step(_step(env, info))
+    if log is not None:
+        log.close()
     trail.append(info["T_w_b"][:2, 3])
     return np.array(trail), length, {**info, "terminated": terminated}
+
+
+def _step(env: NavigationEnv, info: dict[str, Any]):
+    from l3e_env.experiments.rerun_log import StepLog
+
+    fused = info["fused_T_w_b"]
+    known = info.get("localizability_known", False)
+    return StepLog(
+        env.steps,
+        env.steps * env.config.robot.dt,
+        info["T_w_b"],
+        {"fused": fused},
+        env.scan.points,
+        fused @ env.robot.T_b_s,
+        info["localizability_probabilities"] if known else None,
+        info["localizability_mask"] if known else None,
+    )
 
 
 def summarize(episodes: list[Episode]) -> list[dict[str, Any]]:
@@ -452,6 +491,10 @@ def _check_evaluation(policies: list[str], options: EvalOptions) -> None:
     odometry_fusion_config(OdometryConfig(), options.fusion_settings)
     for policy in policies:
         check_policy(policy)
+    if options.rerun:
+        from l3e_env.experiments.rerun_log import check_rerun
+
+        check_rerun()
 
 
 def _build_maps(

@@ -158,6 +158,10 @@ def _cmd_record(args: argparse.Namespace) -> int:
     from l3e_env.sim.patterns import get_pattern
     from scenes import make_scene
 
+    if args.rerun:
+        from l3e_env.experiments.rerun_log import check_rerun
+
+        check_rerun()  # rerun-sdk missing: said before the drive
     pattern = get_pattern(args.sensor)
     scene = make_scene(args.scene, **params)  # built once: the size estimate and the drive share it
     if not args.still >= 0:
@@ -181,6 +185,12 @@ def _cmd_record(args: argparse.Namespace) -> int:
         Path(args.recording).parent.mkdir(parents=True, exist_ok=True)
         rec.save(args.recording)
         print(f"written: {args.recording} (l3e ate --recording {args.recording} fuses this same drive)")
+    if args.rerun:
+        from l3e_env.experiments.fuse import odometry_only
+        from l3e_env.experiments.rerun_log import log_drive, open_command
+
+        log_drive(args.rerun, scene.mesh, rec, [odometry_only(rec)], RobotConfig.dt)
+        print(f"written: {args.rerun} (the drive and the legs' estimate; open it with: {open_command(args.rerun)})")
     return 0
 
 
@@ -308,6 +318,7 @@ def _add_record(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0)
     add_max_steps(p)
     p.add_argument("--recording", help="also save the drive as a recording.npz for l3e ate --recording")
+    add_rerun_option(p, "the drive, its scans and the legs' estimate")
     p.add_argument("--imu-rate", type=float, default=200.0, help="rate of /imu in Hz (default 200; 0: no IMU)")
     p.add_argument(
         "--imu-orientation",

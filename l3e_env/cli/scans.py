@@ -8,7 +8,7 @@ from pathlib import Path
 
 from l3e_env.config.detector_spec import DETECTOR_GRAMMAR, detector_spec
 
-from .options import CommandError, add_device_option, sensor_name
+from .options import CommandError, add_device_option, add_rerun_option, sensor_name
 
 
 def _judge_usage_problem(args: argparse.Namespace) -> str | None:
@@ -61,6 +61,7 @@ def _judge_all(args: argparse.Namespace, scans, specs: list[str]) -> tuple[list,
     the judgements and the sensor the scans were read as."""
     from l3e_env.config import LidarConfig
     from l3e_env.experiments.judge import JudgeOptions, format_judgement, judge_scans
+    from l3e_env.experiments.rerun_log import MAX_SCAN_POINTS
 
     sensor = [args.sensor]
 
@@ -81,7 +82,7 @@ def _judge_all(args: argparse.Namespace, scans, specs: list[str]) -> tuple[list,
         scans,
         specs,
         LidarConfig(model=args.sensor) if args.sensor else None,
-        JudgeOptions(args.seed, args.workers, _gravity(args.gravity), args.device),
+        JudgeOptions(args.seed, args.workers, _gravity(args.gravity), args.device, MAX_SCAN_POINTS * bool(args.rerun)),
         on_sensor=recognised,
         sensor_index=args.sensor_index,
     ):
@@ -121,6 +122,10 @@ def _cmd_judge(args: argparse.Namespace) -> int:
     problem = _judge_usage_problem(args)
     if problem:
         raise CommandError(problem)
+    if args.rerun:
+        from l3e_env.experiments.rerun_log import check_rerun
+
+        check_rerun()  # rerun-sdk missing: said before any scan is judged
     metadata = args.sensor if args.sensor and args.sensor.lower().endswith(".json") else None
     scans = (
         read_recording(args.bag, args.topic, args.every, args.start, args.end, metadata, args.sensor_index)
@@ -142,6 +147,10 @@ def _cmd_judge(args: argparse.Namespace) -> int:
         print(f"written: {args.plot}")
     if args.path_plot and judged:
         _judge_path_plot(args, judgements, where, route)
+    if args.rerun:
+        from l3e_env.experiments.rerun_log import log_judged, open_command
+
+        print(f"written: {log_judged(args.rerun, judgements)} (open it with: {open_command(args.rerun)})")
     failed = sum(j.error is not None for j in judgements)
     if not judgements:
         window = " between --start and --end" if args.start is not None or args.end is not None else ""
@@ -253,6 +262,7 @@ def _add_judge(sub: argparse._SubParsersAction) -> None:
     add_device_option(p)
     p.add_argument("--json", help="also write the scores here")
     p.add_argument("--plot", help="also draw the flagged axes scan by scan (over time for a bag) into this image")
+    add_rerun_option(p, "each scan (in its level frame, coloured by its flags) and each detector's scores")
     p.set_defaults(func=_cmd_judge)
 
 

@@ -118,9 +118,9 @@ class AteOptions:
             raise ValueError(f"front ends: icp or one of {', '.join(BASELINES)}, got {self.frontends}")
         check_baselines([*self.baselines, *(f for f in self.frontends if f != "icp")])
         if self.rerun:
-            from .rerun_log import _rerun
+            from .rerun_log import check_rerun
 
-            _rerun()  # rerun-sdk missing: said before the drive
+            check_rerun()  # rerun-sdk missing: said before the drive
 
 
 def run_ate_seeds(

@@ -65,18 +65,21 @@ class Judgement:
     frame: str | None = None  # how the cloud was turned into its sensor's lidar frame, where it was
     sensor: str | None = None  # the beam pattern it was judged with, where there was one
     up: str | None = None  # where the up direction (the level frame's z) came from, and the sensor's tilt
+    shown: np.ndarray | None = None  # a subset of the points in the level frame, where JudgeOptions.shown asks
 
 
 @dataclass(frozen=True)
 class JudgeOptions:
     """How a run judges its scans: scanmc's seed, the scans judged at a time, the up direction in the
     sensor's frame ((3,) for every scan or (N, 3) one per scan in order; None: each scan's ground
-    plane's fit, `up_direction`), and where a learned detector's network runs."""
+    plane's fit, `up_direction`), where a learned detector's network runs, and how many of each scan's
+    points its judgement keeps to be shown (a Rerun recording)."""
 
     seed: int = 0
     workers: int = 1
     gravity: np.ndarray | None = None
     device: str = "cpu"
+    shown: int = 0  # keep a random subset of this many of each scan's points, in its level frame (0: none)
 
 
 MAX_UP_FROM_GROUND_DEG = 60.0  # a given up direction this far from the ground plane's normal is refused
@@ -223,6 +226,7 @@ class _Panel:
             frame=scan.frame,
             sensor=scan.pattern.name if scan.pattern is not None else None,
             up=scan.how,
+            shown=_shown(scan, self.options.shown, rng) if self.options.shown else None,
         )
 
     def gravity_of(self, index: int) -> np.ndarray | None:
@@ -232,6 +236,15 @@ class _Panel:
         if index >= len(self.gravity):
             raise UpError(f"--gravity gives {len(self.gravity)} up directions, one per scan; scan {index + 1} has none")
         return self.gravity[index]
+
+
+def _shown(scan: LevelledScan, most: int, rng: np.random.Generator) -> np.ndarray:
+    """At most `most` of the scan's points (a random subset, drawn after the detectors' draws), turned
+    into its level frame."""
+    points = scan.points[:, :3]
+    if len(points) > most:
+        points = points[np.sort(rng.choice(len(points), most, replace=False))]
+    return (points @ level_pose(scan.up)[:3, :3].T).astype(np.float32)
 
 
 @dataclass

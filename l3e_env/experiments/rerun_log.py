@@ -4,8 +4,9 @@ the estimate's pose coloured by its flags, each axis's probability and flag, and
 the time lines `step` and `sim_time`, with a default layout. Open one with `rerun FILE.rrd`.
 
 The only module of the project that imports rerun-sdk (the `viewer` extra): nothing else needs it.
-Entities (docs/rerun.md): world/scene, world/truth, world/estimate/<row>, world/scan, flags/<axis>/
-probability, flags/<axis>/flagged, error/<row>; a judged file's scan under scans/<name>."""
+Entities (docs/rerun.md): world/scene, world/truth, world/estimate/<row>, world/scan, world/map (a
+navigation episode's), flags/<axis>/probability, flags/<axis>/flagged, error/<row>; a judged file's
+scan under scans/<name>."""
 
 from __future__ import annotations
 
@@ -47,6 +48,11 @@ def _rerun() -> Any:
             "--rerun writes a Rerun recording with rerun-sdk, which is not installed: pip install 'l3e[viewer]'"
         ) from exc
     return rerun
+
+
+def check_rerun() -> None:
+    """RerunMissing, saying how to install rerun-sdk, where it is not installed."""
+    _rerun()
 
 
 def open_command(path: str | Path) -> str:
@@ -92,6 +98,14 @@ class DriveLog:
             ),
             static=True,
         )
+
+    def map(self, positions: np.ndarray, flagged: np.ndarray) -> None:
+        """A localizability map, once: its positions (N, 3) coloured from green (every axis localizable
+        there, in every heading) to red (every axis flagged), by the share flagged (N,)."""
+        share = np.clip(np.nan_to_num(np.asarray(flagged, float)), 0.0, 1.0)[:, None]
+        colours = (np.array(FREE) * (1 - share) + np.array(FLAGGED) * share).astype(np.uint8)
+        points = self.rr.Points3D(np.asarray(positions, np.float32), colors=colours, radii=0.08)
+        self.rec.log("world/map", points, static=True)
 
     def step(self, s: StepLog) -> None:
         rr, rec = self.rr, self.rec
@@ -166,21 +180,28 @@ def _blueprint(rr: Any, rows: list[str]) -> Any:
     )
 
 
-def log_judged(path: str | Path, judged: list[tuple[str, np.ndarray, np.ndarray | None, dict]]) -> Path:
-    """Judged scans (name, points in the level frame, up, {detector: (probabilities, mask)}) as one
-    recording, each scan its own entity scans/<name> with its flags on the time line `scan`."""
+def log_judged(path: str | Path, judgements: list) -> Path:
+    """Judged scans (experiments.judge.Judgement, with the points they keep to be `shown`) as one
+    recording: each scan its own entity scans/<name>, in its level frame, coloured by its flags (any
+    detector's), and each detector's scores under flags/<detector>/<axis>, on the time line `scan`."""
     rr = _rerun()
     rec = rr.RecordingStream("l3e", recording_id="judged")
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
     rec.save(str(path))
-    rng = np.random.default_rng(0)
-    for k, (name, points, _, predictions) in enumerate(judged):
+    seen: set[str] = set()
+    for k, judged in enumerate(judgements):
         rec.set_time("scan", sequence=k)
-        flagged = any(np.any(mask) for _, mask in predictions.values())
-        colour = FLAGGED if flagged else FREE if predictions else UNJUDGED
-        rec.log(f"scans/{_entity(name)}", rr.Points3D(_thinned(points, rng).astype(np.float32), colors=[colour]))
-        for detector, (probabilities, mask) in predictions.items():
-            for axis, p, f in zip(AXES, probabilities, mask):
-                rec.log(f"flags/{_entity(detector)}/{axis}/probability", rr.Scalars(float(p)))
+        entity = _entity(Path(judged.path).name)
+        entity = entity if entity not in seen else f"{entity}_{k}"  # the same file twice: two entities
+        seen.add(entity)
+        known = {name: p for name, p in judged.predictions.items() if p.known}
+        flagged = any(np.any(p.mask) for p in known.values())
+        if judged.shown is not None:
+            colour = FLAGGED if flagged else FREE if known else UNJUDGED
+            rec.log(f"scans/{entity}", rr.Points3D(judged.shown, colors=[colour], radii=0.03))
+        for detector, p in known.items():
+            for axis, probability, f in zip(AXES, p.probabilities, p.mask):
+                rec.log(f"flags/{_entity(detector)}/{axis}/probability", rr.Scalars(float(probability)))
                 rec.log(f"flags/{_entity(detector)}/{axis}/flagged", rr.Scalars(float(f)))
     rec.flush()
     rec.disconnect()

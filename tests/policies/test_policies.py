@@ -514,7 +514,7 @@ def test_a_crafted_policy_folder_runs_no_code_when_loaded_or_resumed(tmp_path, s
     assert not marker.exists()
 
 
-def test_full_pipeline_evaluation_on_the_small_fork(small_fork, monkeypatch, tmp_path):
+def test_full_pipeline_evaluation_on_the_small_fork(small_fork, monkeypatch, tmp_path, rerun_table):
     from policies import evaluation
     from policies.evaluation import EvalOptions, MapSource
 
@@ -523,8 +523,12 @@ def test_full_pipeline_evaluation_on_the_small_fork(small_fork, monkeypatch, tmp
     monkeypatch.setattr("l3e_env.envs.navigation.make_scene", lambda name, **kw: scene)
     # the legs' biases not estimated, scan to scan: there the corridor's masked axis costs the legs' drift
     plain = FusionSettings()
-    options = EvalOptions(episodes=1, detector="eigen:30", cache_dir=cache, lam=200.0, fusion_settings=plain)
+    rrd = str(tmp_path / "episode.rrd")
+    options = EvalOptions(episodes=1, detector="eigen:30", cache_dir=cache, lam=200.0, fusion_settings=plain, rerun=rrd)
     rows = evaluation.evaluate_policies(tmp_path, ["shortest", "planner"], ["fork-0"], options, progress=False)
+    table = rerun_table(tmp_path / "episode-planner-fork-0-0.rrd", "step")  # each episode as a Rerun recording
+    entities = {c.split(":")[0] for c in table.column_names}
+    assert {"/world/map", "/world/truth", "/world/estimate/fused", "/world/scan", "/flags/x/flagged"} <= entities
     shortest, planner = (
         evaluation.Episode(**json.loads(line)) for line in (tmp_path / "episodes.jsonl").read_text().splitlines()
     )

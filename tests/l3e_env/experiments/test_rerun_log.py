@@ -48,3 +48,35 @@ def test_rerun_is_refused_by_name_where_it_cannot_be_written(tmp_path, capsys, m
     args = ["ate", "--scene", "tunnel-0", "--rerun", str(tmp_path / "d.rrd"), "--out", str(tmp_path / "o")]
     assert main(args) == 2
     assert "pip install 'l3e[viewer]'" in capsys.readouterr().err
+
+
+def test_judged_scans_are_recorded_each_as_its_own_entity_with_its_flags(tmp_path, rng, capsys, rerun_table):
+    import json
+
+    import trimesh
+
+    from l3e_env.config import LidarConfig
+    from l3e_env.sim.lidar import Lidar
+    from l3e_env.sim.raycast import EmbreeCaster
+
+    def scan(extents):
+        room = trimesh.creation.box(extents).apply_translation([0.5, 0.3, 0.5])
+        return Lidar(EmbreeCaster(room, threads=1), LidarConfig()).scan(np.eye(4), rng).points
+
+    np.save(tmp_path / "corridor.npy", scan([200, 4, 3]))
+    np.save(tmp_path / "hall.npy", scan([20, 14, 3]))
+    files = [str(tmp_path / "corridor.npy"), str(tmp_path / "hall.npy")]
+    judged = ["judge", *files, "--detector", "eigen:30", "--json", str(tmp_path / "j.json")]
+    assert main([*judged, "--rerun", str(tmp_path / "judged.rrd")]) == 0
+    assert f"rerun {tmp_path / 'judged.rrd'}" in capsys.readouterr().out
+    table = rerun_table(tmp_path / "judged.rrd", "scan")
+    entities = {c.split(":")[0] for c in table.column_names}
+    assert {"/scans/corridor_npy", "/scans/hall_npy"} <= entities
+    corridor = [p for p in _column(table, "/scans/corridor_npy", "positions") if p is not None]
+    assert len(corridor) == 1 and 100 < len(corridor[0]) <= 3000
+    written = json.loads((tmp_path / "j.json").read_text())
+    flags = _column(table, "/flags/eigen_30/x/flagged", "scalars")
+    assert [f[0] for f in flags if f is not None] == [
+        float("x" in s["detectors"]["eigen:30"]["not_localizable"]) for s in written
+    ]
+    assert [f[0] for f in flags if f is not None] == [1.0, 0.0]  # the corridor's length, and the hall

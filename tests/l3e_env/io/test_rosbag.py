@@ -374,13 +374,18 @@ def test_swept_scans_are_stamped_when_they_began_with_each_point_s_time(tmp_path
 
 
 @pytest.mark.slow
-def test_record_cli_writes_a_drive_that_judge_reads_back(tmp_path, capsys):
-    bag, rec = tmp_path / "walls.bag", tmp_path / "walls.npz"
-    assert main(["record", "--scene", "primitives-1", "--out", str(bag), "--recording", str(rec), "--quiet"]) == 0
+def test_record_cli_writes_a_drive_that_judge_reads_back(tmp_path, capsys, rerun_table):
+    bag, rec, rrd = tmp_path / "walls.bag", tmp_path / "walls.npz", tmp_path / "walls.rrd"
+    argv = ["record", "--scene", "primitives-1", "--out", str(bag), "--recording", str(rec), "--rerun", str(rrd)]
+    assert main([*argv, "--quiet"]) == 0
     from l3e_env.experiments.drive import DriveRecord
 
     recording = DriveRecord.load(rec)
     assert recording.sweep
+    table = rerun_table(rrd, "step")  # the drive as a Rerun recording: its true path, step by step
+    strips = next(c for c in table.column_names if c.startswith("/world/truth:") and c.endswith("strips"))
+    truth = np.array([s[0][-1] for s in table.column(strips).to_pylist()])
+    np.testing.assert_allclose(truth, recording.ground_truth[:, :3, 3], atol=1e-4)
     scans = list(read_bag(bag, every=200))
     assert len(scans) == len(range(0, len(recording.ground_truth), 200))
     assert main(["judge", "--bag", str(bag), "--every", "200", "--detector", "eigen:30"]) == 0
