@@ -7,7 +7,7 @@ from l3e_env.config import FusionSettings, LidarConfig
 from l3e_env.detection.detectors import DCRegDetector, EigenvalueDetector, NoDetector, make_detector
 from l3e_env.experiments.ate import AteOptions, run_ate
 from l3e_env.experiments.ate_tables import AteRow, file_stem, format_seed_table, format_table, summarize_seeds
-from l3e_env.experiments.drive import DriveOptions, DriveRecord, record_run, register_sequence
+from l3e_env.experiments.drive import DriveOptions, DriveRecord, RegisteredSteps, record_run, register_sequence
 from l3e_env.experiments.fuse import fuse_recording
 from l3e_env.experiments.recast import OdometryAttitude, RecastCascade, RecastScans
 from l3e_env.localizability.labels import AXES
@@ -21,6 +21,23 @@ from scenes import make_scene
 def walls_run():
     rec = record_run("primitives-1", progress=False)  # two parallel walls: along-wall x is degenerate
     return rec, register_sequence(rec, RegistrationConfig(), progress=False)
+
+
+@pytest.fixture(scope="module")
+def walls_short(walls_run):
+    """The first 20 m of the walls' drive (200 steps), with its registrations: for the tests that check
+    what a run writes and how its options reach the fusion, which a shorter drive checks as well."""
+    from dataclasses import replace
+
+    rec, regs = walls_run
+    n = 200
+    short = replace(
+        rec, ground_truth=rec.ground_truth[: n + 1], odometry=rec.odometry[:n], scans=rec.scans[: n + 1],
+        samples=rec.samples[: n + 1],
+    )  # fmt: skip
+    first = RegisteredSteps(regs[:n])
+    first.start_ground = regs.start_ground
+    return short, first
 
 
 def test_masking_the_wall_axis_beats_full_icp(walls_run, tmp_path):
@@ -54,8 +71,8 @@ def test_masking_the_wall_axis_beats_full_icp(walls_run, tmp_path):
     assert eigen2.ate == pytest.approx(eigen.ate, rel=1e-9)
 
 
-def test_ate_from_a_recording_writes_results_and_figures(walls_run, tmp_path):
-    rec, _ = walls_run
+def test_ate_from_a_recording_writes_results_and_figures(walls_short, tmp_path):
+    rec, _ = walls_short
     rec.save(tmp_path / "rec.npz")
     run = run_ate(
         tmp_path / "out", "mine", ["eigen:30", "none"], AteOptions(recording=tmp_path / "rec.npz"), progress=False
@@ -102,10 +119,10 @@ def test_ate_from_a_recording_writes_results_and_figures(walls_run, tmp_path):
     assert summary["registration"]["downsampling_resolution"] == 0.15  # the registration that ran, written down
 
 
-def test_the_imu_attitude_joins_every_detector_alike_and_adds_its_own_reference_row(walls_run, tmp_path):
+def test_the_imu_attitude_joins_every_detector_alike_and_adds_its_own_reference_row(walls_short, tmp_path):
     from l3e_env.cli.main import main
 
-    rec, regs = walls_run
+    rec, regs = walls_short
     (plain,) = fuse_recording(rec, [NoDetector()], regs, progress=False)
     held, again = fuse_recording(
         rec, [NoDetector(), NoDetector()], regs, progress=False, settings=FusionSettings(attitude="full")
@@ -147,10 +164,10 @@ def test_the_imu_attitude_joins_every_detector_alike_and_adds_its_own_reference_
     assert not (tmp_path / "bad").exists()
 
 
-def test_the_hessian_weighs_the_icp_factor_and_the_settings_are_written(walls_run, tmp_path):
+def test_the_hessian_weighs_the_icp_factor_and_the_settings_are_written(walls_short, tmp_path):
     from fusion import FusionConfig
 
-    rec, regs = walls_run
+    rec, regs = walls_short
     rec.save(tmp_path / "rec.npz")
     (fixed,) = fuse_recording(rec, [NoDetector()], regs, fusion=FusionConfig(icp_covariance="fixed"), progress=False)
     (weighed,) = fuse_recording(rec, [NoDetector()], regs, progress=False)
@@ -177,12 +194,12 @@ def test_the_hessian_weighs_the_icp_factor_and_the_settings_are_written(walls_ru
     assert row["dcreg_flagged"][0] == [0.0] * 6 and (tmp_path / "sweep" / "tau_sweep.png").stat().st_size > 0
 
 
-def test_the_legs_bias_as_a_fusion_state_from_the_command_line(walls_run, tmp_path, capsys):
+def test_the_legs_bias_as_a_fusion_state_from_the_command_line(walls_short, tmp_path, capsys):
     from l3e_env.cli.main import main
     from l3e_env.config import OdometryConfig
     from l3e_env.sim.odometry import SCALE_WALK, odometry_fusion_config
 
-    rec, regs = walls_run
+    rec, regs = walls_short
     rec.save(tmp_path / "rec.npz")
     noisy = OdometryConfig(yaw_bias_std=0.004, z_bias_walk=0.002)
     config = odometry_fusion_config(noisy, FusionSettings(odometry_bias=("yaw",)))
@@ -225,12 +242,12 @@ def test_the_legs_bias_as_a_fusion_state_from_the_command_line(walls_run, tmp_pa
     assert not (tmp_path / "bad").exists()
 
 
-def test_a_swept_recording_says_so_when_replayed(walls_run, tmp_path, capsys):
+def test_a_swept_recording_says_so_when_replayed(walls_short, tmp_path, capsys):
     from dataclasses import replace
 
     from l3e_env.cli.main import main
 
-    rec, _ = walls_run
+    rec, _ = walls_short
     assert not rec.sweep
     replace(rec, sweep=True).save(tmp_path / "swept.npz")
     assert DriveRecord.load(tmp_path / "swept.npz").sweep
@@ -281,8 +298,8 @@ def test_a_swept_recording_says_so_when_replayed(walls_run, tmp_path, capsys):
         )
 
 
-def test_scanmc_in_a_replay_judges_scans_cast_again_at_the_true_poses(walls_run, tmp_path):
-    rec, _ = walls_run  # two parallel walls: x (along them) is degenerate, nothing else
+def test_scanmc_in_a_replay_judges_scans_cast_again_at_the_true_poses(walls_short, tmp_path):
+    rec, _ = walls_short  # two parallel walls: x (along them) is degenerate, nothing else
     rec.save(tmp_path / "rec.npz")
     run_ate(
         tmp_path / "out", "ignored", ["scanmc:4"], AteOptions(recording=tmp_path / "rec.npz", workers=2), progress=False
@@ -294,8 +311,8 @@ def test_scanmc_in_a_replay_judges_scans_cast_again_at_the_true_poses(walls_run,
     assert row["flagged"]["x"] > 0.8 and max(row["flagged"][a] for a in AXES[1:]) < 0.2
 
 
-def test_a_recast_detector_judges_every_stride_steps_alike_in_workers_and_holds_no_failure(walls_run):
-    rec, _ = walls_run
+def test_a_recast_detector_judges_every_stride_steps_alike_in_workers_and_holds_no_failure(walls_short):
+    rec, _ = walls_short
     scene = make_scene(rec.scene)
     lidar = Lidar(EmbreeCaster(scene.mesh), LidarConfig())
     poses = [T @ rec.T_b_s for T in rec.ground_truth[1:13]]
@@ -326,10 +343,10 @@ def test_a_recast_detector_judges_every_stride_steps_alike_in_workers_and_holds_
         failing.predict(rec.scans[0])
 
 
-def test_the_cascade_in_a_replay_checks_only_unsure_steps_alike_in_workers(walls_run):
+def test_the_cascade_in_a_replay_checks_only_unsure_steps_alike_in_workers(walls_short):
     from l3e_env.detection.detectors import CascadeDetector, LearnedDetector, ScanMCDetector
 
-    rec, _ = walls_run
+    rec, _ = walls_short
     scene = make_scene(rec.scene)
     lidar = Lidar(EmbreeCaster(scene.mesh), LidarConfig())
     poses = [T @ rec.T_b_s for T in rec.ground_truth[1:13]]
@@ -503,6 +520,8 @@ def test_ate_over_several_seeds_drives_each_and_writes_the_summary(tmp_path, cap
                 "eigen:30",
                 "--seed",
                 "7",
+                "--max-steps",
+                "150",
                 "--seeds",
                 "2",
                 "--quiet",
