@@ -261,7 +261,7 @@ def test_the_sdks_warnings_are_no_damage_and_are_said_once_per_file():
 
 @pytest.mark.slow
 def test_every_sensor_of_a_real_two_sensor_capture_is_judged_by_the_classifier_and_scanmc(tmp_path):
-    judged = list(judge_scans([POSE_DELTA], ["learned", "scanmc"]))
+    judged = list(judge_scans([POSE_DELTA], ["learned", "scanmc:8"]))  # a few children: whether it judges
     assert [j.error for j in judged] == [None, None]
     assert all(p.known for j in judged for p in j.predictions.values()), [j.predictions for j in judged]
     assert all(j.up and "tilted" in j.up for j in judged)
