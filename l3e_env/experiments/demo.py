@@ -101,6 +101,8 @@ def _drive(env: NavigationEnv, detector, classify_every: int, progress: bool, lo
     length = float(np.linalg.norm(np.diff(np.asarray(follower.route)[:, :2], axis=0), axis=1).sum())
     shown = "{l_bar}{bar}| {n:.0f}/{total:.0f} m [{elapsed}<{remaining}]"
     bar = tqdm(total=length, desc=f"driving {env.scene.name}", bar_format=shown, disable=not progress)
+    if log is not None:
+        log.step(_step_log(0, env, None))  # the start
     while not done:
         _, _, terminated, truncated, info = env.step(follower(env.robot.T_w_b))
         bar.update(float(np.linalg.norm(info["T_w_b"][:2, 3] - poses[-1][:2, 3])))
