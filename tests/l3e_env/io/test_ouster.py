@@ -136,7 +136,7 @@ def test_every_route_in_gives_the_same_decisions(capture, tmp_path):
     """.osf, .pcap and exported arrays in either frame (with the metadata as --sensor): one set of
     decisions by every detector, and scanmc (with a few children: the routes, not its estimate, are
     what differs; on the routes that give it another frame or file) judges every full revolution."""
-    specs, costly = ["learned", "eigen:30", "dcreg:50"], ["scanmc:8"]
+    specs, costly = ["learned", "eigen:30", "dcreg:50"], ["scanmc:4"]
     sensor = LidarConfig(model=str(_metadata(capture)))
     routes = {
         "capture": _decisions([capture], specs + costly),

@@ -508,6 +508,8 @@ def test_a_drive_recorded_with_a_pattern_file_is_judged_with_its_sensor_recognis
                 "0",
                 "--still",
                 "0",
+                "--max-steps",
+                "301",
                 "--quiet",
             ]
         )
