@@ -144,6 +144,16 @@ class MapSource:
         )
 
 
+class _FollowRoute:
+    """A route policy's controller: its follower along the planned route (`route`, ground points (K, 3))."""
+
+    def __init__(self, route: np.ndarray, avoid: FreeHeadings | None):
+        self.follower, self.route = RouteFollower(route, avoid=avoid), route
+
+    def __call__(self, T: np.ndarray, i: int, obstacles: np.ndarray | None) -> np.ndarray:
+        return self.follower(T, obstacles)
+
+
 def make_controller(
     policy: str,
     source: MapSource,
@@ -162,8 +172,7 @@ def make_controller(
         plan = Planner(ctx.space, ctx.locmap, lam=lam if policy == "planner" else 0.0, odometry=odometry).plan(
             ctx.scene.start[:2], ctx.scene.goal
         )
-        follower = RouteFollower(route_of(plan, ctx.space), avoid=avoid)
-        return (lambda T, i, obstacles: follower(T, obstacles)), plan.expected_drift
+        return _FollowRoute(route_of(plan, ctx.space), avoid), plan.expected_drift
     if policy.startswith("ppo:"):
         from .ppo import PPOPolicy
 
@@ -249,7 +258,7 @@ def run_episode(job: EpisodeJob) -> Episode:
         local = FreeHeadings() if options.avoid is not False else None
         steer, planned = make_controller(job.policy, source, options.lam, env.config.odometry, ctx, local)
         controller = BackOff(steer)
-        log = _episode_log(job, env, ctx) if options.rerun else None
+        log = _episode_log(job, env, ctx, getattr(steer, "route", None)) if options.rerun else None
         path, length, info = _drive(env, controller, job, local, log)
         expected = expected_drift_along(path, ctx.built_map, drift_rates(env.config.odometry))
         offset = info["fused_T_w_b"][:3, 3] - info["T_w_b"][:3, 3]
@@ -273,8 +282,9 @@ def run_episode(job: EpisodeJob) -> Episode:
         env.close()
 
 
-def _episode_log(job: EpisodeJob, env: NavigationEnv, ctx: SceneContext):
-    """The episode's Rerun recording (experiments.rerun_log), its scene and localizability map logged."""
+def _episode_log(job: EpisodeJob, env: NavigationEnv, ctx: SceneContext, route: np.ndarray | None):
+    """The episode's Rerun recording (experiments.rerun_log), its scene, localizability map and a route
+    policy's planned route logged."""
     from l3e_env.experiments.ate_tables import file_stem
     from l3e_env.experiments.rerun_log import DriveLog
 
@@ -285,6 +295,8 @@ def _episode_log(job: EpisodeJob, env: NavigationEnv, ctx: SceneContext):
     built = ctx.built_map
     flagged = np.nanmean(built.probabilities >= built.thresholds, axis=(1, 2))  # share of headings and axes
     log.map(np.c_[built.positions, np.full(len(built.positions), env.robot.T_w_b[2, 3])], flagged)
+    if route is not None:
+        log.plan(route)
     return log
 
 

@@ -4,8 +4,8 @@ the estimate's pose coloured by its flags, each axis's probability and flag, and
 the time lines `step` and `sim_time`, with a default layout. Open one with `rerun FILE.rrd`.
 
 The only module of the project that imports rerun-sdk (the `viewer` extra): nothing else needs it.
-Entities (docs/rerun.md): world/scene, world/truth, world/estimate/<row>, world/scan, world/map (a
-navigation episode's), flags/<axis>/probability, flags/<axis>/flagged, error/<row>; a judged file's
+Entities (docs/rerun.md): world/scene, world/truth, world/estimate/<row>, world/scan, world/map and
+world/plan (a navigation episode's), flags/<axis>/probability, flags/<axis>/flagged, error/<row>; a judged file's
 scan under scans/<name>."""
 
 from __future__ import annotations
@@ -106,6 +106,11 @@ class DriveLog:
         colours = (np.array(FREE) * (1 - share) + np.array(FLAGGED) * share).astype(np.uint8)
         points = self.rr.Points3D(np.asarray(positions, np.float32), colors=colours, radii=0.08)
         self.rec.log("world/map", points, static=True)
+
+    def plan(self, route: np.ndarray) -> None:
+        """A planned route (ground points (K, 3)), once, drawn a little above the ground."""
+        line = (np.asarray(route, np.float64)[:, :3] + np.array([0.0, 0.0, 0.1])).astype(np.float32)
+        self.rec.log("world/plan", self.rr.LineStrips3D([line], colors=[(250, 220, 40)], radii=0.05), static=True)
 
     def step(self, s: StepLog) -> None:
         rr, rec = self.rr, self.rec

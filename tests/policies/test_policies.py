@@ -528,7 +528,8 @@ def test_full_pipeline_evaluation_on_the_small_fork(small_fork, monkeypatch, tmp
     rows = evaluation.evaluate_policies(tmp_path, ["shortest", "planner"], ["fork-0"], options, progress=False)
     table = rerun_table(tmp_path / "episode-planner-fork-0-0.rrd", "step")  # each episode as a Rerun recording
     entities = {c.split(":")[0] for c in table.column_names}
-    assert {"/world/map", "/world/truth", "/world/estimate/fused", "/world/scan", "/flags/x/flagged"} <= entities
+    assert {"/world/map", "/world/plan", "/world/truth", "/world/estimate/fused", "/world/scan"} <= entities
+    assert "/flags/x/flagged" in entities
     shortest, planner = (
         evaluation.Episode(**json.loads(line)) for line in (tmp_path / "episodes.jsonl").read_text().splitlines()
     )
