@@ -156,6 +156,7 @@ def test_map_lookup_interpolates_headings_and_round_trips(tmp_path, small_fork):
         LocalizabilityMap.load(path)
 
 
+@pytest.mark.slow
 def test_eigen_map_is_cached_and_a_missing_cache_is_named(small_fork):
     scene, space, cache = small_fork
     with pytest.raises(MapCacheError, match="l3e policy map"):
@@ -180,6 +181,7 @@ def test_eigen_map_is_cached_and_a_missing_cache_is_named(small_fork):
         get_map(scene, space, "none", cache, grid=MapGrid(resolution=4.0))
 
 
+@pytest.mark.slow
 def test_a_map_built_by_two_workers_is_the_same(small_fork):
     scene, space, _ = small_fork
     alone = build_map(scene, space, "eigen:30", MapGrid(resolution=4.0), batch=4)
@@ -191,6 +193,7 @@ def test_a_map_built_by_two_workers_is_the_same(small_fork):
 
 
 @pytest.mark.parametrize("spec", ["dcreg:10", "xicp:100", "drpm:10"])
+@pytest.mark.slow
 def test_the_classical_tests_make_maps_that_flag_the_smooth_corridor(small_fork, spec):
     scene, space, _ = small_fork
     built = build_map(scene, space, spec, MapGrid(resolution=4.0), batch=4)
@@ -361,6 +364,7 @@ def test_policy_view_sees_the_corridor_ahead(small_fork):
     np.testing.assert_allclose(blind[PolicyView.aware], blind[3:5], atol=1e-6)
 
 
+@pytest.mark.slow
 def test_ppo_trains_resumes_and_refuses_other_observations(tmp_path, small_fork):
     pytest.importorskip("stable_baselines3")
     from policies.ppo import OBSERVATION, PolicyCheckpointError, PPOPolicy, PPOTraining, recorded_detector, train_ppo
@@ -514,6 +518,7 @@ def test_a_crafted_policy_folder_runs_no_code_when_loaded_or_resumed(tmp_path, s
     assert not marker.exists()
 
 
+@pytest.mark.slow
 def test_full_pipeline_evaluation_on_the_small_fork(small_fork, monkeypatch, tmp_path, rerun_table):
     from policies import evaluation
     from policies.evaluation import EvalOptions, MapSource
@@ -608,6 +613,7 @@ def test_policy_commands_are_registered(capsys):
         assert command in text
 
 
+@pytest.mark.slow
 def test_a_users_mesh_is_mapped_and_planned(tmp_path, capsys):
     """A 60 m roofed corridor (STL, z up, metres) with its route as 'x y' lines: the corridor axis is free."""
     import trimesh
@@ -658,6 +664,7 @@ def test_a_users_mesh_is_mapped_and_planned(tmp_path, capsys):
     assert "give no other mesh scene" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_a_users_mesh_is_driven_by_the_policies(cad_corridor, tmp_path, capsys, monkeypatch):
     """`l3e policy evaluate` in a y-up millimetre corridor: the episodes, the map and the resumption
     use the mesh's route, axes and scale; its scene marks no corridor, so 'rich route' is n/a."""

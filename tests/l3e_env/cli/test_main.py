@@ -225,6 +225,7 @@ def test_version_and_no_pybullet_banner_in_a_command_s_output():
     assert "its route 108 m, a drive of about 108 s (1080 steps)" in out.stdout  # what a drive there will cost
 
 
+@pytest.mark.slow
 def test_a_short_run_stops_after_max_steps(tmp_path):
     import json
 

@@ -149,6 +149,7 @@ def test_the_randomised_presets_cover_three_sensors_on_disjoint_places():
     assert {c.labeller for c in configs} == {"scan"} and len({c.seed for c in configs}) == 3
 
 
+@pytest.mark.slow
 def test_a_network_learns_several_sensors_scans_and_says_which(distill_dataset, tiny_dataset, tmp_path):
     """Distillation sets of a 128-beam and a 16-beam sensor train one network: the checkpoint names
     both sensors, warns for neither and for a third; evaluation still reads one sensor at a time."""

@@ -86,6 +86,7 @@ def test_bad_actions_raise_clear_errors():
         gym.make("l3e/Office-v0", route="scenic")
 
 
+@pytest.mark.slow
 def test_route_follower_reaches_the_goal_and_is_rewarded():
     env = gym.make("l3e/Fork-v0", route="short")
     obs, info = env.reset(seed=1)
@@ -166,6 +167,7 @@ def test_a_failing_detector_is_counted_and_the_episode_goes_on(every):
 
 
 @pytest.mark.parametrize("every", [1, 4])
+@pytest.mark.slow
 def test_the_classifier_in_a_process_of_its_own_gives_the_same_episode_and_a_dead_one_answers_unknown(every):
     runs = []
     for beside in (False, True):
@@ -253,6 +255,7 @@ def test_fusion_in_the_loop_deskews_a_swept_lidar_with_the_odometry_and_gyro(sou
             NavigationEnv(dict(scene="tunnel", fusion=dict(deskew="imu")))
 
 
+@pytest.mark.slow
 def test_fusion_in_the_loop_takes_the_imu_attitude_once_a_second_from_a_stream_of_its_own():
     """The attitude's draws leave the drive as it was. With every ICP axis flagged (a threshold
     no eigenvalue reaches) and no ground, the fusion has the odometry alone, whose roll and pitch

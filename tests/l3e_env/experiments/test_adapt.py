@@ -36,6 +36,7 @@ def office_scans(tmp_path_factory):
     return _scans(tmp_path_factory.mktemp("office") / "office-0", MIN_SCANS + 2)
 
 
+@pytest.mark.slow
 def test_bad_scans_are_named_before_anything_is_labelled(tmp_path):
     """No scans, too few, or another sensor's than the checkpoint learnt: refused by name, no run folder."""
     (tmp_path / "empty").mkdir()

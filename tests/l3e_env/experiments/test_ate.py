@@ -40,6 +40,7 @@ def walls_short(walls_run):
     return short, first
 
 
+@pytest.mark.slow
 def test_masking_the_wall_axis_beats_full_icp(walls_run, tmp_path):
     rec, regs = walls_run
     assert len(rec.scans) == len(rec.ground_truth) == len(rec.odometry) + 1
@@ -71,6 +72,7 @@ def test_masking_the_wall_axis_beats_full_icp(walls_run, tmp_path):
     assert eigen2.ate == pytest.approx(eigen.ate, rel=1e-9)
 
 
+@pytest.mark.slow
 def test_ate_from_a_recording_writes_results_and_figures(walls_short, tmp_path):
     rec, _ = walls_short
     rec.save(tmp_path / "rec.npz")
@@ -119,6 +121,7 @@ def test_ate_from_a_recording_writes_results_and_figures(walls_short, tmp_path):
     assert summary["registration"]["downsampling_resolution"] == 0.15  # the registration that ran, written down
 
 
+@pytest.mark.slow
 def test_the_imu_attitude_joins_every_detector_alike_and_adds_its_own_reference_row(walls_short, tmp_path):
     from l3e_env.cli.main import main
 
@@ -164,6 +167,7 @@ def test_the_imu_attitude_joins_every_detector_alike_and_adds_its_own_reference_
     assert not (tmp_path / "bad").exists()
 
 
+@pytest.mark.slow
 def test_the_hessian_weighs_the_icp_factor_and_the_settings_are_written(walls_short, tmp_path):
     from fusion import FusionConfig
 
@@ -194,6 +198,7 @@ def test_the_hessian_weighs_the_icp_factor_and_the_settings_are_written(walls_sh
     assert row["dcreg_flagged"][0] == [0.0] * 6 and (tmp_path / "sweep" / "tau_sweep.png").stat().st_size > 0
 
 
+@pytest.mark.slow
 def test_the_legs_bias_as_a_fusion_state_from_the_command_line(walls_short, tmp_path, capsys):
     from l3e_env.cli.main import main
     from l3e_env.config import OdometryConfig
@@ -242,6 +247,7 @@ def test_the_legs_bias_as_a_fusion_state_from_the_command_line(walls_short, tmp_
     assert not (tmp_path / "bad").exists()
 
 
+@pytest.mark.slow
 def test_a_swept_recording_says_so_when_replayed(walls_short, tmp_path, capsys):
     from dataclasses import replace
 
@@ -298,6 +304,7 @@ def test_a_swept_recording_says_so_when_replayed(walls_short, tmp_path, capsys):
         )
 
 
+@pytest.mark.slow
 def test_scanmc_in_a_replay_judges_scans_cast_again_at_the_true_poses(walls_short, tmp_path):
     rec, _ = walls_short  # two parallel walls: x (along them) is degenerate, nothing else
     rec.save(tmp_path / "rec.npz")
@@ -311,6 +318,7 @@ def test_scanmc_in_a_replay_judges_scans_cast_again_at_the_true_poses(walls_shor
     assert row["flagged"]["x"] > 0.8 and max(row["flagged"][a] for a in AXES[1:]) < 0.2
 
 
+@pytest.mark.slow
 def test_a_recast_detector_judges_every_stride_steps_alike_in_workers_and_holds_no_failure(walls_short):
     rec, _ = walls_short
     scene = make_scene(rec.scene)
@@ -343,6 +351,7 @@ def test_a_recast_detector_judges_every_stride_steps_alike_in_workers_and_holds_
         failing.predict(rec.scans[0])
 
 
+@pytest.mark.slow
 def test_the_cascade_in_a_replay_checks_only_unsure_steps_alike_in_workers(walls_short):
     from l3e_env.detection.detectors import CascadeDetector, LearnedDetector, ScanMCDetector
 
@@ -380,6 +389,7 @@ def test_the_cascade_in_a_replay_checks_only_unsure_steps_alike_in_workers(walls
         unsure.predict(samples[0])
 
 
+@pytest.mark.slow
 def test_a_users_mesh_and_route_are_driven_and_replayed(cad_corridor, tmp_path, capsys):
     """A corridor exported as a CAD tool would (y up, millimetres) with its route in the same units."""
     from l3e_env.cli.main import main
@@ -584,6 +594,7 @@ def test_a_swept_recording_is_deskewed_by_its_odometry_and_gyro_before_it_is_fus
     assert deskewed(still) is still  # a recording taken at one pose a revolution is fused as it is
 
 
+@pytest.mark.slow
 def test_a_recording_is_saved_whole_and_a_damaged_one_is_named(walls_run, tmp_path, capsys, monkeypatch):
     from l3e_env.cli.main import main
     from l3e_env.experiments.drive import DriveRecordError

@@ -15,6 +15,7 @@ def _column(table, entity: str, component: str) -> list:
     return table.column(name).to_pylist()
 
 
+@pytest.mark.slow
 def test_an_ate_drive_is_recorded_with_every_row_and_read_back(cad_corridor, tmp_path, rerun_table):
     mesh, route = cad_corridor
     out, recording = tmp_path / "ate", tmp_path / "drive.rrd"

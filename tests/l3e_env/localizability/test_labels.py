@@ -197,6 +197,7 @@ def test_resuming_with_other_settings_or_reading_unfinished_data_is_refused(tmp_
     assert not (tmp_path / "f").exists()
 
 
+@pytest.mark.slow
 def test_a_users_mesh_is_labelled_resumed_by_its_own_bytes_and_scored(cad_corridor, tmp_path, capsys, monkeypatch):
     """`l3e dataset generate --scenes corridor.obj --route ...` and then `l3e evaluate --other` alone:
     how the shipped model does on a user's own scene, without the training data."""
@@ -358,6 +359,7 @@ def test_several_meshes_are_labelled_from_a_list_with_their_own_routes_axes_and_
     assert not (tmp_path / "no").exists()
 
 
+@pytest.mark.slow
 def test_ray_backend_gives_the_same_dataset(tmp_path):
     pytest.importorskip("ray")
     cfg = config_for(None, scenes=["office-0"], parents_per_scene=2, shard_size=1, labels={"children": 8})

@@ -303,6 +303,7 @@ def test_a_round_floor_keeps_its_own_normals():
     assert tgt.ground is None and np.allclose(np.abs((tgt.normals * plain).sum(1)), 1.0)
 
 
+@pytest.mark.slow
 def test_ground_normals_converge_on_an_open_field_where_weakly_held_matches_flip():
     """On the field's route the ground holds nothing sideways: a few far features decide x, y and yaw,
     and their matches can flip from one iteration to the next. The registration must settle (the

@@ -163,6 +163,7 @@ def test_the_detector_flags_the_corridor_and_answers_unknown_to_a_bad_scan(rng):
             make_detector(spec)
 
 
+@pytest.mark.slow
 def test_evaluate_scores_the_scan_estimate_the_same_with_any_number_of_workers(tiny_dataset, tmp_path):
     from l3e_env.experiments.table3 import Table3Options, run_table3
 
@@ -292,6 +293,7 @@ def test_cascade_detector_asks_the_estimate_only_where_the_classifier_is_unsure(
             make_detector(spec)
 
 
+@pytest.mark.slow
 def test_evaluate_scores_the_cascade_from_the_classifier_and_the_estimate(tiny_dataset, tmp_path):
     from l3e_env.experiments.table3 import Table3Options, run_table3
     from l3e_env.model.classifier import DEFAULT_CHECKPOINT

@@ -674,6 +674,7 @@ def test_fine_tuning_starts_from_the_given_weights(tiny_dataset, tmp_path):
         train(tiny_dataset, tmp_path / "bad", other, progress=False)
 
 
+@pytest.mark.slow
 def test_evaluate_writes_table_curves_and_results(tiny_dataset, tmp_path, monkeypatch):
     from l3e_env.experiments import table3
     from l3e_env.experiments.table3 import Table3Options, run_table3

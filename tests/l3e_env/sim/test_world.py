@@ -82,6 +82,7 @@ def test_leg_odometry_is_exact_at_rest_and_drifts_in_motion():
     assert not np.allclose(a, pose_to_matrix([0.1, 0, 0, 0, 0, 0.05]))
 
 
+@pytest.mark.slow
 def test_dead_reckoning_covariance_matches_the_spread_of_simulated_walks():
     """20 m along an arc: the propagated covariance (scale and biases carried along) gives each
     axis's spread over 200 simulated walks within 20 %."""
