@@ -424,6 +424,7 @@ def test_ppo_trains_resumes_and_refuses_other_observations(tmp_path, small_fork)
         PPOPolicy(out)
 
 
+@pytest.mark.slow
 def test_teacher_walks_the_aware_direction_and_ppo_starts_from_its_clone(tmp_path, small_fork):
     pytest.importorskip("stable_baselines3")
     from policies.ppo import PPOPolicy, PPOTraining, WarmStart, demonstrations, teacher_action, train_ppo

@@ -167,6 +167,7 @@ def test_the_judge_command_prints_and_writes_the_scores(tmp_path, rng, capsys):
     assert "beyond 1000 m" in json.loads(out.read_text())[0]["error"]
 
 
+@pytest.mark.slow
 def test_files_judged_by_two_workers_are_judged_alike_and_in_order(tmp_path, rng):
     np.save(tmp_path / "a.npy", _corridor_scan(rng))
     (tmp_path / "b.npy").write_bytes(b"broken")

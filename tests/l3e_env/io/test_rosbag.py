@@ -111,6 +111,7 @@ def test_cloud_points_unpacks_every_layout(rng):
 
 
 @pytest.mark.parametrize("ros2", [False, True], ids=["ros1", "ros2"])
+@pytest.mark.slow
 def test_a_bag_is_read_and_judged_as_the_same_scans_in_files(tmp_path, rng, ros2):
     scans = _corridor_scans(rng, 5)
     bag = tmp_path / ("run" if ros2 else "run.bag")

@@ -82,6 +82,7 @@ def corner_scene() -> Scene:
 
 
 @pytest.mark.parametrize("avoid", [False, True])
+@pytest.mark.slow
 def test_a_follower_whose_estimate_runs_ahead_walks_round_the_block_only_with_the_local_layer(avoid):
     from l3e_env.envs import NavigationEnv
 

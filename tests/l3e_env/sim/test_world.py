@@ -60,6 +60,7 @@ def test_sliding_along_a_wall_keeps_the_free_axis():
     assert blocked and T[1, 3] > T0[1, 3] + 0.02
 
 
+@pytest.mark.slow
 def test_leg_odometry_is_exact_at_rest_and_drifts_in_motion():
     odo = LegOdometry(OdometryConfig(), np.random.default_rng(1))
     T = planar_pose(1.0, 2.0, 0.5, 0.3)
