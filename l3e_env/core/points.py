@@ -35,3 +35,10 @@ def out_of_reach(points: np.ndarray) -> str | None:
         f"its points reach {reach:.0f} m from the sensor, beyond {MAX_SCAN_RANGE_M:.0f} m "
         f"(a scan in millimetres, or not in the sensor's frame?)"
     )
+
+
+def random_subset(points: np.ndarray, most: int, rng: np.random.Generator) -> np.ndarray:
+    """At most `most` of the points' rows, a random subset kept in their order (all where fewer)."""
+    if len(points) <= most:
+        return points
+    return points[np.sort(rng.choice(len(points), most, replace=False))]

@@ -117,7 +117,6 @@ def _drive(env: NavigationEnv, detector, classify_every: int, progress: bool, lo
             shot = next((name for name, at in ROUTE_SHOTS.items() if frac >= at and name not in snapshots), None)
         if shot and shot not in snapshots:
             snapshots[shot] = (info["T_w_b"].copy(), env.scan.points.copy())
-        pred = None
         if (len(poses) - 1) % classify_every == 0:
             pred = detector.predict(env.scan.points, None, env.robot.T_w_s)
             if pred.known:

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from l3e_env.config import LidarConfig
-from l3e_env.core.points import out_of_reach, too_many_points
+from l3e_env.core.points import out_of_reach, random_subset, too_many_points
 from l3e_env.core.transforms import level_rotation, rotation_pose
 from l3e_env.core.workers import ordered_map
 from l3e_env.detection.detectors import (
@@ -241,9 +241,7 @@ class _Panel:
 def _shown(scan: LevelledScan, most: int, rng: np.random.Generator) -> np.ndarray:
     """At most `most` of the scan's points (a random subset, drawn after the detectors' draws), turned
     into its level frame."""
-    points = scan.points[:, :3]
-    if len(points) > most:
-        points = points[np.sort(rng.choice(len(points), most, replace=False))]
+    points = random_subset(scan.points[:, :3], most, rng)
     return (points @ level_pose(scan.up)[:3, :3].T).astype(np.float32)
 
 

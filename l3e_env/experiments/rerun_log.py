@@ -5,8 +5,8 @@ the time lines `step` and `sim_time`, with a default layout. Open one with `reru
 
 The only module of the project that imports rerun-sdk (the `viewer` extra): nothing else needs it.
 Entities (docs/rerun.md): world/scene, world/truth, world/estimate/<row>, world/scan, world/map and
-world/plan (a navigation episode's), flags/<axis>/probability, flags/<axis>/flagged, error/<row>; a judged file's
-scan under scans/<name>."""
+world/plan (a navigation episode's), flags/<axis>/probability, flags/<axis>/flagged, error/<row>; a
+judged file's scan under scans/<name>."""
 
 from __future__ import annotations
 
@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from l3e_env.core.points import random_subset
 from l3e_env.localizability.labels import AXES
 
 if TYPE_CHECKING:
@@ -126,14 +127,12 @@ class DriveLog:
             if name != "truth":
                 rec.log(f"error/{_entity(name)}", rr.Scalars(float(np.linalg.norm(T[:3, 3] - s.truth[:3, 3]))))
         if s.scan is not None and s.T_w_s is not None:
-            points = _thinned(s.scan, self.rng)
+            points = random_subset(np.asarray(s.scan)[:, :3], MAX_SCAN_POINTS, self.rng)
             world = points @ s.T_w_s[:3, :3].T + s.T_w_s[:3, 3]
             colour = UNJUDGED if s.mask is None else FLAGGED if np.any(s.mask) else FREE
             rec.log("world/scan", rr.Points3D(world.astype(np.float32), colors=[colour], radii=0.03))
         if s.probabilities is not None and s.mask is not None:
-            for axis, p, flagged in zip(AXES, s.probabilities, s.mask):
-                rec.log(f"flags/{axis}/probability", rr.Scalars(float(p)))
-                rec.log(f"flags/{axis}/flagged", rr.Scalars(float(flagged)))
+            _log_flags(rec, rr, "flags", s.probabilities, s.mask)
 
     def close(self) -> Path:
         self.rec.flush()
@@ -146,11 +145,11 @@ def _entity(name: str) -> str:
     return "".join(c if c.isalnum() or c in "-_" else "_" for c in name)
 
 
-def _thinned(points: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    points = np.asarray(points)[:, :3]
-    if len(points) <= MAX_SCAN_POINTS:
-        return points
-    return points[np.sort(rng.choice(len(points), MAX_SCAN_POINTS, replace=False))]
+def _log_flags(rec: Any, rr: Any, prefix: str, probabilities: np.ndarray, mask: np.ndarray) -> None:
+    """Each axis's score and flag at the recording's time, under prefix/<axis>/probability|flagged."""
+    for axis, p, flagged in zip(AXES, probabilities, mask):
+        rec.log(f"{prefix}/{axis}/probability", rr.Scalars(float(p)))
+        rec.log(f"{prefix}/{axis}/flagged", rr.Scalars(float(flagged)))
 
 
 def _blueprint(rr: Any, rows: list[str]) -> Any:
@@ -205,9 +204,7 @@ def log_judged(path: str | Path, judgements: list) -> Path:
             colour = FLAGGED if flagged else FREE if known else UNJUDGED
             rec.log(f"scans/{entity}", rr.Points3D(judged.shown, colors=[colour], radii=0.03))
         for detector, p in known.items():
-            for axis, probability, f in zip(AXES, p.probabilities, p.mask):
-                rec.log(f"flags/{_entity(detector)}/{axis}/probability", rr.Scalars(float(probability)))
-                rec.log(f"flags/{_entity(detector)}/{axis}/flagged", rr.Scalars(float(f)))
+            _log_flags(rec, rr, f"flags/{_entity(detector)}", p.probabilities, p.mask)
     rec.flush()
     rec.disconnect()
     return Path(path)
