@@ -27,6 +27,8 @@ from l3e_env.config import EnvConfig
 from l3e_env.config.detector_spec import DETECTOR_GRAMMAR, MAP_DETECTORS, parse_detector
 from l3e_env.io.mesh_lists import meshes_file
 
+from . import MAP_RESOLUTION
+
 if TYPE_CHECKING:
     from .locmap import LocalizabilityMap
 
@@ -91,7 +93,7 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     out = Path(args.out or "l3e_out/plans")
     args.out = str(out)  # the resolved options are written beside it
     for name, params in scenes.items():
-        ctx = _context(args, name, params)
+        ctx = _context(args, name, params, args.resolution)
         start = np.array(args.start, dtype=float) if args.start else ctx.scene.start[:2]
         goal = np.array(args.goal, dtype=float) if args.goal else ctx.scene.goal
         plans = {
@@ -160,6 +162,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         workers=args.workers,
         steer_on=args.steer_on,
         stop_radius=args.stop_radius,
+        map_resolution=args.resolution,
         fusion_settings=fusion_settings(args),
         recovery=args.recovery,
         avoid=args.avoid,
@@ -186,7 +189,6 @@ def map_grid(sensor: str, resolution: float | None = None):
     """The maps' grid for a sensor (and a spacing of mapped positions; the default where None)."""
     from l3e_env.config import LidarConfig
 
-    from .context import MAP_RESOLUTION
     from .locmap import MapGrid
 
     return MapGrid(resolution=resolution or MAP_RESOLUTION, lidar=LidarConfig(model=sensor))
@@ -216,11 +218,19 @@ def _add_map(psub: argparse._SubParsersAction, common: argparse.ArgumentParser) 
     g.add_argument(
         "--detector", default="learned", type=map_detector, help=f"{DETECTOR_GRAMMAR}, not none (default: learned)"
     )
-    g.add_argument("--resolution", type=float, default=2.0, help="metres between mapped positions (default 2)")
+    _add_resolution(g)
     g.add_argument("--out", help="folder for the plots (default: l3e_out/maps)")
     g.add_argument("--workers", type=int, default=1, help="processes that build a map not yet cached")
     add_mesh_options(g, several=True)
     g.set_defaults(func=_cmd_map)
+
+
+def _add_resolution(g: argparse.ArgumentParser) -> None:
+    """--resolution: the spacing of the maps' positions, one option for map, plan and evaluate (a map
+    built by `policy map --resolution R` is the one the others read with the same R)."""
+    g.add_argument(
+        "--resolution", type=float, default=MAP_RESOLUTION, help="metres between mapped positions (default %(default)g)"
+    )
 
 
 def _add_plan(psub: argparse._SubParsersAction, common: argparse.ArgumentParser) -> None:
@@ -235,6 +245,7 @@ def _add_plan(psub: argparse._SubParsersAction, common: argparse.ArgumentParser)
     )
     g.add_argument("--goal", type=float, nargs=2, metavar=("X", "Y"), help="default: the scene's goal")
     g.add_argument("--out", help="folder for the plots (default: l3e_out/plans)")
+    _add_resolution(g)
     g.add_argument("--workers", type=int, default=1, help="processes that build a map not yet cached")
     add_mesh_options(g, several=True)
     g.set_defaults(func=_cmd_plan)
@@ -333,6 +344,7 @@ def _add_evaluate(psub: argparse._SubParsersAction, common: argparse.ArgumentPar
         help="detector of the fusion and the planner's map (default: learned)",
     )
     g.add_argument("--lam", type=float, default=50.0, help="the planner's drift weight (default 50)")
+    _add_resolution(g)
     g.add_argument("--workers", type=int, default=1, help="episodes run in parallel processes")
     _add_driving_options(g)
     add_fusion_options(g)

@@ -11,10 +11,9 @@ from l3e_env.config import RobotConfig, to_dict
 from l3e_env.core.files import write_atomic
 from scenes import Scene, make_scene
 
+from . import MAP_RESOLUTION
 from .freespace import FreeSpace, build_free_space, reachable_from
 from .locmap import LocalizabilityMap, MapBuild, MapGrid, default_cache_dir, get_map, settings_digest
-
-MAP_RESOLUTION = 2.0  # m between mapped positions; 4 headings each (about 40 s per fork variant)
 
 
 @dataclass

@@ -33,8 +33,9 @@ from l3e_env.sim.avoidance import FreeHeadings
 from l3e_env.sim.follower import RouteFollower
 from l3e_env.sim.odometry import odometry_fusion_config
 
+from . import MAP_RESOLUTION
 from .context import SceneContext, scene_context
-from .locmap import MapBuild
+from .locmap import MapBuild, MapGrid
 from .observation import PolicyView
 from .planner import Planner, drift_rates, expected_drift_along, route_of
 
@@ -130,17 +131,19 @@ def _unknown_policy(policy: str) -> ValueError:
 @dataclass(frozen=True)
 class MapSource:
     """Where a controller finds its scene and localizability map: the scene by name (with make_scene's
-    arguments), the map of `detector` in `cache_dir`, built already."""
+    arguments), the map of `detector` in `cache_dir` with positions `resolution` m apart, built already."""
 
     scene: str
     detector: str = "learned"
     cache_dir: str | Path | None = None
     scene_params: dict | None = None
+    resolution: float = MAP_RESOLUTION
 
     def context(self, detector: str | None = None) -> SceneContext:
         """The scene with the map of `detector` (this source's own by default)."""
+        grid = MapGrid(resolution=self.resolution)
         return scene_context(
-            self.scene, detector or self.detector, self.cache_dir, build=False, scene_params=self.scene_params
+            self.scene, detector or self.detector, self.cache_dir, False, grid, scene_params=self.scene_params
         )
 
 
@@ -204,7 +207,8 @@ class EvalOptions:
     `avoid`: the policies keep off the obstacles the scan shows ahead (FreeHeadings), both None: as the
     folder's episodes so far, else on; `scene_params`: make_scene's arguments by scene name;
     `stop_radius`: steering on the estimate, the robot stops once its estimate is this close to the
-    goal (EnvConfig.stop_radius), and succeeds where its true pose is within the goal radius. `rerun`:
+    goal (EnvConfig.stop_radius), and succeeds where its true pose is within the goal radius;
+    `map_resolution`: the metres between the maps' positions (`l3e policy map --resolution`). `rerun`:
     each episode run also written as a Rerun recording FILE-<policy>-<scene>-<seed>.rrd beside it."""
 
     episodes: int = 50
@@ -219,10 +223,11 @@ class EvalOptions:
     avoid: bool | None = None
     scene_params: dict[str, dict] = field(default_factory=dict)
     stop_radius: float = EnvConfig().stop_radius
+    map_resolution: float = MAP_RESOLUTION
     rerun: str | None = None
 
     def source(self, scene: str) -> MapSource:
-        return MapSource(scene, self.detector, self.cache_dir, self.scene_params.get(scene))
+        return MapSource(scene, self.detector, self.cache_dir, self.scene_params.get(scene), self.map_resolution)
 
 
 @dataclass(frozen=True)
@@ -521,9 +526,9 @@ def _build_maps(
     detectors = {_ppo_detector(p, options.detector) if p.startswith("ppo:") else options.detector for p in policies}
     for name in dict.fromkeys(scenes):
         for d in sorted(detectors | {options.detector}):
-            params = options.scene_params.get(name)
+            params, grid = options.scene_params.get(name), MapGrid(resolution=options.map_resolution)
             build = MapBuild(progress=progress, announce=announce)
-            scene_context(name, d, options.cache_dir, build, progress=progress, scene_params=params)
+            scene_context(name, d, options.cache_dir, build, grid, progress, params)
 
 
 def _run_record(options: EvalOptions) -> dict[str, Any]:
@@ -534,6 +539,7 @@ def _run_record(options: EvalOptions) -> dict[str, Any]:
         "steer_on": options.steer_on,
         "arrival": options.steer_on,
         "stop_radius": options.stop_radius,
+        "map_resolution": options.map_resolution,
         "fusion": {**options.fusion_settings.record(), "enabled": True, "detector": options.detector},
         "recovery": options.recovery,
         "avoid": options.avoid,

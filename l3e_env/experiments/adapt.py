@@ -105,7 +105,8 @@ def adapt(
     source: str | Path, out: str | Path, options: AdaptOptions = AdaptOptions(), progress: bool = True
 ) -> AdaptResult:
     """Adapt a checkpoint to the place whose scans `source` holds (a folder of scan files, an Ouster
-    capture or a ROS bag) into the run folder `out`; resumes an interrupted run there."""
+    capture or a ROS bag) into the run folder `out`; resumes an interrupted run there, and answers a
+    finished one's result without training again."""
     torch_device(options.device)  # a missing GPU is named first
     checkpoint = Path(options.checkpoint or DEFAULT_CHECKPOINT)
     base = load_checkpoint(checkpoint)
@@ -120,26 +121,42 @@ def adapt(
         seconds = {"labelling": time.perf_counter() - t0}
         if len(data) < MIN_SCANS:
             raise AdaptError(f"scanmc could label {len(data)} of the {len(scans)} scans; a fine-tune needs {MIN_SCANS}")
-        t0 = time.perf_counter()
-        network = _fine_tune(out / "labels", out / "network", checkpoint, base, place, options, progress)
-        seconds["fine-tuning"] = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        provenance = {
-            "base": str(checkpoint),
-            "base_sha256": hashlib.sha256(checkpoint.read_bytes()).hexdigest(),
-            "source": str(Path(source).resolve()),
-            "place": place,
-            "sensor": pattern.name,
-            "scans": len(scans),
-            "labelled": len(data),
-            "labeller": f"scanmc:{options.children}",
-            "epochs": options.epochs,
-            "date": time.strftime("%Y-%m-%d"),
-        }
-        _finish(out / "model.pt", network, base, data, provenance, options, progress)
-        seconds["layer"] = time.perf_counter() - t0
+        if not (out / "model.pt").is_file():  # written last: where it is, this run (same settings) has finished
+            provenance = {
+                "base": str(checkpoint),
+                "base_sha256": hashlib.sha256(checkpoint.read_bytes()).hexdigest(),
+                "source": str(Path(source).resolve()),
+                "place": place,
+                "sensor": pattern.name,
+                "scans": len(scans),
+                "labelled": len(data),
+                "labeller": f"scanmc:{options.children}",
+                "epochs": options.epochs,
+                "date": time.strftime("%Y-%m-%d"),
+            }
+            seconds.update(_train(out, checkpoint, base, data, provenance, options, progress))
     stats = label_statistics(data.labels)["positive_rate"]
     return AdaptResult(out / "model.pt", len(scans), len(data), skipped + failed, stats, seconds)
+
+
+def _train(
+    out: Path,
+    checkpoint: Path,
+    base: dict[str, Any],
+    data: LabelDataset,
+    provenance: dict[str, Any],
+    options: AdaptOptions,
+    progress: bool,
+) -> dict[str, float]:
+    """The fine-tune and the refitted layer of a run whose scans are labelled (`data`), into
+    out/model.pt; the seconds each took."""
+    t0 = time.perf_counter()
+    network = _fine_tune(out / "labels", out / "network", checkpoint, base, provenance["place"], options, progress)
+    seconds = {"fine-tuning": time.perf_counter() - t0}
+    t0 = time.perf_counter()
+    _finish(out / "model.pt", network, base, data, provenance, options, progress)
+    seconds["layer"] = time.perf_counter() - t0
+    return seconds
 
 
 def _sources(source: Path, options: AdaptOptions) -> list[str | Path | RecordedScan]:

@@ -12,7 +12,14 @@ import numpy as np  # noqa: E402
 import trimesh  # noqa: E402
 
 from l3e_env.localizability.labels import AXES  # noqa: E402
-from l3e_env.sim.render import wall_points  # noqa: E402
+from l3e_env.sim.render import binned_from_above, wall_points  # noqa: E402
+
+
+def draw_from_above(ax, points: np.ndarray, values: np.ndarray, cmap: str, cells: int = 800):
+    """`points` drawn from above on the matplotlib axes `ax` as one image (render.binned_from_above),
+    each cell coloured by its largest value through `cmap`. Returns the image, for a colour bar."""
+    grid, extent = binned_from_above(points, values, cells)
+    return ax.imshow(grid, extent=extent, origin="lower", cmap=cmap, interpolation="nearest", zorder=0)
 
 
 def plot_trajectories(path: Path, scene, rec, results) -> None:
@@ -25,9 +32,10 @@ def plot_trajectories(path: Path, scene, rec, results) -> None:
     ax.set_aspect("equal")
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
-    ax.legend(fontsize=8, loc="best")
+    # under the map: never over a path, and no search for a free corner among the wall points
+    fig.legend(*ax.get_legend_handles_labels(), fontsize=8, loc="lower center", ncol=3)
     ax.set_title(f"{rec.scene}: estimates against ground truth")
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0.04 + 0.035 * np.ceil(len(results) / 3), 1, 1))
     fig.savefig(path, dpi=130)
     plt.close(fig)
 
@@ -56,7 +64,7 @@ def plot_map(stem: Path, rec, trajectory: np.ndarray, every: int = 10) -> list[P
     trimesh.PointCloud(cloud).export(str(stem) + ".ply")
     fig, ax = plt.subplots(figsize=(12, 5))
     keep = cloud[:, 2] < trajectory[:, 2, 3].max() + 1.0  # below the roof: walls and floor edges
-    ax.scatter(cloud[keep, 0], cloud[keep, 1], s=0.02, c=cloud[keep, 2], cmap="viridis", rasterized=True)
+    draw_from_above(ax, cloud[keep], cloud[keep, 2], cmap="viridis")
     ax.set_aspect("equal")
     ax.set_title(f"map from the estimate: {stem.name}")
     fig.tight_layout()

@@ -38,6 +38,27 @@ def wall_points(mesh: trimesh.Trimesh, count: int = 300_000, seed: int = 0) -> n
     return np.asarray(pts)
 
 
+def binned_from_above(
+    points: np.ndarray, values: np.ndarray, cells: int = 800
+) -> tuple[np.ndarray, tuple[float, float, float, float]]:
+    """Points seen from above (their first two coordinates) as a grid of square cells, `cells` along
+    its longer side: each cell the largest of its points' `values`, NaN where none falls; and the
+    grid's extent (left, right, bottom, top) for matplotlib's `imshow(grid, extent=...,
+    origin="lower")`. A figure shows a hundred thousand coloured points as such an image in
+    milliseconds, where as many coloured markers take matplotlib a second or more to draw."""
+    xy = np.asarray(points, dtype=np.float64)[:, :2]
+    if len(xy) == 0:
+        return np.full((1, 1), np.nan), (0.0, 1.0, 0.0, 1.0)
+    lo, hi = xy.min(axis=0), xy.max(axis=0)
+    size = max(float(np.max(hi - lo)), 1e-9) / cells
+    columns, rows = np.floor((hi - lo) / size).astype(int) + 1
+    col, row = np.floor((xy - lo) / size).astype(int).T
+    grid = np.full((rows, columns), -np.inf)
+    np.maximum.at(grid, (row, col), np.asarray(values, dtype=np.float64))
+    grid[np.isneginf(grid)] = np.nan
+    return grid, (lo[0], lo[0] + columns * size, lo[1], lo[1] + rows * size)
+
+
 class TopDownRenderer:
     """Rasterises the floor plan once; each frame then costs a few array writes. Frames have even
     sides (video encoders want them) and a strip under the plan with a scale bar and the colour key."""

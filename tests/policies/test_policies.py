@@ -530,7 +530,9 @@ def test_full_pipeline_evaluation_on_the_small_fork(small_fork, monkeypatch, tmp
     # the legs' biases not estimated, scan to scan: there the corridor's masked axis costs the legs' drift
     plain = FusionSettings()
     rrd = str(tmp_path / "episode.rrd")
-    options = EvalOptions(episodes=1, detector="eigen:30", cache_dir=cache, lam=200.0, fusion_settings=plain, rerun=rrd)
+    # the map of the other tests, positions 4 m apart (shared where they ran first in this process)
+    options = EvalOptions(1, detector="eigen:30", cache_dir=cache, lam=200.0, fusion_settings=plain, map_resolution=4.0)
+    options = dataclasses.replace(options, rerun=rrd)
     rows = evaluation.evaluate_policies(tmp_path, ["shortest", "planner"], ["fork-0"], options, progress=False)
     table = rerun_table(tmp_path / "episode-planner-fork-0-0.rrd", "step")  # each episode as a Rerun recording
     entities = {c.split(":")[0] for c in table.column_names}
@@ -553,6 +555,8 @@ def test_full_pipeline_evaluation_on_the_small_fork(small_fork, monkeypatch, tmp
     settings = json.loads((tmp_path / "settings.json").read_text())
     assert settings["recovery"] is True and settings["avoid"] is True and settings["lam"] == 200.0
     assert settings["stop_radius"] == EnvConfig().stop_radius  # the environment's own
+    assert settings["map_resolution"] == 4.0
+    get_map(scene, space, "eigen:30", cache, build=False, grid=MapGrid(resolution=4.0))  # the map it read, cached
     # a second run (or one after a kill) reuses the finished episodes
     monkeypatch.setattr(evaluation, "run_episode", lambda job: pytest.fail(f"episode {job.key} ran again"))
     again = evaluation.evaluate_policies(tmp_path, ["shortest", "planner"], ["fork-0"], options, progress=False)
@@ -643,8 +647,9 @@ def test_a_users_mesh_is_mapped_and_planned(tmp_path, capsys):
     assert (tmp_path / "corridor-eigen30.png").stat().st_size > 10_000
     masked = capsys.readouterr().out.split("masked:")[1]
     assert masked.split()[:4] == ["x", "50%", "y", "50%"]  # along the corridor at two of the four headings
-    assert main(["policy", "plan", *mesh_args]) == 0
-    assert "corridor shortest" in capsys.readouterr().out
+    assert main(["policy", "plan", "--resolution", "4", *mesh_args]) == 0
+    planned = capsys.readouterr().out
+    assert "corridor shortest" in planned and "building" not in planned  # the map just built, read from the cache
     outside = ["policy", "plan", *mesh_args, "--goal", "500", "500", "--out", str(tmp_path / "refused")]
     assert main(outside) == 2 and not (tmp_path / "refused").exists()  # issue 98: no empty folder left behind
     capsys.readouterr()

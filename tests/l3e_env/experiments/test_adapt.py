@@ -69,11 +69,14 @@ def test_an_adapted_model_is_refused_nowhere_says_what_it_was_adapted_on_and_is_
     assert clf.meta["training"]["train_scenes"] == ["office-0"] and clf.model.config.constraints
     p, mask = clf.predict(np.load(office_scans / "scan-000.npy"))
     assert p.shape == (6,) and mask.dtype == bool
-    # an interrupted run resumes: labelled chunks are kept; other settings in the folder are refused
+    # a run again resumes: labelled chunks are kept, and a finished run is not trained again; other
+    # settings in the folder are refused
     chunk = tmp_path / "run" / "labels" / "shards" / "chunk-00000.npy"
-    before = chunk.stat().st_mtime_ns
-    adapt(office_scans, tmp_path / "run", QUICK, progress=False)
-    assert chunk.stat().st_mtime_ns == before
+    before = chunk.stat().st_mtime_ns, result.checkpoint.stat().st_mtime_ns
+    again = adapt(office_scans, tmp_path / "run", QUICK, progress=False)
+    assert (chunk.stat().st_mtime_ns, result.checkpoint.stat().st_mtime_ns) == before
+    assert again.checkpoint == result.checkpoint and again.statistics == result.statistics
+    assert "fine-tuning" in result.seconds and "fine-tuning" not in again.seconds
     with pytest.raises(AdaptError, match="holds another adaptation.*children"):
         adapt(office_scans, tmp_path / "run", AdaptOptions(children=20, workers=1), progress=False)
     assert json.loads((tmp_path / "run" / "adapt.json").read_text())["children"] == 10

@@ -308,9 +308,17 @@ def test_ground_normals_converge_on_an_open_field_where_weakly_held_matches_flip
     """On the field's route the ground holds nothing sideways: a few far features decide x, y and yaw,
     and their matches can flip from one iteration to the next. The registration must settle (the
     step back uphill is not taken) instead of swinging until it runs out of iterations."""
+    from dataclasses import replace
+
     from l3e_env.experiments.drive import record_run, register_sequence
 
     rec = record_run("field-0", progress=False)
-    regs = register_sequence(rec, GROUND, progress=False)
+    # the drive's last 290 steps, where the guard matters: without it most of them run out of iterations
+    start = 500
+    tail = replace(
+        rec, ground_truth=rec.ground_truth[start:], odometry=rec.odometry[start:], scans=rec.scans[start:],
+        samples=rec.samples[start:],
+    )  # fmt: skip
+    regs = register_sequence(tail, GROUND, progress=False)
     converged = [r is not None and r.converged for r in regs]
-    assert np.mean(converged) > 0.97, np.flatnonzero(~np.array(converged))  # without the guard: 0.72
+    assert len(regs) > 250 and np.mean(converged) > 0.97, np.flatnonzero(~np.array(converged))
