@@ -32,7 +32,7 @@ def _floor_plan(ax, scene: Scene, space: FreeSpace | None = None) -> None:
             interpolation="nearest",
         )
     walls = wall_points(scene.mesh, 60_000)
-    ax.scatter(walls[:, 0], walls[:, 1], s=0.05, c="0.25", rasterized=True)
+    ax.scatter(walls[:, 0], walls[:, 1], s=2, c="0.25", linewidths=0, rasterized=True)
     ax.set_aspect("equal")
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")

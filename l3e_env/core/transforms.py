@@ -2,24 +2,39 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 
 def pose_to_matrix(xyzrpy: np.ndarray) -> np.ndarray:
-    """(x, y, z, roll, pitch, yaw) -> 4x4, rotation R = Rz(yaw) Ry(pitch) Rx(roll)."""
+    """(x, y, z, roll, pitch, yaw) -> 4x4, rotation R = Rz(yaw) Ry(pitch) Rx(roll). Written out: a
+    simulated step converts poses dozens of times, and a scipy Rotation costs many times as much a call."""
     v = np.asarray(xyzrpy, dtype=np.float64)
-    T = np.eye(4)
-    T[:3, :3] = Rotation.from_euler("xyz", v[3:6]).as_matrix()
-    T[:3, 3] = v[:3]
-    return T
+    x, y, z = v[:3].tolist()
+    (cr, cp, cy), (sr, sp, sy) = np.cos(v[3:6]).tolist(), np.sin(v[3:6]).tolist()
+    return np.array(
+        [
+            [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr, x],
+            [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr, y],
+            [-sp, cp * sr, cp * cr, z],
+            [0.0, 0.0, 0.0, 1.0],
+        ]
+    )
 
 
 def matrix_to_pose(T: np.ndarray) -> np.ndarray:
-    """4x4 -> (x, y, z, roll, pitch, yaw)."""
+    """4x4 -> (x, y, z, roll, pitch, yaw), pitch within +-90 deg (as scipy's extrinsic "xyz" Euler
+    angles); written out as pose_to_matrix, with scipy's at gimbal lock (pitch within 1e-6 rad of 90 deg)."""
+    R = np.asarray(T, dtype=np.float64)[:3, :3]
     out = np.empty(6)
     out[:3] = T[:3, 3]
-    out[3:] = Rotation.from_matrix(T[:3, :3]).as_euler("xyz")
+    cos_pitch = math.hypot(R[0, 0], R[1, 0])
+    if cos_pitch < 1e-6:
+        out[3:] = Rotation.from_matrix(R).as_euler("xyz")
+    else:
+        out[3:] = math.atan2(R[2, 1], R[2, 2]), math.atan2(-R[2, 0], cos_pitch), math.atan2(R[1, 0], R[0, 0])
     return out
 
 

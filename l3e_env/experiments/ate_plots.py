@@ -25,7 +25,7 @@ def draw_from_above(ax, points: np.ndarray, values: np.ndarray, cmap: str, cells
 def plot_trajectories(path: Path, scene, rec, results) -> None:
     walls = wall_points(scene.mesh, 100_000)
     fig, ax = plt.subplots(figsize=(12, 5))
-    ax.scatter(walls[:, 0], walls[:, 1], s=0.05, c="0.6", rasterized=True)
+    ax.scatter(walls[:, 0], walls[:, 1], s=2, c="0.6", linewidths=0, rasterized=True)
     ax.plot(rec.ground_truth[:, 0, 3], rec.ground_truth[:, 1, 3], "k", lw=2, label="ground truth")
     for r in results:
         ax.plot(r.trajectory[:, 0, 3], r.trajectory[:, 1, 3], lw=1.2, label=f"{r.name} (ATE {r.ate:.2f} m)")

@@ -157,7 +157,7 @@ def _plot_localizability(path: Path, env: NavigationEnv, trajectory: np.ndarray,
     masks = np.array([j[3] for j in judged])
     fig, axes = plt.subplots(7, 1, figsize=(12, 11), gridspec_kw={"height_ratios": [3, 1, 1, 1, 1, 1, 1]})
     walls = wall_points(env.scene.mesh, 80_000)
-    axes[0].scatter(walls[:, 0], walls[:, 1], s=0.05, c="0.6", rasterized=True)
+    axes[0].scatter(walls[:, 0], walls[:, 1], s=2, c="0.6", linewidths=0, rasterized=True)
     flagged = masks.any(axis=1)
     xy = trajectory[steps, :2]
     axes[0].scatter(*xy[~flagged].T, s=6, c="tab:green", label="all axes localizable")
@@ -190,7 +190,7 @@ def _centred(T: np.ndarray, box: np.ndarray | None) -> bool:
 def _plot_path(path: Path, env: NavigationEnv, trajectory: np.ndarray, snapshots: dict) -> Path:
     walls = wall_points(env.scene.mesh, 120_000)
     fig, ax = plt.subplots(figsize=(12, 5))
-    ax.scatter(walls[:, 0], walls[:, 1], s=0.05, c="0.45", rasterized=True)
+    ax.scatter(walls[:, 0], walls[:, 1], s=2, c="0.45", linewidths=0, rasterized=True)
     ax.plot(env.route[:, 0], env.route[:, 1], "--", c="tab:blue", lw=1, label="route")
     ax.plot(trajectory[:, 0], trajectory[:, 1], c="tab:red", lw=1.5, label="driven path (ground truth)")
     for place, (T, _) in snapshots.items():
@@ -210,7 +210,7 @@ def _plot_path(path: Path, env: NavigationEnv, trajectory: np.ndarray, snapshots
 def _plot_scan(path: Path, place: str, T: np.ndarray, points: np.ndarray) -> Path:
     fig, axes = plt.subplots(1, 2, figsize=(12, 5))
     r = np.linalg.norm(points, axis=1)
-    sc = axes[0].scatter(points[:, 0], points[:, 1], s=0.3, c=points[:, 2], cmap="viridis", rasterized=True)
+    sc = axes[0].scatter(points[:, 0], points[:, 1], s=4, c=points[:, 2], cmap="viridis", linewidths=0, rasterized=True)
     axes[0].set_aspect("equal")
     lim = np.percentile(r, 95) * 1.1
     axes[0].set_xlim(-lim, lim)
@@ -219,7 +219,7 @@ def _plot_scan(path: Path, place: str, T: np.ndarray, points: np.ndarray) -> Pat
     fig.colorbar(sc, ax=axes[0], label="z [m]")
     az = np.degrees(np.arctan2(points[:, 1], points[:, 0]))
     el = np.degrees(np.arcsin(points[:, 2] / np.maximum(r, 1e-6)))
-    sc2 = axes[1].scatter(az, el, s=0.5, c=r, cmap="magma_r", rasterized=True)
+    sc2 = axes[1].scatter(az, el, s=4, c=r, cmap="magma_r", linewidths=0, rasterized=True)
     axes[1].set_xlabel("azimuth [deg]")
     axes[1].set_ylabel("elevation [deg]")
     axes[1].set_title("range image")
