@@ -620,16 +620,16 @@ def test_policy_commands_are_registered(capsys):
 
 @pytest.mark.slow
 def test_a_users_mesh_is_mapped_and_planned(tmp_path, capsys):
-    """A 60 m roofed corridor (STL, z up, metres) with its route as 'x y' lines: the corridor axis is free."""
+    """A 32 m roofed corridor (STL, z up, metres) with its route as 'x y' lines: the corridor axis is free."""
     import trimesh
 
     from l3e_env.cli.main import main
 
-    parts = [trimesh.creation.box(extents) for extents in ([60, 4, 0.2], [60, 0.2, 3], [60, 0.2, 3], [60, 4, 0.2])]
-    for part, offset in zip(parts, ([30, 0, -0.1], [30, 2, 1.5], [30, -2, 1.5], [30, 0, 3.1])):
+    parts = [trimesh.creation.box(extents) for extents in ([32, 4, 0.2], [32, 0.2, 3], [32, 0.2, 3], [32, 4, 0.2])]
+    for part, offset in zip(parts, ([16, 0, -0.1], [16, 2, 1.5], [16, -2, 1.5], [16, 0, 3.1])):
         part.apply_translation(offset)
     trimesh.util.concatenate(parts).export(tmp_path / "corridor.stl")
-    (tmp_path / "route.txt").write_text("5 0\n55 0\n")
+    (tmp_path / "route.txt").write_text("5 0\n27 0\n")
     mesh_args = [
         "--scene",
         str(tmp_path / "corridor.stl"),

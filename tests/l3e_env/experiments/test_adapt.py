@@ -15,7 +15,7 @@ from l3e_env.sim.lidar import Lidar
 from l3e_env.sim.raycast import EmbreeCaster
 from scenes import make_scene
 
-QUICK = AdaptOptions(children=10, epochs=1, samples_per_epoch=8, workers=1, max_scans=MIN_SCANS + 2)
+QUICK = AdaptOptions(children=4, epochs=1, samples_per_epoch=8, workers=1, max_scans=MIN_SCANS + 2)
 
 
 def _scans(folder, count: int, sensor: str = "vlp16", scene: str = "office-0"):
@@ -79,7 +79,7 @@ def test_an_adapted_model_is_refused_nowhere_says_what_it_was_adapted_on_and_is_
     assert "fine-tuning" in result.seconds and "fine-tuning" not in again.seconds
     with pytest.raises(AdaptError, match="holds another adaptation.*children"):
         adapt(office_scans, tmp_path / "run", AdaptOptions(children=20, workers=1), progress=False)
-    assert json.loads((tmp_path / "run" / "adapt.json").read_text())["children"] == 10
+    assert json.loads((tmp_path / "run" / "adapt.json").read_text())["children"] == 4
     # the adapted place's scans are never scored: `l3e evaluate` drops every dataset's rows of the place a
     # checkpoint was adapted on, for every detector alike
     from l3e_env.experiments.table3 import Table3Options, run_table3
