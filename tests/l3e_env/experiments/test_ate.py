@@ -7,7 +7,7 @@ from l3e_env.config import FusionSettings, LidarConfig
 from l3e_env.detection.detectors import DCRegDetector, EigenvalueDetector, NoDetector, make_detector
 from l3e_env.experiments.ate import AteOptions, run_ate
 from l3e_env.experiments.ate_tables import AteRow, file_stem, format_seed_table, format_table, summarize_seeds
-from l3e_env.experiments.drive import DriveOptions, DriveRecord, RegisteredSteps, record_run, register_sequence
+from l3e_env.experiments.drive import DriveOptions, DriveRecord, record_run, register_sequence
 from l3e_env.experiments.fuse import fuse_recording
 from l3e_env.experiments.recast import OdometryAttitude, RecastCascade, RecastScans
 from l3e_env.localizability.labels import AXES
@@ -18,51 +18,31 @@ from scenes import make_scene
 
 
 @pytest.fixture(scope="module")
-def walls_run():
-    rec = record_run("primitives-1", progress=False)  # two parallel walls: along-wall x is degenerate
+def walls_short():
+    """The first 20 m (200 steps) of a drive between two parallel walls (x along them is degenerate),
+    with its registrations: for the tests of what a run writes and how its options reach the fusion."""
+    rec = record_run("primitives-1", DriveOptions(max_steps=200), progress=False)
     return rec, register_sequence(rec, RegistrationConfig(), progress=False)
 
 
-@pytest.fixture(scope="module")
-def walls_short(walls_run):
-    """The first 20 m of the walls' drive (200 steps), with its registrations: for the tests that check
-    what a run writes and how its options reach the fusion, which a shorter drive checks as well."""
-    from dataclasses import replace
-
-    rec, regs = walls_run
-    n = 200
-    short = replace(
-        rec, ground_truth=rec.ground_truth[: n + 1], odometry=rec.odometry[:n], scans=rec.scans[: n + 1],
-        samples=rec.samples[: n + 1],
-    )  # fmt: skip
-    first = RegisteredSteps(regs[:n])
-    first.start_ground = regs.start_ground
-    return short, first
-
-
 @pytest.mark.slow
-def test_masking_the_wall_axis_beats_full_icp(walls_run):
-    rec, regs = walls_run
-    assert len(rec.scans) == len(rec.ground_truth) == len(rec.odometry) + 1
+def test_masking_the_wall_axis_is_what_fixed_sigmas_need_and_the_hessian_weighting_already_does(walls_short):
+    """Between two parallel walls x (along them) is free. With the library's fixed ICP sigmas (the
+    paper's protocol) unmasked ICP holds x where the walls cannot, and masking it wins by far. Weighed by
+    its Hessian, ICP gives x almost no weight itself: the unmasked estimate is near the masked one (on
+    a drive either can be the better; the legs' draws decide, docs/results.md)."""
+    from fusion import FusionConfig
+
+    rec, regs = walls_short
     w = np.array([np.linalg.eigvalsh(r.hessian)[:2] for r in regs if r is not None])
     tau = float(np.sqrt(np.median(w[:, 0]) * np.median(w[:, 1])))  # between the free axis and the rest
-    full, eigen = fuse_recording(rec, [NoDetector(), EigenvalueDetector(tau)], regs, progress=False)
+    detectors = [NoDetector(), EigenvalueDetector(tau)]
+    full, eigen = fuse_recording(rec, detectors, regs, progress=False)
     assert eigen.masks[:, 0].mean() > 0.8 and eigen.masks[:, 1:].mean() < 0.2
-    # one drive's odometry draw can favour either; over three drives the mask wins, narrowly: the
-    # registration's Hessian already gives the free axis almost no weight (the ground plane's normals
-    # hold no step along it), so unmasked ICP leaves it to the legs too
-    fulls, masked = [full.ate], [eigen.ate]
-    for seed in (1, 2):
-        other = record_run("primitives-1", DriveOptions(seed=seed), progress=False)
-        f, e = fuse_recording(
-            other,
-            [NoDetector(), EigenvalueDetector(tau)],
-            register_sequence(other, RegistrationConfig(), progress=False),
-            progress=False,
-        )
-        fulls.append(f.ate)
-        masked.append(e.ate)
-    assert np.mean(masked) < np.mean(fulls)
+    fixed = FusionConfig(icp_covariance="fixed")
+    full_fixed, eigen_fixed = fuse_recording(rec, detectors, regs, fusion=fixed, progress=False)
+    assert eigen_fixed.ate < 0.2 * full_fixed.ate  # the mask, where ICP's sigmas say nothing of the walls
+    assert full.ate < 0.2 * full_fixed.ate and 0.5 < eigen.ate / full.ate < 2.0  # the Hessian's own weighting
     assert "eigen" in format_table([AteRow.of(full, {}), AteRow.of(eigen, {})])
 
 
@@ -312,9 +292,7 @@ def test_a_swept_recording_says_so_when_replayed(walls_short, tmp_path, capsys):
 def test_scanmc_in_a_replay_judges_scans_cast_again_at_the_true_poses(walls_short, tmp_path):
     rec, _ = walls_short  # two parallel walls: x (along them) is degenerate, nothing else
     rec.save(tmp_path / "rec.npz")
-    run_ate(
-        tmp_path / "out", "ignored", ["scanmc:4"], AteOptions(recording=tmp_path / "rec.npz", workers=2), progress=False
-    )
+    run_ate(tmp_path / "out", "ignored", ["scanmc:4"], AteOptions(recording=tmp_path / "rec.npz"), progress=False)
     (row,) = [
         r for r in json.loads((tmp_path / "out" / "results.json").read_text())["rows"] if r["detector"] == "scanmc:4"
     ]
@@ -535,7 +513,7 @@ def test_ate_over_several_seeds_drives_each_and_writes_the_summary(tmp_path, cap
                 "--seed",
                 "7",
                 "--max-steps",
-                "150",
+                "80",
                 "--seeds",
                 "2",
                 "--quiet",
@@ -599,11 +577,11 @@ def test_a_swept_recording_is_deskewed_by_its_odometry_and_gyro_before_it_is_fus
 
 
 @pytest.mark.slow
-def test_a_recording_is_saved_whole_and_a_damaged_one_is_named(walls_run, tmp_path, capsys, monkeypatch):
+def test_a_recording_is_saved_whole_and_a_damaged_one_is_named(walls_short, tmp_path, capsys, monkeypatch):
     from l3e_env.cli.main import main
     from l3e_env.experiments.drive import DriveRecordError
 
-    rec, _ = walls_run
+    rec, _ = walls_short
     rec.save(tmp_path / "rec.npz")
     whole = (tmp_path / "rec.npz").read_bytes()
     (tmp_path / "cut.npz").write_bytes(whole[: len(whole) // 2])
