@@ -213,7 +213,8 @@ OPTION_COMMANDS = {  # a command line that would run, and its options to spoil
     ("record", "--out", "OUT.bag"): ["imu-rate", "max-steps", "seed"],
     ("demo",): ["scale", "out"],
     ("policy", "map"): ["resolution", "workers", "out"],
-    ("policy", "evaluate"): ["episodes", "workers", "lam", "stop-radius"],
+    ("policy", "plan"): ["resolution", "lam", "workers"],
+    ("policy", "evaluate"): ["episodes", "workers", "lam", "stop-radius", "resolution"],
     ("policy", "train", "--out", "OUT"): ["timesteps", "envs", "seed"],
 }
 
