@@ -16,6 +16,12 @@ from l3e_env.data.generation import config_for, generate
 from scenes import make_scene
 
 
+def pytest_collection_modifyitems(config, items):
+    """The slow end-to-end tests first (in their order; a stable sort): under pytest-xdist's work
+    stealing the long ones start early and the run ends on short ones, whichever worker takes them."""
+    items.sort(key=lambda item: item.get_closest_marker("slow") is None)
+
+
 @pytest.fixture(scope="session")
 def mine():
     return make_scene("mine")
