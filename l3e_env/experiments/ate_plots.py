@@ -35,7 +35,7 @@ def plot_trajectories(path: Path, scene, rec, results) -> None:
     # under the map: never over a path, and no search for a free corner among the wall points
     fig.legend(*ax.get_legend_handles_labels(), fontsize=8, loc="lower center", ncol=3)
     ax.set_title(f"{rec.scene}: estimates against ground truth")
-    fig.tight_layout(rect=(0, 0.04 + 0.035 * np.ceil(len(results) / 3), 1, 1))
+    fig.tight_layout(rect=(0, 0.04 + 0.035 * np.ceil((len(results) + 1) / 3), 1, 1))  # the legend's rows
     fig.savefig(path, dpi=130)
     plt.close(fig)
 

@@ -531,8 +531,15 @@ def test_full_pipeline_evaluation_on_the_small_fork(small_fork, monkeypatch, tmp
     plain = FusionSettings()
     rrd = str(tmp_path / "episode.rrd")
     # the map of the other tests, positions 4 m apart (shared where they ran first in this process)
-    options = EvalOptions(1, detector="eigen:30", cache_dir=cache, lam=200.0, fusion_settings=plain, map_resolution=4.0)
-    options = dataclasses.replace(options, rerun=rrd)
+    options = EvalOptions(
+        episodes=1,
+        detector="eigen:30",
+        cache_dir=cache,
+        lam=200.0,
+        fusion_settings=plain,
+        map_resolution=4.0,
+        rerun=rrd,
+    )
     rows = evaluation.evaluate_policies(tmp_path, ["shortest", "planner"], ["fork-0"], options, progress=False)
     table = rerun_table(tmp_path / "episode-planner-fork-0-0.rrd", "step")  # each episode as a Rerun recording
     entities = {c.split(":")[0] for c in table.column_names}

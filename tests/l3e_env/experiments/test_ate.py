@@ -20,7 +20,8 @@ from scenes import make_scene
 @pytest.fixture(scope="module")
 def walls_short():
     """The first 20 m (200 steps) of a drive between two parallel walls (x along them is degenerate),
-    with its registrations: for the tests of what a run writes and how its options reach the fusion."""
+    with its registrations: shared by the tests of the mask, of what a run writes and of how its options
+    reach the fusion."""
     rec = record_run("primitives-1", DriveOptions(max_steps=200), progress=False)
     return rec, register_sequence(rec, RegistrationConfig(), progress=False)
 
@@ -46,6 +47,7 @@ def test_masking_the_wall_axis_is_what_fixed_sigmas_need_and_the_hessian_weighti
     assert "eigen" in format_table([AteRow.of(full, {}), AteRow.of(eigen, {})])
 
 
+@pytest.mark.slow
 def test_a_saved_recording_evaluates_to_the_same_numbers_without_driving_again(walls_short, tmp_path):
     rec, regs = walls_short
     (eigen,) = fuse_recording(rec, [EigenvalueDetector(100.0)], regs, progress=False)
