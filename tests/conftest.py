@@ -2,10 +2,11 @@ import os
 from pathlib import Path
 
 # Under pytest-xdist each test process is one worker of several: its share of the cores for OpenMP
-# (torch, small_gicp) and BLAS, set before they load, as the project's own worker pools hold theirs.
+# (torch, small_gicp), BLAS and each part of a step (core.threads.part_threads), set before they load,
+# as the project's own worker pools hold theirs.
 if "PYTEST_XDIST_WORKER_COUNT" in os.environ:
     _share = str(max(1, (os.cpu_count() or 1) // int(os.environ["PYTEST_XDIST_WORKER_COUNT"])))
-    for _name in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    for _name in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "L3E_PART_THREADS"):
         os.environ.setdefault(_name, _share)
 
 import numpy as np
