@@ -139,11 +139,14 @@ class MapSource:
     scene_params: dict | None = None
     resolution: float = MAP_RESOLUTION
 
+    @property
+    def grid(self) -> MapGrid:
+        return MapGrid(resolution=self.resolution)
+
     def context(self, detector: str | None = None) -> SceneContext:
         """The scene with the map of `detector` (this source's own by default)."""
-        grid = MapGrid(resolution=self.resolution)
         return scene_context(
-            self.scene, detector or self.detector, self.cache_dir, False, grid, scene_params=self.scene_params
+            self.scene, detector or self.detector, self.cache_dir, False, self.grid, scene_params=self.scene_params
         )
 
 
@@ -526,9 +529,8 @@ def _build_maps(
     detectors = {_ppo_detector(p, options.detector) if p.startswith("ppo:") else options.detector for p in policies}
     for name in dict.fromkeys(scenes):
         for d in sorted(detectors | {options.detector}):
-            params, grid = options.scene_params.get(name), MapGrid(resolution=options.map_resolution)
-            build = MapBuild(progress=progress, announce=announce)
-            scene_context(name, d, options.cache_dir, build, grid, progress, params)
+            source, build = options.source(name), MapBuild(progress=progress, announce=announce)
+            scene_context(name, d, source.cache_dir, build, source.grid, progress, source.scene_params)
 
 
 def _run_record(options: EvalOptions) -> dict[str, Any]:
