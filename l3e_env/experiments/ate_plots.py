@@ -41,7 +41,7 @@ def plot_trajectories(path: Path, scene, rec, results) -> None:
 
 
 def plot_timeline(path: Path, results) -> None:
-    fig, axes = plt.subplots(len(results), 1, figsize=(12, 1.2 + 1.1 * len(results)), squeeze=False)
+    fig, axes = plt.subplots(len(results), 1, figsize=(12, 1.2 + 1.1 * len(results)), squeeze=False, sharex=True)
     for ax, r in zip(axes[:, 0], results):
         ax.imshow(r.masks.T.astype(float), aspect="auto", cmap="Reds", vmin=0, vmax=1, interpolation="nearest")
         ax.set_yticks(range(6), AXES, fontsize=7)

@@ -597,7 +597,7 @@ def test_a_recording_is_saved_whole_and_a_damaged_one_is_named(walls_short, tmp_
     def killed(*args, **kwargs):
         raise KeyboardInterrupt  # the run is stopped while the file is written
 
-    monkeypatch.setattr(np, "savez_compressed", killed)
+    monkeypatch.setattr(np, "savez", killed)
     with pytest.raises(KeyboardInterrupt):
         rec.save(tmp_path / "rec.npz")
     assert (tmp_path / "rec.npz").read_bytes() == whole and not list(tmp_path.glob("*.tmp"))
