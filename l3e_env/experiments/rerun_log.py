@@ -22,6 +22,7 @@ from l3e_env.localizability.labels import AXES
 if TYPE_CHECKING:
     import trimesh
 
+SEND_EVERY = 100  # steps a drive's recording keeps before it writes them (a killed run keeps the rest)
 MAX_SCAN_POINTS = 3000  # a logged scan is a random subset of at most this many of its points (the file's size)
 FREE = (90, 200, 90)  # a scan whose axes are all localizable
 FLAGGED = (230, 60, 50)  # a scan with a flagged axis
@@ -87,6 +88,7 @@ class DriveLog:
         self.rec.save(str(self.path), default_blueprint=_blueprint(rr, self.rows))
         self.rng = np.random.default_rng(seed)
         self.last: dict[str, np.ndarray] = {}
+        self.pending: list[StepLog] = []
 
     def scene(self, mesh: trimesh.Trimesh) -> None:
         """The scene's mesh, once (static: on every time line)."""
@@ -114,27 +116,64 @@ class DriveLog:
         self.rec.log("world/plan", self.rr.LineStrips3D([line], colors=[(250, 220, 40)], radii=0.05), static=True)
 
     def step(self, s: StepLog) -> None:
+        """Kept, and written with the others every SEND_EVERY steps and at close."""
+        self.pending.append(s)
+        if len(self.pending) >= SEND_EVERY:
+            self._send()
+
+    def _send(self) -> None:
+        """The pending steps as columns, one call an entity: logged one by one, the calls cost more
+        than the drive's ray casting."""
+        steps, self.pending = self.pending, []
+        if not steps:
+            return
         rr, rec = self.rr, self.rec
-        rec.set_time("step", sequence=s.step)
-        rec.set_time("sim_time", duration=s.seconds)
-        for i, (name, T) in enumerate([("truth", s.truth), *s.estimates.items()]):
+        names = list(dict.fromkeys(name for s in steps for name in s.estimates))
+        for i, name in enumerate(["truth", *names]):
+            have = [s for s in steps if name == "truth" or name in s.estimates]
             entity = "world/truth" if name == "truth" else f"world/estimate/{_entity(name)}"
-            here = np.asarray(T[:3, 3], np.float32)
-            before = self.last.get(entity, here)
-            self.last[entity] = here
+            poses = np.stack([s.truth if name == "truth" else s.estimates[name] for s in have])
+            here = poses[:, :3, 3].astype(np.float32)
+            before = np.vstack([self.last.get(entity, here[0])[None], here[:-1]])
+            self.last[entity] = here[-1]
             colour = PATH_COLOURS[i % len(PATH_COLOURS)]
-            rec.log(entity, rr.LineStrips3D([[before, here]], colors=[colour], radii=0.04))
+            strips = rr.LineStrips3D.columns(
+                strips=list(np.stack([before, here], axis=1)), colors=[colour] * len(have), radii=[0.04] * len(have)
+            )
+            rec.send_columns(entity, indexes=self._times(have), columns=strips)
             if name != "truth":
-                rec.log(f"error/{_entity(name)}", rr.Scalars(float(np.linalg.norm(T[:3, 3] - s.truth[:3, 3]))))
-        if s.scan is not None and s.T_w_s is not None:
-            points = random_subset(np.asarray(s.scan)[:, :3], MAX_SCAN_POINTS, self.rng)
-            world = points @ s.T_w_s[:3, :3].T + s.T_w_s[:3, 3]
-            colour = UNJUDGED if s.mask is None else FLAGGED if np.any(s.mask) else FREE
-            rec.log("world/scan", rr.Points3D(world.astype(np.float32), colors=[colour], radii=0.03))
-        if s.probabilities is not None and s.mask is not None:
-            _log_flags(rec, rr, "flags", s.probabilities, s.mask)
+                error = np.linalg.norm(poses[:, :3, 3] - np.stack([s.truth[:3, 3] for s in have]), axis=1)
+                rec.send_columns(f"error/{_entity(name)}", self._times(have), rr.Scalars.columns(scalars=error))
+        scanned = [s for s in steps if s.scan is not None and s.T_w_s is not None]
+        if scanned:
+            world = [self._shown(s) for s in scanned]
+            colours = [UNJUDGED if s.mask is None else FLAGGED if np.any(s.mask) else FREE for s in scanned]
+            points = rr.Points3D.columns(positions=np.concatenate(world)).partition([len(w) for w in world])
+            looks = rr.Points3D.columns(colors=colours, radii=[0.03] * len(scanned))
+            rec.send_columns("world/scan", self._times(scanned), [*points, *looks])
+        flagged = [s for s in steps if s.probabilities is not None and s.mask is not None]
+        if flagged:
+            probabilities = np.array([np.asarray(s.probabilities, float) for s in flagged])
+            masks = np.array([np.asarray(s.mask, float) for s in flagged])
+            for a, axis in enumerate(AXES):
+                for what, values in (("probability", probabilities), ("flagged", masks)):
+                    column = rr.Scalars.columns(scalars=values[:, a])
+                    rec.send_columns(f"flags/{axis}/{what}", self._times(flagged), column)
+
+    def _times(self, steps: list[StepLog]) -> list:
+        return [
+            self.rr.TimeColumn("step", sequence=[s.step for s in steps]),
+            self.rr.TimeColumn("sim_time", duration=[s.seconds for s in steps]),
+        ]
+
+    def _shown(self, s: StepLog) -> np.ndarray:
+        """The step's scan, a random subset of its points, in the world frame."""
+        assert s.scan is not None and s.T_w_s is not None
+        points = random_subset(np.asarray(s.scan)[:, :3], MAX_SCAN_POINTS, self.rng)
+        return (points @ s.T_w_s[:3, :3].T + s.T_w_s[:3, 3]).astype(np.float32)
 
     def close(self) -> Path:
+        self._send()
         self.rec.flush()
         self.rec.disconnect()
         return self.path
