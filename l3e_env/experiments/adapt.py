@@ -111,10 +111,11 @@ def adapt(
     checkpoint = Path(options.checkpoint or DEFAULT_CHECKPOINT)
     base = load_checkpoint(checkpoint)
     out = Path(out)
+    place = options.place or Path(source).stem
     with folder_lock(out):
+        _open_run(out, _run_settings(source, checkpoint, None, place, options), create=False)  # before reading
         scans, skipped = _read(source, options)
         pattern = _sensor(scans, options.sensor, base, checkpoint)
-        place = options.place or Path(source).stem
         _open_run(out, _run_settings(source, checkpoint, pattern, place, options))
         t0 = time.perf_counter()
         data, failed = _labelled(out / "labels", scans, pattern, place, base, options, progress)
@@ -212,23 +213,30 @@ def _sensor(scans: list[LevelledScan], given: str | None, base: dict[str, Any], 
 
 
 def _run_settings(
-    source: str | Path, checkpoint: Path, pattern: BeamPattern, place: str, options: AdaptOptions
+    source: str | Path, checkpoint: Path, pattern: BeamPattern | None, place: str, options: AdaptOptions
 ) -> dict:
-    """What a resumed run must share with the first: all but the workers and the device."""
-    settings = {k: v for k, v in dataclasses.asdict(options).items() if k not in ("workers", "device")}
-    where = {"source": str(Path(source).resolve()), "base": str(checkpoint.resolve()), "sensor": pattern.name}
-    return plain({**settings, **where, "place": place})
+    """What a resumed run must share with the first: all but the workers and the device (and the
+    sensor, where its scans are not read yet: `pattern` None)."""
+    settings = {k: v for k, v in dataclasses.asdict(options).items() if k not in ("workers", "device", "sensor")}
+    where = {"source": str(Path(source).resolve()), "base": str(checkpoint.resolve())}
+    sensor = {} if pattern is None else {"sensor": pattern.name}
+    return plain({**settings, **where, **sensor, "place": place})
 
 
-def _open_run(out: Path, settings: dict) -> None:
-    """Create the run folder, or check that it holds a run of the same settings (to resume)."""
+def _open_run(out: Path, settings: dict, create: bool = True) -> None:
+    """Check that the run folder holds a run of the same settings (to resume), or create it (`create`);
+    settings without a sensor are checked against the folder's less its sensor."""
     path = out / "adapt.json"
     if path.exists():
         before = json.loads(path.read_text())
+        if "sensor" not in settings:
+            before.pop("sensor", None)
         if before != settings:
             raise AdaptError(
                 f"{out} holds another adaptation ({settings_changed(before, settings)}); choose another folder"
             )
+        return
+    if not create:
         return
     out.mkdir(parents=True, exist_ok=True)
     write_atomic(path, lambda fh: fh.write(json.dumps(settings, indent=1).encode()))

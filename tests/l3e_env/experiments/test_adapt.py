@@ -10,12 +10,19 @@ import pytest
 
 from l3e_env.config import LidarConfig
 from l3e_env.core.transforms import pose_to_matrix
-from l3e_env.experiments.adapt import MIN_SCANS, AdaptError, AdaptOptions, adapt
+from l3e_env.experiments import adapt as adapt_module
+from l3e_env.experiments.adapt import AdaptError, AdaptOptions, adapt
 from l3e_env.sim.lidar import Lidar
 from l3e_env.sim.raycast import EmbreeCaster
 from scenes import make_scene
 
+MIN_SCANS = 6  # the least a fine-tune takes, lowered for these tests: the mechanics are the same with fewer scans
 QUICK = AdaptOptions(children=4, epochs=1, samples_per_epoch=8, workers=1, max_scans=MIN_SCANS + 2)
+
+
+@pytest.fixture(autouse=True)
+def fewer_scans(monkeypatch):
+    monkeypatch.setattr(adapt_module, "MIN_SCANS", MIN_SCANS)
 
 
 def _scans(folder, count: int, sensor: str = "vlp16", scene: str = "office-0"):
@@ -51,7 +58,7 @@ def test_bad_scans_are_named_before_anything_is_labelled(tmp_path):
 
 @pytest.mark.slow
 def test_an_adapted_model_is_refused_nowhere_says_what_it_was_adapted_on_and_is_not_scored_there(
-    office_scans, tiny_dataset, tmp_path
+    office_scans, tiny_dataset, tmp_path, monkeypatch
 ):
     from l3e_env.detection.detectors import make_detector
     from l3e_env.model.classifier import Classifier
@@ -70,15 +77,17 @@ def test_an_adapted_model_is_refused_nowhere_says_what_it_was_adapted_on_and_is_
     p, mask = clf.predict(np.load(office_scans / "scan-000.npy"))
     assert p.shape == (6,) and mask.dtype == bool
     # a run again resumes: labelled chunks are kept, and a finished run is not trained again; other
-    # settings in the folder are refused
+    # settings in the folder are refused, before a scan is read
     chunk = tmp_path / "run" / "labels" / "shards" / "chunk-00000.npy"
     before = chunk.stat().st_mtime_ns, result.checkpoint.stat().st_mtime_ns
     again = adapt(office_scans, tmp_path / "run", QUICK, progress=False)
     assert (chunk.stat().st_mtime_ns, result.checkpoint.stat().st_mtime_ns) == before
     assert again.checkpoint == result.checkpoint and again.statistics == result.statistics
     assert "fine-tuning" in result.seconds and "fine-tuning" not in again.seconds
-    with pytest.raises(AdaptError, match="holds another adaptation.*children"):
-        adapt(office_scans, tmp_path / "run", AdaptOptions(children=20, workers=1), progress=False)
+    with monkeypatch.context() as patched:
+        patched.setattr(adapt_module, "_read", lambda *args: pytest.fail("scans read before the folder was checked"))
+        with pytest.raises(AdaptError, match="holds another adaptation.*children"):
+            adapt(office_scans, tmp_path / "run", AdaptOptions(children=20, workers=1), progress=False)
     assert json.loads((tmp_path / "run" / "adapt.json").read_text())["children"] == 4
     # the adapted place's scans are never scored: `l3e evaluate` drops every dataset's rows of the place a
     # checkpoint was adapted on, for every detector alike
