@@ -18,7 +18,6 @@ import json
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
-from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
 
@@ -27,7 +26,7 @@ from tqdm import tqdm
 
 from l3e_env.config import EnvConfig, FusionSettings, OdometryConfig, settings_changed
 from l3e_env.core.transforms import yaw_of
-from l3e_env.core.workers import worker_start
+from l3e_env.core.workers import process_context, worker_start
 from l3e_env.envs import NavigationEnv, check_env_config
 from l3e_env.sim.avoidance import FreeHeadings
 from l3e_env.sim.follower import RouteFollower
@@ -431,7 +430,7 @@ def run_episodes(
             bar.update()
 
         if workers > 1 and len(todo) > 1:
-            with get_context("spawn").Pool(workers, initializer=worker_start) as pool:
+            with process_context([__name__]).Pool(workers, initializer=worker_start) as pool:
                 for e in pool.imap_unordered(run_episode, todo):
                     record(e)
         else:

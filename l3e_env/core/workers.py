@@ -1,4 +1,4 @@
-"""Ordered work in spawned processes. The slow judges (maps, the scan estimate in a replay,
+"""Ordered work in worker processes (`process_context`). The slow judges (maps, the scan estimate in a replay,
 `l3e judge`) each build one heavy object (a detector, a LiDAR on its own copy of a scene) that
 cannot cross a process boundary; every worker builds its own once from picklable settings, and
 the results come back in the order of the jobs, so a run gives the same output with any number
@@ -6,11 +6,12 @@ of workers."""
 
 from __future__ import annotations
 
+import multiprocessing
 import sys
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Sized
 from itertools import chain, islice
-from multiprocessing import get_context
+from multiprocessing.context import ForkServerContext, SpawnContext
 from typing import Any, TypeVar
 
 from l3e_env.core.threads import one_thread_per_part
@@ -38,6 +39,21 @@ def worker_start() -> None:
     a step on one thread, as the other workers fill the other cores (threads.one_thread_per_part)."""
     die_with_parent()
     one_thread_per_part()
+
+
+def process_context(preload: Iterable[str] = ()) -> SpawnContext | ForkServerContext:
+    """Where the project's worker processes come from: forked from one server process
+    (multiprocessing's forkserver, started with the first pool) that has imported the modules
+    `preload` names (those of the first pool's work), where the platform has it; elsewhere each
+    spawned as a new interpreter. Either way from a clean process, never a fork of this one, whose
+    threads (Embree's, torch's) a fork would copy mid-work; a forked worker starts without importing
+    the libraries again, which a spawned one spends seconds on."""
+    if "forkserver" not in multiprocessing.get_all_start_methods():
+        return multiprocessing.get_context("spawn")
+    context = multiprocessing.get_context("forkserver")
+    # read when the server starts, once; the first dies with this process (core.forkserver)
+    context.set_forkserver_preload(["l3e_env.core.forkserver", *preload])
+    return context
 
 
 def _one_torch_thread() -> None:
@@ -72,7 +88,7 @@ def ordered_map(
 ) -> Iterator[Result]:
     """work(obj, job) for each job, in order. With one worker (or one job) `obj` is the caller's
     `local`, or `build(*args)` made here when `local` is None (a caller that does not hold one);
-    with more, each of `workers` spawned processes uses its own `build(*args)`. `work`
+    with more, each of `workers` processes (`process_context`) uses its own `build(*args)`. `work`
     and `build` must be module-level functions, `args` picklable. Jobs are drawn from `jobs` as
     workers free up (a few ahead), so a long stream (a bag's scans) is never held whole."""
     if workers < 1:
@@ -87,7 +103,8 @@ def ordered_map(
         for job in chain(head, jobs):
             yield work(local, job)
         return
-    with get_context("spawn").Pool(workers, _start, (work, build, args)) as pool:
+    context = process_context(dict.fromkeys([work.__module__, build.__module__]))
+    with context.Pool(workers, _start, (work, build, args)) as pool:
         pending: deque = deque()
         for job in chain(head, jobs):
             pending.append(pool.apply_async(_run, (job,)))

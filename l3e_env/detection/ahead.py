@@ -12,7 +12,6 @@ in this process, to the bit. A process that dies answers UNKNOWN, counted as a d
 from __future__ import annotations
 
 import contextlib
-from multiprocessing import get_context
 from multiprocessing.connection import Connection
 from typing import Any
 
@@ -20,7 +19,7 @@ import numpy as np
 
 from l3e_env.config import LidarConfig
 from l3e_env.config.detector_spec import parse_detector
-from l3e_env.core.workers import die_with_parent
+from l3e_env.core.workers import die_with_parent, process_context
 
 from .detectors import UNKNOWN, Prediction, make_detector, safe_predict
 
@@ -55,7 +54,7 @@ class DetectorProcess:
                 f"detector '{spec}' needs the registration or the scene; only {PROCESS_DETECTORS} "
                 "judge in a process of their own"
             )
-        context = get_context("spawn")
+        context = process_context([__name__])
         self._conn, child = context.Pipe()
         self._process = context.Process(target=_serve, args=(child, spec, sensor, seed), daemon=True)
         self._process.start()

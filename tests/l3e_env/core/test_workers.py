@@ -1,4 +1,4 @@
-"""ordered_map: the same results in the same order from spawned workers as from the caller."""
+"""ordered_map: the same results in the same order from worker processes as from the caller."""
 
 import operator
 import os
@@ -40,14 +40,13 @@ def test_a_killed_run_leaves_no_worker_behind(tmp_path):
     script = tmp_path / "run.py"
     script.write_text(
         "import os, sys, time\n"
-        "from concurrent.futures import ProcessPoolExecutor\n"
-        "from l3e_env.core.workers import die_with_parent\n"
+        "from l3e_env.core.workers import process_context, worker_start\n"
         "def pid(_):\n"
         "    return os.getpid()\n"
         "def nap(_):\n"
         "    time.sleep(60)\n"
         "if __name__ == '__main__':\n"
-        "    with ProcessPoolExecutor(2, initializer=die_with_parent) as pool:\n"
+        "    with process_context().Pool(2, worker_start) as pool:\n"
         "        pids = set(pool.map(pid, range(8)))\n"
         "        print(' '.join(map(str, pids)), flush=True)\n"
         "        list(pool.map(nap, range(2)))\n"
