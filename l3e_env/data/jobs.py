@@ -7,7 +7,7 @@ from collections.abc import Callable, Iterator
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from typing import Any, TypeVar
 
-from l3e_env.core.workers import worker_start
+from l3e_env.core.workers import process_context, worker_start
 
 Result = TypeVar("Result")
 JOB_BACKENDS = ("local", "ray")
@@ -37,7 +37,8 @@ def run_jobs(
         for job in todo:
             yield work(config, job)
     else:
-        with ProcessPoolExecutor(min(workers, len(todo)), initializer=worker_start) as pool:  # no idle workers
+        context = process_context([work.__module__])
+        with ProcessPoolExecutor(min(workers, len(todo)), context, worker_start) as pool:  # no idle workers
             futures = [pool.submit(work, config, job) for job in todo]
             for fut in as_completed(futures):
                 yield fut.result()
