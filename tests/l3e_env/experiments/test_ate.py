@@ -155,9 +155,19 @@ def test_the_imu_attitude_joins_every_detector_alike_and_adds_its_own_reference_
 
 @pytest.mark.slow
 def test_the_hessian_weighs_the_icp_factor_and_the_settings_are_written(walls_short, tmp_path):
-    from fusion import FusionConfig
+    from dataclasses import replace
 
-    rec, regs = walls_short
+    from fusion import FusionConfig
+    from l3e_env.experiments.drive import RegisteredSteps
+
+    whole, all_regs = walls_short
+    steps = 80  # of the walls' drive: the run and the sweep register it again
+    rec = replace(
+        whole, ground_truth=whole.ground_truth[: steps + 1], odometry=whole.odometry[:steps],
+        scans=whole.scans[: steps + 1], samples=whole.samples[: steps + 1],
+    )  # fmt: skip
+    regs = RegisteredSteps(all_regs[:steps])
+    regs.start_ground = all_regs.start_ground  # the same first scan's
     rec.save(tmp_path / "rec.npz")
     (fixed,) = fuse_recording(rec, [NoDetector()], regs, fusion=FusionConfig(icp_covariance="fixed"), progress=False)
     (weighed,) = fuse_recording(rec, [NoDetector()], regs, progress=False)
