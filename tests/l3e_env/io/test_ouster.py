@@ -136,7 +136,7 @@ def _decisions(scans, specs, sensor=None) -> list:
 def test_every_route_in_gives_the_same_decisions(capture, tmp_path):
     """.osf, .pcap and exported arrays in either frame (with the metadata as --sensor): one set of
     decisions by every detector; and scanmc (with a few children: the routes, not its estimate, are
-    what differs) judges the capture's first scans as their arrays in the lidar frame, where its beams
+    what differs) judges the capture's first scan as its array in the lidar frame, where its beams
     come from the metadata given and not from the capture."""
     specs, costly = ["learned", "eigen:30", "dcreg:50"], ["scanmc:4"]
     sensor = LidarConfig(model=str(_metadata(capture)))
@@ -155,9 +155,9 @@ def test_every_route_in_gives_the_same_decisions(capture, tmp_path):
         assert len(decisions) == len(first), route
         for judged, reference in zip(decisions, first):  # each route's detectors decide as the capture's
             assert judged is not None and judged == {name: reference[name] for name in judged}, route
-    by_capture = _decisions(list(islice(read_capture(capture), 2)), costly)
+    by_capture = _decisions(list(islice(read_capture(capture), 1)), costly)
     assert all(d is not None and all(known for known, _ in d.values()) for d in by_capture)
-    assert _decisions(arrays[:2], costly, sensor) == by_capture
+    assert _decisions(arrays[:1], costly, sensor) == by_capture
     assert get_pattern(str(_metadata(capture))).n_beams == GOOD[capture][1]
 
 
@@ -267,7 +267,7 @@ def test_the_sdks_warnings_are_no_damage_and_are_said_once_per_file():
 
 @pytest.mark.slow
 def test_every_sensor_of_a_real_two_sensor_capture_is_judged_by_the_classifier_and_scanmc(tmp_path):
-    judged = list(judge_scans([POSE_DELTA], ["learned", "scanmc:8"]))  # a few children: whether it judges
+    judged = list(judge_scans([POSE_DELTA], ["learned", "scanmc:4"]))  # a few children: whether it judges
     assert [j.error for j in judged] == [None, None]
     assert all(p.known for j in judged for p in j.predictions.values()), [j.predictions for j in judged]
     assert all(j.up and "tilted" in j.up for j in judged)
