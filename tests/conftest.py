@@ -24,6 +24,16 @@ def pytest_collection_modifyitems(config, items):
 
 
 @pytest.fixture(scope="session")
+def run_wide(tmp_path_factory, worker_id) -> Path:
+    """A folder every pytest-xdist worker of this run shares (xdist's own recipe): what one worker
+    builds there, under a lock and cached by its settings, the others read instead of building it."""
+    root = tmp_path_factory.getbasetemp()
+    path = (root if worker_id == "master" else root.parent) / "run-wide"
+    path.mkdir(exist_ok=True)
+    return path
+
+
+@pytest.fixture(scope="session")
 def mine():
     return make_scene("mine")
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -25,10 +26,17 @@ from scenes.scene import Scene
 
 
 @pytest.fixture(scope="module")
-def small_fork(tmp_path_factory):
-    cache = tmp_path_factory.mktemp("maps")
+def small_fork(tmp_path_factory, run_wide):
+    """A small fork, its free space (built once a run, by whichever worker comes first) and a map cache
+    of this module's own that holds the free space too (its tests build and read maps in it)."""
+    from filelock import FileLock
+
     scene = make_fork(0, corridor_length=10.0, detour=8.0)
-    space = free_space(scene, cache)
+    with FileLock(run_wide / "small-fork.lock"):
+        space = free_space(scene, run_wide)
+    cache = tmp_path_factory.mktemp("maps")
+    for built in run_wide.glob(f"{scene.name}-free-*.npz"):
+        shutil.copy(built, cache)
     return scene, space, cache
 
 
