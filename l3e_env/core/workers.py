@@ -47,7 +47,7 @@ def process_context(preload: Iterable[str] = ()) -> SpawnContext | ForkServerCon
     `preload` names (those of the first pool's work), where the platform has it; elsewhere each
     spawned as a new interpreter. Either way from a clean process, never a fork of this one, whose
     threads (Embree's, torch's) a fork would copy mid-work; a forked worker starts without importing
-    the libraries again, which a spawned one spends seconds on."""
+    the libraries again, as a spawned one must."""
     if "forkserver" not in multiprocessing.get_all_start_methods():
         return multiprocessing.get_context("spawn")
     context = multiprocessing.get_context("forkserver")

@@ -51,8 +51,8 @@ class DriveRecord:
     sweep: bool = False  # scans swept over the robot's motion (LidarConfig.sweep), deskewed before they are fused
 
     def save(self, path: str | Path) -> None:
-        """Written whole or not at all (a killed run leaves the file that was there). Not compressed:
-        float32 points deflate by about a tenth at thirty times the writing time."""
+        """Written whole or not at all (a killed run leaves the file that was there); not compressed
+        (docs/decisions.md, "Processes and files")."""
         write_atomic(
             path,
             lambda fh: np.savez(

@@ -122,8 +122,7 @@ class DriveLog:
             self._send()
 
     def _send(self) -> None:
-        """The pending steps as columns, one call an entity: logged one by one, the calls cost more
-        than the drive's ray casting."""
+        """The pending steps as columns, one call an entity (docs/decisions.md, "Processes and files")."""
         steps, self.pending = self.pending, []
         if not steps:
             return
