@@ -397,9 +397,19 @@ def _scan_rows(x: np.ndarray) -> tuple[np.ndarray, float]:
         for j in range(c):
             high[j] = max(high[j], x[i, j])
             low[j] = min(low[j], x[i, j])
-    if low.min() < 0:
+    if _column_extreme(low, False) < 0:
         return np.zeros((0, c), dtype=np.int8), -1.0
-    return _rounded_rows(x, high.max())
+    return _rounded_rows(x, _column_extreme(high, True))
+
+
+@njit(cache=True, nogil=True)
+def _column_extreme(values: np.ndarray, largest: bool) -> float:
+    """The largest (or smallest) of values and 0, in their own dtype: a loop, since numba takes a
+    second or more to compile an array's own max() and min()."""
+    found = values.dtype.type(0)
+    for v in values:
+        found = max(found, v) if largest else min(found, v)
+    return found
 
 
 @njit(cache=True, nogil=True)
@@ -429,7 +439,7 @@ def _relu_rows(
         for j in range(c):
             y[i, j] = max(np.float32(products[i, j]) * factor[j] + bias[j], np.float32(0))
             high[j] = max(high[j], y[i, j])
-    return _rounded_rows(y, high.max())
+    return _rounded_rows(y, _column_extreme(high, True))
 
 
 @njit(cache=True, nogil=True)
@@ -581,24 +591,34 @@ def voxelize(points: list[torch.Tensor], voxel: float) -> tuple[Level, torch.Ten
 @njit(cache=True, nogil=True)
 def _voxels(keys: np.ndarray, order: np.ndarray, cells: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, ...]:
     """The occupied voxels in key order (`order` sorts the keys): their cells, mean points
-    (float32), the voxel of every point, and their keys."""
-    sorted_keys = keys[order]
+    (float32), the voxel of every point, and their keys. Loops, not fancy indexing: numba takes
+    seconds to compile an array indexed by an array."""
+    n = len(keys)
+    sorted_keys = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        sorted_keys[i] = keys[order[i]]
     first, run = _runs(sorted_keys)
     m = len(first)
-    inverse = np.empty(len(keys), dtype=np.int64)
-    inverse[order] = run
+    inverse = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        inverse[order[i]] = run[i]
     count, summed = np.zeros(m), np.zeros((m, 3))
-    for i in range(len(keys)):  # in the points' order, as np.bincount sums
+    for i in range(n):  # in the points' order, as np.bincount sums
         v = inverse[i]
         count[v] += 1
         for a in range(3):
             summed[v, a] += points[i, a]
     mean = np.empty((m, 3), dtype=np.float32)
+    head_cells = np.empty((m, cells.shape[1]), dtype=np.int64)
+    head_keys = np.empty(m, dtype=np.int64)
     for v in range(m):
         for a in range(3):
             mean[v, a] = summed[v, a] / count[v]
-    head = order[first]
-    return cells[head], mean, inverse, sorted_keys[first]
+        head = order[first[v]]
+        for a in range(cells.shape[1]):
+            head_cells[v, a] = cells[head, a]
+        head_keys[v] = sorted_keys[first[v]]
+    return head_cells, mean, inverse, head_keys
 
 
 def global_max_pool(x: torch.Tensor, level: Level, batch_size: int) -> torch.Tensor:
