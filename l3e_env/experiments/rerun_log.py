@@ -22,7 +22,7 @@ from l3e_env.localizability.labels import AXES
 if TYPE_CHECKING:
     import trimesh
 
-SEND_EVERY = 100  # steps a drive's recording keeps before it writes them (a killed run keeps the rest)
+SEND_EVERY = 100  # steps a drive's recording holds before it writes them (a killed run's file has those written)
 MAX_SCAN_POINTS = 3000  # a logged scan is a random subset of at most this many of its points (the file's size)
 FREE = (90, 200, 90)  # a scan whose axes are all localizable
 FLAGGED = (230, 60, 50)  # a scan with a flagged axis

@@ -404,8 +404,8 @@ def _scan_rows(x: np.ndarray) -> tuple[np.ndarray, float]:
 
 @njit(cache=True, nogil=True)
 def _column_extreme(values: np.ndarray, largest: bool) -> float:
-    """The largest (or smallest) of values and 0, in their own dtype: a loop, since numba takes a
-    second or more to compile an array's own max() and min()."""
+    """The largest (or smallest) of values and 0, in their own dtype: a loop, which numba compiles far
+    faster than an array's own max() and min()."""
     found = values.dtype.type(0)
     for v in values:
         found = max(found, v) if largest else min(found, v)
@@ -591,8 +591,8 @@ def voxelize(points: list[torch.Tensor], voxel: float) -> tuple[Level, torch.Ten
 @njit(cache=True, nogil=True)
 def _voxels(keys: np.ndarray, order: np.ndarray, cells: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, ...]:
     """The occupied voxels in key order (`order` sorts the keys): their cells, mean points
-    (float32), the voxel of every point, and their keys. Loops, not fancy indexing: numba takes
-    seconds to compile an array indexed by an array."""
+    (float32), the voxel of every point, and their keys. Loops, not arrays indexed by arrays, which
+    numba compiles far more slowly."""
     n = len(keys)
     sorted_keys = np.empty(n, dtype=np.int64)
     for i in range(n):
