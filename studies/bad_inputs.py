@@ -205,6 +205,7 @@ BAD_VALUES = {
     "text": "lots",
     "bool": "true",
 }
+THRESHOLD_LISTS = ("taus", "kappas", "eigen")  # options that take a detector's thresholds, one or several
 OPTION_COMMANDS = {  # a command line that would run, and its options to spoil
     ("ate", "--scene", "tunnel-0"): ["seeds", "seed", "workers", "max-steps", "scale", "keyframe-distance", "out"],
     ("judge", "x.npy"): ["workers", "every", "start", "end", "json", "sensor-index", "detector"],
@@ -216,18 +217,37 @@ OPTION_COMMANDS = {  # a command line that would run, and its options to spoil
     ("policy", "plan"): ["resolution", "lam", "workers"],
     ("policy", "evaluate"): ["episodes", "workers", "lam", "stop-radius", "resolution"],
     ("policy", "train", "--out", "OUT"): ["timesteps", "envs", "seed"],
+    ("sweep", "--scene", "tunnel-0"): ["taus", "kappas", "detector-every", "keyframe-distance"],
+    ("adapt", "--scans", "SCANS", "--out", "OUT"): [
+        "every",
+        "max-scans",
+        "children",
+        "epochs",
+        "samples-per-epoch",
+        "lr",
+        "workers",
+        "replay-share",
+        "seed",
+    ],
+    ("evaluate", "--other", "DATA"): ["eigen", "scan-mc", "cascade", "workers", "draws"],
+    ("fit-constraints", "--dataset", "DATA"): ["beta", "levels"],
 }
 
 
 def option_values(tmp: Path, data: Path) -> Iterator[Case]:
     """Every spoilt option value through --set, and a few through --config."""
+    (tmp / "scans").mkdir(exist_ok=True)  # a place's scans for `l3e adapt`: a few random clouds
+    for k in range(3):
+        np.save(tmp / "scans" / f"scan-{k}.npy", np.random.default_rng(k).normal(size=(2000, 3)) * 5)
     for command, options in OPTION_COMMANDS.items():
         base = [str(tmp / "out") if a == "OUT" else str(tmp / "out.bag") if a == "OUT.bag" else a for a in command]
-        base = [str(data) if a == "DATA" else a for a in base]
+        base = [str(data) if a == "DATA" else str(tmp / "scans") if a == "SCANS" else a for a in base]
         for option in options:
             for kind, value in BAD_VALUES.items():
                 if option in ("out", "json", "config") and kind not in ("list", "map", "bool"):
                     continue  # any text names a file or folder
+                if option in THRESHOLD_LISTS and kind in ("list", "huge"):
+                    continue  # several thresholds, and one that flags every axis, are values they take
                 if kind in ("list", "map", "bool") or option in ("detector", "preset"):
                     argv = [*base, "--set", f"{option}={value}"]
                 else:

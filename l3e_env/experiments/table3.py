@@ -162,6 +162,11 @@ class Table3Options:
                 "a dataset is split by a checkpoint's training and validation scenes: give a "
                 "checkpoint, or score the dataset whole as an other"
             )
+        if any(not v > 0 for v in self.eigen) or any(not v > 1 for v in self.dcreg):
+            raise ValueError(
+                f"eigen: thresholds tau must be positive, got {self.eigen}; dcreg: condition ratios kappa must "
+                f"exceed 1, got {self.dcreg}"
+            )
         if any(not v > 0 for v in [*self.xicp, *self.drpm]):
             raise ValueError(f"X-ICP's and DRPM's thresholds must be positive, got {self.xicp} and {self.drpm}")
         if self.draws < 1:

@@ -46,6 +46,15 @@ class SweepOptions:
     seed: int = 0
     fusion_settings: FusionSettings = FusionSettings()
 
+    def check(self) -> None:
+        """ValueError naming a swept threshold its test cannot take (tau <= 0, kappa <= 1, ...), before a drive."""
+        for field_name, make, _ in SWEPT:
+            for value in getattr(self, field_name):
+                try:
+                    make(value)
+                except ValueError as exc:
+                    raise ValueError(f"{field_name}: {exc}") from None
+
 
 # each swept test: its thresholds' option, the detector made at one threshold, and its row's key
 SWEPT = (
@@ -66,6 +75,7 @@ def run_sweep(
     """Returns {scene: {"taus": [...], "eigen_ate": [...], "kappas": [...], "dcreg_ate": [...], "xicps":
     [...], "xicp_ate": [...], "drpms": [...], "drpm_ate": [...], "<reference>": ate, ...}} and writes
     sweep.json and tau_sweep.png into out_dir (recordings are saved there for re-use)."""
+    options.check()
     fusion = odometry_fusion_config(OdometryConfig(), options.fusion_settings)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

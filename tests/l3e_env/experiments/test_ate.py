@@ -631,3 +631,16 @@ def test_the_drift_of_each_region_is_its_own_and_the_table_shows_it():
     row = AteRow("none", 1.0, None, 0.1, 0.1, dict.fromkeys(AXES, 0.0), 1.0, drift=drift)
     table = format_table([row])
     assert "drift tunnel" in table and "3.90 m  10.0%" in table and table.splitlines()[-1].endswith("-")
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "says"), [("taus", -5.0, "taus: .*positive"), ("kappas", 0.5, "kappas: .*exceed 1")]
+)
+def test_a_sweeps_threshold_its_test_cannot_take_is_named_before_a_drive(tmp_path, monkeypatch, field, value, says):
+    from l3e_env.experiments import tau_sweep
+
+    monkeypatch.setattr(
+        tau_sweep, "record_run", lambda *a, **k: pytest.fail("driven before the thresholds were checked")
+    )
+    with pytest.raises(ValueError, match=says):
+        tau_sweep.run_sweep(tmp_path, ["tunnel-0"], tau_sweep.SweepOptions(**{field: (10.0, value)}), progress=False)

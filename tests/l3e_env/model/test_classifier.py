@@ -896,3 +896,11 @@ def test_replayed_places_take_their_share_of_the_training_pool(tiny_dataset):
         assert np.array_equal(pool, _training_pool(data, rows, cfg))  # seeded
     with pytest.raises(TrainingError, match="replay needs new scans and replayed ones"):
         _training_pool(data, rows, TrainConfig(train_scenes=scenes, replay_scenes=scenes))
+
+
+@pytest.mark.parametrize("thresholds", [{"eigen": [30.0, -5.0]}, {"dcreg": [0.5]}, {"eigen": [float("nan")]}])
+def test_a_classical_threshold_no_test_can_take_is_named_before_anything_is_read(tmp_path, thresholds):
+    from l3e_env.experiments.table3 import Table3Options
+
+    with pytest.raises(ValueError, match="eigen: thresholds tau must be positive.*dcreg: condition ratios"):
+        Table3Options(others=[tmp_path / "nowhere"], **thresholds).check([], None)
