@@ -7,6 +7,7 @@ of workers."""
 from __future__ import annotations
 
 import multiprocessing
+import os
 import sys
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Sized
@@ -24,14 +25,18 @@ _worker: tuple[Callable[[Any, Any], Any], Any] | None = None  # this worker's (w
 
 def die_with_parent() -> None:
     """A worker process's initializer: on Linux, the kernel ends the worker when the process that started
-    it dies, so a killed run leaves no idle workers behind (elsewhere it does nothing). Hand-written:
-    multiprocessing has no such option, and prctl is one call."""
+    it dies, so a killed run leaves no idle workers behind (elsewhere it does nothing). A worker whose
+    run died while it started (its parent then was already gone, or is the fork server about to go)
+    ends here. Hand-written: multiprocessing has no such option, and prctl is one call."""
     if sys.platform.startswith("linux"):
         import ctypes
         import signal
 
         PR_SET_PDEATHSIG = 1
         ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+    run = multiprocessing.parent_process()  # the run that asked for this worker (None: not a worker)
+    if run is not None and not run.is_alive():
+        os._exit(1)
 
 
 def worker_start() -> None:

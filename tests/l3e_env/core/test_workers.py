@@ -56,10 +56,26 @@ def test_a_killed_run_leaves_no_worker_behind(tmp_path):
     assert workers and all(Path(f"/proc/{p}").exists() for p in workers)
     os.kill(run.pid, signal.SIGKILL)
     run.wait(timeout=10)
-    deadline = time.monotonic() + 10
-    while time.monotonic() < deadline and any(_alive(p) for p in workers):
+    # every process of the run: the workers that took a job, any other, and the fork server they came
+    # from (their command lines carry the run's folder)
+    deadline = time.monotonic() + 20  # a loaded machine
+    while time.monotonic() < deadline and any(_alive(p) for p in [*workers, *_started_in(tmp_path)]):
         time.sleep(0.1)
-    assert not any(_alive(p) for p in workers)
+    assert not any(_alive(p) for p in workers) and not [p for p in _started_in(tmp_path) if _alive(p)]
+
+
+def _started_in(folder) -> list[int]:
+    """The processes whose command line names `folder`."""
+    from pathlib import Path
+
+    found = []
+    for proc in Path("/proc").iterdir():
+        try:
+            if proc.name.isdigit() and str(folder) in (proc / "cmdline").read_bytes().decode(errors="replace"):
+                found.append(int(proc.name))
+        except OSError:
+            continue
+    return found
 
 
 def _alive(pid: int) -> bool:
