@@ -255,6 +255,12 @@ class RegisteredSteps(list):
 
     start_ground: np.ndarray | None = None
 
+    def first(self, steps: int) -> RegisteredSteps:
+        """The first `steps` registrations with the first scan's ground (a list slice drops it)."""
+        part = RegisteredSteps(self[:steps])
+        part.start_ground = self.start_ground
+        return part
+
 
 def register_sequence(
     rec: DriveRecord, config: RegistrationConfig, progress: bool = True, keyframes: Keyframes | None = None

@@ -158,7 +158,6 @@ def test_the_hessian_weighs_the_icp_factor_and_the_settings_are_written(walls_sh
     from dataclasses import replace
 
     from fusion import FusionConfig
-    from l3e_env.experiments.drive import RegisteredSteps
 
     whole, all_regs = walls_short
     steps = 80  # of the walls' drive: the run and the sweep register it again
@@ -166,8 +165,7 @@ def test_the_hessian_weighs_the_icp_factor_and_the_settings_are_written(walls_sh
         whole, ground_truth=whole.ground_truth[: steps + 1], odometry=whole.odometry[:steps],
         scans=whole.scans[: steps + 1], samples=whole.samples[: steps + 1],
     )  # fmt: skip
-    regs = RegisteredSteps(all_regs[:steps])
-    regs.start_ground = all_regs.start_ground  # the same first scan's
+    regs = all_regs.first(steps)
     rec.save(tmp_path / "rec.npz")
     (fixed,) = fuse_recording(rec, [NoDetector()], regs, fusion=FusionConfig(icp_covariance="fixed"), progress=False)
     (weighed,) = fuse_recording(rec, [NoDetector()], regs, progress=False)
